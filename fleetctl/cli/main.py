@@ -1,0 +1,83 @@
+"""Entry point of the ``fleetctl`` command.
+
+Each command group lives in its own module with a ``register(app)`` function; this module
+only assembles them and turns :class:`~fleetctl.errors.FleetError` into a message on stderr
+and an exit code (never a traceback).
+"""
+
+from __future__ import annotations
+
+import importlib
+import sys
+
+import typer
+
+from fleetctl import __version__
+from fleetctl.errors import FleetError
+
+# Order is the order of `fleetctl --help`.
+_COMMAND_MODULES = (
+    "fleetctl.cli.fleet",  # init, add-robot, remove-robot, add-user, remove-user, list, render, export
+    "fleetctl.cli.run",  # server, client, webviz, demo
+    "fleetctl.cli.schema",  # schema export
+    "fleetctl.cli.deploy",  # build, up, down, status, logs
+    "fleetctl.cli.e2e",  # e2e
+)
+
+
+def _version_callback(value: bool) -> None:
+    if value:
+        typer.echo(f"fleetctl {__version__}")
+        raise typer.Exit()
+
+
+def build_app() -> typer.Typer:
+    """Build the typer application with every command group registered."""
+    app = typer.Typer(
+        name="fleetctl",
+        help="Communication, monitoring and tasking for fleets of ROS 2 robots.",
+        no_args_is_help=True,
+        pretty_exceptions_enable=False,
+        add_completion=False,
+    )
+
+    @app.callback()
+    def _root(
+        version: bool = typer.Option(
+            False, "--version", callback=_version_callback, is_eager=True, help="Print the version."
+        ),
+    ) -> None:
+        """Communication, monitoring and tasking for fleets of ROS 2 robots."""
+
+    for name in _COMMAND_MODULES:
+        importlib.import_module(name).register(app)
+    return app
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Run the CLI; return the process exit code."""
+    app = build_app()
+    try:
+        app(args=argv, standalone_mode=False)
+    except FleetError as exc:
+        typer.echo(f"fleetctl: error: {exc}", err=True)
+        return int(exc.exit_code)
+    except typer.Exit as exc:
+        return int(exc.exit_code or 0)
+    except typer.Abort:
+        typer.echo("fleetctl: aborted", err=True)
+        return 1
+    except KeyboardInterrupt:
+        return 130
+    except Exception as exc:  # click usage errors arrive here in non-standalone mode
+        import click
+
+        if isinstance(exc, click.ClickException):
+            exc.show()
+            return exc.exit_code
+        raise
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

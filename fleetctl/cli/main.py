@@ -18,7 +18,10 @@ from fleetctl.errors import FleetError
 # Order is the order of `fleetctl --help`.
 _COMMAND_MODULES = (
     "fleetctl.cli.fleet",  # init, add-robot, remove-robot, add-user, remove-user, list, render, export
-    "fleetctl.cli.run",  # server, client, webviz, demo
+    "fleetctl.cli.server",  # server
+    "fleetctl.cli.client",  # client
+    "fleetctl.cli.webviz",  # webviz
+    "fleetctl.cli.demo",  # demo
     "fleetctl.cli.schema",  # schema export
     "fleetctl.cli.deploy",  # build, up, down, status, logs
     "fleetctl.cli.e2e",  # e2e

@@ -17,7 +17,7 @@ from fleetctl.errors import FleetError
 
 # Order is the order of `fleetctl --help`.
 _COMMAND_MODULES = (
-    "fleetctl.cli.fleet",  # init, add-robot, remove-robot, add-user, remove-user, list, render, export
+    "fleetctl.cli.fleet",  # init, add-robot, remove-robot, add-user, remove-user, list, ...
     "fleetctl.cli.server",  # server
     "fleetctl.cli.client",  # client
     "fleetctl.cli.webviz",  # webviz
@@ -58,27 +58,23 @@ def build_app() -> typer.Typer:
 
 
 def main(argv: list[str] | None = None) -> int:
-    """Run the CLI; return the process exit code."""
+    """Run the CLI; return the process exit code.
+
+    Click handles usage errors itself (exit code 2, a message on stderr); a
+    :class:`FleetError` is printed as one line on stderr with its own exit code.
+    """
     app = build_app()
     try:
-        app(args=argv, standalone_mode=False)
+        app(args=argv, prog_name="fleetctl")
     except FleetError as exc:
         typer.echo(f"fleetctl: error: {exc}", err=True)
         return int(exc.exit_code)
-    except typer.Exit as exc:
-        return int(exc.exit_code or 0)
-    except typer.Abort:
-        typer.echo("fleetctl: aborted", err=True)
+    except SystemExit as exc:  # click's standalone mode always ends in sys.exit
+        code = exc.code
+        if code is None or isinstance(code, int):
+            return int(code or 0)
+        typer.echo(str(code), err=True)
         return 1
-    except KeyboardInterrupt:
-        return 130
-    except Exception as exc:  # click usage errors arrive here in non-standalone mode
-        import click
-
-        if isinstance(exc, click.ClickException):
-            exc.show()
-            return exc.exit_code
-        raise
     return 0
 
 

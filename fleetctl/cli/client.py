@@ -1,9 +1,39 @@
-"""Command group placeholder; filled in by its owner."""
+"""``fleetctl client --config FILE``: run the robot client (rclpy node + fleet link)."""
 
 from __future__ import annotations
 
+import json
+import logging
+from pathlib import Path
+
 import typer
+
+from fleetctl.errors import EnvironmentMissing
+
+
+def _client(
+    config: Path = typer.Option(..., "--config", "-c", help="The robot's client.yaml."),
+    log_level: str = typer.Option("INFO", "--log-level", help="DEBUG, INFO, WARNING or ERROR."),
+    print_stats: bool = typer.Option(False, "--print-stats",
+                                     help="Print the link's final counters as JSON on exit."),
+) -> None:
+    """Run the robot client: local ROS 2 topics to the fleet server and back."""
+    from fleetctl.client.config import load_client_config
+
+    logging.basicConfig(level=log_level.upper(),
+                        format="%(asctime)s %(levelname)s %(name)s: %(message)s")
+    loaded = load_client_config(config)  # before rclpy: a bad file fails fast, named
+    try:
+        from fleetctl.client.ros.runner import run_client
+    except ImportError as exc:
+        raise EnvironmentMissing(
+            f"rclpy is not installed ({exc}); install the ROS extra: pip install 'fleetctl[ros]'"
+        ) from exc
+    stats = run_client(loaded)
+    if print_stats:
+        typer.echo(json.dumps(stats, default=str))
 
 
 def register(app: typer.Typer) -> None:
-    """Add this group's commands to *app*."""
+    """Add ``client`` to *app*."""
+    app.command("client")(_client)

@@ -1,9 +1,189 @@
-"""Command group placeholder; filled in by its owner."""
+"""Fleet life-cycle commands: init, add-robot, remove-robot, add-user, remove-user, list,
+render, export.
+
+Each command calls one function of :mod:`fleetctl.deploy.operations` (or
+:mod:`fleetctl.deploy.export`) and prints its result with :mod:`fleetctl.cli.output`.
+The fleet directory comes from ``--fleet DIR``, else ``$FLEET_DIR``, else the current
+directory.
+"""
 
 from __future__ import annotations
 
+from pathlib import Path
+from typing import Any
+
 import typer
+
+from fleetctl.cli.output import OutputFormat, changes_text, emit, output_option, table
+from fleetctl.deploy import operations as ops
+from fleetctl.deploy.export import export_robot
+from fleetctl.deploy.fleet import DEFAULT_MTU_BYTES, DEFAULT_SERVER_PORT, DEFAULT_SUBNET
+
+_FLEET_HELP = "Fleet directory (default: $FLEET_DIR, else the current directory)."
+_DRY_RUN_HELP = "Show what would be written, write nothing."
+
+
+def _fleet_option() -> Any:
+    return typer.Option(Path("."), "--fleet", "-f", envvar="FLEET_DIR", help=_FLEET_HELP,
+                        show_default=False)
+
+
+def _dry_run_option() -> Any:
+    return typer.Option(False, "--dry-run", help=_DRY_RUN_HELP)
+
+
+def _header(outcome: ops.Outcome, what: str) -> str:
+    prefix = "dry run: " if outcome.dry_run else ""
+    return f"{prefix}{what}\n" + changes_text(outcome.changes, outcome.fleet_dir, outcome.dry_run)
+
+
+def init(
+    directory: Path | None = typer.Argument(
+        None, help="Directory to create the fleet in (default: --fleet / $FLEET_DIR / .)."),
+    endpoint: str = typer.Option(..., "--endpoint", help="HOST:PORT robots reach WireGuard on."),
+    subnet: str = typer.Option(DEFAULT_SUBNET, "--subnet", help="VPN subnet (CIDR)."),
+    server_ip: str | None = typer.Option(
+        None, "--server-ip", help="Server's VPN address (default: first host of the subnet)."),
+    server_port: int = typer.Option(DEFAULT_SERVER_PORT, "--server-port", min=1, max=65535,
+                                    help="TCP port of the fleet server's WebSocket."),
+    wireguard_port: int | None = typer.Option(
+        None, "--wireguard-port", min=1, max=65535,
+        help="UDP port WireGuard listens on (default: the endpoint's port)."),
+    name: str | None = typer.Option(None, "--name", help="Fleet name (default: directory name)."),
+    force: bool = typer.Option(False, "--force",
+                               help="Replace an existing fleet, its keys and generated files."),
+    fleet: Path = _fleet_option(),
+    dry_run: bool = _dry_run_option(),
+    output: OutputFormat = output_option(),
+) -> None:
+    """Create a fleet: fleet.yaml, server WireGuard key and config, server config, auth map."""
+    result = ops.create_fleet(
+        directory or fleet, endpoint=endpoint, name=name, subnet=subnet, server_ip=server_ip,
+        server_port=server_port, wireguard_port=wireguard_port, force=force, dry_run=dry_run)
+    f = result.fleet
+
+    def text() -> str:
+        return (_header(result.outcome, f"fleet {f.name!r}: subnet {f.subnet}, server "
+                        f"{f.server_ip}, WireGuard {f.endpoint}")
+                + f"\nserver public key: {result.server_public_key}")
+
+    emit(result, output, text)
+
+
+def add_robot(
+    name: str = typer.Argument(..., help="Robot name (a ROS namespace segment)."),
+    ip: str | None = typer.Option(None, "--ip", help="VPN address (default: next free one)."),
+    mtu: int = typer.Option(DEFAULT_MTU_BYTES, "--mtu", help="WireGuard MTU in bytes "
+                            "(1280 suits LTE)."),
+    fleet: Path = _fleet_option(),
+    dry_run: bool = _dry_run_option(),
+    output: OutputFormat = output_option(),
+) -> None:
+    """Add a robot: keys, WireGuard and client configs, server peer, auth rules."""
+    result = ops.add_robot(fleet, name, ip=ip, mtu_bytes=mtu, dry_run=dry_run)
+
+    def text() -> str:
+        return (_header(result.outcome, f"robot {name!r} at {result.robot.ip}")
+                + f"\npublic key: {result.public_key}"
+                + f"\nnext: fleetctl export {name}   (the bundle to copy to the robot)")
+
+    emit(result, output, text)
+
+
+def remove_robot(
+    name: str = typer.Argument(..., help="Robot to remove."),
+    fleet: Path = _fleet_option(),
+    dry_run: bool = _dry_run_option(),
+    output: OutputFormat = output_option(),
+) -> None:
+    """Remove a robot, its keys and files, its server peer and its auth rules."""
+    result = ops.remove_robot(fleet, name, dry_run=dry_run)
+    emit(result, output, lambda: _header(result.outcome, f"removed robot {name!r}"))
+
+
+def add_user(
+    email: str = typer.Argument(..., help="The user's email address."),
+    role: str = typer.Option(..., "--role", help="viewer, operator or admin."),
+    fleet: Path = _fleet_option(),
+    dry_run: bool = _dry_run_option(),
+    output: OutputFormat = output_option(),
+) -> None:
+    """Add a user; prints their token once (only its SHA-256 is stored)."""
+    result = ops.add_user(fleet, email, role, dry_run=dry_run)
+    shown = {"user": result.user, "outcome": result.outcome,
+             "token": result.token.reveal() if result.token else None}
+
+    def text() -> str:
+        out = _header(result.outcome, f"user {email!r} ({result.user.role.value})")
+        if result.token is not None:
+            out += f"\ntoken (shown once, store it now): {result.token.reveal()}"
+        return out
+
+    emit(shown, output, text)
+
+
+def remove_user(
+    email: str = typer.Argument(..., help="User to remove."),
+    fleet: Path = _fleet_option(),
+    dry_run: bool = _dry_run_option(),
+    output: OutputFormat = output_option(),
+) -> None:
+    """Remove a user; their token stops working once the server reloads auth.yaml."""
+    result = ops.remove_user(fleet, email, dry_run=dry_run)
+    emit(result, output, lambda: _header(result.outcome, f"removed user {email!r}"))
+
+
+def list_fleet(
+    fleet: Path = _fleet_option(),
+    output: OutputFormat = output_option(),
+) -> None:
+    """List the fleet's robots and users."""
+    info = ops.describe_fleet(fleet)
+    f = info.fleet
+
+    def text() -> str:
+        robots = table(["ROBOT", "IP", "MTU", "COMMAND TOPICS", "PUBLIC KEY"], [
+            (r.name, r.ip, r.mtu_bytes, ",".join(c.topic for c in r.command_topics) or "-",
+             info.robot_public_keys.get(r.name, "(no keys yet)")) for r in f.robots])
+        users = table(["USER", "ROLE"], [(u.email, u.role.value) for u in f.users])
+        return (f"fleet {f.name!r}: subnet {f.subnet}, server {f.server_ip}:{f.server_port}, "
+                f"WireGuard {f.endpoint}\nserver public key: {info.server_public_key}\n\n"
+                f"{robots if f.robots else '(no robots)'}\n\n{users if f.users else '(no users)'}")
+
+    emit(info, output, text)
+
+
+def render(
+    fleet: Path = _fleet_option(),
+    dry_run: bool = _dry_run_option(),
+    output: OutputFormat = output_option(),
+) -> None:
+    """Regenerate every config from fleet.yaml and the keys (unchanged files stay untouched)."""
+    outcome = ops.render_fleet(fleet, dry_run=dry_run)
+    emit(outcome, output, lambda: _header(outcome, f"rendered {outcome.fleet_dir}"))
+
+
+def export(
+    name: str = typer.Argument(..., help="Robot to export."),
+    out: Path | None = typer.Option(
+        None, "--out", help="Bundle directory, or a path ending in .tar.gz "
+        "(default: ./NAME-bundle)."),
+    fleet: Path = _fleet_option(),
+    dry_run: bool = _dry_run_option(),
+    output: OutputFormat = output_option(),
+) -> None:
+    """Write robot NAME's bundle: its WireGuard config, client config and how to start them."""
+    result = export_robot(fleet, name, out, dry_run=dry_run)
+    emit(result, output, lambda: _header(result.outcome, f"bundle of {name!r}: {result.path}"))
 
 
 def register(app: typer.Typer) -> None:
     """Add this group's commands to *app*."""
+    app.command("init")(init)
+    app.command("add-robot")(add_robot)
+    app.command("remove-robot")(remove_robot)
+    app.command("add-user")(add_user)
+    app.command("remove-user")(remove_user)
+    app.command("list")(list_fleet)
+    app.command("render")(render)
+    app.command("export")(export)

@@ -1,0 +1,272 @@
+"""Relay throughput and added latency of ``fleetctl server`` vs a plain websockets relay.
+
+Usage::
+
+    .venv/bin/python benchmarks/relay_throughput.py [--seconds 3] [--server-cpu 0]
+        [--client-cpu 1]
+
+Each server runs in its own process pinned to one core (``os.sched_setaffinity``); the
+publisher and the subscriber are separate processes pinned to another core. Both servers
+are measured with the same clients, side by side:
+
+- ``baseline``: a plain websockets relay (``async for`` + ``send`` to every subscriber, no
+  auth, no scheduling, no metadata read);
+- ``fleetctl``: :class:`fleetctl.server.app.RelayServer` with an auth map, RE2
+  permissions, subscriptions and per-connection outbound schedulers.
+
+Phase 1 (throughput): the publisher sends small no_drop ``std_msgs/msg/String`` frames
+(~130 bytes) as fast as TCP lets it; the subscriber counts deliveries per second.
+Phase 2 (latency): the publisher paces at half of fleetctl's measured throughput; every
+payload carries ``time.time_ns()`` at send (one host clock), the subscriber computes
+receive - send and prints p50/p99. The publisher writes pre-built WebSocket frames (zero
+masking key, legal per RFC 6455 and cheap) on the socket of a websockets sync client, so
+the clients are not the bottleneck; the subscriber is a real websockets asyncio client.
+"""
+
+from __future__ import annotations
+
+import argparse
+import asyncio
+import json
+import multiprocessing as mp
+import os
+import statistics
+import struct
+import sys
+import tempfile
+import time
+from pathlib import Path
+from typing import Any
+
+TOPIC = "/bench/chat"
+STAMP_DIGITS = 19
+
+
+def _pin(cpu: int) -> None:
+    try:
+        os.sched_setaffinity(0, {cpu})
+    except (OSError, AttributeError):
+        pass  # fewer cores than asked for: run unpinned rather than fail
+
+
+# -- servers --------------------------------------------------------------------------
+
+
+def run_baseline(cpu: int, ports: Any) -> None:
+    """A plain websockets relay: every frame to every subscriber."""
+    _pin(cpu)
+    from websockets.asyncio.server import ServerConnection, serve
+
+    subscribers: set[ServerConnection] = set()
+
+    async def handler(ws: ServerConnection) -> None:
+        if ws.request is not None and ws.request.path == "/sub":
+            subscribers.add(ws)
+            try:
+                await ws.wait_closed()
+            finally:
+                subscribers.discard(ws)
+            return
+        async for message in ws:
+            for sub in list(subscribers):
+                await sub.send(message)
+
+    async def main() -> None:
+        async with serve(handler, "127.0.0.1", 0, max_size=2**24, compression=None) as srv:
+            ports.put(next(iter(srv.sockets)).getsockname()[1])
+            await asyncio.Future()
+
+    asyncio.run(main())
+
+
+def run_fleetctl(cpu: int, ports: Any) -> None:
+    """``fleetctl server`` with an auth map granting loopback both on /bench/.*."""
+    _pin(cpu)
+    from fleetctl.server.app import RelayServer
+    from fleetctl.server.authmap import parse_auth_map
+    from fleetctl.server.config import ServerConfig
+
+    auth = parse_auth_map(
+        {"identities": [{"name": "bench", "cidr": "127.0.0.0/8",
+                         "rules": [{"topic": "/bench/.*", "op": "both"}]}]},
+        Path("bench-auth.yaml"),
+    )
+    db = Path(tempfile.mkdtemp()) / "fleet.db"
+    config = ServerConfig(listen_host="127.0.0.1", listen_port=0, auth_map=Path("-"),
+                          database=db)
+
+    async def main() -> None:
+        async with RelayServer(config, auth) as srv:
+            ports.put(srv.port)
+            await asyncio.Future()
+
+    asyncio.run(main())
+
+
+# -- clients --------------------------------------------------------------------------
+
+
+def _template() -> tuple[bytes, int]:
+    from fleetctl.wire.codec import default_codec
+
+    codec = default_codec()
+    cls = codec.registry.get("std_msgs/msg/String").cls
+    frame = codec.encode(cls("0" * STAMP_DIGITS), "std_msgs/msg/String", TOPIC, no_drop=True)
+    return frame, frame.index(b"0" * STAMP_DIGITS)
+
+
+def _ws_frame(payload: bytes) -> bytes:
+    # Client-to-server binary frame, FIN, masked with a zero key (payload unchanged).
+    n = len(payload)
+    if n < 126:
+        header = struct.pack("!BB", 0x82, 0x80 | n)
+    else:
+        header = struct.pack("!BBH", 0x82, 0x80 | 126, n)
+    return header + b"\0\0\0\0" + payload
+
+
+def run_publisher(cpu: int, port: int, rate_hz: float | None, seconds: float,
+                  fleetctl: bool) -> None:
+    """Send frames for *seconds*: as fast as possible, or paced at *rate_hz*."""
+    _pin(cpu)
+    from websockets.sync.client import connect
+
+    frame, offset = _template()
+    head = _ws_frame(frame)
+    stamp_at = len(head) - len(frame) + offset
+    with connect(f"ws://127.0.0.1:{port}/pub", compression=None, max_size=None) as ws:
+        if fleetctl:
+            ws.recv(timeout=5)  # welcome
+        sock = ws.socket
+        buf = bytearray(head)
+        end = time.perf_counter() + seconds
+        batch = 64 if rate_hz is None else 1
+        period = 0.0 if rate_hz is None else 1.0 / rate_hz
+        next_t = time.perf_counter()
+        while time.perf_counter() < end:
+            if period:
+                while time.perf_counter() < next_t:  # benchmark pacing: busy-wait
+                    pass
+                next_t += period
+            chunks = []
+            for _ in range(batch):
+                buf[stamp_at:stamp_at + STAMP_DIGITS] = b"%019d" % time.time_ns()
+                chunks.append(bytes(buf))
+            try:
+                sock.sendall(b"".join(chunks))
+            except OSError:
+                return  # the measurement is over and the server went away
+
+
+def run_subscriber(cpu: int, port: int, seconds: float, fleetctl: bool, out: Any,
+                   ready: Any) -> None:
+    """Count deliveries and latencies over the measurement window."""
+    _pin(cpu)
+
+    async def main() -> None:
+        from websockets.asyncio.client import connect
+        from websockets.exceptions import ConnectionClosed
+
+        from fleetctl.wire.control import encode_subscription
+
+        async with connect(f"ws://127.0.0.1:{port}/sub", compression=None,
+                           max_size=None, max_queue=None) as ws:
+            if fleetctl:
+                await ws.recv()  # welcome
+                await ws.send(encode_subscription("/bench/.*"))
+                await ws.recv()  # subscribed
+            ready.put(True)
+            await ws.recv()
+            t0 = time.perf_counter()
+            count, lat = 0, []
+            n = _template()[1]
+            # End the window by closing the connection (no per-message wait_for: in
+            # Python 3.11 it creates a task per call, which would bottleneck the client).
+            asyncio.get_running_loop().call_later(seconds, ws.transport.abort)
+            try:
+                async for msg in ws:
+                    now = time.time_ns()
+                    count += 1
+                    lat.append(now - int(msg[n:n + STAMP_DIGITS]))
+            except ConnectionClosed:
+                pass
+            elapsed = time.perf_counter() - t0
+            out.put({"rate": count / elapsed, "lat_ns": lat[len(lat) // 10:]})
+
+    asyncio.run(main())
+
+
+def measure(server_target: Any, fleetctl: bool, args: argparse.Namespace,
+            rate_hz: float | None) -> dict[str, Any]:
+    ctx = mp.get_context("spawn")
+    ports, out, ready = ctx.Queue(), ctx.Queue(), ctx.Queue()
+    server = ctx.Process(target=server_target, args=(args.server_cpu, ports), daemon=True)
+    server.start()
+    procs = [server]
+    try:
+        port = ports.get(timeout=30)
+        sub = ctx.Process(target=run_subscriber, daemon=True,
+                          args=(args.client_cpu, port, args.seconds, fleetctl, out, ready))
+        sub.start()
+        procs.append(sub)
+        ready.get(timeout=30)
+        pub = ctx.Process(target=run_publisher, daemon=True,
+                          args=(args.client_cpu, port, rate_hz, args.seconds + 2, fleetctl))
+        pub.start()
+        procs.append(pub)
+        result: dict[str, Any] = out.get(timeout=args.seconds + 30)
+        return result
+    finally:
+        for p in procs:
+            p.kill()
+            p.join()
+
+
+def _pct(values: list[int], q: float) -> float:
+    if not values:
+        return float("nan")
+    ordered = sorted(values)
+    return ordered[min(len(ordered) - 1, int(q * len(ordered)))] / 1e6
+
+
+def main() -> int:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--seconds", type=float, default=3.0)
+    parser.add_argument("--server-cpu", type=int, default=0)
+    parser.add_argument("--client-cpu", type=int, default=1)
+    parser.add_argument("--json", action="store_true", help="print JSON instead of a table")
+    args = parser.parse_args()
+
+    thr = {name: measure(target, name == "fleetctl", args, None)["rate"]
+           for name, target in (("baseline", run_baseline), ("fleetctl", run_fleetctl))}
+    half = thr["fleetctl"] / 2
+    lat = {name: measure(target, name == "fleetctl", args, half)
+           for name, target in (("baseline", run_baseline), ("fleetctl", run_fleetctl))}
+    rows = []
+    for name in ("baseline", "fleetctl"):
+        values = lat[name]["lat_ns"]
+        rows.append({
+            "server": name,
+            "throughput_msgs_per_s": round(thr[name]),
+            "latency_load_msgs_per_s": round(lat[name]["rate"]),
+            "latency_p50_ms": round(_pct(values, 0.50), 3),
+            "latency_p99_ms": round(_pct(values, 0.99), 3),
+            "latency_mean_ms": round(statistics.fmean(values) / 1e6, 3) if values else None,
+        })
+    if args.json:
+        print(json.dumps(rows, indent=2))
+        return 0
+    print(f"small messages ({len(_template()[0])} B frames), server pinned to cpu "
+          f"{args.server_cpu}, clients on cpu {args.client_cpu}, {args.seconds:.0f} s/phase")
+    print(f"{'server':<10} {'msgs/s':>10} {'@load msgs/s':>13} {'p50 ms':>8} {'p99 ms':>8}")
+    for r in rows:
+        print(f"{r['server']:<10} {r['throughput_msgs_per_s']:>10} "
+              f"{r['latency_load_msgs_per_s']:>13} {r['latency_p50_ms']:>8} "
+              f"{r['latency_p99_ms']:>8}")
+    added = rows[1]["latency_p99_ms"] - rows[0]["latency_p99_ms"]
+    print(f"added p99 latency vs baseline: {added:.3f} ms")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,455 @@
+"""The robot client's configuration (``client.yaml``), validated on load.
+
+The schema is docs/design.md section 5. Every error is a :class:`fleetctl.errors.ConfigError`
+whose message names the file, the entry (index and topic) and the field, e.g.
+``client.yaml: publish[2] (/scan): rate_limit_hz: must be > 0 or null, got -1``.
+"""
+
+from __future__ import annotations
+
+import math
+import re
+from collections.abc import Callable, Mapping
+from dataclasses import dataclass, field
+from functools import lru_cache
+from pathlib import Path
+from typing import Any
+
+import yaml
+
+from fleetctl.errors import ConfigError
+
+# ROS 2 topic names: absolute, tokens of [A-Za-z0-9_] separated by single slashes.
+_TOPIC_RE = re.compile(r"^(/[A-Za-z_][A-Za-z0-9_]*)+$")
+_ROBOT_NAME_RE = re.compile(r"^[A-Za-z][A-Za-z0-9_]{0,62}$")
+_URL_RE = re.compile(r"^wss?://[^\s/]+(/\S*)?$")
+
+_TOP_KEYS = frozenset(
+    {"server_url", "robot_name", "bind_address", "token_file", "publish", "subscribe",
+     "status", "limits"}
+)
+_PUBLISH_KEYS = frozenset(
+    {"topic", "type", "priority", "rate_limit_hz", "no_drop", "remote_topic"}
+)
+_SUBSCRIBE_KEYS = frozenset({"remote_topic", "type", "local_topic"})
+_STATUS_KEYS = frozenset({"battery_topic", "period_s"})
+_LIMIT_KEYS = frozenset(
+    {"max_fragment_bytes", "no_drop_queue_messages", "reconnect_min_s", "reconnect_max_s"}
+)
+
+# A fragment must hold the Fragment table's own metadata plus some payload; the server's
+# default max_frame_bytes (16 MiB) is the upper end.
+MIN_FRAGMENT_BYTES = 512
+MAX_FRAGMENT_BYTES = 16 * 1024 * 1024
+
+
+@dataclass(frozen=True)
+class PublishSpec:
+    """One local topic sent to the fleet.
+
+    Attributes:
+        topic: Local ROS topic, e.g. ``/scan``.
+        type: ROS 2 type name in ``pkg/msg/Name`` form.
+        priority: Non-negative weight of Algorithm 2 (0 = only when nothing else waits).
+        rate_limit_hz: Maximum send rate in Hz; None means no limit.
+        no_drop: True for reliable in-order delivery (bounded FIFO), False for latest-only.
+        remote_topic: Topic on the wire; defaults to ``/<robot_name><topic>``.
+    """
+
+    topic: str
+    type: str
+    priority: float
+    rate_limit_hz: float | None
+    no_drop: bool
+    remote_topic: str
+
+
+@dataclass(frozen=True)
+class SubscribeSpec:
+    """One fleet topic (or RE2 regex) received and republished locally.
+
+    Attributes:
+        remote_topic: A topic name or an RE2 full-match regex.
+        type: ROS 2 type name in ``pkg/msg/Name`` form.
+        local_topic: Local topic to republish on. None only when ``remote_topic`` is a regex
+            and no local topic was given: each message is republished on its own topic.
+    """
+
+    remote_topic: str
+    type: str
+    local_topic: str | None
+
+    @property
+    def is_regex(self) -> bool:
+        """True when ``remote_topic`` is not a plain topic name."""
+        return _TOPIC_RE.match(self.remote_topic) is None
+
+
+@dataclass(frozen=True)
+class StatusSpec:
+    """The client's own ``RobofleetStatus`` on ``/<robot_name>/status``.
+
+    Attributes:
+        battery_topic: Local ``sensor_msgs/msg/BatteryState`` topic, or None.
+        period_s: Seconds between status messages.
+    """
+
+    battery_topic: str | None = None
+    period_s: float = 1.0
+
+
+@dataclass(frozen=True)
+class ClientLimits:
+    """Bounds of the link.
+
+    Attributes:
+        max_fragment_bytes: Frames larger than this are sent as fragments (bytes).
+        no_drop_queue_messages: Bound of the no_drop FIFO, kept across reconnects.
+        reconnect_min_s: First reconnect delay in seconds (doubles per failure, jittered).
+        reconnect_max_s: Cap of the reconnect delay in seconds.
+    """
+
+    max_fragment_bytes: int = 16384
+    no_drop_queue_messages: int = 10000
+    reconnect_min_s: float = 0.1
+    reconnect_max_s: float = 5.0
+
+
+@dataclass(frozen=True)
+class ClientConfig:
+    """The whole robot client configuration.
+
+    Attributes:
+        server_url: ``ws://`` or ``wss://`` URL of the fleet server.
+        robot_name: Namespace prefix of this robot's topics.
+        bind_address: Local source address for the connection, or None for any.
+        token: Bearer token read from ``token_file``, or None (identified by source IP).
+            Never shown in a repr.
+        publish: Local topics sent to the fleet.
+        subscribe: Fleet topics received and republished locally.
+        status: The client's own status messages.
+        limits: Link bounds.
+    """
+
+    server_url: str
+    robot_name: str
+    bind_address: str | None = None
+    token: str | None = field(default=None, repr=False)
+    publish: tuple[PublishSpec, ...] = ()
+    subscribe: tuple[SubscribeSpec, ...] = ()
+    status: StatusSpec = StatusSpec()
+    limits: ClientLimits = ClientLimits()
+
+    @property
+    def status_topic(self) -> str:
+        """The remote topic of this robot's status messages."""
+        return f"/{self.robot_name}/status"
+
+
+class _Ctx:
+    """Builds error messages that name the file and the place in it."""
+
+    def __init__(self, source: str) -> None:
+        self.source = source
+
+    def error(self, where: str, field_name: str, reason: str) -> ConfigError:
+        prefix = f"{self.source}: {where}: " if where else f"{self.source}: "
+        return ConfigError(f"{prefix}{field_name}: {reason}")
+
+
+def load_client_config(path: str | Path) -> ClientConfig:
+    """Read and validate a ``client.yaml``.
+
+    Args:
+        path: The YAML file. ``token_file`` is resolved relative to its directory.
+
+    Returns:
+        The validated configuration.
+
+    Raises:
+        ConfigError: The file is missing, not YAML, or an entry is invalid; the message
+            names the file, the entry and the field.
+    """
+    path = Path(path)
+    try:
+        text = path.read_text(encoding="utf-8")
+    except OSError as exc:
+        raise ConfigError(f"{path}: cannot read: {exc.strerror or exc}") from exc
+    try:
+        data = yaml.safe_load(text)
+    except yaml.YAMLError as exc:
+        raise ConfigError(f"{path}: not valid YAML: {exc}") from exc
+    return parse_client_config(data, source=str(path), base_dir=path.parent)
+
+
+def parse_client_config(
+    data: object, *, source: str = "<client config>", base_dir: Path | None = None
+) -> ClientConfig:
+    """Validate an already-parsed client config mapping.
+
+    Args:
+        data: The YAML document (a mapping).
+        source: Name used in error messages (normally the file path).
+        base_dir: Directory relative ``token_file`` paths are resolved against; None means
+            the current directory.
+
+    Returns:
+        The validated configuration.
+
+    Raises:
+        ConfigError: An entry is invalid; the message names source, entry and field.
+    """
+    ctx = _Ctx(source)
+    top = _mapping(ctx, data, "", "document", _TOP_KEYS)
+    server_url = _str(ctx, top, "", "server_url", required=True)
+    assert server_url is not None
+    if not _URL_RE.match(server_url):
+        reason = f"must be ws://HOST[:PORT]/ or wss://..., got {server_url!r}"
+        raise ctx.error("", "server_url", reason)
+    robot_name = _str(ctx, top, "", "robot_name", required=True)
+    assert robot_name is not None
+    if not _ROBOT_NAME_RE.match(robot_name):
+        raise ctx.error("", "robot_name", f"must match [A-Za-z][A-Za-z0-9_]*, got {robot_name!r}")
+    return ClientConfig(
+        server_url=server_url,
+        robot_name=robot_name,
+        bind_address=_bind_address(ctx, top),
+        token=_token(ctx, top, base_dir or Path.cwd()),
+        publish=_publish_list(ctx, top.get("publish"), robot_name),
+        subscribe=_subscribe_list(ctx, top.get("subscribe")),
+        status=_status(ctx, top.get("status")),
+        limits=_limits(ctx, top.get("limits")),
+    )
+
+
+def _mapping(
+    ctx: _Ctx, value: object, where: str, name: str, allowed: frozenset[str]
+) -> Mapping[str, Any]:
+    if not isinstance(value, Mapping):
+        raise ctx.error(where, name, f"must be a mapping, got {type(value).__name__}")
+    unknown = sorted(str(k) for k in value if k not in allowed)
+    if unknown:
+        raise ctx.error(where, unknown[0], f"unknown field (allowed: {', '.join(sorted(allowed))})")
+    return value
+
+
+def _str(
+    ctx: _Ctx, entry: Mapping[str, Any], where: str, key: str, *, required: bool = False
+) -> str | None:
+    value = entry.get(key)
+    if value is None:
+        if required:
+            raise ctx.error(where, key, "is required")
+        return None
+    if not isinstance(value, str) or not value:
+        raise ctx.error(where, key, f"must be a non-empty string, got {value!r}")
+    return value
+
+
+def _topic(
+    ctx: _Ctx, entry: Mapping[str, Any], where: str, key: str, *, required: bool
+) -> str | None:
+    value = _str(ctx, entry, where, key, required=required)
+    if value is not None and not _TOPIC_RE.match(value):
+        raise ctx.error(where, key, f"not a ROS topic name (/a/b_c), got {value!r}")
+    return value
+
+
+def _number(
+    ctx: _Ctx, entry: Mapping[str, Any], where: str, key: str, default: float | None,
+    check: Callable[[float], bool], rule: str,
+) -> float | None:
+    value = entry.get(key, default)
+    if value is None:
+        return None
+    if isinstance(value, bool) or not isinstance(value, int | float):
+        raise ctx.error(where, key, f"must be a number, got {value!r}")
+    if not math.isfinite(value) or not check(float(value)):
+        raise ctx.error(where, key, f"must be {rule}, got {value!r}")
+    return float(value)
+
+
+def _int(ctx: _Ctx, entry: Mapping[str, Any], where: str, key: str, default: int,
+         lo: int, hi: int) -> int:
+    value: object = entry.get(key, default)
+    if isinstance(value, bool) or not isinstance(value, int):
+        raise ctx.error(where, key, f"must be an integer, got {value!r}")
+    if not lo <= value <= hi:
+        raise ctx.error(where, key, f"must be between {lo} and {hi}, got {value}")
+    return value
+
+
+def _bool(ctx: _Ctx, entry: Mapping[str, Any], where: str, key: str, default: bool) -> bool:
+    value = entry.get(key, default)
+    if not isinstance(value, bool):
+        raise ctx.error(where, key, f"must be true or false, got {value!r}")
+    return value
+
+
+def _bind_address(ctx: _Ctx, top: Mapping[str, Any]) -> str | None:
+    import ipaddress
+
+    value = _str(ctx, top, "", "bind_address")
+    if value is None:
+        return None
+    try:
+        ipaddress.ip_address(value)
+    except ValueError as exc:
+        raise ctx.error("", "bind_address", f"not an IP address: {value!r}") from exc
+    return value
+
+
+def _token(ctx: _Ctx, top: Mapping[str, Any], base_dir: Path) -> str | None:
+    value = _str(ctx, top, "", "token_file")
+    if value is None:
+        return None
+    path = Path(value) if Path(value).is_absolute() else base_dir / value
+    try:
+        token = path.read_text(encoding="utf-8").strip()
+    except OSError as exc:
+        raise ctx.error("", "token_file", f"cannot read {path}: {exc.strerror or exc}") from exc
+    if not token or any(c.isspace() for c in token):
+        # Never echo the token itself: it is a secret.
+        raise ctx.error("", "token_file", f"{path} must hold one token without whitespace")
+    return token
+
+
+def _list(ctx: _Ctx, value: object, name: str) -> list[object]:
+    if value is None:
+        return []
+    if not isinstance(value, list):
+        raise ctx.error("", name, f"must be a list, got {type(value).__name__}")
+    return value
+
+
+def _publish_list(ctx: _Ctx, value: object, robot_name: str) -> tuple[PublishSpec, ...]:
+    specs: list[PublishSpec] = []
+    seen: dict[str, int] = {}
+    for i, raw in enumerate(_list(ctx, value, "publish")):
+        label = raw.get("topic") if isinstance(raw, Mapping) else None
+        where = f"publish[{i}]" + (f" ({label})" if isinstance(label, str) else "")
+        spec = _publish(ctx, raw, where, robot_name)
+        if spec.remote_topic in seen:
+            reason = f"{spec.remote_topic} is already sent by publish[{seen[spec.remote_topic]}]"
+            raise ctx.error(where, "remote_topic", reason)
+        seen[spec.remote_topic] = i
+        specs.append(spec)
+    return tuple(specs)
+
+
+def _publish(ctx: _Ctx, raw: object, where: str, robot_name: str) -> PublishSpec:
+    entry = _mapping(ctx, raw, where, "entry", _PUBLISH_KEYS)
+    topic = _topic(ctx, entry, where, "topic", required=True)
+    assert topic is not None
+    remote = _topic(ctx, entry, where, "remote_topic", required=False)
+    priority = _number(ctx, entry, where, "priority", 1.0, lambda v: v >= 0, ">= 0")
+    rate = _number(ctx, entry, where, "rate_limit_hz", None, lambda v: v > 0, "> 0 or null")
+    return PublishSpec(
+        topic=topic,
+        type=_type(ctx, entry, where),
+        priority=1.0 if priority is None else priority,
+        rate_limit_hz=rate,
+        no_drop=_bool(ctx, entry, where, "no_drop", False),
+        remote_topic=remote or f"/{robot_name}{topic}",
+    )
+
+
+def _subscribe_list(ctx: _Ctx, value: object) -> tuple[SubscribeSpec, ...]:
+    specs: list[SubscribeSpec] = []
+    for i, raw in enumerate(_list(ctx, value, "subscribe")):
+        label = raw.get("remote_topic") if isinstance(raw, Mapping) else None
+        where = f"subscribe[{i}]" + (f" ({label})" if isinstance(label, str) else "")
+        specs.append(_subscribe(ctx, raw, where))
+    return tuple(specs)
+
+
+def _subscribe(ctx: _Ctx, raw: object, where: str) -> SubscribeSpec:
+    entry = _mapping(ctx, raw, where, "entry", _SUBSCRIBE_KEYS)
+    remote = _str(ctx, entry, where, "remote_topic", required=True)
+    assert remote is not None
+    is_topic = _TOPIC_RE.match(remote) is not None
+    if not is_topic:
+        _check_regex(ctx, where, remote)
+    local = _topic(ctx, entry, where, "local_topic", required=False)
+    return SubscribeSpec(
+        remote_topic=remote,
+        type=_type(ctx, entry, where),
+        local_topic=local if local is not None else (remote if is_topic else None),
+    )
+
+
+def _check_regex(ctx: _Ctx, where: str, pattern: str) -> None:
+    import re2
+
+    try:
+        re2.compile(pattern)
+    except Exception as exc:  # re2 raises its own error type; any failure is a bad regex
+        reason = f"neither a topic nor a valid RE2 regex: {exc}"
+        raise ctx.error(where, "remote_topic", reason) from exc
+
+
+def _type(ctx: _Ctx, entry: Mapping[str, Any], where: str) -> str:
+    name = _str(ctx, entry, where, "type", required=True)
+    assert name is not None
+    normalized, reason = _check_type(name)
+    if reason:
+        raise ctx.error(where, "type", reason)
+    return normalized
+
+
+@lru_cache(maxsize=1)
+def _registry_names() -> frozenset[str] | None:
+    """The known ROS 2 type names, or None when the wire registry is unavailable."""
+    try:
+        from fleetctl.wire.registry import TypeRegistry
+    except ImportError:
+        return None
+    return frozenset(TypeRegistry.default().names())
+
+
+def _check_type(name: str) -> tuple[str, str]:
+    """Return ``(normalized name, "")`` or ``(name, reason)`` for an unknown/bad type."""
+    try:
+        from fleetctl.wire.metadata import normalize_type
+    except ImportError:
+        normalized = name
+    else:
+        try:
+            normalized = normalize_type(name)
+        except Exception as exc:  # the wire module's WireError; message says why
+            return name, f"not a ROS type name: {exc}"
+    names = _registry_names()
+    if names is not None and normalized not in names:
+        return name, f"unknown message type {name!r} (not in the type registry)"
+    return normalized, ""
+
+
+def _status(ctx: _Ctx, value: object) -> StatusSpec:
+    if value is None:
+        return StatusSpec()
+    entry = _mapping(ctx, value, "status", "entry", _STATUS_KEYS)
+    period = _number(ctx, entry, "status", "period_s", 1.0, lambda v: v > 0, "> 0")
+    return StatusSpec(
+        battery_topic=_topic(ctx, entry, "status", "battery_topic", required=False),
+        period_s=1.0 if period is None else period,
+    )
+
+
+def _limits(ctx: _Ctx, value: object) -> ClientLimits:
+    if value is None:
+        return ClientLimits()
+    entry = _mapping(ctx, value, "limits", "entry", _LIMIT_KEYS)
+    d = ClientLimits()
+    lo = _number(ctx, entry, "limits", "reconnect_min_s", d.reconnect_min_s, lambda v: v > 0, "> 0")
+    hi = _number(ctx, entry, "limits", "reconnect_max_s", d.reconnect_max_s, lambda v: v > 0, "> 0")
+    assert lo is not None and hi is not None
+    if hi < lo:
+        raise ctx.error("limits", "reconnect_max_s", f"must be >= reconnect_min_s ({lo}), got {hi}")
+    return ClientLimits(
+        max_fragment_bytes=_int(ctx, entry, "limits", "max_fragment_bytes", d.max_fragment_bytes,
+                                MIN_FRAGMENT_BYTES, MAX_FRAGMENT_BYTES),
+        no_drop_queue_messages=_int(ctx, entry, "limits", "no_drop_queue_messages",
+                                    d.no_drop_queue_messages, 1, 10_000_000),
+        reconnect_min_s=lo,
+        reconnect_max_s=hi,
+    )

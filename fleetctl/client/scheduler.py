@@ -1,0 +1,586 @@
+"""The robot client's send scheduler: Robofleet Algorithms 1 and 2 plus fragments.
+
+Pure state machine: no I/O, no asyncio, every method takes ``now_s`` from an injected
+clock. The transport feeds it messages (:meth:`Scheduler.offer`), pulls frames to send
+(:meth:`Scheduler.next_frame`), marks ack points (a WebSocket ping,
+:meth:`Scheduler.ack_point`) and reports their pongs (:meth:`Scheduler.on_ack`).
+
+- Algorithm 1 (Robofleet III-B): per-topic rate limit r (:class:`RateLimiter`); no_drop
+  topics go to the FIFO Q_n, bounded in messages and bytes (tail drop, counted);
+  droppable topics keep only their latest message in Q_f (replacement counted).
+- Algorithm 2: Q_n first, then Q_f in DESCENDING ``priority x time since the topic's last
+  send`` (Robofleet's code sorts ascending; that is a bug we do not copy). Ties go to the
+  topic that waited longer, so priority 0 topics still progress when nothing else waits.
+- Fragments (Pound section 5.1): frames above ``max_fragment_bytes`` are split and the
+  choice above is made per fragment, so an urgent small message waits behind at most one
+  fragment of a large one. A topic's "last send" is its last fragment, which makes
+  fragment streams of equal score interleave instead of one topic hogging the link.
+- Supersede: newer data for a droppable topic drops the remaining fragments of an older
+  message still being sent. To rule out livelock on a link slower than the topic
+  (every message superseded, none delivered), at most ``max_consecutive_supersedes``
+  messages of a topic are superseded in a row; the next one runs to completion.
+- In flight = sent and not yet acknowledged by a pong to a later ping. The window is
+  BBR-like: ``gain x max delivery rate x min RTT`` bytes, floored at one fragment, so a
+  clean link is not capped at one message per RTT and a congested one does not queue.
+  ``SchedulerConfig.fixed_window_messages`` gives Robofleet's fixed n_T instead.
+- Disconnect: no_drop messages sent but not acknowledged, or partly sent, go back to the
+  head of Q_n in their order (at-least-once; receivers dedupe by (topic, seq)); partly
+  sent droppable messages are dropped (counted): the topic resumes with fresh data.
+"""
+
+from __future__ import annotations
+
+import itertools
+import math
+from collections import deque
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from typing import Protocol
+
+
+class SplitFn(Protocol):
+    """Signature of :func:`fleetctl.wire.fragments.split`."""
+
+    def __call__(
+        self, frame: bytes, *, topic: str, message_id: int, max_fragment_bytes: int,
+        no_drop: bool,
+    ) -> list[bytes]: ...
+
+
+def _wire_split(
+    frame: bytes, *, topic: str, message_id: int, max_fragment_bytes: int, no_drop: bool
+) -> list[bytes]:
+    from fleetctl.wire.fragments import split
+
+    fragments: list[bytes] = split(frame, topic=topic, message_id=message_id,
+                                   max_fragment_bytes=max_fragment_bytes, no_drop=no_drop)
+    return fragments
+
+
+@dataclass(frozen=True)
+class SchedulerConfig:
+    """Tunables of the scheduler.
+
+    Attributes:
+        max_fragment_bytes: Frames longer than this are split into fragments (bytes).
+        fragments: False sends whole frames (the Robofleet baseline).
+        no_drop_queue_messages: Bound of Q_n plus unacknowledged no_drop messages.
+        no_drop_queue_bytes: Byte bound of the same.
+        fixed_window_messages: Robofleet's n_T (frames in flight); None = adaptive window.
+        initial_window_bytes: Window before the first RTT and rate samples (bytes).
+        max_window_bytes: Upper bound of the adaptive window (bytes).
+        max_window_messages: Upper bound of frames in flight (adaptive mode).
+        window_gain: BBR cwnd gain: window = gain x delivery rate x min RTT.
+        min_rtt_filter_s: Window of the min-RTT filter (seconds).
+        rate_filter_s: Window of the max-delivery-rate filter (seconds).
+        ack_every_window_fraction: An ack point is due after this fraction of the window
+            was sent without one, so acks return while the window is still open.
+        max_consecutive_supersedes: Supersedes in a row per droppable topic before the
+            in-progress message is protected (livelock guard).
+        rate_tolerance: Fraction of the period a message may come early and still pass
+            the rate limit (ROS timers jitter).
+        first_message_id: First fragment message id; pass a time-based value so ids of
+            a restarted client are newer than the previous run's.
+    """
+
+    max_fragment_bytes: int = 16384
+    fragments: bool = True
+    no_drop_queue_messages: int = 10000
+    no_drop_queue_bytes: int = 64 * 1024 * 1024
+    fixed_window_messages: int | None = None
+    initial_window_bytes: int = 64 * 1024
+    max_window_bytes: int = 16 * 1024 * 1024
+    max_window_messages: int = 4096
+    window_gain: float = 2.0
+    min_rtt_filter_s: float = 10.0
+    rate_filter_s: float = 2.0
+    ack_every_window_fraction: float = 0.25
+    max_consecutive_supersedes: int = 1
+    rate_tolerance: float = 0.05
+    first_message_id: int = 0
+
+
+class RateLimiter:
+    """Algorithm 1 lines 4-6: at most ``rate_hz`` messages per second per topic.
+
+    Uses a schedule (``next_allowed += period``) rather than "time since last", so a
+    10 Hz source limited to 10 Hz is not halved by timer jitter.
+    """
+
+    def __init__(self, tolerance: float = 0.05) -> None:
+        self._tolerance = tolerance
+        self._next_allowed_s: dict[str, float] = {}
+
+    def admit(self, topic: str, rate_hz: float | None, now_s: float) -> bool:
+        """True when a message on *topic* at *now_s* (seconds) may be sent."""
+        if rate_hz is None:
+            return True
+        period = 1.0 / rate_hz
+        nxt = self._next_allowed_s.get(topic)
+        if nxt is not None and now_s < nxt - self._tolerance * period:
+            return False
+        # Falling behind by more than a period restarts the schedule from now, so an idle
+        # topic does not earn a burst.
+        late = nxt is None or now_s - nxt > period
+        self._next_allowed_s[topic] = (now_s if late or nxt is None else nxt) + period
+        return True
+
+
+@dataclass
+class TopicStats:
+    """Counters of one remote topic (messages unless the name says bytes/frames)."""
+
+    offered: int = 0
+    rate_limited: int = 0
+    sent: int = 0
+    sent_frames: int = 0
+    sent_bytes: int = 0
+    acked: int = 0
+    dropped_replaced: int = 0
+    dropped_superseded: int = 0
+    dropped_overflow: int = 0
+    dropped_disconnect: int = 0
+    dropped_invalid: int = 0
+    requeued: int = 0
+
+
+class _Message:
+    __slots__ = ("fragments", "frame", "message_id", "next_index", "no_drop", "topic")
+
+    def __init__(self, topic: _Topic, frame: bytes, no_drop: bool) -> None:
+        self.topic = topic
+        self.frame = frame
+        self.no_drop = no_drop
+        self.fragments: list[bytes] | None = None
+        self.message_id = 0
+        self.next_index = 0
+
+    @property
+    def started(self) -> bool:
+        return self.fragments is not None and self.next_index > 0
+
+
+@dataclass(eq=False)
+class _Topic:
+    name: str
+    priority: float
+    last_sent_s: float
+    pending: _Message | None = None  # droppable: latest not yet started
+    current: _Message | None = None  # droppable: partly sent
+    supersede_streak: int = 0
+    stats: TopicStats = field(default_factory=TopicStats)
+
+
+@dataclass
+class _AckPoint:
+    token: int
+    sent_s: float
+    sent_bytes_total: int
+    sent_frames_total: int
+    delivered_bytes: int
+    delivered_s: float
+    app_limited: bool
+
+
+class Scheduler:
+    """Decides which frame goes next on the link. See the module docstring.
+
+    Args:
+        config: Tunables.
+        split: Fragmenter, :func:`fleetctl.wire.fragments.split` by default.
+    """
+
+    def __init__(self, config: SchedulerConfig | None = None, *, split: SplitFn | None = None):
+        self.config = config or SchedulerConfig()
+        self._split: SplitFn = split or _wire_split
+        self.rate_limiter = RateLimiter(self.config.rate_tolerance)
+        self._topics: dict[str, _Topic] = {}
+        self._qn: deque[_Message] = deque()
+        self._qn_bytes = 0
+        self._message_ids = itertools.count(self.config.first_message_id)
+        # Completed messages not yet acknowledged: (sent_bytes_total at their end, message).
+        self._unacked: deque[tuple[int, _Message]] = deque()
+        self._unacked_no_drop = 0
+        self._unacked_no_drop_bytes = 0
+        self._sent_bytes_total = 0
+        self._sent_frames_total = 0
+        self._acked_bytes_total = 0
+        self._acked_frames_total = 0
+        self._delivered_s = 0.0
+        self._ack_points: deque[_AckPoint] = deque()
+        self._tokens = itertools.count(1)
+        self._min_rtt = WindowedExtremum(self.config.min_rtt_filter_s, keep_max=False)
+        self._max_rate = WindowedExtremum(self.config.rate_filter_s, keep_max=True)
+        self._last_rtt_s: float | None = None
+        self.no_drop_overflow = 0
+        self.last_error: str | None = None
+
+    # -- Algorithm 1 ------------------------------------------------------------------
+
+    def register_topic(self, topic: str, priority: float, now_s: float) -> None:
+        """Declare a topic up front (its last-send time starts at *now_s*).
+
+        Topics can also appear first in :meth:`offer`; registering them lets
+        :meth:`admit` run on another thread without growing the topic table.
+        """
+        self._topic(topic, priority, now_s).priority = priority
+
+    def admit(self, topic: str, rate_limit_hz: float | None, now_s: float) -> bool:
+        """Rate-limit check before the caller encodes a message (Algorithm 1, 4-6).
+
+        Args:
+            topic: Remote topic.
+            rate_limit_hz: The topic's limit in Hz, None for no limit.
+            now_s: Clock in seconds.
+
+        Returns:
+            False when the message must be skipped (counted as rate_limited).
+        """
+        if self.rate_limiter.admit(topic, rate_limit_hz, now_s):
+            return True
+        self._topic(topic, 1.0, now_s).stats.rate_limited += 1
+        return False
+
+    def offer(self, topic: str, frame: bytes, now_s: float, *, priority: float,
+              no_drop: bool) -> bool:
+        """Queue an encoded frame (Algorithm 1, 7-15).
+
+        Args:
+            topic: Remote topic of the frame.
+            frame: One complete wire frame (its own metadata inside).
+            now_s: Clock in seconds.
+            priority: Non-negative Algorithm 2 weight (updates the topic's weight).
+            no_drop: True queues in the bounded FIFO Q_n; False keeps latest only.
+
+        Returns:
+            False when a no_drop message was refused because Q_n is full (counted in
+            ``no_drop_overflow`` and the topic's ``dropped_overflow``).
+        """
+        t = self._topic(topic, priority, now_s)
+        t.priority = priority
+        t.stats.offered += 1
+        msg = _Message(t, frame, no_drop)
+        if no_drop:
+            return self._push_no_drop(msg)
+        self._update_droppable(t, msg)
+        return True
+
+    def _topic(self, name: str, priority: float, now_s: float) -> _Topic:
+        t = self._topics.get(name)
+        if t is None:
+            t = self._topics[name] = _Topic(name, priority, last_sent_s=now_s)
+        return t
+
+    def _push_no_drop(self, msg: _Message) -> bool:
+        count = len(self._qn) + self._unacked_no_drop
+        size = self._qn_bytes + self._unacked_no_drop_bytes + len(msg.frame)
+        if count >= self.config.no_drop_queue_messages or size > self.config.no_drop_queue_bytes:
+            self.no_drop_overflow += 1
+            msg.topic.stats.dropped_overflow += 1
+            return False
+        self._qn.append(msg)
+        self._qn_bytes += len(msg.frame)
+        return True
+
+    def _update_droppable(self, t: _Topic, msg: _Message) -> None:
+        if t.current is not None and t.supersede_streak < self.config.max_consecutive_supersedes:
+            t.current = None
+            t.supersede_streak += 1
+            t.stats.dropped_superseded += 1
+        if t.pending is not None:
+            t.stats.dropped_replaced += 1
+        t.pending = msg
+
+    # -- Algorithm 2 ------------------------------------------------------------------
+
+    def next_frame(self, now_s: float) -> bytes | None:
+        """The next frame to send now, or None (nothing queued or window full).
+
+        The returned frame counts as in flight until an ack point after it is acked. A
+        message the splitter rejects (e.g. no readable metadata) is dropped, counted in
+        ``dropped_invalid`` and remembered in ``last_error``.
+        """
+        while True:
+            topic, msg = self._choose(now_s)
+            if msg is None:
+                return None
+            try:
+                frame = self._peek_fragment(msg)
+            except Exception as exc:  # the splitter's WireError; never kill the link
+                self._drop_invalid(topic, msg, exc)
+                continue
+            if not self._window_allows(len(frame)):
+                return None
+            if topic is not None and topic.current is None:
+                topic.current, topic.pending = msg, None
+            msg.next_index += 1
+            self._account_sent(msg, frame, now_s)
+            return frame
+
+    def _drop_invalid(self, topic: _Topic | None, msg: _Message, exc: Exception) -> None:
+        msg.topic.stats.dropped_invalid += 1
+        self.last_error = f"dropped a message on {msg.topic.name}: {exc}"
+        if topic is None:
+            self._qn.popleft()
+            self._qn_bytes -= len(msg.frame)
+        elif topic.current is msg:
+            topic.current = None
+        else:
+            topic.pending = None
+
+    def _choose(self, now_s: float) -> tuple[_Topic | None, _Message | None]:
+        if self._qn:
+            return None, self._qn[0]
+        best: _Topic | None = None
+        best_key = (-1.0, -math.inf)
+        for t in self._topics.values():
+            if t.current is None and t.pending is None:
+                continue
+            wait = now_s - t.last_sent_s
+            key = (t.priority * wait, wait)  # descending f; longer wait breaks ties
+            if key > best_key:
+                best, best_key = t, key
+        if best is None:
+            return None, None
+        return best, best.current or best.pending
+
+    def _peek_fragment(self, msg: _Message) -> bytes:
+        if msg.fragments is None:
+            msg.message_id = next(self._message_ids)
+            cfg = self.config
+            if cfg.fragments and len(msg.frame) > cfg.max_fragment_bytes:
+                msg.fragments = self._split(
+                    msg.frame, topic=msg.topic.name, message_id=msg.message_id,
+                    max_fragment_bytes=cfg.max_fragment_bytes, no_drop=msg.no_drop)
+            else:
+                msg.fragments = [msg.frame]
+        return msg.fragments[msg.next_index]
+
+    def _window_allows(self, size: int) -> bool:
+        in_frames = self._sent_frames_total - self._acked_frames_total
+        if self.config.fixed_window_messages is not None:
+            return in_frames < self.config.fixed_window_messages
+        if in_frames >= self.config.max_window_messages:
+            return False
+        in_bytes = self.in_flight_bytes
+        # An empty pipe always takes one frame, even one larger than the window.
+        return in_bytes == 0 or in_bytes + size <= self.window_bytes()
+
+    def _account_sent(self, msg: _Message, frame: bytes, now_s: float) -> None:
+        if self.in_flight_bytes == 0:
+            self._delivered_s = now_s  # restart from idle (BBR): rate counts from here
+        self._sent_bytes_total += len(frame)
+        self._sent_frames_total += 1
+        t = msg.topic
+        t.last_sent_s = now_s
+        t.stats.sent_frames += 1
+        t.stats.sent_bytes += len(frame)
+        assert msg.fragments is not None
+        if msg.next_index < len(msg.fragments):
+            return
+        t.stats.sent += 1
+        if msg.no_drop:
+            self._qn.popleft()
+            self._qn_bytes -= len(msg.frame)
+            self._unacked_no_drop += 1
+            self._unacked_no_drop_bytes += len(msg.frame)
+        else:
+            t.current = None
+            t.supersede_streak = 0
+        self._unacked.append((self._sent_bytes_total, msg))
+
+    # -- acknowledgements and the window ------------------------------------------------
+
+    @property
+    def in_flight_bytes(self) -> int:
+        """Bytes sent and not yet acknowledged."""
+        return self._sent_bytes_total - self._acked_bytes_total
+
+    @property
+    def in_flight_frames(self) -> int:
+        """Frames sent and not yet acknowledged."""
+        return self._sent_frames_total - self._acked_frames_total
+
+    def wants_ack_point(self, now_s: float) -> bool:
+        """True when the transport should send a ping now.
+
+        Due when frames were sent since the last ack point and either a fraction of the
+        window went out without one, or nothing more can be sent right now (queue empty
+        or window full: only a pong can open it).
+        """
+        points = self._ack_points
+        last_bytes = points[-1].sent_bytes_total if points else self._acked_bytes_total
+        last_frames = points[-1].sent_frames_total if points else self._acked_frames_total
+        if self._sent_frames_total == last_frames:
+            return False
+        cfg = self.config
+        if cfg.fixed_window_messages is not None:
+            due = self._sent_frames_total - last_frames >= max(
+                1.0, cfg.ack_every_window_fraction * cfg.fixed_window_messages)
+        else:
+            due = self._sent_bytes_total - last_bytes >= (
+                cfg.ack_every_window_fraction * self.window_bytes())
+        return due or not self._can_send(now_s)
+
+    def _can_send(self, now_s: float) -> bool:
+        _, msg = self._choose(now_s)
+        return msg is not None and self._window_allows(len(self._peek_fragment(msg)))
+
+    def has_sendable(self) -> bool:
+        """True when a frame is queued (whether or not the window allows it)."""
+        return bool(self._qn) or any(
+            t.current is not None or t.pending is not None for t in self._topics.values())
+
+    def ack_point(self, now_s: float) -> int:
+        """Record a ping sent now; returns its token (pass it to :meth:`on_ack`)."""
+        point = _AckPoint(
+            token=next(self._tokens), sent_s=now_s, sent_bytes_total=self._sent_bytes_total,
+            sent_frames_total=self._sent_frames_total, delivered_bytes=self._acked_bytes_total,
+            delivered_s=self._delivered_s, app_limited=not self.has_sendable())
+        self._ack_points.append(point)
+        return point.token
+
+    def on_ack(self, token: int, now_s: float) -> bool:
+        """A pong for *token* arrived: everything sent before that ping is delivered.
+
+        Returns:
+            False for an unknown token (e.g. from before a disconnect); ignored.
+        """
+        if not any(p.token == token for p in self._ack_points):
+            return False
+        while self._ack_points:
+            point = self._ack_points.popleft()
+            if point.token == token:
+                break
+        self._acknowledge(point, now_s)
+        return True
+
+    def _acknowledge(self, point: _AckPoint, now_s: float) -> None:
+        self._acked_bytes_total = max(self._acked_bytes_total, point.sent_bytes_total)
+        self._acked_frames_total = max(self._acked_frames_total, point.sent_frames_total)
+        while self._unacked and self._unacked[0][0] <= self._acked_bytes_total:
+            _, msg = self._unacked.popleft()
+            msg.topic.stats.acked += 1
+            if msg.no_drop:
+                self._unacked_no_drop -= 1
+                self._unacked_no_drop_bytes -= len(msg.frame)
+        rtt = now_s - point.sent_s
+        self._last_rtt_s = rtt
+        self._min_rtt.add(now_s, rtt)
+        elapsed = now_s - point.delivered_s
+        if elapsed > 0:
+            rate = (self._acked_bytes_total - point.delivered_bytes) / elapsed
+            # App-limited samples underestimate the link; keep them only if they raise it.
+            if not point.app_limited or rate > self._max_rate.value(now_s, 0.0):
+                self._max_rate.add(now_s, rate)
+        self._delivered_s = now_s
+
+    def min_rtt_s(self, now_s: float | None = None) -> float | None:
+        """Minimum RTT over the filter window in seconds, None before the first sample."""
+        value = self._min_rtt.value(now_s, -1.0)
+        return None if value < 0 else value
+
+    def delivery_rate_bps(self, now_s: float | None = None) -> float:
+        """Maximum delivery rate over the filter window in bytes/s (0 before samples)."""
+        return self._max_rate.value(now_s, 0.0)
+
+    def window_bytes(self) -> int:
+        """Current in-flight byte limit (adaptive mode)."""
+        cfg = self.config
+        rtt = self.min_rtt_s()
+        rate = self.delivery_rate_bps()
+        if rtt is None or rate <= 0:
+            return cfg.initial_window_bytes
+        bdp = cfg.window_gain * rate * rtt
+        floor = cfg.max_fragment_bytes if cfg.fragments else 1
+        return int(min(max(bdp, floor), cfg.max_window_bytes))
+
+    # -- connection life cycle ----------------------------------------------------------
+
+    def on_disconnect(self, now_s: float) -> None:
+        """The link died: requeue unacknowledged no_drop messages, drop partial droppables.
+
+        No_drop messages sent but not acknowledged go back to the head of Q_n in their
+        original order and are sent again in full (new fragment message id).
+        """
+        requeue = [msg for _, msg in self._unacked if msg.no_drop]
+        self._unacked.clear()
+        self._unacked_no_drop = self._unacked_no_drop_bytes = 0
+        for msg in reversed(requeue):
+            msg.topic.stats.requeued += 1
+            self._qn.appendleft(msg)
+            self._qn_bytes += len(msg.frame)
+        for msg in self._qn:
+            if msg.fragments is not None:
+                msg.fragments, msg.next_index = None, 0
+        for t in self._topics.values():
+            if t.current is not None:
+                t.current = None
+                t.stats.dropped_disconnect += 1
+            t.supersede_streak = 0
+        self._ack_points.clear()
+        self._acked_bytes_total = self._sent_bytes_total
+        self._acked_frames_total = self._sent_frames_total
+        self._min_rtt.clear()
+        self._max_rate.clear()
+
+    # -- introspection ------------------------------------------------------------------
+
+    def stats(self, now_s: float | None = None) -> dict[str, object]:
+        """A JSON-able snapshot of counters, queues and the window."""
+        rtt = self.min_rtt_s(now_s)
+        return {
+            "topics": {name: vars(t.stats).copy() for name, t in self._topics.items()},
+            "no_drop_overflow": self.no_drop_overflow,
+            "last_error": self.last_error,
+            "no_drop_queued": len(self._qn),
+            "no_drop_unacked": self._unacked_no_drop,
+            "in_flight_bytes": self.in_flight_bytes,
+            "in_flight_frames": self.in_flight_frames,
+            "window_bytes": self.window_bytes(),
+            "min_rtt_ms": None if rtt is None else rtt * 1e3,
+            "last_rtt_ms": None if self._last_rtt_s is None else self._last_rtt_s * 1e3,
+            "delivery_rate_Bps": self.delivery_rate_bps(now_s),
+        }
+
+
+class WindowedExtremum:
+    """Running min or max of samples over a sliding time window, O(1) amortized.
+
+    A monotonic deque: a new sample evicts older ones it dominates, so the front is the
+    extremum; samples older than the window expire from the front (the newest is kept).
+
+    Args:
+        window_s: Window length in seconds.
+        keep_max: True for a max filter, False for a min filter.
+    """
+
+    def __init__(self, window_s: float, *, keep_max: bool) -> None:
+        self._window_s = window_s
+        self._sign = 1.0 if keep_max else -1.0
+        self._samples: deque[tuple[float, float]] = deque()
+
+    def add(self, now_s: float, value: float) -> None:
+        """Add a sample taken at *now_s*."""
+        key = self._sign * value
+        while self._samples and self._sign * self._samples[-1][1] <= key:
+            self._samples.pop()
+        self._samples.append((now_s, value))
+        self._expire(now_s)
+
+    def value(self, now_s: float | None, default: float) -> float:
+        """The extremum (expiring old samples first when *now_s* is given)."""
+        if now_s is not None:
+            self._expire(now_s)
+        return self._samples[0][1] if self._samples else default
+
+    def clear(self) -> None:
+        """Forget all samples."""
+        self._samples.clear()
+
+    def _expire(self, now_s: float) -> None:
+        while len(self._samples) > 1 and self._samples[0][0] < now_s - self._window_s:
+            self._samples.popleft()
+
+
+Clock = Callable[[], float]

@@ -1,0 +1,483 @@
+"""The robot's WebSocket link to the fleet server: connect, send by schedule, receive.
+
+:class:`RobotLink` is a thin asyncio layer over the pure :class:`Scheduler`:
+
+- connects (Bearer token on the upgrade when configured, optional source address),
+  subscribes to every ``subscribe`` entry (``RobofleetSubscription`` frames), and
+  reconnects with exponential backoff and jitter, resubscribing each time;
+- sends what the scheduler picks, and marks ack points with WebSocket pings: the server
+  answers a ping only after reading every earlier frame, so its pong acknowledges them
+  (Robofleet III-B, ``UPDATEBPCOUNTER``);
+- declares the link dead when a ping stays unanswered for ``link_timeout_s`` (TCP alone can
+  take minutes to notice a radio that went silent) and reconnects;
+- receives frames, reassembles fragments, drops duplicate no_drop frames (a resend after a
+  reconnect, see below) and hands complete frames to ``on_frame``.
+
+Threading: everything runs on one asyncio loop, except :meth:`RobotLink.admit` (any thread)
+and :meth:`RobotLink.offer_threadsafe` (any thread; hops onto the loop).
+
+Duplicates: a no_drop message sent but not acknowledged when the link died is sent again
+(at-least-once). Receivers drop a no_drop frame whose ``seq`` is not above the last one
+seen on its topic, unless it is far below (``dedupe_window``): that is a restarted sender.
+Senders should start ``seq`` at a time-based value (e.g. microseconds since the epoch) so
+a restarted sender's numbers are newer than its previous run's.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import functools
+import json
+import logging
+import random
+import threading
+import time
+from collections import Counter
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import Any
+
+from websockets.asyncio.client import ClientConnection, connect
+from websockets.exceptions import ConnectionClosed, InvalidHandshake, InvalidURI
+
+from fleetctl.client.config import ClientConfig
+from fleetctl.client.scheduler import Scheduler, SchedulerConfig
+from fleetctl.wire.control import encode_subscription
+from fleetctl.wire.errors import WireError
+from fleetctl.wire.fragments import FRAGMENT_TYPE, Reassembler
+from fleetctl.wire.metadata import read_metadata
+
+logger = logging.getLogger("fleetctl.client.link")
+
+Clock = Callable[[], float]
+
+
+@dataclass(frozen=True)
+class LinkTuning:
+    """Transport settings that are not in ``client.yaml`` (defaults suit most links).
+
+    Attributes:
+        open_timeout_s: Limit of one connection attempt (TCP + TLS + upgrade), seconds.
+        keepalive_interval_s: A ping is sent when the link was idle this long, seconds.
+        link_timeout_s: A ping unanswered this long means the link is dead, seconds.
+        close_timeout_s: Time allowed for the closing handshake on stop, seconds.
+        max_receive_frame_bytes: Largest frame accepted from the server (bytes).
+        reassembly_max_bytes: Bytes of incomplete fragmented messages kept (bytes).
+        reassembly_timeout_s: An incomplete fragmented message is dropped after this.
+        dedupe_window: How far below the last seen seq a no_drop frame counts as a
+            duplicate rather than a restarted sender.
+    """
+
+    open_timeout_s: float = 3.0
+    keepalive_interval_s: float = 0.5
+    link_timeout_s: float = 3.0
+    close_timeout_s: float = 1.0
+    max_receive_frame_bytes: int = 32 * 1024 * 1024
+    reassembly_max_bytes: int = 64 * 1024 * 1024
+    reassembly_timeout_s: float = 5.0
+    dedupe_window: int = 100_000
+
+
+class LinkDead(Exception):
+    """No pong within ``link_timeout_s``: the connection is abandoned."""
+
+
+def scheduler_config_for(config: ClientConfig) -> SchedulerConfig:
+    """The scheduler settings implied by a client config's ``limits``."""
+    return SchedulerConfig(
+        max_fragment_bytes=config.limits.max_fragment_bytes,
+        no_drop_queue_messages=config.limits.no_drop_queue_messages,
+        # Time-based ids keep a restarted client's fragments "newer" for reassemblers.
+        first_message_id=time.time_ns() // 1000,
+    )
+
+
+def backoff_delay_s(attempt: int, min_s: float, max_s: float, rng: random.Random) -> float:
+    """Reconnect delay: ``min_s x 2^attempt`` capped at ``max_s``, times U(0.5, 1) jitter.
+
+    Jitter spreads a fleet's reconnects after a server restart.
+    """
+    base = min(max_s, min_s * (2.0 ** min(attempt, 30)))
+    return base * rng.uniform(0.5, 1.0)
+
+
+class RobotLink:
+    """The robot's connection to the fleet server.
+
+    Args:
+        config: The validated client configuration.
+        on_frame: Called on the loop thread with every complete (reassembled) binary
+            frame from the server. Exceptions it raises are logged and counted.
+        clock: Monotonic clock in seconds (injected for tests).
+        scheduler_config: Overrides the scheduler settings derived from ``config``.
+        tuning: Transport settings not in the config file.
+    """
+
+    def __init__(
+        self,
+        config: ClientConfig,
+        *,
+        on_frame: Callable[[bytes], None],
+        clock: Clock = time.monotonic,
+        scheduler_config: SchedulerConfig | None = None,
+        tuning: LinkTuning | None = None,
+    ) -> None:
+        self.config = config
+        self.tuning = tuning or LinkTuning()
+        self._on_frame = on_frame
+        self._clock = clock
+        self._scheduler = Scheduler(scheduler_config or scheduler_config_for(config))
+        self._rates = {p.remote_topic: p.rate_limit_hz for p in config.publish}
+        now = clock()
+        for spec in config.publish:
+            self._scheduler.register_topic(spec.remote_topic, spec.priority, now)
+        self._admit_lock = threading.Lock()
+        self._rng = random.Random()
+        self._loop: asyncio.AbstractEventLoop | None = None
+        with contextlib.suppress(RuntimeError):
+            self._loop = asyncio.get_running_loop()
+        self._wake = asyncio.Event()
+        self._stop = asyncio.Event()
+        self._stopped = asyncio.Event()
+        self._running = False
+        self._ws: ClientConnection | None = None
+        self._pings: dict[int, float] = {}  # token -> sent time (s), this connection only
+        self._last_send_s = 0.0
+        self._receiver = _Receiver(self.tuning, clock, on_frame)
+        self._counters: Counter[str] = Counter()
+        self._server_errors: Counter[str] = Counter()
+        self._last_close: str | None = None
+        self._identities: list[str] = []
+        self._subscribed: set[str] = set()  # confirmed by the server on this connection
+
+    # -- the API used by the ROS node -----------------------------------------------------
+
+    def admit(self, remote_topic: str) -> bool:
+        """Algorithm 1 rate limit, checked before the caller spends CPU on encoding.
+
+        Thread-safe. Topics not in ``config.publish`` have no limit.
+
+        Returns:
+            False when the message must be skipped (counted as ``rate_limited``).
+        """
+        rate = self._rates.get(remote_topic)
+        if rate is None:
+            return True
+        with self._admit_lock:
+            return self._scheduler.admit(remote_topic, rate, self._clock())
+
+    def offer(self, remote_topic: str, frame: bytes, *, priority: float, no_drop: bool) -> None:
+        """Queue an encoded frame for sending. Call on the loop thread.
+
+        Args:
+            remote_topic: The frame's topic (as in its metadata).
+            frame: One complete wire frame.
+            priority: Algorithm 2 weight (>= 0).
+            no_drop: Reliable in-order (bounded FIFO, kept across reconnects) or latest-only.
+        """
+        if not self._scheduler.offer(remote_topic, frame, self._clock(),
+                                     priority=priority, no_drop=no_drop):
+            n = self._scheduler.no_drop_overflow
+            if n == 1 or n % 1000 == 0:
+                logger.warning("no_drop queue full (%d messages): dropped a message on %s "
+                               "(%d dropped so far)", self.config.limits.no_drop_queue_messages,
+                               remote_topic, n)
+        self._wake.set()
+
+    def offer_threadsafe(
+        self, remote_topic: str, frame: bytes, *, priority: float, no_drop: bool
+    ) -> None:
+        """:meth:`offer` from another thread (e.g. an rclpy executor).
+
+        Raises:
+            RuntimeError: The link has no event loop yet (create it inside the loop or
+                call after :meth:`run` started).
+        """
+        loop = self._loop
+        if loop is None:
+            raise RuntimeError("RobotLink has no event loop yet: create it inside the loop")
+        loop.call_soon_threadsafe(
+            functools.partial(self.offer, remote_topic, frame, priority=priority,
+                              no_drop=no_drop))
+
+    async def run(self) -> None:
+        """Connect and keep the link up until :meth:`stop`; reconnects on any failure."""
+        self._loop = asyncio.get_running_loop()
+        self._running = True
+        attempt = 0
+        try:
+            while not self._stop.is_set():
+                ws = await self._connect(attempt)
+                if ws is None:
+                    attempt += 1
+                    continue
+                if self._counters["connects"] > 0:
+                    self._counters["reconnects"] += 1
+                self._counters["connects"] += 1
+                if await self._session(ws):
+                    attempt = 0  # the link worked (a pong came back): start backoff over
+                else:
+                    attempt += 1
+                if not self._stop.is_set():
+                    await self._wait_stop(self._backoff(attempt))
+        finally:
+            self._running = False
+            self._stopped.set()
+
+    async def stop(self) -> None:
+        """Unsubscribe, close the connection, and return once :meth:`run` has returned."""
+        self._stop.set()
+        self._wake.set()
+        if self._running:
+            await self._stopped.wait()
+
+    def stats(self) -> dict[str, Any]:
+        """A JSON-able snapshot: per-topic sent/acked/dropped, no_drop overflow,
+        reconnects, RTT, in-flight bytes and frames, window, receive counters."""
+        snap: dict[str, Any] = self._scheduler.stats(self._clock())
+        snap["connected"] = self._ws is not None
+        snap["connects"] = self._counters["connects"]
+        snap["reconnects"] = self._counters["reconnects"]
+        snap["link_timeouts"] = self._counters["link_timeouts"]
+        snap["connect_failures"] = self._counters["connect_failures"]
+        snap["last_close"] = self._last_close
+        snap["server_errors"] = dict(self._server_errors)
+        snap["identities"] = list(self._identities)
+        snap["subscribed"] = sorted(self._subscribed)
+        snap["received"] = self._receiver.stats()
+        return snap
+
+    @property
+    def scheduler(self) -> Scheduler:
+        """The scheduler (read-only use: tests and benchmarks)."""
+        return self._scheduler
+
+    # -- connection life cycle ------------------------------------------------------------
+
+    def _backoff(self, attempt: int) -> float:
+        lim = self.config.limits
+        return backoff_delay_s(max(attempt - 1, 0), lim.reconnect_min_s, lim.reconnect_max_s,
+                               self._rng)
+
+    async def _wait_stop(self, timeout_s: float) -> None:
+        with contextlib.suppress(TimeoutError):
+            await asyncio.wait_for(self._stop.wait(), timeout_s)
+
+    async def _connect(self, attempt: int) -> ClientConnection | None:
+        headers = {}
+        if self.config.token is not None:
+            headers["Authorization"] = f"Bearer {self.config.token}"
+        extra: dict[str, Any] = {}
+        if self.config.bind_address is not None:
+            extra["local_addr"] = (self.config.bind_address, 0)
+        try:
+            return await connect(
+                self.config.server_url, additional_headers=headers, compression=None,
+                proxy=None, open_timeout=self.tuning.open_timeout_s, ping_interval=None,
+                ping_timeout=None, close_timeout=self.tuning.close_timeout_s,
+                max_size=self.tuning.max_receive_frame_bytes, **extra)
+        except (OSError, TimeoutError, InvalidHandshake, InvalidURI) as exc:
+            self._counters["connect_failures"] += 1
+            delay = self._backoff(attempt + 1)
+            # The token is never logged: only the URL and the reason.
+            logger.warning("cannot connect to %s: %s; retrying in %.2f s",
+                           self.config.server_url, exc or type(exc).__name__, delay)
+            await self._wait_stop(delay)
+            return None
+
+    async def _session(self, ws: ClientConnection) -> bool:
+        """Run one connection until it fails or stop(); True if a pong ever came back."""
+        self._ws = ws
+        self._pings.clear()
+        self._subscribed.clear()
+        self._identities = []
+        self._acked_any = False
+        logger.info("connected to %s", self.config.server_url)
+        tasks: list[asyncio.Task[None]] = []
+        try:
+            await self._subscribe_all(ws, subscribe=True)
+            tasks = [asyncio.create_task(self._send_loop(ws)),
+                     asyncio.create_task(self._receive_loop(ws)),
+                     asyncio.create_task(self._watchdog(ws))]
+            stop = asyncio.create_task(self._stop.wait())
+            done, _ = await asyncio.wait([*tasks, stop], return_when=asyncio.FIRST_COMPLETED)
+            stop.cancel()
+            for task in done:
+                if task is not stop and not task.cancelled() and task.exception() is not None:
+                    self._log_session_end(task.exception())
+            if self._stop.is_set():
+                await self._goodbye(ws)
+        except ConnectionClosed as exc:
+            self._log_session_end(exc)
+        finally:
+            for task in tasks:
+                task.cancel()
+            await asyncio.gather(*tasks, return_exceptions=True)
+            self._ws = None
+            self._scheduler.on_disconnect(self._clock())
+            self._receiver.on_disconnect()
+            ws.transport.abort()
+        return self._acked_any
+
+    def _log_session_end(self, exc: BaseException | None) -> None:
+        if isinstance(exc, ConnectionClosed):
+            rcvd = exc.rcvd
+            self._last_close = (f"{rcvd.code} {rcvd.reason}".strip() if rcvd is not None
+                                else "no close frame")
+            level = logging.ERROR if rcvd is not None and rcvd.code in (4401, 4403) else (
+                logging.WARNING)
+            logger.log(level, "connection to %s closed: %s", self.config.server_url,
+                       self._last_close)
+        elif isinstance(exc, LinkDead):
+            self._counters["link_timeouts"] += 1
+            self._last_close = "link timeout"
+            logger.warning("%s", exc)
+        elif exc is not None:
+            self._last_close = f"error: {exc!r}"
+            logger.error("link to %s failed: %r", self.config.server_url, exc)
+
+    async def _subscribe_all(self, ws: ClientConnection, *, subscribe: bool) -> None:
+        for spec in self.config.subscribe:
+            await ws.send(encode_subscription(spec.remote_topic, subscribe))
+
+    async def _goodbye(self, ws: ClientConnection) -> None:
+        try:
+            async with asyncio.timeout(self.tuning.close_timeout_s):
+                await self._subscribe_all(ws, subscribe=False)
+                await ws.close()
+        except (TimeoutError, ConnectionClosed, OSError) as exc:
+            logger.info("closing handshake did not complete: %r", exc)
+
+    # -- sending --------------------------------------------------------------------------
+
+    async def _send_loop(self, ws: ClientConnection) -> None:
+        sched = self._scheduler
+        clock = self._clock
+        while True:
+            self._wake.clear()
+            now = clock()
+            while (frame := sched.next_frame(now)) is not None:
+                await ws.send(frame)
+                self._last_send_s = now = clock()
+                if sched.wants_ack_point(now):
+                    await self._ping(ws, now)
+            if sched.wants_ack_point(now):
+                await self._ping(ws, now)
+            elif not self._pings and now - self._last_send_s >= self.tuning.keepalive_interval_s:
+                await self._ping(ws, now)  # keepalive: proves the link and samples RTT
+            idle_left = self.tuning.keepalive_interval_s - (clock() - self._last_send_s)
+            with contextlib.suppress(TimeoutError):
+                await asyncio.wait_for(self._wake.wait(), max(idle_left, 0.01))
+
+    async def _ping(self, ws: ClientConnection, now_s: float) -> None:
+        token = self._scheduler.ack_point(now_s)
+        self._pings[token] = now_s
+        self._last_send_s = now_s
+        waiter = asyncio.ensure_future(await ws.ping(token.to_bytes(8, "big")))
+        waiter.add_done_callback(functools.partial(self._on_pong, token))
+
+    def _on_pong(self, token: int, fut: asyncio.Future[float]) -> None:
+        if self._pings.pop(token, None) is None or fut.cancelled() or fut.exception():
+            return
+        self._acked_any = True
+        self._scheduler.on_ack(token, self._clock())
+        self._wake.set()
+
+    async def _watchdog(self, ws: ClientConnection) -> None:
+        period = self.tuning.link_timeout_s / 4
+        while True:
+            await asyncio.sleep(period)  # a periodic check, not a synchronization
+            oldest = min(self._pings.values(), default=None)
+            if oldest is not None and self._clock() - oldest > self.tuning.link_timeout_s:
+                raise LinkDead(f"no pong from {self.config.server_url} for "
+                               f"{self.tuning.link_timeout_s:.1f} s: reconnecting")
+
+    # -- receiving ------------------------------------------------------------------------
+
+    async def _receive_loop(self, ws: ClientConnection) -> None:
+        async for message in ws:
+            if isinstance(message, str):
+                self._on_text(message)
+            else:
+                self._receiver.on_binary(message)
+
+    def _on_text(self, text: str) -> None:
+        try:
+            event = json.loads(text)
+        except ValueError:
+            logger.warning("server sent text that is not JSON: %.200r", text)
+            return
+        kind = event.get("type") if isinstance(event, dict) else None
+        if kind == "welcome":
+            self._identities = [str(i) for i in event.get("identities", [])]
+            logger.info("authenticated as %s", ", ".join(self._identities) or "(nobody)")
+        elif kind in ("subscribed", "unsubscribed"):
+            pattern = str(event.get("topic_regex"))
+            if kind == "subscribed":
+                self._subscribed.add(pattern)
+            else:
+                self._subscribed.discard(pattern)
+        elif kind == "error":
+            code = str(event.get("code"))
+            self._server_errors[code] += 1
+            logger.warning("server error %s on %s: %s", code, event.get("topic"),
+                           event.get("message"))
+        else:
+            logger.debug("server: %.200s", text)
+
+
+class _Receiver:
+    """Reassembly, duplicate suppression and delivery of frames from the server."""
+
+    def __init__(self, tuning: LinkTuning, clock: Clock,
+                 on_frame: Callable[[bytes], None]) -> None:
+        self._tuning = tuning
+        self._clock = clock
+        self._on_frame = on_frame
+        self._reassembler = Reassembler(tuning.reassembly_max_bytes, tuning.reassembly_timeout_s)
+        self._last_seq: dict[str, int] = {}
+        self._counters: Counter[str] = Counter()
+
+    def on_binary(self, frame: bytes) -> None:
+        try:
+            meta = read_metadata(frame)
+            if meta.type == FRAGMENT_TYPE:
+                whole = self._reassembler.feed(frame, self._clock())
+                if whole is None:
+                    return
+                frame, meta = whole, read_metadata(whole)
+        except WireError as exc:
+            self._counters["malformed"] += 1
+            logger.warning("dropped a malformed frame from the server: %s", exc)
+            return
+        if meta.no_drop and self._is_duplicate(meta.topic, meta.seq):
+            self._counters["duplicates"] += 1
+            return
+        self._counters["frames"] += 1
+        try:
+            self._on_frame(frame)
+        except Exception:
+            self._counters["callback_errors"] += 1
+            logger.exception("on_frame failed for a frame on %s", meta.topic)
+
+    def _is_duplicate(self, topic: str, seq: int) -> bool:
+        last = self._last_seq.get(topic)
+        if last is not None and last - self._tuning.dedupe_window < seq <= last:
+            return True
+        self._last_seq[topic] = seq
+        return False
+
+    def on_disconnect(self) -> None:
+        """Keep seqs (duplicates come right after a reconnect); nothing else to reset."""
+
+    def stats(self) -> dict[str, Any]:
+        out: dict[str, Any] = dict(self._counters)
+        out["reassembly"] = _reassembler_stats(self._reassembler)
+        return out
+
+
+def _reassembler_stats(reassembler: Reassembler) -> dict[str, Any]:
+    counters = dict(vars(reassembler.stats))
+    counters["pending_bytes"] = reassembler.pending_bytes
+    return counters

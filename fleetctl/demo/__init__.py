@@ -1,0 +1,1 @@
+"""``fleetctl demo``: a whole fleet on this machine (server, simulated robots, webviz)."""

@@ -1,0 +1,82 @@
+"""Thin, replaceable access to the ``docker`` command line.
+
+Everything that talks to the Docker engine goes through a :class:`Runner`, so unit tests can
+record the commands instead of running them. The CLI is used (not an SDK) because the
+machines this runs on have the docker CLI but not always a matching Python SDK.
+"""
+
+from __future__ import annotations
+
+import shutil
+import subprocess
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+
+from fleetctl.errors import EnvironmentMissing, FleetError
+
+
+@dataclass(frozen=True)
+class Completed:
+    """Result of one command.
+
+    Attributes:
+        args: The command that ran.
+        returncode: Its exit status.
+        stdout: Captured standard output (empty when not captured).
+        stderr: Captured standard error (empty when not captured).
+    """
+
+    args: tuple[str, ...]
+    returncode: int
+    stdout: str
+    stderr: str
+
+
+# A runner takes (argv, stdin bytes or None, capture) and returns the result; it never raises
+# on a non-zero exit, callers decide.
+Runner = Callable[[Sequence[str], bytes | None, bool], Completed]
+
+
+def subprocess_runner(argv: Sequence[str], stdin: bytes | None, capture: bool) -> Completed:
+    """Run *argv* for real; output is inherited (shown to the user) unless *capture*."""
+    try:
+        proc = subprocess.run(
+            list(argv),
+            input=stdin,
+            stdout=subprocess.PIPE if capture else None,
+            stderr=subprocess.PIPE if capture else None,
+            check=False,
+        )
+    except FileNotFoundError as exc:
+        raise EnvironmentMissing(f"{argv[0]}: command not found") from exc
+    out = proc.stdout.decode(errors="replace") if capture and proc.stdout else ""
+    err = proc.stderr.decode(errors="replace") if capture and proc.stderr else ""
+    return Completed(tuple(argv), proc.returncode, out, err)
+
+
+def require_docker(which: Callable[[str], str | None] = shutil.which) -> str:
+    """Return the docker CLI path or raise a clear error when Docker is absent.
+
+    Raises:
+        EnvironmentMissing: no ``docker`` on PATH.
+    """
+    path = which("docker")
+    if path is None:
+        raise EnvironmentMissing(
+            "docker: command not found; install Docker (Debian: apt-get install docker.io)"
+        )
+    return path
+
+
+def check(result: Completed, what: str) -> Completed:
+    """Raise a :class:`FleetError` naming *what* failed when *result* is non-zero."""
+    if result.returncode != 0:
+        detail = (result.stderr or result.stdout).strip().splitlines()[-5:]
+        raise FleetError(f"{what} failed (exit {result.returncode}): " + " | ".join(detail))
+    return result
+
+
+def image_exists(runner: Runner, image: str) -> bool:
+    """True when the local engine has *image* (no registry is consulted)."""
+    res = runner(["docker", "image", "inspect", "--format", "{{.Id}}", image], None, True)
+    return res.returncode == 0

@@ -1,0 +1,433 @@
+"""The fleet model (``fleet.yaml``, the one source of truth) and its load/save.
+
+Everything ``fleetctl`` renders (WireGuard configs, the auth map, server and client
+configs) is a pure function of a :class:`Fleet` and the key files beside ``fleet.yaml``.
+"""
+
+from __future__ import annotations
+
+import enum
+import ipaddress
+import re
+from dataclasses import dataclass
+from ipaddress import IPv4Address, IPv4Network
+from pathlib import Path
+
+import re2
+import yaml
+
+from fleetctl.deploy.yamlnodes import Document, FieldPath
+from fleetctl.errors import ConfigError
+
+FLEET_FILE = "fleet.yaml"
+FORMAT_VERSION = 1
+DEFAULT_SUBNET = "10.8.0.0/24"
+DEFAULT_SERVER_PORT = 8080
+DEFAULT_WIREGUARD_PORT = 51820
+# WireGuard's default 1420 assumes a 1500-byte path; LTE carriers often give 1428-1450 or
+# less after their own tunnelling. 1280 is the IPv6 minimum and works on every path.
+DEFAULT_MTU_BYTES = 1280
+MIN_MTU_BYTES = 576
+MAX_MTU_BYTES = 9000
+
+# A ROS 2 name token: letters, digits, underscores, not starting with a digit, no "__"
+# (rcl reserves repeated underscores). A robot name is one namespace segment.
+_SEGMENT = re.compile(r"[A-Za-z][A-Za-z0-9_]*")
+_RELATIVE_TOPIC = re.compile(r"[A-Za-z][A-Za-z0-9_]*(/[A-Za-z][A-Za-z0-9_]*)*")
+_TYPE = re.compile(r"[A-Za-z][A-Za-z0-9_]*/(msg/)?[A-Za-z][A-Za-z0-9_]*")
+_EMAIL = re.compile(r"[^@\s]+@[^@\s]+")
+_SHA256 = re.compile(r"[0-9a-f]{64}")
+_HOST = re.compile(r"[A-Za-z0-9]([A-Za-z0-9.-]*[A-Za-z0-9])?|\[[0-9A-Fa-f:.]+\]")
+_RE2_OPTIONS = re2.Options()
+_RE2_OPTIONS.log_errors = False  # we report bad regexes ourselves
+
+
+class Role(enum.Enum):
+    """What a user may do.
+
+    viewer: receive everything robots publish, send nothing. operator: viewer plus send
+    every robot's command topics. admin: send and receive every topic.
+    """
+
+    VIEWER = "viewer"
+    OPERATOR = "operator"
+    ADMIN = "admin"
+
+
+@dataclass(frozen=True)
+class CommandTopic:
+    """A topic the fleet sends to a robot: ``/<robot>/<topic>``, republished as ``/<topic>``."""
+
+    topic: str  # relative, e.g. "goal_pose"
+    type: str  # ROS 2 type, e.g. "geometry_msgs/msg/PoseStamped"
+
+
+DEFAULT_COMMAND_TOPICS: tuple[CommandTopic, ...] = (
+    CommandTopic("goal_pose", "geometry_msgs/msg/PoseStamped"),
+    CommandTopic("initialpose", "geometry_msgs/msg/PoseWithCovarianceStamped"),
+)
+
+
+@dataclass(frozen=True)
+class Robot:
+    """One robot: its VPN address and what it may send and receive beyond its own topics.
+
+    Attributes:
+        name: one ROS namespace segment; its topics are ``/<name>/...``.
+        ip: its WireGuard address (the server identifies it by this source address).
+        mtu_bytes: MTU of its WireGuard interface.
+        command_topics: topics operators send it (it may receive ``/<name>/<topic>``).
+        extra_send: more RE2 full-match topic regexes it may send (e.g. to another robot).
+        extra_receive: more RE2 full-match topic regexes it may receive.
+    """
+
+    name: str
+    ip: IPv4Address
+    mtu_bytes: int = DEFAULT_MTU_BYTES
+    command_topics: tuple[CommandTopic, ...] = DEFAULT_COMMAND_TOPICS
+    extra_send: tuple[str, ...] = ()
+    extra_receive: tuple[str, ...] = ()
+
+
+@dataclass(frozen=True)
+class User:
+    """A person, signed in with a token whose SHA-256 (hex) is all that is stored."""
+
+    email: str
+    role: Role
+    token_sha256: str
+
+
+@dataclass(frozen=True)
+class Fleet:
+    """The whole fleet.
+
+    Attributes:
+        name: a label for the fleet.
+        endpoint: ``HOST:PORT`` robots reach the server's WireGuard on.
+        subnet: the VPN subnet; robots get a /32 inside it.
+        server_ip: the server's VPN address (inside *subnet*).
+        server_port: TCP port of the fleet server's WebSocket.
+        wireguard_port: UDP port the server's WireGuard listens on.
+        robots: in the order they were added.
+        users: in the order they were added.
+    """
+
+    name: str
+    endpoint: str
+    subnet: IPv4Network
+    server_ip: IPv4Address
+    server_port: int = DEFAULT_SERVER_PORT
+    wireguard_port: int = DEFAULT_WIREGUARD_PORT
+    robots: tuple[Robot, ...] = ()
+    users: tuple[User, ...] = ()
+
+    def robot(self, name: str) -> Robot | None:
+        """Return the robot called *name*, or ``None``."""
+        return next((r for r in self.robots if r.name == name), None)
+
+    def user(self, email: str) -> User | None:
+        """Return the user with *email*, or ``None``."""
+        return next((u for u in self.users if u.email == email), None)
+
+
+class FleetInvalid(Exception):
+    """A semantic error in a fleet, with the field path it concerns.
+
+    Attributes:
+        path: the field, e.g. ``("robots", 2, "ip")``.
+        conflict: True when the problem is a duplicate (a name or address already used).
+    """
+
+    def __init__(self, path: FieldPath, message: str, *, conflict: bool = False) -> None:
+        super().__init__(message)
+        self.path = path
+        self.conflict = conflict
+
+
+# --- validation ------------------------------------------------------------------------
+
+
+def check_robot_name(name: str) -> None:
+    """Raise :class:`FleetInvalid` unless *name* is a valid ROS namespace segment."""
+    if not _SEGMENT.fullmatch(name) or "__" in name:
+        raise FleetInvalid(
+            ("name",),
+            f"robot name {name!r} is not a ROS namespace segment "
+            "(letters, digits and single underscores, starting with a letter)",
+        )
+
+
+def check_regex(pattern: str, path: FieldPath) -> None:
+    """Raise :class:`FleetInvalid` unless *pattern* compiles as RE2."""
+    try:
+        re2.compile(pattern, _RE2_OPTIONS)
+    except re2.error as exc:
+        raise FleetInvalid(path, f"not a valid RE2 regex {pattern!r}: {exc}") from None
+
+
+def parse_endpoint(endpoint: str) -> tuple[str, int]:
+    """Split ``HOST:PORT`` (``[v6]:PORT`` for IPv6) and check both parts.
+
+    Raises:
+        FleetInvalid: naming the field ``endpoint``.
+    """
+    host, sep, port = endpoint.rpartition(":")
+    if not sep or not _HOST.fullmatch(host) or not port.isdigit() or not 0 < int(port) < 65536:
+        raise FleetInvalid(("endpoint",), f"expected HOST:PORT, got {endpoint!r}")
+    return host, int(port)
+
+
+def _check_host_ip(fleet: Fleet, ip: IPv4Address, path: FieldPath) -> None:
+    if ip not in fleet.subnet:
+        raise FleetInvalid(path, f"{ip} is outside the fleet subnet {fleet.subnet}")
+    if ip in (fleet.subnet.network_address, fleet.subnet.broadcast_address):
+        raise FleetInvalid(path, f"{ip} is the network or broadcast address of {fleet.subnet}")
+
+
+def _check_robot(fleet: Fleet, i: int, robot: Robot, seen: dict[object, str]) -> None:
+    path: FieldPath = ("robots", i)
+    try:
+        check_robot_name(robot.name)
+    except FleetInvalid as exc:
+        raise FleetInvalid((*path, "name"), str(exc)) from None
+    if ("name", robot.name) in seen:
+        raise FleetInvalid((*path, "name"), f"duplicate robot name {robot.name!r}", conflict=True)
+    _check_host_ip(fleet, robot.ip, (*path, "ip"))
+    if robot.ip == fleet.server_ip:
+        raise FleetInvalid((*path, "ip"), f"{robot.ip} is the server's address", conflict=True)
+    if ("ip", robot.ip) in seen:
+        other = seen[("ip", robot.ip)]
+        raise FleetInvalid((*path, "ip"), f"{robot.ip} is already used by robot {other!r}",
+                           conflict=True)
+    seen[("name", robot.name)] = seen[("ip", robot.ip)] = robot.name
+    _check_robot_topics(robot, path)
+
+
+def _check_robot_topics(robot: Robot, path: FieldPath) -> None:
+    if not MIN_MTU_BYTES <= robot.mtu_bytes <= MAX_MTU_BYTES:
+        raise FleetInvalid((*path, "mtu_bytes"),
+                           f"must be between {MIN_MTU_BYTES} and {MAX_MTU_BYTES}")
+    for j, cmd in enumerate(robot.command_topics):
+        if not _RELATIVE_TOPIC.fullmatch(cmd.topic) or "__" in cmd.topic:
+            raise FleetInvalid((*path, "command_topics", j, "topic"),
+                               f"{cmd.topic!r} is not a relative ROS topic name")
+        if not _TYPE.fullmatch(cmd.type):
+            raise FleetInvalid((*path, "command_topics", j, "type"),
+                               f"{cmd.type!r} is not a ROS type name (pkg/msg/Name)")
+    for field_name in ("extra_send", "extra_receive"):
+        for j, pattern in enumerate(getattr(robot, field_name)):
+            check_regex(pattern, (*path, field_name, j))
+
+
+def _check_user(i: int, user: User, seen: set[str]) -> None:
+    path: FieldPath = ("users", i)
+    if not _EMAIL.fullmatch(user.email):
+        raise FleetInvalid((*path, "email"), f"{user.email!r} is not an email address")
+    if user.email in seen:
+        raise FleetInvalid((*path, "email"), f"duplicate user {user.email!r}", conflict=True)
+    seen.add(user.email)
+    if not _SHA256.fullmatch(user.token_sha256):
+        raise FleetInvalid((*path, "token_sha256"), "expected 64 lowercase hex digits")
+
+
+def validate(fleet: Fleet) -> None:
+    """Check every rule a fleet must satisfy.
+
+    Raises:
+        FleetInvalid: the first problem found, with the field path it concerns.
+    """
+    if not fleet.name.strip():
+        raise FleetInvalid(("name",), "must not be empty")
+    parse_endpoint(fleet.endpoint)
+    if fleet.subnet.num_addresses < 4:
+        raise FleetInvalid(("subnet",), f"{fleet.subnet} is too small (at most /30)")
+    _check_host_ip(fleet, fleet.server_ip, ("server_ip",))
+    seen: dict[object, str] = {}
+    for i, robot in enumerate(fleet.robots):
+        _check_robot(fleet, i, robot, seen)
+    emails: set[str] = set()
+    for i, user in enumerate(fleet.users):
+        _check_user(i, user, emails)
+
+
+def next_free_ip(fleet: Fleet) -> IPv4Address:
+    """Return the lowest address of the subnet not used by the server or a robot.
+
+    Raises:
+        FleetInvalid: if the subnet is full (a conflict).
+    """
+    used = {fleet.server_ip, *(r.ip for r in fleet.robots)}
+    for host in fleet.subnet.hosts():
+        if host not in used:
+            return host
+    raise FleetInvalid(("subnet",), f"the subnet {fleet.subnet} is full", conflict=True)
+
+
+def parse_subnet(text: str, path: FieldPath = ("subnet",)) -> IPv4Network:
+    """Parse an IPv4 subnet in CIDR form (host bits must be zero)."""
+    try:
+        net = ipaddress.ip_network(text, strict=True)
+    except ValueError as exc:
+        raise FleetInvalid(path, f"not a subnet in CIDR form: {exc}") from None
+    if not isinstance(net, IPv4Network):
+        raise FleetInvalid(path, "only IPv4 subnets are supported")
+    return net
+
+
+def parse_ip(text: str, path: FieldPath) -> IPv4Address:
+    """Parse an IPv4 address."""
+    try:
+        return IPv4Address(text)
+    except ValueError:
+        raise FleetInvalid(path, f"not an IPv4 address: {text!r}") from None
+
+
+# --- load ------------------------------------------------------------------------------
+
+
+def fleet_file(fleet_dir: Path) -> Path:
+    """Return the path of ``fleet.yaml`` in *fleet_dir*."""
+    return fleet_dir / FLEET_FILE
+
+
+def load_fleet(fleet_dir: Path) -> Fleet:
+    """Load and validate ``fleet_dir/fleet.yaml``.
+
+    Raises:
+        ConfigError: the directory or file is missing, or the file is malformed or invalid;
+            the message names the file, the line and the field.
+    """
+    if not fleet_dir.is_dir():
+        raise ConfigError(f"fleet directory {fleet_dir} does not exist "
+                          "(create one with 'fleetctl init', or set --fleet / FLEET_DIR)")
+    path = fleet_file(fleet_dir)
+    try:
+        text = path.read_text(encoding="utf-8")
+    except FileNotFoundError:
+        raise ConfigError(f"{path}: not found: {fleet_dir} is not a fleet directory "
+                          "(create one with 'fleetctl init')") from None
+    except (OSError, UnicodeDecodeError) as exc:
+        raise ConfigError(f"{path}: cannot read: {exc}") from None
+    return parse_fleet(path, text)
+
+
+def parse_fleet(path: Path, text: str) -> Fleet:
+    """Parse and validate fleet.yaml text; *path* is only used in error messages."""
+    doc = Document(path, text)
+    try:
+        fleet = _build_fleet(doc)
+        validate(fleet)
+    except FleetInvalid as exc:
+        raise doc.error(exc.path, str(exc)) from None
+    return fleet
+
+
+def _build_fleet(doc: Document) -> Fleet:
+    f = doc.mapping(doc.root, (), ["version", "name", "endpoint", "subnet", "server_ip"],
+                    ["server_port", "wireguard_port", "robots", "users"])
+    version = doc.integer(f["version"], ("version",), 1, 1_000_000)
+    if version != FORMAT_VERSION:
+        raise FleetInvalid(("version",), f"unsupported version {version} "
+                           f"(this fleetctl reads version {FORMAT_VERSION})")
+    name = doc.string(f["name"], ("name",))
+    endpoint = doc.string(f["endpoint"], ("endpoint",))
+    subnet = parse_subnet(doc.string(f["subnet"], ("subnet",)))
+    server_ip = parse_ip(doc.string(f["server_ip"], ("server_ip",)), ("server_ip",))
+    robot_nodes = doc.sequence(f["robots"], ("robots",)) if "robots" in f else []
+    user_nodes = doc.sequence(f["users"], ("users",)) if "users" in f else []
+    return Fleet(
+        name=name,
+        endpoint=endpoint,
+        subnet=subnet,
+        server_ip=server_ip,
+        server_port=_port(doc, f, "server_port", DEFAULT_SERVER_PORT),
+        wireguard_port=_port(doc, f, "wireguard_port", DEFAULT_WIREGUARD_PORT),
+        robots=tuple(_build_robot(doc, n, ("robots", i)) for i, n in enumerate(robot_nodes)),
+        users=tuple(_build_user(doc, n, ("users", i)) for i, n in enumerate(user_nodes)),
+    )
+
+
+def _port(doc: Document, f: dict[str, yaml.Node], key: str, default: int) -> int:
+    return doc.integer(f[key], (key,), 1, 65535) if key in f else default
+
+
+def _build_robot(doc: Document, node: yaml.Node, path: FieldPath) -> Robot:
+    f = doc.mapping(node, path, ["name", "ip"],
+                    ["mtu_bytes", "command_topics", "extra_send", "extra_receive"])
+    cmds = DEFAULT_COMMAND_TOPICS
+    if "command_topics" in f:
+        cpath = (*path, "command_topics")
+        cmds = tuple(_build_command(doc, n, (*cpath, j))
+                     for j, n in enumerate(doc.sequence(f["command_topics"], cpath)))
+    return Robot(
+        name=doc.string(f["name"], (*path, "name")),
+        ip=parse_ip(doc.string(f["ip"], (*path, "ip")), (*path, "ip")),
+        mtu_bytes=(doc.integer(f["mtu_bytes"], (*path, "mtu_bytes"), MIN_MTU_BYTES, MAX_MTU_BYTES)
+                   if "mtu_bytes" in f else DEFAULT_MTU_BYTES),
+        command_topics=cmds,
+        extra_send=_strings(doc, f, "extra_send", path),
+        extra_receive=_strings(doc, f, "extra_receive", path),
+    )
+
+
+def _build_command(doc: Document, node: yaml.Node, path: FieldPath) -> CommandTopic:
+    f = doc.mapping(node, path, ["topic", "type"], [])
+    return CommandTopic(doc.string(f["topic"], (*path, "topic")),
+                        doc.string(f["type"], (*path, "type")))
+
+
+def _strings(doc: Document, f: dict[str, yaml.Node], key: str, path: FieldPath) -> tuple[str, ...]:
+    if key not in f:
+        return ()
+    p = (*path, key)
+    return tuple(doc.string(n, (*p, j)) for j, n in enumerate(doc.sequence(f[key], p)))
+
+
+def _build_user(doc: Document, node: yaml.Node, path: FieldPath) -> User:
+    f = doc.mapping(node, path, ["email", "role", "token_sha256"], [])
+    role_text = doc.string(f["role"], (*path, "role"))
+    try:
+        role = Role(role_text)
+    except ValueError:
+        raise FleetInvalid((*path, "role"), f"unknown role {role_text!r} "
+                           f"(expected one of {', '.join(r.value for r in Role)})") from None
+    return User(doc.string(f["email"], (*path, "email")), role,
+                doc.string(f["token_sha256"], (*path, "token_sha256")))
+
+
+# --- save ------------------------------------------------------------------------------
+
+_HEADER = (
+    "# fleetctl fleet: the one source of truth. Edit it by hand or with fleetctl, then run\n"
+    "# 'fleetctl render' to regenerate every config. Keys live in keys/ (never in here).\n"
+)
+
+
+def dump_fleet(fleet: Fleet) -> str:
+    """Return the ``fleet.yaml`` text of *fleet* (deterministic: same fleet, same bytes)."""
+    data = {
+        "version": FORMAT_VERSION,
+        "name": fleet.name,
+        "endpoint": fleet.endpoint,
+        "subnet": str(fleet.subnet),
+        "server_ip": str(fleet.server_ip),
+        "server_port": fleet.server_port,
+        "wireguard_port": fleet.wireguard_port,
+        "robots": [_dump_robot(r) for r in fleet.robots],
+        "users": [{"email": u.email, "role": u.role.value, "token_sha256": u.token_sha256}
+                  for u in fleet.users],
+    }
+    return _HEADER + yaml.safe_dump(data, sort_keys=False, default_flow_style=False,
+                                    allow_unicode=True, width=100)
+
+
+def _dump_robot(robot: Robot) -> dict[str, object]:
+    return {
+        "name": robot.name,
+        "ip": str(robot.ip),
+        "mtu_bytes": robot.mtu_bytes,
+        "command_topics": [{"topic": c.topic, "type": c.type} for c in robot.command_topics],
+        "extra_send": list(robot.extra_send),
+        "extra_receive": list(robot.extra_receive),
+    }

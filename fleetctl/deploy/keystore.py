@@ -1,0 +1,92 @@
+"""Key files beside ``fleet.yaml``: ``keys/`` (0700) holding 0600 files.
+
+Layout::
+
+    keys/server.key          server WireGuard private key
+    keys/robots/NAME.key     robot WireGuard private key
+    keys/robots/NAME.psk     preshared key of the robot <-> server pair
+
+Public keys are always derived from private keys, never stored, so they cannot disagree.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+from fleetctl.deploy.files import SECRET_DIR_MODE, Plan
+from fleetctl.deploy.keys import KeySource, decode_key, new_preshared_key, new_private_key
+from fleetctl.deploy.secrets import Secret
+from fleetctl.errors import ConfigError
+
+KEYS_DIR = "keys"
+
+
+@dataclass(frozen=True)
+class RobotKeys:
+    """A robot's private key and its preshared key with the server."""
+
+    private_key: Secret
+    preshared_key: Secret
+
+
+def server_key_path(fleet_dir: Path) -> Path:
+    """Return the path of the server's private key file."""
+    return fleet_dir / KEYS_DIR / "server.key"
+
+
+def robot_key_paths(fleet_dir: Path, name: str) -> tuple[Path, Path]:
+    """Return the paths of robot *name*'s private key and preshared key files."""
+    base = fleet_dir / KEYS_DIR / "robots"
+    return base / f"{name}.key", base / f"{name}.psk"
+
+
+def _read_key(path: Path) -> Secret:
+    try:
+        text = path.read_text(encoding="ascii").strip()
+    except FileNotFoundError:
+        raise ConfigError(f"{path}: key file not found") from None
+    except (OSError, UnicodeDecodeError) as exc:
+        raise ConfigError(f"{path}: cannot read key file: {type(exc).__name__}") from None
+    decode_key(text, str(path))  # validates; the error never includes the key
+    return Secret(text)
+
+
+def load_server_key(fleet_dir: Path) -> Secret:
+    """Read the server's private key.
+
+    Raises:
+        ConfigError: naming the file if it is missing or malformed.
+    """
+    return _read_key(server_key_path(fleet_dir))
+
+
+def load_robot_keys(fleet_dir: Path, name: str) -> RobotKeys | None:
+    """Read robot *name*'s keys; ``None`` if neither file exists.
+
+    Raises:
+        ConfigError: naming the file if one is missing or malformed.
+    """
+    key_path, psk_path = robot_key_paths(fleet_dir, name)
+    if not key_path.exists() and not psk_path.exists():
+        return None
+    return RobotKeys(_read_key(key_path), _read_key(psk_path))
+
+
+def new_robot_keys(source: KeySource) -> RobotKeys:
+    """Make a robot key pair's private half and a preshared key."""
+    return RobotKeys(new_private_key(source), new_preshared_key(source))
+
+
+def plan_server_key(plan: Plan, fleet_dir: Path, key: Secret) -> None:
+    """Add writing the server's private key to *plan*."""
+    plan.directory(fleet_dir / KEYS_DIR, SECRET_DIR_MODE)
+    plan.write(server_key_path(fleet_dir), key.reveal() + "\n", secret=True)
+
+
+def plan_robot_keys(plan: Plan, fleet_dir: Path, name: str, keys: RobotKeys) -> None:
+    """Add writing robot *name*'s key files to *plan*."""
+    key_path, psk_path = robot_key_paths(fleet_dir, name)
+    plan.directory(fleet_dir / KEYS_DIR, SECRET_DIR_MODE)
+    plan.write(key_path, keys.private_key.reveal() + "\n", secret=True)
+    plan.write(psk_path, keys.preshared_key.reveal() + "\n", secret=True)

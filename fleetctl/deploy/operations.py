@@ -1,0 +1,385 @@
+"""The fleet life cycle as library functions: each validates everything first, then
+applies one :class:`~fleetctl.deploy.files.Plan` (or only previews it with ``dry_run``).
+
+These return results and print nothing; ``fleetctl.cli.fleet`` renders them, and other
+code (``fleetctl demo``, tests) calls them directly. Bad input raises a
+:class:`~fleetctl.errors.FleetError` and leaves the fleet directory untouched.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, replace
+from ipaddress import IPv4Address
+from pathlib import Path
+
+from fleetctl.deploy import keystore
+from fleetctl.deploy.files import Change, Plan
+from fleetctl.deploy.fleet import (
+    DEFAULT_COMMAND_TOPICS,
+    DEFAULT_MTU_BYTES,
+    DEFAULT_SERVER_PORT,
+    DEFAULT_SUBNET,
+    Fleet,
+    FleetInvalid,
+    Robot,
+    Role,
+    User,
+    check_robot_name,
+    dump_fleet,
+    fleet_file,
+    load_fleet,
+    next_free_ip,
+    parse_endpoint,
+    parse_ip,
+    parse_subnet,
+    validate,
+)
+from fleetctl.deploy.keys import (
+    KeySource,
+    SystemKeySource,
+    new_private_key,
+    new_token,
+    public_key,
+    token_sha256,
+)
+from fleetctl.deploy.keystore import RobotKeys
+from fleetctl.deploy.render import FleetKeys, fleet_artifacts, plan_artifacts
+from fleetctl.deploy.secrets import Secret
+from fleetctl.deploy.yamlnodes import FieldPath, format_path
+from fleetctl.errors import ConfigError, ConflictError, ExitCode, FleetError
+
+_SYSTEM_KEYS = SystemKeySource()
+# What `init --force` replaces: only what fleetctl itself generates.
+_GENERATED = ("server", "robots", keystore.KEYS_DIR)
+
+
+@dataclass(frozen=True)
+class Outcome:
+    """What an operation did (or, with ``dry_run``, would do) to the fleet directory."""
+
+    fleet_dir: Path
+    changes: tuple[Change, ...]
+    dry_run: bool
+
+
+@dataclass(frozen=True)
+class InitResult:
+    """Result of :func:`create_fleet`."""
+
+    fleet: Fleet
+    server_public_key: str
+    outcome: Outcome
+
+
+@dataclass(frozen=True)
+class RobotResult:
+    """Result of :func:`add_robot` / :func:`remove_robot`."""
+
+    robot: Robot
+    public_key: str | None  # None for a removed robot
+    outcome: Outcome
+
+
+@dataclass(frozen=True)
+class UserResult:
+    """Result of :func:`add_user` / :func:`remove_user`.
+
+    ``token`` is the new user's token, shown once: only its hash is stored. It is ``None``
+    for a removal and for a dry run (nothing is stored, so a token would be useless).
+    """
+
+    user: User
+    token: Secret | None
+    outcome: Outcome
+
+
+@dataclass(frozen=True)
+class FleetInfo:
+    """Result of :func:`describe_fleet`: the fleet and its public keys (never private ones)."""
+
+    fleet_dir: Path
+    fleet: Fleet
+    server_public_key: str
+    robot_public_keys: dict[str, str]
+
+
+@dataclass(frozen=True)
+class ExportResult:
+    """Result of :func:`export_robot`: the bundle written at ``path``."""
+
+    robot: Robot
+    path: Path
+    outcome: Outcome
+
+
+# --- helpers ---------------------------------------------------------------------------
+
+
+def _describe(fleet: Fleet, path: FieldPath) -> str:
+    if len(path) >= 2 and path[0] == "robots" and isinstance(path[1], int):
+        rest = format_path(path[2:]) if path[2:] else "robot"
+        return f"robot {fleet.robots[path[1]].name!r}: {rest}"
+    if len(path) >= 2 and path[0] == "users" and isinstance(path[1], int):
+        rest = format_path(path[2:]) if path[2:] else "user"
+        return f"user {fleet.users[path[1]].email!r}: {rest}"
+    return format_path(path)
+
+
+def _checked(fleet: Fleet) -> Fleet:
+    """Validate a fleet built from command input; raise the CLI-facing error."""
+    try:
+        validate(fleet)
+    except FleetInvalid as exc:
+        raise _error(fleet, exc) from None
+    return fleet
+
+
+def _error(fleet: Fleet, exc: FleetInvalid) -> FleetError:
+    message = f"{_describe(fleet, exc.path)}: {exc}"
+    return ConflictError(message) if exc.conflict else ConfigError(message)
+
+
+def _load_keys(fleet_dir: Path, fleet: Fleet, source: KeySource, plan: Plan) -> FleetKeys:
+    """Read every key; make (and plan to write) keys for robots that have none yet.
+
+    A robot added to fleet.yaml by hand gets its keys on the next operation; a missing
+    server key is an error, because a new one would cut off every robot already deployed.
+    """
+    robots: dict[str, RobotKeys] = {}
+    for robot in fleet.robots:
+        keys = keystore.load_robot_keys(fleet_dir, robot.name)
+        if keys is None:
+            keys = keystore.new_robot_keys(source)
+            keystore.plan_robot_keys(plan, fleet_dir, robot.name, keys)
+        robots[robot.name] = keys
+    return FleetKeys(keystore.load_server_key(fleet_dir), robots)
+
+
+def _plan_fleet(plan: Plan, fleet_dir: Path, fleet: Fleet, keys: FleetKeys) -> Plan:
+    plan.write(fleet_file(fleet_dir), dump_fleet(fleet))
+    plan_artifacts(plan, fleet_dir, fleet_artifacts(fleet, keys))
+    return plan
+
+
+def finish_plan(plan: Plan, fleet_dir: Path, dry_run: bool) -> Outcome:
+    """Apply *plan* (or only preview it when *dry_run*) and return the outcome."""
+    changes = plan.preview() if dry_run else plan.apply()
+    return Outcome(fleet_dir, tuple(changes), dry_run)
+
+
+# --- operations ------------------------------------------------------------------------
+
+
+def create_fleet(
+    fleet_dir: Path,
+    *,
+    endpoint: str,
+    name: str | None = None,
+    subnet: str = DEFAULT_SUBNET,
+    server_ip: str | None = None,
+    server_port: int = DEFAULT_SERVER_PORT,
+    wireguard_port: int | None = None,
+    force: bool = False,
+    dry_run: bool = False,
+    keys: KeySource = _SYSTEM_KEYS,
+) -> InitResult:
+    """Create a fleet directory: fleet.yaml, server key, server configs, auth map.
+
+    Args:
+        fleet_dir: the directory (created if missing).
+        endpoint: ``HOST:PORT`` robots reach the server's WireGuard on.
+        name: fleet label; default: the directory's name.
+        subnet: VPN subnet in CIDR form.
+        server_ip: server's VPN address; default: the subnet's first host.
+        server_port: TCP port of the fleet server.
+        wireguard_port: UDP port WireGuard listens on; default: the endpoint's port.
+        force: replace an existing fleet (its fleet.yaml, keys and generated files).
+        dry_run: compute and return the changes without writing anything.
+        keys: where key material comes from.
+
+    Raises:
+        ConflictError: *fleet_dir* already holds a fleet and *force* is false.
+        ConfigError: an argument is invalid (the message names it).
+    """
+    if fleet_file(fleet_dir).exists() and not force:
+        raise ConflictError(f"{fleet_file(fleet_dir)} already exists "
+                            "(use --force to replace the fleet and all its keys)")
+    try:
+        net = parse_subnet(subnet)
+        _, endpoint_port = parse_endpoint(endpoint)
+        server = parse_ip(server_ip, ("server_ip",)) if server_ip else next(net.hosts())
+    except FleetInvalid as exc:
+        raise ConfigError(f"{format_path(exc.path)}: {exc}") from None
+    fleet = _checked(Fleet(
+        name=name or fleet_dir.resolve().name or "fleet",
+        endpoint=endpoint, subnet=net, server_ip=server, server_port=server_port,
+        wireguard_port=wireguard_port or endpoint_port,
+    ))
+    plan = Plan()
+    if force:
+        for sub in _GENERATED:
+            plan.delete(fleet_dir / sub)
+    server_key = new_private_key(keys)
+    keystore.plan_server_key(plan, fleet_dir, server_key)
+    _plan_fleet(plan, fleet_dir, fleet, FleetKeys(server_key, {}))
+    return InitResult(fleet, public_key(server_key), finish_plan(plan, fleet_dir, dry_run))
+
+
+def add_robot(
+    fleet_dir: Path,
+    name: str,
+    *,
+    ip: str | None = None,
+    mtu_bytes: int = DEFAULT_MTU_BYTES,
+    dry_run: bool = False,
+    keys: KeySource = _SYSTEM_KEYS,
+) -> RobotResult:
+    """Add a robot: keys, its WireGuard and client configs, a server peer, auth rules.
+
+    Args:
+        fleet_dir: the fleet directory.
+        name: a ROS namespace segment, unique in the fleet.
+        ip: its VPN address; ``None``: the lowest free address of the subnet.
+        mtu_bytes: MTU of its WireGuard interface.
+        dry_run: compute and return the changes without writing anything.
+        keys: where key material comes from.
+
+    Raises:
+        ConfigError: a bad name or address, or a missing/malformed fleet directory.
+        ConflictError: the name or address is taken, or the subnet is full.
+    """
+    fleet = load_fleet(fleet_dir)
+    try:
+        check_robot_name(name)
+        address = parse_ip(ip, ("ip",)) if ip else next_free_ip(fleet)
+    except FleetInvalid as exc:
+        raise (ConflictError(str(exc)) if exc.conflict else ConfigError(str(exc))) from None
+    robot = Robot(name, address, mtu_bytes=mtu_bytes, command_topics=DEFAULT_COMMAND_TOPICS)
+    new = _checked(replace(fleet, robots=(*fleet.robots, robot)))
+    plan = Plan()
+    fleet_keys = _load_keys(fleet_dir, new, keys, plan)
+    _plan_fleet(plan, fleet_dir, new, fleet_keys)
+    pub = public_key(fleet_keys.robot(name).private_key)
+    return RobotResult(robot, pub, finish_plan(plan, fleet_dir, dry_run))
+
+
+def remove_robot(fleet_dir: Path, name: str, *, dry_run: bool = False) -> RobotResult:
+    """Remove a robot, its keys, its files, its server peer and its auth rules.
+
+    Raises:
+        ConfigError: there is no such robot, or the fleet directory is missing/malformed.
+    """
+    fleet = load_fleet(fleet_dir)
+    robot = fleet.robot(name)
+    if robot is None:
+        raise ConfigError(f"robot {name!r} is not in {fleet_file(fleet_dir)}")
+    new = replace(fleet, robots=tuple(r for r in fleet.robots if r.name != name))
+    plan = Plan()
+    fleet_keys = _load_keys(fleet_dir, new, _SYSTEM_KEYS, plan)
+    plan.delete(fleet_dir / "robots" / name)
+    plan.deletes.extend(keystore.robot_key_paths(fleet_dir, name))
+    _plan_fleet(plan, fleet_dir, new, fleet_keys)
+    return RobotResult(robot, None, finish_plan(plan, fleet_dir, dry_run))
+
+
+def parse_role(text: str) -> Role:
+    """Return the role named *text*.
+
+    Raises:
+        FleetError: (usage exit code) naming the valid roles.
+    """
+    try:
+        return Role(text)
+    except ValueError:
+        valid = ", ".join(r.value for r in Role)
+        raise FleetError(f"unknown role {text!r} (expected one of {valid})",
+                         exit_code=ExitCode.USAGE) from None
+
+
+def add_user(
+    fleet_dir: Path,
+    email: str,
+    role: Role | str,
+    *,
+    dry_run: bool = False,
+    keys: KeySource = _SYSTEM_KEYS,
+) -> UserResult:
+    """Add a user with a new token; only the token's SHA-256 is stored.
+
+    Raises:
+        FleetError: unknown role (usage), bad email (config), existing user (conflict).
+    """
+    role = role if isinstance(role, Role) else parse_role(role)
+    fleet = load_fleet(fleet_dir)
+    token = new_token(keys)
+    user = User(email, role, token_sha256(token))
+    new = _checked(replace(fleet, users=(*fleet.users, user)))
+    plan = Plan()
+    _plan_fleet(plan, fleet_dir, new, _load_keys(fleet_dir, new, keys, plan))
+    outcome = finish_plan(plan, fleet_dir, dry_run)
+    return UserResult(user, None if dry_run else token, outcome)
+
+
+def remove_user(fleet_dir: Path, email: str, *, dry_run: bool = False) -> UserResult:
+    """Remove a user (their token stops working when the server reloads auth.yaml).
+
+    Raises:
+        ConfigError: there is no such user, or the fleet directory is missing/malformed.
+    """
+    fleet = load_fleet(fleet_dir)
+    user = fleet.user(email)
+    if user is None:
+        raise ConfigError(f"user {email!r} is not in {fleet_file(fleet_dir)}")
+    new = replace(fleet, users=tuple(u for u in fleet.users if u.email != email))
+    plan = Plan()
+    _plan_fleet(plan, fleet_dir, new, _load_keys(fleet_dir, new, _SYSTEM_KEYS, plan))
+    return UserResult(user, None, finish_plan(plan, fleet_dir, dry_run))
+
+
+def render_fleet(fleet_dir: Path, *, dry_run: bool = False,
+                 keys: KeySource = _SYSTEM_KEYS) -> Outcome:
+    """Regenerate every artifact from fleet.yaml and the key files.
+
+    Files whose bytes are already right are not touched (their mtime stays), so running it
+    twice changes nothing. Robots listed in fleet.yaml without keys get new keys.
+
+    Raises:
+        ConfigError: the fleet directory, fleet.yaml or a key file is missing or malformed.
+    """
+    fleet = load_fleet(fleet_dir)
+    plan = Plan()
+    _plan_fleet(plan, fleet_dir, fleet, _load_keys(fleet_dir, fleet, keys, plan))
+    return finish_plan(plan, fleet_dir, dry_run)
+
+
+def describe_fleet(fleet_dir: Path) -> FleetInfo:
+    """Return the fleet with its public keys (robots without keys yet have none listed).
+
+    Raises:
+        ConfigError: the fleet directory, fleet.yaml or a key file is missing or malformed.
+    """
+    fleet = load_fleet(fleet_dir)
+    pubs: dict[str, str] = {}
+    for robot in fleet.robots:
+        rk = keystore.load_robot_keys(fleet_dir, robot.name)
+        if rk is not None:
+            pubs[robot.name] = public_key(rk.private_key, f"key of robot {robot.name}")
+    server_pub = public_key(keystore.load_server_key(fleet_dir), "server key")
+    return FleetInfo(fleet_dir, fleet, server_pub, pubs)
+
+
+def server_public_key(fleet_dir: Path) -> str:
+    """Return the server's WireGuard public key."""
+    return public_key(keystore.load_server_key(fleet_dir), "server key")
+
+
+def robot_address(fleet_dir: Path, name: str) -> IPv4Address:
+    """Return robot *name*'s VPN address (for tools such as ``fleetctl demo``).
+
+    Raises:
+        ConfigError: there is no such robot.
+    """
+    robot = load_fleet(fleet_dir).robot(name)
+    if robot is None:
+        raise ConfigError(f"robot {name!r} is not in {fleet_file(fleet_dir)}")
+    return robot.ip

@@ -1,0 +1,116 @@
+"""Reading YAML through its node tree, so every error can name the file, line and field."""
+
+from __future__ import annotations
+
+from collections.abc import Iterable
+from pathlib import Path
+
+import yaml
+
+from fleetctl.errors import ConfigError
+
+FieldPath = tuple[str | int, ...]
+
+_STR = "tag:yaml.org,2002:str"
+_INT = "tag:yaml.org,2002:int"
+_FLOAT = "tag:yaml.org,2002:float"
+_NULL = "tag:yaml.org,2002:null"
+
+
+def format_path(path: FieldPath) -> str:
+    """Return ``robots[1].ip`` for ``("robots", 1, "ip")``."""
+    out = ""
+    for part in path:
+        out += f"[{part}]" if isinstance(part, int) else (f".{part}" if out else part)
+    return out or "(document)"
+
+
+class Document:
+    """One YAML file's node tree, with error helpers that name file, line and field.
+
+    Every node read through this class has its line remembered under its field path, so
+    semantic checks done later on the built objects can still point at the right line.
+    """
+
+    def __init__(self, path: Path, text: str) -> None:
+        self.path = path
+        self.lines: dict[FieldPath, int] = {}
+        try:
+            root = yaml.compose(text, Loader=yaml.SafeLoader)
+        except yaml.MarkedYAMLError as exc:
+            mark = exc.problem_mark or exc.context_mark
+            line = mark.line + 1 if mark is not None else 1
+            raise ConfigError(f"{path}:{line}: not valid YAML: {exc.problem}") from None
+        except yaml.YAMLError as exc:
+            raise ConfigError(f"{path}: not valid YAML: {exc}") from None
+        if root is None:
+            raise ConfigError(f"{path}:1: the file is empty")
+        self.root = root
+
+    def line_of(self, path: FieldPath) -> int:
+        """Return the line of *path*, or of its nearest ancestor that was read."""
+        while path and path not in self.lines:
+            path = path[:-1]
+        return self.lines.get(path, self.root.start_mark.line + 1)
+
+    def error(self, path: FieldPath, message: str) -> ConfigError:
+        """Return a :class:`ConfigError` ``FILE:LINE: FIELD: MESSAGE``."""
+        return ConfigError(f"{self.path}:{self.line_of(path)}: {format_path(path)}: {message}")
+
+    def _seen(self, node: yaml.Node, path: FieldPath) -> yaml.Node:
+        self.lines[path] = node.start_mark.line + 1
+        return node
+
+    def mapping(
+        self, node: yaml.Node, path: FieldPath, required: Iterable[str], optional: Iterable[str]
+    ) -> dict[str, yaml.Node]:
+        """Return a mapping's fields; unknown, duplicate or missing fields are errors."""
+        self._seen(node, path)
+        if not isinstance(node, yaml.MappingNode):
+            raise self.error(path, "expected a mapping")
+        allowed = set(required) | set(optional)
+        fields: dict[str, yaml.Node] = {}
+        for key_node, value in node.value:
+            key = key_node.value if isinstance(key_node, yaml.ScalarNode) else None
+            sub = (*path, str(key))
+            if key not in allowed:
+                self._seen(key_node, sub)
+                expected = ", ".join(sorted(allowed))
+                raise self.error(sub, f"unknown field (expected one of {expected})")
+            if key in fields:
+                self._seen(key_node, sub)
+                raise self.error(sub, "duplicate field")
+            fields[key] = self._seen(value, sub)
+        for key in required:
+            if key not in fields:
+                raise self.error(path, f"missing required field '{key}'")
+        return fields
+
+    def sequence(self, node: yaml.Node, path: FieldPath) -> list[yaml.Node]:
+        """Return a sequence's items (``null`` is an empty sequence)."""
+        self._seen(node, path)
+        if isinstance(node, yaml.ScalarNode) and node.tag == _NULL:
+            return []
+        if not isinstance(node, yaml.SequenceNode):
+            raise self.error(path, "expected a list")
+        return [self._seen(item, (*path, i)) for i, item in enumerate(node.value)]
+
+    def string(self, node: yaml.Node, path: FieldPath) -> str:
+        """Return a string scalar (numbers are not silently turned into strings)."""
+        self._seen(node, path)
+        if not isinstance(node, yaml.ScalarNode) or node.tag != _STR:
+            raise self.error(path, "expected a string")
+        return str(node.value)
+
+    def integer(self, node: yaml.Node, path: FieldPath, low: int, high: int) -> int:
+        """Return an integer scalar in ``[low, high]``."""
+        self._seen(node, path)
+        if not isinstance(node, yaml.ScalarNode) or node.tag != _INT:
+            raise self.error(path, "expected an integer")
+        try:
+            value = int(str(node.value).replace("_", ""), 0)
+        except ValueError:
+            raise self.error(path, "expected an integer") from None
+        if not low <= value <= high:
+            raise self.error(path, f"must be between {low} and {high}, got {value}")
+        return value

@@ -1,0 +1,180 @@
+"""The e2e topology: a robot network, a server network, and a router that shapes between.
+
+::
+
+    robot containers --[robot net]-- router --[server net]-- server, consumers
+                                     tc on eth(robot side): downlink (to robots)
+                                     tc on eth(server side): uplink (from robots)
+
+Both networks are plain Docker bridges (an ``--internal`` network's iptables rules drop
+routed traffic whose source or destination is outside its subnet, which is all of ours), but
+every container, router included, has its default route deleted: they reach each other only
+through the router, and nothing outside the machine. Each endpoint container gets NET_ADMIN
+so the runner can set its routes. Driven with the docker CLI; :meth:`Topology.close` removes everything it made.
+"""
+
+from __future__ import annotations
+
+import ipaddress
+import json
+import secrets
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass, field
+
+from fleetctl.deploy.dockercli import Completed, Runner, check, subprocess_runner
+from fleetctl.deploy.images import image_tag
+from fleetctl.deploy.shaping import Capabilities, LinkShaper, detect
+from fleetctl.errors import FleetError
+
+ROBOT_SIDE = "robot"
+SERVER_SIDE = "server"
+_LABEL = "io.fleetctl.e2e"
+
+
+@dataclass(frozen=True)
+class Endpoint:
+    """A container in the topology: its name, side and address on its network."""
+
+    name: str
+    side: str
+    ip: str
+
+
+@dataclass
+class Topology:
+    """Networks, router and endpoints of one e2e run.
+
+    Args:
+        run_id: Unique suffix of every name (default: random).
+        runner: Runs docker commands (replaceable in unit tests).
+        router_image: Image of the router (iproute2 + python3).
+    """
+
+    run_id: str = field(default_factory=lambda: secrets.token_hex(3))
+    runner: Runner = subprocess_runner
+    router_image: str = image_tag("router")
+    networks: dict[str, str] = field(default_factory=dict)  # side -> network name
+    subnets: dict[str, str] = field(default_factory=dict)  # side -> CIDR
+    router_ips: dict[str, str] = field(default_factory=dict)  # side -> router address
+    router_devs: dict[str, str] = field(default_factory=dict)  # side -> router interface
+    endpoints: list[Endpoint] = field(default_factory=list)
+    router: str = ""
+
+    def _docker(self, *args: str, what: str) -> Completed:
+        return check(self.runner(["docker", *args], None, True), what)
+
+    def exec(self, container: str, argv: Sequence[str], *, user: str = "root") -> Completed:
+        """Run *argv* in *container* (never raises; the caller checks the exit code)."""
+        return self.runner(["docker", "exec", "-u", user, container, *argv], None, True)
+
+    def create(self) -> None:
+        """Make both networks and start the router; read its interfaces."""
+        for side in (ROBOT_SIDE, SERVER_SIDE):
+            name = f"fce2e-{self.run_id}-{side}"
+            self._docker("network", "create", "--label", _LABEL, name,
+                         what=f"network create {name}")
+            self.networks[side] = name
+            info = json.loads(self._docker("network", "inspect", name, what="inspect").stdout)
+            self.subnets[side] = info[0]["IPAM"]["Config"][0]["Subnet"]
+        self.router = f"fce2e-{self.run_id}-router"
+        self._docker(
+            "run", "-d", "--name", self.router, "--label", _LABEL, "--cap-add", "NET_ADMIN",
+            "--sysctl", "net.ipv4.ip_forward=1", "--network", self.networks[ROBOT_SIDE],
+            self.router_image, what="start router",
+        )
+        self._docker("network", "connect", self.networks[SERVER_SIDE], self.router,
+                     what="connect router")
+        self._read_router_interfaces()
+        check(self.exec(self.router, ["ip", "route", "del", "default"]), "router routes")
+
+    def _read_router_interfaces(self) -> None:
+        out = check(self.exec(self.router, ["ip", "-o", "-4", "addr", "show"]), "router ip addr")
+        for line in out.stdout.splitlines():
+            parts = line.split()
+            dev, addr = parts[1].split("@")[0], ipaddress.ip_interface(parts[3])
+            for side, subnet in self.subnets.items():
+                if addr.ip in ipaddress.ip_network(subnet):
+                    self.router_devs[side], self.router_ips[side] = dev, str(addr.ip)
+        if set(self.router_devs) != {ROBOT_SIDE, SERVER_SIDE}:
+            raise FleetError(f"router interfaces not found in: {out.stdout.strip()}")
+
+    def start(
+        self, role: str, side: str, image: str, command: Sequence[str], *,
+        env: Mapping[str, str] | None = None, mounts: Sequence[str] = (),
+        user: str | None = None,
+    ) -> Endpoint:
+        """Start a container on *side* and route the other side's subnet via the router.
+
+        Args:
+            role: Short name (``server``, ``robot``, ``consumer3``).
+            side: :data:`ROBOT_SIDE` or :data:`SERVER_SIDE`.
+            image: Image to run.
+            command: Its command.
+            env: Environment variables.
+            mounts: ``-v`` specifications.
+            user: Run as this user (default: the image's).
+        """
+        name = f"fce2e-{self.run_id}-{role}"
+        argv = ["run", "-d", "--name", name, "--label", _LABEL, "--cap-add", "NET_ADMIN",
+                "--network", self.networks[side], "--network-alias", role]
+        for key, value in (env or {}).items():
+            argv += ["-e", f"{key}={value}"]
+        for mount in mounts:
+            argv += ["-v", mount]
+        if user:
+            argv += ["-u", user]
+        self._docker(*argv, image, *command, what=f"start {role}")
+        other = SERVER_SIDE if side == ROBOT_SIDE else ROBOT_SIDE
+        check(self.exec(name, ["ip", "route", "add", self.subnets[other], "via",
+                               self.router_ips[side]]), f"route in {role}")
+        check(self.exec(name, ["ip", "route", "del", "default"]), f"routes in {role}")
+        info = json.loads(self._docker("inspect", name, what="inspect").stdout)[0]
+        ip = info["NetworkSettings"]["Networks"][self.networks[side]]["IPAddress"]
+        endpoint = Endpoint(name, side, ip)
+        self.endpoints.append(endpoint)
+        return endpoint
+
+    def capabilities(self) -> Capabilities:
+        """Which qdiscs the router's kernel offers (probed on its uplink interface)."""
+        return detect(lambda argv: self.exec(self.router, argv),
+                      self.router_devs[SERVER_SIDE])
+
+    def shaper(self, direction: str, caps: Capabilities) -> LinkShaper:
+        """The shaper of ``uplink`` (robot -> server) or ``downlink`` (server -> robot).
+
+        Raises:
+            FleetError: unknown direction.
+        """
+        sides = {"uplink": SERVER_SIDE, "downlink": ROBOT_SIDE}
+        if direction not in sides:
+            raise FleetError(f"direction must be uplink or downlink, not {direction!r}")
+        return LinkShaper(lambda argv: self.exec(self.router, argv),
+                          self.router_devs[sides[direction]], caps)
+
+    def tx_bytes(self, container: str, dev: str = "eth0") -> int:
+        """Bytes *container* has sent on *dev* (from the kernel's counters)."""
+        res = check(self.exec(container, ["cat", f"/sys/class/net/{dev}/statistics/tx_bytes"]),
+                    "read tx_bytes")
+        return int(res.stdout.strip())
+
+    def logs(self, container: str) -> str:
+        """The container's output so far (stdout and stderr)."""
+        res = self.runner(["docker", "logs", container], None, True)
+        return res.stdout + res.stderr
+
+    def close(self) -> None:
+        """Remove every container and network of this run (best effort, never raises)."""
+        names = [e.name for e in self.endpoints] + ([self.router] if self.router else [])
+        if names:
+            self.runner(["docker", "rm", "-f", *names], None, True)
+        for net in self.networks.values():
+            self.runner(["docker", "network", "rm", net], None, True)
+        self.endpoints.clear()
+        self.networks.clear()
+
+    def __enter__(self) -> Topology:
+        self.create()
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()

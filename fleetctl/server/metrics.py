@@ -1,0 +1,113 @@
+"""Prometheus metrics of the relay, rendered by hand in the text exposition format 0.0.4.
+
+Counters live in plain dicts keyed by topic: the relay increments them on every frame, so
+they must cost one dict update. Topic labels are bounded (:data:`MAX_TOPIC_LABELS`);
+topics past the bound are counted under ``topic="<other>"``.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterable
+from dataclasses import dataclass, field
+
+# Why: topic names come from clients; an unbounded label set is a memory and scrape hazard.
+MAX_TOPIC_LABELS = 2000
+OTHER = "<other>"
+
+
+@dataclass
+class Metrics:
+    """All counters and gauges of one server."""
+
+    connections_total: int = 0
+    connections_open: int = 0
+    messages_in: dict[str, int] = field(default_factory=dict)
+    bytes_in: dict[str, int] = field(default_factory=dict)
+    messages_out: dict[str, int] = field(default_factory=dict)
+    bytes_out: dict[str, int] = field(default_factory=dict)
+    drops: dict[str, int] = field(default_factory=dict)
+    errors: dict[str, int] = field(default_factory=dict)
+    closes: dict[int, int] = field(default_factory=dict)
+
+    def label(self, topic: str) -> str:
+        """Return *topic*, or ``<other>`` once the label bound is reached."""
+        if topic in self.messages_in or len(self.messages_in) < MAX_TOPIC_LABELS:
+            return topic
+        return OTHER
+
+    def count_in(self, topic: str, nbytes: int) -> None:
+        """Count one frame received on *topic*."""
+        if topic not in self.messages_in:
+            topic = self.label(topic)
+        self.messages_in[topic] = self.messages_in.get(topic, 0) + 1
+        self.bytes_in[topic] = self.bytes_in.get(topic, 0) + nbytes
+
+    def count_out(self, topic: str, nbytes: int) -> None:
+        """Count one frame written to a connection."""
+        if topic not in self.messages_out:
+            topic = self.label(topic)
+        self.messages_out[topic] = self.messages_out.get(topic, 0) + 1
+        self.bytes_out[topic] = self.bytes_out.get(topic, 0) + nbytes
+
+    def count_drop(self, topic: str, n: int = 1) -> None:
+        """Count *n* frames dropped by an outbound scheduler."""
+        if topic not in self.drops:
+            topic = self.label(topic)
+        self.drops[topic] = self.drops.get(topic, 0) + n
+
+    def count_error(self, code: str) -> None:
+        """Count one error frame (or would-be error frame) of *code*."""
+        self.errors[code] = self.errors.get(code, 0) + 1
+
+    def count_close(self, code: int) -> None:
+        """Count one connection the server closed with *code*."""
+        self.closes[code] = self.closes.get(code, 0) + 1
+
+    def render(self, gauges: Iterable[tuple[str, str, dict[str, float]]] = ()) -> str:
+        """Return the exposition text.
+
+        Args:
+            gauges: Extra ``(name, help, {label_value: value})`` gauges keyed by connection
+                (queue depths), computed by the caller at scrape time.
+        """
+        out: list[str] = []
+        _scalar(out, "fleetctl_connections_total", "counter", "Connections accepted.",
+                self.connections_total)
+        _scalar(out, "fleetctl_connections_open", "gauge", "Connections open now.",
+                self.connections_open)
+        by_topic = (
+            ("fleetctl_messages_in_total", "Frames received per topic.", self.messages_in),
+            ("fleetctl_bytes_in_total", "Bytes received per topic.", self.bytes_in),
+            ("fleetctl_messages_out_total", "Frames written per topic.", self.messages_out),
+            ("fleetctl_bytes_out_total", "Bytes written per topic.", self.bytes_out),
+            ("fleetctl_drops_total", "Frames dropped by outbound schedulers per topic.",
+             self.drops),
+        )
+        for name, help_text, values in by_topic:
+            _labelled(out, name, "counter", help_text, "topic", values)
+        _labelled(out, "fleetctl_errors_total", "counter", "Error frames per code.", "code",
+                  self.errors)
+        closes = {str(k): v for k, v in self.closes.items()}
+        _labelled(out, "fleetctl_closes_total", "counter",
+                  "Connections closed by the server per close code.", "code", closes)
+        for gauge, help_text, per_conn in gauges:
+            _labelled(out, gauge, "gauge", help_text, "connection", per_conn)
+        return "\n".join(out) + "\n"
+
+
+def _scalar(out: list[str], name: str, kind: str, help_text: str, value: float) -> None:
+    out += [f"# HELP {name} {help_text}", f"# TYPE {name} {kind}", f"{name} {value}"]
+
+
+def _labelled(
+    out: list[str], name: str, kind: str, help_text: str, label: str,
+    values: dict[str, int] | dict[str, float],
+) -> None:
+    out += [f"# HELP {name} {help_text}", f"# TYPE {name} {kind}"]
+    out += [f'{name}{{{label}="{_escape(k)}"}} {v}' for k, v in sorted(values.items())]
+
+
+def _escape(value: str) -> str:
+    # Exposition format: backslash, double quote and newline are escaped in label values.
+    return value.replace("\\", "\\\\").replace('"', '\\"').replace("\n", "\\n")
+

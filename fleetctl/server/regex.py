@@ -1,0 +1,72 @@
+"""RE2 full-match regexes, compiled once (MISSION: linear time, full match everywhere).
+
+google-re2 logs parse errors to stderr through absl by default; we turn that off and turn
+errors into :class:`BadRegex` with a readable message instead.
+"""
+
+from __future__ import annotations
+
+import functools
+import re as std_re
+from typing import Any
+
+import re2
+
+_OPTIONS = re2.Options()
+_OPTIONS.log_errors = False
+
+# Why a ceiling: a client chooses subscription regexes, and each compiled RE2 program costs
+# memory; 4 KiB is far more than any topic pattern needs.
+MAX_PATTERN_CHARS = 4096
+
+# Characters of ROS topic names that are never RE2 metacharacters: a pattern made only of
+# these is a literal topic and is compared with ==, which is ~50x cheaper than RE2.
+_LITERAL = std_re.compile(r"[A-Za-z0-9_/~-]*")
+
+
+class BadRegex(ValueError):
+    """A pattern RE2 cannot compile; ``str(exc)`` says why."""
+
+
+class FullMatch:
+    """A compiled RE2 pattern that answers "does it match the whole topic?".
+
+    Attributes:
+        pattern: The source text.
+        literal: The topic itself when the pattern has no metacharacters, else ``None``
+            (lets callers check a literal topic without running the regex).
+    """
+
+    __slots__ = ("_regex", "literal", "pattern")
+
+    def __init__(self, pattern: str) -> None:
+        if len(pattern) > MAX_PATTERN_CHARS:
+            raise BadRegex(f"pattern longer than {MAX_PATTERN_CHARS} characters")
+        try:
+            self._regex: Any = re2.compile(pattern, options=_OPTIONS)
+        except re2.error as exc:
+            detail = exc.args[0] if exc.args else "invalid"
+            if isinstance(detail, bytes):
+                detail = detail.decode("utf-8", "replace")
+            raise BadRegex(str(detail)) from None
+        self.pattern = pattern
+        self.literal = pattern if _LITERAL.fullmatch(pattern) else None
+
+    def matches(self, topic: str) -> bool:
+        """Return whether *topic* matches the pattern from its first to its last character."""
+        if self.literal is not None:
+            return topic == self.literal
+        return self._regex.fullmatch(topic) is not None
+
+    def __repr__(self) -> str:
+        return f"FullMatch({self.pattern!r})"
+
+
+@functools.lru_cache(maxsize=4096)
+def compile_full(pattern: str) -> FullMatch:
+    """Compile *pattern* (cached: the same pattern text is compiled once per process).
+
+    Raises:
+        BadRegex: RE2 rejects the pattern.
+    """
+    return FullMatch(pattern)

@@ -1,0 +1,343 @@
+"""The relay core: Robofleet Algorithm 3 without I/O.
+
+:class:`RelayCore` is fed frames by the asyncio layer (:mod:`fleetctl.server.app`) and
+answers by pushing frames into each :class:`Peer`'s outbound scheduler or by asking the
+peer to close. Everything here is synchronous, so tests drive it without sockets.
+
+Hot path (:meth:`RelayCore.on_binary`), per frame: one bounds-checked metadata read, a
+cached send-permission lookup, a cached receivers lookup, one scheduler push per
+receiver, a few dict increments. No logging, no JSON, no regex in the steady state.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import struct
+from collections.abc import Callable
+from typing import Any
+
+from fleetctl.server import protocol
+from fleetctl.server.authmap import AuthMap, Identity
+from fleetctl.server.config import ServerConfig
+from fleetctl.server.metrics import Metrics
+from fleetctl.server.outbound import OutboundScheduler
+from fleetctl.server.permissions import Permissions, PermissionsPool
+from fleetctl.server.regex import compile_full
+from fleetctl.server.registry import RobotRegistry, robot_name
+from fleetctl.server.subscriptions import Refusal, SubscriptionMap
+from fleetctl.wire.errors import WireError
+from fleetctl.wire.metadata import field_pos, read_root, table_fields
+
+log = logging.getLogger("fleetctl.server")
+
+SUBSCRIPTION_TOPIC = "/subscriptions"
+SUBSCRIPTION_TYPE = "amrl_msgs/msg/RobofleetSubscription"
+STATUS_TYPE = "amrl_msgs/msg/RobofleetStatus"
+FRAGMENT_TYPE = "fleetctl_msgs/msg/Fragment"
+_U64 = struct.Struct("<Q").unpack_from
+# Why: per-peer memo tables are keyed by client-chosen topics; keep them small.
+_MAX_MEMO = 1024
+
+
+class Peer:
+    """One connection as the relay sees it.
+
+    Args:
+        peer_id: Unique number of the connection (logs, metrics).
+        address: Address used for identity matching, as text (``None`` if unknown).
+        outbound: The connection's scheduler.
+        close: Asks the I/O layer to close with ``(code, reason)``.
+    """
+
+    def __init__(
+        self,
+        peer_id: int,
+        address: str | None,
+        outbound: OutboundScheduler,
+        close: Callable[[int, str], None],
+    ) -> None:
+        self.peer_id = peer_id
+        self.address = address
+        self.outbound = outbound
+        self._close = close
+        self.perms: Permissions | None = None
+        self.identities: list[Identity] = []
+        self.is_robot = False
+        self.closing = False
+        self.malformed_in_row = 0
+        self.over_limit_subscriptions = 0
+        self.robots: set[str] = set()
+        self.topic_robot: dict[str, str | None] = {}
+        self.refused_topics: set[str] = set()
+
+    @property
+    def label(self) -> str:
+        """Short text naming the connection in log lines."""
+        names = ",".join(i.name for i in self.identities) or "-"
+        return f"conn#{self.peer_id}[{names}@{self.address}]"
+
+    def close(self, code: int, reason: str) -> None:
+        """Ask the I/O layer to close this connection (once)."""
+        if not self.closing:
+            self.closing = True
+            self._close(code, reason)
+
+
+class RelayCore:
+    """Routing, permissions and bookkeeping of one server.
+
+    Args:
+        config: The server config (limits, no_drop topics).
+        auth: The loaded auth map.
+        registry: The robot registry.
+        metrics: Counters to update.
+    """
+
+    def __init__(
+        self,
+        config: ServerConfig,
+        auth: AuthMap,
+        registry: RobotRegistry,
+        metrics: Metrics,
+    ) -> None:
+        self.config = config
+        self.limits = config.limits
+        self.auth = auth
+        self.registry = registry
+        self.metrics = metrics
+        self.pool = PermissionsPool()
+        self.subs: SubscriptionMap[Peer] = SubscriptionMap(
+            config.limits.max_subscriptions_per_connection
+        )
+        self.peers: dict[int, Peer] = {}
+        self._no_drop_res = tuple(compile_full(p) for p in config.no_drop_topics)
+        self._no_drop_memo: dict[str, bool] = {}
+        self._next_id = 0
+
+    # -- connection life cycle -------------------------------------------------------
+
+    def new_peer(self, address: str | None, close: Callable[[int, str], None],
+                 wake: Callable[[], None] | None) -> Peer:
+        """Create the relay state of a new connection (not yet authenticated)."""
+        self._next_id += 1
+        outbound = OutboundScheduler(
+            self.limits.outbound_queue_bytes,
+            self.limits.outbound_no_drop_messages,
+            wake,
+            self.metrics.count_drop,
+        )
+        peer = Peer(self._next_id, address, outbound, close)
+        self.peers[peer.peer_id] = peer
+        self.metrics.connections_total += 1
+        self.metrics.connections_open += 1
+        return peer
+
+    def authenticate(self, peer: Peer, identities: list[Identity]) -> bool:
+        """Grant *peer* the union of *identities* (added to what it has) and welcome it.
+
+        Returns:
+            ``False`` (and closes with 4403) when the peer ends up with no identity.
+        """
+        merged = {i.name: i for i in peer.identities}
+        merged.update({i.name: i for i in identities})
+        if not merged:
+            self._close(peer, protocol.CLOSE_NO_IDENTITY, "connection matches no identity")
+            return False
+        peer.identities = list(merged.values())
+        peer.perms = self.pool.get(peer.identities)
+        peer.is_robot = any(i.by_address for i in peer.identities)
+        for pattern in self.subs.patterns(peer):  # re-check: rules changed
+            self.subs.unsubscribe(peer, pattern)
+            self._subscribe(peer, pattern)
+        peer.outbound.push_control(protocol.welcome(peer.perms))
+        log.info("%s authenticated", peer.label)
+        return True
+
+    def close_peer(self, peer: Peer) -> None:
+        """Forget a closed connection; count what its scheduler dropped."""
+        if self.peers.pop(peer.peer_id, None) is None:
+            return
+        self.subs.remove(peer)
+        for name in peer.robots:
+            self.registry.detach(name)
+        self.metrics.connections_open -= 1
+
+    def _close(self, peer: Peer, code: int, reason: str) -> None:
+        if not peer.closing:
+            self.metrics.count_close(code)
+            log.warning("%s closed %d: %s", peer.label, code, reason)
+        peer.close(code, reason)
+
+    # -- frames ---------------------------------------------------------------------
+
+    def on_binary(self, peer: Peer, frame: bytes) -> None:
+        """Handle one binary frame from *peer* (Algorithm 3)."""
+        perms = peer.perms
+        if perms is None:
+            self._close(peer, protocol.CLOSE_NO_IDENTITY,
+                        "connection matches no identity: send a token frame first")
+            return
+        try:
+            meta, root = read_root(frame)
+        except WireError as exc:
+            self._malformed(peer, "malformed_frame", None, str(exc))
+            return
+        peer.malformed_in_row = 0
+        topic = meta.topic
+        if topic == SUBSCRIPTION_TOPIC:
+            self._on_subscription(peer, frame, meta.type)
+            return
+        if not perms.may_send(topic):
+            self._unauthorized(peer, topic)
+            return
+        self.metrics.count_in(topic, len(frame))
+        message_id: int | None = None
+        if meta.type == FRAGMENT_TYPE:
+            try:
+                message_id = _fragment_id(frame, root)
+            except WireError as exc:
+                self._malformed(peer, "malformed_frame", topic, str(exc))
+                return
+        self._note_robot(peer, topic, meta.type, frame)
+        no_drop = meta.no_drop or self._forced_no_drop(topic)
+        for receiver in self.subs.receivers(topic):
+            receiver.outbound.push(topic, frame, no_drop, message_id)
+
+    def on_text(self, peer: Peer, text: str) -> None:
+        """Handle one text frame: a token frame or a ``list_robots`` request."""
+        try:
+            data: Any = json.loads(text) if len(text) <= protocol.MAX_TEXT_CHARS else None
+        except ValueError:
+            data = None
+        if not isinstance(data, dict):
+            self._malformed(peer, "malformed_frame", None, "text frame is not a JSON object")
+            return
+        if "token" in data:
+            self.on_token(peer, data["token"])
+        elif data.get("type") == "list_robots" and peer.perms is not None:
+            peer.malformed_in_row = 0
+            peer.outbound.push_control(json.dumps({"type": "robots",
+                                                   "robots": self.robots_for(peer.perms)}))
+        elif peer.perms is None:
+            self._close(peer, protocol.CLOSE_NO_IDENTITY, "connection matches no identity")
+        else:
+            self._malformed(peer, "unknown_type", None,
+                            "text frames are {'token': ...} or {'type': 'list_robots'}")
+
+    def on_token(self, peer: Peer, token: Any) -> None:
+        """Authenticate *peer* by a token; close with 4401 if it matches no identity."""
+        identity = self.auth.match_token(token) if isinstance(token, str) and token else None
+        if identity is None:
+            self.metrics.count_error("bad_token")
+            peer.outbound.push_control(protocol.error("bad_token", None, "unknown token"))
+            self._close(peer, protocol.CLOSE_BAD_TOKEN, "bad token")
+            return
+        self.authenticate(peer, [identity])
+
+    def robots_for(self, perms: Permissions) -> list[dict[str, Any]]:
+        """Robots whose ``/<name>/status`` *perms* may receive, as JSON-ready dicts."""
+        names = [n for n in self.registry.names() if perms.may_receive(f"/{n}/status")]
+        return self.registry.as_json(names)
+
+    # -- helpers ----------------------------------------------------------------------
+
+    def _error(self, peer: Peer, code: str, topic: str | None, message: str) -> None:
+        self.metrics.count_error(code)
+        peer.outbound.push_control(protocol.error(code, topic, message))
+
+    def _malformed(self, peer: Peer, code: str, topic: str | None, message: str) -> None:
+        self._error(peer, code, topic, message)
+        peer.malformed_in_row += 1
+        if peer.malformed_in_row >= self.limits.max_malformed_in_row:
+            self._close(peer, protocol.CLOSE_MALFORMED,
+                        f"{peer.malformed_in_row} malformed frames in a row")
+
+    def _unauthorized(self, peer: Peer, topic: str) -> None:
+        # Answer (and log) once per topic per connection: a misconfigured robot sends at
+        # sensor rate, and each refusal is still counted in the metrics.
+        self.metrics.count_error("unauthorized_send")
+        if topic in peer.refused_topics or len(peer.refused_topics) >= _MAX_MEMO:
+            return
+        peer.refused_topics.add(topic)
+        log.warning("%s may not send on %r", peer.label, topic)
+        peer.outbound.push_control(
+            protocol.error("unauthorized_send", topic, f"no send permission on {topic!r}")
+        )
+
+    def _forced_no_drop(self, topic: str) -> bool:
+        if not self._no_drop_res:
+            return False
+        forced = self._no_drop_memo.get(topic)
+        if forced is None:
+            forced = any(m.matches(topic) for m in self._no_drop_res)
+            if len(self._no_drop_memo) >= 16 * _MAX_MEMO:
+                self._no_drop_memo.clear()
+            self._no_drop_memo[topic] = forced
+        return forced
+
+    def _note_robot(self, peer: Peer, topic: str, type_name: str, frame: bytes) -> None:
+        is_status = type_name == STATUS_TYPE
+        if not (peer.is_robot or is_status):
+            return
+        name = peer.topic_robot.get(topic, "")
+        if name == "":
+            name = robot_name(topic)
+            if len(peer.topic_robot) < _MAX_MEMO:
+                peer.topic_robot[topic] = name
+        if name is None or not self.registry.seen(name):
+            return
+        if name not in peer.robots:
+            peer.robots.add(name)
+            self.registry.attach(name)
+        if is_status and topic == f"/{name}/status":
+            status = protocol.decode_status_fields(frame)
+            if status is None:
+                self._error(peer, "malformed_frame", topic, "RobofleetStatus does not decode")
+            else:
+                self.registry.set_status(name, *status)
+
+    def _on_subscription(self, peer: Peer, frame: bytes, type_name: str) -> None:
+        # Sending on /subscriptions needs no rule (docs/design.md section 3).
+        if type_name != SUBSCRIPTION_TYPE:
+            self._malformed(peer, "unknown_type", SUBSCRIPTION_TOPIC,
+                            f"/subscriptions carries RobofleetSubscription, not {type_name}")
+            return
+        fields = protocol.decode_subscription_fields(frame)
+        if fields is None:
+            self._malformed(peer, "malformed_frame", SUBSCRIPTION_TOPIC,
+                            "RobofleetSubscription does not decode")
+            return
+        pattern, subscribe = fields
+        if not subscribe:
+            self.subs.unsubscribe(peer, pattern)
+            peer.outbound.push_control(protocol.ack("unsubscribed", pattern))
+        elif self._subscribe(peer, pattern):
+            peer.outbound.push_control(protocol.ack("subscribed", pattern))
+
+    def _subscribe(self, peer: Peer, pattern: str) -> bool:
+        assert peer.perms is not None
+        try:
+            self.subs.subscribe(peer, peer.perms, pattern)
+        except Refusal as refusal:
+            self._error(peer, refusal.code, pattern, refusal.message)
+            if refusal.code == "too_many_subscriptions":
+                peer.over_limit_subscriptions += 1
+                if peer.over_limit_subscriptions > self.limits.max_subscriptions_per_connection:
+                    self._close(peer, protocol.CLOSE_SUBSCRIPTION_FLOOD,
+                                "subscription flood past the limit")
+            return False
+        return True
+
+
+def _fragment_id(frame: bytes, root: int) -> int:
+    """Return ``message_id`` (field 1, ulong) of a Fragment root table."""
+    n = len(frame)
+    vt, vt_bytes, t_bytes = table_fields(frame, root, n)
+    pos = field_pos(frame, root, vt, vt_bytes, 1)
+    if not pos:
+        return 0  # FlatBuffers omits default values: message_id 0
+    if pos + 8 > root + t_bytes:
+        raise WireError(f"malformed frame: Fragment.message_id outside its table at byte {pos}")
+    value: int = _U64(frame, pos)[0]
+    return value

@@ -1,0 +1,293 @@
+// The page: sign-in, fleet overview, robot pages, commands, health and banner.
+
+import { Connection } from "./connection.js";
+import { LayoutLoader } from "./fb/layout.js";
+import { GOAL, INITIAL, goalMessage, initialPoseMessage } from "./commands.js";
+import { PANELS, reEscape, wantedRegexes } from "./panels.js";
+import { CameraView } from "./views/camera.js";
+import { CloudView } from "./views/cloud.js";
+import { GpsView } from "./views/gps.js";
+import { MapView } from "./views/map.js";
+import { OdomView } from "./views/odom.js";
+import { renderOverview, robotRow } from "./views/overview.js";
+import { ScanView } from "./views/scan.js";
+
+const $ = (sel) => document.querySelector(sel);
+const ROBOTS_POLL_MS = 2000;
+const STATUS_TYPE = "amrl_msgs/msg/RobofleetStatus";
+
+class App {
+  constructor(config) {
+    this.config = config;
+    this.registry = [];
+    this.liveStatus = new Map();
+    this.robot = null; // robot whose page is open
+    this.visible = new Set(PANELS.map((p) => p.id));
+    this.paused = false;
+    this.poseSeenMs = 0;
+    this.frameId = "map";
+  }
+
+  signIn(token) {
+    this.conn?.stop();
+    const conn = new Connection({ url: this.config.server_url, token: token || null, loader: new LayoutLoader("types/") });
+    this.conn = conn;
+    conn.addEventListener("status", (e) => this.onStatus(e.detail));
+    conn.addEventListener("welcome", () => this.onWelcome());
+    conn.addEventListener("robots", (e) => this.onRobots(e.detail));
+    conn.addEventListener("message", (e) => this.onMessage(e.detail));
+    conn.addEventListener("server-error", (e) => this.onServerError(e.detail));
+    conn.start();
+    $("#signin").hidden = true;
+    $("#main").hidden = false;
+    clearInterval(this.poll);
+    this.poll = setInterval(() => conn.listRobots(), ROBOTS_POLL_MS);
+    this.route();
+  }
+
+  onStatus({ state, detail, retryMs }) {
+    const banner = $("#banner");
+    banner.dataset.state = state;
+    $("#conn-state").textContent = state;
+    if (state === "open") {
+      banner.hidden = true;
+      return;
+    }
+    banner.hidden = false;
+    banner.textContent = {
+      connecting: `Connecting to ${this.config.server_url} …`,
+      disconnected: `Disconnected from the fleet server (${detail}). Reconnecting in about ${(retryMs / 1000).toFixed(1)} s …`,
+      refused: `Signed out: ${detail}. Check your token and sign in again.`,
+      closed: "Connection closed.",
+    }[state] ?? state;
+    if (state === "refused") {
+      clearInterval(this.poll);
+      $("#signin").hidden = false;
+      $("#signin-error").textContent = detail;
+    }
+  }
+
+  onWelcome() {
+    const ids = this.conn.identities.map((i) => i.name ?? i).join(", ");
+    $("#identity").textContent = ids ? `signed in as ${ids}` : "signed in";
+    this.conn.listRobots();
+    this.updateCommands();
+  }
+
+  onRobots(robots) {
+    this.registry = robots;
+    for (const r of robots) {
+      if (r.name) this.conn.subscribe(reEscape(`/${r.name}/status`));
+    }
+    this.renderOverview();
+  }
+
+  renderOverview() {
+    const rows = this.registry.map((e) => robotRow(e, this.liveStatus.get(e.name)));
+    const link = (name) => {
+      const hs = this.conn.health.rows(`/${name}/`);
+      if (!hs.length) return "–";
+      const rate = hs.reduce((a, h) => a + h.rateHz, 0);
+      const lat = hs.map((h) => h.latencyMs).filter(Number.isFinite).sort((a, b) => a - b);
+      const drops = hs.reduce((a, h) => a + h.drops, 0);
+      return `${rate.toFixed(1)} msg/s, ${lat.length ? lat[lat.length >> 1].toFixed(0) : "–"} ms, ${drops} dropped`;
+    };
+    renderOverview($("#robots tbody"), rows, link);
+    $("#robot-count").textContent = `${rows.length} robot${rows.length === 1 ? "" : "s"}`;
+  }
+
+  onMessage({ meta, msg }) {
+    if (meta.type === STATUS_TYPE) {
+      const name = meta.topic.split("/")[1];
+      this.liveStatus.set(name, { status: msg.status, is_ok: msg.is_ok, battery_level: msg.battery_level, location: msg.location });
+      return;
+    }
+    if (!this.robot || !meta.topic.startsWith(`/${this.robot}/`)) return;
+    const v = this.views;
+    switch (meta.type) {
+      case "sensor_msgs/msg/CompressedImage": return v.camera.update(msg);
+      case "sensor_msgs/msg/LaserScan": return v.scan.update(msg);
+      case "sensor_msgs/msg/PointCloud2": return v.cloud.update(msg);
+      case "sensor_msgs/msg/NavSatFix": return v.gps.update(msg);
+      case "nav_msgs/msg/OccupancyGrid": return v.map.updateGrid(msg);
+      case "nav_msgs/msg/Path": return v.map.updatePlan(msg);
+      case "visualization_msgs/msg/Marker":
+      case "visualization_msgs/msg/MarkerArray": return v.map.updateMarkers(msg);
+      case "geometry_msgs/msg/PoseWithCovarianceStamped":
+        this.poseSeenMs = Date.now();
+        this.frameId = msg.header.frame_id || this.frameId;
+        return v.map.updatePose(msg.pose.pose);
+      case "nav_msgs/msg/Odometry":
+        v.odom.update(msg);
+        // Odometry stands in for the pose only while no localization pose arrives.
+        if (Date.now() - this.poseSeenMs > 2000) {
+          this.frameId = msg.header.frame_id || this.frameId;
+          v.map.updatePose(msg.pose.pose);
+        }
+        return;
+      default:
+        return;
+    }
+  }
+
+  onServerError(err) {
+    const li = document.createElement("li");
+    li.textContent = `${err.code}${err.topic ? ` on ${err.topic}` : ""}: ${err.message ?? ""}`;
+    const log = $("#errors");
+    log.prepend(li);
+    while (log.children.length > 20) log.lastChild.remove();
+    if (err.code === "unauthorized_send" && this.robot && err.topic?.startsWith(`/${this.robot}/`)) {
+      this.commandStatus(`The server refused: ${err.message ?? "not allowed"} (${err.topic})`, true);
+    }
+  }
+
+  route() {
+    const m = /^#\/robot\/(.+)$/.exec(location.hash);
+    const next = m ? decodeURIComponent(m[1]) : null;
+    if (this.robot && this.robot !== next) this.setSubscriptions(this.robot, new Set());
+    this.robot = next;
+    $("#overview").hidden = !!next;
+    $("#robot").hidden = !next;
+    if (next) this.openRobot(next);
+  }
+
+  openRobot(name) {
+    $("#robot-name").textContent = name;
+    // Views are made once: each owns its canvas (a WebGL context cannot be made twice).
+    this.views ??= {
+      camera: new CameraView($("#camera-canvas")),
+      scan: new ScanView($("#scan-canvas")),
+      cloud: new CloudView($("#cloud-canvas")),
+      map: new MapView($("#map-canvas"), (kind, x, y, yaw) => this.sendPose(kind, x, y, yaw)),
+      odom: new OdomView($("#odom-text")),
+      gps: new GpsView($("#gps-map"), $("#gps-text")),
+    };
+    this.views.map.reset();
+    this.commandStatus("");
+    this.applyVisibility();
+    this.updateCommands();
+  }
+
+  setSubscriptions(robot, visible) {
+    const want = this.paused ? new Set() : wantedRegexes(robot, visible);
+    for (const re of wantedRegexes(robot, new Set(PANELS.map((p) => p.id)))) {
+      if (want.has(re)) this.conn.subscribe(re);
+      else this.conn.unsubscribe(re);
+    }
+  }
+
+  applyVisibility() {
+    for (const p of PANELS) {
+      const box = $(`#show-${p.id}`);
+      if (box) box.checked = this.visible.has(p.id);
+      $(`#panel-${p.id}`).hidden = !this.visible.has(p.id);
+    }
+    if (this.robot) this.setSubscriptions(this.robot, this.visible);
+  }
+
+  togglePanel(id, on) {
+    if (on) this.visible.add(id);
+    else this.visible.delete(id);
+    this.applyVisibility();
+  }
+
+  togglePause() {
+    this.paused = !this.paused;
+    $("#pause").textContent = this.paused ? "Resume" : "Pause";
+    $("#paused-note").hidden = !this.paused;
+    if (this.robot) this.setSubscriptions(this.robot, this.visible);
+  }
+
+  updateCommands() {
+    if (!this.robot || !this.conn) return;
+    for (const [cmd, btn] of [[GOAL, "#tool-goal"], [INITIAL, "#tool-initial"]]) {
+      const topic = `/${this.robot}${cmd.suffix}`;
+      const ok = this.conn.rules.canSend(topic);
+      $(btn).disabled = !ok;
+      $(btn).title = ok ? `Click and drag on the map to send a ${cmd.label}` : `You may not send on ${topic}`;
+    }
+    const denied = [GOAL, INITIAL].filter((c) => !this.conn.rules.canSend(`/${this.robot}${c.suffix}`));
+    $("#command-denied").hidden = denied.length === 0;
+    $("#command-denied").textContent = denied.length
+      ? `You are not allowed to send ${denied.map((c) => `a ${c.label} (${`/${this.robot}${c.suffix}`})`).join(" or ")} to ${this.robot}: your rules have no send permission for it.`
+      : "";
+  }
+
+  async sendPose(kind, x, y, yaw) {
+    const cmd = kind === "goal" ? GOAL : INITIAL;
+    const topic = `/${this.robot}${cmd.suffix}`;
+    if (!this.conn.rules.canSend(topic)) {
+      return this.commandStatus(`Not sent: you may not send on ${topic}.`, true);
+    }
+    const msg = kind === "goal" ? goalMessage(x, y, yaw, this.frameId) : initialPoseMessage(x, y, yaw, this.frameId);
+    try {
+      const size = await this.conn.sendMessage(cmd.type, topic, msg, { noDrop: true });
+      this.commandStatus(`Sent ${cmd.label} x=${x.toFixed(2)} m y=${y.toFixed(2)} m yaw=${((yaw * 180) / Math.PI).toFixed(0)}° to ${topic} (${size} bytes).`);
+    } catch (err) {
+      this.commandStatus(`Not sent: ${err.message}`, true);
+    }
+  }
+
+  commandStatus(text, bad = false) {
+    const el = $("#command-status");
+    el.textContent = text;
+    el.classList.toggle("bad", bad);
+  }
+
+  renderHealth() {
+    if (!this.conn) return;
+    if (!this.robot) return this.renderOverview();
+    const rows = this.conn.health.rows(`/${this.robot}/`);
+    $("#health tbody").innerHTML = rows.map((r) =>
+      `<tr><td>${r.topic}</td><td>${r.rateHz.toFixed(1)}</td><td>${Number.isFinite(r.latencyMs) ? r.latencyMs.toFixed(0) : "–"}</td><td>${r.drops}</td><td>${r.received}</td></tr>`).join("");
+    const s = this.conn.stats;
+    $("#client-stats").textContent = `frames ${s.framesIn}, decode errors ${s.decodeErrors}, dropped while loading a type ${s.droppedNoLayout}, fragments dropped ${this.conn.reassembler.totalDropped()}`;
+  }
+
+  frame() {
+    if (this.robot && this.views) {
+      for (const v of Object.values(this.views)) v.render?.();
+    }
+    requestAnimationFrame(() => this.frame());
+  }
+}
+
+async function main() {
+  let config;
+  try {
+    const resp = await fetch("config.json");
+    config = await resp.json();
+  } catch (err) {
+    $("#signin-error").textContent = `Cannot load config.json: ${err}`;
+    return;
+  }
+  if (!config.server_url) {
+    config.server_url = `${location.protocol === "https:" ? "wss" : "ws"}://${location.hostname}:8080/`;
+  }
+  $("#server-url").textContent = config.server_url;
+  const app = new App(config);
+  window.fleetviz = app; // for debugging from the console
+  $("#signin-form").addEventListener("submit", (e) => {
+    e.preventDefault();
+    const token = $("#token").value.trim();
+    sessionStorage.setItem("fleetctl-token", token);
+    app.signIn(token);
+  });
+  $("#signout").addEventListener("click", () => {
+    sessionStorage.removeItem("fleetctl-token");
+    location.reload();
+  });
+  $("#pause").addEventListener("click", () => app.togglePause());
+  $("#tool-goal").addEventListener("click", () => app.views.map.setTool("goal"));
+  $("#tool-initial").addEventListener("click", () => app.views.map.setTool("initialpose"));
+  for (const p of PANELS) {
+    $(`#show-${p.id}`).addEventListener("change", (e) => app.togglePanel(p.id, e.target.checked));
+  }
+  window.addEventListener("hashchange", () => app.conn && app.route());
+  setInterval(() => app.renderHealth(), 1000);
+  app.frame();
+  const saved = sessionStorage.getItem("fleetctl-token");
+  if (saved !== null) app.signIn(saved);
+}
+
+main();

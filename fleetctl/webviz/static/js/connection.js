@@ -1,0 +1,217 @@
+// The page's one WebSocket to the fleet server (docs/design.md section 2).
+//
+// Signs in with a first text frame {"token": ...}, keeps the wanted subscriptions and
+// re-sends them after every reconnect, reconnects with exponential backoff (reset by a
+// welcome), and turns binary frames into decoded messages (reassembling fragments).
+// Nothing here is unbounded: a frame whose type layout is still loading is dropped and
+// counted, and fragments are reassembled under a byte bound.
+
+import { Builder } from "./fb/builder.js";
+import { readMetadata, Reader, DecodeError } from "./fb/reader.js";
+import { FRAGMENT_TYPE, Reassembler } from "./fragments.js";
+import { LinkHealth } from "./health.js";
+import { Rules } from "./rules.js";
+
+export const SUBSCRIPTION_TYPE = "amrl_msgs/msg/RobofleetSubscription";
+const BACKOFF_MIN_MS = 250;
+const BACKOFF_MAX_MS = 8000;
+const MAX_LOG = 50; // server error frames kept for display
+
+/** Close codes that mean "do not retry with the same credentials". */
+export const FATAL_CLOSE = { 4401: "the server refused the token", 4403: "this connection matches no identity in the auth map" };
+
+export class Connection extends EventTarget {
+  /**
+   * @param {{url: string, token: string|null, loader: import("./fb/layout.js").LayoutLoader,
+   *          WebSocketImpl?: typeof WebSocket}} opts
+   */
+  constructor({ url, token, loader, WebSocketImpl = globalThis.WebSocket }) {
+    super();
+    this.url = url;
+    this.token = token;
+    this.loader = loader;
+    this.WebSocketImpl = WebSocketImpl;
+    this.ws = null;
+    this.state = "idle"; // idle | connecting | open | closed | refused
+    this.rules = new Rules();
+    this.identities = [];
+    this.wanted = new Set();
+    this.backoffMs = BACKOFF_MIN_MS;
+    this.retryTimer = null;
+    this.stopped = false;
+    this.health = new LinkHealth();
+    this.reassembler = new Reassembler();
+    this.stats = { framesIn: 0, decodeErrors: 0, droppedNoLayout: 0, sent: 0 };
+    this.errors = [];
+    this.seq = 0n;
+  }
+
+  start() {
+    this.stopped = false;
+    this.open();
+  }
+
+  stop() {
+    this.stopped = true;
+    clearTimeout(this.retryTimer);
+    this.ws?.close(1000, "page closed");
+  }
+
+  setStatus(state, detail = "") {
+    this.state = state;
+    this.dispatchEvent(new CustomEvent("status", { detail: { state, detail, retryMs: this.backoffMs } }));
+  }
+
+  open() {
+    this.setStatus("connecting");
+    let ws;
+    try {
+      ws = new this.WebSocketImpl(this.url);
+    } catch (err) {
+      this.setStatus("refused", `bad server URL ${this.url}: ${err.message}`);
+      return;
+    }
+    ws.binaryType = "arraybuffer";
+    this.ws = ws;
+    ws.onopen = () => {
+      if (this.token) ws.send(JSON.stringify({ token: this.token }));
+    };
+    ws.onmessage = (ev) => (typeof ev.data === "string" ? this.onText(ev.data) : this.onBinary(ev.data));
+    ws.onclose = (ev) => this.onClose(ev);
+  }
+
+  onClose(ev) {
+    this.ws = null;
+    if (this.stopped) return this.setStatus("closed");
+    if (FATAL_CLOSE[ev.code]) return this.setStatus("refused", `${FATAL_CLOSE[ev.code]} (close ${ev.code})`);
+    const wait = this.backoffMs * (0.75 + Math.random() * 0.5); // jitter: robots and pages do not reconnect in lockstep
+    this.setStatus("disconnected", `close ${ev.code}${ev.reason ? `: ${ev.reason}` : ""}`);
+    this.backoffMs = Math.min(BACKOFF_MAX_MS, this.backoffMs * 2);
+    this.retryTimer = setTimeout(() => this.open(), wait);
+  }
+
+  onText(text) {
+    let msg;
+    try {
+      msg = JSON.parse(text);
+    } catch {
+      return this.logError({ code: "bad_text", message: `unparseable text frame: ${text.slice(0, 80)}` });
+    }
+    switch (msg.type) {
+      case "welcome":
+        this.rules = new Rules(msg.rules ?? []);
+        this.identities = msg.identities ?? [];
+        this.backoffMs = BACKOFF_MIN_MS;
+        this.setStatus("open");
+        this.dispatchEvent(new CustomEvent("welcome", { detail: msg }));
+        for (const re of this.wanted) this.sendSubscription(re, true);
+        break;
+      case "robots":
+        this.dispatchEvent(new CustomEvent("robots", { detail: msg.robots ?? [] }));
+        break;
+      case "error":
+        this.logError(msg);
+        break;
+      case "subscribed":
+      case "unsubscribed":
+        this.dispatchEvent(new CustomEvent(msg.type, { detail: msg }));
+        break;
+      default:
+        this.logError({ code: "unknown_text", message: `unknown text frame type ${msg.type}` });
+    }
+  }
+
+  logError(err) {
+    this.errors.push({ ...err, at: Date.now() });
+    if (this.errors.length > MAX_LOG) this.errors.shift();
+    this.dispatchEvent(new CustomEvent("server-error", { detail: err }));
+  }
+
+  onBinary(data) {
+    this.stats.framesIn++;
+    let bytes = new Uint8Array(data);
+    let meta;
+    try {
+      meta = readMetadata(bytes);
+      this.health.record(meta, bytes.byteLength);
+      if (meta.type === FRAGMENT_TYPE) {
+        bytes = this.reassemble(meta, bytes);
+        if (!bytes) return;
+        meta = readMetadata(bytes);
+      }
+    } catch (err) {
+      return this.decodeFailed(err);
+    }
+    const layouts = this.loader.layouts;
+    if (!layouts.has(meta.type)) {
+      this.stats.droppedNoLayout++;
+      this.loader.ensure(meta.type).catch((err) => this.decodeFailed(err));
+      return;
+    }
+    try {
+      const msg = new Reader(layouts).decode(bytes, meta.type);
+      this.dispatchEvent(new CustomEvent("message", { detail: { meta, msg, size: bytes.byteLength } }));
+    } catch (err) {
+      this.decodeFailed(err);
+    }
+  }
+
+  reassemble(meta, bytes) {
+    const layouts = this.loader.layouts;
+    if (!layouts.has(FRAGMENT_TYPE)) {
+      this.stats.droppedNoLayout++;
+      this.loader.ensure(FRAGMENT_TYPE).catch((err) => this.decodeFailed(err));
+      return null;
+    }
+    const frag = new Reader(layouts).decode(bytes, FRAGMENT_TYPE);
+    return this.reassembler.feed(meta.topic, frag, performance.now() / 1000);
+  }
+
+  decodeFailed(err) {
+    this.stats.decodeErrors++;
+    const kind = err instanceof DecodeError ? "malformed_frame" : "layout";
+    this.logError({ code: kind, message: String(err.message ?? err) });
+  }
+
+  /** Keep `re` subscribed across reconnects. */
+  subscribe(re) {
+    if (this.wanted.has(re)) return;
+    this.wanted.add(re);
+    if (this.state === "open") this.sendSubscription(re, true);
+  }
+
+  unsubscribe(re) {
+    if (!this.wanted.delete(re)) return;
+    if (this.state === "open") this.sendSubscription(re, false);
+  }
+
+  async sendSubscription(re, subscribe) {
+    try {
+      await this.sendMessage(SUBSCRIPTION_TYPE, "/subscriptions", { topic_regex: re, action: subscribe ? 1 : 0 });
+    } catch (err) {
+      this.logError({ code: "subscription", message: String(err.message ?? err) });
+    }
+  }
+
+  listRobots() {
+    if (this.state === "open") this.ws.send(JSON.stringify({ type: "list_robots" }));
+  }
+
+  /**
+   * Encode and send one message of a ROS type.
+   * @returns {Promise<number>} frame size (bytes)
+   * @throws if not connected or the type's layout is unavailable
+   */
+  async sendMessage(typeName, topic, fields, { noDrop = false } = {}) {
+    const layouts = await this.loader.ensure(typeName);
+    if (this.state !== "open" || !this.ws) throw new Error("not connected to the fleet server");
+    this.seq += 1n;
+    const frame = new Builder(layouts).encode(typeName, {
+      __metadata: { type: typeName, topic, no_drop: noDrop, publish_time_ns: BigInt(Date.now()) * 1000000n, seq: this.seq },
+      ...fields,
+    });
+    this.ws.send(frame);
+    this.stats.sent++;
+    return frame.byteLength;
+  }
+}

@@ -1,0 +1,70 @@
+// Per-topic link health: receive rate, latency from metadata.publish_time_ns and drops
+// from gaps in metadata.seq (the sender's per-topic sequence number).
+//
+// Latency compares the robot's wall clock with the browser's, so it includes any clock
+// offset between them; on one machine (tests, demo) it is exact.
+
+const WINDOW_S = 5; // rate and latency are computed over the last WINDOW_S seconds
+const MAX_SAMPLES = 512; // per topic; older samples are discarded (bounded memory)
+
+export class TopicHealth {
+  constructor() {
+    this.samples = []; // [{t, latencyMs}]
+    this.lastSeq = null;
+    this.received = 0;
+    this.gaps = 0; // messages the sender numbered but we never saw
+    this.bytes = 0;
+  }
+
+  /**
+   * @param {{seq: bigint, publish_time_ns: bigint}} meta
+   * @param {number} size frame size (bytes)
+   * @param {number} nowMs browser wall clock (ms since epoch)
+   */
+  record(meta, size, nowMs) {
+    this.received++;
+    this.bytes += size;
+    const seq = BigInt(meta.seq);
+    // seq 0 means "the sender does not number this topic".
+    if (this.lastSeq !== null && seq > this.lastSeq + 1n) this.gaps += Number(seq - this.lastSeq - 1n);
+    if (seq !== 0n) this.lastSeq = seq;
+    const pub = Number(meta.publish_time_ns) / 1e6;
+    this.samples.push({ t: nowMs, latencyMs: pub > 0 ? nowMs - pub : NaN });
+    if (this.samples.length > MAX_SAMPLES) this.samples.splice(0, this.samples.length - MAX_SAMPLES);
+  }
+
+  /** @returns {{rateHz: number, latencyMs: number, drops: number, received: number}} */
+  summary(nowMs) {
+    const recent = this.samples.filter((s) => nowMs - s.t <= WINDOW_S * 1000);
+    const lat = recent.map((s) => s.latencyMs).filter((x) => Number.isFinite(x)).sort((a, b) => a - b);
+    return {
+      rateHz: recent.length / WINDOW_S,
+      latencyMs: lat.length ? lat[Math.floor(lat.length / 2)] : NaN,
+      drops: this.gaps,
+      received: this.received,
+    };
+  }
+}
+
+export class LinkHealth {
+  constructor() {
+    this.topics = new Map();
+  }
+
+  record(meta, size, nowMs = Date.now()) {
+    let h = this.topics.get(meta.topic);
+    if (!h) {
+      h = new TopicHealth();
+      this.topics.set(meta.topic, h);
+    }
+    h.record(meta, size, nowMs);
+  }
+
+  /** Rows sorted by topic, optionally only those under a prefix. */
+  rows(prefix = "", nowMs = Date.now()) {
+    return [...this.topics.entries()]
+      .filter(([t]) => t.startsWith(prefix))
+      .sort(([a], [b]) => a.localeCompare(b))
+      .map(([topic, h]) => ({ topic, ...h.summary(nowMs) }));
+  }
+}

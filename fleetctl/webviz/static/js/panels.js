@@ -1,0 +1,26 @@
+// What a robot page shows: each panel, the robot-relative topics it subscribes to while
+// visible, and which message types it draws. Topic names follow docs/design.md section 7.
+
+export const PANELS = [
+  { id: "camera", title: "Camera", topics: ["/camera/image/compressed"] },
+  { id: "scan", title: "Laser scan", topics: ["/scan"] },
+  { id: "cloud", title: "Point cloud", topics: ["/points"] },
+  { id: "map", title: "Map, pose, path, markers", topics: ["/pose", "/odom", "/map", "/plan", "/markers", "/marker"] },
+  { id: "odom", title: "Odometry", topics: ["/odom"] },
+  { id: "gps", title: "GPS", topics: ["/gps/fix"] },
+];
+
+/** Escape a topic name so it is a literal in an RE2 (and JS) regex. */
+export function reEscape(s) {
+  return s.replace(/[.*+?^${}()|[\]\\]/g, "\\$&");
+}
+
+/** Regexes to subscribe to for the visible panels of one robot. */
+export function wantedRegexes(robot, visibleIds) {
+  const out = new Set();
+  for (const p of PANELS) {
+    if (!visibleIds.has(p.id)) continue;
+    for (const t of p.topics) out.add(reEscape(`/${robot}${t}`));
+  }
+  return out;
+}

@@ -1,0 +1,196 @@
+// Map panel: OccupancyGrid (or an empty 1 m grid), the robot's pose and path, markers, and
+// click-and-drag tools for a navigation goal and an initial pose (press = position, drag =
+// heading). Coordinates are drawn in the frame the messages use; there is no TF here.
+
+import { MarkerStore, arrow } from "./markers.js";
+import { yawOf } from "./odom.js";
+
+const MAX_PATH = 2000; // pose history points kept (oldest dropped)
+
+export class MapView {
+  /**
+   * @param {HTMLCanvasElement} canvas
+   * @param {(kind: "goal"|"initialpose", x: number, y: number, yaw: number) => void} onPose
+   */
+  constructor(canvas, onPose) {
+    this.canvas = canvas;
+    this.ctx = canvas.getContext("2d");
+    this.onPose = onPose;
+    this.scale = 40; // px per m
+    this.center = { x: 0, y: 0 }; // world point at the canvas centre (m)
+    this.pose = null;
+    this.path = [];
+    this.plan = null;
+    this.grid = null;
+    this.markers = new MarkerStore();
+    this.tool = null;
+    this.drag = null;
+    this.dirty = true;
+    canvas.addEventListener("pointerdown", (e) => this.down(e));
+    canvas.addEventListener("pointermove", (e) => this.move(e));
+    canvas.addEventListener("pointerup", (e) => this.up(e));
+    canvas.addEventListener("wheel", (e) => {
+      e.preventDefault();
+      this.scale = Math.min(400, Math.max(2, this.scale * (e.deltaY < 0 ? 1.2 : 1 / 1.2)));
+      this.dirty = true;
+    });
+  }
+
+  /** Forget the previous robot's pose, path, plan, grid and markers. */
+  reset() {
+    this.pose = null;
+    this.path = [];
+    this.plan = null;
+    this.grid = null;
+    this.markers = new MarkerStore();
+    this.dirty = true;
+  }
+
+  toPx = (x, y) => [this.canvas.width / 2 + (x - this.center.x) * this.scale, this.canvas.height / 2 - (y - this.center.y) * this.scale];
+
+  toWorld(px, py) {
+    return { x: this.center.x + (px - this.canvas.width / 2) / this.scale, y: this.center.y - (py - this.canvas.height / 2) / this.scale };
+  }
+
+  eventWorld(e) {
+    const r = this.canvas.getBoundingClientRect();
+    return this.toWorld(((e.clientX - r.left) * this.canvas.width) / r.width, ((e.clientY - r.top) * this.canvas.height) / r.height);
+  }
+
+  setTool(tool) {
+    this.tool = tool;
+    this.canvas.style.cursor = tool ? "crosshair" : "default";
+  }
+
+  down(e) {
+    if (!this.tool) return;
+    this.canvas.setPointerCapture?.(e.pointerId);
+    const w = this.eventWorld(e);
+    this.drag = { start: w, end: w };
+    this.dirty = true;
+  }
+
+  move(e) {
+    if (!this.drag) return;
+    this.drag.end = this.eventWorld(e);
+    this.dirty = true;
+  }
+
+  up(e) {
+    if (!this.drag) return;
+    const { start } = this.drag;
+    const end = this.eventWorld(e);
+    const yaw = Math.hypot(end.x - start.x, end.y - start.y) > 1e-3 ? Math.atan2(end.y - start.y, end.x - start.x) : 0;
+    const tool = this.tool;
+    this.drag = null;
+    this.setTool(null);
+    this.dirty = true;
+    this.onPose(tool, start.x, start.y, yaw);
+  }
+
+  /** A pose from Odometry / PoseWithCovarianceStamped / PoseStamped (the inner Pose). */
+  updatePose(pose) {
+    this.pose = { x: pose.position.x, y: pose.position.y, yaw: yawOf(pose.orientation) };
+    const last = this.path[this.path.length - 1];
+    if (!last || Math.hypot(last.x - this.pose.x, last.y - this.pose.y) > 0.05) {
+      this.path.push({ x: this.pose.x, y: this.pose.y });
+      if (this.path.length > MAX_PATH) this.path.shift();
+    }
+    this.dirty = true;
+  }
+
+  updatePlan(msg) {
+    this.plan = msg.poses.map((p) => p.pose.position);
+    this.dirty = true;
+  }
+
+  updateMarkers(msg) {
+    this.markers.apply(msg);
+    this.dirty = true;
+  }
+
+  updateGrid(msg) {
+    const { width, height, resolution, origin } = msg.info;
+    if (width * height > msg.data.length || width <= 0 || height <= 0) return;
+    const img = new ImageData(width, height);
+    for (let i = 0; i < width * height; i++) {
+      const v = msg.data[i];
+      const c = v < 0 ? 90 : 235 - Math.round((Math.min(v, 100) / 100) * 220);
+      // Grid row 0 is the bottom (min y): flip so the image's row 0 is the top.
+      const row = height - 1 - Math.floor(i / width);
+      const o = 4 * (row * width + (i % width));
+      img.data[o] = img.data[o + 1] = img.data[o + 2] = c;
+      img.data[o + 3] = 255;
+    }
+    const off = new OffscreenCanvas(width, height);
+    off.getContext("2d").putImageData(img, 0, 0);
+    this.grid = { image: off, resolution, x: origin.position.x, y: origin.position.y, width, height };
+    this.dirty = true;
+  }
+
+  render() {
+    if (!this.dirty) return;
+    this.dirty = false;
+    const { ctx, canvas } = this;
+    ctx.fillStyle = "#1b2127";
+    ctx.fillRect(0, 0, canvas.width, canvas.height);
+    if (this.grid) {
+      const g = this.grid;
+      const [x0, y1] = this.toPx(g.x, g.y + g.height * g.resolution);
+      ctx.imageSmoothingEnabled = false;
+      ctx.drawImage(g.image, x0, y1, g.width * g.resolution * this.scale, g.height * g.resolution * this.scale);
+    } else {
+      this.drawEmptyGrid();
+    }
+    this.drawLine(this.path, "#66bb6a");
+    if (this.plan) this.drawLine(this.plan, "#29b6f6");
+    this.markers.draw(ctx, this.toPx, this.scale);
+    if (this.pose) {
+      const [x, y] = this.toPx(this.pose.x, this.pose.y);
+      ctx.fillStyle = ctx.strokeStyle = "#ffca28";
+      ctx.lineWidth = 3;
+      arrow(ctx, x, y, x + 22 * Math.cos(this.pose.yaw), y - 22 * Math.sin(this.pose.yaw), 9);
+    }
+    if (this.drag) {
+      const [x0, y0] = this.toPx(this.drag.start.x, this.drag.start.y);
+      const [x1, y1] = this.toPx(this.drag.end.x, this.drag.end.y);
+      ctx.fillStyle = ctx.strokeStyle = this.tool === "goal" ? "#ef5350" : "#ab47bc";
+      ctx.lineWidth = 3;
+      arrow(ctx, x0, y0, x1, y1, 10);
+    }
+  }
+
+  drawEmptyGrid() {
+    const { ctx, canvas } = this;
+    ctx.strokeStyle = "#2a3540";
+    ctx.lineWidth = 1;
+    const tl = this.toWorld(0, 0), br = this.toWorld(canvas.width, canvas.height);
+    const step = this.scale < 8 ? 10 : 1; // m between lines
+    ctx.beginPath();
+    for (let x = Math.ceil(tl.x / step) * step; x <= br.x; x += step) {
+      const [px] = this.toPx(x, 0);
+      ctx.moveTo(px, 0);
+      ctx.lineTo(px, canvas.height);
+    }
+    for (let y = Math.ceil(br.y / step) * step; y <= tl.y; y += step) {
+      const [, py] = this.toPx(0, y);
+      ctx.moveTo(0, py);
+      ctx.lineTo(canvas.width, py);
+    }
+    ctx.stroke();
+  }
+
+  drawLine(points, color) {
+    if (points.length < 2) return;
+    const { ctx } = this;
+    ctx.strokeStyle = color;
+    ctx.lineWidth = 2;
+    ctx.beginPath();
+    points.forEach((p, i) => {
+      const [x, y] = this.toPx(p.x, p.y);
+      if (i === 0) ctx.moveTo(x, y);
+      else ctx.lineTo(x, y);
+    });
+    ctx.stroke();
+  }
+}

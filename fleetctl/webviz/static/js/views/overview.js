@@ -1,0 +1,56 @@
+// Fleet overview: every robot in the server's registry (online or not), merged with live
+// /<robot>/status frames and this page's link health per robot.
+
+function esc(s) {
+  return String(s ?? "").replace(/[&<>"']/g, (c) => ({ "&": "&amp;", "<": "&lt;", ">": "&gt;", '"': "&quot;", "'": "&#39;" })[c]);
+}
+
+/** Seconds since epoch from a registry timestamp (seconds, ms, ns or ISO text), or NaN. */
+export function toEpochS(v) {
+  if (v === null || v === undefined || v === "") return NaN;
+  if (typeof v === "string" && Number.isNaN(Number(v))) return Date.parse(v) / 1000;
+  const n = Number(v);
+  if (n > 1e17) return n / 1e9;
+  if (n > 1e11) return n / 1e3;
+  return n;
+}
+
+export function ago(s, nowS = Date.now() / 1000) {
+  if (!Number.isFinite(s)) return "never";
+  const d = Math.max(0, nowS - s);
+  if (d < 2) return "now";
+  if (d < 120) return `${Math.round(d)} s ago`;
+  if (d < 7200) return `${Math.round(d / 60)} min ago`;
+  return `${Math.round(d / 3600)} h ago`;
+}
+
+/**
+ * One robot's row from a registry entry (the server's GET /robots record: name, online,
+ * last_seen_s, status, is_ok, battery_level, location) and its latest live status frame.
+ */
+export function robotRow(entry, live) {
+  const pick = (k) => (live && live[k] !== undefined ? live[k] : entry[k] ?? undefined);
+  return {
+    name: entry.name,
+    online: Boolean(entry.online),
+    status: pick("status") ?? "",
+    isOk: pick("is_ok") ?? undefined,
+    battery: pick("battery_level") ?? undefined,
+    location: pick("location") ?? "",
+    lastSeenS: toEpochS(entry.last_seen_s),
+  };
+}
+
+export function renderOverview(tbody, rows, linkFor) {
+  tbody.innerHTML = rows.map((r) => {
+    const link = linkFor(r.name);
+    const batt = Number.isFinite(r.battery) ? `${Math.round(r.battery <= 1 ? r.battery * 100 : r.battery)}%` : "–";
+    const ok = r.isOk === undefined ? "–" : r.isOk ? "OK" : "NOT OK";
+    return `<tr data-robot="${esc(r.name)}" class="${r.online ? "online" : "offline"}">
+      <td><a href="#/robot/${encodeURIComponent(r.name)}">${esc(r.name)}</a></td>
+      <td class="state">${r.online ? "online" : "offline"}</td>
+      <td>${esc(r.status)}</td><td class="${r.isOk === false ? "bad" : ""}">${ok}</td>
+      <td>${batt}</td><td>${esc(r.location)}</td><td>${ago(r.lastSeenS)}</td>
+      <td>${link}</td></tr>`;
+  }).join("");
+}

@@ -1,0 +1,190 @@
+"""Frame metadata: the ``__metadata`` table every root table carries in field 0.
+
+:func:`read_metadata` is the hot path of the relay server (it runs on every frame), so it
+is written by hand against the FlatBuffers binary layout instead of going through the
+generic codec; ``tests/wire/test_metadata.py`` cross-checks it against the codec. Every
+read is bounds-checked: a hostile buffer raises :class:`WireError` and nothing else.
+
+Binary layout (FlatBuffers, little endian): ``u32`` root offset at byte 0 -> table; a table
+starts with an ``i32`` that points back to its vtable (``vtable = table - value``); the vtable
+is ``u16 vtable_bytes, u16 table_bytes, u16 field_offset[...]`` where 0 means absent.
+"""
+
+from __future__ import annotations
+
+import re
+import struct
+from dataclasses import dataclass
+from functools import lru_cache
+
+from fleetctl.wire.errors import WireError
+
+METADATA_TYPE = "fleetctl_msgs/msg/MsgMetadata"
+"""ROS-style name of the metadata table (its fields are described by shipped .msg text)."""
+
+_U32 = struct.Struct("<I").unpack_from
+_I32 = struct.Struct("<i").unpack_from
+_U16X2 = struct.Struct("<HH").unpack_from
+_U64 = struct.Struct("<Q").unpack_from
+
+# Bare names Robofleet puts on the wire for its control messages.
+_BARE_NAMES = {
+    "RobofleetSubscription": "amrl_msgs/msg/RobofleetSubscription",
+    "RobofleetStatus": "amrl_msgs/msg/RobofleetStatus",
+}
+_NAME_RE = re.compile(r"([A-Za-z][A-Za-z0-9_]*)/(?:msg/)?([A-Za-z][A-Za-z0-9_]*)")
+_MAX_TYPE_NAME_CHARS = 256
+
+
+@dataclass(frozen=True, slots=True)
+class Metadata:
+    """The metadata of one frame.
+
+    Attributes:
+        type: ROS 2 type name, normalized (``sensor_msgs/msg/LaserScan``).
+        topic: Topic the message is published on (``/husky1/scan``).
+        no_drop: The sender asks for reliable, in-order delivery.
+        publish_time_ns: Wall clock in ns since the epoch when the robot took the message
+            from ROS; 0 when the sender did not say.
+        seq: Per-topic sequence number of the sender; 0 when the sender did not say.
+    """
+
+    type: str
+    topic: str
+    no_drop: bool = False
+    publish_time_ns: int = 0
+    seq: int = 0
+
+
+@lru_cache(maxsize=4096)
+def normalize_type(name: str) -> str:
+    """Return the ROS 2 form ``pkg/msg/Name`` of a message type name.
+
+    Accepts ``pkg/msg/Name``, the ROS 1 form ``pkg/Name`` and the bare Robofleet control
+    names ``RobofleetSubscription`` / ``RobofleetStatus``.
+
+    Raises:
+        WireError: The name has none of those forms.
+    """
+    bare = _BARE_NAMES.get(name)
+    if bare is not None:
+        return bare
+    match = _NAME_RE.fullmatch(name) if len(name) <= _MAX_TYPE_NAME_CHARS else None
+    if match is None:
+        raise WireError(f"bad message type name {name[:80]!r}: expected pkg/msg/Name")
+    return f"{match.group(1)}/msg/{match.group(2)}"
+
+
+def _fail(what: str, pos: int, size: int) -> WireError:
+    return WireError(f"malformed frame: {what} at byte {pos} of a {size}-byte frame")
+
+
+def table_fields(frame: bytes | memoryview, tpos: int, n: int) -> tuple[int, int, int]:
+    """Validate the table at *tpos*; return ``(vtable_pos, vtable_bytes, table_bytes)``.
+
+    Raises:
+        WireError: The table or its vtable lies (partly) outside the frame.
+    """
+    if tpos < 0 or tpos + 4 > n:
+        raise _fail("table outside the frame", tpos, n)
+    vt = tpos - _I32(frame, tpos)[0]
+    if vt < 0 or vt + 4 > n:
+        raise _fail("vtable outside the frame", vt, n)
+    vt_bytes, t_bytes = _U16X2(frame, vt)
+    if vt_bytes < 4 or vt_bytes & 1 or vt + vt_bytes > n or t_bytes < 4 or tpos + t_bytes > n:
+        raise _fail("table or vtable size outside the frame", vt, n)
+    return vt, vt_bytes, t_bytes
+
+
+def field_pos(frame: bytes | memoryview, tpos: int, vt: int, vt_bytes: int, slot: int) -> int:
+    """Absolute position of field *slot* of a validated table, or 0 when it is absent."""
+    entry = 4 + 2 * slot
+    if entry + 2 > vt_bytes:
+        return 0
+    off: int = struct.unpack_from("<H", frame, vt + entry)[0]
+    return tpos + off if off else 0
+
+
+def read_string(frame: bytes | memoryview, fpos: int, n: int, what: str) -> str:
+    """Read the string whose offset is at *fpos* (bounds- and UTF-8-checked).
+
+    Raises:
+        WireError: The string lies outside the frame, lacks its NUL or is not UTF-8;
+            the message names *what*.
+    """
+    if fpos + 4 > n:
+        raise _fail(f"{what} offset outside the frame", fpos, n)
+    spos = fpos + _U32(frame, fpos)[0]
+    if spos + 4 > n:
+        raise _fail(f"{what} outside the frame", spos, n)
+    length = _U32(frame, spos)[0]
+    end = spos + 4 + length
+    if end + 1 > n or frame[end] != 0:
+        raise _fail(f"{what} of {length} bytes runs past the frame or lacks its NUL", spos, n)
+    try:
+        return bytes(frame[spos + 4 : end]).decode("utf-8")
+    except UnicodeDecodeError as exc:
+        raise _fail(f"{what} is not UTF-8", spos, n) from exc
+
+
+def read_root(frame: bytes | memoryview) -> tuple[Metadata, int]:
+    """Read the metadata of *frame*; return it and the position of the root table.
+
+    Raises:
+        WireError: The frame is truncated or malformed, has no ``__metadata``, or its type
+            name is malformed.
+    """
+    n = len(frame)
+    if n < 8:
+        raise WireError(f"malformed frame: {n} bytes is too short for a FlatBuffer")
+    root = _U32(frame, 0)[0]
+    vt, vt_bytes, t_bytes = table_fields(frame, root, n)
+    mpos = field_pos(frame, root, vt, vt_bytes, 0)
+    if not mpos:
+        raise WireError("malformed frame: the root table has no __metadata (field 0)")
+    if mpos + 4 > root + t_bytes:
+        raise _fail("__metadata offset outside its table", mpos, n)
+    mtab = mpos + _U32(frame, mpos)[0]
+    return _read_metadata_table(frame, mtab, n), root
+
+
+def _read_metadata_table(frame: bytes | memoryview, mtab: int, n: int) -> Metadata:
+    vt, vt_bytes, t_bytes = table_fields(frame, mtab, n)
+    end = mtab + t_bytes
+    pos = [field_pos(frame, mtab, vt, vt_bytes, slot) for slot in range(5)]
+    sizes = (4, 4, 1, 8, 8)
+    for p, size in zip(pos, sizes, strict=True):
+        if p and p + size > end:
+            raise _fail("__metadata field outside its table", p, n)
+    if not pos[0] or not pos[1]:
+        raise WireError("malformed frame: __metadata has no type or no topic")
+    type_name = read_string(frame, pos[0], n, "__metadata.type")
+    topic = read_string(frame, pos[1], n, "__metadata.topic")
+    if not topic:
+        raise WireError("malformed frame: __metadata.topic is empty")
+    return Metadata(
+        type=normalize_type(type_name),
+        topic=topic,
+        no_drop=bool(pos[2] and frame[pos[2]]),
+        publish_time_ns=_U64(frame, pos[3])[0] if pos[3] else 0,
+        seq=_U64(frame, pos[4])[0] if pos[4] else 0,
+    )
+
+
+def read_metadata(frame: bytes | memoryview) -> Metadata:
+    """Read the ``__metadata`` of a frame without decoding the rest.
+
+    Every read is bounds-checked; the function never reads past the buffer and its cost
+    does not depend on the size of the message.
+
+    Args:
+        frame: One WebSocket binary frame.
+
+    Returns:
+        The metadata, with the type name normalized to ROS 2 form.
+
+    Raises:
+        WireError: The frame is truncated or malformed, has no ``__metadata``, no type or
+            topic, or its type name is malformed.
+    """
+    return read_root(frame)[0]

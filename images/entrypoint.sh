@@ -1,0 +1,56 @@
+#!/bin/bash
+# Entrypoint of the fleetctl images.
+#
+# When WG_CONFIG names a wg-quick style config written by `fleetctl` (wg0.conf), bring the
+# tunnel up with wireguard-go (userspace: the kernels here have no WireGuard module). That
+# needs root, cap NET_ADMIN and /dev/net/tun; without them we say so loudly and go on over the
+# plain network (WG_REQUIRED=1 makes it fatal instead). Then drop to the unprivileged
+# `fleetctl` user (when started as root) and exec the command.
+set -euo pipefail
+
+log() { echo "fleetctl-entrypoint: $*" >&2; }
+
+wg_up() {
+  local conf=$1 iface
+  iface=$(basename "$conf" .conf)
+  if [ "$(id -u)" != 0 ] || [ ! -c /dev/net/tun ]; then
+    log "WARNING: WireGuard unavailable (need root, NET_ADMIN and /dev/net/tun); $conf NOT used, running over the plain network"
+    return 1
+  fi
+  WG_PROCESS_FOREGROUND=1 wireguard-go -f "$iface" >/tmp/wireguard-go.log 2>&1 &
+  # Wait (bounded, 5 s) for the UAPI socket instead of guessing a delay.
+  local i
+  for i in $(seq 50); do
+    [ -S "/var/run/wireguard/$iface.sock" ] && break
+    sleep 0.1
+  done
+  if [ ! -S "/var/run/wireguard/$iface.sock" ]; then
+    log "WARNING: wireguard-go did not start: $(tail -3 /tmp/wireguard-go.log)"
+    return 1
+  fi
+  wg setconf "$iface" <(wg-quick strip "$conf")
+  local addr mtu allowed
+  for addr in $(sed -n 's/^[[:space:]]*Address[[:space:]]*=[[:space:]]*//p' "$conf" | tr ',' ' '); do
+    ip address add "$addr" dev "$iface"
+  done
+  mtu=$(sed -n 's/^[[:space:]]*MTU[[:space:]]*=[[:space:]]*//p' "$conf" | head -1)
+  ip link set "$iface" mtu "${mtu:-1380}" up
+  for allowed in $(sed -n 's/^[[:space:]]*AllowedIPs[[:space:]]*=[[:space:]]*//p' "$conf" | tr ',' ' '); do
+    ip route replace "$allowed" dev "$iface" 2>/dev/null || true
+  done
+  log "WireGuard $iface up: $(ip -brief address show "$iface")"
+}
+
+if [ -n "${WG_CONFIG:-}" ]; then
+  if [ ! -r "$WG_CONFIG" ]; then
+    log "WARNING: WG_CONFIG=$WG_CONFIG is not readable; running over the plain network"
+    [ "${WG_REQUIRED:-0}" = 1 ] && exit 78
+  elif ! wg_up "$WG_CONFIG"; then
+    [ "${WG_REQUIRED:-0}" = 1 ] && { log "WG_REQUIRED=1: giving up"; exit 78; }
+  fi
+fi
+
+if [ "$(id -u)" = 0 ] && [ "${RUN_AS_ROOT:-0}" != 1 ] && id fleetctl >/dev/null 2>&1; then
+  exec setpriv --reuid=fleetctl --regid=fleetctl --init-groups --inh-caps=-all "$@"
+fi
+exec "$@"

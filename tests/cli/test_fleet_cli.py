@@ -1,0 +1,217 @@
+"""The fleet commands end to end through the real CLI entry point (``main``)."""
+
+from __future__ import annotations
+
+import hashlib
+import json
+from pathlib import Path
+
+import pytest
+import yaml
+from typer.testing import CliRunner
+
+from fleetctl.cli.main import build_app, main
+from fleetctl.errors import ExitCode
+
+
+class Cli:
+    def __init__(self, capsys: pytest.CaptureFixture[str], fleet: Path) -> None:
+        self.capsys, self.fleet = capsys, fleet
+
+    def __call__(self, *args: str, code: int = 0) -> tuple[str, str]:
+        rc = main([*args])
+        out, err = self.capsys.readouterr()
+        assert rc == code, f"exit {rc} != {code}\nstdout: {out}\nstderr: {err}"
+        return out, err
+
+
+@pytest.fixture
+def cli(capsys: pytest.CaptureFixture[str], tmp_path: Path,
+        monkeypatch: pytest.MonkeyPatch) -> Cli:
+    fleet = tmp_path / "fleet"
+    monkeypatch.setenv("FLEET_DIR", str(fleet))
+    return Cli(capsys, fleet)
+
+
+def _snapshot(root: Path) -> dict[str, bytes]:
+    return {str(p.relative_to(root)): p.read_bytes() for p in root.rglob("*") if p.is_file()}
+
+
+@pytest.fixture
+def fleet(cli: Cli) -> Path:
+    cli("init", "--endpoint", "vpn.example.com:51820")
+    cli("add-robot", "husky1")
+    return cli.fleet
+
+
+def test_help_lists_every_command() -> None:
+    out = CliRunner().invoke(build_app(), ["--help"]).output
+    for cmd in ("init", "add-robot", "remove-robot", "add-user", "remove-user", "list",
+                "render", "export"):
+        assert cmd in out
+
+
+def test_init_creates_fleet_and_refuses_overwrite(cli: Cli, tmp_path: Path) -> None:
+    out, _ = cli("init", str(tmp_path / "f2"), "--endpoint", "1.2.3.4:51820",
+                 "--subnet", "127.0.1.0/24", "--server-ip", "127.0.1.1")
+    assert "server public key:" in out
+    doc = yaml.safe_load((tmp_path / "f2/fleet.yaml").read_text())
+    assert doc["subnet"] == "127.0.1.0/24" and doc["server_ip"] == "127.0.1.1"
+    before = _snapshot(tmp_path / "f2")
+    _, err = cli("init", str(tmp_path / "f2"), "--endpoint", "x:1", code=ExitCode.CONFLICT)
+    assert "already exists" in err and "--force" in err
+    assert _snapshot(tmp_path / "f2") == before
+    cli("init", str(tmp_path / "f2"), "--endpoint", "x:1", "--force")
+    assert _snapshot(tmp_path / "f2")["keys/server.key"] != before["keys/server.key"]
+
+
+def test_init_bad_subnet(cli: Cli) -> None:
+    _, err = cli("init", "--endpoint", "h:1", "--subnet", "10.8.0.0/33", code=ExitCode.CONFIG)
+    assert "subnet" in err
+    assert not cli.fleet.exists()
+
+
+def test_add_robot_allocates_and_writes(fleet: Path, cli: Cli) -> None:
+    out, _ = cli("add-robot", "jackal2", "--mtu", "1380", "--output", "json")
+    result = json.loads(out)
+    assert result["robot"]["ip"] == "10.8.0.3"
+    assert "PrivateKey" not in out and "private_key" not in out
+    conf = (fleet / "robots/jackal2/wireguard/wg0.conf").read_text()
+    assert "MTU = 1380" in conf and "Address = 10.8.0.3/32" in conf
+    assert "AllowedIPs = 10.8.0.3/32" in (fleet / "server/wireguard/wg0.conf").read_text()
+
+
+@pytest.mark.parametrize(
+    ("args", "code", "message"),
+    [
+        (["husky1"], ExitCode.CONFLICT, "duplicate robot name 'husky1'"),
+        (["other", "--ip", "10.8.0.2"], ExitCode.CONFLICT, "already used by robot 'husky1'"),
+        (["other", "--ip", "10.9.0.2"], ExitCode.CONFIG, "outside the fleet subnet"),
+        (["other", "--ip", "10.8.0.1"], ExitCode.CONFLICT, "is the server's address"),
+        (["other", "--ip", "10.8.0.255"], ExitCode.CONFIG, "broadcast"),
+        (["other", "--ip", "banana"], ExitCode.CONFIG, "not an IPv4 address"),
+        (["bad-name"], ExitCode.CONFIG, "not a ROS namespace segment"),
+        (["9lives"], ExitCode.CONFIG, "not a ROS namespace segment"),
+        (["a__b"], ExitCode.CONFIG, "not a ROS namespace segment"),
+        (["other", "--mtu", "100"], ExitCode.CONFIG, "mtu_bytes"),
+    ],
+)
+def test_add_robot_errors_change_nothing(fleet: Path, cli: Cli, args: list[str], code: int,
+                                         message: str) -> None:
+    before = _snapshot(fleet)
+    _, err = cli("add-robot", *args, code=code)
+    assert message in err
+    assert "Traceback" not in err
+    assert _snapshot(fleet) == before
+
+
+def test_full_subnet(cli: Cli) -> None:
+    cli("init", "--endpoint", "h:51820", "--subnet", "10.9.0.0/30")
+    cli("add-robot", "r1")
+    before = _snapshot(cli.fleet)
+    _, err = cli("add-robot", "r2", code=ExitCode.CONFLICT)
+    assert "10.9.0.0/30 is full" in err
+    assert _snapshot(cli.fleet) == before
+
+
+def test_remove_robot(fleet: Path, cli: Cli) -> None:
+    cli("remove-robot", "husky1")
+    assert not (fleet / "robots/husky1").exists()
+    assert not (fleet / "keys/robots/husky1.key").exists()
+    assert "[Peer]" not in (fleet / "server/wireguard/wg0.conf").read_text()
+    assert "husky1" not in (fleet / "server/auth.yaml").read_text()
+    _, err = cli("remove-robot", "husky1", code=ExitCode.CONFIG)
+    assert "robot 'husky1' is not in" in err
+
+
+def test_add_user_prints_token_once_and_stores_hash(fleet: Path, cli: Cli) -> None:
+    out, _ = cli("add-user", "alice@example.com", "--role", "operator", "--output", "json")
+    token = json.loads(out)["token"]
+    stored = yaml.safe_load((fleet / "fleet.yaml").read_text())["users"][0]
+    assert stored["token_sha256"] == hashlib.sha256(token.encode()).hexdigest()
+    assert token not in (fleet / "fleet.yaml").read_text()
+    assert token not in (fleet / "server/auth.yaml").read_text()
+    list_out, _ = cli("list")
+    assert token not in list_out and "alice@example.com" in list_out
+
+
+@pytest.mark.parametrize(
+    ("args", "code", "message"),
+    [
+        (["bob@example.com", "--role", "pilot"], ExitCode.USAGE, "unknown role 'pilot'"),
+        (["not-an-email", "--role", "viewer"], ExitCode.CONFIG, "not an email address"),
+    ],
+)
+def test_add_user_errors(fleet: Path, cli: Cli, args: list[str], code: int,
+                         message: str) -> None:
+    before = _snapshot(fleet)
+    _, err = cli("add-user", *args, code=code)
+    assert message in err
+    assert _snapshot(fleet) == before
+
+
+def test_duplicate_and_remove_user(fleet: Path, cli: Cli) -> None:
+    cli("add-user", "bob@example.com", "--role", "viewer")
+    _, err = cli("add-user", "bob@example.com", "--role", "admin", code=ExitCode.CONFLICT)
+    assert "duplicate user 'bob@example.com'" in err
+    cli("remove-user", "bob@example.com")
+    assert "bob@example.com" not in (fleet / "server/auth.yaml").read_text()
+    _, err = cli("remove-user", "bob@example.com", code=ExitCode.CONFIG)
+    assert "is not in" in err
+
+
+def test_list_json(fleet: Path, cli: Cli) -> None:
+    cli("add-user", "v@example.com", "--role", "viewer")
+    out, _ = cli("list", "--output", "json")
+    info = json.loads(out)
+    assert [r["name"] for r in info["fleet"]["robots"]] == ["husky1"]
+    assert info["fleet"]["users"][0]["role"] == "viewer"
+    assert set(info["robot_public_keys"]) == {"husky1"}
+    assert "PrivateKey" not in out
+
+
+def test_render_idempotent_and_dry_run(fleet: Path, cli: Cli) -> None:
+    out, _ = cli("render")
+    assert "already up to date" in out and "create" not in out and "update" not in out
+    (fleet / "server/auth.yaml").unlink()
+    before = _snapshot(fleet)
+    out, _ = cli("render", "--dry-run")
+    assert "would create server/auth.yaml" in out
+    assert _snapshot(fleet) == before
+    cli("add-robot", "r2", "--dry-run")
+    assert _snapshot(fleet) == before
+
+
+def test_export(fleet: Path, cli: Cli, tmp_path: Path) -> None:
+    out, _ = cli("export", "husky1", "--out", str(tmp_path / "bundle"))
+    assert (tmp_path / "bundle/wg0.conf").exists() and "bundle" in out
+    cli("export", "husky1", "--out", str(tmp_path / "husky1.tar.gz"))
+    assert (tmp_path / "husky1.tar.gz").stat().st_size > 0
+    _, err = cli("export", "nobody", code=ExitCode.CONFIG)
+    assert "robot 'nobody' is not in" in err
+
+
+def test_malformed_fleet_yaml_names_file_line_field(fleet: Path, cli: Cli) -> None:
+    path = fleet / "fleet.yaml"
+    path.write_text(path.read_text().replace("ip: 10.8.0.2", "ip: 10.8.0.999"))
+    _, err = cli("list", code=ExitCode.CONFIG)
+    assert f"{path}:" in err and "robots[0].ip: not an IPv4 address" in err
+    line = int(err.split(f"{path}:")[1].split(":")[0])
+    assert "10.8.0.999" in path.read_text().splitlines()[line - 1]
+
+
+def test_missing_fleet_directory(cli: Cli, tmp_path: Path) -> None:
+    for cmd in (["list"], ["render"], ["add-robot", "x"], ["add-user", "a@b.c", "--role",
+                                                            "viewer"]):
+        _, err = cli(*cmd, "--fleet", str(tmp_path / "missing"), code=ExitCode.CONFIG)
+        assert "does not exist" in err
+
+
+def test_keys_never_in_output(fleet: Path, cli: Cli) -> None:
+    secrets = [(fleet / p).read_text().strip() for p in
+               ("keys/server.key", "keys/robots/husky1.key", "keys/robots/husky1.psk")]
+    outputs = [cli("list")[0], cli("list", "-o", "json")[0], cli("render", "-o", "json")[0],
+               cli("add-robot", "r3", "-o", "json")[0], cli("add-robot", "r4")[0]]
+    for out in outputs:
+        for secret in secrets:
+            assert secret not in out

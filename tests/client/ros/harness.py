@@ -1,0 +1,106 @@
+"""Process harness of the client's integration tests: JSON-line children read with deadlines."""
+
+from __future__ import annotations
+
+import contextlib
+import json
+import os
+import queue
+import signal
+import subprocess
+import sys
+import threading
+import time
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+REPO = Path(__file__).resolve().parents[3]
+
+
+class JsonProc:
+    """A child process printing one JSON object per stdout line.
+
+    Lines are read by a thread into a bounded queue; :meth:`wait_for` takes them with a
+    deadline. stderr goes to *log_path* so a failure can show it.
+    """
+
+    def __init__(self, argv: list[str], env: dict[str, str], log_path: Path) -> None:
+        self.log_path = log_path
+        self._log = log_path.open("ab")
+        self.process = subprocess.Popen(
+            argv, cwd=REPO, env={**os.environ, **env}, stdin=subprocess.DEVNULL,
+            stdout=subprocess.PIPE, stderr=self._log, start_new_session=True,
+        )
+        self.lines: queue.Queue[dict[str, Any]] = queue.Queue(maxsize=100_000)
+        self.received: list[dict[str, Any]] = []
+        self._reader = threading.Thread(target=self._read, daemon=True)
+        self._reader.start()
+
+    def _read(self) -> None:
+        assert self.process.stdout is not None
+        for raw in self.process.stdout:
+            with contextlib.suppress(ValueError):
+                self.lines.put(json.loads(raw))
+
+    def wait_for(self, predicate: Callable[[dict[str, Any]], bool], timeout_s: float,
+                 what: str) -> dict[str, Any]:
+        """Return the first line (in order) matching *predicate*; fail after *timeout_s*."""
+        deadline = time.monotonic() + timeout_s
+        while True:
+            remaining = deadline - time.monotonic()
+            if remaining <= 0:
+                raise AssertionError(f"timed out after {timeout_s} s waiting for {what}; "
+                                     f"stderr:\n{self.stderr_tail()}")
+            try:
+                line = self.lines.get(timeout=min(remaining, 0.5))
+            except queue.Empty:
+                if self.process.poll() is not None and self.lines.empty():
+                    raise AssertionError(f"process exited ({self.process.returncode}) "
+                                         f"before {what}; stderr:\n{self.stderr_tail()}") from None
+                continue
+            self.received.append(line)
+            if predicate(line):
+                return line
+
+    def stderr_tail(self, max_bytes: int = 3000) -> str:
+        self._log.flush()
+        return self.log_path.read_bytes()[-max_bytes:].decode("utf-8", errors="replace")
+
+    def stop(self, grace_s: float = 5.0) -> int:
+        if self.process.poll() is None:
+            with contextlib.suppress(ProcessLookupError):
+                os.killpg(self.process.pid, signal.SIGTERM)
+            try:
+                self.process.wait(timeout=grace_s)
+            except subprocess.TimeoutExpired:
+                os.killpg(self.process.pid, signal.SIGKILL)
+                self.process.wait()
+        self._reader.join(timeout=grace_s)
+        self._log.close()
+        return int(self.process.returncode)
+
+
+def ros_helper(mode: str, args: list[str], domain_id: int, log_path: Path) -> JsonProc:
+    """Start ``tests.client.ros.rosproc MODE ARGS`` in ROS domain *domain_id*."""
+    argv = [sys.executable, "-m", "tests.client.ros.rosproc", mode, *args]
+    return JsonProc(argv, {"ROS_DOMAIN_ID": str(domain_id)}, log_path)
+
+
+def fleetctl_argv(*args: str) -> list[str]:
+    """The command line of ``fleetctl ARGS`` with this interpreter."""
+    return [sys.executable, "-m", "fleetctl.cli.main", *args]
+
+
+def server_argv(config: Path) -> list[str]:
+    """``fleetctl server --config CONFIG``; while that command is not registered yet, the same
+    server library run directly (still a real server process)."""
+    from fleetctl.cli.main import build_app
+
+    if any(cmd.name == "server" for cmd in build_app().registered_commands):
+        return fleetctl_argv("server", "--config", str(config))
+    code = ("import asyncio, pathlib, sys\n"
+            "from fleetctl.server.app import run_server\n"
+            "from fleetctl.server.config import load_server_config\n"
+            "asyncio.run(run_server(load_server_config(pathlib.Path(sys.argv[1]))))\n")
+    return [sys.executable, "-c", code, str(config)]

@@ -1,0 +1,117 @@
+"""Real rclpy helper processes for the client's integration tests.
+
+Run as ``python -m tests.client.ros.rosproc MODE ...`` with ``ROS_DOMAIN_ID`` set; each prints
+JSON lines on stdout that the test reads with deadlines:
+
+- ``listen TOPIC TYPE``: prints ``{"ready": true}`` once a publisher of TOPIC is
+  discovered, then ``{"cdr": HEX}`` for every message (raw CDR bytes).
+- ``publish TOPIC TYPE HEX RATE_HZ``: waits for a subscriber, prints ``{"ready": true}``,
+  then publishes the given CDR bytes at RATE_HZ forever.
+- ``events TOPIC COUNT RATE_HZ``: waits for a subscriber, then publishes std_msgs/String
+  ``event-1`` ... ``event-COUNT`` at RATE_HZ (reliable), printing ``{"sent": N}`` every
+  message, then ``{"done": true}`` and keeps running (so late discovery loses nothing).
+"""
+
+from __future__ import annotations
+
+import json
+import sys
+import time
+from typing import Any
+
+import rclpy
+from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
+from rclpy.node import Node
+from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
+
+from fleetctl.client.ros.msgtypes import message_class
+
+RELIABLE = QoSProfile(
+    history=HistoryPolicy.KEEP_LAST, depth=1000, reliability=ReliabilityPolicy.RELIABLE
+)
+_DISCOVERY_TIMEOUT_S = 30.0
+
+
+def _emit(obj: dict[str, Any]) -> None:
+    sys.stdout.write(json.dumps(obj) + "\n")
+    sys.stdout.flush()
+
+
+def _wait_for_subscriber(node: Node, executor: SingleThreadedExecutor, publisher: Any) -> None:
+    deadline = time.monotonic() + _DISCOVERY_TIMEOUT_S
+    while publisher.get_subscription_count() == 0:
+        if time.monotonic() > deadline:
+            raise SystemExit("no subscriber discovered")
+        executor.spin_once(timeout_sec=0.05)
+
+
+def _listen(node: Node, executor: SingleThreadedExecutor, topic: str, type_name: str) -> None:
+    node.create_subscription(
+        message_class(type_name), topic, lambda cdr: _emit({"cdr": bytes(cdr).hex()}),
+        RELIABLE, raw=True,
+    )
+    deadline = time.monotonic() + _DISCOVERY_TIMEOUT_S
+    while node.count_publishers(topic) == 0:
+        if time.monotonic() > deadline:
+            raise SystemExit(f"no publisher of {topic} discovered")
+        executor.spin_once(timeout_sec=0.05)
+    _emit({"ready": True})
+    executor.spin()
+
+
+def _publish(node: Node, executor: SingleThreadedExecutor, args: list[str]) -> None:
+    topic, type_name, cdr_hex, rate_hz = args
+    publisher = node.create_publisher(message_class(type_name), topic, RELIABLE)
+    cdr = bytes.fromhex(cdr_hex)
+    _wait_for_subscriber(node, executor, publisher)
+    _emit({"ready": True})
+    node.create_timer(1.0 / float(rate_hz), lambda: publisher.publish(cdr))
+    executor.spin()
+
+
+def _events(node: Node, executor: SingleThreadedExecutor, args: list[str]) -> None:
+    from std_msgs.msg import String
+
+    topic, count, rate_hz = args[0], int(args[1]), float(args[2])
+    publisher = node.create_publisher(String, topic, RELIABLE)
+    _wait_for_subscriber(node, executor, publisher)
+    sent = 0
+
+    def tick() -> None:
+        nonlocal sent
+        if sent < count:
+            sent += 1
+            publisher.publish(String(data=f"event-{sent}"))
+            _emit({"sent": sent})
+            if sent == count:
+                _emit({"done": True})
+
+    node.create_timer(1.0 / rate_hz, tick)
+    executor.spin()
+
+
+def main(argv: list[str]) -> None:
+    rclpy.init()
+    node = Node("fleetctl_test_helper")
+    executor = SingleThreadedExecutor()
+    executor.add_node(node)
+    try:
+        mode, args = argv[0], argv[1:]
+        if mode == "listen":
+            _listen(node, executor, args[0], args[1])
+        elif mode == "publish":
+            _publish(node, executor, args)
+        elif mode == "events":
+            _events(node, executor, args)
+        else:
+            raise SystemExit(f"unknown mode {mode!r}")
+    except (KeyboardInterrupt, ExternalShutdownException):
+        pass
+    finally:
+        executor.shutdown()
+        node.destroy_node()
+        rclpy.utilities.try_shutdown()
+
+
+if __name__ == "__main__":
+    main(sys.argv[1:])

@@ -1,0 +1,232 @@
+"""Integration: real rclpy processes, a real server process and two real robot clients.
+
+Robot ``alpha`` (source 127.0.1.2, ROS domain 21) and robot ``bravo`` (127.0.1.3, domain 22)
+each run ``fleetctl client``; the server identifies them by source address. Test helper
+processes publish and listen on each robot's local ROS graph (tests/client/ros/rosproc.py).
+"""
+
+from __future__ import annotations
+
+import asyncio
+import hashlib
+import json
+import math
+from collections.abc import Iterator
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import pytest
+import yaml
+
+pytest.importorskip("rclpy")
+
+from rclpy.serialization import deserialize_message, serialize_message  # noqa: E402
+
+from fleetctl.demo.fleet import free_port  # noqa: E402
+from fleetctl.demo.run import http_ok, online_robots  # noqa: E402
+from fleetctl.demo.supervisor import wait_until  # noqa: E402
+from tests.client.ros.harness import (  # noqa: E402
+    JsonProc,
+    fleetctl_argv,
+    ros_helper,
+    server_argv,
+)
+
+pytestmark = [pytest.mark.ros, pytest.mark.slow]
+ALPHA_DOMAIN, BRAVO_DOMAIN = 21, 22  # this engineer's range is 20-39
+OPERATOR_TOKEN = "operator-token-for-tests"
+STARTUP_S = 30.0
+
+
+@dataclass
+class Fleet:
+    root: Path
+    port: int
+    server: JsonProc
+    clients: dict[str, JsonProc]
+
+    @property
+    def http(self) -> str:
+        return f"http://127.0.0.1:{self.port}"
+
+    def start_server(self) -> None:
+        config = self.root / "server.yaml"
+        self.server = JsonProc(server_argv(config), {}, self.root / "server.log")
+        wait_until(lambda: http_ok(f"{self.http}/healthz"), STARTUP_S, describe="server")
+
+
+def _write(path: Path, data: Any) -> Path:
+    path.write_text(yaml.safe_dump(data, sort_keys=False), encoding="utf-8")
+    return path
+
+
+def _configs(root: Path, port: int) -> None:
+    _write(root / "server.yaml", {"listen_host": "127.0.0.1", "listen_port": port,
+                                  "auth_map": "auth.yaml", "database": "fleet.db"})
+    _write(root / "auth.yaml", {"version": 1, "identities": [
+        {"name": "alpha", "ip": "127.0.1.2", "rules": [
+            {"topic": "/alpha/.*", "op": "send"},
+            {"topic": "/alpha/(goal_pose|initialpose)", "op": "receive"}]},
+        {"name": "bravo", "ip": "127.0.1.3", "rules": [
+            {"topic": "/bravo/.*", "op": "send"},
+            {"topic": "/alpha/(scan|events)", "op": "receive"}]},
+        {"name": "operator", "token_sha256": hashlib.sha256(OPERATOR_TOKEN.encode()).hexdigest(),
+         "rules": [{"topic": ".*", "op": "receive"},
+                   {"topic": "/alpha/goal_pose", "op": "send"}]},
+    ]})
+    url = f"ws://127.0.0.1:{port}/"
+    fast = {"reconnect_min_s": 0.1, "reconnect_max_s": 0.5}
+    _write(root / "alpha.yaml", {
+        "server_url": url, "robot_name": "alpha", "bind_address": "127.0.1.2",
+        "publish": [{"topic": "/scan", "type": "sensor_msgs/msg/LaserScan"},
+                    {"topic": "/events", "type": "std_msgs/msg/String", "no_drop": True}],
+        "subscribe": [{"remote_topic": "/alpha/goal_pose",
+                       "type": "geometry_msgs/msg/PoseStamped", "local_topic": "/goal_pose"}],
+        "limits": fast})
+    _write(root / "bravo.yaml", {
+        "server_url": url, "robot_name": "bravo", "bind_address": "127.0.1.3",
+        "subscribe": [{"remote_topic": "/alpha/scan", "type": "sensor_msgs/msg/LaserScan",
+                       "local_topic": "/alpha_scan"},
+                      {"remote_topic": "/alpha/events", "type": "std_msgs/msg/String",
+                       "local_topic": "/alpha_events"}],
+        "limits": fast})
+
+
+@pytest.fixture(scope="module")
+def fleet(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Fleet]:
+    root = tmp_path_factory.mktemp("fleet")
+    port = free_port()
+    _configs(root, port)
+    fleet = Fleet(root, port, server=None, clients={})  # type: ignore[arg-type]
+    fleet.start_server()
+    try:
+        for name, domain in (("alpha", ALPHA_DOMAIN), ("bravo", BRAVO_DOMAIN)):
+            fleet.clients[name] = JsonProc(
+                fleetctl_argv("client", "--config", str(root / f"{name}.yaml")),
+                {"ROS_DOMAIN_ID": str(domain)}, root / f"{name}.log")
+        wait_until(lambda: online_robots(fleet.http) >= {"alpha", "bravo"}, STARTUP_S,
+                   describe="both robots online")
+        yield fleet
+    finally:
+        codes = {name: proc.stop() for name, proc in fleet.clients.items()}
+        fleet.server.stop()
+    # SIGTERM is a clean shutdown (unsubscribe, close, destroy the node): exit code 0.
+    assert codes == {"alpha": 0, "bravo": 0}, [p.stderr_tail() for p in fleet.clients.values()]
+
+
+def _scan_cdr() -> bytes:
+    from sensor_msgs.msg import LaserScan
+
+    scan = LaserScan()
+    scan.header.frame_id = "laser"
+    scan.header.stamp.sec, scan.header.stamp.nanosec = 1700000000, 123456789
+    scan.angle_min, scan.angle_max = -math.pi, math.pi
+    scan.angle_increment = 2 * math.pi / 720
+    scan.range_min, scan.range_max = 0.1, 30.0
+    scan.ranges = [1.0 + (i % 97) * 0.03125 for i in range(720)]
+    scan.intensities = [float(i % 7) for i in range(720)]
+    return serialize_message(scan)
+
+
+def test_laser_scan_from_alpha_arrives_on_bravo_unchanged(fleet: Fleet) -> None:
+    from sensor_msgs.msg import LaserScan
+
+    listener = ros_helper("listen", ["/alpha_scan", "sensor_msgs/msg/LaserScan"], BRAVO_DOMAIN,
+                          fleet.root / "scan-listener.log")
+    publisher = None
+    try:
+        listener.wait_for(lambda line: line.get("ready", False), STARTUP_S, "bravo listener")
+        cdr = _scan_cdr()
+        publisher = ros_helper("publish", ["/scan", "sensor_msgs/msg/LaserScan", cdr.hex(), "10"],
+                               ALPHA_DOMAIN, fleet.root / "scan-publisher.log")
+        line = listener.wait_for(lambda line: "cdr" in line, STARTUP_S, "the scan on bravo")
+        received = deserialize_message(bytes.fromhex(line["cdr"]), LaserScan)
+        assert received == deserialize_message(cdr, LaserScan)
+        assert len(received.ranges) == 720
+    finally:
+        if publisher is not None:
+            publisher.stop()
+        listener.stop()
+
+
+async def _send_goal_until(url: str, frame: bytes, received: asyncio.Future[None]) -> list[Any]:
+    from websockets.asyncio.client import connect
+
+    texts: list[Any] = []
+    async with connect(url, additional_headers={"Authorization": f"Bearer {OPERATOR_TOKEN}"},
+                       ping_interval=None) as ws:
+        welcome = json.loads(await asyncio.wait_for(ws.recv(), 10))
+        texts.append(welcome)
+        assert welcome["type"] == "welcome"
+        # The robot's local publisher may still be matching: resend until the goal arrives.
+        while not received.done():
+            await ws.send(frame)
+            await asyncio.wait([received], timeout=0.2)
+    return texts
+
+
+def test_token_authenticated_goal_reaches_alpha(fleet: Fleet) -> None:
+    from geometry_msgs.msg import PoseStamped
+
+    from fleetctl.wire.codec import Codec
+    from fleetctl.wire.registry import TypeRegistry
+
+    listener = ros_helper("listen", ["/goal_pose", "geometry_msgs/msg/PoseStamped"],
+                          ALPHA_DOMAIN, fleet.root / "goal-listener.log")
+    try:
+        listener.wait_for(lambda line: line.get("ready", False), STARTUP_S, "alpha listener")
+        goal = PoseStamped()
+        goal.header.frame_id = "map"
+        goal.pose.position.x, goal.pose.position.y = 3.25, -1.5
+        goal.pose.orientation.z, goal.pose.orientation.w = 0.6, 0.8
+        codec = Codec(TypeRegistry.default())
+        ts = codec.registry.typestore
+        frame = codec.encode(ts.deserialize_cdr(serialize_message(goal),
+                                                "geometry_msgs/msg/PoseStamped"),
+                             "geometry_msgs/msg/PoseStamped", "/alpha/goal_pose")
+
+        async def scenario() -> dict[str, Any]:
+            loop = asyncio.get_running_loop()
+            received: asyncio.Future[None] = loop.create_future()
+            waiter = loop.run_in_executor(
+                None, lambda: listener.wait_for(lambda line: "cdr" in line, STARTUP_S, "goal"))
+            waiter.add_done_callback(lambda _: received.done() or received.set_result(None))
+            await _send_goal_until(f"ws://127.0.0.1:{fleet.port}/", frame, received)
+            line: dict[str, Any] = await waiter
+            return line
+
+        line = asyncio.run(asyncio.wait_for(scenario(), STARTUP_S + 5))
+        assert deserialize_message(bytes.fromhex(line["cdr"]), PoseStamped) == goal
+    finally:
+        listener.stop()
+
+
+def test_server_restart_keeps_every_no_drop_message_in_order(fleet: Fleet) -> None:
+    from std_msgs.msg import String
+
+    count = 200
+    listener = ros_helper("listen", ["/alpha_events", "std_msgs/msg/String"], BRAVO_DOMAIN,
+                          fleet.root / "events-listener.log")
+    events = None
+    try:
+        listener.wait_for(lambda line: line.get("ready", False), STARTUP_S, "events listener")
+        events = ros_helper("events", ["/events", str(count), "40"], ALPHA_DOMAIN,
+                            fleet.root / "events.log")
+        got: list[str] = []
+
+        def take(line: dict[str, Any]) -> bool:
+            if "cdr" in line:
+                got.append(deserialize_message(bytes.fromhex(line["cdr"]), String).data)
+            return len(got) >= 40
+
+        listener.wait_for(take, STARTUP_S, "40 events before the restart")
+        assert fleet.server.stop() == 0  # graceful shutdown mid-stream
+        fleet.start_server()
+        listener.wait_for(lambda line: take(line) and got[-1] == f"event-{count}", 60.0,
+                          f"event-{count} after the restart")
+        assert got == [f"event-{i}" for i in range(1, count + 1)]
+    finally:
+        if events is not None:
+            events.stop()
+        listener.stop()

@@ -1,0 +1,417 @@
+"""Unit tests of the pure scheduler with a fake clock, a fake splitter and a fake link."""
+
+from __future__ import annotations
+
+import pytest
+
+from fleetctl.client.scheduler import (
+    RateLimiter,
+    Scheduler,
+    SchedulerConfig,
+    WindowedExtremum,
+)
+
+
+def fake_split(frame: bytes, *, topic: str, message_id: int, max_fragment_bytes: int,
+               no_drop: bool) -> list[bytes]:
+    """Fragments tagged ``topic|id|index|`` so tests can see what went out."""
+    chunks = [frame[i:i + max_fragment_bytes] for i in range(0, len(frame), max_fragment_bytes)]
+    return [f"F{topic}|{message_id}|{i}|".encode() + c for i, c in enumerate(chunks)]
+
+
+def tag(frame: bytes) -> str:
+    """The topic/index label of a fake fragment, or the whole small frame's text."""
+    if frame.startswith(b"F/"):
+        topic, _, index, _ = frame[1:].split(b"|", 3)
+        return f"{topic.decode()}#{index.decode()}"
+    return frame.decode(errors="replace")[:20]
+
+
+def make(**kw: object) -> Scheduler:
+    cfg = SchedulerConfig(**{"max_fragment_bytes": 100, **kw})  # type: ignore[arg-type]
+    return Scheduler(cfg, split=fake_split)
+
+
+class FakeLink:
+    """Drains the scheduler like the transport does, acking on demand."""
+
+    def __init__(self, sched: Scheduler) -> None:
+        self.sched = sched
+        self.sent: list[bytes] = []
+        self.tokens: list[int] = []
+
+    def drain(self, now: float, limit: int = 10_000) -> list[bytes]:
+        out = []
+        while len(out) < limit and (frame := self.sched.next_frame(now)) is not None:
+            out.append(frame)
+            if self.sched.wants_ack_point(now):
+                self.tokens.append(self.sched.ack_point(now))
+        if self.sched.wants_ack_point(now):
+            self.tokens.append(self.sched.ack_point(now))
+        self.sent += out
+        return out
+
+    def ack_all(self, now: float) -> None:
+        for token in self.tokens:
+            self.sched.on_ack(token, now)
+        self.tokens.clear()
+
+
+# -- Algorithm 1 ------------------------------------------------------------------------
+
+
+def test_rate_limit_keeps_a_jittery_source_at_its_rate() -> None:
+    limiter = RateLimiter(tolerance=0.05)
+    times = [i * 0.1 + (0.003 if i % 2 else -0.003) for i in range(50)]
+    assert all(limiter.admit("/a", 10.0, t) for t in times)
+
+
+def test_rate_limit_drops_a_faster_source_to_the_limit() -> None:
+    limiter = RateLimiter()
+    admitted = sum(limiter.admit("/a", 10.0, i * 0.01) for i in range(1000))  # 100 Hz, 10 s
+    assert 99 <= admitted <= 101
+
+
+def test_rate_limit_none_admits_everything_and_idle_earns_no_burst() -> None:
+    limiter = RateLimiter()
+    assert all(limiter.admit("/a", None, 0.0) for _ in range(10))
+    assert limiter.admit("/b", 1.0, 0.0)
+    assert limiter.admit("/b", 1.0, 100.0)  # long idle
+    assert not limiter.admit("/b", 1.0, 100.1)  # but no burst afterwards
+
+
+def test_scheduler_admit_counts_rate_limited() -> None:
+    s = make()
+    assert s.admit("/a", 2.0, 0.0)
+    assert not s.admit("/a", 2.0, 0.1)
+    assert s.stats()["topics"]["/a"]["rate_limited"] == 1  # type: ignore[index]
+
+
+def test_droppable_topic_keeps_only_latest() -> None:
+    s = make()
+    for i in range(3):
+        s.offer("/a", f"m{i}".encode(), 0.0, priority=1, no_drop=False)
+    link = FakeLink(s)
+    assert link.drain(1.0) == [b"m2"]
+    assert s.stats()["topics"]["/a"]["dropped_replaced"] == 2  # type: ignore[index]
+
+
+def test_no_drop_fifo_bounded_tail_drop_counted() -> None:
+    s = make(no_drop_queue_messages=3)
+    results = [s.offer("/e", f"e{i}".encode(), 0.0, priority=1, no_drop=True) for i in range(5)]
+    assert results == [True, True, True, False, False]
+    assert s.no_drop_overflow == 2
+    assert FakeLink(s).drain(1.0) == [b"e0", b"e1", b"e2"]
+
+
+def test_no_drop_bound_counts_unacked_messages_and_bytes() -> None:
+    s = make(no_drop_queue_messages=2, no_drop_queue_bytes=10)
+    assert s.offer("/e", b"12345", 0.0, priority=1, no_drop=True)
+    FakeLink(s).drain(0.0)  # sent, not acked: still counts against the bound
+    assert s.offer("/e", b"12345", 0.0, priority=1, no_drop=True)
+    assert not s.offer("/e", b"1", 0.0, priority=1, no_drop=True)  # 2 messages
+    s2 = make(no_drop_queue_bytes=10)
+    assert s2.offer("/e", b"12345", 0.0, priority=1, no_drop=True)
+    assert not s2.offer("/e", b"123456", 0.0, priority=1, no_drop=True)  # 11 bytes
+
+
+# -- Algorithm 2 ------------------------------------------------------------------------
+
+
+def test_no_drop_queue_goes_first() -> None:
+    s = make()
+    s.offer("/a", b"drop", 0.0, priority=100, no_drop=False)
+    s.offer("/e", b"keep1", 0.0, priority=0, no_drop=True)
+    s.offer("/e", b"keep2", 0.0, priority=0, no_drop=True)
+    assert FakeLink(s).drain(1.0) == [b"keep1", b"keep2", b"drop"]
+
+
+def test_fair_priority_is_descending_priority_times_wait() -> None:
+    s = make()
+    s.register_topic("/low", 1.0, 0.0)
+    s.register_topic("/high", 10.0, 0.0)
+    s.offer("/low", b"low", 0.5, priority=1.0, no_drop=False)
+    s.offer("/high", b"high", 0.5, priority=10.0, no_drop=False)
+    assert FakeLink(s).drain(1.0) == [b"high", b"low"]  # Robofleet's ascending bug: reverse
+
+
+def test_long_wait_beats_higher_priority() -> None:
+    s = make()
+    s.register_topic("/low", 1.0, 0.0)  # last sent at 0
+    s.register_topic("/high", 3.0, 9.0)  # last sent at 9
+    s.offer("/low", b"low", 10.0, priority=1.0, no_drop=False)
+    s.offer("/high", b"high", 10.0, priority=3.0, no_drop=False)
+    assert FakeLink(s).drain(10.0)[0] == b"low"  # f: 1 x 10 = 10 > 3 x 1 = 3
+
+
+def steps_until_sent(low_priority: float, max_steps: int) -> int | None:
+    """Offer /high (priority 100) every 1 ms on an n_T = 1 link; when does /low go?"""
+    s = make(fixed_window_messages=1)
+    link = FakeLink(s)
+    s.offer("/high", b"high", 0.0, priority=100.0, no_drop=False)
+    link.drain(0.0)
+    link.ack_all(0.0)
+    s.offer("/low", b"low", 0.0, priority=low_priority, no_drop=False)
+    for step in range(1, max_steps):
+        now = step * 0.001
+        s.offer("/high", b"high", now, priority=100.0, no_drop=False)
+        if b"low" in link.drain(now):
+            return step
+        link.ack_all(now)
+    return None
+
+
+def test_low_priority_topic_is_not_starved() -> None:
+    # f_low = 0.1 x t overtakes f_high = 100 x 1 ms after t = 1 s.
+    step = steps_until_sent(0.1, 3000)
+    assert step is not None and 995 <= step <= 1010
+
+
+def test_priority_zero_is_background_only() -> None:
+    assert steps_until_sent(0.0, 3000) is None
+
+
+def test_priority_zero_goes_when_link_is_idle() -> None:
+    s = make()
+    s.offer("/bg", b"bg", 0.0, priority=0.0, no_drop=False)
+    assert FakeLink(s).drain(1.0) == [b"bg"]
+
+
+# -- in flight ----------------------------------------------------------------------------
+
+
+def test_fixed_window_n_t_one_waits_for_pong() -> None:
+    s = make(fixed_window_messages=1)
+    link = FakeLink(s)
+    s.offer("/a", b"a", 0.0, priority=1, no_drop=False)
+    s.offer("/b", b"b", 0.0, priority=1, no_drop=False)
+    assert len(link.drain(0.0)) == 1
+    assert link.drain(0.0) == []
+    assert s.in_flight_frames == 1
+    link.ack_all(0.01)
+    assert len(link.drain(0.01)) == 1
+
+
+def test_adaptive_window_bytes_limit_and_floor_of_one_fragment() -> None:
+    s = make(initial_window_bytes=250, max_fragment_bytes=100)
+    link = FakeLink(s)
+    s.offer("/a", b"x" * 1000, 0.0, priority=1, no_drop=False)
+    sent = link.drain(0.0)
+    assert sum(len(f) for f in sent) <= 250 and len(sent) == 2
+    assert s.window_bytes() == 250  # no samples yet
+    link.ack_all(0.1)  # ~220 B in 0.1 s -> 2.2 kB/s x 0.1 s x gain 2 = 440 B
+    assert 400 < s.window_bytes() < 480
+    assert s.stats(0.1)["min_rtt_ms"] == pytest.approx(100.0)
+
+
+def test_adaptive_window_grows_on_a_fast_link_and_floors_on_a_slow_one() -> None:
+    fast = make(max_fragment_bytes=1000, initial_window_bytes=4000)
+    link = FakeLink(fast)
+    now = 0.0
+    windows = []
+    for _ in range(8):  # rtt 1 ms, unlimited data: window doubles per round (startup)
+        fast.offer("/a", b"x" * 200_000, now, priority=1, no_drop=False)
+        link.drain(now)
+        now += 0.001
+        link.ack_all(now)
+        windows.append(fast.window_bytes())
+    assert windows[-1] > 8 * windows[0]
+    slow = make(max_fragment_bytes=1000)
+    link = FakeLink(slow)
+    slow.offer("/a", b"x" * 100, 0.0, priority=1, no_drop=False)
+    link.drain(0.0)
+    link.ack_all(1.0)  # 100 B/s, 1 s RTT: BDP 200 B, floored at one fragment
+    assert slow.window_bytes() == 1000
+
+
+def test_in_flight_message_bound() -> None:
+    s = make(max_window_messages=3, initial_window_bytes=10**6)
+    for i in range(5):
+        s.offer(f"/t{i}", b"m", 0.0, priority=1, no_drop=False)
+    assert len(FakeLink(s).drain(0.0)) == 3
+
+
+def test_ack_covers_only_frames_before_the_ping() -> None:
+    s = make(initial_window_bytes=10**6, ack_every_window_fraction=1.0)
+    s.offer("/a", b"a", 0.0, priority=1, no_drop=False)
+    assert s.next_frame(0.0) == b"a"
+    token = s.ack_point(0.0)
+    s.offer("/b", b"bb", 0.0, priority=1, no_drop=False)
+    assert s.next_frame(0.0) == b"bb"
+    assert s.on_ack(token, 0.01)
+    assert s.in_flight_bytes == 2
+    assert not s.on_ack(token, 0.02)  # already acked: unknown now
+    assert not s.on_ack(999, 0.02)
+
+
+def test_a_later_pong_acknowledges_earlier_pings() -> None:
+    s = make(initial_window_bytes=10**6)
+    tokens = []
+    for i in range(3):
+        s.offer("/a", b"abc", float(i), priority=1, no_drop=False)
+        s.next_frame(float(i))
+        tokens.append(s.ack_point(float(i)))
+    s.on_ack(tokens[-1], 3.0)
+    assert s.in_flight_bytes == 0
+    assert s.stats()["topics"]["/a"]["acked"] == 3  # type: ignore[index]
+
+
+def test_wants_ack_point_after_a_window_fraction_or_when_idle() -> None:
+    s = make(initial_window_bytes=1000, ack_every_window_fraction=0.5)
+    assert not s.wants_ack_point(0.0)
+    s.offer("/a", b"x" * 300, 0.0, priority=1, no_drop=False)
+    s.offer("/b", b"y" * 300, 0.0, priority=1, no_drop=False)
+    s.next_frame(0.0)
+    assert not s.wants_ack_point(0.0)  # 100 B sent, more queued, under 500 B
+    while s.next_frame(0.0) is not None:
+        pass
+    assert s.wants_ack_point(0.0)
+    s.ack_point(0.0)
+    assert not s.wants_ack_point(0.0)
+
+
+# -- fragments ----------------------------------------------------------------------------
+
+
+def test_large_message_is_split_and_small_one_is_not() -> None:
+    s = make()
+    s.offer("/big", b"x" * 250, 0.0, priority=1, no_drop=False)
+    sent = FakeLink(s).drain(1.0)
+    assert [tag(f) for f in sent] == ["/big#0", "/big#1", "/big#2"]
+    s.offer("/small", b"y" * 100, 1.0, priority=1, no_drop=False)
+    assert FakeLink(s).drain(2.0) == [b"y" * 100]
+
+
+def test_fragments_off_sends_whole_frames() -> None:
+    s = make(fragments=False)
+    s.offer("/big", b"x" * 250, 0.0, priority=1, no_drop=False)
+    assert FakeLink(s).drain(1.0) == [b"x" * 250]
+
+
+def test_urgent_message_waits_at_most_one_fragment_of_a_cloud() -> None:
+    s = make(max_fragment_bytes=16_000, initial_window_bytes=10**9)
+    s.register_topic("/urgent", 10.0, 0.0)
+    s.offer("/cloud", b"c" * 1_000_000, 0.0, priority=1.0, no_drop=False)
+    link = FakeLink(s)
+    assert len(link.drain(0.0, limit=2)) == 2
+    s.offer("/urgent", b"u" * 1000, 0.02, priority=10.0, no_drop=False)
+    assert link.drain(0.02, limit=1) == [b"u" * 1000]
+    rest = link.drain(0.03)
+    assert tag(rest[0]) == "/cloud#2" and len(rest) == 63 - 2
+
+
+def test_fragments_of_equal_topics_interleave() -> None:
+    s = make()
+    s.register_topic("/a", 1.0, 0.0)
+    s.register_topic("/b", 1.0, 0.0)
+    s.offer("/a", b"a" * 300, 0.0, priority=1, no_drop=False)
+    s.offer("/b", b"b" * 300, 0.0, priority=1, no_drop=False)
+    link = FakeLink(s)
+    order = []
+    for i in range(1, 7):
+        order += [tag(f) for f in link.drain(i * 0.01, limit=1)]
+    assert order == ["/a#0", "/b#0", "/a#1", "/b#1", "/a#2", "/b#2"]
+
+
+def test_newer_data_supersedes_a_message_being_sent() -> None:
+    s = make()
+    link = FakeLink(s)
+    s.offer("/cloud", b"1" * 300, 0.0, priority=1, no_drop=False)
+    assert len(link.drain(0.0, limit=1)) == 1
+    s.offer("/cloud", b"2" * 300, 0.1, priority=1, no_drop=False)
+    rest = link.drain(0.1)
+    assert all(f.endswith(b"2" * 100) for f in rest) and len(rest) == 3
+    st = s.stats()["topics"]["/cloud"]  # type: ignore[index]
+    assert st["dropped_superseded"] == 1 and st["sent"] == 1  # type: ignore[index]
+
+
+def test_supersede_streak_guard_lets_a_message_complete() -> None:
+    s = make()
+    link = FakeLink(s)
+    s.offer("/c", b"1" * 300, 0.0, priority=1, no_drop=False)
+    link.drain(0.0, limit=1)
+    s.offer("/c", b"2" * 300, 0.1, priority=1, no_drop=False)  # supersedes 1
+    link.drain(0.1, limit=1)
+    s.offer("/c", b"3" * 300, 0.2, priority=1, no_drop=False)  # 2 is protected
+    rest = link.drain(0.2)
+    assert [f[-1:] for f in rest] == [b"2", b"2", b"3", b"3", b"3"]
+    st = s.stats()["topics"]["/c"]  # type: ignore[index]
+    assert st["dropped_superseded"] == 1 and st["sent"] == 2  # type: ignore[index]
+
+
+def test_window_full_does_not_start_a_pending_message() -> None:
+    s = make(fixed_window_messages=1)
+    link = FakeLink(s)
+    s.offer("/a", b"a", 0.0, priority=1, no_drop=False)
+    link.drain(0.0)
+    s.offer("/c", b"1" * 300, 0.0, priority=1, no_drop=False)
+    assert link.drain(0.0) == []
+    s.offer("/c", b"2" * 300, 0.0, priority=1, no_drop=False)  # replaces, not supersedes
+    st = s.stats()["topics"]["/c"]  # type: ignore[index]
+    assert st["dropped_replaced"] == 1 and st["dropped_superseded"] == 0  # type: ignore[index]
+
+
+# -- reconnect ----------------------------------------------------------------------------
+
+
+def test_disconnect_requeues_unacked_no_drop_in_order_and_drops_partial_droppable() -> None:
+    s = make(fixed_window_messages=100, ack_every_window_fraction=10.0)
+    link = FakeLink(s)
+    s.offer("/e", b"e0", 0.0, priority=1, no_drop=True)
+    link.drain(0.0)
+    link.ack_all(0.01)  # e0 delivered
+    for i in (1, 2):
+        s.offer("/e", f"e{i}".encode(), 0.02, priority=1, no_drop=True)
+    s.offer("/e", b"E" * 250, 0.02, priority=1, no_drop=True)  # 3 fragments
+    s.offer("/e", b"e4", 0.02, priority=1, no_drop=True)
+    s.offer("/cloud", b"c" * 300, 0.02, priority=1, no_drop=False)
+    assert len(link.drain(0.02, limit=4)) == 4  # e1, e2, E#0, E#1 (unacked)
+    link.tokens.clear()  # those pongs never come
+    s.on_disconnect(0.5)
+    assert s.in_flight_bytes == 0
+    s.offer("/cloud", b"d" * 50, 0.6, priority=1, no_drop=False)
+    resent = link.drain(1.0)
+    assert [tag(f) for f in resent[:2]] == ["e1", "e2"]
+    assert [tag(f) for f in resent[2:5]] == ["/e#0", "/e#1", "/e#2"]
+    assert resent[5:] == [b"e4", b"d" * 50]
+    st = s.stats()["topics"]
+    assert st["/e"]["requeued"] == 2  # type: ignore[index]
+    assert st["/cloud"]["dropped_replaced"] == 1  # type: ignore[index]
+
+
+def test_disconnect_drops_a_partly_sent_droppable_message() -> None:
+    s = make()
+    link = FakeLink(s)
+    s.offer("/cloud", b"c" * 300, 0.0, priority=1, no_drop=False)
+    link.drain(0.0, limit=1)
+    s.on_disconnect(0.1)
+    assert link.drain(0.2) == []
+    assert s.stats()["topics"]["/cloud"]["dropped_disconnect"] == 1  # type: ignore[index]
+
+
+def test_pong_from_before_a_disconnect_is_ignored() -> None:
+    s = make()
+    s.offer("/a", b"a", 0.0, priority=1, no_drop=True)
+    s.next_frame(0.0)
+    token = s.ack_point(0.0)
+    s.on_disconnect(0.1)
+    assert not s.on_ack(token, 0.2)
+    assert FakeLink(s).drain(0.3) == [b"a"]
+
+
+# -- helpers --------------------------------------------------------------------------------
+
+
+def test_windowed_extremum() -> None:
+    mx = WindowedExtremum(1.0, keep_max=True)
+    assert mx.value(0.0, -1.0) == -1.0
+    for t, v in [(0.0, 5.0), (0.5, 3.0), (0.9, 4.0)]:
+        mx.add(t, v)
+    assert mx.value(0.9, 0.0) == 5.0
+    assert mx.value(1.2, 0.0) == 4.0  # 5.0 expired
+    mn = WindowedExtremum(1.0, keep_max=False)
+    for t, v in [(0.0, 5.0), (0.5, 3.0), (0.9, 4.0)]:
+        mn.add(t, v)
+    assert mn.value(1.6, 0.0) == 4.0
+    mn.clear()
+    assert mn.value(None, 7.0) == 7.0

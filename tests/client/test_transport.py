@@ -1,0 +1,279 @@
+"""RobotLink against the real relay server over real WebSocket connections (loopback)."""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import logging
+from collections.abc import AsyncIterator
+from pathlib import Path
+
+import pytest
+
+from fleetctl.client.scheduler import SchedulerConfig
+from fleetctl.client.transport import LinkTuning, RobotLink, backoff_delay_s
+from fleetctl.server.app import RelayServer
+from fleetctl.wire.fragments import split
+from fleetctl.wire.metadata import read_metadata
+from tests.client.conftest import (
+    Consumer,
+    TcpForwarder,
+    make_server,
+    robot_config,
+    string_frame,
+    text_of,
+    wait_until,
+)
+
+FAST = LinkTuning(keepalive_interval_s=0.1, link_timeout_s=0.6, open_timeout_s=1.0)
+
+
+@contextlib.asynccontextmanager
+async def running(link: RobotLink) -> AsyncIterator[RobotLink]:
+    task = asyncio.create_task(link.run())
+    try:
+        yield link
+    finally:
+        await asyncio.wait_for(link.stop(), 5.0)
+        await asyncio.wait_for(task, 5.0)
+
+
+def url_of(port: int) -> str:
+    return f"ws://127.0.0.1:{port}/"
+
+
+async def test_no_drop_and_fragmented_messages_arrive_in_order(
+    server: RelayServer, tmp_path: Path
+) -> None:
+    cfg = robot_config(server.url, tmp_path, limits={"max_fragment_bytes": 4096})
+    big = "x" * 300_000
+    async with Consumer.open(server.url, "/r1/.*") as consumer, running(
+        RobotLink(cfg, on_frame=lambda f: None, tuning=FAST)
+    ) as link:
+        for i in range(200):
+            link.offer("/r1/events", string_frame("/r1/events", f"e{i}", no_drop=True, seq=i + 1),
+                       priority=1.0, no_drop=True)
+        link.offer("/r1/big", string_frame("/r1/big", big), priority=1.0, no_drop=False)
+        await wait_until(lambda: len(consumer.frames) >= 201)
+        assert consumer.texts("/r1/events") == [f"e{i}" for i in range(200)]
+        assert consumer.texts("/r1/big") == [big]
+        await wait_until(lambda: link.stats()["in_flight_bytes"] == 0)
+        stats = link.stats()
+        assert stats["topics"]["/r1/events"]["acked"] == 200
+        assert stats["topics"]["/r1/big"]["sent_frames"] > 70  # 300 kB / 4 kB fragments
+        assert stats["identities"] == ["r1"]
+        assert stats["min_rtt_ms"] is not None
+
+
+async def test_robot_receives_commands_reassembled_and_subscribes(
+    server: RelayServer, tmp_path: Path
+) -> None:
+    received: list[bytes] = []
+    cfg = robot_config(server.url, tmp_path)
+    async with Consumer.open(server.url) as operator, running(
+        RobotLink(cfg, on_frame=received.append, tuning=FAST)
+    ) as link:
+        await wait_until(lambda: link.stats()["subscribed"] == ["/r1/cmd.*"])
+        await operator.ws.send(string_frame("/r1/cmd", "go"))
+        large = string_frame("/r1/cmd_big", "y" * 100_000)
+        for fragment in split(large, topic="/r1/cmd_big", message_id=7,
+                              max_fragment_bytes=8192, no_drop=False):
+            await operator.ws.send(fragment)
+        await wait_until(lambda: len(received) == 2)
+        assert [text_of(f) for f in received] == ["go", "y" * 100_000]
+        assert link.stats()["received"]["reassembly"]["completed"] == 1
+
+
+async def test_duplicate_no_drop_frames_are_dropped_on_receive(
+    server: RelayServer, tmp_path: Path
+) -> None:
+    received: list[bytes] = []
+    cfg = robot_config(server.url, tmp_path)
+    async with Consumer.open(server.url) as operator, running(
+        RobotLink(cfg, on_frame=received.append, tuning=FAST)
+    ) as link:
+        await wait_until(lambda: link.stats()["subscribed"] == ["/r1/cmd.*"])
+        for seq in [1, 2, 2, 3, 1, 4]:
+            await operator.ws.send(string_frame("/r1/cmd", f"s{seq}", no_drop=True, seq=seq))
+        await operator.ws.send(string_frame("/r1/cmd", "end", no_drop=True, seq=5))
+        await wait_until(lambda: bool(received) and text_of(received[-1]) == "end")
+        assert [text_of(f) for f in received] == ["s1", "s2", "s3", "s4", "end"]
+        assert link.stats()["received"]["duplicates"] == 2
+
+
+async def test_server_restart_every_no_drop_message_delivered_in_order(tmp_path: Path) -> None:
+    srv = make_server(tmp_path)
+    await srv.start()
+    port = srv.port
+    forwarder = TcpForwarder(port)
+    await forwarder.accept()
+    cfg = robot_config(url_of(forwarder.port), tmp_path,
+                       limits={"reconnect_min_s": 0.05, "reconnect_max_s": 0.2})
+    seq = 0
+
+    def offer(link: RobotLink, n: int) -> None:
+        nonlocal seq
+        for _ in range(n):
+            seq += 1
+            link.offer("/r1/events", string_frame("/r1/events", f"e{seq}", no_drop=True,
+                                                  seq=seq), priority=1.0, no_drop=True)
+
+    try:
+        async with running(RobotLink(cfg, on_frame=lambda f: None, tuning=FAST)) as link:
+            async with Consumer.open(srv.url, "/r1/events") as before:
+                offer(link, 50)
+                await wait_until(lambda: len(before.frames) == 50)
+            await forwarder.refuse()  # the robot cannot reach the server while it restarts
+            await srv.stop()
+            await wait_until(lambda: not link.stats()["connected"])
+            offer(link, 50)  # queued while down
+            srv = make_server(tmp_path, port)
+            await srv.start()
+            async with Consumer.open(srv.url, "/r1/events") as after:
+                await forwarder.accept()
+                await wait_until(lambda: link.stats()["reconnects"] >= 1)
+                offer(link, 50)
+                await wait_until(lambda: "e150" in after.texts())
+                got = [int(t[1:]) for t in after.texts()]
+        assert [s for s in got if s > 50] == list(range(51, 151))
+        assert link.stats()["no_drop_overflow"] == 0
+    finally:
+        await forwarder.refuse()
+        await srv.stop()
+
+
+async def test_silent_link_is_detected_and_no_drop_survives(
+    server: RelayServer, tmp_path: Path, caplog: pytest.LogCaptureFixture
+) -> None:
+    forwarder = TcpForwarder(server.port)
+    await forwarder.accept()
+    cfg = robot_config(url_of(forwarder.port), tmp_path,
+                       limits={"reconnect_min_s": 0.05, "reconnect_max_s": 0.2})
+    caplog.set_level(logging.WARNING, "fleetctl.client.link")
+    try:
+        async with Consumer.open(server.url, "/r1/events") as consumer, running(
+            RobotLink(cfg, on_frame=lambda f: None, tuning=FAST)
+        ) as link:
+            await wait_until(lambda: link.stats()["connected"])
+            forwarder.stall()
+            for i in range(1, 21):
+                link.offer("/r1/events", string_frame("/r1/events", f"e{i}", no_drop=True,
+                                                      seq=i), priority=1.0, no_drop=True)
+            await wait_until(lambda: link.stats()["link_timeouts"] >= 1)
+            await wait_until(lambda: "e20" in consumer.texts())
+            got = [int(t[1:]) for t in consumer.texts()]
+        assert got == list(range(1, 21))
+        assert any("no pong" in r.getMessage() for r in caplog.records)
+    finally:
+        await forwarder.refuse()
+
+
+async def test_clean_link_window_is_not_one_message_per_rtt(
+    server: RelayServer, tmp_path: Path
+) -> None:
+    cfg = robot_config(server.url, tmp_path)
+    frame = string_frame("/r1/events", "z" * 60_000, no_drop=True, seq=1)
+    async with Consumer.open(server.url, "/r1/events") as consumer, running(
+        RobotLink(cfg, on_frame=lambda f: None, tuning=FAST)
+    ) as link:
+        await wait_until(lambda: link.stats()["connected"])
+        max_in_flight = 0
+
+        def done() -> bool:
+            nonlocal max_in_flight
+            max_in_flight = max(max_in_flight, link.scheduler.in_flight_frames)
+            return len(consumer.frames) == 200
+
+        for _ in range(200):
+            link.offer("/r1/events", frame, priority=1.0, no_drop=True)
+        await wait_until(done)
+        assert max_in_flight > 1
+
+
+async def test_bad_token_is_reported_and_retried(server: RelayServer, tmp_path: Path,
+                                                 caplog: pytest.LogCaptureFixture) -> None:
+    (tmp_path / "bad.token").write_text("wrong-token")
+    cfg = robot_config(server.url, tmp_path, limits={"reconnect_min_s": 0.05,
+                                                     "reconnect_max_s": 0.1})
+    cfg = type(cfg)(**{**cfg.__dict__, "token": "wrong-token"})
+    caplog.set_level(logging.INFO, "fleetctl.client.link")
+    async with running(RobotLink(cfg, on_frame=lambda f: None, tuning=FAST)) as link:
+        await wait_until(lambda: link.stats()["connects"] >= 2)
+        assert str(link.stats()["last_close"]).startswith("4401")
+    assert "wrong-token" not in caplog.text
+    assert any(r.levelno == logging.ERROR and "4401" in r.getMessage() for r in caplog.records)
+
+
+async def test_ip_identity_with_bind_address(server: RelayServer, tmp_path: Path) -> None:
+    from fleetctl.client.config import parse_client_config
+
+    cfg = parse_client_config({
+        "server_url": server.url, "robot_name": "r2", "bind_address": "127.0.0.2",
+        "publish": [{"topic": "/scan", "type": "std_msgs/msg/String"}]})
+    async with Consumer.open(server.url, "/r2/.*") as consumer, running(
+        RobotLink(cfg, on_frame=lambda f: None, tuning=FAST)
+    ) as link:
+        await wait_until(lambda: link.stats()["identities"] == ["r2"])
+        link.offer("/r2/scan", string_frame("/r2/scan", "hello"), priority=1, no_drop=False)
+        await wait_until(lambda: consumer.texts() == ["hello"])
+
+
+async def test_offer_threadsafe_and_admit_from_another_thread(
+    server: RelayServer, tmp_path: Path
+) -> None:
+    cfg = robot_config(server.url, tmp_path, publish=[
+        {"topic": "/chatter", "type": "std_msgs/msg/String", "rate_limit_hz": 5.0}])
+    async with Consumer.open(server.url, "/r1/chatter") as consumer, running(
+        RobotLink(cfg, on_frame=lambda f: None, tuning=FAST)
+    ) as link:
+        frame = string_frame("/r1/chatter", "t")
+
+        def publish_from_thread() -> list[bool]:
+            admitted = [link.admit("/r1/chatter") for _ in range(3)]
+            link.offer_threadsafe("/r1/chatter", frame, priority=1.0, no_drop=False)
+            return admitted
+
+        admitted = await asyncio.to_thread(publish_from_thread)
+        assert admitted == [True, False, False]
+        await wait_until(lambda: consumer.texts() == ["t"])
+        assert link.stats()["topics"]["/r1/chatter"]["rate_limited"] == 2
+
+
+async def test_invalid_frame_is_dropped_and_link_survives(
+    server: RelayServer, tmp_path: Path
+) -> None:
+    cfg = robot_config(server.url, tmp_path, limits={"max_fragment_bytes": 1024})
+    async with Consumer.open(server.url, "/r1/.*") as consumer, running(
+        RobotLink(cfg, on_frame=lambda f: None, tuning=FAST)
+    ) as link:
+        link.offer("/r1/junk", b"\x00" * 5000, priority=1.0, no_drop=False)  # unsplittable
+        link.offer("/r1/chatter", string_frame("/r1/chatter", "ok"), priority=1.0,
+                   no_drop=False)
+        await wait_until(lambda: consumer.texts() == ["ok"])
+        stats = link.stats()
+        assert stats["topics"]["/r1/junk"]["dropped_invalid"] == 1
+        assert "/r1/junk" in stats["last_error"]
+
+
+async def test_baseline_fixed_window_still_delivers(server: RelayServer, tmp_path: Path) -> None:
+    cfg = robot_config(server.url, tmp_path)
+    baseline = SchedulerConfig(fixed_window_messages=1, fragments=False)
+    async with Consumer.open(server.url, "/r1/events") as consumer, running(
+        RobotLink(cfg, on_frame=lambda f: None, tuning=FAST, scheduler_config=baseline)
+    ) as link:
+        for i in range(30):
+            link.offer("/r1/events", string_frame("/r1/events", f"e{i}", no_drop=True, seq=i),
+                       priority=1.0, no_drop=True)
+        await wait_until(lambda: len(consumer.frames) == 30)
+        assert link.scheduler.in_flight_frames <= 1
+
+
+def test_backoff_is_exponential_capped_and_jittered() -> None:
+    import random
+
+    rng = random.Random(1)
+    delays = [backoff_delay_s(n, 0.1, 5.0, rng) for n in range(12)]
+    assert all(0.05 <= d <= 0.1 for d in delays[:1])
+    assert all(2.5 <= d <= 5.0 for d in delays[8:])
+    assert len({round(d, 6) for d in delays}) == len(delays)  # jittered
+

@@ -1,0 +1,121 @@
+"""Unit tests of image building: commands, mirror detection, layer order (no Docker)."""
+
+from __future__ import annotations
+
+import re
+from collections.abc import Sequence
+from pathlib import Path
+
+import pytest
+
+from fleetctl.deploy import images
+from fleetctl.deploy.dockercli import Completed, require_docker
+from fleetctl.errors import EnvironmentMissing, FleetError
+
+REPO = Path(__file__).resolve().parents[2]
+
+
+def test_detect_mirror_reads_deb822_and_one_line_sources(tmp_path: Path) -> None:
+    deb822 = tmp_path / "debian.sources"
+    deb822.write_text(
+        "Types: deb\nURIs: http://deb.debian.org/debian-security\nSuites: bookworm-security\n\n"
+        "Types: deb\nURIs: http://mirror.example/debian/\nSuites: bookworm bookworm-updates\n"
+    )
+    assert images.detect_mirror([deb822]) == "http://mirror.example/debian"
+    one = tmp_path / "sources.list"
+    one.write_text("# comment\ndeb http://ftp.example/debian bookworm main\n")
+    assert images.detect_mirror([tmp_path / "absent", one]) == "http://ftp.example/debian"
+    assert images.detect_mirror([tmp_path / "absent"]) == images.DEFAULT_MIRROR
+
+
+def test_debootstrap_command_is_minbase_with_python_and_tc() -> None:
+    argv = images.debootstrap_argv(Path("/r"), "http://m/debian", "bookworm",
+                                   images.BASE_PACKAGES)
+    assert argv[:2] == ["debootstrap", "--variant=minbase"]
+    assert argv[-3:] == ["bookworm", "/r", "http://m/debian"]
+    included = argv[2].removeprefix("--include=").split(",")
+    assert {"python3", "python3-venv", "iproute2", "wireguard-go"} <= set(included)
+
+
+def test_project_requirements_split_base_and_ros() -> None:
+    base = images.project_requirements(REPO / "pyproject.toml")
+    ros = images.project_requirements(REPO / "pyproject.toml", ["ros"])
+    assert any(r.startswith("websockets") for r in base)
+    assert ros[: len(base)] == base
+    assert any(r.startswith("ros-jazzy-rclpy") for r in ros[len(base):])
+
+
+def test_project_requirements_names_the_file_on_error(tmp_path: Path) -> None:
+    bad = tmp_path / "pyproject.toml"
+    bad.write_text("[tool.x]\n")
+    with pytest.raises(FleetError, match=str(bad)):
+        images.project_requirements(bad)
+
+
+def test_build_command_has_base_arg_version_label_and_tags(tmp_path: Path) -> None:
+    cfg = images.BuildConfig(source_dir=tmp_path, base_image="registry.example/debian:12")
+    argv = images.build_argv(cfg, "client")
+    assert "BASE_IMAGE=registry.example/debian:12" in argv
+    assert f"org.opencontainers.image.version={cfg.version}" in argv
+    assert images.image_tag("client", cfg.version) in argv
+    assert argv[-1] == str(tmp_path / "build" / "docker")
+
+
+@pytest.mark.parametrize("name", images.IMAGE_NAMES)
+def test_dockerfiles_take_a_base_arg_label_and_healthcheck(name: str) -> None:
+    text = (REPO / "images" / f"{name}.Dockerfile").read_text()
+    assert text.count("ARG BASE_IMAGE=fleetctl/base:bookworm") == 1
+    assert "HEALTHCHECK" in text
+    assert "org.opencontainers.image.version" in text
+    if name != "router":  # tc needs root; the others run unprivileged
+        assert "USER fleetctl" in text
+
+
+@pytest.mark.parametrize("name", ["server", "client", "webviz"])
+def test_code_layer_comes_after_dependency_layers(name: str) -> None:
+    text = (REPO / "images" / f"{name}.Dockerfile").read_text()
+    order = [m.group(1) for m in re.finditer(r"^COPY (?:--from=\S+ )?(\S+)", text, re.M)]
+    assert order.index("wheels/app") > order.index("/opt/fleetctl")
+    if name == "client":
+        assert order.index("wheels/ros") < order.index("wheels/app")
+
+
+class Recorder:
+    """A runner that answers ``docker image inspect`` per *present* and records the rest."""
+
+    def __init__(self, present: bool) -> None:
+        self.present = present
+        self.calls: list[list[str]] = []
+
+    def __call__(self, argv: Sequence[str], stdin: bytes | None, capture: bool) -> Completed:
+        self.calls.append(list(argv))
+        ok = self.present or argv[:3] != ["docker", "image", "inspect"]
+        return Completed(tuple(argv), 0 if ok else 1, "", "")
+
+
+def test_existing_base_image_is_not_rebuilt(tmp_path: Path) -> None:
+    rec = Recorder(present=True)
+    built = images.ensure_base_image(images.BuildConfig(source_dir=tmp_path), rec, lambda s: None)
+    assert built is False
+    assert all("debootstrap" not in c for c in rec.calls)
+
+
+def test_missing_foreign_base_image_is_a_clear_error(tmp_path: Path) -> None:
+    cfg = images.BuildConfig(source_dir=tmp_path, base_image="registry.example/debian:12")
+    with pytest.raises(FleetError, match=r"registry\.example/debian:12 is not present"):
+        images.ensure_base_image(cfg, Recorder(present=False), lambda s: None)
+
+
+def test_unknown_image_name_is_rejected(tmp_path: Path) -> None:
+    with pytest.raises(FleetError, match="unknown image"):
+        images.build_all(images.BuildConfig(source_dir=tmp_path, images=("db",)),
+                         Recorder(True), lambda s: None)
+
+
+def test_docker_absent_is_an_environment_error() -> None:
+    with pytest.raises(EnvironmentMissing, match="docker: command not found"):
+        require_docker(which=lambda name: None)
+
+
+def test_find_source_dir_from_the_package() -> None:
+    assert images.find_source_dir(Path("/")) == REPO

@@ -1,0 +1,147 @@
+"""Shared helpers of the server tests: auth maps, frames, a live relay on port 0."""
+
+from __future__ import annotations
+
+import asyncio
+import hashlib
+import json
+import time
+from collections.abc import AsyncIterator, Callable
+from pathlib import Path
+from typing import Any
+
+import pytest
+from websockets.asyncio.client import ClientConnection, connect
+
+from fleetctl.server.app import RelayServer
+from fleetctl.server.authmap import AuthMap, parse_auth_map
+from fleetctl.server.config import ServerConfig, ServerLimits
+from fleetctl.wire.codec import default_codec
+
+ALICE_TOKEN = "alice-secret-token"
+BOB_TOKEN = "bob-secret-token"
+
+
+def sha(token: str) -> str:
+    return hashlib.sha256(token.encode()).hexdigest()
+
+
+AUTH = {
+    "version": 1,
+    "identities": [
+        {
+            "name": "husky1",
+            "ip": "127.0.0.2",
+            "rules": [
+                {"topic": "/husky1/.*", "op": "send"},
+                {"topic": "/husky1/(goal_pose|initialpose)", "op": "receive"},
+            ],
+        },
+        {
+            "name": "husky2",
+            "ip": "127.0.0.3",
+            "rules": [{"topic": "/husky2/.*", "op": "send"}],
+        },
+        {"name": "alice", "token_sha256": sha(ALICE_TOKEN),
+         "rules": [{"topic": ".*", "op": "both"}]},
+        {"name": "bob", "token_sha256": sha(BOB_TOKEN),
+         "rules": [{"topic": "/husky1/.*", "op": "receive"}]},
+        {"name": "bench", "ip": "127.0.0.1", "rules": []},
+    ],
+}
+
+
+def auth_map(raw: dict[str, Any] | None = None) -> AuthMap:
+    return parse_auth_map(raw or AUTH, Path("test-auth.yaml"))
+
+
+def string_frame(topic: str, text: str = "hi", *, no_drop: bool = False, seq: int = 0) -> bytes:
+    codec = default_codec()
+    cls = codec.registry.get("std_msgs/msg/String").cls
+    return codec.encode(cls(text), "std_msgs/msg/String", topic, no_drop=no_drop, seq=seq)
+
+
+def decode_text(frame: bytes) -> str:
+    _meta, msg = default_codec().decode(frame)
+    return str(msg.data)
+
+
+async def wait_for(predicate: Callable[[], bool], timeout_s: float = 5.0) -> None:
+    """Poll *predicate* until true; fail after *timeout_s*."""
+    deadline = time.monotonic() + timeout_s
+    while not predicate():
+        if time.monotonic() > deadline:
+            raise AssertionError("condition not met before the deadline")
+        await asyncio.sleep(0.005)
+
+
+async def next_json(ws: ClientConnection, kind: str, timeout_s: float = 5.0) -> dict[str, Any]:
+    """Return the next text frame of ``type`` *kind*, skipping binary and other frames."""
+
+    async def scan() -> dict[str, Any]:
+        while True:
+            msg = await ws.recv()
+            if isinstance(msg, str):
+                data: dict[str, Any] = json.loads(msg)
+                if data.get("type") == kind:
+                    return data
+
+    return await asyncio.wait_for(scan(), timeout_s)
+
+
+async def next_binary(ws: ClientConnection, timeout_s: float = 5.0) -> bytes:
+    async def scan() -> bytes:
+        while True:
+            msg = await ws.recv()
+            if isinstance(msg, bytes):
+                return msg
+
+    return await asyncio.wait_for(scan(), timeout_s)
+
+
+@pytest.fixture
+def make_server(tmp_path: Path) -> Callable[..., RelayServer]:
+    def factory(**kwargs: Any) -> RelayServer:
+        auth = kwargs.pop("auth", None) or auth_map()
+        limits = kwargs.pop("limits", ServerLimits())
+        config = ServerConfig(
+            listen_host="127.0.0.1", listen_port=0, auth_map=tmp_path / "auth.yaml",
+            database=kwargs.pop("database", tmp_path / "fleet.db"), limits=limits, **kwargs,
+        )
+        return RelayServer(config, auth)
+
+    return factory
+
+
+@pytest.fixture
+async def server(make_server: Callable[..., RelayServer]) -> AsyncIterator[RelayServer]:
+    async with make_server() as srv:
+        yield srv
+
+
+def client(
+    srv: RelayServer, *, source: str = "127.0.0.1", token: str | None = None, **kw: Any
+) -> Any:
+    """Open a client to *srv* from loopback address *source*, with a Bearer *token*."""
+    headers = {"Authorization": f"Bearer {token}"} if token else None
+    return connect(
+        f"ws://127.0.0.1:{srv.port}/", local_addr=(source, 0), additional_headers=headers,
+        max_size=None, compression=None, **kw,
+    )
+
+
+async def subscribe(ws: ClientConnection, pattern: str) -> dict[str, Any]:
+    """Subscribe and return the server's answer (subscribed or error)."""
+    from fleetctl.wire.control import encode_subscription
+
+    await ws.send(encode_subscription(pattern))
+
+    async def scan() -> dict[str, Any]:
+        while True:
+            msg = await ws.recv()
+            if isinstance(msg, str):
+                data: dict[str, Any] = json.loads(msg)
+                if data["type"] in ("subscribed", "error"):
+                    return data
+
+    return await asyncio.wait_for(scan(), 5.0)

@@ -1,0 +1,66 @@
+import { test } from "node:test";
+import assert from "node:assert/strict";
+import { LinkHealth } from "../../../fleetctl/webviz/static/js/health.js";
+import { Rules } from "../../../fleetctl/webviz/static/js/rules.js";
+import { reEscape, wantedRegexes } from "../../../fleetctl/webviz/static/js/panels.js";
+import { robotRow, toEpochS } from "../../../fleetctl/webviz/static/js/views/overview.js";
+import { cloudXYZ } from "../../../fleetctl/webviz/static/js/views/cloudpoints.js";
+
+test("seq gaps count as drops; rate and latency over the window", () => {
+  const h = new LinkHealth();
+  const now = 1_700_000_000_000;
+  for (const [seq, i] of [[1, 0], [2, 1], [5, 2], [6, 3]]) {
+    h.record({ topic: "/r/scan", seq: BigInt(seq), publish_time_ns: BigInt(now + i * 100 - 20) * 1000000n }, 10, now + i * 100);
+  }
+  const [row] = h.rows("/r/", now + 400);
+  assert.equal(row.drops, 2);
+  assert.equal(row.received, 4);
+  assert.equal(row.rateHz, 4 / 5);
+  assert.equal(row.latencyMs, 20);
+  assert.deepEqual(h.rows("/other/", now), []);
+});
+
+test("rules: full match, op both, unparseable regex grants nothing", () => {
+  const r = new Rules([{ topic: "/r1/.*", op: "receive" }, { topic: "/r1/goal_pose", op: "both" }, { topic: "(?P<x>", op: "send" }]);
+  assert.ok(r.canReceive("/r1/scan"));
+  assert.ok(!r.canSend("/r1/scan"));
+  assert.ok(r.canSend("/r1/goal_pose"));
+  assert.ok(!r.canSend("/r1/goal_pose2"));
+  assert.ok(!r.canReceive("x/r1/scan"));
+});
+
+test("subscriptions: only visible panels, topic names escaped", () => {
+  assert.equal(reEscape("/a.b/c+d"), "/a\\.b/c\\+d");
+  const w = wantedRegexes("r1", new Set(["scan"]));
+  assert.deepEqual([...w], ["/r1/scan"]);
+  assert.ok(wantedRegexes("r1", new Set(["map"])).has("/r1/pose"));
+});
+
+test("overview rows from partial registry entries", () => {
+  assert.equal(toEpochS(1_700_000_000), 1_700_000_000);
+  assert.equal(toEpochS(1_700_000_000_000), 1_700_000_000);
+  assert.equal(toEpochS("2023-11-14T22:13:20Z"), 1_700_000_000);
+  const row = robotRow({ name: "a", online: false, last_seen_s: 5, status: null, battery_level: 0.2 }, undefined);
+  assert.equal(row.online, false);
+  assert.equal(row.lastSeenS, 5);
+  assert.equal(row.battery, 0.2);
+  assert.equal(row.status, "");
+  const live = robotRow({ name: "b", online: true, status: "old" }, { status: "ok", is_ok: true, battery_level: 0.5, location: "x" });
+  assert.equal(live.battery, 0.5);
+  assert.equal(live.status, "ok");
+});
+
+test("point cloud extraction decimates and handles unaligned data", () => {
+  const n = 1000;
+  const f32 = new Float32Array(n * 4);
+  for (let i = 0; i < n; i++) f32.set([i, -i, i / 2, 7], 4 * i);
+  const fields = ["x", "y", "z"].map((name, i) => ({ name, offset: 4 * i, datatype: 7, count: 1 }));
+  const msg = { fields, point_step: 16, width: n, height: 1, is_bigendian: false, data: new Uint8Array(f32.buffer) };
+  const a = cloudXYZ(msg, 100);
+  assert.equal(a.n, 100);
+  assert.deepEqual([...a.xyz.slice(3, 6)], [10, -10, 5]);
+  const shifted = new Uint8Array(f32.byteLength + 1);
+  shifted.set(new Uint8Array(f32.buffer), 1);
+  const b = cloudXYZ({ ...msg, data: shifted.subarray(1) }, 100);
+  assert.deepEqual([...b.xyz], [...a.xyz]);
+});

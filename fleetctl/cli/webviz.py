@@ -28,18 +28,28 @@ def register(app: typer.Typer) -> None:
     @app.command()
     def webviz(
         server_url: str | None = typer.Option(
-            None, "--server-url", help="Fleet server WebSocket URL the page connects to "
-            "(default: ws://<the page's host>:8080/)."),
+            None,
+            "--server-url",
+            help="Fleet server WebSocket URL the page connects to "
+            "(default: ws://<the page's host>:8080/).",
+        ),
         host: str = typer.Option("127.0.0.1", "--host", help="Address to listen on."),
-        port: int = typer.Option(8000, "--port", min=0, max=65535, help="TCP port (0: any free port)."),
+        port: int = typer.Option(
+            8000, "--port", min=0, max=65535, help="TCP port (0: any free port)."
+        ),
         vendor_dir: Path = typer.Option(
-            DEBIAN_JS_DIR, "--vendor-dir", help="Directory with three/ and leaflet/ "
-            "(Debian libjs-three, libjs-leaflet)."),
+            DEBIAN_JS_DIR,
+            "--vendor-dir",
+            help="Directory with three/ and leaflet/ (Debian libjs-three, libjs-leaflet).",
+        ),
         verbose: bool = typer.Option(False, "--verbose", "-v", help="Log every request."),
     ) -> None:
         """Serve the web visualizer (static page, config.json, type layouts)."""
         logging.basicConfig(level=logging.DEBUG if verbose else logging.INFO, format="%(message)s")
         config = WebvizConfig(
-            listen_host=host, listen_port=port, server_url=_check_url(server_url), vendor_dir=vendor_dir
+            listen_host=host,
+            listen_port=port,
+            server_url=_check_url(server_url),
+            vendor_dir=vendor_dir,
         )
         run_webviz(config)

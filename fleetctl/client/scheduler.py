@@ -50,9 +50,9 @@ class SplitFn(Protocol):
 def _wire_split(
     frame: bytes, *, topic: str, message_id: int, max_fragment_bytes: int, no_drop: bool
 ) -> list[bytes]:
-    from fleetctl.wire.fragments import split
+    from fleetctl.client.fragmenter import fast_split
 
-    fragments: list[bytes] = split(frame, topic=topic, message_id=message_id,
+    fragments: list[bytes] = fast_split(frame, topic=topic, message_id=message_id,
                                    max_fragment_bytes=max_fragment_bytes, no_drop=no_drop)
     return fragments
 
@@ -187,7 +187,8 @@ class Scheduler:
 
     Args:
         config: Tunables.
-        split: Fragmenter, :func:`fleetctl.wire.fragments.split` by default.
+        split: Fragmenter; by default :func:`fleetctl.client.fragmenter.fast_split`
+            (byte-identical to :func:`fleetctl.wire.fragments.split`, cheaper).
     """
 
     def __init__(self, config: SchedulerConfig | None = None, *, split: SplitFn | None = None):

@@ -81,8 +81,11 @@ def _fleetctl(*args: str) -> list[str]:
 def _webviz_available() -> bool:
     from fleetctl.cli.main import build_app
 
-    app = build_app()
-    return any(cmd.name == "webviz" for cmd in app.registered_commands)
+    names = {
+        cmd.name or (cmd.callback.__name__.replace("_", "-") if cmd.callback else "")
+        for cmd in build_app().registered_commands
+    }
+    return "webviz" in names
 
 
 def http_json(url: str) -> Any:
@@ -155,7 +158,14 @@ def _start_components(
         "webviz",
         _fleetctl("webviz", "--port", str(options.webviz_port), "--server-url", fleet.ws_url),
         logs / "webviz.log"))
-    return f"http://127.0.0.1:{options.webviz_port}/"
+    url = f"http://127.0.0.1:{options.webviz_port}/"
+
+    def webviz_up() -> bool:
+        _raise_if_exited(supervisor)
+        return http_ok(url)
+
+    wait_until(webviz_up, options.startup_timeout_s, describe=f"the webviz at {url}")
+    return url
 
 
 def _healthy(supervisor: Supervisor, fleet: DemoFleet) -> bool:
@@ -181,8 +191,8 @@ def _summary(fleet: DemoFleet, webviz_url: str | None, logs: Path) -> list[str]:
     for robot in fleet.robots:
         lines.append(f"  {robot.name:<10} client from {robot.address}, "
                      f"ROS_DOMAIN_ID={robot.ros_domain_id}, topics /{robot.name}/...")
-    lines.append(f"  webviz     {webviz_url}" if webviz_url else
-                 "  webviz     not available (no `fleetctl webviz` command)")
+    lines.append(f"  webviz     {webviz_url}  (paste a token below into the page)" if webviz_url
+                 else "  webviz     not started")
     lines.append(f"  viewer token   (receive all):         {fleet.viewer_token}")
     lines.append(f"  operator token (also send goal poses): {fleet.operator_token}")
     lines.append(f"  logs       {logs}")

@@ -10,7 +10,8 @@ Both networks are plain Docker bridges (an ``--internal`` network's iptables rul
 routed traffic whose source or destination is outside its subnet, which is all of ours), but
 every container, router included, has its default route deleted: they reach each other only
 through the router, and nothing outside the machine. Each endpoint container gets NET_ADMIN
-so the runner can set its routes. Driven with the docker CLI; :meth:`Topology.close` removes everything it made.
+so the runner can set its routes. Driven with the docker CLI; :meth:`Topology.close`
+removes everything it made.
 """
 
 from __future__ import annotations

@@ -29,6 +29,10 @@ from fleetctl.server.registry import RobotRegistry
 from fleetctl.server.relay import Peer, RelayCore
 
 log = logging.getLogger("fleetctl.server")
+# websockets logs every request header (Authorization: Bearer ...) at DEBUG; its logger
+# for our connections is pinned at INFO so tokens never reach a log, whatever the root level.
+ws_log = logging.getLogger("fleetctl.server.websockets")
+ws_log.setLevel(logging.INFO)
 
 # Why small: the kernel socket buffer already holds plenty; bytes parked in asyncio's
 # buffer cannot be dropped or superseded, bytes in our scheduler can (Pound, Robofleet n_T).
@@ -83,6 +87,7 @@ class RelayServer:
             max_queue=16,
             write_limit=WRITE_LIMIT_BYTES,
             ssl=self._ssl_context(),
+            logger=ws_log,
             compression=None,  # per-message deflate costs CPU per frame; payloads are binary
         )
         self._flusher = asyncio.create_task(self._flush_registry())

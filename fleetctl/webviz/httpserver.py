@@ -57,7 +57,7 @@ class _Handler(BaseHTTPRequestHandler):
     server: WebvizHTTPServer
     server_version = "fleetctl-webviz"
 
-    def log_message(self, format: str, *args: object) -> None:  # noqa: A002 - stdlib name
+    def log_message(self, format: str, *args: object) -> None:
         log.debug("%s " + format, self.address_string(), *args)
 
     def do_GET(self) -> None:
@@ -149,7 +149,9 @@ class BackgroundWebviz:
     def __init__(self, config: WebvizConfig, layouts: LayoutSource) -> None:
         """Bind now; serving starts with :meth:`start`."""
         self.server = WebvizHTTPServer(config, layouts)
-        self._thread = threading.Thread(target=self.server.serve_forever, name="webviz", daemon=True)
+        self._thread = threading.Thread(
+            target=self.server.serve_forever, name="webviz", daemon=True
+        )
 
     @property
     def url(self) -> str:

@@ -92,7 +92,11 @@ def describe_for_web(registry: TypeRegistry, type_name: str) -> dict[str, Any]:
                 continue
             fields = [{"name": f.name, "slot": f.slot, **_kind(f.kind, f)} for f in layout.fields]
             tables[name] = {"fields": fields}
-            todo += [(f.ref, f.kind in (FieldKind.STRUCT, FieldKind.STRUCT_VECTOR)) for f in layout.fields if f.ref]
+            todo += [
+                (f.ref, f.kind in (FieldKind.STRUCT, FieldKind.STRUCT_VECTOR))
+                for f in layout.fields
+                if f.ref
+            ]
         meta = {"name": "__metadata", "slot": 0, "kind": "table", "table": METADATA_TYPE}
         if root != METADATA_TYPE:
             tables[root]["fields"].insert(0, meta)

@@ -32,7 +32,9 @@ def start_webviz(config: WebvizConfig, registry: TypeRegistry | None = None) -> 
         EnvironmentMissing: the static files are missing or the address cannot be bound.
     """
     if not (config.static_dir / "index.html").is_file():
-        raise EnvironmentMissing(f"{config.static_dir}/index.html not found: the package is incomplete")
+        raise EnvironmentMissing(
+            f"{config.static_dir}/index.html not found: the package is incomplete"
+        )
     for line in missing_vendor_libs(config.vendor_dir):
         log.warning("webviz: %s", line)
     cache = LayoutCache(registry or TypeRegistry.default(), config.max_layout_cache_types)
@@ -47,7 +49,11 @@ def start_webviz(config: WebvizConfig, registry: TypeRegistry | None = None) -> 
 def run_webviz(config: WebvizConfig) -> None:
     """Serve until SIGINT or SIGTERM."""
     server = start_webviz(config)
-    log.info("webviz: serving %s (fleet server %s)", server.url, config.server_url or "ws://<page host>:8080/")
+    log.info(
+        "webviz: serving %s (fleet server %s)",
+        server.url,
+        config.server_url or "ws://<page host>:8080/",
+    )
     done = threading.Event()
 
     def stop(_sig: int, _frame: FrameType | None) -> None:

@@ -127,6 +127,12 @@ def read_string(frame: bytes | memoryview, fpos: int, n: int, what: str) -> str:
         raise _fail(f"{what} is not UTF-8", spos, n) from exc
 
 
+_VTABLE_ENTRIES = [struct.Struct(f"<{k}H").unpack_from for k in range(6)]
+_FIELD_BYTES = (4, 4, 1, 8, 8)  # type, topic, no_drop, publish_time_ns, seq
+_TYPE_CACHE: dict[bytes, str] = {}
+_TYPE_CACHE_MAX = 1024
+
+
 def read_root(frame: bytes | memoryview) -> tuple[Metadata, int]:
     """Read the metadata of *frame*; return it and the position of the root table.
 
@@ -139,10 +145,11 @@ def read_root(frame: bytes | memoryview) -> tuple[Metadata, int]:
         raise WireError(f"malformed frame: {n} bytes is too short for a FlatBuffer")
     root = _U32(frame, 0)[0]
     vt, vt_bytes, t_bytes = table_fields(frame, root, n)
-    mpos = field_pos(frame, root, vt, vt_bytes, 0)
-    if not mpos:
+    moff = _U16X2(frame, vt + 4)[0] if vt_bytes >= 6 else 0
+    if not moff:
         raise WireError("malformed frame: the root table has no __metadata (field 0)")
-    if mpos + 4 > root + t_bytes:
+    mpos = root + moff
+    if moff + 4 > t_bytes:
         raise _fail("__metadata offset outside its table", mpos, n)
     mtab = mpos + _U32(frame, mpos)[0]
     return _read_metadata_table(frame, mtab, n), root
@@ -150,25 +157,40 @@ def read_root(frame: bytes | memoryview) -> tuple[Metadata, int]:
 
 def _read_metadata_table(frame: bytes | memoryview, mtab: int, n: int) -> Metadata:
     vt, vt_bytes, t_bytes = table_fields(frame, mtab, n)
-    end = mtab + t_bytes
-    pos = [field_pos(frame, mtab, vt, vt_bytes, slot) for slot in range(5)]
-    sizes = (4, 4, 1, 8, 8)
-    for p, size in zip(pos, sizes, strict=True):
-        if p and p + size > end:
-            raise _fail("__metadata field outside its table", p, n)
-    if not pos[0] or not pos[1]:
+    k = min(5, (vt_bytes - 4) >> 1)
+    offs = _VTABLE_ENTRIES[k](frame, vt + 4) + (0,) * (5 - k)
+    for off, size in zip(offs, _FIELD_BYTES, strict=True):
+        if off and off + size > t_bytes:
+            raise _fail("__metadata field outside its table", mtab + off, n)
+    if not offs[0] or not offs[1]:
         raise WireError("malformed frame: __metadata has no type or no topic")
-    type_name = read_string(frame, pos[0], n, "__metadata.type")
-    topic = read_string(frame, pos[1], n, "__metadata.topic")
+    topic = read_string(frame, mtab + offs[1], n, "__metadata.topic")
     if not topic:
         raise WireError("malformed frame: __metadata.topic is empty")
     return Metadata(
-        type=normalize_type(type_name),
-        topic=topic,
-        no_drop=bool(pos[2] and frame[pos[2]]),
-        publish_time_ns=_U64(frame, pos[3])[0] if pos[3] else 0,
-        seq=_U64(frame, pos[4])[0] if pos[4] else 0,
+        _read_type(frame, mtab + offs[0], n),
+        topic,
+        bool(offs[2] and frame[mtab + offs[2]]),
+        _U64(frame, mtab + offs[3])[0] if offs[3] else 0,
+        _U64(frame, mtab + offs[4])[0] if offs[4] else 0,
     )
+
+
+def _read_type(frame: bytes | memoryview, fpos: int, n: int) -> str:
+    """The normalized type name; a small cache skips decoding and normalizing repeats."""
+    spos, end = fpos + _U32(frame, fpos)[0], -1
+    if spos + 4 <= n:
+        end = spos + 4 + _U32(frame, spos)[0]
+        if end < n:
+            cached = _TYPE_CACHE.get(bytes(frame[spos + 4 : end]))
+            if cached is not None and frame[end] == 0:
+                return cached
+    name = normalize_type(read_string(frame, fpos, n, "__metadata.type"))
+    if len(_TYPE_CACHE) >= _TYPE_CACHE_MAX:
+        _TYPE_CACHE.clear()  # bounded: a peer sending many type names only costs the cache
+    if end >= 0:  # read_string succeeded, so spos..end is the string's bytes
+        _TYPE_CACHE[bytes(frame[spos + 4 : end])] = name
+    return name
 
 
 def read_metadata(frame: bytes | memoryview) -> Metadata:

@@ -46,6 +46,7 @@ class TypeRegistry:
         """Wrap *typestore* (use :meth:`default` for the usual set of types)."""
         self.typestore = typestore
         self._layouts: dict[str, MessageLayout] = {}
+        self._building: set[str] = set()
 
     @classmethod
     def default(cls) -> TypeRegistry:
@@ -108,6 +109,8 @@ class TypeRegistry:
                 texts[name] = msg_file.read_text(encoding="utf-8")
         if texts:
             self.add_msg_texts(texts)
+            for name in texts:
+                self.get(name)  # every dependency must be defined somewhere
         return sorted(texts)
 
     def names(self) -> list[str]:
@@ -147,7 +150,23 @@ class TypeRegistry:
         is_struct = name in STRUCT_TYPES
         if is_struct and any(f.kind is not FieldKind.SCALAR for f in fields):
             raise WireError(f"struct type {name} may only have scalar fields")
+        self._check_refs(name, fields)
         return MessageLayout(name, self.typestore.types[name], fields, first, is_struct)
+
+    def _check_refs(self, name: str, fields: tuple[FieldLayout, ...]) -> None:
+        """Resolve every nested type now, so a missing one fails here and names the field."""
+        if name in self._building:
+            raise WireError(f"{name} contains itself (recursive types cannot be encoded)")
+        self._building.add(name)
+        try:
+            for f in fields:
+                if f.ref is not None:
+                    try:
+                        self.get(f.ref)
+                    except WireError as exc:
+                        raise WireError(f"{name}.{f.name}: {exc}") from None
+        finally:
+            self._building.discard(name)
 
 
 def _field_layout(owner: str, name: str, desc: _FieldDesc, slot: int) -> FieldLayout:

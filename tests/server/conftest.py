@@ -46,7 +46,6 @@ AUTH = {
          "rules": [{"topic": ".*", "op": "both"}]},
         {"name": "bob", "token_sha256": sha(BOB_TOKEN),
          "rules": [{"topic": "/husky1/.*", "op": "receive"}]},
-        {"name": "bench", "ip": "127.0.0.1", "rules": []},
     ],
 }
 
@@ -123,7 +122,9 @@ def client(
     srv: RelayServer, *, source: str = "127.0.0.1", token: str | None = None, **kw: Any
 ) -> Any:
     """Open a client to *srv* from loopback address *source*, with a Bearer *token*."""
-    headers = {"Authorization": f"Bearer {token}"} if token else None
+    headers = dict(kw.pop("additional_headers", None) or {})
+    if token:
+        headers["Authorization"] = f"Bearer {token}"
     return connect(
         f"ws://127.0.0.1:{srv.port}/", local_addr=(source, 0), additional_headers=headers,
         max_size=None, compression=None, **kw,

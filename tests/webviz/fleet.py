@@ -46,19 +46,35 @@ def _sha(token: str) -> str:
 def write_auth_map(path: Path, robots: dict[str, str]) -> Path:
     """Auth map: each robot by IP; an operator who may command; a viewer who may not."""
     idents: list[dict[str, Any]] = [
-        {"name": name, "ip": ip, "rules": [
-            {"topic": f"/{name}/.*", "op": "send"},
-            {"topic": f"/{name}/(goal_pose|initialpose)", "op": "receive"},
-        ]}
+        {
+            "name": name,
+            "ip": ip,
+            "rules": [
+                {"topic": f"/{name}/.*", "op": "send"},
+                {"topic": f"/{name}/(goal_pose|initialpose)", "op": "receive"},
+            ],
+        }
         for name, ip in robots.items()
     ]
-    idents.append({"name": "operator", "token_sha256": _sha(OPERATOR_TOKEN), "rules": [
-        {"topic": ".*", "op": "receive"},
-        {"topic": "/[^/]+/(goal_pose|initialpose)", "op": "send"},
-    ]})
-    idents.append({"name": "viewer", "token_sha256": _sha(VIEWER_TOKEN), "rules": [
-        {"topic": ".*", "op": "receive"},
-    ]})
+    idents.append(
+        {
+            "name": "operator",
+            "token_sha256": _sha(OPERATOR_TOKEN),
+            "rules": [
+                {"topic": ".*", "op": "receive"},
+                {"topic": "/[^/]+/(goal_pose|initialpose)", "op": "send"},
+            ],
+        }
+    )
+    idents.append(
+        {
+            "name": "viewer",
+            "token_sha256": _sha(VIEWER_TOKEN),
+            "rules": [
+                {"topic": ".*", "op": "receive"},
+            ],
+        }
+    )
     path.write_text(yaml.safe_dump({"version": 1, "identities": idents}))
     return path
 
@@ -92,7 +108,9 @@ class WsRobot:
         self.ws = await connect(self.url, local_addr=(self.ip, 0), max_size=None)
         welcome = json.loads(await asyncio.wait_for(self.ws.recv(), 10))
         assert welcome["type"] == "welcome", welcome
-        await self.ws.send(encode_subscription(f"/{self.name}/(goal_pose|initialpose)", codec=self.codec))
+        await self.ws.send(
+            encode_subscription(f"/{self.name}/(goal_pose|initialpose)", codec=self.codec)
+        )
         self.tasks = [asyncio.create_task(self._read()), asyncio.create_task(self._publish())]
 
     async def stop(self) -> None:
@@ -118,22 +136,135 @@ class WsRobot:
         x, y = 2 * math.cos(yaw), 2 * math.sin(yaw)
         reg = c.registry
         out = [
-            c.encode(make(reg, "sensor_msgs/msg/LaserScan", scan_values(360, 2.0 + 0.5 * math.sin(t))),
-                     "sensor_msgs/msg/LaserScan", f"/{n}/scan", publish_time_ns=now, seq=i),
-            c.encode(make(reg, "nav_msgs/msg/Odometry", {
-                "header": header("odom"), "pose": {"pose": pose_values(x, y, yaw + math.pi / 2)},
-                "twist": {"twist": {"linear": {"x": 0.6}, "angular": {"z": 0.3}}}}),
-                "nav_msgs/msg/Odometry", f"/{n}/odom", publish_time_ns=now, seq=i),
+            c.encode(
+                make(reg, "sensor_msgs/msg/LaserScan", scan_values(360, 2.0 + 0.5 * math.sin(t))),
+                "sensor_msgs/msg/LaserScan",
+                f"/{n}/scan",
+                publish_time_ns=now,
+                seq=i,
+            ),
+            c.encode(
+                make(
+                    reg,
+                    "nav_msgs/msg/Odometry",
+                    {
+                        "header": header("odom"),
+                        "pose": {"pose": pose_values(x, y, yaw + math.pi / 2)},
+                        "twist": {"twist": {"linear": {"x": 0.6}, "angular": {"z": 0.3}}},
+                    },
+                ),
+                "nav_msgs/msg/Odometry",
+                f"/{n}/odom",
+                publish_time_ns=now,
+                seq=i,
+            ),
         ]
         if i % 5 == 0:
-            out.append(encode_status(n, status="patrolling", is_ok=True, battery_level=0.8 - 0.001 * i,
-                                     location="lab", publish_time_ns=now, seq=i // 5 + 1, codec=c))
-            out.append(c.encode(make(reg, "sensor_msgs/msg/CompressedImage", {
-                "header": header("cam"), "format": "jpeg", "data": np.frombuffer(jpeg_bytes(), np.uint8)}),
-                "sensor_msgs/msg/CompressedImage", f"/{n}/camera/image/compressed", publish_time_ns=now, seq=i // 5 + 1))
-            out.append(c.encode(make(reg, "sensor_msgs/msg/PointCloud2", cloud_values(5000)),
-                                "sensor_msgs/msg/PointCloud2", f"/{n}/points", publish_time_ns=now, seq=i // 5 + 1))
+            out.append(
+                encode_status(
+                    n,
+                    status="patrolling",
+                    is_ok=True,
+                    battery_level=0.8 - 0.001 * i,
+                    location="lab",
+                    publish_time_ns=now,
+                    seq=i // 5 + 1,
+                    codec=c,
+                )
+            )
+            out.append(
+                c.encode(
+                    make(
+                        reg,
+                        "sensor_msgs/msg/CompressedImage",
+                        {
+                            "header": header("cam"),
+                            "format": "jpeg",
+                            "data": np.frombuffer(jpeg_bytes(), np.uint8),
+                        },
+                    ),
+                    "sensor_msgs/msg/CompressedImage",
+                    f"/{n}/camera/image/compressed",
+                    publish_time_ns=now,
+                    seq=i // 5 + 1,
+                )
+            )
+            out.append(
+                c.encode(
+                    make(reg, "sensor_msgs/msg/PointCloud2", cloud_values(5000)),
+                    "sensor_msgs/msg/PointCloud2",
+                    f"/{n}/points",
+                    publish_time_ns=now,
+                    seq=i // 5 + 1,
+                )
+            )
+            out += self._map_frames(now, i // 5 + 1)
         return out
+
+    def _map_frames(self, now: int, seq: int) -> list[bytes]:
+        c, n = self.codec, self.name
+        cells = np.zeros((40, 40), dtype=np.int8)
+        cells[0, :] = cells[-1, :] = cells[:, 0] = cells[:, -1] = 100  # walls
+        cells[15:25, 15:25] = -1  # unknown
+        grid = make(
+            c.registry,
+            "nav_msgs/msg/OccupancyGrid",
+            {
+                "header": header("map"),
+                "info": {
+                    "resolution": 0.2,
+                    "width": 40,
+                    "height": 40,
+                    "origin": pose_values(-4.0, -4.0, 0.0),
+                },
+                "data": cells.ravel(),
+            },
+        )
+        marker = {
+            "header": header("map"),
+            "ns": "t",
+            "id": 1,
+            "type": 9,
+            "action": 0,
+            "pose": pose_values(0.0, 3.0, 0.0),
+            "scale": {"z": 0.5},
+            "color": {"r": 1.0, "a": 1.0},
+            "text": "dock",
+        }
+        cube = {
+            **marker,
+            "id": 2,
+            "type": 1,
+            "pose": pose_values(-2.0, -2.0, 0.5),
+            "scale": {"x": 0.8, "y": 0.8, "z": 0.8},
+            "color": {"g": 1.0, "a": 1.0},
+        }
+        markers = make(
+            c.registry, "visualization_msgs/msg/MarkerArray", {"markers": [marker, cube]}
+        )
+        fix = make(
+            c.registry,
+            "sensor_msgs/msg/NavSatFix",
+            {
+                "header": header("gps"),
+                "latitude": 30.2862,
+                "longitude": -97.7365,
+                "altitude": 150.0,
+            },
+        )
+        return [
+            c.encode(grid, "nav_msgs/msg/OccupancyGrid", f"/{n}/map", publish_time_ns=now, seq=seq),
+            c.encode(
+                markers,
+                "visualization_msgs/msg/MarkerArray",
+                f"/{n}/markers",
+                publish_time_ns=now,
+                seq=seq,
+            ),
+            c.encode(
+                fix, "sensor_msgs/msg/NavSatFix", f"/{n}/gps/fix", publish_time_ns=now, seq=seq
+            ),
+        ]
 
     async def _publish(self) -> None:
         assert self.ws is not None
@@ -160,8 +291,12 @@ async def running_fleet(tmp: Path, names: tuple[str, ...] = ("r1", "r2")):  # ty
     """Relay + robots, torn down on exit."""
     ips = {n: f"127.0.0.{i + 2}" for i, n in enumerate(names)}
     auth = load_auth_map(write_auth_map(tmp / "auth.yaml", ips))
-    config = ServerConfig(listen_host="127.0.0.1", listen_port=0, auth_map=tmp / "auth.yaml",
-                          database=tmp / "fleet.db")
+    config = ServerConfig(
+        listen_host="127.0.0.1",
+        listen_port=0,
+        auth_map=tmp / "auth.yaml",
+        database=tmp / "fleet.db",
+    )
     codec = Codec(TypeRegistry.default())
     async with RelayServer(config, auth) as server:
         url = f"ws://127.0.0.1:{server.port}/"

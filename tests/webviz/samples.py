@@ -57,12 +57,18 @@ def pose_values(x: float, y: float, yaw: float) -> dict[str, Any]:
     }
 
 
-def samples(registry: TypeRegistry, robot: str = "r1", jpeg: bytes = b"\xff\xd8\xff\xd9") -> list[Sample]:
+def samples(
+    registry: TypeRegistry, robot: str = "r1", jpeg: bytes = b"\xff\xd8\xff\xd9"
+) -> list[Sample]:
     """One message of every type the page handles."""
     p = f"/{robot}"
     cov = np.arange(36, dtype=np.float64) / 7
     marker = {
-        "header": header(), "ns": "demo", "id": 3, "type": 4, "action": 0,
+        "header": header(),
+        "ns": "demo",
+        "id": 3,
+        "type": 4,
+        "action": 0,
         "pose": pose_values(1.0, 2.0, 0.3),
         "scale": {"x": 0.1, "y": 0.1, "z": 0.4},
         "color": {"r": 1.0, "g": 0.5, "b": 0.0, "a": 1.0},
@@ -72,37 +78,150 @@ def samples(registry: TypeRegistry, robot: str = "r1", jpeg: bytes = b"\xff\xd8\
         "text": "héllo ✓",
     }
     return [
-        ("sensor_msgs/msg/LaserScan", f"{p}/scan", make(registry, "sensor_msgs/msg/LaserScan", scan_values())),
-        ("sensor_msgs/msg/PointCloud2", f"{p}/points", make(registry, "sensor_msgs/msg/PointCloud2", cloud_values())),
-        ("sensor_msgs/msg/CompressedImage", f"{p}/camera/image/compressed", make(
-            registry, "sensor_msgs/msg/CompressedImage",
-            {"header": header("cam"), "format": "jpeg", "data": np.frombuffer(jpeg, dtype=np.uint8)})),
-        ("nav_msgs/msg/Odometry", f"{p}/odom", make(registry, "nav_msgs/msg/Odometry", {
-            "header": header("odom"), "child_frame_id": "base_link",
-            "pose": {"pose": pose_values(1.5, -2.0, 1.0), "covariance": cov},
-            "twist": {"twist": {"linear": {"x": 0.5}, "angular": {"z": 0.25}}, "covariance": cov}})),
-        ("geometry_msgs/msg/PoseWithCovarianceStamped", f"{p}/pose", make(
-            registry, "geometry_msgs/msg/PoseWithCovarianceStamped",
-            {"header": header(), "pose": {"pose": pose_values(1.5, -2.0, 1.0), "covariance": cov}})),
-        ("geometry_msgs/msg/PoseStamped", f"{p}/goal_pose", make(
-            registry, "geometry_msgs/msg/PoseStamped", {"header": header(), "pose": pose_values(-1.0, 4.0, -2.0)})),
-        ("visualization_msgs/msg/MarkerArray", f"{p}/markers", make(
-            registry, "visualization_msgs/msg/MarkerArray", {"markers": [marker, {**marker, "id": 4, "type": 9}]})),
-        ("sensor_msgs/msg/NavSatFix", f"{p}/gps/fix", make(registry, "sensor_msgs/msg/NavSatFix", {
-            "header": header("gps"), "status": {"status": 0, "service": 1},
-            "latitude": 30.2862, "longitude": -97.7365, "altitude": 150.5,
-            "position_covariance": np.ones(9), "position_covariance_type": 2})),
-        ("nav_msgs/msg/OccupancyGrid", f"{p}/map", make(registry, "nav_msgs/msg/OccupancyGrid", {
-            "header": header(), "info": {"resolution": 0.5, "width": 4, "height": 3,
-                                         "origin": pose_values(-1.0, -1.0, 0.0)},
-            "data": np.array([-1, 0, 100, 50] * 3, dtype=np.int8)})),
-        ("amrl_msgs/msg/RobofleetStatus", f"{p}/status", make(registry, "amrl_msgs/msg/RobofleetStatus", {
-            "status": "driving", "is_ok": True, "battery_level": 0.75, "location": "lab"})),
-        ("amrl_msgs/msg/RobofleetSubscription", "/subscriptions", make(
-            registry, "amrl_msgs/msg/RobofleetSubscription", {"topic_regex": f"{p}/.*", "action": 1})),
-        ("sensor_msgs/msg/JointState", f"{p}/joints", make(registry, "sensor_msgs/msg/JointState", {
-            "header": header(), "name": ["a", "bb", ""], "position": [1.0, -2.0, 3.5]})),
-        ("std_msgs/msg/UInt64", f"{p}/big", make(registry, "std_msgs/msg/UInt64", {"data": 2**64 - 2})),
-        ("std_msgs/msg/Int64MultiArray", f"{p}/ints", make(registry, "std_msgs/msg/Int64MultiArray", {
-            "data": np.array([-(2**63), 2**63 - 1, 0], dtype=np.int64)})),
+        (
+            "sensor_msgs/msg/LaserScan",
+            f"{p}/scan",
+            make(registry, "sensor_msgs/msg/LaserScan", scan_values()),
+        ),
+        (
+            "sensor_msgs/msg/PointCloud2",
+            f"{p}/points",
+            make(registry, "sensor_msgs/msg/PointCloud2", cloud_values()),
+        ),
+        (
+            "sensor_msgs/msg/CompressedImage",
+            f"{p}/camera/image/compressed",
+            make(
+                registry,
+                "sensor_msgs/msg/CompressedImage",
+                {
+                    "header": header("cam"),
+                    "format": "jpeg",
+                    "data": np.frombuffer(jpeg, dtype=np.uint8),
+                },
+            ),
+        ),
+        (
+            "nav_msgs/msg/Odometry",
+            f"{p}/odom",
+            make(
+                registry,
+                "nav_msgs/msg/Odometry",
+                {
+                    "header": header("odom"),
+                    "child_frame_id": "base_link",
+                    "pose": {"pose": pose_values(1.5, -2.0, 1.0), "covariance": cov},
+                    "twist": {
+                        "twist": {"linear": {"x": 0.5}, "angular": {"z": 0.25}},
+                        "covariance": cov,
+                    },
+                },
+            ),
+        ),
+        (
+            "geometry_msgs/msg/PoseWithCovarianceStamped",
+            f"{p}/pose",
+            make(
+                registry,
+                "geometry_msgs/msg/PoseWithCovarianceStamped",
+                {
+                    "header": header(),
+                    "pose": {"pose": pose_values(1.5, -2.0, 1.0), "covariance": cov},
+                },
+            ),
+        ),
+        (
+            "geometry_msgs/msg/PoseStamped",
+            f"{p}/goal_pose",
+            make(
+                registry,
+                "geometry_msgs/msg/PoseStamped",
+                {"header": header(), "pose": pose_values(-1.0, 4.0, -2.0)},
+            ),
+        ),
+        (
+            "visualization_msgs/msg/MarkerArray",
+            f"{p}/markers",
+            make(
+                registry,
+                "visualization_msgs/msg/MarkerArray",
+                {"markers": [marker, {**marker, "id": 4, "type": 9}]},
+            ),
+        ),
+        (
+            "sensor_msgs/msg/NavSatFix",
+            f"{p}/gps/fix",
+            make(
+                registry,
+                "sensor_msgs/msg/NavSatFix",
+                {
+                    "header": header("gps"),
+                    "status": {"status": 0, "service": 1},
+                    "latitude": 30.2862,
+                    "longitude": -97.7365,
+                    "altitude": 150.5,
+                    "position_covariance": np.ones(9),
+                    "position_covariance_type": 2,
+                },
+            ),
+        ),
+        (
+            "nav_msgs/msg/OccupancyGrid",
+            f"{p}/map",
+            make(
+                registry,
+                "nav_msgs/msg/OccupancyGrid",
+                {
+                    "header": header(),
+                    "info": {
+                        "resolution": 0.5,
+                        "width": 4,
+                        "height": 3,
+                        "origin": pose_values(-1.0, -1.0, 0.0),
+                    },
+                    "data": np.array([-1, 0, 100, 50] * 3, dtype=np.int8),
+                },
+            ),
+        ),
+        (
+            "amrl_msgs/msg/RobofleetStatus",
+            f"{p}/status",
+            make(
+                registry,
+                "amrl_msgs/msg/RobofleetStatus",
+                {"status": "driving", "is_ok": True, "battery_level": 0.75, "location": "lab"},
+            ),
+        ),
+        (
+            "amrl_msgs/msg/RobofleetSubscription",
+            "/subscriptions",
+            make(
+                registry,
+                "amrl_msgs/msg/RobofleetSubscription",
+                {"topic_regex": f"{p}/.*", "action": 1},
+            ),
+        ),
+        (
+            "sensor_msgs/msg/JointState",
+            f"{p}/joints",
+            make(
+                registry,
+                "sensor_msgs/msg/JointState",
+                {"header": header(), "name": ["a", "bb", ""], "position": [1.0, -2.0, 3.5]},
+            ),
+        ),
+        (
+            "std_msgs/msg/UInt64",
+            f"{p}/big",
+            make(registry, "std_msgs/msg/UInt64", {"data": 2**64 - 2}),
+        ),
+        (
+            "std_msgs/msg/Int64MultiArray",
+            f"{p}/ints",
+            make(
+                registry,
+                "std_msgs/msg/Int64MultiArray",
+                {"data": np.array([-(2**63), 2**63 - 1, 0], dtype=np.int64)},
+            ),
+        ),
     ]

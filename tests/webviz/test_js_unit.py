@@ -12,10 +12,10 @@ from pathlib import Path
 
 import pytest
 
+from fleetctl.webviz.layouts import describe_for_web
 from fleetctl.wire.codec import Codec
 from fleetctl.wire.fragments import split
 from fleetctl.wire.registry import TypeRegistry
-from fleetctl.webviz.layouts import describe_for_web
 from tests.webviz.msgs import to_json, to_plain
 from tests.webviz.samples import samples
 
@@ -31,11 +31,15 @@ def _write_cases(out: Path, registry: TypeRegistry, codec: Codec) -> list[dict[s
     builds: list[dict[str, object]] = []
     types: set[str] = {"fleetctl_msgs/msg/Fragment"}
     for i, (type_name, topic, msg) in enumerate(samples(registry)):
-        frame = codec.encode(msg, type_name, topic, seq=i + 1, publish_time_ns=1_700_000_000_123_456_789 + i)
+        frame = codec.encode(
+            msg, type_name, topic, seq=i + 1, publish_time_ns=1_700_000_000_123_456_789 + i
+        )
         name = f"sample{i}.bin"
         (out / "frames" / name).write_bytes(frame)
         cases.append({"name": name, "type": type_name, "expected": to_json(codec.decode(frame)[1])})
-        builds.append({"name": f"built{i}.bin", "type": type_name, "topic": topic, "value": to_plain(msg)})
+        builds.append(
+            {"name": f"built{i}.bin", "type": type_name, "topic": topic, "value": to_plain(msg)}
+        )
         types.add(type_name)
     for golden in sorted(GOLDEN.glob("**/*.bin")) if GOLDEN.is_dir() else []:
         meta, msg = codec.decode(golden.read_bytes())
@@ -49,13 +53,21 @@ def _write_cases(out: Path, registry: TypeRegistry, codec: Codec) -> list[dict[s
         path.write_text(json.dumps(describe_for_web(registry, t)))
     # A point cloud split into fragments, to be reassembled in JS.
     cloud = (out / "frames" / "sample1.bin").read_bytes()
-    frags = split(cloud, topic="/r1/points", message_id=7, max_fragment_bytes=4096, no_drop=False, codec=codec)
+    frags = split(
+        cloud, topic="/r1/points", message_id=7, max_fragment_bytes=4096, no_drop=False, codec=codec
+    )
     assert len(frags) > 2
     for j, frag in enumerate(frags):
         (out / "frames" / f"frag{j}.bin").write_bytes(frag)
-    (out / "cases.json").write_text(json.dumps({
-        "decode": cases, "build": builds, "fragments": {"count": len(frags), "original": "sample1.bin"},
-    }))
+    (out / "cases.json").write_text(
+        json.dumps(
+            {
+                "decode": cases,
+                "build": builds,
+                "fragments": {"count": len(frags), "original": "sample1.bin"},
+            }
+        )
+    )
     return builds
 
 
@@ -77,5 +89,7 @@ def test_js_unit_tests_pass_against_the_python_codec(tmp_path: Path) -> None:
         frame = (tmp_path / "built" / str(b["name"])).read_bytes()
         meta, msg = codec.decode(frame)
         assert meta.type == b["type"] and meta.topic == b["topic"]
-        original = codec.decode((tmp_path / "frames" / str(b["name"]).replace("built", "sample")).read_bytes())[1]
+        original = codec.decode(
+            (tmp_path / "frames" / str(b["name"]).replace("built", "sample")).read_bytes()
+        )[1]
         assert to_json(msg) == to_json(original), b["type"]

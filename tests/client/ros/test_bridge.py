@@ -116,7 +116,7 @@ def test_local_message_is_encoded_with_metadata(setup: tuple[Bridge, Node, FakeP
                                                 codec: Codec) -> None:
     from sensor_msgs.msg import LaserScan
 
-    bridge, peer, fake = setup
+    _bridge, peer, fake = setup
     publisher = peer.create_publisher(LaserScan, "/scan", 10)
     scan = _scan()
     wait_for(lambda: publisher.get_subscription_count() > 0)
@@ -140,7 +140,7 @@ def test_no_drop_topic_keeps_order_and_consecutive_seqs(
 ) -> None:
     from std_msgs.msg import String
 
-    bridge, peer, fake = setup
+    _bridge, peer, fake = setup
     publisher = peer.create_publisher(String, "/events", 100)
     wait_for(lambda: publisher.get_subscription_count() > 0)
     for i in range(50):
@@ -225,7 +225,7 @@ def test_bad_frames_are_counted_never_raised(setup: tuple[Bridge, Node, FakePort
 def test_status_carries_the_battery(setup: tuple[Bridge, Node, FakePort], codec: Codec) -> None:
     from sensor_msgs.msg import BatteryState
 
-    bridge, peer, fake = setup
+    _bridge, peer, fake = setup
     first = decode_status(wait_for(lambda: fake.status and fake.status[0]), codec=codec)
     assert first.topic == "/r1/status" and first.is_ok
     assert first.battery_level == -1.0

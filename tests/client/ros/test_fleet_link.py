@@ -21,12 +21,12 @@ import yaml
 
 pytest.importorskip("rclpy")
 
-from rclpy.serialization import deserialize_message, serialize_message  # noqa: E402
+from rclpy.serialization import deserialize_message, serialize_message
 
-from fleetctl.demo.fleet import free_port  # noqa: E402
-from fleetctl.demo.run import http_ok, online_robots  # noqa: E402
-from fleetctl.demo.supervisor import wait_until  # noqa: E402
-from tests.client.ros.harness import (  # noqa: E402
+from fleetctl.demo.fleet import free_port
+from fleetctl.demo.run import http_ok, online_robots
+from fleetctl.demo.supervisor import wait_until
+from tests.client.ros.harness import (
     JsonProc,
     fleetctl_argv,
     ros_helper,

@@ -36,6 +36,7 @@ export class Connection extends EventTarget {
     this.rules = new Rules();
     this.identities = [];
     this.wanted = new Set();
+    this.active = new Set(); // regexes the server confirmed ("subscribed"), for display and tests
     this.backoffMs = BACKOFF_MIN_MS;
     this.retryTimer = null;
     this.stopped = false;
@@ -82,6 +83,7 @@ export class Connection extends EventTarget {
 
   onClose(ev) {
     this.ws = null;
+    this.active.clear();
     if (this.stopped) return this.setStatus("closed");
     if (FATAL_CLOSE[ev.code]) return this.setStatus("refused", `${FATAL_CLOSE[ev.code]} (close ${ev.code})`);
     const wait = this.backoffMs * (0.75 + Math.random() * 0.5); // jitter: robots and pages do not reconnect in lockstep
@@ -114,6 +116,8 @@ export class Connection extends EventTarget {
         break;
       case "subscribed":
       case "unsubscribed":
+        if (msg.type === "subscribed") this.active.add(msg.topic_regex);
+        else this.active.delete(msg.topic_regex);
         this.dispatchEvent(new CustomEvent(msg.type, { detail: msg }));
         break;
       default:

@@ -19,8 +19,8 @@ export class GpsView {
       this.L = L;
       this.map = L.map(this.el, { attributionControl: false, zoomControl: true }).setView([0, 0], 2);
       this.line = L.polyline([], { color: "#29b6f6" }).addTo(this.map);
-      this.dot = L.circleMarker([0, 0], { radius: 7, color: "#ffca28", fillOpacity: 0.9 }).addTo(this.map);
-      L.latLngGraticule?.().addTo(this.map);
+      // The dot is added with the first fix: no marker at (0, 0) before one exists.
+      this.dot = L.circleMarker([0, 0], { radius: 7, color: "#ffca28", fillOpacity: 0.9 });
     } catch (err) {
       this.el.textContent = `Leaflet unavailable (${err.message}); showing coordinates only.`;
     }
@@ -42,6 +42,7 @@ export class GpsView {
     if (this.track.length > MAX_TRACK) this.track.shift();
     this.line.setLatLngs(this.track);
     this.dot.setLatLng(ll);
+    if (!this.map.hasLayer(this.dot)) this.dot.addTo(this.map);
     if (this.track.length === 1) this.map.setView(ll, 18);
     else if (!this.map.getBounds().contains(ll)) this.map.panTo(ll);
   }

@@ -1,0 +1,186 @@
+"""Benchmark helper: one sending robot (RobotLink, Robofleet-like baseline, or plain ws).
+
+Run by ``benchmarks/client_link.py`` (possibly inside a network namespace); prints one
+JSON line with its own measurements. Scenarios:
+
+- ``throughput``: N frames of SIZE bytes, offered at once as no_drop (the link sends as
+  fast as its window allows) or, for ``--mode raw``, sent back to back on a plain
+  websockets connection. Prints the wall-clock start in ns.
+- ``priority``: a 1 KB topic at 50 Hz (priority 10) and, with ``--cloud``, a 64 KB topic
+  at 6.7 Hz (priority 1), both droppable, for ``--seconds``.
+- ``cpu``: a 10 Hz 1 MB ``sensor_msgs/msg/PointCloud2`` for ``--seconds``: per message CDR
+  -> message (rosbags) -> FlatBuffer (codec) -> link, i.e. the ROS node's per-message path
+  without rclpy's own receive. Prints CPU seconds and RSS.
+"""
+
+from __future__ import annotations
+
+import argparse
+import asyncio
+import dataclasses
+import json
+import resource
+import time
+from typing import Any
+
+import numpy as np
+from websockets.asyncio.client import connect
+
+from fleetctl.client.config import parse_client_config
+from fleetctl.client.scheduler import SchedulerConfig
+from fleetctl.client.transport import RobotLink, scheduler_config_for
+from fleetctl.wire.codec import default_codec
+
+ROBOT_TOKEN = "bench-robot-token"
+
+
+def string_frame(topic: str, size: int, seq: int, *, no_drop: bool) -> bytes:
+    codec = default_codec()
+    cls = codec.registry.get("std_msgs/msg/String").cls
+    return codec.encode(cls("x" * size), "std_msgs/msg/String", topic, no_drop=no_drop,
+                        seq=seq, publish_time_ns=time.time_ns())
+
+
+def make_link(url: str, mode: str, fragment_bytes: int) -> RobotLink:
+    config = parse_client_config({
+        "server_url": url, "robot_name": "bench",
+        "limits": {"max_fragment_bytes": fragment_bytes, "reconnect_min_s": 0.05}})
+    config = dataclasses.replace(config, token=ROBOT_TOKEN)
+    sched = scheduler_config_for(config)
+    if mode == "baseline":  # Robofleet: n_T = 1, whole messages
+        sched = dataclasses.replace(sched, fixed_window_messages=1, fragments=False)
+    return RobotLink(config, on_frame=lambda f: None, scheduler_config=sched)
+
+
+async def wait_connected(link: RobotLink) -> None:
+    deadline = time.monotonic() + 10
+    while not link.stats()["identities"]:
+        if time.monotonic() > deadline:
+            raise SystemExit(f"link did not connect: {link.stats()['last_close']}")
+        await asyncio.sleep(0.01)
+
+
+async def throughput(args: argparse.Namespace) -> dict[str, Any]:
+    frame = string_frame("/bench/bulk", args.size, 1, no_drop=True)
+    if args.mode == "raw":
+        async with connect(args.url, additional_headers={"Authorization": f"Bearer {ROBOT_TOKEN}"},
+                           compression=None, proxy=None, max_size=None) as ws:
+            start = time.time_ns()
+            for _ in range(args.frames):
+                await ws.send(frame)
+            await (await ws.ping())  # everything before it reached the server
+        return {"start_ns": start}
+    link = make_link(args.url, args.mode, args.fragment_bytes)
+    task = asyncio.create_task(link.run())
+    await wait_connected(link)
+    start = time.time_ns()
+    for _ in range(args.frames):
+        link.offer("/bench/bulk", frame, priority=1.0, no_drop=True)
+    deadline = time.monotonic() + 120
+    while link.stats()["topics"]["/bench/bulk"]["acked"] < args.frames:
+        if time.monotonic() > deadline:
+            break
+        await asyncio.sleep(0.002)
+    stats = link.stats()
+    await link.stop()
+    await task
+    return {"start_ns": start, "window_bytes": stats["window_bytes"],
+            "min_rtt_ms": stats["min_rtt_ms"]}
+
+
+async def periodic(period_s: float, stop_at: float, action: Any) -> None:
+    """Call *action* every *period_s* until *stop_at* (a source, like a ROS timer)."""
+    nxt = time.monotonic()
+    while nxt < stop_at:
+        action()
+        nxt += period_s
+        await asyncio.sleep(max(0.0, nxt - time.monotonic()))
+
+
+async def priority(args: argparse.Namespace) -> dict[str, Any]:
+    link = make_link(args.url, args.mode, args.fragment_bytes)
+    task = asyncio.create_task(link.run())
+    await wait_connected(link)
+    seqs = {"/bench/urgent": 0, "/bench/cloud": 0}
+
+    def offer(topic: str, size: int, prio: float) -> None:
+        seqs[topic] += 1
+        link.offer(topic, string_frame(topic, size, seqs[topic], no_drop=False),
+                   priority=prio, no_drop=False)
+
+    stop_at = time.monotonic() + args.seconds
+    jobs = [periodic(0.02, stop_at, lambda: offer("/bench/urgent", 1000, 10.0))]
+    if args.cloud:
+        jobs.append(periodic(0.15, stop_at, lambda: offer("/bench/cloud", 64_000, 1.0)))
+    await asyncio.gather(*jobs)
+    stats = link.stats()
+    await link.stop()
+    await task
+    return {"sent": seqs, "topics": stats["topics"], "window_bytes": stats["window_bytes"],
+            "min_rtt_ms": stats["min_rtt_ms"]}
+
+
+def pointcloud_cdr(size_bytes: int) -> tuple[bytes, Any]:
+    codec = default_codec()
+    store = codec.registry.typestore
+    types = store.types
+    header = types["std_msgs/msg/Header"](types["builtin_interfaces/msg/Time"](1, 2), "lidar")
+    field_cls = types["sensor_msgs/msg/PointField"]
+    fields = [field_cls(n, 4 * i, 7, 1) for i, n in enumerate("xyz")] + [
+        field_cls("intensity", 12, 7, 1)]
+    points = size_bytes // 16
+    data = np.random.default_rng(0).integers(0, 255, points * 16, dtype=np.uint8)
+    cloud = types["sensor_msgs/msg/PointCloud2"](header, 1, points, fields, False, 16,
+                                                 points * 16, data, True)
+    return bytes(store.serialize_cdr(cloud, "sensor_msgs/msg/PointCloud2")), store
+
+
+async def cpu(args: argparse.Namespace) -> dict[str, Any]:
+    link = make_link(args.url, "link", args.fragment_bytes)
+    task = asyncio.create_task(link.run())
+    await wait_connected(link)
+    cdr, store = pointcloud_cdr(1_000_000)
+    codec = default_codec()
+    seq = 0
+
+    def publish() -> None:
+        nonlocal seq
+        seq += 1
+        msg = store.deserialize_cdr(cdr, "sensor_msgs/msg/PointCloud2")
+        frame = codec.encode(msg, "sensor_msgs/msg/PointCloud2", "/bench/points",
+                             seq=seq, publish_time_ns=time.time_ns())
+        if link.admit("/bench/points"):
+            link.offer("/bench/points", frame, priority=1.0, no_drop=False)
+
+    await periodic(0.1, time.monotonic() + 1.0, publish)  # warm-up (caches, window)
+    cpu0, wall0 = time.process_time(), time.monotonic()
+    await periodic(0.1, time.monotonic() + args.seconds, publish)
+    cpu_s, wall_s = time.process_time() - cpu0, time.monotonic() - wall0
+    stats = link.stats()
+    await link.stop()
+    await task
+    rss_kb = next(int(line.split()[1]) for line in open("/proc/self/status")
+                  if line.startswith("VmRSS:"))
+    return {"cpu_s": cpu_s, "wall_s": wall_s, "cpu_percent": 100 * cpu_s / wall_s,
+            "rss_mb": rss_kb / 1024, "max_rss_mb": resource.getrusage(
+                resource.RUSAGE_SELF).ru_maxrss / 1024, "frame_bytes": len(cdr),
+            "sent": stats["topics"]["/bench/points"]["sent"], "offered": seq}
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser()
+    parser.add_argument("scenario", choices=["throughput", "priority", "cpu"])
+    parser.add_argument("--url", required=True)
+    parser.add_argument("--mode", choices=["link", "baseline", "raw"], default="link")
+    parser.add_argument("--frames", type=int, default=1000)
+    parser.add_argument("--size", type=int, default=65536)
+    parser.add_argument("--seconds", type=float, default=10.0)
+    parser.add_argument("--cloud", action="store_true")
+    parser.add_argument("--fragment-bytes", type=int, default=SchedulerConfig().max_fragment_bytes)
+    args = parser.parse_args()
+    run = {"throughput": throughput, "priority": priority, "cpu": cpu}[args.scenario]
+    print(json.dumps(asyncio.run(run(args))), flush=True)
+
+
+if __name__ == "__main__":
+    main()

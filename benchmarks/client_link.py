@@ -1,0 +1,274 @@
+"""Robot client link figures, side by side in one run (issue 3, section 4).
+
+Usage (root, for the network namespaces of part b)::
+
+    .venv/bin/python benchmarks/client_link.py [--seconds 10] [--json out.json]
+        [--skip throughput,priority,cpu]
+
+(a) throughput: unshaped loopback, N x 64 KB no_drop frames through the fleetctl relay to
+    one consumer; RobotLink (adaptive window, fragments) vs a plain websockets client
+    sending the same frames back to back through the same relay. Bar: >= 90 %.
+(b) priority: 1 KB @ 50 Hz (priority 10) alone and with a competing 64 KB @ 6.7 Hz flow
+    (priority 1) over a 6 Mbit tbf link between two network namespaces created here
+    (relay + consumer in one, robot in the other); RobotLink vs a Robofleet-like
+    baseline (n_T = 1, whole messages). Latency = consumer receive - robot publish (one
+    host clock). Bar: p99 < 15 ms for RobotLink with the competing flow.
+(c) client cost: 10 Hz 1 MB PointCloud2, per message CDR -> rosbags message -> FlatBuffer
+    -> RobotLink (the ROS node's per-message path without rclpy's receive), CPU time of
+    the robot process over the run. Bar: < 3 % of one core.
+
+Each side runs in its own process: relay + consumer (``client_bench_peer.py``) and robot
+(``client_bench_sender.py``).
+"""
+
+from __future__ import annotations
+
+import argparse
+import hashlib
+import json
+import os
+import shutil
+import statistics
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+from typing import Any
+
+HERE = Path(__file__).resolve().parent
+PY = sys.executable
+ROBOT_TOKEN = "bench-robot-token"
+CONSUMER_TOKEN = "bench-consumer-token"
+NS_ADDR_SERVER = "10.210.0.1"  # inside namespaces this script creates, nowhere else
+NS_ADDR_ROBOT = "10.210.0.2"
+
+
+def write_auth(directory: Path) -> Path:
+    def sha(token: str) -> str:
+        return hashlib.sha256(token.encode()).hexdigest()
+
+    path = directory / "auth.yaml"
+    path.write_text(json.dumps({"version": 1, "identities": [
+        {"name": "bench", "token_sha256": sha(ROBOT_TOKEN),
+         "rules": [{"topic": "/bench/.*", "op": "send"}]},
+        {"name": "consumer", "token_sha256": sha(CONSUMER_TOKEN),
+         "rules": [{"topic": ".*", "op": "receive"}]},
+    ]}))
+    return path
+
+
+class Peer:
+    """The relay + consumer process; ``cmd`` sends one stdin command, reads one JSON line."""
+
+    def __init__(self, prefix: list[str], host: str, auth: Path) -> None:
+        self.proc = subprocess.Popen(
+            [*prefix, PY, str(HERE / "client_bench_peer.py"), "--host", host, "--auth",
+             str(auth)], stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True,
+            env={**os.environ, "PYTHONPATH": str(HERE.parent)})
+        assert self.proc.stdout is not None
+        line = self.proc.stdout.readline()
+        if not line:
+            raise SystemExit("relay process failed to start")
+        self.url = f"ws://{host}:{json.loads(line)['port']}/"
+
+    def cmd(self, command: str) -> Any:
+        assert self.proc.stdin is not None and self.proc.stdout is not None
+        self.proc.stdin.write(command + "\n")
+        self.proc.stdin.flush()
+        return json.loads(self.proc.stdout.readline())
+
+    def wait_frames(self, topic: str, n: int, timeout_s: float) -> dict[str, Any]:
+        deadline = time.monotonic() + timeout_s
+        while True:
+            report = self.cmd("report")
+            got = report.get(topic, {})
+            if got.get("frames", 0) >= n or time.monotonic() > deadline:
+                return dict(got)
+            time.sleep(0.05)  # polling another process's counter, with a deadline
+
+    def close(self) -> None:
+        try:
+            self.cmd("quit")
+            self.proc.wait(5)
+        except (OSError, ValueError, subprocess.TimeoutExpired):
+            self.proc.kill()
+            self.proc.wait()
+
+
+def sender(prefix: list[str], *args: str) -> dict[str, Any]:
+    out = subprocess.run([*prefix, PY, str(HERE / "client_bench_sender.py"), *args],
+                         capture_output=True, text=True, timeout=300,
+                         env={**os.environ, "PYTHONPATH": str(HERE.parent)})
+    if out.returncode != 0:
+        raise SystemExit(f"sender {args} failed:\n{out.stderr[-2000:]}")
+    result: dict[str, Any] = json.loads(out.stdout.strip().splitlines()[-1])
+    return result
+
+
+def pct(values: list[float], q: float) -> float:
+    if not values:
+        return float("nan")
+    ordered = sorted(values)
+    return ordered[min(len(ordered) - 1, int(q / 100 * len(ordered)))]
+
+
+# -- (a) throughput --------------------------------------------------------------------
+
+
+def bench_throughput(auth: Path, frames: int, size: int) -> dict[str, Any]:
+    peer = Peer([], "127.0.0.1", auth)
+    results: dict[str, list[float]] = {"raw": [], "link": []}
+    try:
+        for _ in range(3):  # alternate to spread machine noise over both
+            for mode in ("raw", "link"):
+                peer.cmd("reset")
+                sent = sender([], "throughput", "--url", peer.url, "--mode", mode,
+                              "--frames", str(frames), "--size", str(size))
+                got = peer.wait_frames("/bench/bulk", frames, 120)
+                if got.get("frames", 0) < frames:
+                    raise SystemExit(f"{mode}: only {got.get('frames')} of {frames} arrived")
+                seconds = (got["last_ns"] - sent["start_ns"]) / 1e9
+                results[mode].append(got["bytes"] / seconds / 1e6)
+    finally:
+        peer.close()
+    raw, link = statistics.median(results["raw"]), statistics.median(results["link"])
+    return {"frames": frames, "frame_bytes": size, "raw_MBps": raw, "link_MBps": link,
+            "fraction": link / raw, "runs": results}
+
+
+# -- (b) priority over a shaped link -----------------------------------------------------
+
+
+def sh(*cmd: str) -> None:
+    subprocess.run(cmd, check=True, capture_output=True)
+
+
+class Namespaces:
+    """Two network namespaces joined by a veth pair, the robot side shaped with tbf."""
+
+    def __init__(self, rate: str) -> None:
+        tag = str(os.getpid())[-6:]
+        self.server, self.robot = f"fcs{tag}", f"fcr{tag}"
+        self.veth_s, self.veth_r = f"fcvs{tag}", f"fcvr{tag}"
+        self.rate = rate
+
+    def __enter__(self) -> Namespaces:
+        try:
+            sh("ip", "netns", "add", self.server)
+            sh("ip", "netns", "add", self.robot)
+            sh("ip", "link", "add", self.veth_s, "type", "veth", "peer", "name", self.veth_r)
+            sh("ip", "link", "set", self.veth_s, "netns", self.server)
+            sh("ip", "link", "set", self.veth_r, "netns", self.robot)
+            for ns, dev, addr in ((self.server, self.veth_s, NS_ADDR_SERVER),
+                                  (self.robot, self.veth_r, NS_ADDR_ROBOT)):
+                sh("ip", "-n", ns, "addr", "add", f"{addr}/24", "dev", dev)
+                sh("ip", "-n", ns, "link", "set", dev, "up")
+                sh("ip", "-n", ns, "link", "set", "lo", "up")
+            sh("tc", "-n", self.robot, "qdisc", "replace", "dev", self.veth_r, "root", "tbf",
+               "rate", self.rate, "burst", "32kbit", "latency", "400ms")
+        except BaseException:
+            self.__exit__()
+            raise
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        for ns in (self.server, self.robot):  # deleting a namespace deletes its veth end
+            subprocess.run(["ip", "netns", "del", ns], capture_output=True)
+
+    def prefix(self, ns: str) -> list[str]:
+        return ["ip", "netns", "exec", ns]
+
+
+def bench_priority(auth: Path, seconds: float, rate: str) -> dict[str, Any]:
+    out: dict[str, Any] = {"rate": rate}
+    with Namespaces(rate) as ns:
+        peer = Peer(ns.prefix(ns.server), NS_ADDR_SERVER, auth)
+        try:
+            for label, mode, frag in (("fleetctl (4 KB fragments)", "link", 4096),
+                                      ("fleetctl (16 KB fragments)", "link", 16384),
+                                      ("Robofleet-like (n_T=1, whole)", "baseline", 16384)):
+                for cloud in (False, True):
+                    peer.cmd("reset")
+                    args = ["priority", "--url", peer.url, "--mode", mode, "--seconds",
+                            str(seconds), "--fragment-bytes", str(frag)]
+                    sent = sender(ns.prefix(ns.robot), *args, *(["--cloud"] if cloud else []))
+                    report = peer.cmd("report")
+                    out[f"{label} | {'with' if cloud else 'without'} 64 KB flow"] = summarize(
+                        report, sent)
+        finally:
+            peer.close()
+    return out
+
+
+def summarize(report: dict[str, Any], sent: dict[str, Any]) -> dict[str, Any]:
+    urgent = report.get("/bench/urgent", {})
+    cloud = report.get("/bench/cloud", {})
+    lat = urgent.get("latency_ms", [])
+    return {
+        "urgent_sent": sent["sent"]["/bench/urgent"], "urgent_received": urgent.get("frames", 0),
+        "p50_ms": pct(lat, 50), "p99_ms": pct(lat, 99), "max_ms": max(lat, default=float("nan")),
+        "cloud_sent": sent["sent"]["/bench/cloud"], "cloud_received": cloud.get("frames", 0),
+        "cloud_p50_ms": pct(cloud.get("latency_ms", []), 50),
+    }
+
+
+# -- (c) client cost -----------------------------------------------------------------------
+
+
+def bench_cpu(auth: Path, seconds: float) -> dict[str, Any]:
+    peer = Peer([], "127.0.0.1", auth)
+    try:
+        result = sender([], "cpu", "--url", peer.url, "--seconds", str(seconds))
+        result["received"] = peer.cmd("report").get("/bench/points", {}).get("frames", 0)
+    finally:
+        peer.close()
+    return result
+
+
+# -- main ---------------------------------------------------------------------------------
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    parser.add_argument("--seconds", type=float, default=10.0)
+    parser.add_argument("--frames", type=int, default=1000)
+    parser.add_argument("--rate", default="6mbit")
+    parser.add_argument("--skip", default="")
+    parser.add_argument("--json", type=Path)
+    args = parser.parse_args()
+    skip = set(args.skip.split(",")) - {""}
+    results: dict[str, Any] = {}
+    with tempfile.TemporaryDirectory() as tmp:
+        auth = write_auth(Path(tmp))
+        if "throughput" not in skip:
+            results["throughput"] = t = bench_throughput(auth, args.frames, 65536)
+            print(f"(a) throughput, unshaped loopback, {t['frames']} x 64 KB no_drop frames")
+            print(f"    plain websockets {t['raw_MBps']:8.1f} MB/s")
+            print(f"    RobotLink        {t['link_MBps']:8.1f} MB/s  = {t['fraction']:.1%} "
+                  f"(bar >= 90%)")
+        if "priority" not in skip:
+            if os.geteuid() != 0 or shutil.which("ip") is None:
+                raise SystemExit("part (b) needs root and iproute2 (ip netns, tc)")
+            results["priority"] = p = bench_priority(auth, args.seconds, args.rate)
+            print(f"(b) 1 KB @ 50 Hz latency over {p['rate']} tbf ({args.seconds:.0f} s each)")
+            print(f"    {'sender | competing flow':58s} {'p50':>7s} {'p99':>7s} {'max':>7s}"
+                  f"  urgent rx/tx  cloud rx/tx")
+            for key, row in p.items():
+                if key == "rate":
+                    continue
+                print(f"    {key:58s} {row['p50_ms']:6.1f}ms {row['p99_ms']:6.1f}ms "
+                      f"{row['max_ms']:6.1f}ms  {row['urgent_received']:5d}/"
+                      f"{row['urgent_sent']:<5d}  {row['cloud_received']:4d}/{row['cloud_sent']}")
+        if "cpu" not in skip:
+            results["cpu"] = c = bench_cpu(auth, args.seconds)
+            print(f"(c) 10 Hz PointCloud2 of {c['frame_bytes'] / 1e6:.2f} MB, CDR -> FlatBuffer "
+                  f"-> RobotLink: CPU {c['cpu_percent']:.2f}% of one core (bar < 3%), "
+                  f"RSS {c['rss_mb']:.0f} MB, sent {c['sent']}/{c['offered']}, "
+                  f"received {c['received']}")
+    if args.json:
+        args.json.write_text(json.dumps(results, indent=2))
+
+
+if __name__ == "__main__":
+    main()

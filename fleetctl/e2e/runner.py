@@ -1,0 +1,196 @@
+"""Run e2e scenarios in the router topology and collect results for the report.
+
+Scenarios (MISSION.md "End-to-end runs"; parameters are the issue's):
+
+- ``link``: calibration of the topology itself: raw TCP through the router at each shaped
+  rate and a cut, so every other number can be read against what the link really carries.
+- ``dropout``, ``multi-consumer``, ``ramp``, ``priority``: the fleet (server, robot client,
+  consumers) over the shaped link. They need the ``fleetctl server`` and ``fleetctl client``
+  commands in the images; a preflight checks that and reports ``not_run`` (a failure) with
+  the reason instead of pretending.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import Any
+
+from fleetctl.deploy.dockercli import Runner, image_exists, subprocess_runner
+from fleetctl.deploy.images import BASE_IMAGE, image_tag
+from fleetctl.deploy.shaping import Capabilities, RateSpec, mbit
+from fleetctl.e2e.topology import ROBOT_SIDE, SERVER_SIDE, Topology
+from fleetctl.errors import EnvironmentMissing
+
+Progress = Callable[[str], None]
+SCENARIOS = ("link", "dropout", "multi-consumer", "ramp", "priority")
+# Components each fleet scenario runs: (image, command that must exist in it).
+_NEEDS = {
+    "dropout": (("server", "server"), ("client", "client")),
+    "multi-consumer": (("server", "server"), ("client", "client")),
+    "ramp": (("server", "server"), ("client", "client")),
+    "priority": (("server", "server"), ("client", "client")),
+}
+_IDLE = ["python3", "-c", "import signal; signal.sigwait({signal.SIGTERM, signal.SIGINT})"]
+_SINK = (
+    "import socket\n"
+    "t=socket.socket(); t.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)\n"
+    "t.bind(('0.0.0.0', 5001)); t.listen()\n"
+    "while True:\n"
+    "    c,_=t.accept(); h=c.recv(16).decode().strip(); n=int(h or 0); g=0\n"
+    "    while g<n:\n"
+    "        d=c.recv(65536)\n"
+    "        if not d: break\n"
+    "        g+=len(d)\n"
+    "    c.sendall(b'k'); c.close()\n"
+)
+_SEND = (
+    "import socket,sys,time\n"
+    "n=int(sys.argv[2]); s=socket.create_connection((sys.argv[1],5001),timeout=30)\n"
+    "s.sendall(f'{n:<16}'.encode()); t=time.monotonic(); s.sendall(bytes(n))\n"
+    "assert s.recv(1)==b'k'; print(n*8/(time.monotonic()-t))\n"
+)
+_PROBE = (
+    "import socket,sys\n"
+    "s=socket.socket(); s.settimeout(float(sys.argv[2]))\n"
+    "try:\n"
+    "    s.connect((sys.argv[1],5001)); print('open')\n"
+    "except OSError:\n"
+    "    print('dropped')\n"
+)
+
+
+@dataclass(frozen=True)
+class RunConfig:
+    """One ``fleetctl e2e`` invocation.
+
+    Attributes:
+        scenarios: Which scenarios, in order.
+        duration_s: Length of each scenario's measured phase (seconds); the short CI run
+            uses a few seconds, the documented full run 30.
+    """
+
+    scenarios: tuple[str, ...] = SCENARIOS
+    duration_s: float = 30.0
+
+
+def _crit(name: str, value: float, bound: float, ok: bool) -> dict[str, Any]:
+    return {"name": name, "value": value, "bound": bound, "ok": ok}
+
+
+def preflight(runner: Runner = subprocess_runner) -> None:
+    """Check the images exist.
+
+    Raises:
+        EnvironmentMissing: an image is missing (run ``fleetctl build``).
+    """
+    for image in (BASE_IMAGE, image_tag("router")):
+        if not image_exists(runner, image):
+            raise EnvironmentMissing(f"image {image} is missing: run `fleetctl build` first")
+
+
+def missing_components(scenario: str, runner: Runner = subprocess_runner) -> list[str]:
+    """The ``image: command`` pairs *scenario* needs that do not work (empty: all present)."""
+    missing = []
+    for image, command in _NEEDS.get(scenario, ()):
+        tag = image_tag(image)
+        res = runner(["docker", "run", "--rm", "--network", "none", tag, "fleetctl", command,
+                      "--help"], None, True)
+        if res.returncode != 0:
+            missing.append(f"{tag}: `fleetctl {command}`")
+    return missing
+
+
+class _Link:
+    """Raw TCP sender (robot side) and sink (server side) to calibrate the shaped link."""
+
+    def __init__(self, topo: Topology) -> None:
+        self.topo = topo
+        self.sink = topo.start("sink", SERVER_SIDE, BASE_IMAGE, ["python3", "-c", _SINK])
+        self.robot = topo.start("sender", ROBOT_SIDE, BASE_IMAGE, _IDLE)
+
+    def probe(self, timeout_s: float) -> bool:
+        res = self.topo.exec(self.robot.name, ["python3", "-c", _PROBE, self.sink.ip,
+                                               str(timeout_s)])
+        return res.stdout.strip() == "open"
+
+    def wait_open(self, deadline_s: float) -> float:
+        """Seconds until a TCP connect through the router succeeds (inf at the deadline)."""
+        start = time.monotonic()
+        while time.monotonic() - start < deadline_s:
+            if self.probe(0.5):
+                return time.monotonic() - start
+        return float("inf")
+
+    def carried_bit_s(self, nbytes: int) -> float:
+        res = self.topo.exec(self.robot.name, ["python3", "-c", _SEND, self.sink.ip,
+                                               str(nbytes)])
+        return float(res.stdout) if res.returncode == 0 else 0.0
+
+
+def run_link(topo: Topology, caps: Capabilities, cfg: RunConfig,
+             progress: Progress) -> dict[str, Any]:
+    """Calibrate the router: carried rate at 100/12/6/4 Mbit and a cut and restore."""
+    link = _Link(topo)
+    uplink = topo.shaper("uplink", caps)
+    criteria, notes = [], [f"tc: {caps.describe()}", "raw TCP through the router, no fleetctl"]
+    if link.wait_open(15.0) == float("inf"):
+        return {"name": "link", "status": "fail", "criteria": [], "notes": [
+            *notes, "no TCP connection through the router: " + topo.logs(link.sink.name)]}
+    rates, carried = [100, 12, 6, 4], []
+    # Each transfer lasts about a fifth of the duration, at least ~0.5 s.
+    seconds = max(0.5, cfg.duration_s / 5 / len(rates))
+    for rate in rates:
+        uplink.set_rate(RateSpec(mbit(rate)))
+        got = link.carried_bit_s(int(mbit(rate) / 8 * seconds))
+        carried.append(got / 1e6)
+        progress(f"link: shaped {rate} Mbit/s, carried {got / 1e6:.2f} Mbit/s")
+        criteria.append(_crit(f"carried_at_{rate}mbit_ratio", got / mbit(rate), 0.85,
+                              got >= 0.85 * mbit(rate)))
+    uplink.cut()
+    cut_dropped = not link.probe(0.5)
+    uplink.restore()
+    back_s = link.wait_open(5.0)
+    progress(f"link: cut dropped traffic: {cut_dropped}; back after restore in {back_s:.3f} s")
+    criteria.append(_crit("cut_drops_traffic", float(cut_dropped), 1.0, cut_dropped))
+    criteria.append(_crit("reconnect_after_restore_s", back_s, 1.0, back_s < 1.0))
+    uplink.clear()
+    return {
+        "name": "link",
+        "status": "pass" if all(c["ok"] for c in criteria) else "fail",
+        "criteria": criteria,
+        "notes": notes,
+        "commands": [" ".join(c) for c in uplink.commands],
+        "plots": [{"title": "carried rate through the router", "xlabel": "shaped rate (Mbit/s)",
+                   "ylabel": "carried (Mbit/s)", "marker": "o",
+                   "lines": {"carried": [rates, carried], "shaped": [rates, rates]}}],
+    }
+
+
+def run(cfg: RunConfig, progress: Progress = print,
+        runner: Runner = subprocess_runner) -> tuple[dict[str, Any], list[dict[str, Any]]]:
+    """Run *cfg*'s scenarios; returns the environment description and one result each.
+
+    Raises:
+        EnvironmentMissing: images are missing.
+    """
+    preflight(runner)
+    results: list[dict[str, Any]] = []
+    with Topology(runner=runner) as topo:
+        caps = topo.capabilities()
+        env = {"tc": caps.describe(), "router": topo.router, "duration_s": cfg.duration_s,
+               "clock": "one host clock (containers share the kernel's CLOCK_REALTIME)"}
+        progress(f"topology up; {caps.describe()}")
+        for i, name in enumerate(cfg.scenarios, 1):
+            progress(f"[{i}/{len(cfg.scenarios)}] scenario {name}")
+            if name == "link":
+                results.append(run_link(topo, caps, cfg, progress))
+                continue
+            missing = missing_components(name, runner)
+            reason = ("needs " + ", ".join(missing)) if missing else (
+                "the fleet scenario driver (load publisher + consumers) is not implemented yet")
+            progress(f"{name}: NOT RUN: {reason}")
+            results.append({"name": name, "status": "not_run", "criteria": [],
+                            "notes": [f"not run: {reason}"]})
+    return env, results

@@ -1,0 +1,36 @@
+"""``fleetctl e2e`` end to end: the link calibration scenario through the real router."""
+
+from __future__ import annotations
+
+import json
+import shutil
+from pathlib import Path
+
+import pytest
+
+from fleetctl.cli.main import main
+
+pytestmark = [
+    pytest.mark.docker,
+    pytest.mark.skipif(shutil.which("docker") is None, reason="needs docker"),
+]
+
+
+def test_link_scenario_writes_a_passing_report(tmp_path: Path,
+                                               capsys: pytest.CaptureFixture[str]) -> None:
+    code = main(["e2e", "--scenario", "link", "--duration", "3", "--out", str(tmp_path)])
+    out = capsys.readouterr()
+    assert code == 0, out.out + out.err
+    doc = json.loads((tmp_path / "report.json").read_text())
+    assert doc["ok"] is True
+    (link,) = doc["scenarios"]
+    assert {c["name"] for c in link["criteria"]} >= {"cut_drops_traffic",
+                                                     "carried_at_4mbit_ratio"}
+    assert "tc" in doc["environment"]
+    assert (tmp_path / "link-0.png").is_file()
+    assert "| link | pass |" in out.out
+
+
+def test_bad_scenario_is_a_usage_error(capsys: pytest.CaptureFixture[str]) -> None:
+    assert main(["e2e", "--scenario", "bogus"]) == 2
+    assert "unknown ['bogus']" in capsys.readouterr().err

@@ -1,0 +1,61 @@
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+
+from fleetctl.errors import ConfigError
+from fleetctl.server.config import load_server_config
+
+
+def write(tmp_path: Path, text: str) -> Path:
+    path = tmp_path / "server.yaml"
+    path.write_text(text)
+    return path
+
+
+def test_full_config_paths_are_relative_to_file(tmp_path: Path) -> None:
+    cfg = load_server_config(write(tmp_path, """
+listen_host: 127.0.0.1
+listen_port: 9000
+auth_map: auth.yaml
+database: fleet.db
+trusted_proxies: [10.0.0.1, 192.168.0.0/16]
+no_drop_topics: ["/.*/events"]
+limits: {max_frame_bytes: 1024, robot_offline_after_s: 2}
+"""))
+    assert cfg.listen_port == 9000
+    assert cfg.auth_map == tmp_path / "auth.yaml"
+    assert cfg.database == tmp_path / "fleet.db"
+    assert len(cfg.trusted_proxies) == 2
+    assert cfg.limits.max_frame_bytes == 1024
+    assert cfg.limits.robot_offline_after_s == 2.0
+    assert cfg.limits.outbound_no_drop_messages == 1024
+
+
+@pytest.mark.parametrize(
+    ("text", "field"),
+    [
+        ("auth_map: a.yaml\nlisten_port: 70000", "listen_port"),
+        ("listen_port: 1", "auth_map"),
+        ("auth_map: a.yaml\ntls_cert: c.pem", "tls_cert"),
+        ("auth_map: a.yaml\ntrusted_proxies: [nope]", "trusted_proxies[0]"),
+        ("auth_map: a.yaml\nno_drop_topics: ['a(b']", "no_drop_topics[0]"),
+        ("auth_map: a.yaml\nlimits: {max_frame_bytes: -1}", "limits.max_frame_bytes"),
+        ("auth_map: a.yaml\nlimits: {bogus: 1}", "limits.bogus"),
+        ("auth_map: a.yaml\nlisten_prot: 1", "listen_prot"),
+        ("- just a list", "top level"),
+        ("a: [", "not valid YAML"),
+    ],
+)
+def test_bad_config_names_file_and_field(tmp_path: Path, text: str, field: str) -> None:
+    path = write(tmp_path, text)
+    with pytest.raises(ConfigError) as err:
+        load_server_config(path)
+    assert str(path) in str(err.value)
+    assert field in str(err.value)
+
+
+def test_missing_file(tmp_path: Path) -> None:
+    with pytest.raises(ConfigError, match="cannot read"):
+        load_server_config(tmp_path / "nope.yaml")

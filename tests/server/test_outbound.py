@@ -1,0 +1,92 @@
+from __future__ import annotations
+
+from fleetctl.server.outbound import CONTROL_TOPIC, OutboundScheduler
+
+
+def drain(s: OutboundScheduler) -> list[tuple[str, bytes | str]]:
+    out = []
+    while (item := s.pop()) is not None:
+        out.append(item)
+    return out
+
+
+def test_latest_value_per_droppable_topic_counts_drops() -> None:
+    s = OutboundScheduler(10_000, 10)
+    for i in range(5):
+        s.push("/a", b"a%d" % i, no_drop=False)
+    s.push("/b", b"b0", no_drop=False)
+    assert drain(s) == [("/a", b"a4"), ("/b", b"b0")]
+    assert s.drops == {"/a": 4} and s.queued_bytes == 0 and len(s) == 0
+
+
+def test_order_control_then_no_drop_fifo_then_latest() -> None:
+    s = OutboundScheduler(10_000, 10)
+    s.push("/x", b"x", no_drop=False)
+    s.push("/e", b"e1", no_drop=True)
+    s.push("/e", b"e2", no_drop=True)
+    s.push_control("hello")
+    assert drain(s) == [(CONTROL_TOPIC, "hello"), ("/e", b"e1"), ("/e", b"e2"), ("/x", b"x")]
+
+
+def test_no_drop_fifo_bound_drops_newest() -> None:
+    s = OutboundScheduler(10_000, 3)
+    for i in range(5):
+        s.push("/e", b"%d" % i, no_drop=True)
+    assert [f for _, f in drain(s)] == [b"0", b"1", b"2"]
+    assert s.drops == {"/e": 2}
+
+
+def test_byte_bound_holds_but_an_empty_queue_takes_one_big_frame() -> None:
+    s = OutboundScheduler(100, 1000)
+    assert s.push("/big", b"x" * 500, no_drop=False)  # empty: accepted though > bound
+    assert not s.push("/other", b"y" * 10, no_drop=False)
+    assert not s.push("/e", b"z", no_drop=True)
+    assert s.queued_bytes == 500 and s.dropped_total == 2
+    drain(s)
+    for i in range(50):
+        s.push(f"/t{i}", b"q" * 10, no_drop=False)
+    assert s.queued_bytes <= 100 and s.dropped_total == 2 + 40
+
+
+def test_fragments_of_latest_message_kept_and_superseded_partial_dropped_whole() -> None:
+    s = OutboundScheduler(10_000, 10)
+    s.push("/pc", b"m1f0", no_drop=False, message_id=1)
+    s.push("/pc", b"m1f1", no_drop=False, message_id=1)
+    s.push("/small", b"s", no_drop=False)
+    s.push("/pc", b"m1f2", no_drop=False, message_id=1)
+    # Interleaving: one fragment, then the next topic.
+    assert s.pop() == ("/pc", b"m1f0")
+    assert s.pop() == ("/small", b"s")
+    # A new message supersedes the rest of message 1 (dropped whole: counted once).
+    s.push("/pc", b"m2f0", no_drop=False, message_id=2)
+    s.push("/pc", b"m2f1", no_drop=False, message_id=2)
+    assert drain(s) == [("/pc", b"m2f0"), ("/pc", b"m2f1")]
+    assert s.drops == {"/pc": 1}
+    # Fragments continue a message whose earlier fragments were already sent.
+    s.push("/pc", b"m3f0", no_drop=False, message_id=3)
+    assert s.pop() == ("/pc", b"m3f0")
+    s.push("/pc", b"m3f1", no_drop=False, message_id=3)
+    assert s.pop() == ("/pc", b"m3f1") and s.drops == {"/pc": 1}
+
+
+def test_fragment_over_bound_breaks_the_whole_message() -> None:
+    s = OutboundScheduler(10, 10)
+    s.push("/pc", b"aaaaaa", no_drop=False, message_id=7)
+    assert not s.push("/pc", b"bbbbbb", no_drop=False, message_id=7)
+    assert not s.push("/pc", b"cc", no_drop=False, message_id=7)  # rest of a broken message
+    assert drain(s) == [] and s.queued_bytes == 0
+
+
+def test_wake_on_empty_to_nonempty_and_control_bound() -> None:
+    calls: list[int] = []
+    drops: list[tuple[str, int]] = []
+    s = OutboundScheduler(10**6, 10, wake=lambda: calls.append(1),
+                          on_drop=lambda t, n: drops.append((t, n)))
+    s.push("/a", b"1", no_drop=False)
+    s.push("/b", b"1", no_drop=False)
+    assert calls == [1]
+    drain(s)
+    for _ in range(300):
+        s.push_control("e")
+    assert s.drops[CONTROL_TOPIC] == 300 - 256 and len(drops) == 44
+    assert len(s.pop_batch(100)) == 100

@@ -1,0 +1,47 @@
+from __future__ import annotations
+
+from pathlib import Path
+
+from fleetctl.server.registry import RobotRegistry, robot_name
+
+
+class Clock:
+    def __init__(self) -> None:
+        self.now = 1000.0
+
+    def __call__(self) -> float:
+        return self.now
+
+
+def test_robot_name() -> None:
+    assert robot_name("/husky1/scan") == "husky1"
+    assert robot_name("/husky1/camera/image") == "husky1"
+    assert robot_name("/status") is None and robot_name("husky1/scan") is None
+    assert robot_name("//scan") is None
+
+
+def test_online_offline_and_persistence(tmp_path: Path) -> None:
+    clock = Clock()
+    db = tmp_path / "fleet.db"
+    reg = RobotRegistry(db, offline_after_s=5.0, clock=clock)
+    reg.seen("husky1")
+    reg.attach("husky1")
+    reg.seen("husky2")
+    reg.attach("husky2")
+    reg.set_status("husky1", "driving", True, 0.8, "lab")
+    assert reg.online("husky1")
+    clock.now += 6
+    assert not reg.online("husky1")  # silent too long
+    reg.seen("husky2")
+    reg.detach("husky2")
+    assert not reg.online("husky2")  # no connection speaks for it
+    assert reg.flush() == 2
+    reg.close()
+    again = RobotRegistry(db, offline_after_s=5.0, clock=clock)
+    rec = again.get("husky1")
+    assert rec is not None and rec.status == "driving" and rec.is_ok is True
+    assert rec.battery_level == 0.8 and rec.location == "lab"
+    assert rec.last_seen_s == 1000.0
+    assert [r["name"] for r in again.as_json()] == ["husky1", "husky2"]
+    assert not any(r["online"] for r in again.as_json())
+    again.close()

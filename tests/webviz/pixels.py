@@ -1,0 +1,21 @@
+"""Count drawn pixels in a screenshot: the test's proof that something was really drawn."""
+
+from __future__ import annotations
+
+import io
+
+import numpy as np
+from PIL import Image
+
+
+def drawn_pixels(png: bytes, background: tuple[int, int, int], tolerance: int = 40) -> int:
+    """Pixels whose colour differs from *background* by more than *tolerance* (sum of |d|)."""
+    rgb = np.asarray(Image.open(io.BytesIO(png)).convert("RGB"), dtype=np.int16)
+    diff = np.abs(rgb - np.array(background, dtype=np.int16)).sum(axis=2)
+    return int((diff > tolerance).sum())
+
+
+def drawn_fraction(png: bytes, background: tuple[int, int, int], tolerance: int = 40) -> float:
+    """Like :func:`drawn_pixels`, as a fraction of the image area (independent of scale)."""
+    size = Image.open(io.BytesIO(png)).size
+    return drawn_pixels(png, background, tolerance) / (size[0] * size[1])

@@ -1,0 +1,231 @@
+"""The page in a real headless Chromium against a real relay and real WebSocket robots."""
+
+from __future__ import annotations
+
+import asyncio
+import math
+import os
+import time
+from pathlib import Path
+from typing import Any
+
+import pytest
+
+from fleetctl.server.app import RelayServer
+from fleetctl.server.authmap import load_auth_map
+from fleetctl.server.config import ServerConfig
+from fleetctl.wire.metadata import read_metadata
+from tests.webviz.conftest import webviz_server
+from tests.webviz.fleet import (
+    OPERATOR_TOKEN,
+    VIEWER_TOKEN,
+    WsRobot,
+    running_fleet,
+    write_auth_map,
+)
+from tests.webviz.pixels import drawn_fraction, drawn_pixels
+
+pytestmark = pytest.mark.browser
+
+PANEL_BG = (16, 20, 24)  # #101418, the sensor canvases' background
+MAP_BG = (27, 33, 39)  # #1b2127, the map canvas background
+TIMEOUT_MS = 15_000
+SCREENSHOTS = os.environ.get("FLEETCTL_WEBVIZ_SCREENSHOTS")  # e.g. docs/screenshots
+
+
+async def wait_js(page: Any, expr: str) -> None:
+    """Wait (bounded) until the JS expression is true in the page."""
+    await page.wait_for_function(expr, timeout=TIMEOUT_MS)
+
+
+async def sign_in(page: Any, url: str, token: str) -> None:
+    await page.goto(url)
+    await page.fill("#token", token)
+    await page.click("#signin-button")
+    await wait_js(page, "document.querySelector('#conn-state').textContent === 'open'")
+
+
+async def next_frame_of(robot: WsRobot, type_name: str, timeout_s: float) -> bytes:
+    deadline = time.monotonic() + timeout_s
+    while True:
+        left = max(0.01, deadline - time.monotonic())
+        frame = await asyncio.wait_for(robot.received.get(), left)
+        if read_metadata(frame).type == type_name:
+            return frame
+
+
+async def pixels(page: Any, selector: str, background: tuple[int, int, int] = PANEL_BG) -> int:
+    return drawn_pixels(await page.locator(selector).screenshot(), background)
+
+
+def watch_errors(page: Any) -> list[str]:
+    problems: list[str] = []
+    page.on("pageerror", lambda e: problems.append(f"pageerror: {e}"))
+    page.on("console", lambda m: m.type == "error" and problems.append(f"console: {m.text}"))
+    page.on("response", lambda r: r.status >= 400 and problems.append(f"HTTP {r.status} {r.url}"))
+    return problems
+
+
+async def check_overview(page: Any) -> None:
+    for name in ("r1", "r2"):
+        row = page.locator(f'#robots tr[data-robot="{name}"]')
+        await row.locator("td.state", has_text="online").wait_for(timeout=TIMEOUT_MS)
+        await row.locator("td", has_text="patrolling").wait_for(timeout=TIMEOUT_MS)
+    assert "signed in as operator" in await page.text_content("#identity")
+    if SCREENSHOTS:
+        await wait_js(page, "document.querySelector('#robots').textContent.includes('msg/s')")
+        await page.screenshot(path=str(Path(SCREENSHOTS) / "overview.png"))
+
+
+async def check_robot_views(page: Any) -> None:
+    await page.click('#robots a[href="#/robot/r1"]')
+    await wait_js(
+        page,
+        "Number(document.querySelector('#camera-canvas').dataset.frames || 0) >= 1"
+        " && Number(document.querySelector('#scan-canvas').dataset.beams || 0) === 360"
+        " && Number(document.querySelector('#cloud-canvas').dataset.points || 0) > 1000",
+    )
+    assert await page.get_attribute("#cloud-canvas", "data-mode") == "webgl"
+    camera = await page.locator("#camera-canvas").screenshot()
+    assert drawn_fraction(camera, PANEL_BG) > 0.9  # the gradient covers the whole canvas
+    assert await pixels(page, "#scan-canvas") > 300
+    assert await pixels(page, "#cloud-canvas") > 300
+    await wait_js(page, "document.querySelector('#odom-text').textContent.includes('0.60 m/s')")
+    await wait_js(page, "document.querySelector('#gps-text').textContent.startsWith('30.286200')")
+    # The occupancy grid (8 m square = 320x320 of the 640x480 canvas at 40 px/m) is drawn.
+    shot = await page.locator("#map-canvas").screenshot()
+    assert drawn_fraction(shot, MAP_BG) > 0.25
+    await page.locator("#health tbody tr", has_text="/r1/scan").wait_for(timeout=TIMEOUT_MS)
+    assert not await page.is_visible("#command-denied")
+
+
+async def drag_goal(page: Any) -> None:
+    """Press at x=+4 m, y=0 (map centred on the origin, 40 px/m, 640 px wide), drag up."""
+    await page.click("#tool-goal")
+    box = await page.locator("#map-canvas").bounding_box()
+    x0, y0 = box["x"] + box["width"] * 0.75, box["y"] + box["height"] * 0.5
+    await page.mouse.move(x0, y0)
+    await page.mouse.down()
+    await page.mouse.move(x0, y0 - box["height"] * 0.2, steps=5)
+    await page.mouse.up()
+
+
+async def check_topic_selection_and_pause(page: Any) -> None:
+    cam = "/r1/camera/image/compressed"
+    await wait_js(page, f"fleetviz.conn.active.has('{cam}')")
+    await page.uncheck("#show-camera")
+    await wait_js(page, f"!fleetviz.conn.active.has('{cam}')")
+    assert await page.is_hidden("#panel-camera")
+    # Unsubscribed: camera frames stop while scans keep coming.
+    shown = int(await page.get_attribute("#camera-canvas", "data-frames") or 0)
+    scans = "fleetviz.conn.health.topics.get('/r1/scan').received"
+    base = await page.evaluate(scans)
+    await wait_js(page, f"{scans} >= {base} + 10")
+    assert int(await page.get_attribute("#camera-canvas", "data-frames") or 0) <= shown + 1
+    await page.click("#pause")
+    await wait_js(page, "!fleetviz.conn.active.has('/r1/scan')")
+    assert await page.is_visible("#paused-note")
+    await page.click("#pause")
+    await wait_js(page, "fleetviz.conn.active.has('/r1/scan')")
+    await page.check("#show-camera")
+    await wait_js(page, f"fleetviz.conn.active.has('{cam}')")
+
+
+async def test_operator_sees_fleet_and_robot_and_sends_a_goal(
+    tmp_path: Path, browser: Any, webviz_factory: list[Any]
+) -> None:
+    async with running_fleet(tmp_path) as fleet:
+        web = webviz_server(fleet.url).start()
+        webviz_factory.append(web)
+        page = await browser.new_page(viewport={"width": 1400, "height": 1100})
+        problems = watch_errors(page)
+        await sign_in(page, web.url, OPERATOR_TOKEN)
+        await check_overview(page)
+        await check_robot_views(page)
+
+        await drag_goal(page)
+        frame = await next_frame_of(fleet.robots[0], "geometry_msgs/msg/PoseStamped", 10)
+        meta, goal = fleet.codec.decode(frame)
+        assert meta.topic == "/r1/goal_pose"
+        assert goal.pose.position.x == pytest.approx(4.0, abs=0.1)
+        assert goal.pose.position.y == pytest.approx(0.0, abs=0.1)
+        yaw = 2 * math.atan2(goal.pose.orientation.z, goal.pose.orientation.w)
+        assert yaw == pytest.approx(math.pi / 2, abs=0.05)
+        assert goal.header.frame_id == "odom"  # the frame of the robot's pose source
+        await wait_js(
+            page,
+            "document.querySelector('#command-status').textContent.startsWith('Sent navigation')",
+        )
+        if SCREENSHOTS:
+            await page.screenshot(path=str(Path(SCREENSHOTS) / "robot.png"), full_page=True)
+        await check_topic_selection_and_pause(page)
+        assert not problems, problems
+
+
+async def test_viewer_is_refused_a_command(
+    tmp_path: Path, browser: Any, webviz_factory: list[Any]
+) -> None:
+    async with running_fleet(tmp_path, ("r1",)) as fleet:
+        web = webviz_server(fleet.url).start()
+        webviz_factory.append(web)
+        page = await browser.new_page()
+        await sign_in(page, web.url, VIEWER_TOKEN)
+        await page.goto(web.url + "#/robot/r1")
+        denied = page.locator("#command-denied")
+        await denied.wait_for(state="visible", timeout=TIMEOUT_MS)
+        assert "not allowed to send" in await denied.text_content()
+        assert await page.is_disabled("#tool-goal") and await page.is_disabled("#tool-initial")
+        # Bypass the UI: the server must refuse it too, and the page must say so.
+        await page.evaluate(
+            """() => fleetviz.conn.sendMessage('geometry_msgs/msg/PoseStamped', '/r1/goal_pose',
+            {header: {frame_id: 'map'}, pose: {position: {x: 1, y: 2, z: 0}, orientation: {w: 1}}})"""
+        )
+        refusal = page.locator("#errors li", has_text="unauthorized_send on /r1/goal_pose")
+        await refusal.wait_for(timeout=TIMEOUT_MS)
+        assert "The server refused" in await page.text_content("#command-status")
+        types = []
+        while not fleet.robots[0].received.empty():
+            types.append(read_metadata(fleet.robots[0].received.get_nowait()).type)
+        assert "geometry_msgs/msg/PoseStamped" not in types
+
+
+async def test_bad_token_is_refused_with_a_clear_message(
+    tmp_path: Path, browser: Any, webviz_factory: list[Any]
+) -> None:
+    async with running_fleet(tmp_path, ("r1",)) as fleet:
+        web = webviz_server(fleet.url).start()
+        webviz_factory.append(web)
+        page = await browser.new_page()
+        await page.goto(web.url)
+        await page.fill("#token", "wrong-token")
+        await page.click("#signin-button")
+        await page.locator("#banner", has_text="refused the token").wait_for(timeout=TIMEOUT_MS)
+        assert await page.is_visible("#signin")
+
+
+async def test_banner_while_disconnected_then_reconnects(
+    tmp_path: Path, browser: Any, webviz_factory: list[Any]
+) -> None:
+    auth = load_auth_map(write_auth_map(tmp_path / "auth.yaml", {}))
+    config = ServerConfig(
+        listen_host="127.0.0.1", listen_port=0, auth_map=tmp_path / "auth.yaml", database=None
+    )
+    first = RelayServer(config, auth)
+    await first.start()
+    port = first.port
+    url = f"ws://127.0.0.1:{port}/"
+    web = webviz_server(url).start()
+    webviz_factory.append(web)
+    page = await browser.new_page()
+    await sign_in(page, web.url, OPERATOR_TOKEN)
+    assert await page.is_hidden("#banner")
+    await first.stop()
+    banner = page.locator("#banner", has_text="Disconnected from the fleet server")
+    await banner.wait_for(state="visible", timeout=TIMEOUT_MS)
+    second = RelayServer(ServerConfig(**{**config.__dict__, "listen_port": port}), auth)
+    await second.start()
+    try:
+        await wait_js(page, "document.querySelector('#conn-state').textContent === 'open'")
+        assert await page.is_hidden("#banner")
+    finally:
+        await second.stop()

@@ -8,7 +8,7 @@ from pathlib import Path
 
 import typer
 
-from fleetctl.errors import EnvironmentMissing
+from fleetctl.errors import ConfigError, EnvironmentMissing
 
 
 def _client(
@@ -29,7 +29,10 @@ def _client(
         raise EnvironmentMissing(
             f"rclpy is not installed ({exc}); install the ROS extra: pip install 'fleetctl[ros]'"
         ) from exc
-    stats = run_client(loaded)
+    try:
+        stats = run_client(loaded)
+    except ConfigError as exc:  # e.g. a message type whose ROS package is not installed
+        raise ConfigError(f"{config}: {exc}") from exc
     if print_stats:
         typer.echo(json.dumps(stats, default=str))
 

@@ -70,7 +70,10 @@ class SchedulerConfig:
         initial_window_bytes: Window before the first RTT and rate samples (bytes).
         max_window_bytes: Upper bound of the adaptive window (bytes).
         max_window_messages: Upper bound of frames in flight (adaptive mode).
-        window_gain: BBR cwnd gain: window = gain x delivery rate x min RTT.
+        window_gain: BBR cwnd gain: window >= gain x delivery rate x min RTT.
+        target_queue_delay_s: Queueing delay (RTT above the min RTT, seconds) the
+            delay-based window steers to: larger moves more on a fast link, smaller keeps
+            urgent messages quicker on a slow one.
         min_rtt_filter_s: Window of the min-RTT filter (seconds).
         rate_filter_s: Window of the max-delivery-rate filter (seconds).
         ack_every_window_fraction: An ack point is due after this fraction of the window
@@ -92,6 +95,7 @@ class SchedulerConfig:
     max_window_bytes: int = 16 * 1024 * 1024
     max_window_messages: int = 4096
     window_gain: float = 2.0
+    target_queue_delay_s: float = 0.004
     min_rtt_filter_s: float = 10.0
     rate_filter_s: float = 2.0
     ack_every_window_fraction: float = 0.25
@@ -215,6 +219,8 @@ class Scheduler:
         self._last_rtt_s: float | None = None
         self.no_drop_overflow = 0
         self.last_error: str | None = None
+        self._floor = float(self.config.max_fragment_bytes if self.config.fragments else 1)
+        self._delay_window = float(self.config.initial_window_bytes)
 
     # -- Algorithm 1 ------------------------------------------------------------------
 
@@ -457,6 +463,7 @@ class Scheduler:
         return True
 
     def _acknowledge(self, point: _AckPoint, now_s: float) -> None:
+        acked_now = max(0, point.sent_bytes_total - self._acked_bytes_total)
         self._acked_bytes_total = max(self._acked_bytes_total, point.sent_bytes_total)
         self._acked_frames_total = max(self._acked_frames_total, point.sent_frames_total)
         while self._unacked and self._unacked[0][0] <= self._acked_bytes_total:
@@ -468,6 +475,7 @@ class Scheduler:
         rtt = now_s - point.sent_s
         self._last_rtt_s = rtt
         self._min_rtt.add(now_s, rtt)
+        self._adapt_window(rtt, acked_now, point.app_limited)
         elapsed = now_s - point.delivered_s
         if elapsed > 0:
             rate = (self._acked_bytes_total - point.delivered_bytes) / elapsed
@@ -486,15 +494,36 @@ class Scheduler:
         return self._max_rate.value(now_s, 0.0)
 
     def window_bytes(self) -> int:
-        """Current in-flight byte limit (adaptive mode)."""
+        """Current in-flight byte limit (adaptive mode).
+
+        The larger of the BBR estimate (gain x max delivery rate x min RTT) and the
+        delay-based window, floored at one fragment and capped at ``max_window_bytes``.
+        """
         cfg = self.config
         rtt = self.min_rtt_s()
-        rate = self.delivery_rate_bps()
-        if rtt is None or rate <= 0:
-            return cfg.initial_window_bytes
-        bdp = cfg.window_gain * rate * rtt
-        floor = cfg.max_fragment_bytes if cfg.fragments else 1
-        return int(min(max(bdp, floor), cfg.max_window_bytes))
+        bdp = cfg.window_gain * self.delivery_rate_bps() * rtt if rtt is not None else 0.0
+        return int(min(max(bdp, self._delay_window, self._floor), cfg.max_window_bytes))
+
+    def _adapt_window(self, rtt_s: float, acked_bytes: int, app_limited: bool) -> None:
+        """Delay-based window update (LEDBAT-like, with doubling growth).
+
+        Queueing delay = this RTT - min RTT. Below ``target_queue_delay_s`` the window
+        grows by up to the bytes just acknowledged (doubling per RTT on an empty queue);
+        above it, it shrinks by up to as much (halving per RTT at twice the target). Why
+        not BBR alone: on a Python event loop the ack turnaround under load exceeds the
+        idle min RTT by more than BBR's gain of 2, and its estimate collapses to one
+        fragment per RTT (measured: 6 MB/s where plain websockets moved 225 MB/s).
+        """
+        cfg = self.config
+        min_rtt = self.min_rtt_s()
+        if min_rtt is None:
+            return
+        target = cfg.target_queue_delay_s
+        off = max(-1.0, min(1.0, (target - (rtt_s - min_rtt)) / target))
+        if off > 0 and app_limited:
+            return  # the window was not in use: no evidence that more would fit
+        window = self._delay_window + off * acked_bytes
+        self._delay_window = min(max(window, self._floor), float(cfg.max_window_bytes))
 
     # -- connection life cycle ----------------------------------------------------------
 
@@ -524,6 +553,7 @@ class Scheduler:
         self._acked_frames_total = self._sent_frames_total
         self._min_rtt.clear()
         self._max_rate.clear()
+        self._delay_window = float(self.config.initial_window_bytes)
 
     # -- introspection ------------------------------------------------------------------
 

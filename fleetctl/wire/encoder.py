@@ -39,6 +39,8 @@ _FLAGS: dict[str, Any] = {
     "float32": nt.Float32Flags,
     "float64": nt.Float64Flags,
 }
+# rosbags gives empty messages (std_msgs/Empty) this dummy uint8 field; rclpy does not.
+_EMPTY_MESSAGE_FIELD = "structure_needs_at_least_one_member"
 _CATCH = (AttributeError, TypeError, ValueError, OverflowError, struct.error, IndexError)
 
 
@@ -80,6 +82,9 @@ def create_numeric_vector(builder: Builder, array: np.ndarray[Any, Any], scalar:
 def _as_array(value: Any, scalar: Scalar) -> np.ndarray[Any, Any]:
     if isinstance(value, bytes | bytearray | memoryview):
         return np.frombuffer(value, dtype=scalar.dtype)
+    if isinstance(value, list) and value and isinstance(value[0], bytes):
+        # rclpy represents byte[] as a list of 1-byte bytes objects.
+        return np.frombuffer(b"".join(value), dtype=scalar.dtype)
     array = np.asarray(value, dtype=scalar.dtype)
     if array.ndim != 1:
         raise ValueError(f"expected a 1-D array, got shape {array.shape}")
@@ -133,7 +138,11 @@ class EncoderFactory:
             prepared = []
             for name, prep, _put, _width in fields:
                 try:
-                    prepared.append(prep(builder, getattr(msg, name)))
+                    if name == _EMPTY_MESSAGE_FIELD:
+                        value = getattr(msg, name, 0)
+                    else:
+                        value = getattr(msg, name)
+                    prepared.append(prep(builder, value))
                 except WireError as exc:
                     raise WireError(f"{owner}.{name}: {exc}") from None
                 except _CATCH as exc:
@@ -165,7 +174,8 @@ class EncoderFactory:
             def put_scalar(b: Builder, x: Any) -> None:
                 b.PrependSlot(flags, slot, x, default)
 
-            return _identity, put_scalar, f.scalar.size_bytes
+            prep = _byte_scalar if f.scalar.ros == "byte" else _identity
+            return prep, put_scalar, f.scalar.size_bytes
 
         def put_offset(b: Builder, off: int) -> None:
             b.PrependUOffsetTRelativeSlot(slot, off, 0)
@@ -245,4 +255,11 @@ def _string_element(b: Builder, s: str) -> int:
 
 
 def _identity(_b: Builder, value: Any) -> Any:
+    return value
+
+
+def _byte_scalar(_b: Builder, value: Any) -> Any:
+    # rclpy represents a byte as a 1-byte bytes object; rosbags as an int8.
+    if isinstance(value, bytes) and len(value) == 1:
+        return struct.unpack("b", value)[0]
     return value

@@ -133,6 +133,7 @@ def test_demo_stops_cleanly_on_sigterm(tmp_path: Path) -> None:
                  "--no-webviz"], tmp_path)
     try:
         port = int(demo.wait_line(r"server\s+ws://127\.0\.0\.1:(\d+)/", STARTUP_S).group(1))
+        token = demo.wait_line(r"operator token .*:\s+(\S+)$", 5.0).group(1)
         demo.wait_line(r"all components healthy", STARTUP_S)
         # The robot's sensor topics really flow: its battery (sim -> client -> server) shows up.
         wait_until(
@@ -140,7 +141,6 @@ def test_demo_stops_cleanly_on_sigterm(tmp_path: Path) -> None:
                         for r in (http_json(f"http://127.0.0.1:{port}/robots") or {})
                         .get("robots", [])),
             20.0, describe="robot1's battery level in /robots")
-        token = demo.wait_line(r"operator token .*:\s+(\S+)$", 5.0).group(1)
         event = _goal_round_trip(port, token)
         assert "goal received x=3.00 y=2.50" in event
         demo.process.send_signal(signal.SIGTERM)

@@ -285,6 +285,7 @@ async def test_restart_keeps_registry(make_server: Callable[..., RelayServer]) -
                        and srv.registry.get("husky1").status == "charging")  # type: ignore[union-attr]
     async with make_server() as again:
         status, body = await http_get(again.port, "/robots")
+        assert status == 200
         (robot_json,) = json.loads(body)["robots"]
         assert robot_json["name"] == "husky1" and robot_json["status"] == "charging"
         assert robot_json["battery_level"] == 0.25 and robot_json["online"] is False

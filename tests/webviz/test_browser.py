@@ -61,8 +61,17 @@ async def pixels(page: Any, selector: str, background: tuple[int, int, int] = PA
 def watch_errors(page: Any) -> list[str]:
     problems: list[str] = []
     page.on("pageerror", lambda e: problems.append(f"pageerror: {e}"))
-    page.on("console", lambda m: m.type == "error" and problems.append(f"console: {m.text}"))
-    page.on("response", lambda r: r.status >= 400 and problems.append(f"HTTP {r.status} {r.url}"))
+
+    def console(m: Any) -> None:
+        if m.type == "error":
+            problems.append(f"console: {m.text}")
+
+    def response(r: Any) -> None:
+        if r.status >= 400:
+            problems.append(f"HTTP {r.status} {r.url}")
+
+    page.on("console", console)
+    page.on("response", response)
     return problems
 
 
@@ -178,7 +187,8 @@ async def test_viewer_is_refused_a_command(
         # Bypass the UI: the server must refuse it too, and the page must say so.
         await page.evaluate(
             """() => fleetviz.conn.sendMessage('geometry_msgs/msg/PoseStamped', '/r1/goal_pose',
-            {header: {frame_id: 'map'}, pose: {position: {x: 1, y: 2, z: 0}, orientation: {w: 1}}})"""
+            {header: {frame_id: 'map'},
+             pose: {position: {x: 1, y: 2, z: 0}, orientation: {w: 1}}})"""
         )
         refusal = page.locator("#errors li", has_text="unauthorized_send on /r1/goal_pose")
         await refusal.wait_for(timeout=TIMEOUT_MS)

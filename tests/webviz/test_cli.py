@@ -14,8 +14,16 @@ START_TIMEOUT_S = 30
 
 
 def test_serves_until_sigterm() -> None:
-    cmd = [sys.executable, "-m", "fleetctl.cli.main", "webviz", "--port", "0",
-           "--server-url", "ws://127.0.0.1:9/"]
+    cmd = [
+        sys.executable,
+        "-m",
+        "fleetctl.cli.main",
+        "webviz",
+        "--port",
+        "0",
+        "--server-url",
+        "ws://127.0.0.1:9/",
+    ]
     proc = subprocess.Popen(cmd, stderr=subprocess.PIPE, text=True)
     try:
         assert proc.stderr is not None

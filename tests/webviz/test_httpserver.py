@@ -45,17 +45,12 @@ def test_page_config_and_modules(web: BackgroundWebviz) -> None:
 def test_type_layouts(web: BackgroundWebviz) -> None:
     status, _, body = get(web.url + "types/sensor_msgs/msg/LaserScan.json")
     doc = json.loads(body)
-    assert status == 200 and doc["type"] == "sensor_msgs/msg/LaserScan"
-    ranges = next(
-        f for f in doc["tables"]["sensor_msgs/msg/LaserScan"]["fields"] if f["name"] == "ranges"
-    )
-    assert ranges == {
-        "name": "ranges",
-        "slot": 9,
-        "kind": "vector",
-        "element": {"kind": "scalar", "scalar": "float32"},
-    }
+    assert status == 200 and doc["root"] == "sensor_msgs/msg/LaserScan"
+    fields = doc["tables"]["sensor_msgs/msg/LaserScan"]["fields"]
+    ranges = next(f for f in fields if f["name"] == "ranges")
+    assert (ranges["slot"], ranges["kind"], ranges["element"]) == (9, "scalar_vector", "float32")
     assert "builtin_interfaces/msg/Time" in doc["structs"]
+    assert doc["metadata"] in doc["tables"]
     status, _, body = get(web.url + "types/nope_msgs/msg/Nope.json")
     assert status == 404 and "nope_msgs/msg/Nope" in json.loads(body)["error"]
 

@@ -12,10 +12,10 @@ from pathlib import Path
 
 import pytest
 
-from fleetctl.webviz.layouts import describe_for_web
 from fleetctl.wire.codec import Codec
 from fleetctl.wire.fragments import split
 from fleetctl.wire.registry import TypeRegistry
+from fleetctl.wire.schema import describe
 from tests.webviz.msgs import to_json, to_plain
 from tests.webviz.samples import samples
 
@@ -50,7 +50,7 @@ def _write_cases(out: Path, registry: TypeRegistry, codec: Codec) -> list[dict[s
     for t in types:
         path = out / "types" / f"{t}.json"
         path.parent.mkdir(parents=True, exist_ok=True)
-        path.write_text(json.dumps(describe_for_web(registry, t)))
+        path.write_text(json.dumps(describe(registry, t)))
     # A point cloud split into fragments, to be reassembled in JS.
     cloud = (out / "frames" / "sample1.bin").read_bytes()
     frags = split(

@@ -12,6 +12,7 @@ import numpy as np
 import pytest
 
 from fleetctl.wire.codec import Codec
+from fleetctl.wire.registry import TypeRegistry
 
 pytestmark = pytest.mark.ros
 
@@ -66,5 +67,47 @@ def test_rclpy_cdr_survives_our_wire_format(codec: Codec, type_name: str, make: 
     frame = codec.encode(store.deserialize_cdr(cdr, type_name), type_name, "/husky1/x")
     _meta, back = codec.decode(frame)
     cdr_back = bytes(store.serialize_cdr(back, type_name))
-    assert deserialize_message(cdr_back, type(original)) == original
-    assert cdr_back == bytes(cdr)
+    # rclpy leaves CDR alignment padding uninitialized; compare with it zeroed by rosbags.
+    assert cdr_back == bytes(store.serialize_cdr(store.deserialize_cdr(cdr, type_name), type_name))
+    # (rclpy keeps float32 fields as the doubles they were set to, so compare after CDR.)
+    assert deserialize_message(cdr_back, type(original)) == deserialize_message(
+        cdr, type(original))
+
+
+def _rclpy_classes() -> list[tuple[str, Any]]:
+    import importlib
+
+    found = []
+    for pkg in ("std_msgs", "sensor_msgs", "geometry_msgs", "nav_msgs", "visualization_msgs",
+                "builtin_interfaces"):
+        module = importlib.import_module(f"{pkg}.msg")
+        for attr in dir(module):
+            cls = getattr(module, attr)
+            if isinstance(cls, type) and hasattr(cls, "get_fields_and_field_types"):
+                found.append((f"{pkg}/msg/{attr}", cls))
+    return found
+
+
+def test_rclpy_message_objects_encode_directly() -> None:
+    """The encoder takes rclpy messages as they are (no CDR round trip on the robot)."""
+    registry = TypeRegistry.default()
+    registry.from_rclpy()  # types of the installed wheels that rosbags lacks (nav_msgs/Goals)
+    codec = Codec(registry)
+    from rclpy.serialization import deserialize_message, serialize_message
+    from std_msgs.msg import Byte, ByteMultiArray
+
+    store = codec.registry.typestore
+    byte_array = ByteMultiArray()
+    byte_array.data = [b"\x01", b"\xff", b"\x80"]
+    cases = [(name, cls()) for name, cls in _rclpy_classes()]
+    cases += [("std_msgs/msg/Byte", Byte(data=b"\xfe")),
+              ("std_msgs/msg/ByteMultiArray", byte_array),
+              ("sensor_msgs/msg/LaserScan", _laser_scan()),
+              ("sensor_msgs/msg/PointCloud2", _point_cloud()),
+              ("nav_msgs/msg/Odometry", _odometry())]
+    assert len(cases) > 100
+    for name, msg in cases:
+        _meta, back = codec.decode(codec.encode(msg, name, "/t"))
+        # Both sides through rclpy's own deserializer (rosbags rejects some rclpy CDR tails).
+        ours = deserialize_message(bytes(store.serialize_cdr(back, name)), type(msg))
+        assert ours == deserialize_message(serialize_message(msg), type(msg)), name

@@ -33,6 +33,7 @@ from rclpy.qos import (
 
 from fleetctl.client.config import ClientConfig, PublishSpec, SubscribeSpec
 from fleetctl.client.ros.msgtypes import message_class
+from fleetctl.errors import ConfigError
 
 log = logging.getLogger(__name__)
 
@@ -112,6 +113,18 @@ class BridgeStats:
     per_topic_sent: dict[str, int] = field(default_factory=dict)
 
 
+def _entry_class(where: str, type_name: str) -> Any:
+    """The message class of a config entry; fails at start (not on the first message).
+
+    Raises:
+        ConfigError: naming the entry, when the type's package is not installed.
+    """
+    try:
+        return message_class(type_name)
+    except ConfigError as exc:
+        raise ConfigError(f"{where}: type: {exc}") from exc
+
+
 class _Route:
     """One subscribe entry: its matcher and its local publisher(s)."""
 
@@ -178,13 +191,14 @@ class Bridge(Node):  # type: ignore[misc]  # rclpy ships no type information
         self._seq: dict[str, int] = {}
         self._seq_lock = threading.Lock()  # callbacks may run on several executor threads
         self._battery: float | None = None
-        for spec in config.publish:
-            message_class(spec.type)  # fail at start, naming the type, not on first message
+        for i, spec in enumerate(config.publish):
+            cls = _entry_class(f"publish[{i}] ({spec.topic})", spec.type)
             qos = NO_DROP_QOS if spec.no_drop else SENSOR_QOS
-            self.create_subscription(
-                message_class(spec.type), spec.topic, self._make_callback(spec), qos, raw=True
-            )
-        self._routes = [_Route(self, spec) for spec in config.subscribe]
+            self.create_subscription(cls, spec.topic, self._make_callback(spec), qos, raw=True)
+        self._routes = []
+        for i, sub in enumerate(config.subscribe):
+            _entry_class(f"subscribe[{i}] ({sub.remote_topic})", sub.type)
+            self._routes.append(_Route(self, sub))
         if config.status.battery_topic is not None:
             from sensor_msgs.msg import BatteryState
 

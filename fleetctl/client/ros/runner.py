@@ -68,14 +68,30 @@ def status_encoder(codec: Codec, robot_name: str) -> Callable[[float | None], by
 
 
 def _port(link: RobotLink, status_topic: str) -> LinkPort:
+    def offer(topic: str, frame: bytes, priority: float, no_drop: bool) -> None:
+        try:
+            link.offer_threadsafe(topic, frame, priority=priority, no_drop=no_drop)
+        except RuntimeError:
+            # The loop is gone (shutting down): a callback raced the executor's shutdown.
+            log.debug("dropped a frame on %s: the link is stopping", topic)
+
     def send(spec: PublishSpec, frame: bytes) -> None:
-        link.offer_threadsafe(spec.remote_topic, frame, priority=spec.priority,
-                              no_drop=spec.no_drop)
+        offer(spec.remote_topic, frame, spec.priority, spec.no_drop)
 
     def send_status(frame: bytes) -> None:
-        link.offer_threadsafe(status_topic, frame, priority=STATUS_PRIORITY, no_drop=False)
+        offer(status_topic, frame, STATUS_PRIORITY, False)
 
     return LinkPort(admit=link.admit, send=send, send_status=send_status)
+
+
+def _spin(executor: SingleThreadedExecutor, loop: asyncio.AbstractEventLoop,
+          stop: asyncio.Event) -> None:
+    """Spin until shutdown; if spinning fails, log it and stop the client (never stall)."""
+    try:
+        executor.spin()
+    except Exception:
+        log.exception("the rclpy executor failed; stopping the client")
+        loop.call_soon_threadsafe(stop.set)
 
 
 async def _serve(config: ClientConfig, context: Context) -> dict[str, Any]:
@@ -92,9 +108,10 @@ async def _serve(config: ClientConfig, context: Context) -> dict[str, Any]:
                     status_encoder(codec, config.robot_name), context=context)
     executor = SingleThreadedExecutor(context=context)
     executor.add_node(bridge)
-    spinner = threading.Thread(target=executor.spin, name="rclpy-executor", daemon=True)
     loop = asyncio.get_running_loop()
     stop = asyncio.Event()
+    spinner = threading.Thread(target=_spin, args=(executor, loop, stop), name="rclpy-executor",
+                               daemon=True)
     for signum in (signal.SIGINT, signal.SIGTERM):
         loop.add_signal_handler(signum, stop.set)
     spinner.start()

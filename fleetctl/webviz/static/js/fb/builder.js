@@ -86,7 +86,7 @@ export class Builder {
   encode(typeName, msg) {
     const sink = new Sink();
     const rootAt = sink.alloc(4);
-    sink.patchOffset(rootAt, this.table(sink, this.layouts.table(typeName), msg));
+    sink.patchOffset(rootAt, this.table(sink, this.layouts.rootTable(typeName), msg));
     return sink.finish();
   }
 

@@ -1,14 +1,16 @@
-// Layout descriptions of FlatBuffer tables, as served by `fleetctl webviz` at
-// /types/<pkg>/msg/<Name>.json (produced by fleetctl.webviz.layouts from the same type
-// registry as the Python codec).
+// Layouts of FlatBuffer tables, as served by `fleetctl webviz` at
+// /types/<pkg>/msg/<Name>.json: the output of fleetctl.wire.schema.describe(), the same
+// MessageLayout objects the Python codec encodes and decodes with:
+//   {"root": NAME, "metadata": "fleetctl_msgs/msg/MsgMetadata",
+//    "tables":  {NAME: {"first_slot": 0|1, "fields": [{"name", "slot", "kind", "element"?, "type"?}]}},
+//    "structs": {NAME: {"size_bytes", "align_bytes", "fields": [{"name", "offset", "element"}]}}}
+// with kind one of scalar, string, struct, table, scalar_vector, string_vector,
+// struct_vector, table_vector; `element` is the ROS base type, `type` the nested message.
 //
-// One document per root type:
-//   {"type": "sensor_msgs/msg/LaserScan",
-//    "tables":  {NAME: {"fields": [{"name", "slot", "kind", ...}]}},
-//    "structs": {NAME: {"size", "align", "fields": [{"name", "offset", "kind", ...}]}}}
-// Field kinds: {"kind":"scalar","scalar":"float32"}, {"kind":"string"},
-// {"kind":"table","table":NAME}, {"kind":"struct","struct":NAME},
-// {"kind":"vector","element":{<a field kind without name/slot>}}.
+// They are converted once into the reader's internal form: field kinds
+// {"kind":"scalar","scalar":"float32"}, {"kind":"string"}, {"kind":"table","table":NAME},
+// {"kind":"struct","struct":NAME}, {"kind":"vector","element":<kind>}; a root table gets
+// field 0 {"name":"__metadata","kind":"table","table":<metadata>} (design.md section 1).
 
 export const SCALARS = {
   bool: { size: 1, zero: false },
@@ -34,25 +36,74 @@ export function normalizeType(name) {
   return name;
 }
 
+// ROS base types -> reader scalar names (byte is int8 and char uint8, as in rosbags).
+const ROS_SCALAR = { byte: "int8", char: "uint8" };
+
+function scalarKind(element) {
+  const scalar = ROS_SCALAR[element] ?? element;
+  if (!SCALARS[scalar]) throw new LayoutError(`unknown scalar type ${element}`);
+  return { kind: "scalar", scalar };
+}
+
+function elementKind(kind, f) {
+  switch (kind) {
+    case "scalar": return scalarKind(f.element);
+    case "string": return { kind: "string" };
+    case "table": return { kind: "table", table: f.type };
+    case "struct": return { kind: "struct", struct: f.type };
+    default: throw new LayoutError(`${f.name}: unknown field kind ${kind}`);
+  }
+}
+
+/** One field of a describe() table in the reader's form. */
+export function convertField(f) {
+  const vector = /^(scalar|string|struct|table)_vector$/.exec(f.kind);
+  const kind = vector ? { kind: "vector", element: elementKind(vector[1], f) } : elementKind(f.kind, f);
+  return { name: f.name, slot: f.slot, ...kind };
+}
+
+function convertStruct(s) {
+  return {
+    size: s.size_bytes,
+    align: s.align_bytes,
+    fields: s.fields.map((f) => ({ name: f.name, offset: f.offset, ...scalarKind(f.element) })),
+  };
+}
+
 /** A merged set of table and struct layouts. */
 export class Layouts {
   constructor() {
     this.tables = new Map();
     this.structs = new Map();
-    this.roots = new Set();
+    this.roots = new Map(); // root type -> its table with __metadata as field 0
   }
 
-  /** Merge one served document. */
+  /** Merge one describe() document. */
   add(doc) {
-    if (!doc || typeof doc !== "object" || !doc.tables) throw new LayoutError("layout document has no tables");
-    for (const [name, t] of Object.entries(doc.tables)) this.tables.set(name, { name, ...t });
-    for (const [name, s] of Object.entries(doc.structs ?? {})) this.structs.set(name, { name, ...s });
-    this.roots.add(normalizeType(doc.type));
+    if (!doc || typeof doc !== "object" || !doc.tables || !doc.root || !doc.metadata) {
+      throw new LayoutError("layout document lacks root, metadata or tables");
+    }
+    for (const [name, t] of Object.entries(doc.tables)) {
+      if (!this.tables.has(name)) this.tables.set(name, { name, fields: t.fields.map(convertField) });
+    }
+    for (const [name, s] of Object.entries(doc.structs ?? {})) {
+      if (!this.structs.has(name)) this.structs.set(name, { name, ...convertStruct(s) });
+    }
+    const root = this.table(doc.root);
+    const meta = { name: "__metadata", slot: 0, kind: "table", table: doc.metadata };
+    this.roots.set(doc.root, { name: root.name, fields: [meta, ...root.fields] });
     return this;
   }
 
   has(typeName) {
     return this.roots.has(normalizeType(typeName));
+  }
+
+  /** The table of a root type, field 0 being __metadata. */
+  rootTable(typeName) {
+    const t = this.roots.get(normalizeType(typeName));
+    if (!t) throw new LayoutError(`no layout for root type ${typeName}`);
+    return t;
   }
 
   table(name) {

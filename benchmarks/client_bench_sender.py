@@ -65,27 +65,46 @@ async def throughput(args: argparse.Namespace) -> dict[str, Any]:
     if args.mode == "raw":
         async with connect(args.url, additional_headers={"Authorization": f"Bearer {ROBOT_TOKEN}"},
                            compression=None, proxy=None, max_size=None) as ws:
-            start = time.time_ns()
+            start = time.perf_counter()
             for _ in range(args.frames):
                 await ws.send(frame)
-            await (await ws.ping())  # everything before it reached the server
-        return {"start_ns": start}
+            await (await ws.ping())  # the pong: the relay has read everything before it
+            return {"seconds": time.perf_counter() - start, "bytes": args.frames * len(frame)}
     link = make_link(args.url, args.mode, args.fragment_bytes)
     task = asyncio.create_task(link.run())
     await wait_connected(link)
-    start = time.time_ns()
-    for _ in range(args.frames):
-        link.offer("/bench/bulk", frame, priority=1.0, no_drop=True)
-    deadline = time.monotonic() + 120
-    while link.stats()["topics"]["/bench/bulk"]["acked"] < args.frames:
+    start = time.perf_counter()
+    offered = 0
+    deadline = time.monotonic() + 300
+    sched = link.scheduler
+    # A producer that keeps 512 frames queued (the no_drop queue is bounded; offering
+    # everything at once would overflow it and count refused frames as sent).
+    while offered < args.frames or sched.in_flight_bytes or sched.has_sendable():
+        queued = sched.stats()["no_drop_queued"]
+        assert isinstance(queued, int)
+        for _ in range(min(512 - queued, args.frames - offered)):
+            link.offer("/bench/bulk", frame, priority=1.0, no_drop=True)
+            offered += 1
         if time.monotonic() > deadline:
-            break
-        await asyncio.sleep(0.002)
+            raise SystemExit(f"not all acknowledged: {link.stats()['topics']}")
+        await asyncio.sleep(0.0005)  # producer period; the link runs meanwhile
+    seconds = time.perf_counter() - start
     stats = link.stats()
     await link.stop()
     await task
-    return {"start_ns": start, "window_bytes": stats["window_bytes"],
-            "min_rtt_ms": stats["min_rtt_ms"]}
+    acked = stats["topics"]["/bench/bulk"]["acked"]
+    if acked != args.frames or stats["no_drop_overflow"]:
+        raise SystemExit(f"acked {acked} of {args.frames}, overflow {stats['no_drop_overflow']}")
+    return {"seconds": seconds, "bytes": acked * len(frame),
+            "window_bytes": stats["window_bytes"], "min_rtt_ms": stats["min_rtt_ms"]}
+
+
+async def drained(link: RobotLink, timeout_s: float = 5.0) -> None:
+    """Wait until everything offered was sent and acknowledged (or *timeout_s*)."""
+    deadline = time.monotonic() + timeout_s
+    sched = link.scheduler
+    while (sched.in_flight_bytes or sched.has_sendable()) and time.monotonic() < deadline:
+        await asyncio.sleep(0.005)  # poll with a deadline
 
 
 async def periodic(period_s: float, stop_at: float, action: Any) -> None:
@@ -102,22 +121,39 @@ async def priority(args: argparse.Namespace) -> dict[str, Any]:
     task = asyncio.create_task(link.run())
     await wait_connected(link)
     seqs = {"/bench/urgent": 0, "/bench/cloud": 0}
+    prefix = "/bench/warmup_"  # not subscribed by the consumer: the link learns the rate
 
     def offer(topic: str, size: int, prio: float) -> None:
-        seqs[topic] += 1
+        topic = topic.replace("/bench/", prefix)
+        seqs[topic] = seqs.get(topic, 0) + 1
         link.offer(topic, string_frame(topic, size, seqs[topic], no_drop=False),
                    priority=prio, no_drop=False)
 
+    warm_until = time.monotonic() + args.warmup
+    warm = [periodic(0.02, warm_until, lambda: offer("/bench/urgent", 1000, 10.0))]
+    if args.cloud:
+        warm.append(periodic(0.15, warm_until, lambda: offer("/bench/cloud", 64_000, 1.0)))
+    await asyncio.gather(*warm)
+    prefix = "/bench/"
     stop_at = time.monotonic() + args.seconds
-    jobs = [periodic(0.02, stop_at, lambda: offer("/bench/urgent", 1000, 10.0))]
+    windows: list[tuple[int, int, float]] = []
+
+    def sample() -> None:
+        st = link.scheduler
+        windows.append((st.window_bytes(), st.fragment_bytes(), st.in_flight_bytes))
+
+    jobs = [periodic(0.02, stop_at, lambda: offer("/bench/urgent", 1000, 10.0)),
+            periodic(0.5, stop_at, sample)]
     if args.cloud:
         jobs.append(periodic(0.15, stop_at, lambda: offer("/bench/cloud", 64_000, 1.0)))
     await asyncio.gather(*jobs)
+    await drained(link)
     stats = link.stats()
     await link.stop()
     await task
     return {"sent": seqs, "topics": stats["topics"], "window_bytes": stats["window_bytes"],
-            "min_rtt_ms": stats["min_rtt_ms"]}
+            "min_rtt_ms": stats["min_rtt_ms"], "fragment_bytes": stats["fragment_bytes"],
+            "delivery_rate_Bps": stats["delivery_rate_Bps"], "windows": windows}
 
 
 def pointcloud_cdr(size_bytes: int) -> tuple[bytes, Any]:
@@ -159,8 +195,8 @@ async def cpu(args: argparse.Namespace) -> dict[str, Any]:
     stats = link.stats()
     await link.stop()
     await task
-    rss_kb = next(int(line.split()[1]) for line in open("/proc/self/status")
-                  if line.startswith("VmRSS:"))
+    with open("/proc/self/status") as status:
+        rss_kb = next(int(line.split()[1]) for line in status if line.startswith("VmRSS:"))
     return {"cpu_s": cpu_s, "wall_s": wall_s, "cpu_percent": 100 * cpu_s / wall_s,
             "rss_mb": rss_kb / 1024, "max_rss_mb": resource.getrusage(
                 resource.RUSAGE_SELF).ru_maxrss / 1024, "frame_bytes": len(cdr),
@@ -176,6 +212,8 @@ def main() -> None:
     parser.add_argument("--size", type=int, default=65536)
     parser.add_argument("--seconds", type=float, default=10.0)
     parser.add_argument("--cloud", action="store_true")
+    parser.add_argument("--warmup", type=float, default=1.0,
+                        help="seconds of the same flows on unmeasured topics first")
     parser.add_argument("--fragment-bytes", type=int, default=SchedulerConfig().max_fragment_bytes)
     args = parser.parse_args()
     run = {"throughput": throughput, "priority": priority, "cpu": cpu}[args.scenario]

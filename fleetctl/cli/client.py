@@ -33,6 +33,13 @@ def _client(
         stats = run_client(loaded)
     except ConfigError as exc:  # e.g. a message type whose ROS package is not installed
         raise ConfigError(f"{config}: {exc}") from exc
+    bridge = stats.get("bridge", {})
+    # One line an operator can read in the robot's journal after a stop.
+    logging.getLogger("fleetctl.client").info(
+        "client stopped: %s local messages in, %s sent, %s rate limited, %s frames published "
+        "locally, %s reconnects, %s no_drop overflow",
+        bridge.get("local_in"), bridge.get("sent"), bridge.get("rate_limited"),
+        bridge.get("published_local"), stats.get("reconnects"), stats.get("no_drop_overflow"))
     if print_stats:
         typer.echo(json.dumps(stats, default=str))
 

@@ -5,6 +5,7 @@
 
 from __future__ import annotations
 
+import importlib.util
 from pathlib import Path
 
 import typer
@@ -58,12 +59,11 @@ def _sim_robot(
 
 
 def _require_rclpy() -> None:
-    try:
-        import rclpy  # noqa: F401
-    except ImportError as exc:
+    # find_spec, not import: only fleetctl/client/ros imports rclpy (STYLE.md layout rule).
+    if importlib.util.find_spec("rclpy") is None:
         raise EnvironmentMissing(
-            f"rclpy is not installed ({exc}); install the ROS extra: pip install 'fleetctl[ros]'"
-        ) from exc
+            "rclpy is not installed; install the ROS extra: pip install 'fleetctl[ros]'"
+        )
 
 
 def register(app: typer.Typer) -> None:

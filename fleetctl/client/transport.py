@@ -67,6 +67,8 @@ class LinkTuning:
         reassembly_timeout_s: An incomplete fragmented message is dropped after this.
         dedupe_window: How far below the last seen seq a no_drop frame counts as a
             duplicate rather than a restarted sender.
+        send_batch_bytes: Frames are handed to the transport in batches up to this size
+            (bytes); a batch also ends where an ack point (ping) is due.
     """
 
     open_timeout_s: float = 3.0
@@ -77,10 +79,54 @@ class LinkTuning:
     reassembly_max_bytes: int = 64 * 1024 * 1024
     reassembly_timeout_s: float = 5.0
     dedupe_window: int = 100_000
+    send_batch_bytes: int = 256 * 1024
 
 
 class LinkDead(Exception):
     """No pong within ``link_timeout_s``: the connection is abandoned."""
+
+
+class LinkConnection(ClientConnection):
+    """Client connection that writes a batch of binary frames in one transport write.
+
+    ``send()`` costs a flow-control round through the event loop per frame; fragments
+    make frames small and many, so the link hands the transport a batch instead (the
+    server's ``RelayConnection.send_frames`` does the same). Flow control is unchanged:
+    ``send_context`` waits while the write buffer is above ``write_limit``.
+    """
+
+    async def send_frames(self, frames: list[bytes]) -> None:
+        """Send each item as one binary frame, in order.
+
+        Raises:
+            ConnectionClosed: The connection is closed or closing.
+        """
+        async with self.send_context():
+            for frame in frames:
+                self.protocol.send_binary(frame)
+
+    def send_data(self) -> None:
+        """Write pending protocol output; consecutive data chunks go in one write call."""
+        pending: list[bytes] = []
+        for data in self.protocol.data_to_send():
+            if data:
+                pending.append(data)
+                continue
+            self._flush(pending)
+            # An empty chunk means "end of stream" (websockets' convention).
+            if self.transport.can_write_eof():
+                with contextlib.suppress(OSError, RuntimeError):
+                    self.transport.write_eof()
+            else:
+                self.transport.close()
+        self._flush(pending)
+
+    def _flush(self, pending: list[bytes]) -> None:
+        if len(pending) == 1:
+            self.transport.write(pending[0])
+        elif pending:
+            self.transport.writelines(pending)
+        pending.clear()
 
 
 def scheduler_config_for(config: ClientConfig) -> SchedulerConfig:
@@ -141,7 +187,7 @@ class RobotLink:
         self._stop = asyncio.Event()
         self._stopped = asyncio.Event()
         self._running = False
-        self._ws: ClientConnection | None = None
+        self._ws: LinkConnection | None = None
         self._pings: dict[int, float] = {}  # token -> sent time (s), this connection only
         self._last_send_s = 0.0
         self._receiver = _Receiver(self.tuning, clock, on_frame)
@@ -264,7 +310,7 @@ class RobotLink:
         with contextlib.suppress(TimeoutError):
             await asyncio.wait_for(self._stop.wait(), timeout_s)
 
-    async def _connect(self, attempt: int) -> ClientConnection | None:
+    async def _connect(self, attempt: int) -> LinkConnection | None:
         headers = {}
         if self.config.token is not None:
             headers["Authorization"] = f"Bearer {self.config.token}"
@@ -272,11 +318,14 @@ class RobotLink:
         if self.config.bind_address is not None:
             extra["local_addr"] = (self.config.bind_address, 0)
         try:
-            return await connect(
+            ws = await connect(
                 self.config.server_url, additional_headers=headers, compression=None,
                 proxy=None, open_timeout=self.tuning.open_timeout_s, ping_interval=None,
                 ping_timeout=None, close_timeout=self.tuning.close_timeout_s,
-                max_size=self.tuning.max_receive_frame_bytes, **extra)
+                max_size=self.tuning.max_receive_frame_bytes,
+                create_connection=LinkConnection, **extra)
+            assert isinstance(ws, LinkConnection)
+            return ws
         except (OSError, TimeoutError, InvalidHandshake, InvalidURI) as exc:
             self._counters["connect_failures"] += 1
             delay = self._backoff(attempt + 1)
@@ -286,7 +335,7 @@ class RobotLink:
             await self._wait_stop(delay)
             return None
 
-    async def _session(self, ws: ClientConnection) -> bool:
+    async def _session(self, ws: LinkConnection) -> bool:
         """Run one connection until it fails or stop(); True if a pong ever came back."""
         self._ws = ws
         self._pings.clear()
@@ -351,17 +400,28 @@ class RobotLink:
 
     # -- sending --------------------------------------------------------------------------
 
-    async def _send_loop(self, ws: ClientConnection) -> None:
+    async def _send_loop(self, ws: LinkConnection) -> None:
         sched = self._scheduler
         clock = self._clock
+        batch_limit = self.tuning.send_batch_bytes
         while True:
             self._wake.clear()
             now = clock()
+            batch: list[bytes] = []
+            size = 0
             while (frame := sched.next_frame(now)) is not None:
-                await ws.send(frame)
+                batch.append(frame)
+                size += len(frame)
+                due = sched.wants_ack_point(now)
+                if due or size >= batch_limit:
+                    await ws.send_frames(batch)
+                    batch, size = [], 0
+                    self._last_send_s = now = clock()
+                    if due:
+                        await self._ping(ws, now)
+            if batch:
+                await ws.send_frames(batch)
                 self._last_send_s = now = clock()
-                if sched.wants_ack_point(now):
-                    await self._ping(ws, now)
             if sched.wants_ack_point(now):
                 await self._ping(ws, now)
             elif not self._pings and now - self._last_send_s >= self.tuning.keepalive_interval_s:

@@ -132,15 +132,48 @@ def _stop_on_signals(stop: threading.Event) -> Iterator[None]:
             signal.signal(sig, old)
 
 
+class _Interrupted(Exception):
+    """SIGINT/SIGTERM arrived while the demo was starting."""
+
+
+@dataclass
+class _Guard:
+    """What every wait checks: a signal arrived, or a child died."""
+
+    supervisor: Supervisor
+    stop: threading.Event
+
+    def check(self) -> None:
+        """Raise if the demo must stop waiting.
+
+        Raises:
+            _Interrupted: a signal asked to stop.
+            FleetError: a child exited (the message quotes the end of its log).
+        """
+        if self.stop.is_set():
+            raise _Interrupted
+        exited = self.supervisor.exited()
+        if exited:
+            name, code = next(iter(exited.items()))
+            tail = self.supervisor.log_tail(name)
+            raise FleetError(f"{name} exited with code {code}; its log ends with:\n{tail}",
+                             exit_code=ExitCode.RUNTIME)
+
+    def http_ok(self, url: str) -> bool:
+        self.check()
+        return http_ok(url)
+
+
 def _start_components(
-    supervisor: Supervisor, fleet: DemoFleet, options: DemoOptions, logs: Path
+    guard: _Guard, fleet: DemoFleet, options: DemoOptions, logs: Path
 ) -> str | None:
     """Start every process; return the webviz URL, or None when there is no webviz."""
+    supervisor = guard.supervisor
     supervisor.start(
         ProcessSpec("server", _fleetctl("server", "--config", str(fleet.server_config)),
                     logs / "server.log")
     )
-    wait_until(lambda: _healthy(supervisor, fleet), options.startup_timeout_s,
+    wait_until(lambda: guard.http_ok(f"{fleet.http_url}/healthz"), options.startup_timeout_s,
                describe=f"the server at {fleet.http_url}/healthz")
     for i, robot in enumerate(fleet.robots):
         env = {"ROS_DOMAIN_ID": str(robot.ros_domain_id)}
@@ -159,27 +192,9 @@ def _start_components(
         _fleetctl("webviz", "--port", str(options.webviz_port), "--server-url", fleet.ws_url),
         logs / "webviz.log"))
     url = f"http://127.0.0.1:{options.webviz_port}/"
-
-    def webviz_up() -> bool:
-        _raise_if_exited(supervisor)
-        return http_ok(url)
-
-    wait_until(webviz_up, options.startup_timeout_s, describe=f"the webviz at {url}")
+    wait_until(lambda: guard.http_ok(url), options.startup_timeout_s,
+               describe=f"the webviz at {url}")
     return url
-
-
-def _healthy(supervisor: Supervisor, fleet: DemoFleet) -> bool:
-    _raise_if_exited(supervisor)
-    return http_ok(f"{fleet.http_url}/healthz")
-
-
-def _raise_if_exited(supervisor: Supervisor) -> None:
-    exited = supervisor.exited()
-    if exited:
-        name, code = next(iter(exited.items()))
-        tail = supervisor.log_tail(name)
-        raise FleetError(f"{name} exited with code {code}; its log ends with:\n{tail}",
-                         exit_code=ExitCode.RUNTIME)
 
 
 def _summary(fleet: DemoFleet, webviz_url: str | None, logs: Path) -> list[str]:
@@ -213,41 +228,42 @@ def run_demo(options: DemoOptions, out: Callable[[str], None]) -> DemoResult:
     fleet = create_demo_fleet(root, options.robots, port=options.port,
                               base_domain_id=options.base_domain_id)
     logs = root / "logs"
-    supervisor = Supervisor()
-    stop = threading.Event()
+    guard = _Guard(Supervisor(), threading.Event())
     online: set[str] = set()
     stopped_by = "signal"
     try:
-        with _stop_on_signals(stop):
-            webviz_url = _start_components(supervisor, fleet, options, logs)
+        with _stop_on_signals(guard.stop):
+            webviz_url = _start_components(guard, fleet, options, logs)
             wanted = {robot.name for robot in fleet.robots}
             out(f"fleetctl demo: waiting for {', '.join(sorted(wanted))} to come online ...")
 
             def all_online() -> bool:
-                _raise_if_exited(supervisor)
+                guard.check()
                 online.update(online_robots(fleet.http_url) & wanted)
-                return online == wanted or stop.is_set()
+                return online == wanted
 
             wait_until(all_online, options.startup_timeout_s, poll_s=0.2,
                        describe=f"robots {sorted(wanted)} online in {fleet.http_url}/robots")
             for line in _summary(fleet, webviz_url, logs):
                 out(line)
             out("fleetctl demo: all components healthy; Ctrl-C stops everything")
-            stopped_by = _watch(supervisor, stop, options.duration_s)
+            stopped_by = _watch(guard, options.duration_s)
+    except _Interrupted:
+        stopped_by = "signal"
     finally:
         out("fleetctl demo: stopping ...")
-        codes = supervisor.stop_all()
+        codes = guard.supervisor.stop_all()
     out("fleetctl demo: stopped " + ", ".join(f"{n} ({c})" for n, c in codes.items()))
     return DemoResult(fleet, tuple(sorted(online)), codes, stopped_by)
 
 
-def _watch(supervisor: Supervisor, stop: threading.Event, duration_s: float | None) -> str:
-    """Block until *stop* is set or *duration_s* passes; raise if a child dies meanwhile."""
+def _watch(guard: _Guard, duration_s: float | None) -> str:
+    """Block until a signal or *duration_s* passes; raise if a child dies meanwhile."""
     remaining = math.inf if duration_s is None else duration_s
     while remaining > 0:
         step = min(_WATCH_PERIOD_S, remaining)
-        if stop.wait(step):
+        if guard.stop.wait(step):
             return "signal"
         remaining -= step
-        _raise_if_exited(supervisor)
+        guard.check()
     return "duration"

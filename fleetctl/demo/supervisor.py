@@ -2,12 +2,15 @@
 
 Every child runs in its own session (process group), so stopping it also stops anything it
 started. Stopping sends SIGTERM to the group, waits up to a deadline for it to exit, then
-sends SIGKILL: a hung child can delay shutdown by at most that deadline.
+sends SIGKILL: a hung child can delay shutdown by at most that deadline. On Linux each child
+also gets SIGTERM from the kernel if the supervising process dies without stopping it
+(``PR_SET_PDEATHSIG``), so even a SIGKILLed demo leaves no orphans behind.
 """
 
 from __future__ import annotations
 
 import contextlib
+import ctypes
 import os
 import signal
 import subprocess
@@ -66,6 +69,7 @@ class Supervisor:
                 stdout=log,
                 stderr=subprocess.STDOUT,
                 start_new_session=True,
+                preexec_fn=_die_with_parent,
             )
         except OSError as exc:
             log.close()
@@ -101,6 +105,16 @@ class Supervisor:
             child.log.close()
         self._children.clear()
         return codes
+
+
+_PR_SET_PDEATHSIG = 1
+
+
+def _die_with_parent() -> None:
+    """In the child before exec: ask the kernel for SIGTERM when the parent dies (Linux)."""
+    with contextlib.suppress(OSError, AttributeError):
+        libc = ctypes.CDLL(None, use_errno=True)
+        libc.prctl(_PR_SET_PDEATHSIG, signal.SIGTERM, 0, 0, 0)
 
 
 def _signal_group(process: subprocess.Popen[bytes], signum: int) -> None:

@@ -15,6 +15,7 @@ rebuilds the last layer and never reinstalls ROS.
 
 from __future__ import annotations
 
+import hashlib
 import os
 import re
 import shutil
@@ -278,22 +279,59 @@ def prepare_context(
     base_reqs = project_requirements(pyproject)
     ros_reqs = project_requirements(pyproject, ["ros"])[len(base_reqs):]
     for name, reqs in (("base", base_reqs), ("ros", ros_reqs)):
+        house = ctx / "wheels" / name
+        if _fresh(house, "\n".join(reqs)):
+            progress(f"wheelhouse {name}: up to date")
+            continue
         # Start empty: an old version of a wheel left behind would conflict at install.
         # Unchanged wheels come back byte-identical, so docker's layer cache still hits.
-        shutil.rmtree(ctx / "wheels" / name, ignore_errors=True)
+        shutil.rmtree(house, ignore_errors=True)
         progress(f"wheelhouse {name}: pip wheel ({len(reqs)} requirements)")
-        check(runner(pip_download_argv(ctx / "wheels" / name, reqs), None, True),
-              f"pip wheel ({name})")
-    _remove_duplicates(ctx / "wheels" / "ros", ctx / "wheels" / "base")
+        check(runner(pip_download_argv(house, reqs), None, True), f"pip wheel ({name})")
+        if name == "ros":
+            _remove_duplicates(house, ctx / "wheels" / "base")
+        _stamp(house, "\n".join(reqs))
     app = ctx / "wheels" / "app"
-    shutil.rmtree(app, ignore_errors=True)
-    progress("wheel: fleetctl")
-    check(runner([sys.executable, "-m", "pip", "wheel", "-q", "--no-deps", "-w", str(app),
-                  str(cfg.source_dir)], None, True), "pip wheel fleetctl")
+    digest = source_digest(cfg.source_dir)
+    if _fresh(app, digest):
+        # A rebuilt wheel differs in its zip timestamps and would invalidate the image's
+        # code layer: keep the old one while the source is unchanged.
+        progress("wheel: fleetctl up to date")
+    else:
+        shutil.rmtree(app, ignore_errors=True)
+        progress("wheel: fleetctl")
+        check(runner([sys.executable, "-m", "pip", "wheel", "-q", "--no-deps", "-w", str(app),
+                      str(cfg.source_dir)], None, True), "pip wheel fleetctl")
+        _stamp(app, digest)
     for dockerfile in (cfg.source_dir / "images").glob("*"):
         if dockerfile.is_file():
             shutil.copy2(dockerfile, ctx / dockerfile.name)
     return ctx
+
+
+_STAMP = ".inputs"
+
+
+def _fresh(house: Path, inputs: str) -> bool:
+    """True when *house* was made from exactly *inputs* and still holds its wheels."""
+    stamp = house / _STAMP
+    return stamp.is_file() and stamp.read_text() == inputs and any(house.glob("*.whl"))
+
+
+def _stamp(house: Path, inputs: str) -> None:
+    if house.is_dir():
+        (house / _STAMP).write_text(inputs)
+
+
+def source_digest(source_dir: Path) -> str:
+    """SHA-256 over the package's files and ``pyproject.toml`` (names and contents)."""
+    h = hashlib.sha256()
+    files = [source_dir / "pyproject.toml", *sorted((source_dir / "fleetctl").rglob("*"))]
+    for path in files:
+        if path.is_file() and "__pycache__" not in path.parts:
+            h.update(str(path.relative_to(source_dir)).encode() + b"\0")
+            h.update(path.read_bytes())
+    return h.hexdigest()
 
 
 def _remove_duplicates(extra: Path, base: Path) -> None:

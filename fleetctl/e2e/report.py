@@ -13,11 +13,6 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
-import matplotlib
-
-matplotlib.use("Agg")  # no display in containers or CI
-import matplotlib.pyplot as plt
-
 
 def overall_ok(results: Sequence[dict[str, Any]]) -> bool:
     """True when every scenario passed (a scenario that did not run is a failure)."""
@@ -62,6 +57,13 @@ def write(out_dir: Path, environment: dict[str, Any], results: list[dict[str, An
 
 
 def _plots(out_dir: Path, result: dict[str, Any]) -> list[Path]:
+    # Imported here: matplotlib is a dev/report dependency, and the images (which import
+    # every CLI module) do not ship it.
+    import matplotlib
+
+    matplotlib.use("Agg")  # no display in containers or CI
+    import matplotlib.pyplot as plt
+
     written = []
     for i, plot in enumerate(result.get("plots", [])):
         fig, ax = plt.subplots(figsize=(8, 4))

@@ -12,16 +12,21 @@ Scenarios (MISSION.md "End-to-end runs"; parameters are the issue's):
 
 from __future__ import annotations
 
+import shutil
+import tempfile
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
+from pathlib import Path
 from typing import Any
 
 from fleetctl.deploy.dockercli import Runner, image_exists, subprocess_runner
 from fleetctl.deploy.images import BASE_IMAGE, image_tag
 from fleetctl.deploy.shaping import Capabilities, RateSpec, mbit
+from fleetctl.e2e.fleetrun import FleetRun
+from fleetctl.e2e.scenarios import SCENARIO_FUNCS
 from fleetctl.e2e.topology import ROBOT_SIDE, SERVER_SIDE, Topology
-from fleetctl.errors import EnvironmentMissing
+from fleetctl.errors import EnvironmentMissing, FleetError
 
 Progress = Callable[[str], None]
 SCENARIOS = ("link", "dropout", "multi-consumer", "ramp", "priority")
@@ -69,10 +74,16 @@ class RunConfig:
         scenarios: Which scenarios, in order.
         duration_s: Length of each scenario's measured phase (seconds); the short CI run
             uses a few seconds, the documented full run 30.
+        work_dir: Where configs and raw sample files go (mounted at ``/e2e``); None
+            means a new temporary directory. Its ``out/`` is emptied first.
+        source_dir: Mount this checkout's ``fleetctl/`` over the images' package
+            (development without ``fleetctl build``); None runs the images as built.
     """
 
     scenarios: tuple[str, ...] = SCENARIOS
     duration_s: float = 30.0
+    work_dir: Path | None = None
+    source_dir: Path | None = None
 
 
 def _crit(name: str, value: float, bound: float, ok: bool) -> dict[str, Any]:
@@ -90,13 +101,15 @@ def preflight(runner: Runner = subprocess_runner) -> None:
             raise EnvironmentMissing(f"image {image} is missing: run `fleetctl build` first")
 
 
-def missing_components(scenario: str, runner: Runner = subprocess_runner) -> list[str]:
+def missing_components(scenario: str, runner: Runner = subprocess_runner,
+                       mounts: Sequence[str] = ()) -> list[str]:
     """The ``image: command`` pairs *scenario* needs that do not work (empty: all present)."""
     missing = []
+    volumes = [arg for m in mounts for arg in ("-v", m)]
     for image, command in _NEEDS.get(scenario, ()):
         tag = image_tag(image)
-        res = runner(["docker", "run", "--rm", "--network", "none", tag, "fleetctl", command,
-                      "--help"], None, True)
+        res = runner(["docker", "run", "--rm", "--network", "none", *volumes, tag, "fleetctl",
+                      command, "--help"], None, True)
         if res.returncode != 0:
             missing.append(f"{tag}: `fleetctl {command}`")
     return missing
@@ -177,7 +190,11 @@ def run(cfg: RunConfig, progress: Progress = print,
     """
     preflight(runner)
     results: list[dict[str, Any]] = []
+    work = cfg.work_dir or Path(tempfile.mkdtemp(prefix="fleetctl-e2e-"))
+    shutil.rmtree(work / "out", ignore_errors=True)
+    work.mkdir(parents=True, exist_ok=True)
     with Topology(runner=runner) as topo:
+        fleet = FleetRun(topo, work.resolve(), cfg.source_dir)
         caps = topo.capabilities()
         env = {"tc": caps.describe(), "router": topo.router, "duration_s": cfg.duration_s,
                "clock": "one host clock (containers share the kernel's CLOCK_REALTIME)"}
@@ -187,10 +204,24 @@ def run(cfg: RunConfig, progress: Progress = print,
             if name == "link":
                 results.append(run_link(topo, caps, cfg, progress))
                 continue
-            missing = missing_components(name, runner)
-            reason = ("needs " + ", ".join(missing)) if missing else (
-                "the fleet scenario driver (load publisher + consumers) is not implemented yet")
-            progress(f"{name}: NOT RUN: {reason}")
-            results.append({"name": name, "status": "not_run", "criteria": [],
-                            "notes": [f"not run: {reason}"]})
+            results.append(_fleet_scenario(name, fleet, caps, cfg, progress))
     return env, results
+
+
+def _fleet_scenario(name: str, fleet: FleetRun, caps: Capabilities, cfg: RunConfig,
+                    progress: Progress) -> dict[str, Any]:
+    """Run one fleet scenario; a component that cannot start makes it ``not_run``."""
+    missing = missing_components(name, fleet.topo.runner, fleet.mounts())
+    if missing:
+        reason = "needs " + ", ".join(missing)
+        progress(f"{name}: NOT RUN: {reason}")
+        return {"name": name, "status": "not_run", "criteria": [], "notes": [f"not run: {reason}"]}
+    try:
+        if fleet.server is None:
+            fleet.start_server()
+            progress(f"server up at {fleet.server_url}")
+        return SCENARIO_FUNCS[name](fleet, caps, cfg.duration_s, progress)
+    except FleetError as exc:
+        progress(f"{name}: FAILED to run: {exc}")
+        return {"name": name, "status": "not_run", "criteria": [],
+                "notes": [f"could not run: {exc}"]}

@@ -6,6 +6,7 @@ as a child process; a marker in its environment finds any process it leaves behi
 
 from __future__ import annotations
 
+import contextlib
 import os
 import queue
 import re
@@ -60,6 +61,20 @@ class Demo:
             if match := re.search(pattern, line):
                 return match
         raise AssertionError(f"no line matching {pattern!r}; output:\n" + "\n".join(self.output))
+
+    def close(self) -> None:
+        """Stop the demo if a test failed midway: SIGTERM first (it stops its children),
+        SIGKILL only if that fails, then end anything of this demo's that is left."""
+        if self.process.poll() is None:
+            self.process.send_signal(signal.SIGTERM)
+            try:
+                self.process.wait(timeout=30)
+            except subprocess.TimeoutExpired:
+                self.process.kill()
+                self.process.wait()
+        for pid in self.leftovers():
+            with contextlib.suppress(ProcessLookupError):
+                os.kill(pid, signal.SIGKILL)
 
     def leftovers(self) -> list[int]:
         """Pids of processes still carrying this demo's environment marker."""
@@ -121,10 +136,9 @@ def test_demo_duration_brings_both_robots_online_and_stops_cleanly(tmp_path: Pat
         assert online == {"robot1", "robot2"}
         demo.wait_line(r"stopped ", 60.0)
         assert demo.process.wait(timeout=30) == 0
+        wait_until(lambda: not demo.leftovers(), 10.0, describe="no demo process left")
     finally:
-        if demo.process.poll() is None:
-            demo.process.kill()
-    wait_until(lambda: not demo.leftovers(), 10.0, describe="no demo process left")
+        demo.close()
     assert (tmp_path / "demo" / "logs" / "robot1-sim.log").exists()
 
 
@@ -145,7 +159,18 @@ def test_demo_stops_cleanly_on_sigterm(tmp_path: Path) -> None:
         assert "goal received x=3.00 y=2.50" in event
         demo.process.send_signal(signal.SIGTERM)
         assert demo.process.wait(timeout=60) == 0
+        wait_until(lambda: not demo.leftovers(), 10.0, describe="no demo process left")
     finally:
-        if demo.process.poll() is None:
-            demo.process.kill()
-    wait_until(lambda: not demo.leftovers(), 10.0, describe="no demo process left")
+        demo.close()
+
+
+def test_demo_interrupted_during_startup_stops_cleanly(tmp_path: Path) -> None:
+    demo = Demo(["--robots", "1", "--base-domain-id", "29", "--no-webviz"], tmp_path)
+    try:
+        demo.wait_line(r"waiting for robot1 to come online", STARTUP_S)
+        demo.process.send_signal(signal.SIGINT)  # what Ctrl-C sends
+        assert demo.process.wait(timeout=60) == 0
+        demo.wait_line(r"stopped .*server \(0\)", 5.0)
+        wait_until(lambda: not demo.leftovers(), 10.0, describe="no demo process left")
+    finally:
+        demo.close()

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import itertools
+
 import pytest
 
 from fleetctl.client.scheduler import (
@@ -192,36 +194,65 @@ def test_fixed_window_n_t_one_waits_for_pong() -> None:
     assert len(link.drain(0.01)) == 1
 
 
-def test_adaptive_window_bytes_limit_and_floor_of_one_fragment() -> None:
+def test_adaptive_window_limits_bytes_in_flight() -> None:
     s = make(initial_window_bytes=250, max_fragment_bytes=100)
     link = FakeLink(s)
     s.offer("/a", b"x" * 1000, 0.0, priority=1, no_drop=False)
     sent = link.drain(0.0)
     assert sum(len(f) for f in sent) <= 250 and len(sent) == 2
-    assert s.window_bytes() == 250  # no samples yet
-    link.ack_all(0.1)  # ~220 B in 0.1 s -> 2.2 kB/s x 0.1 s x gain 2 = 440 B
-    assert 400 < s.window_bytes() < 480
+    assert s.in_flight_bytes > 0 and s.next_frame(0.0) is None
+    link.ack_all(0.1)
     assert s.stats(0.1)["min_rtt_ms"] == pytest.approx(100.0)
+    assert s.next_frame(0.1) is not None
 
 
-def test_adaptive_window_grows_on_a_fast_link_and_floors_on_a_slow_one() -> None:
-    fast = make(max_fragment_bytes=1000, initial_window_bytes=4000)
-    link = FakeLink(fast)
-    now = 0.0
-    windows = []
-    for _ in range(8):  # rtt 1 ms, unlimited data: window doubles per round (startup)
-        fast.offer("/a", b"x" * 200_000, now, priority=1, no_drop=False)
+def rounds(s: Scheduler, rtts_s: list[float]) -> list[int]:
+    """Saturate the link; each round drains the window and acks after the given RTT."""
+    link = FakeLink(s)
+    now, windows = 0.0, []
+    for rtt in rtts_s:
+        s.offer("/a", b"x" * 10_000_000, now, priority=1, no_drop=True)
         link.drain(now)
-        now += 0.001
+        now += rtt
         link.ack_all(now)
-        windows.append(fast.window_bytes())
-    assert windows[-1] > 8 * windows[0]
-    slow = make(max_fragment_bytes=1000)
-    link = FakeLink(slow)
-    slow.offer("/a", b"x" * 100, 0.0, priority=1, no_drop=False)
-    link.drain(0.0)
-    link.ack_all(1.0)  # 100 B/s, 1 s RTT: BDP 200 B, floored at one fragment
-    assert slow.window_bytes() == 1000
+        windows.append(s.window_bytes())
+    return windows
+
+
+def test_window_doubles_per_rtt_while_the_queue_is_empty() -> None:
+    s = make(max_fragment_bytes=1000, initial_window_bytes=4000, max_window_bytes=10**9)
+    windows = rounds(s, [0.001] * 6)
+    assert all(b >= 1.7 * a for a, b in itertools.pairwise(windows))
+    assert windows[-1] >= 2**5 * 4000 * 0.9
+
+
+def test_window_shrinks_to_one_fragment_when_the_queue_grows() -> None:
+    s = make(max_fragment_bytes=1000, initial_window_bytes=64_000)
+    windows = rounds(s, [0.001] + [0.05] * 8)  # RTT 50 ms over a 1 ms min: queueing
+    assert windows[0] > 64_000
+    assert windows[-1] == s.fragment_bytes() == 1000
+
+
+def test_window_holds_near_the_target_delay() -> None:
+    s = make(max_fragment_bytes=1000, initial_window_bytes=20_000, target_queue_delay_s=0.004)
+    before = rounds(s, [0.001, 0.005])  # queueing delay 4 ms: exactly on target
+    assert before[1] == before[0]
+
+
+def test_fragment_size_follows_link_rate() -> None:
+    s = make(max_fragment_bytes=65536, min_fragment_bytes=1024, initial_fragment_bytes=16384,
+             fragment_time_s=0.003)
+    assert s.fragment_bytes() == 16384  # no rate sample yet
+    s._link_rate.add(0.0, 750_000.0)  # 6 Mbit/s: 2250 B per 3 ms -> 2048
+    s._update_limits()
+    assert s.fragment_bytes() == 2048
+    s._link_rate.add(0.0, 10e9)
+    s._update_limits()
+    assert s.fragment_bytes() == 65536  # capped
+    slow = make(max_fragment_bytes=65536, min_fragment_bytes=1024)
+    slow._link_rate.add(0.0, 1000.0)
+    slow._update_limits()
+    assert slow.fragment_bytes() == 1024  # floored
 
 
 def test_in_flight_message_bound() -> None:
@@ -289,7 +320,7 @@ def test_fragments_off_sends_whole_frames() -> None:
 
 
 def test_urgent_message_waits_at_most_one_fragment_of_a_cloud() -> None:
-    s = make(max_fragment_bytes=16_000, initial_window_bytes=10**9)
+    s = make(max_fragment_bytes=16_000, initial_fragment_bytes=16_000, initial_window_bytes=10**9)
     s.register_topic("/urgent", 10.0, 0.0)
     s.offer("/cloud", b"c" * 1_000_000, 0.0, priority=1.0, no_drop=False)
     link = FakeLink(s)
@@ -415,3 +446,18 @@ def test_windowed_extremum() -> None:
     assert mn.value(1.6, 0.0) == 4.0
     mn.clear()
     assert mn.value(None, 7.0) == 7.0
+
+
+def test_busy_rate_averages_bursts_over_time() -> None:
+    from fleetctl.client.scheduler import BusyRate
+
+    rate = BusyRate(0.5)
+    assert rate.rate() == 0.0
+    rate.add(0.0, 4000, 0.0002)  # a token-bucket burst: 20 MB/s for 0.2 ms
+    for i in range(1, 50):
+        rate.add(i * 0.0053, 4000, 0.0053)  # then 750 kB/s
+    assert 700_000 < rate.rate() < 800_000
+    rate.add(10.0, 1000, 0.001)  # everything older than 0.5 s expires
+    assert rate.rate() == pytest.approx(1_000_000)
+    rate.clear()
+    assert rate.rate() == 0.0

@@ -14,7 +14,6 @@ from fleetctl.client.scheduler import SchedulerConfig
 from fleetctl.client.transport import LinkTuning, RobotLink, backoff_delay_s
 from fleetctl.server.app import RelayServer
 from fleetctl.wire.fragments import split
-from fleetctl.wire.metadata import read_metadata
 from tests.client.conftest import (
     Consumer,
     TcpForwarder,

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import hashlib
+import ipaddress
 import stat
 from pathlib import Path
 
@@ -53,3 +54,16 @@ def test_files_are_private_and_tokens_stay_out_of_repr(tmp_path: Path) -> None:
 def test_bad_counts_and_domains_are_rejected(tmp_path: Path, count: int, base: int) -> None:
     with pytest.raises(ValueError):
         create_demo_fleet(tmp_path, count, port=1, base_domain_id=base)
+
+
+def test_server_files_load_with_the_server_loaders(tmp_path: Path) -> None:
+    from fleetctl.server.authmap import load_auth_map
+    from fleetctl.server.config import load_server_config
+
+    fleet = create_demo_fleet(tmp_path, 2, port=4321, base_domain_id=20)
+    config = load_server_config(fleet.server_config)
+    assert config.listen_port == 4321
+    auth = load_auth_map(config.auth_map)
+    assert [i.name for i in auth.match_address(ipaddress.ip_address("127.0.1.3"))] == ["robot2"]
+    assert auth.match_token(fleet.operator_token) is not None
+    assert auth.match_token("not-a-token") is None

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import os
+import subprocess
 import sys
 import time
 from pathlib import Path
@@ -75,3 +76,27 @@ def test_start_reports_a_missing_program(tmp_path: Path) -> None:
 def test_wait_until_times_out_with_a_named_condition() -> None:
     with pytest.raises(FleetError, match="the impossible"):
         wait_until(lambda: False, 0.2, poll_s=0.05, describe="the impossible")
+
+
+def test_children_die_with_a_killed_supervisor(tmp_path: Path) -> None:
+    pid_file = tmp_path / "child.pid"
+    # A supervising process that starts one child, reports its pid, then waits forever.
+    script = (
+        "import sys, time, pathlib\n"
+        "from fleetctl.demo.supervisor import ProcessSpec, Supervisor\n"
+        "s = Supervisor()\n"
+        f"pid = s.start(ProcessSpec('c', [sys.executable, '-c', 'import time\\nwhile True: "
+        f"time.sleep(1)'], pathlib.Path({str(tmp_path / 'c.log')!r})))\n"
+        f"pathlib.Path({str(pid_file)!r}).write_text(str(pid))\n"
+        "while True: time.sleep(1)\n"
+    )
+    parent = subprocess.Popen([sys.executable, "-c", script])
+    try:
+        wait_until(lambda: pid_file.exists() and pid_file.read_text(), 10.0, describe="child")
+        child = int(pid_file.read_text())
+        parent.kill()
+        parent.wait()
+        wait_until(lambda: not _alive(child), 10.0, describe="the orphan to exit")
+    finally:
+        if parent.poll() is None:
+            parent.kill()

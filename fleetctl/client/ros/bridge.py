@@ -1,7 +1,8 @@
 """The robot client's ROS 2 side: local topics in, fleet frames out, and back.
 
 :class:`Bridge` is an rclpy node. For every ``publish`` entry of the client config it holds a
-*raw* subscription (CDR bytes, no Python message object is ever built by rclpy) and, in the
+*raw* subscription (CDR bytes, no Python message object is ever built by rclpy) whose
+reliability follows the topic's publishers (:mod:`fleetctl.client.ros.qos`) and, in the
 callback, asks the link whether the topic is due (Robofleet Algorithm 1's rate limit) before
 doing any work, then converts CDR -> rosbags message -> FlatBuffer frame and hands the frame
 to the link. For every ``subscribe`` entry it holds a publisher; frames from the link are
@@ -32,27 +33,13 @@ from rclpy.qos import (
 )
 
 from fleetctl.client.config import ClientConfig, PublishSpec, SubscribeSpec
+from fleetctl.client.ros import qos
 from fleetctl.client.ros.msgtypes import message_class
+from fleetctl.client.ros.qos import AdaptiveSubscription
 from fleetctl.errors import ConfigError
 
 log = logging.getLogger(__name__)
 
-# Droppable topics: best effort, latest few only. A best-effort reader matches both reliable
-# and best-effort writers, so sensor drivers of either kind are received.
-SENSOR_QOS = QoSProfile(
-    history=HistoryPolicy.KEEP_LAST,
-    depth=5,
-    reliability=ReliabilityPolicy.BEST_EFFORT,
-    durability=DurabilityPolicy.VOLATILE,
-)
-# no_drop topics: reliable with a deep history, so a burst is not lost before the link
-# takes it (the link's no_drop FIFO is the real, bounded, counted queue).
-NO_DROP_QOS = QoSProfile(
-    history=HistoryPolicy.KEEP_LAST,
-    depth=1000,
-    reliability=ReliabilityPolicy.RELIABLE,
-    durability=DurabilityPolicy.VOLATILE,
-)
 # Commands republished locally (goal poses): reliable, like RViz's tools publish them.
 COMMAND_QOS = QoSProfile(
     history=HistoryPolicy.KEEP_LAST,
@@ -60,6 +47,7 @@ COMMAND_QOS = QoSProfile(
     reliability=ReliabilityPolicy.RELIABLE,
     durability=DurabilityPolicy.VOLATILE,
 )
+QOS_REFRESH_PERIOD_S = 1.0  # how often local subscriptions re-check their publishers' QoS
 MAX_DYNAMIC_PUBLISHERS = 64  # regex subscriptions without local_topic: one publisher per topic
 
 
@@ -156,7 +144,24 @@ class _Route:
         return publisher
 
 
-class Bridge(Node):  # type: ignore[misc]  # rclpy ships no type information
+def _check_no_echo(config: ClientConfig) -> None:
+    """Refuse a subscribe entry republishing onto a topic the client also sends.
+
+    The node would pick up its own republished messages and send them again, forever.
+
+    Raises:
+        ConfigError: naming both entries.
+    """
+    sent = {spec.topic: i for i, spec in enumerate(config.publish)}
+    for j, sub in enumerate(config.subscribe):
+        if sub.local_topic is not None and sub.local_topic in sent:
+            raise ConfigError(
+                f"subscribe[{j}] ({sub.remote_topic}): local_topic: {sub.local_topic} is also "
+                f"sent by publish[{sent[sub.local_topic]}]: the client would echo it forever"
+            )
+
+
+class Bridge(Node):
     """The client's rclpy node (see the module docstring).
 
     Args:
@@ -180,6 +185,7 @@ class Bridge(Node):  # type: ignore[misc]  # rclpy ships no type information
         clock_ns: Callable[[], int] = time.time_ns,
         context: Any = None,
     ) -> None:
+        _check_no_echo(config)
         super().__init__(f"fleetctl_client_{config.robot_name}", context=context)
         self.stats = BridgeStats()
         self._config = config
@@ -191,11 +197,13 @@ class Bridge(Node):  # type: ignore[misc]  # rclpy ships no type information
         self._seq: dict[str, int] = {}
         self._seq_lock = threading.Lock()  # callbacks may run on several executor threads
         self._battery: float | None = None
+        self.inputs: list[AdaptiveSubscription] = []
         for i, spec in enumerate(config.publish):
             cls = _entry_class(f"publish[{i}] ({spec.topic})", spec.type)
-            qos = NO_DROP_QOS if spec.no_drop else SENSOR_QOS
-            self.create_subscription(cls, spec.topic, self._make_callback(spec), qos, raw=True)
-        self._routes = []
+            self.inputs.append(AdaptiveSubscription(
+                self, cls, spec.topic, self._make_callback(spec), no_drop=spec.no_drop))
+        self.create_timer(QOS_REFRESH_PERIOD_S, self._refresh_qos)
+        self._routes: list[_Route] = []
         for i, sub in enumerate(config.subscribe):
             _entry_class(f"subscribe[{i}] ({sub.remote_topic})", sub.type)
             self._routes.append(_Route(self, sub))
@@ -203,11 +211,16 @@ class Bridge(Node):  # type: ignore[misc]  # rclpy ships no type information
             from sensor_msgs.msg import BatteryState
 
             self.create_subscription(
-                BatteryState, config.status.battery_topic, self._on_battery, SENSOR_QOS
+                BatteryState, config.status.battery_topic, self._on_battery,
+                qos.profile(reliable=False, no_drop=False),
             )
         self.create_timer(config.status.period_s, self.send_status)
 
     # --- local -> fleet -----------------------------------------------------------------
+
+    def _refresh_qos(self) -> None:
+        for subscription in self.inputs:
+            subscription.refresh()
 
     def _make_callback(self, spec: PublishSpec) -> Callable[[bytes], None]:
         def callback(cdr: bytes) -> None:

@@ -128,8 +128,9 @@ async def _serve(config: ClientConfig, context: Context) -> dict[str, Any]:
         bridge.destroy_node()
         for signum in (signal.SIGINT, signal.SIGTERM):
             loop.remove_signal_handler(signum)
-    if runner.done() and runner.exception() is not None:
-        raise runner.exception()  # type: ignore[misc]
+    failure = runner.exception() if runner.done() and not runner.cancelled() else None
+    if failure is not None:
+        raise failure
     stats = link.stats()
     stats["bridge"] = vars(bridge.stats)
     return stats

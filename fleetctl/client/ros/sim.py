@@ -24,6 +24,7 @@ import math
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
 import rclpy
@@ -88,11 +89,11 @@ def _quaternion_yaw(q: Quaternion) -> float:
     return math.atan2(2.0 * (q.w * q.z + q.x * q.y), 1.0 - 2.0 * (q.y * q.y + q.z * q.z))
 
 
-class SimRobot(Node):  # type: ignore[misc]  # rclpy ships no type information
+class SimRobot(Node):
     """The simulated robot node: integrates the pose and publishes every sensor on timers."""
 
-    def __init__(self, config: SimConfig) -> None:
-        super().__init__(f"{_node_name(config.name)}_sim")
+    def __init__(self, config: SimConfig, context: Any = None) -> None:
+        super().__init__(f"{_node_name(config.name)}_sim", context=context)
         self._config = config
         self._state = simworld.start_state(config.room, config.motion, config.phase_rad)
         self._started_s = time.monotonic()
@@ -122,7 +123,15 @@ class SimRobot(Node):  # type: ignore[misc]  # rclpy ships no type information
         self._every(config.battery_hz, self._publish_battery)
         if config.events_period_s > 0:
             self.create_timer(config.events_period_s, self._heartbeat)
-        self.publish_event(f"{config.name} started")
+        # Announce the start once someone listens: /events is volatile, so an event
+        # published before the client's subscription matched would reach nobody.
+        self._announce = self.create_timer(0.1, self._announce_start)
+
+    def _announce_start(self) -> None:
+        if self._pub_events.get_subscription_count() > 0:
+            self.publish_event(f"{self._config.name} started")
+            self._announce.cancel()
+            self.destroy_timer(self._announce)
 
     def _every(self, rate_hz: float, callback: Callable[[], None]) -> None:
         if rate_hz > 0:

@@ -95,16 +95,3 @@ def fleetctl_argv(*args: str) -> list[str]:
     """The command line of ``fleetctl ARGS`` with this interpreter."""
     return [sys.executable, "-m", "fleetctl.cli.main", *args]
 
-
-def server_argv(config: Path) -> list[str]:
-    """``fleetctl server --config CONFIG``; while that command is not registered yet, the same
-    server library run directly (still a real server process)."""
-    from fleetctl.cli.main import build_app
-
-    if any(cmd.name == "server" for cmd in build_app().registered_commands):
-        return fleetctl_argv("server", "--config", str(config))
-    code = ("import asyncio, pathlib, sys\n"
-            "from fleetctl.server.app import run_server\n"
-            "from fleetctl.server.config import load_server_config\n"
-            "asyncio.run(run_server(load_server_config(pathlib.Path(sys.argv[1]))))\n")
-    return [sys.executable, "-c", code, str(config)]

@@ -5,8 +5,9 @@ JSON lines on stdout that the test reads with deadlines:
 
 - ``listen TOPIC TYPE``: prints ``{"ready": true}`` once a publisher of TOPIC is
   discovered, then ``{"cdr": HEX}`` for every message (raw CDR bytes).
-- ``publish TOPIC TYPE HEX RATE_HZ``: waits for a subscriber, prints ``{"ready": true}``,
-  then publishes the given CDR bytes at RATE_HZ forever.
+- ``publish TOPIC TYPE CDR RATE_HZ``: waits for a subscriber, prints ``{"ready": true}``,
+  then publishes the given CDR bytes at RATE_HZ forever. CDR is hex, or ``@PATH`` of a file
+  holding the raw bytes (for messages too large for a command line).
 - ``events TOPIC COUNT RATE_HZ``: waits for a subscriber, then publishes std_msgs/String
   ``event-1`` ... ``event-COUNT`` at RATE_HZ (reliable), printing ``{"sent": N}`` every
   message, then ``{"done": true}`` and keeps running (so late discovery loses nothing).
@@ -17,6 +18,7 @@ from __future__ import annotations
 import json
 import sys
 import time
+from pathlib import Path
 from typing import Any
 
 import rclpy
@@ -62,7 +64,7 @@ def _listen(node: Node, executor: SingleThreadedExecutor, topic: str, type_name:
 def _publish(node: Node, executor: SingleThreadedExecutor, args: list[str]) -> None:
     topic, type_name, cdr_hex, rate_hz = args
     publisher = node.create_publisher(message_class(type_name), topic, RELIABLE)
-    cdr = bytes.fromhex(cdr_hex)
+    cdr = Path(cdr_hex[1:]).read_bytes() if cdr_hex.startswith("@") else bytes.fromhex(cdr_hex)
     _wait_for_subscriber(node, executor, publisher)
     _emit({"ready": True})
     node.create_timer(1.0 / float(rate_hz), lambda: publisher.publish(cdr))

@@ -239,3 +239,43 @@ def test_status_carries_the_battery(setup: tuple[Bridge, Node, FakePort], codec:
         return decode_status(last, codec=codec).battery_level == pytest.approx(0.625)
 
     wait_for(battery_seen)
+
+
+def test_local_subscriptions_follow_their_publishers_reliability(
+    setup: tuple[Bridge, Node, FakePort]
+) -> None:
+    from rclpy.qos import qos_profile_sensor_data
+    from sensor_msgs.msg import LaserScan
+    from std_msgs.msg import String
+
+    bridge, peer, fake = setup
+    scan_input, events_input = bridge.inputs
+    assert not scan_input.reliable and events_input.reliable  # the starting points
+    peer.create_publisher(LaserScan, "/scan", 10)  # reliable (the rclpy default)
+    wait_for(lambda: scan_input.reliable)
+    peer.create_publisher(String, "/events", qos_profile_sensor_data)  # best effort
+    wait_for(lambda: not events_input.reliable)
+    # A best-effort publisher must still be heard after the switch.
+    best_effort = peer.create_publisher(String, "/events", qos_profile_sensor_data)
+    wait_for(lambda: best_effort.get_subscription_count() > 0)
+    deadline = time.monotonic() + 10
+    while not fake.sent and time.monotonic() < deadline:
+        best_effort.publish(String(data="heard"))
+        time.sleep(0.05)  # pacing of the resend loop, bounded by the deadline
+    assert fake.sent
+
+
+def test_a_subscribe_entry_onto_a_sent_topic_is_refused(codec: Codec) -> None:
+    from fleetctl.errors import ConfigError
+
+    echo = {**CONFIG, "subscribe": [{"remote_topic": "/r2/scan",
+                                     "type": "sensor_msgs/msg/LaserScan",
+                                     "local_topic": "/scan"}]}
+    context = Context()
+    rclpy.init(context=context, domain_id=DOMAIN_ID)
+    try:
+        with pytest.raises(ConfigError, match=r"subscribe\[0\] \(/r2/scan\): local_topic"):
+            Bridge(parse_client_config(echo), codec, codec.registry.typestore, FakePort().port(),
+                   status_encoder(codec, "r1"), context=context)
+    finally:
+        context.try_shutdown()

@@ -1,0 +1,173 @@
+"""The e2e fleet consumer: WebSocket clients of the server that record every message.
+
+Runs in a container on the server network::
+
+    python -m fleetctl.e2e.consumer --url ws://server:8080/ --token-file /e2e/token \\
+        --subscribe '/robot1/.*' --count 4 --out /e2e/out --name mc4
+
+Each of ``--count`` connections authenticates with the Bearer token, subscribes, waits for
+the server's ``subscribed`` answer, then writes ``NAME-I.ready``. Every binary frame is
+reassembled (:class:`~fleetctl.wire.fragments.Reassembler`), decoded
+(:class:`~fleetctl.wire.codec.Codec`) and recorded as a :class:`~fleetctl.e2e.samples.Sample`
+line in ``NAME-I.jsonl``; the receipt time is taken when the last fragment arrived, before
+decoding. SIGTERM closes the connections and flushes the files; the exit code is 1 when a
+connection failed.
+"""
+
+from __future__ import annotations
+
+import argparse
+import asyncio
+import json
+import signal
+import sys
+import time
+from pathlib import Path
+from typing import TextIO
+
+from websockets.asyncio.client import ClientConnection, connect
+
+from fleetctl.e2e.payloads import read_stamp
+from fleetctl.e2e.samples import Sample, dump
+from fleetctl.errors import FleetError
+from fleetctl.wire.codec import default_codec
+from fleetctl.wire.control import encode_subscription
+from fleetctl.wire.errors import WireError
+from fleetctl.wire.fragments import FRAGMENT_TYPE, Reassembler
+from fleetctl.wire.metadata import read_metadata
+
+MAX_FRAME_BYTES = 32 * 1024 * 1024
+REASSEMBLY_MAX_BYTES = 64 * 1024 * 1024
+REASSEMBLY_TIMEOUT_S = 10.0
+SUBSCRIBE_TIMEOUT_S = 10.0
+
+
+class Recorder:
+    """Turns received frames into samples (pure apart from the output file).
+
+    Args:
+        name: Consumer name written into each sample.
+        out: Where sample lines go.
+    """
+
+    def __init__(self, name: str, out: TextIO) -> None:
+        self.name = name
+        self.out = out
+        self.codec = default_codec()
+        self.reassembler = Reassembler(REASSEMBLY_MAX_BYTES, REASSEMBLY_TIMEOUT_S)
+        self.errors = 0  # frames that could not be decoded or carried no stamp (logged)
+        self.duplicates = 0  # no_drop frames dropped as resends (see feed)
+        self._last_no_drop_seq: dict[str, int] = {}
+
+    def feed(self, frame: bytes, recv_time_ns: int) -> Sample | None:
+        """Record one binary frame received at *recv_time_ns*; None until a message is whole."""
+        try:
+            if read_metadata(frame).type == FRAGMENT_TYPE:
+                whole = self.reassembler.feed(frame, time.monotonic())
+                if whole is None:
+                    return None
+                frame = whole
+            meta, msg = self.codec.decode(frame)
+            if meta.no_drop and not self._fresh(meta.topic, meta.seq):
+                return None
+            stamp = read_stamp(msg)
+        except (WireError, FleetError) as exc:
+            self.errors += 1
+            print(f"e2e consumer {self.name}: dropped a frame: {exc}", file=sys.stderr)
+            return None
+        sample = Sample(meta.topic, stamp.seq, stamp.publish_time_ns, recv_time_ns,
+                        len(frame), self.name)
+        self.out.write(dump([sample]))
+        return sample
+
+
+    def _fresh(self, topic: str, seq: int) -> bool:
+        # no_drop is at-least-once across reconnects (client transport docstring): a
+        # receiver drops a no_drop frame whose sender seq is not above the last one seen.
+        last = self._last_no_drop_seq.get(topic)
+        if last is not None and seq <= last:
+            self.duplicates += 1
+            return False
+        self._last_no_drop_seq[topic] = seq
+        return True
+
+
+async def _subscribe(ws: ClientConnection, regex: str) -> None:
+    await ws.send(encode_subscription(regex))
+    while True:
+        msg = await ws.recv()
+        if isinstance(msg, str):
+            event = json.loads(msg)
+            if event.get("type") == "subscribed":
+                return
+            if event.get("type") == "error":
+                raise FleetError(f"server refused the subscription: {event}")
+
+
+async def consume(url: str, token: str, regex: str, name: str, out_dir: Path) -> None:
+    """One connection: subscribe to *regex*, record until cancelled.
+
+    Raises:
+        FleetError: the server refused the subscription or did not answer in time.
+        OSError, ConnectionClosed: the connection failed.
+    """
+    with (out_dir / f"{name}.jsonl").open("a", buffering=1) as out:
+        recorder = Recorder(name, out)
+        async with connect(url, additional_headers={"Authorization": f"Bearer {token}"},
+                           max_size=MAX_FRAME_BYTES, max_queue=None) as ws:
+            # max_queue=None: frames are read as fast as they come; this process must not
+            # be the bottleneck that delays receipt (the socket buffer is the only bound).
+            await asyncio.wait_for(_subscribe(ws, regex), SUBSCRIBE_TIMEOUT_S)
+            (out_dir / f"{name}.ready").write_text("ok")
+            async for frame in ws:
+                if isinstance(frame, bytes):
+                    recorder.feed(frame, time.time_ns())
+
+
+async def run(url: str, token: str, regex: str, name: str, count: int, out_dir: Path) -> int:
+    """Run *count* consumers until SIGTERM/SIGINT; returns the number that failed."""
+    stop = asyncio.Event()
+    loop = asyncio.get_running_loop()
+    for signum in (signal.SIGTERM, signal.SIGINT):
+        loop.add_signal_handler(signum, stop.set)
+    tasks = [asyncio.create_task(consume(url, token, regex, f"{name}-{i}", out_dir))
+             for i in range(count)]
+    waiter = asyncio.create_task(stop.wait())
+    await asyncio.wait([waiter, *tasks], return_when=asyncio.FIRST_COMPLETED)
+    failed = 0
+    for task in tasks:
+        if task.done():
+            exc = task.exception()
+            failed += 1
+            print(f"e2e consumer: a connection ended: {exc!r}", file=sys.stderr)
+        else:
+            task.cancel()
+    await asyncio.gather(*tasks, return_exceptions=True)
+    waiter.cancel()
+    return failed
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Command line entry point (``python -m fleetctl.e2e.consumer``)."""
+    parser = argparse.ArgumentParser(prog="python -m fleetctl.e2e.consumer")
+    parser.add_argument("--url", required=True)
+    parser.add_argument("--token-file", type=Path, required=True)
+    parser.add_argument("--subscribe", default=".*", help="RE2 topic regex")
+    parser.add_argument("--count", type=int, default=1)
+    parser.add_argument("--name", default="c")
+    parser.add_argument("--out", type=Path, required=True, help="directory for sample files")
+    args = parser.parse_args(argv)
+    try:
+        token = args.token_file.read_text().strip()
+    except OSError as exc:
+        print(f"e2e consumer: --token-file {args.token_file}: {exc.strerror}", file=sys.stderr)
+        return 2
+    if args.count < 1:
+        print("e2e consumer: --count must be at least 1", file=sys.stderr)
+        return 2
+    failed = asyncio.run(run(args.url, token, args.subscribe, args.name, args.count, args.out))
+    return 1 if failed else 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

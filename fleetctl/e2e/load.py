@@ -1,0 +1,125 @@
+"""The e2e load publisher: a real rclpy node publishing a scenario's topics.
+
+Runs inside the robot container next to ``fleetctl client`` (or alone, for the native DDS
+baseline)::
+
+    python -m fleetctl.e2e.load --profile dropout --out /e2e/out/published.json
+
+Each topic is published by its own ROS timer at the profile's rate; every message carries
+its publish time and per-topic sequence number (:mod:`fleetctl.e2e.payloads`), stamped just
+before serialization. Messages are serialized with rosbags and published as CDR bytes, so
+large arrays are never converted element by element. On SIGTERM/SIGINT it stops and writes
+``{remote_topic: {"first_seq", "last_seq", "count"}}`` to ``--out``: what consumers must
+have received for no_drop topics.
+
+This module and :mod:`.ddssub` import rclpy (only in the client image, where it exists);
+nothing else in :mod:`fleetctl.e2e` does.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import signal
+import sys
+import time
+from pathlib import Path
+from typing import Any
+
+from fleetctl.e2e import payloads
+from fleetctl.e2e.profiles import Profile, TopicLoad, profile
+from fleetctl.errors import FleetError
+
+_SPIN_TIMEOUT_S = 0.05  # how quickly a stop signal is noticed
+
+
+class _Counts:
+    """Published sequence numbers per wire topic."""
+
+    def __init__(self) -> None:
+        self.by_topic: dict[str, dict[str, int]] = {}
+
+    def add(self, topic: str, seq: int) -> None:
+        entry = self.by_topic.setdefault(topic, {"first_seq": seq, "last_seq": seq, "count": 0})
+        entry["last_seq"] = seq
+        entry["count"] += 1
+
+
+def _publisher(node: Any, load: TopicLoad, ts: Any, counts: _Counts) -> None:
+    from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
+
+    from fleetctl.client.ros.msgtypes import message_class
+
+    # Reliable with room for a burst: the subscriber (client or DDS consumer) decides how
+    # much it keeps; the publisher must not be the one dropping.
+    qos = QoSProfile(  # type: ignore[no-untyped-call]  # rclpy ships no type hints
+        history=HistoryPolicy.KEEP_LAST, depth=100 if load.no_drop else 5,
+        reliability=ReliabilityPolicy.RELIABLE)
+    pub = node.create_publisher(message_class(load.type), load.topic, qos)
+    seq = 0
+
+    def tick() -> None:
+        nonlocal seq
+        seq += 1
+        msg = payloads.build(ts, load.type, load.size_bytes, seq, time.time_ns())
+        pub.publish(bytes(ts.serialize_cdr(msg, load.type)))
+        counts.add(load.remote_topic, seq)
+
+    node.create_timer(1.0 / load.rate_hz, tick)
+
+
+def run(p: Profile, out: Path | None) -> dict[str, dict[str, int]]:
+    """Publish *p*'s topics until SIGTERM/SIGINT; returns (and writes) what was published."""
+    import rclpy
+    from rclpy.context import Context
+    from rclpy.executors import SingleThreadedExecutor
+    from rclpy.signals import SignalHandlerOptions
+
+    from fleetctl.wire.registry import TypeRegistry
+
+    ts = TypeRegistry.default().typestore
+    stop = False
+
+    def on_signal(signum: int, frame: object) -> None:
+        nonlocal stop
+        stop = True
+
+    signal.signal(signal.SIGTERM, on_signal)
+    signal.signal(signal.SIGINT, on_signal)
+    context = Context()
+    rclpy.init(context=context, signal_handler_options=SignalHandlerOptions.NO)
+    counts = _Counts()
+    node = rclpy.create_node(f"e2e_load_{p.name.replace('-', '_')}", context=context)
+    for load in p.topics:
+        _publisher(node, load, ts, counts)
+    executor = SingleThreadedExecutor(context=context)
+    executor.add_node(node)
+    print(f"e2e load: publishing {[t.topic for t in p.topics]}", flush=True)
+    try:
+        while not stop:
+            executor.spin_once(timeout_sec=_SPIN_TIMEOUT_S)
+    finally:
+        executor.shutdown()
+        node.destroy_node()  # type: ignore[no-untyped-call]
+        context.try_shutdown()
+    if out is not None:
+        out.write_text(json.dumps(counts.by_topic))
+    return counts.by_topic
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Command line entry point (``python -m fleetctl.e2e.load``)."""
+    parser = argparse.ArgumentParser(prog="python -m fleetctl.e2e.load")
+    parser.add_argument("--profile", required=True)
+    parser.add_argument("--out", type=Path, default=None, help="published.json to write")
+    args = parser.parse_args(argv)
+    try:
+        run(profile(args.profile), args.out)
+    except FleetError as exc:
+        print(f"e2e load: {exc}", file=sys.stderr)
+        return 2
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

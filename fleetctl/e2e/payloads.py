@@ -1,0 +1,124 @@
+"""Test messages that carry their own publish time and sequence number.
+
+The load publisher stamps every message when it publishes it on ROS; consumers read the
+stamp back, so latency is measured from the ROS publish to the consumer's receipt (one host
+clock: containers share the kernel's CLOCK_REALTIME).
+
+- Stamped types (``header``): ``header.stamp`` is the publish time, ``header.frame_id`` the
+  publisher's per-topic sequence number (decimal).
+- ``std_msgs/msg/String``: ``data`` is JSON ``{"seq": N, "t_ns": T, "pad": "..."}``.
+
+Messages are rosbags objects (the codec's and the CDR serializer's currency), built per type
+by a small builder that pads the payload to the requested size.
+"""
+
+from __future__ import annotations
+
+import json
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+from fleetctl.errors import FleetError
+
+Builder = Callable[[Any, int, int, int], Any]  # (typestore, size_bytes, seq, t_ns) -> msg
+
+
+@dataclass(frozen=True)
+class Stamp:
+    """What a received test message says about itself."""
+
+    seq: int
+    publish_time_ns: int
+
+
+def _header(ts: Any, seq: int, t_ns: int) -> Any:
+    time_cls = ts.types["builtin_interfaces/msg/Time"]
+    header_cls = ts.types["std_msgs/msg/Header"]
+    stamp = time_cls(sec=t_ns // 1_000_000_000, nanosec=t_ns % 1_000_000_000)
+    return header_cls(stamp=stamp, frame_id=str(seq))
+
+
+def _laser_scan(ts: Any, size_bytes: int, seq: int, t_ns: int) -> Any:
+    n = max(1, size_bytes // 8)  # float32 ranges + intensities
+    return ts.types["sensor_msgs/msg/LaserScan"](
+        header=_header(ts, seq, t_ns), angle_min=-2.35, angle_max=2.35,
+        angle_increment=4.7 / n, time_increment=0.0, scan_time=0.1, range_min=0.1,
+        range_max=30.0, ranges=np.full(n, 5.0, dtype=np.float32),
+        intensities=np.zeros(n, dtype=np.float32),
+    )
+
+
+def _pose(ts: Any, size_bytes: int, seq: int, t_ns: int) -> Any:
+    del size_bytes  # fixed size: a pose is a pose
+    point = ts.types["geometry_msgs/msg/Point"](x=1.0, y=2.0, z=0.0)
+    quat = ts.types["geometry_msgs/msg/Quaternion"](x=0.0, y=0.0, z=0.0, w=1.0)
+    pose = ts.types["geometry_msgs/msg/Pose"](position=point, orientation=quat)
+    return ts.types["geometry_msgs/msg/PoseStamped"](header=_header(ts, seq, t_ns), pose=pose)
+
+
+def _compressed_image(ts: Any, size_bytes: int, seq: int, t_ns: int) -> Any:
+    return ts.types["sensor_msgs/msg/CompressedImage"](
+        header=_header(ts, seq, t_ns), format="jpeg",
+        data=np.full(size_bytes, 0x5A, dtype=np.uint8),
+    )
+
+
+def _point_cloud(ts: Any, size_bytes: int, seq: int, t_ns: int) -> Any:
+    field_cls = ts.types["sensor_msgs/msg/PointField"]
+    fields = [field_cls(name=axis, offset=4 * i, datatype=7, count=1)  # 7 = FLOAT32
+              for i, axis in enumerate("xyz")]
+    points = max(1, size_bytes // 12)
+    return ts.types["sensor_msgs/msg/PointCloud2"](
+        header=_header(ts, seq, t_ns), height=1, width=points, fields=fields,
+        is_bigendian=False, point_step=12, row_step=12 * points,
+        data=np.full(points * 12, 7, dtype=np.uint8), is_dense=True,
+    )
+
+
+def _string(ts: Any, size_bytes: int, seq: int, t_ns: int) -> Any:
+    body = {"seq": seq, "t_ns": t_ns, "pad": ""}
+    pad = max(0, size_bytes - len(json.dumps(body)))
+    body["pad"] = "x" * pad
+    return ts.types["std_msgs/msg/String"](data=json.dumps(body))
+
+
+BUILDERS: dict[str, Builder] = {
+    "sensor_msgs/msg/LaserScan": _laser_scan,
+    "geometry_msgs/msg/PoseStamped": _pose,
+    "sensor_msgs/msg/CompressedImage": _compressed_image,
+    "sensor_msgs/msg/PointCloud2": _point_cloud,
+    "std_msgs/msg/String": _string,
+}
+
+
+def build(ts: Any, type_name: str, size_bytes: int, seq: int, t_ns: int) -> Any:
+    """A rosbags message of *type_name*, about *size_bytes* long, stamped (*seq*, *t_ns*).
+
+    Raises:
+        FleetError: no builder for *type_name*.
+    """
+    builder = BUILDERS.get(type_name)
+    if builder is None:
+        raise FleetError(f"e2e load: no test message builder for {type_name}; "
+                         f"choose from {sorted(BUILDERS)}")
+    return builder(ts, size_bytes, seq, t_ns)
+
+
+def read_stamp(msg: Any) -> Stamp:
+    """The (seq, publish time) a test message carries.
+
+    Raises:
+        FleetError: the message carries no readable stamp (not made by :func:`build`).
+    """
+    try:
+        header = getattr(msg, "header", None)
+        if header is not None:
+            ns = int(header.stamp.sec) * 1_000_000_000 + int(header.stamp.nanosec)
+            return Stamp(int(header.frame_id), ns)
+        body = json.loads(msg.data)
+        return Stamp(int(body["seq"]), int(body["t_ns"]))
+    except (AttributeError, KeyError, TypeError, ValueError) as exc:
+        raise FleetError(f"not an e2e test message: {exc}") from exc

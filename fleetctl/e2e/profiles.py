@@ -1,0 +1,127 @@
+"""What each scenario's robot publishes, and the client config (and baseline) that sends it.
+
+Parameters are the issue's (Robofleet section IV, Pound section 6); where it is silent the
+choice is documented here and in docs/e2e.md.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, replace
+from typing import Any
+
+from fleetctl.client.config import MAX_FRAGMENT_BYTES
+from fleetctl.errors import FleetError
+
+ROBOT = "robot1"
+
+
+@dataclass(frozen=True)
+class TopicLoad:
+    """One local topic the load publisher publishes.
+
+    Attributes:
+        topic: Local ROS topic (the wire topic is ``/robot1<topic>``).
+        type: ROS 2 type (one of :data:`fleetctl.e2e.payloads.BUILDERS`).
+        rate_hz: Publish rate (Hz).
+        size_bytes: Payload size (bytes, approximate for fixed-size types).
+        priority: Client priority (Algorithm 2 weight).
+        no_drop: Sent reliably by the client.
+    """
+
+    topic: str
+    type: str
+    rate_hz: float
+    size_bytes: int
+    priority: float = 1.0
+    no_drop: bool = False
+
+    @property
+    def remote_topic(self) -> str:
+        """The topic on the wire."""
+        return f"/{ROBOT}{self.topic}"
+
+
+@dataclass(frozen=True)
+class Profile:
+    """A scenario's load and client settings.
+
+    Attributes:
+        name: Profile name (``--profile`` of the load publisher).
+        topics: What is published.
+        max_fragment_bytes: Client fragment size (bytes).
+    """
+
+    name: str
+    topics: tuple[TopicLoad, ...]
+    max_fragment_bytes: int = 16384
+
+    def topic(self, local: str) -> TopicLoad:
+        """The entry of local topic *local*.
+
+        Raises:
+            FleetError: no such topic.
+        """
+        for t in self.topics:
+            if t.topic == local:
+                return t
+        raise FleetError(f"profile {self.name}: no topic {local}")
+
+
+_SCAN = TopicLoad("/scan", "sensor_msgs/msg/LaserScan", 10.0, 8640, priority=2.0)
+_POSE = TopicLoad("/pose", "geometry_msgs/msg/PoseStamped", 10.0, 0, priority=4.0)
+_IMAGE = TopicLoad("/camera/image/compressed", "sensor_msgs/msg/CompressedImage", 2.0, 75_000)
+_EVENTS = TopicLoad("/events", "std_msgs/msg/String", 10.0, 200, priority=1.0, no_drop=True)
+_POINTS = TopicLoad("/points", "sensor_msgs/msg/PointCloud2", 5.0, 150_000, priority=0.5)
+
+PROFILES: dict[str, Profile] = {
+    "dropout": Profile("dropout", (_SCAN, _POSE, _IMAGE, _EVENTS)),
+    # Pound: small fragments bound how long an urgent message waits behind a large one
+    # (4 KB at 6 Mbit/s is 5.5 ms on the wire; the default 16 KB would be 22 ms).
+    "priority": Profile("priority", (
+        TopicLoad("/high", "sensor_msgs/msg/CompressedImage", 50.0, 1024, priority=10.0),
+        TopicLoad("/low", "sensor_msgs/msg/CompressedImage", 1000 / 150, 65_536, priority=1.0),
+    ), max_fragment_bytes=4096),
+    "multi-consumer": Profile("multi-consumer", (replace(_POINTS, priority=1.0),)),
+    "ramp": Profile("ramp", (replace(_POSE, priority=10.0), _SCAN, _IMAGE, _POINTS)),
+}
+
+
+def profile(name: str) -> Profile:
+    """The profile called *name*.
+
+    Raises:
+        FleetError: unknown name.
+    """
+    if name not in PROFILES:
+        raise FleetError(f"unknown load profile {name!r}; choose from {sorted(PROFILES)}")
+    return PROFILES[name]
+
+
+def all_no_drop(p: Profile) -> Profile:
+    """Baseline of dropout and ramp: every topic no_drop (rosbridge-like queueing)."""
+    return replace(p, topics=tuple(replace(t, no_drop=True) for t in p.topics))
+
+
+def robofleet_like(p: Profile) -> Profile:
+    """Baseline of priority: every topic the same priority and no fragments.
+
+    The client's ``client.yaml`` has no n_T setting (``SchedulerConfig.fixed_window_messages``
+    is not exposed), so this is the closest Robofleet behaviour a stock client gives.
+    """
+    return replace(p, topics=tuple(replace(t, priority=1.0) for t in p.topics),
+                   max_fragment_bytes=MAX_FRAGMENT_BYTES)
+
+
+def client_config(p: Profile, server_url: str) -> dict[str, Any]:
+    """The ``client.yaml`` document (docs/design.md section 5) that sends *p*'s topics."""
+    return {
+        "server_url": server_url,
+        "robot_name": ROBOT,
+        "publish": [
+            {"topic": t.topic, "type": t.type, "priority": t.priority, "rate_limit_hz": None,
+             "no_drop": t.no_drop}
+            for t in p.topics
+        ],
+        "status": {"period_s": 1.0},
+        "limits": {"max_fragment_bytes": p.max_fragment_bytes},
+    }

@@ -1,0 +1,105 @@
+"""The simulated robot node: every topic at its size, and it obeys a goal (real rclpy)."""
+
+from __future__ import annotations
+
+import io
+import threading
+import time
+from collections.abc import Callable, Iterator
+from typing import Any
+
+import pytest
+
+rclpy = pytest.importorskip("rclpy")
+
+from rclpy.context import Context  # noqa: E402
+from rclpy.executors import MultiThreadedExecutor  # noqa: E402
+from rclpy.node import Node  # noqa: E402
+
+from fleetctl.client.ros.sim import SimConfig, SimRobot  # noqa: E402
+
+pytestmark = pytest.mark.ros
+DOMAIN_ID = 38  # this engineer's range is 20-39; 38 is reserved for this file
+
+
+def wait_for(condition: Callable[[], Any], timeout_s: float = 15.0) -> Any:
+    deadline = time.monotonic() + timeout_s
+    while not (result := condition()):
+        assert time.monotonic() < deadline, "condition not met before the deadline"
+        time.sleep(0.02)  # polling interval of a deadline-bounded wait
+    return result
+
+
+@pytest.fixture
+def sim() -> Iterator[tuple[SimRobot, Node, dict[str, list[Any]]]]:
+    from geometry_msgs.msg import PoseWithCovarianceStamped
+    from nav_msgs.msg import Odometry
+    from sensor_msgs.msg import BatteryState, CompressedImage, LaserScan, PointCloud2
+    from std_msgs.msg import String
+
+    context = Context()
+    rclpy.init(context=context, domain_id=DOMAIN_ID)
+    robot = SimRobot(SimConfig(name="simtest", events_period_s=0.5), context=context)
+    peer = Node("sim_peer", context=context)
+    got: dict[str, list[Any]] = {}
+    for topic, cls in [("/scan", LaserScan), ("/odom", Odometry), ("/points", PointCloud2),
+                       ("/pose", PoseWithCovarianceStamped), ("/battery", BatteryState),
+                       ("/camera/image/compressed", CompressedImage), ("/events", String)]:
+        got[topic] = []
+        peer.create_subscription(cls, topic, got[topic].append, 10)
+    executor = MultiThreadedExecutor(num_threads=2, context=context)
+    executor.add_node(robot)
+    executor.add_node(peer)
+    thread = threading.Thread(target=executor.spin, daemon=True)
+    thread.start()
+    try:
+        yield robot, peer, got
+    finally:
+        executor.shutdown()
+        thread.join(5)
+        robot.destroy_node()
+        peer.destroy_node()
+        context.try_shutdown()
+
+
+def test_every_topic_is_published_with_its_size(
+    sim: tuple[SimRobot, Node, dict[str, list[Any]]]
+) -> None:
+    from PIL import Image
+
+    _, _, got = sim
+    wait_for(lambda: all(got.values()))
+    scan = got["/scan"][0]
+    assert len(scan.ranges) == 720 and min(scan.ranges) > 0
+    cloud = got["/points"][0]
+    assert cloud.width == 20_000 and len(cloud.data) == 20_000 * 12
+    assert [f.name for f in cloud.fields] == ["x", "y", "z"]
+    image = got["/camera/image/compressed"][0]
+    with Image.open(io.BytesIO(bytes(image.data))) as decoded:
+        assert decoded.format == "JPEG" and decoded.size == (640, 480)
+    assert 0.05 <= got["/battery"][0].percentage <= 1.0
+    assert got["/events"][0].data.endswith("simtest started")
+    assert got["/pose"][0].header.frame_id == "map"
+
+
+def test_goal_pose_is_acknowledged_and_approached(
+    sim: tuple[SimRobot, Node, dict[str, list[Any]]]
+) -> None:
+    from geometry_msgs.msg import PoseStamped
+
+    _, peer, got = sim
+    publisher = peer.create_publisher(PoseStamped, "/goal_pose", 10)
+    wait_for(lambda: publisher.get_subscription_count() > 0)
+    goal = PoseStamped()
+    goal.header.frame_id = "map"
+    goal.pose.position.x, goal.pose.position.y = 5.0, 4.0  # the room's centre
+    publisher.publish(goal)
+    wait_for(lambda: any("goal received x=5.00 y=4.00" in e.data for e in got["/events"]))
+
+    def distance() -> float:
+        position = got["/odom"][-1].pose.pose.position
+        return float(((position.x - 5.0) ** 2 + (position.y - 4.0) ** 2) ** 0.5)
+
+    wait_for(lambda: got["/odom"])
+    start = distance()
+    wait_for(lambda: distance() < start - 0.3)  # it drives toward the goal

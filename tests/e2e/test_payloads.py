@@ -1,0 +1,89 @@
+"""Test messages carry their stamp through the real codec and CDR (no ROS needed)."""
+
+from __future__ import annotations
+
+import io
+import json
+
+import pytest
+
+from fleetctl.e2e import payloads, profiles
+from fleetctl.e2e.consumer import Recorder
+from fleetctl.e2e.samples import load
+from fleetctl.errors import FleetError
+from fleetctl.wire.codec import default_codec
+from fleetctl.wire.fragments import split
+
+T_NS = 1_700_000_000_123_456_789
+
+
+@pytest.mark.parametrize("type_name", sorted(payloads.BUILDERS))
+def test_stamp_survives_cdr_and_the_wire(type_name: str) -> None:
+    codec = default_codec()
+    ts = codec.registry.typestore
+    msg = payloads.build(ts, type_name, 5000, 42, T_NS)
+    back = ts.deserialize_cdr(ts.serialize_cdr(msg, type_name), type_name)
+    _, decoded = codec.decode(codec.encode(back, type_name, "/robot1/x"))
+    assert payloads.read_stamp(decoded) == payloads.Stamp(42, T_NS)
+
+
+def test_size_is_close_to_requested() -> None:
+    ts = default_codec().registry.typestore
+    for type_name in ("sensor_msgs/msg/CompressedImage", "sensor_msgs/msg/PointCloud2",
+                      "std_msgs/msg/String", "sensor_msgs/msg/LaserScan"):
+        cdr = ts.serialize_cdr(payloads.build(ts, type_name, 65_536, 1, T_NS), type_name)
+        assert 65_536 <= len(cdr) <= 65_536 + 200, type_name
+
+
+def test_unknown_type_and_unstamped_message_are_clear_errors() -> None:
+    ts = default_codec().registry.typestore
+    with pytest.raises(FleetError, match="no test message builder"):
+        payloads.build(ts, "nav_msgs/msg/Odometry", 10, 1, 0)
+    with pytest.raises(FleetError, match="not an e2e test message"):
+        payloads.read_stamp(ts.types["std_msgs/msg/String"](data="hello"))
+
+
+def test_recorder_reassembles_fragments_and_drops_resent_no_drop() -> None:
+    codec = default_codec()
+    ts = codec.registry.typestore
+    out = io.StringIO()
+    rec = Recorder("c0", out)
+    image = payloads.build(ts, "sensor_msgs/msg/CompressedImage", 50_000, 7, T_NS)
+    frame = codec.encode(image, "sensor_msgs/msg/CompressedImage", "/robot1/img")
+    parts = split(frame, topic="/robot1/img", message_id=1, max_fragment_bytes=4096,
+                  no_drop=False)
+    assert len(parts) > 1
+    results = [rec.feed(p, T_NS + 5_000_000) for p in parts]
+    assert results[:-1] == [None] * (len(parts) - 1)
+    assert results[-1] is not None and results[-1].latency_ms == pytest.approx(5.0)
+    event = payloads.build(ts, "std_msgs/msg/String", 100, 3, T_NS)
+    ev = codec.encode(event, "std_msgs/msg/String", "/robot1/events", no_drop=True, seq=10)
+    assert rec.feed(ev, T_NS + 1) is not None
+    assert rec.feed(ev, T_NS + 2) is None  # a resend after a reconnect
+    assert rec.duplicates == 1
+    assert rec.feed(b"garbage", T_NS) is None and rec.errors == 1
+    got = list(load(out.getvalue()))
+    assert [(s.topic, s.seq) for s in got] == [("/robot1/img", 7), ("/robot1/events", 3)]
+
+
+def test_client_configs_of_profiles_and_baselines() -> None:
+    p = profiles.profile("dropout")
+    cfg = profiles.client_config(p, "ws://1.2.3.4:8080/")
+    assert [e["no_drop"] for e in cfg["publish"]] == [False, False, False, True]
+    base = profiles.client_config(profiles.all_no_drop(p), "ws://x:1/")
+    assert all(e["no_drop"] for e in base["publish"])
+    rf = profiles.robofleet_like(profiles.profile("priority"))
+    assert {t.priority for t in rf.topics} == {1.0}
+    assert rf.max_fragment_bytes >= 65_536 * 2
+    json.dumps(cfg)
+    with pytest.raises(FleetError, match="unknown load profile"):
+        profiles.profile("nope")
+
+
+def test_client_config_is_valid_for_the_client() -> None:
+    from fleetctl.client.config import parse_client_config
+
+    for name, p in profiles.PROFILES.items():
+        parsed = parse_client_config(profiles.client_config(p, "ws://10.0.0.1:8080/"),
+                                     source=name)
+        assert [s.remote_topic for s in parsed.publish] == [t.remote_topic for t in p.topics]

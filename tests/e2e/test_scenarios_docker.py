@@ -1,0 +1,88 @@
+"""The four fleet scenarios, short, through the real router, server, client and consumers.
+
+``fleetctl build`` runs first (cached: a no-op when nothing changed), then one ``fleetctl e2e``
+invocation runs every scenario with its baseline. The report must exist and every scenario
+must have run; the pass criteria are asserted for the scenarios that meet them here (see
+docs/e2e.md for the figures); a criterion that fails is reported, never relaxed.
+"""
+
+from __future__ import annotations
+
+import json
+import shutil
+from pathlib import Path
+from typing import Any
+
+import pytest
+
+from fleetctl.cli.main import main
+
+pytestmark = [
+    pytest.mark.docker,
+    pytest.mark.skipif(shutil.which("docker") is None, reason="needs docker"),
+]
+
+SCENARIOS = ("dropout", "priority", "multi-consumer", "ramp")
+
+
+@pytest.fixture(scope="module")
+def run(tmp_path_factory: pytest.TempPathFactory) -> tuple[int, Path, dict[str, Any]]:
+    assert main(["build"]) == 0
+    out = tmp_path_factory.mktemp("e2e")
+    argv = ["e2e", "--duration", "6", "--out", str(out)]
+    for name in SCENARIOS:
+        argv += ["--scenario", name]
+    code = main(argv)
+    doc = json.loads((out / "report.json").read_text())
+    return code, out, {s["name"]: s for s in doc["scenarios"]}
+
+
+def _criteria(result: dict[str, Any]) -> dict[str, dict[str, Any]]:
+    return {c["name"]: c for c in result["criteria"]}
+
+
+def test_every_scenario_ran_and_the_report_is_written(
+        run: tuple[int, Path, dict[str, Any]]) -> None:
+    code, out, results = run
+    assert set(results) == set(SCENARIOS)
+    for name, result in results.items():
+        assert result["status"] in ("pass", "fail"), (name, result["notes"])
+        assert result["criteria"], name
+        assert (out / f"{name}-0.png").is_file()
+    assert "| multi-consumer |" in (out / "report.md").read_text()
+    all_pass = all(r["status"] == "pass" for r in results.values())
+    assert (code == 0) == all_pass
+
+
+def test_multi_consumer_uplink_is_flat_and_latency_holds(
+        run: tuple[int, Path, dict[str, Any]]) -> None:
+    result = run[2]["multi-consumer"]
+    assert result["status"] == "pass", result["criteria"]
+    fleet = result["steps"]["fleetctl"]
+    assert [s["consumers"] for s in fleet] == [1, 2, 4, 8, 16]
+    assert all(s["received_per_consumer_hz"] > 4.0 for s in fleet)  # 5 Hz published
+
+
+def test_dropout_no_drop_events_arrive_whole_and_in_order(
+        run: tuple[int, Path, dict[str, Any]]) -> None:
+    crits = _criteria(run[2]["dropout"])
+    assert crits["no_drop events missing"]["ok"], crits
+    assert crits["no_drop events out of order or duplicated"]["ok"], crits
+
+
+def test_dropout_recovery(run: tuple[int, Path, dict[str, Any]]) -> None:
+    crits = _criteria(run[2]["dropout"])
+    assert crits["recovery_s (worst droppable topic)"]["ok"], crits
+    assert crits["baseline_recovery_s / recovery_s"]["ok"], crits
+
+
+def test_ramp_and_priority_measure_the_high_priority_topic(
+        run: tuple[int, Path, dict[str, Any]]) -> None:
+    # Their bars (p99 < 100 ms during the ramp, < 15 ms on 6 Mbit/s) are not met yet on this
+    # machine (docs/e2e.md has the figures): the run reports them as failures and exits 1;
+    # here we check that they were measured on enough messages.
+    for name in ("ramp", "priority"):
+        (crit,) = run[2][name]["criteria"]
+        assert crit["value"] == crit["value"], name  # not NaN: the topic was received
+        stats = run[2][name]["stats"]["fleetctl"]
+        assert min(st["count"] for st in stats.values()) > 5, (name, stats)

@@ -38,14 +38,15 @@ _META_SLOT_TIME, _META_SLOT_SEQ = 3, 4
 
 @dataclass(frozen=True)
 class _Template:
-    """One encoded fragment and where its variable parts are (0 = absent)."""
+    """One encoded fragment split around its payload.
 
-    frame: bytes
-    id_pos: int
-    time_pos: int
-    seq_pos: int
-    index_pos: int
-    payload_pos: int
+    ``slots`` locate message_id, publish_time_ns, seq and index as ``(part, position,
+    format)``: part 0 is ``head``, 1 is ``tail``; position -1 means absent (zero).
+    """
+
+    head: bytes
+    tail: bytes
+    slots: tuple[tuple[int, int, struct.Struct], ...]
 
 
 _Shape = tuple[str, bool, int, int, int, bool, bool, bool]
@@ -63,8 +64,8 @@ class Fragmenter:
         self._codec = codec or default_codec()
         self._cls = self._codec.registry.get(FRAGMENT_TYPE).cls
         self._max_shapes = max_shapes
-        self._shapes: OrderedDict[_Shape, tuple[_Template, _Template, _Template]] = (
-            OrderedDict())
+        self._shapes: OrderedDict[
+            _Shape, tuple[_Template, _Template | None, _Template]] = OrderedDict()
         self._overheads: dict[tuple[str, bool, bool, bool, bool], int] = {}
 
     def split(self, frame: bytes, *, topic: str, message_id: int, max_fragment_bytes: int,
@@ -76,7 +77,7 @@ class Fragmenter:
         chunk = max_fragment_bytes - self._overhead(topic, no_drop, meta.publish_time_ns,
                                                     meta.seq, message_id)
         count = math.ceil(len(frame) / chunk) if chunk > 0 else 0
-        if count < 3 or len(frame) > _U32_MAX or message_id > 2**64 - 1 or message_id < 0:
+        if count < 2 or len(frame) > _U32_MAX or message_id > 2**64 - 1 or message_id < 0:
             # Short messages, and every error case, are the reference implementation's job.
             return split(frame, topic=topic, message_id=message_id,
                          max_fragment_bytes=max_fragment_bytes, no_drop=no_drop,
@@ -89,18 +90,15 @@ class Fragmenter:
         out = []
         for i in range(count):
             t = first if i == 0 else last if i == count - 1 else middle
+            assert t is not None
             size = last_len if i == count - 1 else chunk
-            buf = bytearray(t.frame)
-            if t.id_pos:
-                _U64.pack_into(buf, t.id_pos, message_id)
-            if t.time_pos:
-                _U64.pack_into(buf, t.time_pos, meta.publish_time_ns)
-            if t.seq_pos:
-                _U64.pack_into(buf, t.seq_pos, meta.seq)
-            if t.index_pos:
-                _U32.pack_into(buf, t.index_pos, i)
-            buf[t.payload_pos:t.payload_pos + size] = view[i * chunk:i * chunk + size]
-            out.append(bytes(buf))
+            parts = (bytearray(t.head), bytearray(t.tail))
+            values = (message_id, meta.publish_time_ns, meta.seq, i)
+            for (part, pos, fmt), value in zip(t.slots, values, strict=True):
+                if pos >= 0:
+                    fmt.pack_into(parts[part], pos, value)
+            # One copy of the payload: head, payload slice and tail joined.
+            out.append(b"".join((parts[0], view[i * chunk:i * chunk + size], parts[1])))
         return out
 
     def _overhead(self, topic: str, no_drop: bool, time_ns: int, seq: int,
@@ -123,7 +121,7 @@ class Fragmenter:
                                   publish_time_ns=time_ns, seq=seq)
 
     def _templates(self, shape: _Shape, frame: bytes, message_id: int,
-                   meta: Any) -> tuple[_Template, _Template, _Template]:
+                   meta: Any) -> tuple[_Template, _Template | None, _Template]:
         cached = self._shapes.get(shape)
         if cached is not None:
             self._shapes.move_to_end(shape)
@@ -137,7 +135,8 @@ class Fragmenter:
                                    count, len(frame), data[start:start + size], message_id)
             return _locate(encoded, size)
 
-        made = (make(0, chunk), make(1, chunk), make(count - 1, last_len))
+        made = (make(0, chunk), make(1, chunk) if count > 2 else None,
+                make(count - 1, last_len))
         self._shapes[shape] = made
         if len(self._shapes) > self._max_shapes:
             self._shapes.popitem(last=False)
@@ -156,13 +155,25 @@ def _locate(frame: bytes, payload_len: int) -> _Template:
     vector = payload_field + _U32.unpack_from(frame, payload_field)[0]
     if not payload_field or _U32.unpack_from(frame, vector)[0] != payload_len:
         raise WireError("fragment template: payload not where expected")
+    payload_pos = vector + 4
+    end = payload_pos + payload_len
+
+    def where(pos: int, fmt: struct.Struct) -> tuple[int, int, struct.Struct]:
+        if pos == 0:
+            return (0, -1, fmt)
+        if pos + fmt.size <= payload_pos:
+            return (0, pos, fmt)
+        if pos >= end:
+            return (1, pos - end, fmt)
+        raise WireError("fragment template: a scalar overlaps the payload")
+
     return _Template(
-        frame=frame,
-        id_pos=field_pos(frame, root, vt, vt_bytes, _SLOT_ID),
-        time_pos=field_pos(frame, meta_pos, mvt, mvt_bytes, _META_SLOT_TIME),
-        seq_pos=field_pos(frame, meta_pos, mvt, mvt_bytes, _META_SLOT_SEQ),
-        index_pos=field_pos(frame, root, vt, vt_bytes, _SLOT_INDEX),
-        payload_pos=vector + 4,
+        head=frame[:payload_pos],
+        tail=frame[end:],
+        slots=(where(field_pos(frame, root, vt, vt_bytes, _SLOT_ID), _U64),
+               where(field_pos(frame, meta_pos, mvt, mvt_bytes, _META_SLOT_TIME), _U64),
+               where(field_pos(frame, meta_pos, mvt, mvt_bytes, _META_SLOT_SEQ), _U64),
+               where(field_pos(frame, root, vt, vt_bytes, _SLOT_INDEX), _U32)),
     )
 
 

@@ -52,3 +52,18 @@ def test_fast_split_is_much_cheaper_than_split() -> None:
         return best
 
     assert cost(fast_split) * 3 < cost(split)
+
+
+@pytest.mark.parametrize("count", [2, 3, 4])
+@pytest.mark.parametrize(("message_id", "seq"), [(0, 0), (1, 0), (0, 7), (2**64 - 1, 2**63)])
+def test_two_three_and_four_fragments_match_split(count: int, message_id: int, seq: int) -> None:
+    max_bytes = 2000
+    probe = split(string_frame("/t", "q" * 10_000), topic="/t", message_id=message_id,
+                  max_fragment_bytes=max_bytes, no_drop=True)
+    chunk = 10_000 // len(probe)  # roughly the payload per fragment
+    frame = string_frame("/t", "q" * (chunk * count - 300), seq=seq)
+    kw = {"topic": "/t", "message_id": message_id, "max_fragment_bytes": max_bytes,
+          "no_drop": True}
+    reference = split(frame, **kw)  # type: ignore[arg-type]
+    for _ in range(2):  # second round: from the template cache
+        assert fast_split(frame, **kw) == reference  # type: ignore[arg-type]

@@ -317,13 +317,22 @@ class RobotLink:
         extra: dict[str, Any] = {}
         if self.config.bind_address is not None:
             extra["local_addr"] = (self.config.bind_address, 0)
+        connecting = asyncio.ensure_future(connect(
+            self.config.server_url, additional_headers=headers, compression=None,
+            proxy=None, open_timeout=self.tuning.open_timeout_s, ping_interval=None,
+            ping_timeout=None, close_timeout=self.tuning.close_timeout_s,
+            max_size=self.tuning.max_receive_frame_bytes,
+            create_connection=LinkConnection, **extra))
+        stopper = asyncio.ensure_future(self._stop.wait())
+        # stop() must not wait for a connection attempt to time out.
+        await asyncio.wait({connecting, stopper}, return_when=asyncio.FIRST_COMPLETED)
+        stopper.cancel()
+        if not connecting.done():
+            connecting.cancel()
+            await asyncio.gather(connecting, return_exceptions=True)
+            return None
         try:
-            ws = await connect(
-                self.config.server_url, additional_headers=headers, compression=None,
-                proxy=None, open_timeout=self.tuning.open_timeout_s, ping_interval=None,
-                ping_timeout=None, close_timeout=self.tuning.close_timeout_s,
-                max_size=self.tuning.max_receive_frame_bytes,
-                create_connection=LinkConnection, **extra)
+            ws = connecting.result()
             assert isinstance(ws, LinkConnection)
             return ws
         except (OSError, TimeoutError, InvalidHandshake, InvalidURI) as exc:

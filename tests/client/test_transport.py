@@ -267,6 +267,30 @@ async def test_baseline_fixed_window_still_delivers(server: RelayServer, tmp_pat
         assert link.scheduler.in_flight_frames <= 1
 
 
+async def test_stop_does_not_wait_for_a_hanging_connection_attempt(tmp_path: Path) -> None:
+    accepted = asyncio.Event()
+    writers: list[asyncio.StreamWriter] = []
+
+    async def silent(reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
+        writers.append(writer)  # accept TCP, never answer the upgrade
+        accepted.set()
+
+    hang = await asyncio.start_server(silent, "127.0.0.1", 0)
+    port = hang.sockets[0].getsockname()[1]
+    cfg = robot_config(url_of(port), tmp_path)
+    link = RobotLink(cfg, on_frame=lambda f: None, tuning=LinkTuning(open_timeout_s=30.0))
+    task = asyncio.create_task(link.run())
+    try:
+        await asyncio.wait_for(accepted.wait(), 5.0)
+        await asyncio.wait_for(link.stop(), 2.0)
+        await asyncio.wait_for(task, 2.0)
+    finally:
+        for writer in writers:
+            writer.transport.abort()
+        hang.close()
+        await hang.wait_closed()
+
+
 def test_backoff_is_exponential_capped_and_jittered() -> None:
     import random
 

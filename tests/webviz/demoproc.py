@@ -110,7 +110,8 @@ async def _read_until_healthy(
     while True:
         left = deadline - time.monotonic()
         if left <= 0:
-            raise AssertionError(f"demo not healthy after {timeout_s} s:\n" + "\n".join(demo.output))
+            output = "\n".join(demo.output)
+            raise AssertionError(f"demo not healthy after {timeout_s} s:\n{output}")
         try:
             raw = await asyncio.wait_for(proc.stdout.readline(), left)
         except TimeoutError:

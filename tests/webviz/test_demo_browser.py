@@ -106,6 +106,12 @@ async def check_robot_views(page: Any) -> None:
     # The robot's pose arrow and path on the (empty) grid: measured about 115 pixels.
     assert drawn_pixels(await page.locator("#map-canvas").screenshot(), MAP_BG) > 20
     await page.locator("#health tbody tr", has_text="/robot1/scan").wait_for(timeout=TIMEOUT_MS)
+    # Link health counts messages, not fragments: each 240 kB cloud arrives in ~15 frames,
+    # and the client limits /points to 5 Hz (counting frames measured 27 Hz).
+    points = "fleetviz.conn.health.topics.get('/robot1/points')"
+    await wait_js(page, f"{points} && {points}.received >= 3")
+    rate_hz = await page.evaluate(f"{points}.summary(Date.now()).rateHz")
+    assert 0 < rate_hz <= 8, rate_hz
     assert not await page.is_visible("#command-denied")
 
 

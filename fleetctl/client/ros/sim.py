@@ -31,8 +31,10 @@ import rclpy
 from builtin_interfaces.msg import Time
 from geometry_msgs.msg import PoseStamped, PoseWithCovarianceStamped, Quaternion
 from nav_msgs.msg import Odometry
+from rclpy._rclpy_pybind11 import RCLError
 from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
 from rclpy.node import Node
+from rclpy.utilities import ok as rclpy_ok
 from rclpy.utilities import try_shutdown
 from sensor_msgs.msg import BatteryState, CompressedImage, LaserScan, PointCloud2, PointField
 from std_msgs.msg import String
@@ -264,6 +266,11 @@ def run_sim(config: SimConfig) -> None:
         executor.spin()
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
+    except RCLError:
+        # A timer that fired while the signal handler was invalidating the context fails
+        # to publish; that is the shutdown we asked for, anything else is a real error.
+        if rclpy_ok():
+            raise
     finally:
         executor.shutdown()
         node.destroy_node()

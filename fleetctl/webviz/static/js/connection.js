@@ -137,12 +137,14 @@ export class Connection extends EventTarget {
     let meta;
     try {
       meta = readMetadata(bytes);
-      this.health.record(meta, bytes.byteLength);
       if (meta.type === FRAGMENT_TYPE) {
         bytes = this.reassemble(meta, bytes);
         if (!bytes) return;
         meta = readMetadata(bytes);
       }
+      // Health counts whole messages: a 20k-point cloud in 15 fragments is one message, not
+      // 15 (lost fragments show up as the reassembler's drops and as seq gaps).
+      this.health.record(meta, bytes.byteLength);
     } catch (err) {
       return this.decodeFailed(err);
     }

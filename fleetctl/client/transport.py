@@ -42,6 +42,7 @@ from websockets.asyncio.client import ClientConnection, connect
 from websockets.exceptions import ConnectionClosed, InvalidHandshake, InvalidURI
 
 from fleetctl.client.config import ClientConfig
+from fleetctl.client.memory import tune_malloc
 from fleetctl.client.scheduler import Scheduler, SchedulerConfig
 from fleetctl.wire.control import encode_subscription
 from fleetctl.wire.errors import WireError
@@ -69,6 +70,8 @@ class LinkTuning:
             duplicate rather than a restarted sender.
         send_batch_bytes: Frames are handed to the transport in batches up to this size
             (bytes); a batch also ends where an ack point (ping) is due.
+        tune_malloc: Raise glibc's malloc thresholds when :meth:`RobotLink.run` starts
+            (process-wide; see :mod:`fleetctl.client.memory`).
     """
 
     open_timeout_s: float = 3.0
@@ -80,6 +83,7 @@ class LinkTuning:
     reassembly_timeout_s: float = 5.0
     dedupe_window: int = 100_000
     send_batch_bytes: int = 256 * 1024
+    tune_malloc: bool = True
 
 
 class LinkDead(Exception):
@@ -249,6 +253,8 @@ class RobotLink:
 
     async def run(self) -> None:
         """Connect and keep the link up until :meth:`stop`; reconnects on any failure."""
+        if self.tuning.tune_malloc:
+            tune_malloc()
         self._loop = asyncio.get_running_loop()
         self._running = True
         attempt = 0

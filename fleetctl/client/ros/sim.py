@@ -98,6 +98,9 @@ class SimRobot(Node):
         super().__init__(f"{_node_name(config.name)}_sim", context=context)
         self._config = config
         self._state = simworld.start_state(config.room, config.motion, config.phase_rad)
+        # The map/odom frames put the origin at the room's centre (where a map view looks
+        # first); the simulation itself works in room coordinates with a corner at 0, 0.
+        self._origin_m = (config.room.width_m / 2, config.room.depth_m / 2)
         self._started_s = time.monotonic()
         self._last_step_s = self._started_s
         self._event_count = 0
@@ -143,19 +146,18 @@ class SimRobot(Node):
 
     def _on_goal(self, msg: PoseStamped) -> None:
         goal = (float(msg.pose.position.x), float(msg.pose.position.y))
-        self._state.goal = goal
+        self._state.goal = (goal[0] + self._origin_m[0], goal[1] + self._origin_m[1])
         self.get_logger().info(f"goal_pose received: x={goal[0]:.2f} m y={goal[1]:.2f} m")
         self.publish_event(f"goal received x={goal[0]:.2f} y={goal[1]:.2f}")
 
     def _on_initialpose(self, msg: PoseWithCovarianceStamped) -> None:
         pose = msg.pose.pose
-        self._state.x_m, self._state.y_m = float(pose.position.x), float(pose.position.y)
+        x_m, y_m = float(pose.position.x), float(pose.position.y)
+        self._state.x_m, self._state.y_m = x_m + self._origin_m[0], y_m + self._origin_m[1]
         self._state.yaw_rad = _quaternion_yaw(pose.orientation)
         self._state.goal = None
-        self.get_logger().info(
-            f"initialpose received: x={self._state.x_m:.2f} m y={self._state.y_m:.2f} m"
-        )
-        self.publish_event(f"initialpose set x={self._state.x_m:.2f} y={self._state.y_m:.2f}")
+        self.get_logger().info(f"initialpose received: x={x_m:.2f} m y={y_m:.2f} m")
+        self.publish_event(f"initialpose set x={x_m:.2f} y={y_m:.2f}")
 
     def publish_event(self, text: str) -> None:
         """Publish one ``/events`` String (the demo's no_drop topic)."""
@@ -179,8 +181,8 @@ class SimRobot(Node):
         msg.header.stamp = _stamp_now()
         msg.header.frame_id = "odom"
         msg.child_frame_id = "base_link"
-        msg.pose.pose.position.x = self._state.x_m
-        msg.pose.pose.position.y = self._state.y_m
+        msg.pose.pose.position.x = self._state.x_m - self._origin_m[0]
+        msg.pose.pose.position.y = self._state.y_m - self._origin_m[1]
         msg.pose.pose.orientation = _yaw_quaternion(self._state.yaw_rad)
         msg.twist.twist.linear.x = self._state.linear_m_s
         msg.twist.twist.angular.z = self._state.angular_rad_s
@@ -190,8 +192,8 @@ class SimRobot(Node):
         msg = PoseWithCovarianceStamped()
         msg.header.stamp = _stamp_now()
         msg.header.frame_id = "map"
-        msg.pose.pose.position.x = self._state.x_m
-        msg.pose.pose.position.y = self._state.y_m
+        msg.pose.pose.position.x = self._state.x_m - self._origin_m[0]
+        msg.pose.pose.position.y = self._state.y_m - self._origin_m[1]
         msg.pose.pose.orientation = _yaw_quaternion(self._state.yaw_rad)
         cov = np.zeros(36)
         cov[0] = cov[7] = 0.01  # 10 cm standard deviation in x and y

@@ -3,8 +3,9 @@
 Pure numpy (and Pillow for the camera JPEG): no ROS here, so the geometry is unit-tested
 without rclpy. :mod:`fleetctl.client.ros.sim` wraps it in a real rclpy node.
 
-Frames: the room spans ``[0, width_m] x [0, depth_m]`` in the ``map``/``odom`` frame; the
-robot's sensors are at its base, x forward, y left, z up.
+Frames: the room spans ``[0, width_m] x [0, depth_m]`` in room coordinates; the node
+publishes ``map``/``odom`` poses with the origin at the room's centre. The robot's sensors
+are at its base, x forward, y left, z up.
 """
 
 from __future__ import annotations

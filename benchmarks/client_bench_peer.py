@@ -47,13 +47,19 @@ class Sink:
         meta = read_metadata(frame)
         t = self.topics.setdefault(meta.topic, {
             "frames": 0, "bytes": 0, "first_ns": now_ns, "last_ns": now_ns,
-            "latency_ms": [], "last_seq": None, "gaps": 0, "reorders": 0})
+            "latency_ms": [], "recv_ns": [], "last_seq": None, "gaps": 0, "reorders": 0,
+            "duplicates": 0, "seqs": set()})
         t["frames"] += 1
         t["bytes"] += len(frame) if size is None else size
         t["last_ns"] = now_ns
         if meta.publish_time_ns:
             t["latency_ms"].append((now_ns - meta.publish_time_ns) / 1e6)
+            t["recv_ns"].append(now_ns)
         last = t["last_seq"]
+        if meta.seq in t["seqs"]:
+            t["duplicates"] += 1
+            return
+        t["seqs"].add(meta.seq)
         if last is not None and meta.seq:
             if meta.seq < last:
                 t["reorders"] += 1
@@ -93,7 +99,7 @@ async def consume(url: str, sink: Sink, ready: asyncio.Event, light: bool) -> No
                        max_size=None, compression=None, proxy=None, ping_interval=None) as ws:
         # Not /bench/bulk: the throughput figure is robot -> relay (acknowledged by
         # pongs), so no consumer can be its bottleneck.
-        await ws.send(encode_subscription("/bench/(urgent|cloud|points)"))
+        await ws.send(encode_subscription("/bench/(urgent|cloud|points|events)"))
         ready.set()
         async for message in ws:
             if isinstance(message, str):
@@ -119,7 +125,7 @@ async def commands(sink: Sink) -> None:
             sink.reset()
             print(json.dumps({"ok": True}), flush=True)
         elif line == "report":
-            print(json.dumps(sink.topics), flush=True)
+            print(json.dumps(sink.topics, default=len), flush=True)  # seqs: as a count
         elif line == "quit":
             return
 

@@ -44,7 +44,7 @@ def string_frame(topic: str, size: int, seq: int, *, no_drop: bool) -> bytes:
 def make_link(url: str, mode: str, fragment_bytes: int) -> RobotLink:
     config = parse_client_config({
         "server_url": url, "robot_name": "bench",
-        "limits": {"max_fragment_bytes": fragment_bytes, "reconnect_min_s": 0.05}})
+        "limits": {"max_fragment_bytes": fragment_bytes}})
     config = dataclasses.replace(config, token=ROBOT_TOKEN)
     sched = scheduler_config_for(config)
     if mode == "baseline":  # Robofleet: n_T = 1, whole messages
@@ -120,14 +120,14 @@ async def priority(args: argparse.Namespace) -> dict[str, Any]:
     link = make_link(args.url, args.mode, args.fragment_bytes)
     task = asyncio.create_task(link.run())
     await wait_connected(link)
-    seqs = {"/bench/urgent": 0, "/bench/cloud": 0}
+    seqs = {"/bench/urgent": 0, "/bench/cloud": 0, "/bench/events": 0}
     prefix = "/bench/warmup_"  # not subscribed by the consumer: the link learns the rate
 
-    def offer(topic: str, size: int, prio: float) -> None:
+    def offer(topic: str, size: int, prio: float, no_drop: bool = False) -> None:
         topic = topic.replace("/bench/", prefix)
         seqs[topic] = seqs.get(topic, 0) + 1
-        link.offer(topic, string_frame(topic, size, seqs[topic], no_drop=False),
-                   priority=prio, no_drop=False)
+        link.offer(topic, string_frame(topic, size, seqs[topic], no_drop=no_drop),
+                   priority=prio, no_drop=no_drop)
 
     warm_until = time.monotonic() + args.warmup
     warm = [periodic(0.02, warm_until, lambda: offer("/bench/urgent", 1000, 10.0))]
@@ -146,14 +146,17 @@ async def priority(args: argparse.Namespace) -> dict[str, Any]:
             periodic(0.5, stop_at, sample)]
     if args.cloud:
         jobs.append(periodic(0.15, stop_at, lambda: offer("/bench/cloud", 64_000, 1.0)))
+    if args.events:
+        jobs.append(periodic(0.1, stop_at, lambda: offer("/bench/events", 100, 1.0, True)))
     await asyncio.gather(*jobs)
-    await drained(link)
+    await drained(link, 10.0 if args.events else 5.0)
     stats = link.stats()
     await link.stop()
     await task
     return {"sent": seqs, "topics": stats["topics"], "window_bytes": stats["window_bytes"],
             "min_rtt_ms": stats["min_rtt_ms"], "fragment_bytes": stats["fragment_bytes"],
-            "delivery_rate_Bps": stats["delivery_rate_Bps"], "windows": windows}
+            "delivery_rate_Bps": stats["delivery_rate_Bps"], "windows": windows,
+            "reconnects": stats["reconnects"], "link_timeouts": stats["link_timeouts"]}
 
 
 def pointcloud_cdr(size_bytes: int) -> tuple[bytes, Any]:
@@ -212,6 +215,7 @@ def main() -> None:
     parser.add_argument("--size", type=int, default=65536)
     parser.add_argument("--seconds", type=float, default=10.0)
     parser.add_argument("--cloud", action="store_true")
+    parser.add_argument("--events", action="store_true", help="add a 10 Hz no_drop topic")
     parser.add_argument("--warmup", type=float, default=1.0,
                         help="seconds of the same flows on unmeasured topics first")
     parser.add_argument("--fragment-bytes", type=int, default=SchedulerConfig().max_fragment_bytes)

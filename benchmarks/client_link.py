@@ -3,7 +3,7 @@
 Usage (root, for the network namespaces of part b)::
 
     .venv/bin/python benchmarks/client_link.py [--seconds 10] [--json out.json]
-        [--skip throughput,priority,cpu]
+        [--skip throughput,priority,cpu,dropout]
 
 (a) throughput: unshaped loopback, N x 64 KB no_drop frames from the robot into the
     fleetctl relay, from the first send until the pong that acknowledges the last frame;
@@ -17,6 +17,9 @@ Usage (root, for the network namespaces of part b)::
 (c) client cost: 10 Hz 1 MB PointCloud2, per message CDR -> rosbags message -> FlatBuffer
     -> RobotLink (the ROS node's per-message path without rclpy's receive), CPU time of
     the robot process over the run. Bar: < 3 % of one core.
+(d) dropout: the robot's egress between the namespaces is cut silently for 5 s (bfifo
+    limit 0: no netem here); time from restore until latency is back under 2x its
+    pre-cut median, and whether every no_drop message arrived in order.
 
 Each side runs in its own process: relay + consumer (``client_bench_peer.py``) and robot
 (``client_bench_sender.py``).
@@ -215,6 +218,51 @@ def summarize(report: dict[str, Any], sent: dict[str, Any]) -> dict[str, Any]:
     }
 
 
+# -- (d) dropout ------------------------------------------------------------------------
+
+
+def bench_dropout(auth: Path, cut_s: float, rate: str) -> dict[str, Any]:
+    """Cut the robot's egress silently (bfifo limit 0) for *cut_s*, then restore it."""
+    with Namespaces(rate) as ns:
+        peer = Peer(ns.prefix(ns.server), NS_ADDR_SERVER, auth)
+        try:
+            peer.cmd("reset")
+            before_s, after_s = 4.0, 6.0
+            proc = subprocess.Popen(
+                [*ns.prefix(ns.robot), PY, str(HERE / "client_bench_sender.py"), "priority",
+                 "--url", peer.url, "--events", "--seconds", str(before_s + cut_s + after_s)],
+                stdout=subprocess.PIPE, text=True, env={**os.environ,
+                                                        "PYTHONPATH": str(HERE.parent)})
+            time.sleep(1.0 + before_s)  # the scenario's timeline (warm-up, steady state)
+            cut_ns = time.time_ns()
+            sh("tc", "-n", ns.robot, "qdisc", "replace", "dev", ns.veth_r, "root", "bfifo",
+               "limit", "0")
+            time.sleep(cut_s)
+            sh("tc", "-n", ns.robot, "qdisc", "replace", "dev", ns.veth_r, "root", "tbf",
+               "rate", rate, "burst", "32kbit", "latency", "400ms")
+            restore_ns = time.time_ns()
+            out, _ = proc.communicate(timeout=120)
+            sent = json.loads(out.strip().splitlines()[-1])
+            report = peer.cmd("report")
+        finally:
+            peer.close()
+    urgent, events = report.get("/bench/urgent", {}), report.get("/bench/events", {})
+    lat, recv = urgent.get("latency_ms", []), urgent.get("recv_ns", [])
+    pre = [v for v, r in zip(lat, recv, strict=True) if r < cut_ns]
+    median = statistics.median(pre) if pre else float("nan")
+    back = [r for v, r in zip(lat, recv, strict=True) if r > restore_ns and v < 2 * median]
+    first_any = [r for r in recv if r > cut_ns]
+    return {
+        "cut_s": cut_s, "pre_median_ms": median,
+        "first_frame_after_restore_s": (first_any[0] - restore_ns) / 1e9 if first_any else None,
+        "latency_back_under_2x_median_s": (back[0] - restore_ns) / 1e9 if back else None,
+        "events_sent": sent["sent"]["/bench/events"], "events_received": events.get("frames"),
+        "events_duplicates": events.get("duplicates"), "events_gaps": events.get("gaps"),
+        "events_reorders": events.get("reorders"), "reconnects": sent["reconnects"],
+        "link_timeouts": sent["link_timeouts"],
+    }
+
+
 # -- (c) client cost -----------------------------------------------------------------------
 
 
@@ -277,6 +325,18 @@ def main() -> None:
                 print(f"    max_fragment_bytes {cap:>7d}: CPU {c['cpu_percent']:.2f}%, "
                       f"RSS {c['rss_mb']:.0f} MB, sent {c['sent']}/{c['offered']}, "
                       f"received {c['received']}")
+        if "dropout" not in skip:
+            results["dropout"] = d = bench_dropout(auth, 5.0, args.rate)
+            print(f"(d) dropout: robot egress silently cut for {d['cut_s']:.0f} s "
+                  f"(bfifo limit 0), {args.rate} tbf otherwise; 1 KB @ 50 Hz droppable + "
+                  f"10 Hz no_drop")
+            print(f"    first frame {d['first_frame_after_restore_s']} s after restore; latency "
+                  f"back under 2x pre-cut median ({d['pre_median_ms']:.1f} ms) after "
+                  f"{d['latency_back_under_2x_median_s']} s; reconnects {d['reconnects']} "
+                  f"(link timeouts {d['link_timeouts']})")
+            print(f"    no_drop: {d['events_received']}/{d['events_sent']} received, "
+                  f"gaps {d['events_gaps']}, reorders {d['events_reorders']}, "
+                  f"duplicates {d['events_duplicates']}")
     if args.json:
         args.json.write_text(json.dumps(results, indent=2))
 

@@ -60,6 +60,8 @@ class LinkTuning:
 
     Attributes:
         open_timeout_s: Limit of one connection attempt (TCP + TLS + upgrade), seconds.
+        first_open_timeout_s: Limit of the first attempt after a connection was lost;
+            doubles per failed attempt up to ``open_timeout_s`` (seconds).
         keepalive_interval_s: A ping is sent when the link was idle this long, seconds.
         link_timeout_s: A ping unanswered this long means the link is dead, seconds.
         close_timeout_s: Time allowed for the closing handshake on stop, seconds.
@@ -74,7 +76,8 @@ class LinkTuning:
             (process-wide; see :mod:`fleetctl.client.memory`).
     """
 
-    open_timeout_s: float = 3.0
+    open_timeout_s: float = 5.0
+    first_open_timeout_s: float = 1.0
     keepalive_interval_s: float = 0.5
     link_timeout_s: float = 3.0
     close_timeout_s: float = 1.0
@@ -200,6 +203,7 @@ class RobotLink:
         self._last_close: str | None = None
         self._identities: list[str] = []
         self._subscribed: set[str] = set()  # confirmed by the server on this connection
+        self._acked_any = False  # a pong came back on the current connection
 
     # -- the API used by the ROS node -----------------------------------------------------
 
@@ -312,6 +316,13 @@ class RobotLink:
         return backoff_delay_s(max(attempt - 1, 0), lim.reconnect_min_s, lim.reconnect_max_s,
                                self._rng)
 
+    def _open_timeout(self, attempt: int) -> float:
+        """Short first attempts (a SYN lost during a dropout is retried by TCP only after
+        1 s, then 3 s: a fresh attempt is quicker), doubling up to ``open_timeout_s``
+        so a slow link still gets to finish its handshake."""
+        first = self.tuning.first_open_timeout_s
+        return min(self.tuning.open_timeout_s, first * 2.0 ** min(attempt, 16))
+
     async def _wait_stop(self, timeout_s: float) -> None:
         with contextlib.suppress(TimeoutError):
             await asyncio.wait_for(self._stop.wait(), timeout_s)
@@ -325,7 +336,7 @@ class RobotLink:
             extra["local_addr"] = (self.config.bind_address, 0)
         connecting = asyncio.ensure_future(connect(
             self.config.server_url, additional_headers=headers, compression=None,
-            proxy=None, open_timeout=self.tuning.open_timeout_s, ping_interval=None,
+            proxy=None, open_timeout=self._open_timeout(attempt), ping_interval=None,
             ping_timeout=None, close_timeout=self.tuning.close_timeout_s,
             max_size=self.tuning.max_receive_frame_bytes,
             create_connection=LinkConnection, **extra))
@@ -368,8 +379,11 @@ class RobotLink:
             done, _ = await asyncio.wait([*tasks, stop], return_when=asyncio.FIRST_COMPLETED)
             stop.cancel()
             for task in done:
-                if task is not stop and not task.cancelled() and task.exception() is not None:
-                    self._log_session_end(task.exception())
+                if task is stop or task.cancelled():
+                    continue
+                # A clean close (1000/1001, e.g. a server restart) ends the receive loop
+                # without an exception: report it like the others.
+                self._log_session_end(task.exception() or _close_exc(ws))
             if self._stop.is_set():
                 await self._goodbye(ws)
         except ConnectionClosed as exc:
@@ -500,6 +514,14 @@ class RobotLink:
                            event.get("message"))
         else:
             logger.debug("server: %.200s", text)
+
+
+def _close_exc(ws: LinkConnection) -> ConnectionClosed | None:
+    """The close code and reason of a closed connection (None if not closed yet)."""
+    try:
+        return ws.protocol.close_exc
+    except AssertionError:  # websockets asserts the connection is CLOSED
+        return None
 
 
 class _Receiver:

@@ -17,6 +17,6 @@ def test_tune_malloc_applies_once_on_glibc() -> None:
 
 def test_tune_malloc_without_glibc_is_a_no_op(monkeypatch: pytest.MonkeyPatch) -> None:
     monkeypatch.setattr(memory, "_done", False)
-    monkeypatch.setattr(memory.ctypes.util, "find_library", lambda name: "libnonexistent.so.9")
+    monkeypatch.setattr("ctypes.util.find_library", lambda name: "libnonexistent.so.9")
     assert memory.tune_malloc() is False
     assert memory._done is False

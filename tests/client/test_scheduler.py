@@ -43,7 +43,7 @@ class FakeLink:
         self.tokens: list[int] = []
 
     def drain(self, now: float, limit: int = 10_000) -> list[bytes]:
-        out = []
+        out: list[bytes] = []
         while len(out) < limit and (frame := self.sched.next_frame(now)) is not None:
             out.append(frame)
             if self.sched.wants_ack_point(now):
@@ -353,7 +353,7 @@ def test_newer_data_supersedes_a_message_being_sent() -> None:
     rest = link.drain(0.1)
     assert all(f.endswith(b"2" * 100) for f in rest) and len(rest) == 3
     st = s.stats()["topics"]["/cloud"]  # type: ignore[index]
-    assert st["dropped_superseded"] == 1 and st["sent"] == 1  # type: ignore[index]
+    assert st["dropped_superseded"] == 1 and st["sent"] == 1
 
 
 def test_supersede_streak_guard_lets_a_message_complete() -> None:
@@ -367,7 +367,7 @@ def test_supersede_streak_guard_lets_a_message_complete() -> None:
     rest = link.drain(0.2)
     assert [f[-1:] for f in rest] == [b"2", b"2", b"3", b"3", b"3"]
     st = s.stats()["topics"]["/c"]  # type: ignore[index]
-    assert st["dropped_superseded"] == 1 and st["sent"] == 2  # type: ignore[index]
+    assert st["dropped_superseded"] == 1 and st["sent"] == 2
 
 
 def test_window_full_does_not_start_a_pending_message() -> None:
@@ -379,7 +379,7 @@ def test_window_full_does_not_start_a_pending_message() -> None:
     assert link.drain(0.0) == []
     s.offer("/c", b"2" * 300, 0.0, priority=1, no_drop=False)  # replaces, not supersedes
     st = s.stats()["topics"]["/c"]  # type: ignore[index]
-    assert st["dropped_replaced"] == 1 and st["dropped_superseded"] == 0  # type: ignore[index]
+    assert st["dropped_replaced"] == 1 and st["dropped_superseded"] == 0
 
 
 # -- reconnect ----------------------------------------------------------------------------

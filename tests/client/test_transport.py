@@ -141,6 +141,26 @@ async def test_server_restart_every_no_drop_message_delivered_in_order(tmp_path:
         await srv.stop()
 
 
+async def test_clean_server_close_is_reported_and_reconnected(tmp_path: Path) -> None:
+    srv = make_server(tmp_path)
+    await srv.start()
+    port = srv.port
+    cfg = robot_config(url_of(port), tmp_path,
+                       limits={"reconnect_min_s": 0.05, "reconnect_max_s": 0.1})
+    try:
+        async with running(RobotLink(cfg, on_frame=lambda f: None, tuning=FAST)) as link:
+            await wait_until(lambda: bool(link.stats()["identities"]))
+            await srv.stop()  # closes every connection with 1001
+            await wait_until(lambda: not link.stats()["connected"])
+            assert str(link.stats()["last_close"]).startswith("1001")
+            srv = make_server(tmp_path, port)
+            await srv.start()
+            await wait_until(lambda: link.stats()["reconnects"] == 1
+                             and link.stats()["subscribed"] == ["/r1/cmd.*"])
+    finally:
+        await srv.stop()
+
+
 async def test_silent_link_is_detected_and_no_drop_survives(
     server: RelayServer, tmp_path: Path, caplog: pytest.LogCaptureFixture
 ) -> None:

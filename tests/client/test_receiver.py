@@ -1,0 +1,66 @@
+"""The link's receive path in isolation: bad frames, callback errors, reassembly, dedupe."""
+
+from __future__ import annotations
+
+import logging
+
+import pytest
+
+from fleetctl.client.transport import LinkTuning, _Receiver
+from fleetctl.wire.fragments import split
+from tests.client.conftest import string_frame, text_of
+
+
+def make(received: list[bytes], *, fail: bool = False) -> _Receiver:
+    def on_frame(frame: bytes) -> None:
+        if fail:
+            raise ValueError("callback bug")
+        received.append(frame)
+
+    return _Receiver(LinkTuning(dedupe_window=100), lambda: 0.0, on_frame)
+
+
+def test_malformed_frames_are_counted_and_logged(caplog: pytest.LogCaptureFixture) -> None:
+    received: list[bytes] = []
+    rx = make(received)
+    rx.on_binary(b"\x01\x02")
+    rx.on_binary(b"\xff" * 64)
+    rx.on_binary(string_frame("/a", "ok"))
+    assert [text_of(f) for f in received] == ["ok"]
+    assert rx.stats()["malformed"] == 2
+    assert "malformed" in caplog.text
+
+
+def test_callback_errors_do_not_escape(caplog: pytest.LogCaptureFixture) -> None:
+    caplog.set_level(logging.ERROR)
+    rx = make([], fail=True)
+    rx.on_binary(string_frame("/a", "x"))
+    assert rx.stats()["callback_errors"] == 1
+    assert "on_frame failed" in caplog.text
+
+
+def test_fragments_reassemble_and_lost_fragment_is_never_delivered() -> None:
+    received: list[bytes] = []
+    rx = make(received)
+    whole = string_frame("/cloud", "c" * 20_000)
+    parts = split(whole, topic="/cloud", message_id=1, max_fragment_bytes=4096, no_drop=False)
+    for part in parts[:2] + parts[3:]:  # one fragment lost
+        rx.on_binary(part)
+    newer = string_frame("/cloud", "d" * 20_000)
+    for part in split(newer, topic="/cloud", message_id=2, max_fragment_bytes=4096,
+                      no_drop=False):
+        rx.on_binary(part)
+    assert received == [newer]
+    assert rx.stats()["reassembly"]["superseded"] == 1
+
+
+def test_dedupe_window_accepts_a_restarted_sender() -> None:
+    received: list[bytes] = []
+    rx = make(received)
+    for seq in (1000, 1001, 1001, 999, 5, 6):  # 5: far below -> a restarted sender
+        rx.on_binary(string_frame("/e", f"s{seq}", no_drop=True, seq=seq))
+    assert [text_of(f) for f in received] == ["s1000", "s1001", "s5", "s6"]
+    assert rx.stats()["duplicates"] == 2
+    rx.on_binary(string_frame("/d", "droppable repeats are not deduped", seq=6))
+    rx.on_binary(string_frame("/d", "droppable repeats are not deduped", seq=6))
+    assert len(received) == 6

@@ -251,7 +251,7 @@ def bench_dropout(auth: Path, cut_s: float, rate: str) -> dict[str, Any]:
     pre = [v for v, r in zip(lat, recv, strict=True) if r < cut_ns]
     median = statistics.median(pre) if pre else float("nan")
     back = [r for v, r in zip(lat, recv, strict=True) if r > restore_ns and v < 2 * median]
-    first_any = [r for r in recv if r > cut_ns]
+    first_any = [r for r in recv if r > restore_ns]
     return {
         "cut_s": cut_s, "pre_median_ms": median,
         "first_frame_after_restore_s": (first_any[0] - restore_ns) / 1e9 if first_any else None,

@@ -33,5 +33,6 @@ def test_fleet_error_is_one_line_on_stderr(
     monkeypatch.setattr(cli_main, "build_app", broken_app)
     assert cli_main.main([]) == ExitCode.CONFIG
     err = capsys.readouterr().err
-    assert err.strip() == "fleetctl: error: fleet.yaml: robots[0].ip: 10.9.0.2 is outside 10.8.0.0/24"
+    expected = "fleetctl: error: fleet.yaml: robots[0].ip: 10.9.0.2 is outside 10.8.0.0/24"
+    assert err.strip() == expected
     assert "Traceback" not in err

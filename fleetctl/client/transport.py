@@ -43,11 +43,9 @@ from websockets.exceptions import ConnectionClosed, InvalidHandshake, InvalidURI
 
 from fleetctl.client.config import ClientConfig
 from fleetctl.client.memory import tune_malloc
+from fleetctl.client.receiver import Receiver
 from fleetctl.client.scheduler import Scheduler, SchedulerConfig
 from fleetctl.wire.control import encode_subscription
-from fleetctl.wire.errors import WireError
-from fleetctl.wire.fragments import FRAGMENT_TYPE, Reassembler
-from fleetctl.wire.metadata import read_metadata
 
 logger = logging.getLogger("fleetctl.client.link")
 
@@ -197,7 +195,10 @@ class RobotLink:
         self._ws: LinkConnection | None = None
         self._pings: dict[int, float] = {}  # token -> sent time (s), this connection only
         self._last_send_s = 0.0
-        self._receiver = _Receiver(self.tuning, clock, on_frame)
+        tune = self.tuning
+        self._receiver = Receiver(
+            clock, on_frame, reassembly_max_bytes=tune.reassembly_max_bytes,
+            reassembly_timeout_s=tune.reassembly_timeout_s, dedupe_window=tune.dedupe_window)
         self._counters: Counter[str] = Counter()
         self._server_errors: Counter[str] = Counter()
         self._last_close: str | None = None
@@ -522,59 +523,3 @@ def _close_exc(ws: LinkConnection) -> ConnectionClosed | None:
         return ws.protocol.close_exc
     except AssertionError:  # websockets asserts the connection is CLOSED
         return None
-
-
-class _Receiver:
-    """Reassembly, duplicate suppression and delivery of frames from the server."""
-
-    def __init__(self, tuning: LinkTuning, clock: Clock,
-                 on_frame: Callable[[bytes], None]) -> None:
-        self._tuning = tuning
-        self._clock = clock
-        self._on_frame = on_frame
-        self._reassembler = Reassembler(tuning.reassembly_max_bytes, tuning.reassembly_timeout_s)
-        self._last_seq: dict[str, int] = {}
-        self._counters: Counter[str] = Counter()
-
-    def on_binary(self, frame: bytes) -> None:
-        try:
-            meta = read_metadata(frame)
-            if meta.type == FRAGMENT_TYPE:
-                whole = self._reassembler.feed(frame, self._clock())
-                if whole is None:
-                    return
-                frame, meta = whole, read_metadata(whole)
-        except WireError as exc:
-            self._counters["malformed"] += 1
-            logger.warning("dropped a malformed frame from the server: %s", exc)
-            return
-        if meta.no_drop and self._is_duplicate(meta.topic, meta.seq):
-            self._counters["duplicates"] += 1
-            return
-        self._counters["frames"] += 1
-        try:
-            self._on_frame(frame)
-        except Exception:
-            self._counters["callback_errors"] += 1
-            logger.exception("on_frame failed for a frame on %s", meta.topic)
-
-    def _is_duplicate(self, topic: str, seq: int) -> bool:
-        last = self._last_seq.get(topic)
-        if last is not None and last - self._tuning.dedupe_window < seq <= last:
-            return True
-        self._last_seq[topic] = seq
-        return False
-
-    def on_disconnect(self) -> None:
-        """Keep seqs (duplicates come right after a reconnect); nothing else to reset."""
-
-    def stats(self) -> dict[str, Any]:
-        out: dict[str, Any] = dict(self._counters)
-        out["reassembly"] = _reassembler_stats(self._reassembler)
-        return out
-
-
-def _reassembler_stats(reassembler: Reassembler) -> dict[str, Any]:
-    counters = dict(vars(reassembler.stats))
-    counters["pending_bytes"] = reassembler.pending_bytes
-    return counters

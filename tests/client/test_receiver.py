@@ -6,18 +6,19 @@ import logging
 
 import pytest
 
-from fleetctl.client.transport import LinkTuning, _Receiver
+from fleetctl.client.receiver import Receiver
 from fleetctl.wire.fragments import split
 from tests.client.conftest import string_frame, text_of
 
 
-def make(received: list[bytes], *, fail: bool = False) -> _Receiver:
+def make(received: list[bytes], *, fail: bool = False) -> Receiver:
     def on_frame(frame: bytes) -> None:
         if fail:
             raise ValueError("callback bug")
         received.append(frame)
 
-    return _Receiver(LinkTuning(dedupe_window=100), lambda: 0.0, on_frame)
+    return Receiver(lambda: 0.0, on_frame, reassembly_max_bytes=10**6, reassembly_timeout_s=5.0,
+                    dedupe_window=100)
 
 
 def test_malformed_frames_are_counted_and_logged(caplog: pytest.LogCaptureFixture) -> None:

@@ -28,7 +28,7 @@ from websockets.asyncio.client import connect
 
 from fleetctl.client.config import parse_client_config
 from fleetctl.client.scheduler import SchedulerConfig
-from fleetctl.client.transport import RobotLink, scheduler_config_for
+from fleetctl.client.transport import LinkTuning, RobotLink, scheduler_config_for
 from fleetctl.wire.codec import default_codec
 
 ROBOT_TOKEN = "bench-robot-token"
@@ -41,7 +41,8 @@ def string_frame(topic: str, size: int, seq: int, *, no_drop: bool) -> bytes:
                         seq=seq, publish_time_ns=time.time_ns())
 
 
-def make_link(url: str, mode: str, fragment_bytes: int) -> RobotLink:
+def make_link(url: str, mode: str, fragment_bytes: int, batch_bytes: int = 1024 * 1024,
+              write_limit: int = 1024 * 1024) -> RobotLink:
     config = parse_client_config({
         "server_url": url, "robot_name": "bench",
         "limits": {"max_fragment_bytes": fragment_bytes}})
@@ -49,7 +50,9 @@ def make_link(url: str, mode: str, fragment_bytes: int) -> RobotLink:
     sched = scheduler_config_for(config)
     if mode == "baseline":  # Robofleet: n_T = 1, whole messages
         sched = dataclasses.replace(sched, fixed_window_messages=1, fragments=False)
-    return RobotLink(config, on_frame=lambda f: None, scheduler_config=sched)
+    return RobotLink(config, on_frame=lambda f: None, scheduler_config=sched,
+                     tuning=LinkTuning(send_batch_bytes=batch_bytes,
+                                       write_limit_bytes=write_limit))
 
 
 async def wait_connected(link: RobotLink) -> None:
@@ -71,7 +74,8 @@ async def throughput(args: argparse.Namespace) -> dict[str, Any]:
             await (await ws.ping())  # the pong: the relay has read everything before it
             return {"seconds": time.perf_counter() - start, "bytes": args.frames * len(frame),
                     "cpu_s": time.process_time() - cpu0}
-    link = make_link(args.url, args.mode, args.fragment_bytes)
+    link = make_link(args.url, args.mode, args.fragment_bytes, args.batch_bytes,
+                     args.write_limit)
     task = asyncio.create_task(link.run())
     await wait_connected(link)
     start, cpu0 = time.perf_counter(), time.process_time()
@@ -215,6 +219,8 @@ def main() -> None:
     parser.add_argument("--seconds", type=float, default=10.0)
     parser.add_argument("--cloud", action="store_true")
     parser.add_argument("--events", action="store_true", help="add a 10 Hz no_drop topic")
+    parser.add_argument("--batch-bytes", type=int, default=1024 * 1024)
+    parser.add_argument("--write-limit", type=int, default=1024 * 1024)
     parser.add_argument("--warmup", type=float, default=1.0,
                         help="seconds of the same flows on unmeasured topics first")
     parser.add_argument("--fragment-bytes", type=int, default=SchedulerConfig().max_fragment_bytes)

@@ -425,22 +425,33 @@ class Scheduler:
         """True when the transport should send a ping now.
 
         Due when frames were sent since the last ack point and either a fraction of the
-        window went out without one, or nothing more can be sent right now (queue empty
-        or window full: only a pong can open it).
+        window went out without one (:meth:`ack_due`), or nothing more can be sent right
+        now (queue empty or window full: only a pong can open it).
+        """
+        return self.has_unpinged() and (self.ack_due() or not self._can_send(now_s))
+
+    def has_unpinged(self) -> bool:
+        """True when frames were sent after the last ack point."""
+        points = self._ack_points
+        last = points[-1].sent_frames_total if points else self._acked_frames_total
+        return self._sent_frames_total != last
+
+    def ack_due(self) -> bool:
+        """True when ``ack_every_window_fraction`` of the window went out without a ping.
+
+        Cheap enough for every frame; a sender that stops because :meth:`next_frame`
+        returned None should ping when :meth:`has_unpinged` (that is the other case of
+        :meth:`wants_ack_point`).
         """
         points = self._ack_points
-        last_bytes = points[-1].sent_bytes_total if points else self._acked_bytes_total
-        last_frames = points[-1].sent_frames_total if points else self._acked_frames_total
-        if self._sent_frames_total == last_frames:
-            return False
         cfg = self.config
         if cfg.fixed_window_messages is not None:
-            due = self._sent_frames_total - last_frames >= max(
+            last_frames = points[-1].sent_frames_total if points else self._acked_frames_total
+            return self._sent_frames_total - last_frames >= max(
                 1.0, cfg.ack_every_window_fraction * cfg.fixed_window_messages)
-        else:
-            due = self._sent_bytes_total - last_bytes >= (
-                cfg.ack_every_window_fraction * self.window_bytes())
-        return due or not self._can_send(now_s)
+        last_bytes = points[-1].sent_bytes_total if points else self._acked_bytes_total
+        return self._sent_bytes_total - last_bytes >= (
+            cfg.ack_every_window_fraction * self._window)
 
     def _can_send(self, now_s: float) -> bool:
         _, msg, frame = self._candidate(now_s)

@@ -70,6 +70,9 @@ class LinkTuning:
             duplicate rather than a restarted sender.
         send_batch_bytes: Frames are handed to the transport in batches up to this size
             (bytes); a batch also ends where an ack point (ping) is due.
+        write_limit_bytes: High-water mark of the transport's write buffer (bytes): a
+            write waits above it. Small enough that data waits in the scheduler (where it
+            can be superseded), large enough that one batch does not stall on it.
         tune_malloc: Raise glibc's malloc thresholds when :meth:`RobotLink.run` starts
             (process-wide; see :mod:`fleetctl.client.memory`).
     """
@@ -83,7 +86,8 @@ class LinkTuning:
     reassembly_max_bytes: int = 64 * 1024 * 1024
     reassembly_timeout_s: float = 5.0
     dedupe_window: int = 100_000
-    send_batch_bytes: int = 256 * 1024
+    send_batch_bytes: int = 1024 * 1024
+    write_limit_bytes: int = 1024 * 1024
     tune_malloc: bool = True
 
 
@@ -340,6 +344,7 @@ class RobotLink:
             proxy=None, open_timeout=self._open_timeout(attempt), ping_interval=None,
             ping_timeout=None, close_timeout=self.tuning.close_timeout_s,
             max_size=self.tuning.max_receive_frame_bytes,
+            write_limit=self.tuning.write_limit_bytes,
             create_connection=LinkConnection, **extra))
         stopper = asyncio.ensure_future(self._stop.wait())
         # stop() must not wait for a connection attempt to time out.
@@ -442,7 +447,7 @@ class RobotLink:
             while (frame := sched.next_frame(now)) is not None:
                 batch.append(frame)
                 size += len(frame)
-                due = sched.wants_ack_point(now)
+                due = sched.ack_due()
                 if due or size >= batch_limit:
                     await ws.send_frames(batch)
                     batch, size = [], 0
@@ -452,7 +457,8 @@ class RobotLink:
             if batch:
                 await ws.send_frames(batch)
                 self._last_send_s = now = clock()
-            if sched.wants_ack_point(now):
+            # next_frame said no (queue empty or window full): only a pong can help now.
+            if sched.has_unpinged():
                 await self._ping(ws, now)
             elif not self._pings and now - self._last_send_s >= self.tuning.keepalive_interval_s:
                 await self._ping(ws, now)  # keepalive: proves the link and samples RTT

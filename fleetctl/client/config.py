@@ -103,13 +103,14 @@ class ClientLimits:
     """Bounds of the link.
 
     Attributes:
-        max_fragment_bytes: Frames larger than this are sent as fragments (bytes).
+        max_fragment_bytes: Upper bound of a fragment (bytes); the client sizes fragments
+            to about 3 ms of the measured link rate below it.
         no_drop_queue_messages: Bound of the no_drop FIFO, kept across reconnects.
         reconnect_min_s: First reconnect delay in seconds (doubles per failure, jittered).
         reconnect_max_s: Cap of the reconnect delay in seconds.
     """
 
-    max_fragment_bytes: int = 16384
+    max_fragment_bytes: int = 1048576
     no_drop_queue_messages: int = 10000
     reconnect_min_s: float = 0.1
     reconnect_max_s: float = 5.0

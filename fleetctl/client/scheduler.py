@@ -106,7 +106,7 @@ class SchedulerConfig:
             a restarted client are newer than the previous run's.
     """
 
-    max_fragment_bytes: int = 16384
+    max_fragment_bytes: int = 1048576
     min_fragment_bytes: int = 1024
     initial_fragment_bytes: int = 4096
     fragment_time_s: float = 0.003

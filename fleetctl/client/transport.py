@@ -41,6 +41,7 @@ from typing import Any
 from websockets.asyncio.client import ClientConnection, connect
 from websockets.exceptions import ConnectionClosed, InvalidHandshake, InvalidURI
 
+from fleetctl.batched_connection import BatchedWritesConnection
 from fleetctl.client.config import ClientConfig
 from fleetctl.client.memory import tune_malloc
 from fleetctl.client.receiver import Receiver
@@ -95,47 +96,14 @@ class LinkDead(Exception):
     """No pong within ``link_timeout_s``: the connection is abandoned."""
 
 
-class LinkConnection(ClientConnection):
+class LinkConnection(BatchedWritesConnection, ClientConnection):
     """Client connection that writes a batch of binary frames in one transport write.
 
     ``send()`` costs a flow-control round through the event loop per frame; fragments
-    make frames small and many, so the link hands the transport a batch instead (the
-    server's ``RelayConnection.send_frames`` does the same). Flow control is unchanged:
-    ``send_context`` waits while the write buffer is above ``write_limit``.
+    make frames small and many, so the link hands the transport a batch instead (see
+    :class:`~fleetctl.batched_connection.BatchedWritesConnection`, which the server's
+    ``RelayConnection`` shares).
     """
-
-    async def send_frames(self, frames: list[bytes]) -> None:
-        """Send each item as one binary frame, in order.
-
-        Raises:
-            ConnectionClosed: The connection is closed or closing.
-        """
-        async with self.send_context():
-            for frame in frames:
-                self.protocol.send_binary(frame)
-
-    def send_data(self) -> None:
-        """Write pending protocol output; consecutive data chunks go in one write call."""
-        pending: list[bytes] = []
-        for data in self.protocol.data_to_send():
-            if data:
-                pending.append(data)
-                continue
-            self._flush(pending)
-            # An empty chunk means "end of stream" (websockets' convention).
-            if self.transport.can_write_eof():
-                with contextlib.suppress(OSError, RuntimeError):
-                    self.transport.write_eof()
-            else:
-                self.transport.close()
-        self._flush(pending)
-
-    def _flush(self, pending: list[bytes]) -> None:
-        if len(pending) == 1:
-            self.transport.write(pending[0])
-        elif pending:
-            self.transport.writelines(pending)
-        pending.clear()
 
 
 def scheduler_config_for(config: ClientConfig) -> SchedulerConfig:

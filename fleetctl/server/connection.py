@@ -6,10 +6,11 @@ hot path:
 - complete binary frames go straight from ``data_received`` to :attr:`frame_sink`
   (synchronously, no queue, no task switch). Text frames, fragmented messages, pings and
   close frames take the normal path (``recv()`` / the protocol).
-- :meth:`send_frames` serializes a batch of frames and hands the transport one buffer,
-  instead of one ``write()`` (often one syscall) per frame.
+- ``send_frames`` serializes a batch of frames and hands the transport one buffer,
+  instead of one ``write()`` (often one syscall) per frame (from
+  :class:`~fleetctl.batched_connection.BatchedWritesConnection`, shared with the client).
 
-Flow control is unchanged: :meth:`send_frames` waits while the transport's write buffer is
+Flow control is unchanged: ``send_frames`` waits while the transport's write buffer is
 above ``write_limit``, so a writer never queues more than that in the kernel-facing
 buffer; everything else waits in the per-connection
 :class:`~fleetctl.server.outbound.OutboundScheduler`, where it can be dropped.
@@ -17,17 +18,18 @@ buffer; everything else waits in the per-connection
 
 from __future__ import annotations
 
-import contextlib
-from collections.abc import Callable, Iterable
+from collections.abc import Callable
 from typing import Any
 
 from websockets.asyncio.server import ServerConnection
 from websockets.frames import Frame, Opcode
 
+from fleetctl.batched_connection import BatchedWritesConnection
+
 _DATA = (Opcode.TEXT, Opcode.BINARY, Opcode.CONT)
 
 
-class RelayConnection(ServerConnection):
+class RelayConnection(BatchedWritesConnection, ServerConnection):
     """Server connection with a synchronous binary-frame sink and batched writes."""
 
     def __init__(self, *args: Any, **kwargs: Any) -> None:
@@ -77,39 +79,3 @@ class RelayConnection(ServerConnection):
         on_lost, self.on_lost = self.on_lost, None
         if on_lost is not None:
             on_lost()
-
-    async def send_frames(self, frames: Iterable[bytes | str]) -> None:
-        """Send each item as one frame (``str`` as text), in one transport write.
-
-        Raises:
-            ConnectionClosed: The connection is closed or closing.
-        """
-        async with self.send_context():
-            for frame in frames:
-                if isinstance(frame, str):
-                    self.protocol.send_text(frame.encode())
-                else:
-                    self.protocol.send_binary(frame)
-
-    def send_data(self) -> None:
-        """Write pending protocol output; consecutive data chunks go in one write."""
-        pending: list[bytes] = []
-        for data in self.protocol.data_to_send():
-            if data:
-                pending.append(data)
-                continue
-            self._flush(pending)
-            # An empty chunk means "end of stream" (websockets' convention).
-            if self.transport.can_write_eof():
-                with contextlib.suppress(OSError, RuntimeError):
-                    self.transport.write_eof()
-            else:
-                self.transport.close()
-        self._flush(pending)
-
-    def _flush(self, pending: list[bytes]) -> None:
-        if len(pending) == 1:
-            self.transport.write(pending[0])
-        elif pending:
-            self.transport.write(b"".join(pending))
-        pending.clear()

@@ -20,37 +20,22 @@ import subprocess
 import sys
 import time
 from pathlib import Path
+from typing import Any
 
 from fleetctl.e2e.payloads import read_stamp
 from fleetctl.e2e.profiles import ROBOT
 from fleetctl.e2e.samples import Sample, dump
 
-_SPIN_TIMEOUT_S = 0.05
-
 
 def run_one(topic: str, type_name: str, name: str, out_dir: Path) -> None:
     """One subscriber: record *topic* until SIGTERM/SIGINT."""
-    import rclpy
-    from rclpy.context import Context
-    from rclpy.executors import SingleThreadedExecutor
     from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
-    from rclpy.signals import SignalHandlerOptions
 
     from fleetctl.client.ros.msgtypes import message_class
+    from fleetctl.client.ros.spin import spin_until_signal
     from fleetctl.wire.registry import TypeRegistry
 
     ts = TypeRegistry.default().typestore
-    stop = False
-
-    def on_signal(signum: int, frame: object) -> None:
-        nonlocal stop
-        stop = True
-
-    signal.signal(signal.SIGTERM, on_signal)
-    signal.signal(signal.SIGINT, on_signal)
-    context = Context()
-    rclpy.init(context=context, signal_handler_options=SignalHandlerOptions.NO)
-    node = rclpy.create_node(f"e2e_dds_{name.replace('-', '_')}", context=context)
     wire_topic = f"/{ROBOT}{topic}"
     with (out_dir / f"{name}.jsonl").open("a", buffering=1) as out:
 
@@ -60,20 +45,16 @@ def run_one(topic: str, type_name: str, name: str, out_dir: Path) -> None:
             out.write(dump([Sample(wire_topic, stamp.seq, stamp.publish_time_ns, now,
                                    len(cdr), name)]))
 
-        # Reliable, as ROS tools subscribe by default; a shallow history like a viewer.
-        qos = QoSProfile(  # type: ignore[no-untyped-call]  # rclpy ships no type hints
-            history=HistoryPolicy.KEEP_LAST, depth=5, reliability=ReliabilityPolicy.RELIABLE)
-        node.create_subscription(message_class(type_name), topic, on_message, qos, raw=True)
-        (out_dir / f"{name}.ready").write_text("ok")
-        executor = SingleThreadedExecutor(context=context)
-        executor.add_node(node)
-        try:
-            while not stop:
-                executor.spin_once(timeout_sec=_SPIN_TIMEOUT_S)
-        finally:
-            executor.shutdown()
-            node.destroy_node()  # type: ignore[no-untyped-call]
-            context.try_shutdown()
+        def setup(node: Any) -> None:
+            # Reliable, as ROS tools subscribe by default; a shallow history like a viewer.
+            qos = QoSProfile(  # type: ignore[no-untyped-call]  # rclpy ships no type hints
+                history=HistoryPolicy.KEEP_LAST, depth=5,
+                reliability=ReliabilityPolicy.RELIABLE)
+            node.create_subscription(message_class(type_name), topic, on_message, qos,
+                                     raw=True)
+            (out_dir / f"{name}.ready").write_text("ok")
+
+        spin_until_signal(f"e2e_dds_{name.replace('-', '_')}", setup)
 
 
 def run_many(args: argparse.Namespace) -> int:

@@ -12,15 +12,15 @@ large arrays are never converted element by element. On SIGTERM/SIGINT it stops 
 ``{remote_topic: {"first_seq", "last_seq", "count"}}`` to ``--out``: what consumers must
 have received for no_drop topics.
 
-This module and :mod:`.ddssub` import rclpy (only in the client image, where it exists);
-nothing else in :mod:`fleetctl.e2e` does.
+This module and :mod:`.ddssub` use rclpy (only in the client image, where it exists) through
+:mod:`fleetctl.client.ros`, imported inside functions; nothing else in :mod:`fleetctl.e2e`
+does.
 """
 
 from __future__ import annotations
 
 import argparse
 import json
-import signal
 import sys
 import time
 from pathlib import Path
@@ -29,8 +29,6 @@ from typing import Any
 from fleetctl.e2e import payloads
 from fleetctl.e2e.profiles import Profile, TopicLoad, profile
 from fleetctl.errors import FleetError
-
-_SPIN_TIMEOUT_S = 0.05  # how quickly a stop signal is noticed
 
 
 class _Counts:
@@ -70,38 +68,18 @@ def _publisher(node: Any, load: TopicLoad, ts: Any, counts: _Counts) -> None:
 
 def run(p: Profile, out: Path | None) -> dict[str, dict[str, int]]:
     """Publish *p*'s topics until SIGTERM/SIGINT; returns (and writes) what was published."""
-    import rclpy
-    from rclpy.context import Context
-    from rclpy.executors import SingleThreadedExecutor
-    from rclpy.signals import SignalHandlerOptions
-
+    from fleetctl.client.ros.spin import spin_until_signal
     from fleetctl.wire.registry import TypeRegistry
 
     ts = TypeRegistry.default().typestore
-    stop = False
-
-    def on_signal(signum: int, frame: object) -> None:
-        nonlocal stop
-        stop = True
-
-    signal.signal(signal.SIGTERM, on_signal)
-    signal.signal(signal.SIGINT, on_signal)
-    context = Context()
-    rclpy.init(context=context, signal_handler_options=SignalHandlerOptions.NO)
     counts = _Counts()
-    node = rclpy.create_node(f"e2e_load_{p.name.replace('-', '_')}", context=context)
-    for load in p.topics:
-        _publisher(node, load, ts, counts)
-    executor = SingleThreadedExecutor(context=context)
-    executor.add_node(node)
-    print(f"e2e load: publishing {[t.topic for t in p.topics]}", flush=True)
-    try:
-        while not stop:
-            executor.spin_once(timeout_sec=_SPIN_TIMEOUT_S)
-    finally:
-        executor.shutdown()
-        node.destroy_node()  # type: ignore[no-untyped-call]
-        context.try_shutdown()
+
+    def setup(node: Any) -> None:
+        for load in p.topics:
+            _publisher(node, load, ts, counts)
+        print(f"e2e load: publishing {[t.topic for t in p.topics]}", flush=True)
+
+    spin_until_signal(f"e2e_load_{p.name.replace('-', '_')}", setup)
     if out is not None:
         out.write_text(json.dumps(counts.by_topic))
     return counts.by_topic

@@ -25,14 +25,13 @@ import yaml
 from fleetctl.deploy.images import image_tag
 from fleetctl.e2e import profiles
 from fleetctl.e2e.samples import Sample, load
-from fleetctl.e2e.topology import ROBOT_SIDE, SERVER_SIDE, Endpoint, Topology
+from fleetctl.e2e.topology import IDLE_COMMAND, ROBOT_SIDE, SERVER_SIDE, Endpoint, Topology
 from fleetctl.errors import FleetError
 
 CONTAINER_DIR = "/e2e"
 SERVER_PORT = 8080
 _SITE = "/opt/fleetctl/lib/python3.11/site-packages/fleetctl"
 _POLL_S = 0.1
-_IDLE = ["python3", "-c", "import signal; signal.sigwait({signal.SIGTERM, signal.SIGINT})"]
 _HEALTH = ("import urllib.request; urllib.request.urlopen("
            f"'http://127.0.0.1:{SERVER_PORT}/healthz', timeout=1)")
 
@@ -200,4 +199,4 @@ class FleetRun:
     def start_idle(self, role: str, side: str, image: str,
                    env: dict[str, str] | None = None) -> Endpoint:
         """A container that waits (commands are run in it with ``docker exec``)."""
-        return self.topo.start(role, side, image, _IDLE, env=env, mounts=self.mounts())
+        return self.topo.start(role, side, image, IDLE_COMMAND, env=env, mounts=self.mounts())

@@ -25,7 +25,7 @@ from fleetctl.deploy.images import BASE_IMAGE, image_tag
 from fleetctl.deploy.shaping import Capabilities, RateSpec, mbit
 from fleetctl.e2e.fleetrun import FleetRun
 from fleetctl.e2e.scenarios import SCENARIO_FUNCS
-from fleetctl.e2e.topology import ROBOT_SIDE, SERVER_SIDE, Topology
+from fleetctl.e2e.topology import IDLE_COMMAND, ROBOT_SIDE, SERVER_SIDE, Topology
 from fleetctl.errors import EnvironmentMissing, FleetError
 
 Progress = Callable[[str], None]
@@ -37,8 +37,8 @@ _NEEDS = {
     "ramp": (("server", "server"), ("client", "client")),
     "priority": (("server", "server"), ("client", "client")),
 }
-_IDLE = ["python3", "-c", "import signal; signal.sigwait({signal.SIGTERM, signal.SIGINT})"]
-_SINK = (
+# The link calibration probe: a TCP sink on the server side, a timed sender on the robot side.
+SINK_SCRIPT = (
     "import socket\n"
     "t=socket.socket(); t.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)\n"
     "t.bind(('0.0.0.0', 5001)); t.listen()\n"
@@ -50,13 +50,13 @@ _SINK = (
     "        g+=len(d)\n"
     "    c.sendall(b'k'); c.close()\n"
 )
-_SEND = (
+SEND_SCRIPT = (
     "import socket,sys,time\n"
     "n=int(sys.argv[2]); s=socket.create_connection((sys.argv[1],5001),timeout=30)\n"
     "s.sendall(f'{n:<16}'.encode()); t=time.monotonic(); s.sendall(bytes(n))\n"
     "assert s.recv(1)==b'k'; print(n*8/(time.monotonic()-t))\n"
 )
-_PROBE = (
+PROBE_SCRIPT = (
     "import socket,sys\n"
     "s=socket.socket(); s.settimeout(float(sys.argv[2]))\n"
     "try:\n"
@@ -120,11 +120,11 @@ class _Link:
 
     def __init__(self, topo: Topology) -> None:
         self.topo = topo
-        self.sink = topo.start("sink", SERVER_SIDE, BASE_IMAGE, ["python3", "-c", _SINK])
-        self.robot = topo.start("sender", ROBOT_SIDE, BASE_IMAGE, _IDLE)
+        self.sink = topo.start("sink", SERVER_SIDE, BASE_IMAGE, ["python3", "-c", SINK_SCRIPT])
+        self.robot = topo.start("sender", ROBOT_SIDE, BASE_IMAGE, IDLE_COMMAND)
 
     def probe(self, timeout_s: float) -> bool:
-        res = self.topo.exec(self.robot.name, ["python3", "-c", _PROBE, self.sink.ip,
+        res = self.topo.exec(self.robot.name, ["python3", "-c", PROBE_SCRIPT, self.sink.ip,
                                                str(timeout_s)])
         return res.stdout.strip() == "open"
 
@@ -137,7 +137,7 @@ class _Link:
         return float("inf")
 
     def carried_bit_s(self, nbytes: int) -> float:
-        res = self.topo.exec(self.robot.name, ["python3", "-c", _SEND, self.sink.ip,
+        res = self.topo.exec(self.robot.name, ["python3", "-c", SEND_SCRIPT, self.sink.ip,
                                                str(nbytes)])
         return float(res.stdout) if res.returncode == 0 else 0.0
 

@@ -29,6 +29,8 @@ from fleetctl.errors import FleetError
 
 ROBOT_SIDE = "robot"
 SERVER_SIDE = "server"
+# A container command that does nothing until it is told to stop (a process to exec into).
+IDLE_COMMAND = ["python3", "-c", "import signal; signal.sigwait({signal.SIGTERM, signal.SIGINT})"]
 _LABEL = "io.fleetctl.e2e"
 
 

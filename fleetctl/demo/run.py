@@ -24,8 +24,9 @@ from types import FrameType
 from typing import Any
 
 from fleetctl.demo.fleet import DemoFleet, create_demo_fleet
-from fleetctl.demo.supervisor import ProcessSpec, Supervisor, wait_until
+from fleetctl.demo.supervisor import ProcessSpec, Supervisor
 from fleetctl.errors import ExitCode, FleetError
+from fleetctl.waiting import wait_until
 
 _HTTP_TIMEOUT_S = 2.0
 _WATCH_PERIOD_S = 0.5  # how often a running demo checks that its children are alive

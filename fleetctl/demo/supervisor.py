@@ -14,8 +14,7 @@ import ctypes
 import os
 import signal
 import subprocess
-import time
-from collections.abc import Callable, Mapping, Sequence
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import IO
@@ -136,19 +135,3 @@ def _stop(process: subprocess.Popen[bytes], grace_s: float) -> int:
     return int(process.returncode)
 
 
-def wait_until(
-    condition: Callable[[], object],
-    timeout_s: float,
-    poll_s: float = 0.1,
-    describe: str = "condition",
-) -> None:
-    """Poll ``condition()`` until it is truthy or *timeout_s* passes.
-
-    Raises:
-        FleetError: the deadline passed first (the message names *describe*).
-    """
-    deadline = time.monotonic() + timeout_s
-    while not condition():
-        if time.monotonic() >= deadline:
-            raise FleetError(f"timed out after {timeout_s:.0f} s waiting for {describe}")
-        time.sleep(poll_s)  # polling interval of a deadline-bounded wait, not synchronization

@@ -27,6 +27,7 @@ from fleetctl.e2e import profiles
 from fleetctl.e2e.samples import Sample, load
 from fleetctl.e2e.topology import IDLE_COMMAND, ROBOT_SIDE, SERVER_SIDE, Endpoint, Topology
 from fleetctl.errors import FleetError
+from fleetctl.waiting import wait_until
 
 CONTAINER_DIR = "/e2e"
 SERVER_PORT = 8080
@@ -42,11 +43,7 @@ def wait_for(what: str, condition: Callable[[], bool], timeout_s: float) -> None
     Raises:
         FleetError: still false after *timeout_s* seconds (names *what*).
     """
-    deadline = time.monotonic() + timeout_s
-    while not condition():
-        if time.monotonic() > deadline:
-            raise FleetError(f"timed out after {timeout_s:.0f} s waiting for {what}")
-        time.sleep(_POLL_S)  # polling interval of a deadline-bounded condition wait
+    wait_until(condition, timeout_s, _POLL_S, describe=what)
 
 
 def hold(seconds: float) -> None:

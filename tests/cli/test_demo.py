@@ -21,7 +21,7 @@ from pathlib import Path
 import pytest
 
 from fleetctl.demo.run import http_json
-from fleetctl.demo.supervisor import wait_until
+from fleetctl.waiting import wait_until
 
 pytest.importorskip("rclpy")
 pytestmark = [pytest.mark.ros, pytest.mark.slow]

@@ -10,8 +10,9 @@ from pathlib import Path
 
 import pytest
 
-from fleetctl.demo.supervisor import ProcessSpec, Supervisor, wait_until
+from fleetctl.demo.supervisor import ProcessSpec, Supervisor
 from fleetctl.errors import FleetError
+from fleetctl.waiting import wait_until
 
 
 def _alive(pid: int) -> bool:
@@ -71,11 +72,6 @@ def test_exited_and_log_tail_report_a_crash(tmp_path: Path) -> None:
 def test_start_reports_a_missing_program(tmp_path: Path) -> None:
     with pytest.raises(FleetError, match="cannot start nothing"):
         Supervisor().start(ProcessSpec("nothing", ["/nonexistent/prog"], tmp_path / "n.log"))
-
-
-def test_wait_until_times_out_with_a_named_condition() -> None:
-    with pytest.raises(FleetError, match="the impossible"):
-        wait_until(lambda: False, 0.2, poll_s=0.05, describe="the impossible")
 
 
 def test_children_die_with_a_killed_supervisor(tmp_path: Path) -> None:

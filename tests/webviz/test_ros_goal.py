@@ -4,13 +4,9 @@
 from __future__ import annotations
 
 import asyncio
-import contextlib
 import json
 import math
-import os
-import sys
 import time
-from collections.abc import AsyncIterator
 from pathlib import Path
 from typing import Any
 
@@ -22,32 +18,15 @@ from fleetctl.server.authmap import load_auth_map
 from fleetctl.server.config import ServerConfig
 from fleetctl.wire.registry import TypeRegistry
 from tests.webviz.conftest import webviz_server
+from tests.webviz.demoproc import ros_process
 from tests.webviz.fleet import OPERATOR_TOKEN, write_auth_map
 from tests.webviz.test_browser import TIMEOUT_MS, drag_goal, sign_in
 
 pytestmark = [pytest.mark.browser, pytest.mark.ros]
 
-ROS_DOMAIN_ID = "47"  # this module's share of the webviz range 40-59
+ROS_DOMAIN_ID = 47  # this module's share of the webviz range 40-59
 GOAL_TYPE = "geometry_msgs/msg/PoseStamped"
 DISCOVERY_TIMEOUT_S = 45.0
-
-
-@contextlib.asynccontextmanager
-async def process(*args: str) -> AsyncIterator[asyncio.subprocess.Process]:
-    env = {**os.environ, "ROS_DOMAIN_ID": ROS_DOMAIN_ID}
-    proc = await asyncio.create_subprocess_exec(
-        sys.executable, *args, env=env, stdout=asyncio.subprocess.PIPE
-    )
-    try:
-        yield proc
-    finally:
-        if proc.returncode is None:
-            proc.terminate()
-            try:
-                await asyncio.wait_for(proc.wait(), 10)
-            except TimeoutError:
-                proc.kill()
-                await proc.wait()
 
 
 async def next_json(proc: asyncio.subprocess.Process, key: str, timeout_s: float) -> Any:
@@ -100,8 +79,9 @@ async def test_goal_arrives_on_the_robots_local_ros_topic(
         url = f"ws://127.0.0.1:{server.port}/"
         cfg = client_yaml(tmp_path / "client.yaml", url)
         async with (
-            process("-m", "fleetctl.cli.main", "client", "--config", str(cfg)),
-            process(
+            ros_process(ROS_DOMAIN_ID, "-m", "fleetctl.cli.main", "client", "--config", str(cfg)),
+            ros_process(
+                ROS_DOMAIN_ID,
                 "-m", "tests.client.ros.rosproc", "listen", "/goal_pose", GOAL_TYPE
             ) as listener,
         ):

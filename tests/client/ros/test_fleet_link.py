@@ -27,7 +27,7 @@ from rclpy.serialization import deserialize_message, serialize_message
 
 from fleetctl.demo.fleet import free_port
 from fleetctl.demo.run import http_json, http_ok, online_robots
-from fleetctl.demo.supervisor import wait_until
+from fleetctl.waiting import wait_until
 from tests.client.ros.harness import (
     JsonProc,
     fleetctl_argv,

@@ -18,10 +18,11 @@ from fleetctl.client.config import ClientConfig, parse_client_config
 from fleetctl.server.app import RelayServer
 from fleetctl.server.authmap import AuthMap, parse_auth_map
 from fleetctl.server.config import ServerConfig
-from fleetctl.wire.codec import default_codec
 from fleetctl.wire.control import encode_subscription
 from fleetctl.wire.fragments import FRAGMENT_TYPE, Reassembler
 from fleetctl.wire.metadata import read_metadata
+from tests.support import decode_text
+from tests.support import wait_until as wait_until_s
 
 ROBOT_TOKEN = "robot-r1-token"
 OPERATOR_TOKEN = "operator-token"
@@ -75,25 +76,10 @@ def robot_config(url: str, tmp_path: Path, **extra: Any) -> ClientConfig:
     return parse_client_config(data, source="test-client.yaml", base_dir=tmp_path)
 
 
-def string_frame(topic: str, text: str, *, no_drop: bool = False, seq: int = 0) -> bytes:
-    codec = default_codec()
-    cls = codec.registry.get("std_msgs/msg/String").cls
-    return codec.encode(cls(text), "std_msgs/msg/String", topic, no_drop=no_drop, seq=seq,
-                        publish_time_ns=time.time_ns())
-
-
-def text_of(frame: bytes) -> str:
-    _meta, msg = default_codec().decode(frame)
-    return str(msg.data)
-
 
 async def wait_until(predicate: Callable[[], bool], timeout_s: float = 10.0) -> None:
-    """Poll *predicate* (every 5 ms) until true; fail after *timeout_s*."""
-    deadline = time.monotonic() + timeout_s
-    while not predicate():
-        if time.monotonic() > deadline:
-            raise AssertionError("condition not met before the deadline")
-        await asyncio.sleep(0.005)
+    """:func:`tests.support.wait_until` with this package's default deadline."""
+    await wait_until_s(predicate, timeout_s)
 
 
 class Consumer:
@@ -132,7 +118,7 @@ class Consumer:
                     self.frames.append(message)
 
     def texts(self, topic: str | None = None) -> list[str]:
-        return [text_of(f) for f in self.frames
+        return [decode_text(f) for f in self.frames
                 if topic is None or read_metadata(f).topic == topic]
 
 

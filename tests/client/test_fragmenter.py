@@ -11,7 +11,7 @@ from hypothesis import strategies as st
 from fleetctl.client.fragmenter import fast_split
 from fleetctl.wire.errors import WireError
 from fleetctl.wire.fragments import Reassembler, split
-from tests.client.conftest import string_frame
+from tests.support import string_frame
 
 
 @settings(max_examples=40, deadline=None)

@@ -8,7 +8,7 @@ import pytest
 
 from fleetctl.client.receiver import Receiver
 from fleetctl.wire.fragments import split
-from tests.client.conftest import string_frame, text_of
+from tests.support import decode_text, string_frame
 
 
 def make(received: list[bytes], *, fail: bool = False) -> Receiver:
@@ -27,7 +27,7 @@ def test_malformed_frames_are_counted_and_logged(caplog: pytest.LogCaptureFixtur
     rx.on_binary(b"\x01\x02")
     rx.on_binary(b"\xff" * 64)
     rx.on_binary(string_frame("/a", "ok"))
-    assert [text_of(f) for f in received] == ["ok"]
+    assert [decode_text(f) for f in received] == ["ok"]
     assert rx.stats()["malformed"] == 2
     assert "malformed" in caplog.text
 
@@ -60,7 +60,7 @@ def test_dedupe_window_accepts_a_restarted_sender() -> None:
     rx = make(received)
     for seq in (1000, 1001, 1001, 999, 5, 6):  # 5: far below -> a restarted sender
         rx.on_binary(string_frame("/e", f"s{seq}", no_drop=True, seq=seq))
-    assert [text_of(f) for f in received] == ["s1000", "s1001", "s5", "s6"]
+    assert [decode_text(f) for f in received] == ["s1000", "s1001", "s5", "s6"]
     assert rx.stats()["duplicates"] == 2
     rx.on_binary(string_frame("/d", "droppable repeats are not deduped", seq=6))
     rx.on_binary(string_frame("/d", "droppable repeats are not deduped", seq=6))

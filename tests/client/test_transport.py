@@ -19,10 +19,9 @@ from tests.client.conftest import (
     TcpForwarder,
     make_server,
     robot_config,
-    string_frame,
-    text_of,
     wait_until,
 )
+from tests.support import decode_text, string_frame
 
 FAST = LinkTuning(keepalive_interval_s=0.1, link_timeout_s=0.6, open_timeout_s=1.0)
 
@@ -79,7 +78,7 @@ async def test_robot_receives_commands_reassembled_and_subscribes(
                               max_fragment_bytes=8192, no_drop=False):
             await operator.ws.send(fragment)
         await wait_until(lambda: len(received) == 2)
-        assert [text_of(f) for f in received] == ["go", "y" * 100_000]
+        assert [decode_text(f) for f in received] == ["go", "y" * 100_000]
         assert link.stats()["received"]["reassembly"]["completed"] == 1
 
 
@@ -95,8 +94,8 @@ async def test_duplicate_no_drop_frames_are_dropped_on_receive(
         for seq in [1, 2, 2, 3, 1, 4]:
             await operator.ws.send(string_frame("/r1/cmd", f"s{seq}", no_drop=True, seq=seq))
         await operator.ws.send(string_frame("/r1/cmd", "end", no_drop=True, seq=5))
-        await wait_until(lambda: bool(received) and text_of(received[-1]) == "end")
-        assert [text_of(f) for f in received] == ["s1", "s2", "s3", "s4", "end"]
+        await wait_until(lambda: bool(received) and decode_text(received[-1]) == "end")
+        assert [decode_text(f) for f in received] == ["s1", "s2", "s3", "s4", "end"]
         assert link.stats()["received"]["duplicates"] == 2
 
 

@@ -5,7 +5,6 @@ from __future__ import annotations
 import asyncio
 import hashlib
 import json
-import time
 from collections.abc import AsyncIterator, Callable
 from pathlib import Path
 from typing import Any
@@ -16,7 +15,7 @@ from websockets.asyncio.client import ClientConnection, connect
 from fleetctl.server.app import RelayServer
 from fleetctl.server.authmap import AuthMap, parse_auth_map
 from fleetctl.server.config import ServerConfig, ServerLimits
-from fleetctl.wire.codec import default_codec
+from tests.support import wait_until
 
 ALICE_TOKEN = "alice-secret-token"
 BOB_TOKEN = "bob-secret-token"
@@ -54,24 +53,9 @@ def auth_map(raw: dict[str, Any] | None = None) -> AuthMap:
     return parse_auth_map(raw or AUTH, Path("test-auth.yaml"))
 
 
-def string_frame(topic: str, text: str = "hi", *, no_drop: bool = False, seq: int = 0) -> bytes:
-    codec = default_codec()
-    cls = codec.registry.get("std_msgs/msg/String").cls
-    return codec.encode(cls(text), "std_msgs/msg/String", topic, no_drop=no_drop, seq=seq)
-
-
-def decode_text(frame: bytes) -> str:
-    _meta, msg = default_codec().decode(frame)
-    return str(msg.data)
-
-
 async def wait_for(predicate: Callable[[], bool], timeout_s: float = 5.0) -> None:
-    """Poll *predicate* until true; fail after *timeout_s*."""
-    deadline = time.monotonic() + timeout_s
-    while not predicate():
-        if time.monotonic() > deadline:
-            raise AssertionError("condition not met before the deadline")
-        await asyncio.sleep(0.005)
+    """:func:`tests.support.wait_until` with this package's default deadline."""
+    await wait_until(predicate, timeout_s)
 
 
 async def next_json(ws: ClientConnection, kind: str, timeout_s: float = 5.0) -> dict[str, Any]:

@@ -18,13 +18,12 @@ from tests.server.conftest import (
     ALICE_TOKEN,
     BOB_TOKEN,
     client,
-    decode_text,
     next_binary,
     next_json,
-    string_frame,
     subscribe,
     wait_for,
 )
+from tests.support import decode_text, string_frame
 
 
 async def http_get(port: int, path: str, headers: dict[str, str] | None = None,

@@ -14,7 +14,8 @@ from fleetctl.server.registry import RobotRegistry
 from fleetctl.server.relay import Peer, RelayCore
 from fleetctl.wire import fragments
 from fleetctl.wire.control import encode_subscription
-from tests.server.conftest import ALICE_TOKEN, auth_map, string_frame
+from tests.server.conftest import ALICE_TOKEN, auth_map
+from tests.support import string_frame
 
 
 def make_core(**limits: int) -> RelayCore:

@@ -23,6 +23,7 @@ from fleetctl.client.ros.runner import status_encoder  # noqa: E402
 from fleetctl.wire.codec import Codec  # noqa: E402
 from fleetctl.wire.control import decode_status  # noqa: E402
 from fleetctl.wire.registry import TypeRegistry  # noqa: E402
+from tests.support import wait_for_value  # noqa: E402
 
 pytestmark = pytest.mark.ros
 DOMAIN_ID = 39  # this engineer's range is 20-39; 39 is reserved for this file
@@ -64,11 +65,7 @@ class FakePort:
 
 
 def wait_for(condition: Callable[[], Any], timeout_s: float = 10.0) -> Any:
-    deadline = time.monotonic() + timeout_s
-    while not (result := condition()):
-        assert time.monotonic() < deadline, "condition not met before the deadline"
-        time.sleep(0.02)  # polling interval of a deadline-bounded wait
-    return result
+    return wait_for_value(condition, timeout_s)
 
 
 @pytest.fixture(scope="module")

@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import io
 import threading
-import time
 from collections.abc import Callable, Iterator
 from typing import Any
 
@@ -17,17 +16,14 @@ from rclpy.executors import MultiThreadedExecutor  # noqa: E402
 from rclpy.node import Node  # noqa: E402
 
 from fleetctl.client.ros.sim import SimConfig, SimRobot  # noqa: E402
+from tests.support import wait_for_value  # noqa: E402
 
 pytestmark = pytest.mark.ros
 DOMAIN_ID = 38  # this engineer's range is 20-39; 38 is reserved for this file
 
 
 def wait_for(condition: Callable[[], Any], timeout_s: float = 15.0) -> Any:
-    deadline = time.monotonic() + timeout_s
-    while not (result := condition()):
-        assert time.monotonic() < deadline, "condition not met before the deadline"
-        time.sleep(0.02)  # polling interval of a deadline-bounded wait
-    return result
+    return wait_for_value(condition, timeout_s)
 
 
 @pytest.fixture

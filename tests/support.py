@@ -1,0 +1,44 @@
+"""Helpers shared by the test packages: frames to send and deadline-bounded waits."""
+
+from __future__ import annotations
+
+import asyncio
+import time
+from collections.abc import Callable
+from typing import Any
+
+from fleetctl.wire.codec import default_codec
+
+STRING_TYPE = "std_msgs/msg/String"
+
+
+def string_frame(topic: str, text: str = "hi", *, no_drop: bool = False, seq: int = 0) -> bytes:
+    """A ``std_msgs/msg/String`` frame on *topic*, stamped with the wall clock now."""
+    codec = default_codec()
+    cls = codec.registry.get(STRING_TYPE).cls
+    return codec.encode(cls(text), STRING_TYPE, topic, no_drop=no_drop, seq=seq,
+                        publish_time_ns=time.time_ns())
+
+
+def decode_text(frame: bytes) -> str:
+    """The text of a ``std_msgs/msg/String`` frame."""
+    _meta, msg = default_codec().decode(frame)
+    return str(msg.data)
+
+
+async def wait_until(predicate: Callable[[], bool], timeout_s: float) -> None:
+    """Poll *predicate* (every 5 ms) on the event loop until true; fail after *timeout_s*."""
+    deadline = time.monotonic() + timeout_s
+    while not predicate():
+        if time.monotonic() > deadline:
+            raise AssertionError("condition not met before the deadline")
+        await asyncio.sleep(0.005)
+
+
+def wait_for_value(condition: Callable[[], Any], timeout_s: float) -> Any:
+    """Poll *condition* (every 20 ms, blocking) until truthy; return its value."""
+    deadline = time.monotonic() + timeout_s
+    while not (result := condition()):
+        assert time.monotonic() < deadline, "condition not met before the deadline"
+        time.sleep(0.02)  # polling interval of a deadline-bounded wait
+    return result

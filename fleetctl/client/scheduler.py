@@ -59,7 +59,7 @@ class SplitFn(Protocol):
 def _wire_split(
     frame: bytes, *, topic: str, message_id: int, max_fragment_bytes: int, no_drop: bool
 ) -> list[bytes]:
-    from fleetctl.client.fragmenter import fast_split
+    from fleetctl.wire.fragmenter import fast_split
 
     fragments: list[bytes] = fast_split(frame, topic=topic, message_id=message_id,
                                    max_fragment_bytes=max_fragment_bytes, no_drop=no_drop)
@@ -190,7 +190,7 @@ class Scheduler:
 
     Args:
         config: Tunables.
-        split: Fragmenter; by default :func:`fleetctl.client.fragmenter.fast_split`
+        split: Fragmenter; by default :func:`fleetctl.wire.fragmenter.fast_split`
             (byte-identical to :func:`fleetctl.wire.fragments.split`, cheaper).
     """
 

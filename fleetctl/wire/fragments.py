@@ -31,6 +31,21 @@ _PAYLOAD_SLACK_BYTES = 8
 _MAX_TRACKED_TOPICS = 4096
 
 
+def fragment_overhead(codec: Codec, topic: str, *, no_drop: bool, message_id: int,
+                      publish_time_ns: int, seq: int) -> int:
+    """Bytes a fragment frame takes beyond its payload, in the worst case.
+
+    Every scalar that can vary between fragments (index, count, total) is taken at its
+    maximum, so present in the table (FlatBuffers omits default values); the payload
+    vector's length prefix and alignment padding are included.
+    """
+    cls = codec.registry.get(FRAGMENT_TYPE).cls
+    probe = cls(message_id, _U32_MAX, _U32_MAX, _U32_MAX, np.zeros(0, dtype=np.uint8))
+    encoded = codec.encode(probe, FRAGMENT_TYPE, topic, no_drop=no_drop,
+                           publish_time_ns=publish_time_ns, seq=seq)
+    return len(encoded) + _PAYLOAD_SLACK_BYTES
+
+
 def split(
     frame: bytes,
     *,
@@ -72,9 +87,8 @@ def split(
             publish_time_ns=meta.publish_time_ns, seq=meta.seq,
         )
 
-    # Worst-case overhead: every scalar non-default, so present in the table.
-    empty = np.zeros(0, dtype=np.uint8)
-    overhead = len(encode(_U32_MAX, _U32_MAX, empty)) + _PAYLOAD_SLACK_BYTES
+    overhead = fragment_overhead(codec, topic, no_drop=no_drop, message_id=message_id,
+                                 publish_time_ns=meta.publish_time_ns, seq=meta.seq)
     chunk = max_fragment_bytes - overhead
     if chunk < 1:
         raise WireError(

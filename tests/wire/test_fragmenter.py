@@ -8,8 +8,8 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from fleetctl.client.fragmenter import fast_split
 from fleetctl.wire.errors import WireError
+from fleetctl.wire.fragmenter import fast_split
 from fleetctl.wire.fragments import Reassembler, split
 from tests.support import string_frame
 

@@ -86,19 +86,26 @@ async def check_overview(page: Any) -> None:
         await page.screenshot(path=str(Path(SCREENSHOTS) / "overview.png"))
 
 
-async def check_robot_views(page: Any) -> None:
-    await page.click('#robots a[href="#/robot/r1"]')
+async def check_sensor_panels(page: Any, robot: str, *, beams: int,
+                              camera_min_fraction: float) -> None:
+    """Open *robot*'s page; its camera, scan (*beams* beams) and WebGL cloud are drawn."""
+    await page.click(f'#robots a[href="#/robot/{robot}"]')
     await wait_js(
         page,
         "Number(document.querySelector('#camera-canvas').dataset.frames || 0) >= 1"
-        " && Number(document.querySelector('#scan-canvas').dataset.beams || 0) === 360"
+        f" && Number(document.querySelector('#scan-canvas').dataset.beams || 0) === {beams}"
         " && Number(document.querySelector('#cloud-canvas').dataset.points || 0) > 1000",
     )
     assert await page.get_attribute("#cloud-canvas", "data-mode") == "webgl"
     camera = await page.locator("#camera-canvas").screenshot()
-    assert drawn_fraction(camera, PANEL_BG) > 0.9  # the gradient covers the whole canvas
+    assert drawn_fraction(camera, PANEL_BG) > camera_min_fraction
     assert await pixels(page, "#scan-canvas") > 300
     assert await pixels(page, "#cloud-canvas") > 300
+
+
+async def check_robot_views(page: Any) -> None:
+    # The gradient covers the whole camera canvas.
+    await check_sensor_panels(page, "r1", beams=360, camera_min_fraction=0.9)
     await wait_js(page, "document.querySelector('#odom-text').textContent.includes('0.60 m/s')")
     await wait_js(page, "document.querySelector('#gps-text').textContent.startsWith('30.286200')")
     # The occupancy grid (8 m square = 320x320 of the 640x480 canvas at 40 px/m) is drawn.

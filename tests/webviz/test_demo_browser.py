@@ -18,13 +18,12 @@ import pytest
 
 from fleetctl.wire.registry import TypeRegistry
 from tests.webviz.demoproc import RunningDemo, ros_process, running_demo
-from tests.webviz.pixels import drawn_fraction, drawn_pixels
+from tests.webviz.pixels import drawn_pixels
 from tests.webviz.test_browser import (
     MAP_BG,
-    PANEL_BG,
     SCREENSHOTS,
     TIMEOUT_MS,
-    pixels,
+    check_sensor_panels,
     sign_in,
     wait_js,
     watch_errors,
@@ -89,18 +88,8 @@ async def check_overview(page: Any, demo: RunningDemo) -> None:
 
 
 async def check_robot_views(page: Any) -> None:
-    await page.click('#robots a[href="#/robot/robot1"]')
-    await wait_js(
-        page,
-        "Number(document.querySelector('#camera-canvas').dataset.frames || 0) >= 1"
-        " && Number(document.querySelector('#scan-canvas').dataset.beams || 0) === 720"
-        " && Number(document.querySelector('#cloud-canvas').dataset.points || 0) > 1000",
-    )
-    assert await page.get_attribute("#cloud-canvas", "data-mode") == "webgl"
-    camera = await page.locator("#camera-canvas").screenshot()
-    assert drawn_fraction(camera, PANEL_BG) > 0.5  # the sim's JPEG fills the canvas
-    assert await pixels(page, "#scan-canvas") > 300
-    assert await pixels(page, "#cloud-canvas") > 300
+    # The sim's JPEG fills the camera canvas.
+    await check_sensor_panels(page, "robot1", beams=720, camera_min_fraction=0.5)
     # The sim publishes its pose in "map": the goal must go out in that frame.
     await wait_js(page, "fleetviz.frameId === 'map'")
     # The robot's pose arrow and path on the (empty) grid: measured about 115 pixels.

@@ -15,9 +15,8 @@ from functools import lru_cache
 from pathlib import Path
 from typing import Any
 
-import yaml
-
 from fleetctl.errors import ConfigError
+from fleetctl.yamlfile import read_yaml
 
 # ROS 2 topic names: absolute, tokens of [A-Za-z0-9_] separated by single slashes.
 _TOPIC_RE = re.compile(r"^(/[A-Za-z_][A-Za-z0-9_]*)+$")
@@ -172,14 +171,7 @@ def load_client_config(path: str | Path) -> ClientConfig:
             names the file, the entry and the field.
     """
     path = Path(path)
-    try:
-        text = path.read_text(encoding="utf-8")
-    except OSError as exc:
-        raise ConfigError(f"{path}: cannot read: {exc.strerror or exc}") from exc
-    try:
-        data = yaml.safe_load(text)
-    except yaml.YAMLError as exc:
-        raise ConfigError(f"{path}: not valid YAML: {exc}") from exc
+    data = read_yaml(path, "client config")
     return parse_client_config(data, source=str(path), base_dir=path.parent)
 
 

@@ -37,6 +37,7 @@ from fleetctl import __version__
 from fleetctl.deploy.dockercli import check, subprocess_runner
 from fleetctl.deploy.images import image_tag
 from fleetctl.errors import ConfigError, EnvironmentMissing, FleetError
+from fleetctl.yamlfile import read_yaml
 
 Progress = Callable[[str], None]
 COMPOSE_DIR = ".compose"
@@ -127,13 +128,8 @@ def compose_command(runner: Callable[..., Any] = subprocess_runner) -> list[str]
     )
 
 
-def _read_yaml(path: Path) -> dict[str, Any]:
-    try:
-        data = yaml.safe_load(path.read_text())
-    except OSError as exc:
-        raise ConfigError(f"{path}: cannot read ({exc.strerror})") from exc
-    except yaml.YAMLError as exc:
-        raise ConfigError(f"{path}: not valid YAML ({exc})") from exc
+def _read_server_config(path: Path) -> dict[str, Any]:
+    data = read_yaml(path, "server config")
     if not isinstance(data, dict):
         raise ConfigError(f"{path}: expected a mapping at the top level")
     return data
@@ -196,7 +192,7 @@ def plan_for(
     fleet_dir = fleet_dir.resolve()
     if not (fleet_dir / "fleet.yaml").is_file():
         raise ConfigError(f"{fleet_dir / 'fleet.yaml'}: missing; is this a fleet directory?")
-    server = _read_yaml(fleet_dir / "server" / "server.yaml")
+    server = _read_server_config(fleet_dir / "server" / "server.yaml")
     port = server.get("listen_port", 8080)
     if not isinstance(port, int) or not 0 < port < 65536:
         raise ConfigError(f"{fleet_dir / 'server/server.yaml'}: field listen_port: bad port")
@@ -339,7 +335,7 @@ def write_files(plan: ComposePlan) -> Path:
 
 def _write_server_config(plan: ComposePlan, out: Path) -> None:
     src = plan.fleet_dir / "server"
-    cfg = _read_yaml(src / "server.yaml")
+    cfg = _read_server_config(src / "server.yaml")
     cfg["listen_host"] = "0.0.0.0"
     # The config directory is mounted read-only; the database lives in a named volume.
     cfg["database"] = "/var/lib/fleetctl/fleet.db"

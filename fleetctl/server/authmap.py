@@ -16,10 +16,9 @@ from enum import Enum
 from pathlib import Path
 from typing import Any
 
-import yaml
-
 from fleetctl.errors import ConfigError
 from fleetctl.server.regex import BadRegex, FullMatch, compile_full
+from fleetctl.yamlfile import read_yaml
 
 IPNetwork = ipaddress.IPv4Network | ipaddress.IPv6Network
 IPAddress = ipaddress.IPv4Address | ipaddress.IPv6Address
@@ -116,13 +115,7 @@ def load_auth_map(path: Path) -> AuthMap:
         ConfigError: Missing file, bad YAML, or an invalid field; the message names the
             file, the identity and the rule.
     """
-    try:
-        raw = yaml.safe_load(path.read_text(encoding="utf-8"))
-    except OSError as exc:
-        raise ConfigError(f"{path}: cannot read auth map: {exc.strerror}") from None
-    except yaml.YAMLError as exc:
-        raise ConfigError(f"{path}: not valid YAML: {exc}") from None
-    return parse_auth_map(raw, path)
+    return parse_auth_map(read_yaml(path, "auth map"), path)
 
 
 def parse_auth_map(raw: Any, path: Path) -> AuthMap:

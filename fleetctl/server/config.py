@@ -13,9 +13,9 @@ from pathlib import Path
 from typing import Any
 
 import re2
-import yaml
 
 from fleetctl.errors import ConfigError
+from fleetctl.yamlfile import read_yaml
 
 DEFAULT_PORT = 8080
 
@@ -105,12 +105,7 @@ def load_server_config(path: Path) -> ServerConfig:
         ConfigError: The file is missing, not YAML, or a field is invalid (the message
             names the file and the field).
     """
-    try:
-        raw = yaml.safe_load(path.read_text(encoding="utf-8"))
-    except OSError as exc:
-        raise ConfigError(f"{path}: cannot read server config: {exc.strerror}") from None
-    except yaml.YAMLError as exc:
-        raise ConfigError(f"{path}: not valid YAML: {exc}") from None
+    raw = read_yaml(path, "server config")
     if raw is None:
         raw = {}
     if not isinstance(raw, dict):

@@ -7,7 +7,6 @@ source IP exactly as on a real fleet: robot *i* (0-based) is ``127.0.1.(i + 2)``
 
 from __future__ import annotations
 
-import hashlib
 import secrets
 import socket
 from dataclasses import dataclass
@@ -15,6 +14,8 @@ from pathlib import Path
 from typing import Any
 
 import yaml
+
+from fleetctl.tokens import hash_token
 
 # (local topic, type, priority, rate limit in Hz or None, no_drop): design.md section 7.
 DEFAULT_PUBLISH: tuple[tuple[str, str, float, float | None, bool], ...] = (
@@ -96,10 +97,6 @@ def robot_names(count: int) -> tuple[str, ...]:
     return tuple(f"robot{i + 1}" for i in range(count))
 
 
-def _sha256(token: str) -> str:
-    return hashlib.sha256(token.encode("utf-8")).hexdigest()
-
-
 def auth_map(robots: tuple[DemoRobot, ...], viewer_token: str, operator_token: str) -> Any:
     """The auth map (design.md section 3) as plain data."""
     identities: list[dict[str, Any]] = [
@@ -116,14 +113,14 @@ def auth_map(robots: tuple[DemoRobot, ...], viewer_token: str, operator_token: s
     identities.append(
         {
             "name": "demo-viewer",
-            "token_sha256": _sha256(viewer_token),
+            "token_sha256": hash_token(viewer_token),
             "rules": [{"topic": ".*", "op": "receive"}],
         }
     )
     identities.append(
         {
             "name": "demo-operator",
-            "token_sha256": _sha256(operator_token),
+            "token_sha256": hash_token(operator_token),
             "rules": [
                 {"topic": ".*", "op": "receive"},
                 {"topic": "/[^/]+/(goal_pose|initialpose)", "op": "send"},

@@ -8,7 +8,6 @@ from __future__ import annotations
 
 import base64
 import binascii
-import hashlib
 import secrets
 from typing import Protocol
 
@@ -16,6 +15,7 @@ from cryptography.hazmat.primitives.asymmetric.x25519 import X25519PrivateKey
 
 from fleetctl.deploy.secrets import Secret
 from fleetctl.errors import ConfigError
+from fleetctl.tokens import hash_token
 
 KEY_BYTES = 32  # X25519 keys and WireGuard preshared keys are both 32 bytes
 
@@ -55,7 +55,7 @@ def new_token(source: KeySource) -> Secret:
 
 def token_sha256(token: Secret) -> str:
     """Return the hex SHA-256 of a token's UTF-8 bytes, as the auth map stores it."""
-    return hashlib.sha256(token.reveal().encode("utf-8")).hexdigest()
+    return hash_token(token.reveal())
 
 
 def decode_key(text: str, what: str) -> bytes:

@@ -12,7 +12,6 @@ Bearer token whose SHA-256 is in the auth map.
 
 from __future__ import annotations
 
-import hashlib
 import json
 import secrets
 import time
@@ -27,6 +26,7 @@ from fleetctl.e2e import profiles
 from fleetctl.e2e.samples import Sample, load
 from fleetctl.e2e.topology import IDLE_COMMAND, ROBOT_SIDE, SERVER_SIDE, Endpoint, Topology
 from fleetctl.errors import FleetError
+from fleetctl.tokens import hash_token
 from fleetctl.waiting import wait_until
 
 CONTAINER_DIR = "/e2e"
@@ -100,7 +100,7 @@ class FleetRun:
             {"name": profiles.ROBOT, "cidr": self.topo.subnets[ROBOT_SIDE],
              "rules": [{"topic": f"/{profiles.ROBOT}/.*", "op": "send"}]},
             {"name": "e2e-consumer",
-             "token_sha256": hashlib.sha256(self.token.encode()).hexdigest(),
+             "token_sha256": hash_token(self.token),
              "rules": [{"topic": ".*", "op": "receive"}]},
         ]}
         server = {"listen_host": "0.0.0.0", "listen_port": SERVER_PORT,

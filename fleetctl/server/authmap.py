@@ -8,7 +8,6 @@ Tokens are only ever held as SHA-256 hex digests.
 
 from __future__ import annotations
 
-import hashlib
 import hmac
 import ipaddress
 from dataclasses import dataclass
@@ -18,6 +17,7 @@ from typing import Any
 
 from fleetctl.errors import ConfigError
 from fleetctl.server.regex import BadRegex, FullMatch, compile_full
+from fleetctl.tokens import hash_token
 from fleetctl.yamlfile import read_yaml
 
 IPNetwork = ipaddress.IPv4Network | ipaddress.IPv6Network
@@ -100,7 +100,7 @@ class AuthMap:
 
     def match_token(self, token: str) -> Identity | None:
         """Return the identity whose ``token_sha256`` is the hash of *token*, or ``None``."""
-        digest = hashlib.sha256(token.encode("utf-8")).hexdigest()
+        digest = hash_token(token)
         found = self._by_digest.get(digest)
         # Constant-time confirm so the lookup leaks nothing beyond what a dict hit does.
         if found is not None and hmac.compare_digest(found.token_sha256 or "", digest):

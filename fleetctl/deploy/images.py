@@ -32,7 +32,6 @@ from fleetctl.deploy.dockercli import Runner, check, image_exists, subprocess_ru
 from fleetctl.errors import EnvironmentMissing, FleetError
 
 BASE_IMAGE = "fleetctl/base:bookworm"
-DEFAULT_MIRROR = "http://deb.debian.org/debian"
 # Debian packages in the base: python for the runtime, iproute2 for tc and ip (router and
 # WireGuard setup), wireguard-go/-tools for the tunnel, the JS libraries webviz serves.
 BASE_PACKAGES = (
@@ -110,7 +109,11 @@ def detect_mirror(sources: Iterable[Path] | None = None, suite: str = "bookworm"
     """The Debian mirror URL apt on this host uses for *suite* (not the security archive).
 
     Reads one-line (``deb URL SUITE ...``) and deb822 (``URIs:``/``Suites:``) source files.
-    Falls back to :data:`DEFAULT_MIRROR`.
+    The project never guesses a mirror of its own: the base image comes from the same
+    package source as the host's packages.
+
+    Raises:
+        EnvironmentMissing: No source file names a mirror for *suite*; pass ``--mirror``.
     """
     if sources is None:
         base = Path("/etc/apt")
@@ -123,7 +126,10 @@ def detect_mirror(sources: Iterable[Path] | None = None, suite: str = "bookworm"
         url = _mirror_in(text, suite)
         if url:
             return url
-    return DEFAULT_MIRROR
+    raise EnvironmentMissing(
+        f"no Debian mirror for {suite!r} in apt's sources (/etc/apt/sources.list*): "
+        "pass `fleetctl build --mirror URL`"
+    )
 
 
 def _mirror_in(text: str, suite: str) -> str | None:

@@ -18,14 +18,15 @@ REPO = Path(__file__).resolve().parents[2]
 def test_detect_mirror_reads_deb822_and_one_line_sources(tmp_path: Path) -> None:
     deb822 = tmp_path / "debian.sources"
     deb822.write_text(
-        "Types: deb\nURIs: http://deb.debian.org/debian-security\nSuites: bookworm-security\n\n"
+        "Types: deb\nURIs: http://security.example/debian-security\nSuites: bookworm-security\n\n"
         "Types: deb\nURIs: http://mirror.example/debian/\nSuites: bookworm bookworm-updates\n"
     )
     assert images.detect_mirror([deb822]) == "http://mirror.example/debian"
     one = tmp_path / "sources.list"
     one.write_text("# comment\ndeb http://ftp.example/debian bookworm main\n")
     assert images.detect_mirror([tmp_path / "absent", one]) == "http://ftp.example/debian"
-    assert images.detect_mirror([tmp_path / "absent"]) == images.DEFAULT_MIRROR
+    with pytest.raises(EnvironmentMissing, match="--mirror"):
+        images.detect_mirror([tmp_path / "absent"])
 
 
 def test_debootstrap_command_is_minbase_with_python_and_tc() -> None:

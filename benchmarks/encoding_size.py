@@ -11,23 +11,40 @@ encapsulation header), our frame size (the whole WebSocket payload: metadata wit
 topic, seq and publish time included), and the size of a rosbridge ``publish`` JSON
 message (uint8 arrays as base64, as rosbridge sends them).
 Then the mean encode and decode time per message of both codecs.
+
+A second table measures per-topic compression (``fleetctl.wire.compression``, the whole
+path: compress + Compressed frame, and decode + decompress + checks) on the messages worth
+compressing: a 384 x 384 SLAM-like OccupancyGrid, the 1 MiB PointCloud2, the demo sim's
+cloud of 20,000 wall points, and the 720-beam LaserScan. ``--levels`` adds a table of the
+raw codecs at the levels considered (zstd 1 and 3, deflate 1 and 6).
 """
 
 from __future__ import annotations
 
 import argparse
 import base64
+import functools
 import json
 import time
+import zlib
 from collections.abc import Callable
 from typing import Any
 
 import numpy as np
+import zstandard
 
+from fleetctl.client.ros.simworld import MotionConfig as SimMotion
+from fleetctl.client.ros.simworld import (
+    RoomConfig,
+    points_in_robot_frame,
+    room_points,
+    start_state,
+)
 from fleetctl.wire.codec import Codec, default_codec
+from fleetctl.wire.compression import CompressionCodec, compress, decompress
 from fleetctl.wire.layout import FieldKind
 from fleetctl.wire.registry import TypeRegistry
-from fleetctl.wire.samples import compressed_image, laser_scan, point_cloud
+from fleetctl.wire.samples import compressed_image, laser_scan, occupancy_grid, point_cloud
 
 CASES: list[tuple[str, str, str, Callable[[TypeRegistry], Any]]] = [
     ("LaserScan (720)", "sensor_msgs/msg/LaserScan", "/husky1/scan", laser_scan),
@@ -36,6 +53,27 @@ CASES: list[tuple[str, str, str, Callable[[TypeRegistry], Any]]] = [
     ("PointCloud2 (1 MiB)", "sensor_msgs/msg/PointCloud2", "/husky1/points", point_cloud),
     ("CompressedImage (75 KB)", "sensor_msgs/msg/CompressedImage",
      "/husky1/camera/image/compressed", compressed_image),
+]
+
+
+def sim_cloud(registry: TypeRegistry) -> Any:
+    """The demo sim's ``/points``: 20,000 xyz float32 points on the room's walls."""
+    room = RoomConfig()
+    xyz = points_in_robot_frame(room_points(room, 20_000), start_state(room, SimMotion(), 0.3))
+    field_cls = registry.get("sensor_msgs/msg/PointField").cls
+    fields = [field_cls(name, 4 * i, 7, 1) for i, name in enumerate("xyz")]
+    return registry.get("sensor_msgs/msg/PointCloud2").cls(
+        registry.get("std_msgs/msg/Header").cls(
+            registry.get("builtin_interfaces/msg/Time").cls(0, 0), "base_link"),
+        1, len(xyz), fields, False, 12, 12 * len(xyz), xyz.view(np.uint8).reshape(-1), True)
+
+
+COMPRESSION_CASES: list[tuple[str, str, str, Callable[[TypeRegistry], Any]]] = [
+    ("OccupancyGrid (384 x 384)", "nav_msgs/msg/OccupancyGrid", "/husky1/map", occupancy_grid),
+    ("PointCloud2 (1 MiB)", "sensor_msgs/msg/PointCloud2", "/husky1/points", point_cloud),
+    ("PointCloud2 (demo sim, 20k wall points)", "sensor_msgs/msg/PointCloud2",
+     "/husky1/points", sim_cloud),
+    ("LaserScan (720)", "sensor_msgs/msg/LaserScan", "/husky1/scan", laser_scan),
 ]
 
 
@@ -116,12 +154,91 @@ def render(rows: list[dict[str, Any]]) -> str:
     return "\n".join(lines)
 
 
+def measure_compression(codec: Codec, repeat: int) -> list[dict[str, Any]]:
+    """Per case of :data:`COMPRESSION_CASES`: frame sizes (bytes) and mean times (s)."""
+    rows = []
+    for label, type_name, topic, make in COMPRESSION_CASES:
+        frame = codec.encode(make(codec.registry), type_name, topic,
+                             publish_time_ns=time.time_ns(), seq=123_456)
+        row: dict[str, Any] = {"label": label, "original": len(frame)}
+        for method in CompressionCodec:
+            row.update(_compression_cells(codec, label, frame, topic, method, repeat))
+        rows.append(row)
+    return rows
+
+
+def _compression_cells(codec: Codec, label: str, frame: bytes, topic: str,
+                       method: CompressionCodec, repeat: int) -> dict[str, Any]:
+    key = method.name.lower()
+
+    def pack() -> bytes:
+        return compress(frame, codec=method, topic=topic, no_drop=False, frame_codec=codec)
+
+    packed = pack()
+    assert packed is not frame, f"{label}: {key} saved under 5 %"
+    assert decompress(packed, len(frame), frame_codec=codec) == frame
+    return {
+        key: len(packed),
+        f"{key}_compress_s": _mean_s(pack, repeat),
+        f"{key}_decompress_s": _mean_s(
+            lambda: decompress(packed, len(frame), frame_codec=codec), repeat),
+    }
+
+
+def render_compression(rows: list[dict[str, Any]]) -> str:
+    """A Markdown table of the compression rows (ratio = original / compressed frame)."""
+    lines = [
+        "| Message | frame (B) | zstd (B) | ratio | compress (ms) | decompress (ms) "
+        "| deflate (B) | ratio | compress (ms) | decompress (ms) |",
+        "|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|",
+    ]
+    for r in rows:
+        cells = [r["label"], f"{r['original']:,}"]
+        for key in ("zstd", "deflate"):
+            cells += [f"{r[key]:,}", f"{r['original'] / r[key]:.2f}",
+                      f"{r[key + '_compress_s'] * 1e3:.3f}",
+                      f"{r[key + '_decompress_s'] * 1e3:.3f}"]
+        lines.append("| " + " | ".join(cells) + " |")
+    return "\n".join(lines)
+
+
+LEVELS: list[tuple[str, Callable[[bytes], bytes]]] = [
+    ("zstd 1", zstandard.ZstdCompressor(level=1).compress),
+    ("zstd 3", zstandard.ZstdCompressor(level=3).compress),
+    ("deflate 1", lambda data: zlib.compress(data, 1, wbits=-15)),
+    ("deflate 6", lambda data: zlib.compress(data, 6, wbits=-15)),
+]
+
+
+def render_levels(codec: Codec, repeat: int) -> str:
+    """Raw codecs on the encoded frames: compressed size / original, and ms per message."""
+    lines = ["| Message | " + " | ".join(f"{name} size | {name} ms" for name, _ in LEVELS)
+             + " |", "|---|" + "---:|---:|" * len(LEVELS)]
+    for label, type_name, topic, make in COMPRESSION_CASES:
+        frame = codec.encode(make(codec.registry), type_name, topic)
+        cells = [label]
+        for _name, fn in LEVELS:
+            cells += [f"{len(fn(frame)) / len(frame):.3f}",
+                      f"{_mean_s(functools.partial(fn, frame), repeat) * 1e3:.3f}"]
+        lines.append("| " + " | ".join(cells) + " |")
+    return "\n".join(lines)
+
+
 def main() -> None:
     """Measure and print."""
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--repeat", type=int, default=50, help="iterations per timing")
+    parser.add_argument("--compression-repeat", type=int, default=20,
+                        help="iterations per compression timing")
+    parser.add_argument("--levels", action="store_true", help="also compare codec levels")
     args = parser.parse_args()
-    print(render(measure(default_codec(), args.repeat)))
+    codec = default_codec()
+    print(render(measure(codec, args.repeat)))
+    print()
+    print(render_compression(measure_compression(codec, args.compression_repeat)))
+    if args.levels:
+        print()
+        print(render_levels(codec, args.compression_repeat))
 
 
 if __name__ == "__main__":

@@ -7,7 +7,10 @@ import time
 from collections.abc import Callable
 from typing import Any
 
+import numpy as np
+
 from fleetctl.wire.codec import default_codec
+from fleetctl.wire.compression import COMPRESSED_TYPE
 
 STRING_TYPE = "std_msgs/msg/String"
 
@@ -18,6 +21,15 @@ def string_frame(topic: str, text: str = "hi", *, no_drop: bool = False, seq: in
     cls = codec.registry.get(STRING_TYPE).cls
     return codec.encode(cls(text), STRING_TYPE, topic, no_drop=no_drop, seq=seq,
                         publish_time_ns=time.time_ns())
+
+
+def compressed_frame(topic: str, *, codec: int, original_bytes: int, payload: bytes,
+                     seq: int = 0) -> bytes:
+    """A ``fleetctl_msgs/msg/Compressed`` frame with arbitrary (possibly hostile) content."""
+    wire = default_codec()
+    cls = wire.registry.get(COMPRESSED_TYPE).cls
+    msg = cls(codec, original_bytes, np.frombuffer(payload, dtype=np.uint8))
+    return wire.encode(msg, COMPRESSED_TYPE, topic, seq=seq)
 
 
 def decode_text(frame: bytes) -> str:

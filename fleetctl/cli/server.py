@@ -31,6 +31,10 @@ server.yaml (relative paths are relative to the file):
     robot_offline_after_s: 5.0
     max_malformed_in_row: 10           then close with 1007
     auth_timeout_s: 10.0               for the {"token": ...} frame
+    session_expiry_s: 3600.0           named sessions offline this long are dropped
+    session_mailbox_messages: 10000    no_drop frames kept per offline session
+    session_mailbox_bytes: 16777216
+    max_sessions_per_identity: 64
 
 \b
 HTTP: GET /healthz, GET /metrics (Prometheus), GET /robots (JSON).

@@ -28,8 +28,10 @@ _TOP_KEYS = frozenset(
      "status", "limits"}
 )
 _PUBLISH_KEYS = frozenset(
-    {"topic", "type", "priority", "rate_limit_hz", "no_drop", "remote_topic"}
+    {"topic", "type", "priority", "rate_limit_hz", "no_drop", "remote_topic", "compression"}
 )
+# "none" or a codec of fleetctl.wire.compression (names as in CompressionCodec).
+COMPRESSIONS = ("none", "zstd", "deflate")
 _SUBSCRIBE_KEYS = frozenset({"remote_topic", "type", "local_topic"})
 _STATUS_KEYS = frozenset({"battery_topic", "period_s"})
 _LIMIT_KEYS = frozenset(
@@ -53,6 +55,8 @@ class PublishSpec:
         rate_limit_hz: Maximum send rate in Hz; None means no limit.
         no_drop: True for reliable in-order delivery (bounded FIFO), False for latest-only.
         remote_topic: Topic on the wire; defaults to ``/<robot_name><topic>``.
+        compression: ``none``, ``zstd`` (fleetctl receivers) or ``deflate`` (also decoded
+            by the web page); a frame is sent compressed only when that saves >= 5 %.
     """
 
     topic: str
@@ -61,6 +65,7 @@ class PublishSpec:
     rate_limit_hz: float | None
     no_drop: bool
     remote_topic: str
+    compression: str = "none"
 
 
 @dataclass(frozen=True)
@@ -337,14 +342,30 @@ def _publish(ctx: _Ctx, raw: object, where: str, robot_name: str) -> PublishSpec
     remote = _topic(ctx, entry, where, "remote_topic", required=False)
     priority = _number(ctx, entry, where, "priority", 1.0, lambda v: v >= 0, ">= 0")
     rate = _number(ctx, entry, where, "rate_limit_hz", None, lambda v: v > 0, "> 0 or null")
+    remote = remote or f"/{robot_name}{topic}"
     return PublishSpec(
         topic=topic,
         type=_type(ctx, entry, where),
         priority=1.0 if priority is None else priority,
         rate_limit_hz=rate,
         no_drop=_bool(ctx, entry, where, "no_drop", False),
-        remote_topic=remote or f"/{robot_name}{topic}",
+        remote_topic=remote,
+        compression=_compression(ctx, entry, where, remote == f"/{robot_name}/status"),
     )
+
+
+def _compression(ctx: _Ctx, entry: Mapping[str, Any], where: str, is_status: bool) -> str:
+    value = entry.get("compression", "none")
+    if value is None:
+        value = "none"
+    if value not in COMPRESSIONS:
+        raise ctx.error(where, "compression", f"must be one of {', '.join(COMPRESSIONS)}, "
+                                              f"got {value!r}")
+    if is_status and value != "none":
+        # The server reads status frames (robot registry) and does not decompress.
+        reason = "must be none on the status topic: the server reads status frames as they are"
+        raise ctx.error(where, "compression", reason)
+    return str(value)
 
 
 def _subscribe_list(ctx: _Ctx, value: object) -> tuple[SubscribeSpec, ...]:

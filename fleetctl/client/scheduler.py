@@ -24,7 +24,10 @@ clock. The transport feeds it messages (:meth:`Scheduler.offer`), pulls frames t
   delay-based: it grows while the queueing delay (RTT - min RTT) is under
   ``target_queue_delay_s`` and shrinks above it, floored at one fragment, so a clean
   link is not capped at one message per RTT and a congested one does not build a queue
-  (why not BBR's rate x min RTT: see :meth:`Scheduler._adapt_window`).
+  (why not BBR's rate x min RTT: see :meth:`Scheduler._adapt_window`). It is also capped
+  at the link rate x (min RTT + target): a token bucket's burst after idle makes acks
+  look instant, and without the cap the window grew by the bucket's size into a queue
+  that the delay signal only saw one (long) RTT later (see :meth:`Scheduler.rate_cap_bytes`).
   ``SchedulerConfig.fixed_window_messages`` gives Robofleet's fixed n_T instead.
 - Disconnect: no_drop messages sent but not acknowledged, or partly sent, go back to the
   head of Q_n in their order (at-least-once; receivers dedupe by (topic, seq)); partly
@@ -87,6 +90,8 @@ class SchedulerConfig:
         max_window_bytes: Upper bound of the adaptive window (bytes).
         max_window_messages: Upper bound of frames in flight (adaptive mode).
         window_gain: BBR cwnd gain of the ``bdp_bytes`` estimate (reported in stats).
+        rate_cap_gain: The window is at most this x link rate x (min RTT +
+            ``target_queue_delay_s``); None disables the cap.
         target_queue_delay_s: Queueing delay (RTT above the min RTT, seconds) the
             delay-based window steers to: larger moves more on a fast link, smaller keeps
             urgent messages quicker on a slow one.
@@ -118,6 +123,7 @@ class SchedulerConfig:
     max_window_bytes: int = 16 * 1024 * 1024
     max_window_messages: int = 4096
     window_gain: float = 2.0
+    rate_cap_gain: float | None = 1.0
     target_queue_delay_s: float = 0.004
     min_rtt_filter_s: float = 10.0
     rate_filter_s: float = 2.0
@@ -501,7 +507,9 @@ class Scheduler:
         self._min_rtt.add(now_s, rtt)
         self._adapt_window(rtt, acked_now, point.app_limited)
         busy_s = now_s - self._delivered_s  # since the last ack or the restart from idle
-        if acked_now > 0 and busy_s > 0:
+        # Acks that arrive together (one read of several pongs) still count their bytes:
+        # dropping the zero-time ones underestimated the rate, and so the window cap.
+        if acked_now > 0 and busy_s >= 0:
             self._busy_rate.add(now_s, acked_now, busy_s)
             self._link_rate.add(now_s, self._busy_rate.rate())
         elapsed = now_s - point.delivered_s
@@ -531,7 +539,25 @@ class Scheduler:
         """Recompute the cached fragment size and window (they change only on acks)."""
         self._fragment = self._compute_fragment_bytes()
         floor = float(self._fragment if self.config.fragments else 1)
-        self._window = int(min(max(self._delay_window, floor), self.config.max_window_bytes))
+        window = min(self._delay_window, self.rate_cap_bytes())
+        self._window = int(min(max(window, floor), self.config.max_window_bytes))
+
+    def rate_cap_bytes(self) -> float:
+        """What the link delivers in a min RTT plus the target queue delay (bytes).
+
+        The link rate is bytes acknowledged over busy time (:class:`BusyRate`, held at its
+        maximum for ``link_rate_hold_s``), which a token bucket's burst does not inflate
+        the way per-ack rate samples are inflated. On a fast link the cap does not bind:
+        there the window-limited rate is window / RTT, so the cap is window x (min RTT +
+        target) / RTT, above the window until the queueing delay exceeds the target, where
+        the delay-based window shrinks anyway. Infinite before the first samples.
+        """
+        gain = self.config.rate_cap_gain
+        rate = self._link_rate.value(None, 0.0)
+        min_rtt = self.min_rtt_s()
+        if gain is None or rate <= 0 or min_rtt is None:
+            return float("inf")
+        return gain * rate * (min_rtt + self.config.target_queue_delay_s)
 
     def bdp_bytes(self) -> float:
         """BBR's estimate ``window_gain x max delivery rate x min RTT`` (stats only)."""
@@ -637,5 +663,6 @@ class Scheduler:
             "delivery_rate_Bps": self.delivery_rate_bps(now_s),
             "link_rate_Bps": self._link_rate.value(now_s, 0.0),
             "bdp_bytes": self.bdp_bytes(),
+            "rate_cap_bytes": self.rate_cap_bytes(),
             "fragment_bytes": self.fragment_bytes(),
         }

@@ -5,6 +5,11 @@
 - connects (Bearer token on the upgrade when configured, optional source address),
   subscribes to every ``subscribe`` entry (``RobofleetSubscription`` frames), and
   reconnects with exponential backoff and jitter, resubscribing each time;
+- names its server session after the robot (``X-Fleetctl-Session: <robot_name>``), so
+  the server keeps its subscriptions and no_drop frames for it while it is away (and
+  across server restarts); subscriptions the server reinstates that are no longer in the
+  config are unsubscribed; :meth:`RobotLink.stop` unsubscribes everything, which ends
+  the session;
 - sends what the scheduler picks, and marks ack points with WebSocket pings: the server
   answers a ping only after reading every earlier frame, so its pong acknowledges them
   (Robofleet III-B, ``UPDATEBPCOUNTER``);
@@ -49,6 +54,8 @@ from fleetctl.client.scheduler import Scheduler, SchedulerConfig
 from fleetctl.wire.control import encode_subscription
 
 logger = logging.getLogger("fleetctl.client.link")
+
+SESSION_HEADER = "X-Fleetctl-Session"  # fleetctl.server.sessions.SESSION_HEADER
 
 Clock = Callable[[], float]
 
@@ -270,6 +277,8 @@ class RobotLink:
         snap["reconnects"] = self._counters["reconnects"]
         snap["link_timeouts"] = self._counters["link_timeouts"]
         snap["connect_failures"] = self._counters["connect_failures"]
+        snap["session_resumes"] = self._counters["session_resumes"]
+        snap["session_mailbox_frames"] = self._counters["session_mailbox_frames"]
         snap["last_close"] = self._last_close
         snap["server_errors"] = dict(self._server_errors)
         snap["identities"] = list(self._identities)
@@ -301,7 +310,7 @@ class RobotLink:
             await asyncio.wait_for(self._stop.wait(), timeout_s)
 
     async def _connect(self, attempt: int) -> LinkConnection | None:
-        headers = {}
+        headers = {SESSION_HEADER: self.config.robot_name}
         if self.config.token is not None:
             headers["Authorization"] = f"Bearer {self.config.token}"
         extra: dict[str, Any] = {}
@@ -462,17 +471,21 @@ class RobotLink:
     async def _receive_loop(self, ws: ClientConnection) -> None:
         async for message in ws:
             if isinstance(message, str):
-                self._on_text(message)
+                for stale in self._on_text(message):
+                    await ws.send(encode_subscription(stale, False))
             else:
                 self._receiver.on_binary(message)
 
-    def _on_text(self, text: str) -> None:
+    def _on_text(self, text: str) -> list[str]:
+        """Handle a server text frame; return subscriptions to drop (stale in the session)."""
         try:
             event = json.loads(text)
         except ValueError:
             logger.warning("server sent text that is not JSON: %.200r", text)
-            return
+            return []
         kind = event.get("type") if isinstance(event, dict) else None
+        if kind == "session":
+            return self._on_session(event)
         if kind == "welcome":
             self._identities = [str(i) for i in event.get("identities", [])]
             logger.info("authenticated as %s", ", ".join(self._identities) or "(nobody)")
@@ -489,6 +502,19 @@ class RobotLink:
                            event.get("message"))
         else:
             logger.debug("server: %.200s", text)
+        return []
+
+    def _on_session(self, event: dict[str, Any]) -> list[str]:
+        frames = event.get("mailbox_frames", 0)
+        self._counters["session_resumes"] += bool(event.get("resumed"))
+        self._counters["session_mailbox_frames"] += frames if isinstance(frames, int) else 0
+        if event.get("resumed"):
+            logger.info("resumed session %s: %s frames kept while away", event.get("name"),
+                        frames)
+        wanted = {spec.remote_topic for spec in self.config.subscribe}
+        patterns = event.get("subscriptions")
+        return [p for p in patterns if isinstance(p, str) and p not in wanted] if isinstance(
+            patterns, list) else []
 
 
 def _close_exc(ws: LinkConnection) -> ConnectionClosed | None:

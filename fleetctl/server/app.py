@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import functools
 import http
 import logging
 import signal
@@ -25,8 +26,10 @@ from fleetctl.server.config import ServerConfig
 from fleetctl.server.connection import RelayConnection
 from fleetctl.server.identity import bearer_token, effective_address, parse_address
 from fleetctl.server.metrics import Metrics
+from fleetctl.server.outbound import OutboundScheduler
 from fleetctl.server.registry import RobotRegistry
 from fleetctl.server.relay import Peer, RelayCore
+from fleetctl.server.sessions import SESSION_HEADER
 
 log = logging.getLogger("fleetctl.server")
 # websockets logs every request header (Authorization: Bearer ...) at DEBUG; its logger
@@ -121,12 +124,13 @@ class RelayServer:
         return context
 
     async def _flush_registry(self) -> None:
-        while True:  # periodic write-behind, not synchronization
+        while True:  # periodic write-behind and session expiry, not synchronization
             await asyncio.sleep(REGISTRY_FLUSH_PERIOD_S)
             try:
                 self.registry.flush()
             except Exception:  # a full disk must not stop the relay
                 log.exception("robot registry flush failed")
+            self.core.sessions.expire()
 
     # -- handshake ----------------------------------------------------------------------
 
@@ -142,7 +146,7 @@ class RelayServer:
         if path == "/healthz":
             return endpoints.text(http.HTTPStatus.OK, "ok\n")
         if path == "/metrics":
-            body = self.metrics.render(self._gauges()).encode()
+            body = self.metrics.render(self._gauges(), self.core.session_gauges()).encode()
             return endpoints.response(http.HTTPStatus.OK, body,
                                       endpoints.PROMETHEUS_CONTENT_TYPE)
         if path == "/robots" and "upgrade" not in request.headers.get("Connection", "").lower():
@@ -181,8 +185,12 @@ class RelayServer:
         assert isinstance(connection, RelayConnection)
         address = self._address(connection, request)
         wake = asyncio.Event()
+        names = request.headers.get_all(SESSION_HEADER)
+        # Several headers: keep them all as one (invalid) name, refused on authentication.
+        session_name = ",".join(names) if names else None
         peer = self.core.new_peer(
-            str(address) if address else None, close=self._closer(connection), wake=wake.set
+            str(address) if address else None, close=self._closer(connection), wake=wake.set,
+            session_name=session_name,
         )
         identities, bad = self._identities(address, request)
         connection.relay_state = (peer, identities, bad, wake)
@@ -273,6 +281,17 @@ class RelayServer:
                 for topic, frame in batch:
                     metrics.count_out(topic, len(frame))
                 await connection.send_frames([frame for _, frame in batch])
+                mark = outbound.ack_mark()  # None unless the peer has a session
+                if mark is not None:
+                    await self._ack_point(connection, outbound, mark)
+
+    @staticmethod
+    async def _ack_point(connection: RelayConnection, outbound: OutboundScheduler,
+                         mark: int) -> None:
+        """Ping after session no_drop frames: the pong (the client answers pings in order,
+        after reading what came before) acknowledges them (see OutboundScheduler)."""
+        waiter = asyncio.ensure_future(await connection.ping(mark.to_bytes(8, "big")))
+        waiter.add_done_callback(functools.partial(_on_pong, outbound, mark))
 
     def _gauges(self) -> list[tuple[str, str, dict[str, float]]]:
         depth = {p.label: float(len(p.outbound)) for p in self.core.peers.values()}
@@ -283,6 +302,12 @@ class RelayServer:
             ("fleetctl_outbound_queue_bytes", "Bytes queued per connection.", nbytes),
             ("fleetctl_outbound_dropped", "Frames dropped per open connection.", dropped),
         ]
+
+
+def _on_pong(outbound: OutboundScheduler, mark: int, waiter: asyncio.Future[float]) -> None:
+    # A closed connection fails its waiters: then take_no_drop() keeps the frames.
+    if not waiter.cancelled() and waiter.exception() is None:
+        outbound.acked(mark)
 
 
 async def run_server(config: ServerConfig, ready: Callable[[RelayServer], None] | None = None,

@@ -33,6 +33,13 @@ class ServerLimits:
         robot_offline_after_s: Seconds without a frame after which a robot is offline.
         max_malformed_in_row: Consecutive malformed frames that close with 1007.
         auth_timeout_s: Seconds a connection with no identity has to send its token frame.
+        session_expiry_s: Seconds a named session may stay without a connection before it
+            is dropped (its subscriptions and mailbox are forgotten).
+        session_mailbox_messages: no_drop frames one offline session's mailbox holds;
+            more drop the oldest (counted).
+        session_mailbox_bytes: Bytes one offline session's mailbox holds (same policy).
+        max_sessions_per_identity: Named sessions one identity set may hold at a time;
+            a connection naming one more closes with 4400.
     """
 
     max_frame_bytes: int = 16 * 1024 * 1024
@@ -42,6 +49,10 @@ class ServerLimits:
     robot_offline_after_s: float = 5.0
     max_malformed_in_row: int = 10
     auth_timeout_s: float = 10.0
+    session_expiry_s: float = 3600.0
+    session_mailbox_messages: int = 10000
+    session_mailbox_bytes: int = 16 * 1024 * 1024
+    max_sessions_per_identity: int = 64
 
 
 @dataclass(frozen=True)
@@ -88,8 +99,11 @@ _INT_LIMITS = (
     "outbound_queue_bytes",
     "outbound_no_drop_messages",
     "max_malformed_in_row",
+    "session_mailbox_messages",
+    "session_mailbox_bytes",
+    "max_sessions_per_identity",
 )
-_FLOAT_LIMITS = ("robot_offline_after_s", "auth_timeout_s")
+_FLOAT_LIMITS = ("robot_offline_after_s", "auth_timeout_s", "session_expiry_s")
 
 
 def load_server_config(path: Path) -> ServerConfig:

@@ -28,6 +28,7 @@ class Metrics:
     drops: dict[str, int] = field(default_factory=dict)
     errors: dict[str, int] = field(default_factory=dict)
     closes: dict[int, int] = field(default_factory=dict)
+    session_drops: dict[tuple[str, str], int] = field(default_factory=dict)
 
     def label(self, topic: str) -> str:
         """Return *topic*, or ``<other>`` once the label bound is reached."""
@@ -55,6 +56,13 @@ class Metrics:
             topic = self.label(topic)
         self.drops[topic] = self.drops.get(topic, 0) + n
 
+    def count_session_drop(self, session: str, topic: str) -> None:
+        """Count one no_drop frame dropped from (or expired with) *session*'s mailbox."""
+        key = (session, topic)
+        if key not in self.session_drops and len(self.session_drops) >= MAX_TOPIC_LABELS:
+            key = (OTHER, OTHER)
+        self.session_drops[key] = self.session_drops.get(key, 0) + 1
+
     def count_error(self, code: str) -> None:
         """Count one error frame (or would-be error frame) of *code*."""
         self.errors[code] = self.errors.get(code, 0) + 1
@@ -63,12 +71,18 @@ class Metrics:
         """Count one connection the server closed with *code*."""
         self.closes[code] = self.closes.get(code, 0) + 1
 
-    def render(self, gauges: Iterable[tuple[str, str, dict[str, float]]] = ()) -> str:
+    def render(
+        self,
+        gauges: Iterable[tuple[str, str, dict[str, float]]] = (),
+        labelled: Iterable[tuple[str, str, str, dict[str, float]]] = (),
+    ) -> str:
         """Return the exposition text.
 
         Args:
             gauges: Extra ``(name, help, {label_value: value})`` gauges keyed by connection
                 (queue depths), computed by the caller at scrape time.
+            labelled: Extra ``(name, help, label_name, {label_value: value})`` gauges
+                (sessions), computed by the caller at scrape time.
         """
         out: list[str] = []
         _scalar(out, "fleetctl_connections_total", "counter", "Connections accepted.",
@@ -90,8 +104,15 @@ class Metrics:
         closes = {str(k): v for k, v in self.closes.items()}
         _labelled(out, "fleetctl_closes_total", "counter",
                   "Connections closed by the server per close code.", "code", closes)
+        name = "fleetctl_session_mailbox_drops_total"
+        out += [f"# HELP {name} no_drop frames dropped from offline sessions' mailboxes "
+                "(overflow, expiry) per session and topic.", f"# TYPE {name} counter"]
+        out += [f'{name}{{session="{_escape(s)}",topic="{_escape(t)}"}} {v}'
+                for (s, t), v in sorted(self.session_drops.items())]
         for gauge, help_text, per_conn in gauges:
             _labelled(out, gauge, "gauge", help_text, "connection", per_conn)
+        for gauge, help_text, label_name, label_values in labelled:
+            _labelled(out, gauge, "gauge", help_text, label_name, label_values)
         return "\n".join(out) + "\n"
 
 

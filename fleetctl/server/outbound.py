@@ -16,12 +16,22 @@ Three queues, served in this order:
 The byte bound covers everything queued; a frame that does not fit is dropped and
 counted, except that an empty queue always takes one frame (else a frame larger than the
 bound could never be delivered; memory stays below bound + one max frame).
+
+Named sessions (:mod:`fleetctl.server.sessions`) add two things, both off unless used:
+
+- a *backlog*: a session's mailbox, queued at the head of the no_drop FIFO when a
+  connection attaches (:meth:`OutboundScheduler.push_backlog`). It was already bounded
+  by the mailbox limits, so it is outside the FIFO's message and byte bounds (nothing is
+  dropped when it moves in); live no_drop frames queue behind it under the usual bounds.
+- acknowledgement tracking (:meth:`OutboundScheduler.track_acks`): no_drop frames handed
+  to the writer are kept until a pong acknowledges them (:meth:`acked`), so that a
+  connection that dies gives back what it may not have delivered (:meth:`take_no_drop`).
 """
 
 from __future__ import annotations
 
 from collections import deque
-from collections.abc import Callable
+from collections.abc import Callable, Iterable
 
 CONTROL_TOPIC = "<control>"
 # Why 256: control frames answer the client's own requests; a client that floods
@@ -70,6 +80,12 @@ class OutboundScheduler:
         self.queued_frames = 0
         self.drops: dict[str, int] = {}
         self.dropped_total = 0
+        self._backlog_left = 0  # the first _backlog_left frames of _no_drop are backlog
+        self.backlog_bytes = 0
+        self._unacked: deque[tuple[str, bytes]] | None = None
+        self._popped = 0  # no_drop frames popped while tracking (ack marks count these)
+        self._retired = 0  # ... of which acknowledged
+        self._marked = 0  # mark of the last ping
 
     def __len__(self) -> int:
         return self.queued_frames
@@ -113,7 +129,8 @@ class OutboundScheduler:
         """
         size = len(frame)
         if no_drop:
-            if len(self._no_drop) >= self.max_no_drop_messages or not self._fits(size):
+            if (len(self._no_drop) - self._backlog_left >= self.max_no_drop_messages
+                    or not self._fits(size)):
                 self._count_drop(topic)
                 return False
             self._no_drop.append((topic, frame))
@@ -163,8 +180,15 @@ class OutboundScheduler:
             return CONTROL_TOPIC, text
         if self._no_drop:
             item = self._no_drop.popleft()
-            self.queued_bytes -= len(item[1])
+            if self._backlog_left:
+                self._backlog_left -= 1
+                self.backlog_bytes -= len(item[1])
+            else:
+                self.queued_bytes -= len(item[1])
             self.queued_frames -= 1
+            if self._unacked is not None:
+                self._unacked.append(item)
+                self._popped += 1
             return item
         return self._pop_latest()
 
@@ -190,6 +214,72 @@ class OutboundScheduler:
                 self._ready.append(topic)
             return topic, frame
         return None
+
+    # -- named sessions ---------------------------------------------------------------------
+
+    @property
+    def backlog_frames(self) -> int:
+        """Frames of a session's mailbox still queued here."""
+        return self._backlog_left
+
+    def push_backlog(self, frames: Iterable[tuple[str, bytes]]) -> None:
+        """Queue ``(topic, frame)`` no_drop frames (a session's mailbox) before any later
+        no_drop frame, outside the FIFO's bounds (the mailbox had its own).
+
+        Call before any live no_drop frame is queued: the relay does it when the
+        connection attaches to its session, before reinstating its subscriptions.
+        """
+        was_empty = self.queued_frames == 0
+        n = 0
+        for topic, frame in frames:
+            self._no_drop.append((topic, frame))
+            self.backlog_bytes += len(frame)
+            n += 1
+        self._backlog_left += n
+        self.queued_frames += n
+        if n and was_empty and self._wake is not None:
+            self._wake()
+
+    def track_acks(self) -> None:
+        """From now on keep popped no_drop frames until :meth:`acked` (see module doc)."""
+        if self._unacked is None:
+            self._unacked = deque()
+
+    def ack_mark(self) -> int | None:
+        """A mark for a ping sent after the frames popped so far, or ``None`` when no
+        tracked frame was popped since the previous mark (no ping needed)."""
+        if self._unacked is None or self._popped == self._marked:
+            return None
+        self._marked = self._popped
+        return self._popped
+
+    def acked(self, mark: int) -> None:
+        """The pong of the ping of *mark* came back: forget the frames popped before it."""
+        unacked = self._unacked
+        if unacked is None:
+            return
+        while self._retired < mark and unacked:
+            unacked.popleft()
+            self._retired += 1
+
+    @property
+    def unacked_frames(self) -> int:
+        """no_drop frames popped but not yet acknowledged (0 when not tracking)."""
+        return len(self._unacked) if self._unacked is not None else 0
+
+    def take_no_drop(self) -> list[tuple[str, bytes]]:
+        """Remove and return, in order, the unacknowledged popped no_drop frames and every
+        queued one (backlog included); stop tracking. For a connection that is gone."""
+        out = list(self._unacked or ())
+        out.extend(self._no_drop)
+        queued = sum(len(f) for _, f in self._no_drop) - self.backlog_bytes
+        self.queued_bytes -= queued
+        self.queued_frames -= len(self._no_drop)
+        self._no_drop.clear()
+        self._backlog_left = self.backlog_bytes = 0
+        self._unacked = None
+        self._popped = self._retired = self._marked = 0
+        return out
 
     def pop_batch(self, max_bytes: int) -> list[tuple[str, Frame]]:
         """Pop frames until about *max_bytes* are taken (at least one if any is queued)."""

@@ -12,8 +12,10 @@ from fleetctl.wire.errors import WireError
 
 CLOSE_TOO_BIG = 1009  # frame over max_frame_bytes (websockets sends it for us)
 CLOSE_MALFORMED = 1007  # too many malformed frames in a row
+CLOSE_BAD_SESSION = 4400  # bad session name, or one session too many for the identity
 CLOSE_BAD_TOKEN = 4401
 CLOSE_NO_IDENTITY = 4403
+CLOSE_SESSION_TAKEN_OVER = 4409  # a newer connection attached to the same session
 CLOSE_SUBSCRIPTION_FLOOD = 4429
 CLOSE_GOING_AWAY = 1001  # server shutdown
 
@@ -28,6 +30,7 @@ ERROR_CODES = (
     "unknown_type",
     "too_many_subscriptions",
     "bad_token",
+    "bad_session",
 )
 
 
@@ -46,6 +49,20 @@ def error(code: str, topic: str | None, message: str) -> str:
     """An ``error`` frame; *code* is one of :data:`ERROR_CODES`."""
     assert code in ERROR_CODES, code
     return json.dumps({"type": "error", "code": code, "topic": topic, "message": message})
+
+
+def session(name: str, resumed: bool, mailbox_frames: int, patterns: list[str]) -> str:
+    """The ``session`` frame, sent after ``welcome`` to a connection that named a session.
+
+    Args:
+        name: The session name.
+        resumed: Whether the session existed (its mailbox and subscriptions follow).
+        mailbox_frames: no_drop frames queued from the mailbox, ahead of live frames.
+        patterns: Subscriptions reinstated from the session (each also gets a
+            ``subscribed`` frame).
+    """
+    return json.dumps({"type": "session", "name": name, "resumed": resumed,
+                       "mailbox_frames": mailbox_frames, "subscriptions": patterns})
 
 
 def ack(kind: str, topic_regex: str) -> str:

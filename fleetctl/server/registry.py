@@ -102,6 +102,11 @@ class RobotRegistry:
             self._last_seen[rec.name] = rec.last_seen_s
         self.dropped_names = 0
 
+    @property
+    def db(self) -> sqlite3.Connection:
+        """The SQLite connection (shared with the sessions table's ``SessionStore``)."""
+        return self._db
+
     def seen(self, name: str) -> bool:
         """Note a frame from robot *name* now; return ``False`` if the registry is full."""
         now = self._clock()

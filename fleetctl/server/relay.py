@@ -13,7 +13,9 @@ from __future__ import annotations
 
 import json
 import logging
+import sqlite3
 import struct
+import time
 from collections.abc import Callable
 from typing import Any
 
@@ -25,6 +27,8 @@ from fleetctl.server.outbound import OutboundScheduler
 from fleetctl.server.permissions import Permissions, PermissionsPool
 from fleetctl.server.regex import compile_full
 from fleetctl.server.registry import RobotRegistry, robot_name
+from fleetctl.server.sessions import BadSessionName, Session, SessionTable, check_session_name
+from fleetctl.server.sessionstore import SessionStore
 from fleetctl.server.subscriptions import Refusal, SubscriptionMap
 from fleetctl.wire.errors import WireError
 from fleetctl.wire.metadata import field_pos, read_root, table_fields
@@ -48,6 +52,8 @@ class Peer:
         address: Address used for identity matching, as text (``None`` if unknown).
         outbound: The connection's scheduler.
         close: Asks the I/O layer to close with ``(code, reason)``.
+        session_name: The session the client named on the upgrade, if any (validated
+            when the connection authenticates).
     """
 
     def __init__(
@@ -56,8 +62,11 @@ class Peer:
         address: str | None,
         outbound: OutboundScheduler,
         close: Callable[[int, str], None],
+        session_name: str | None = None,
     ) -> None:
         self.peer_id = peer_id
+        self.session_name = session_name
+        self.session: Session[Peer] | None = None
         self.address = address
         self.outbound = outbound
         self._close = close
@@ -92,6 +101,7 @@ class RelayCore:
         auth: The loaded auth map.
         registry: The robot registry.
         metrics: Counters to update.
+        clock: Monotonic clock in seconds (session expiry).
     """
 
     def __init__(
@@ -100,6 +110,7 @@ class RelayCore:
         auth: AuthMap,
         registry: RobotRegistry,
         metrics: Metrics,
+        clock: Callable[[], float] = time.monotonic,
     ) -> None:
         self.config = config
         self.limits = config.limits
@@ -114,12 +125,18 @@ class RelayCore:
         self._no_drop_res = tuple(compile_full(p) for p in config.no_drop_topics)
         self._no_drop_memo: dict[str, bool] = {}
         self._next_id = 0
+        self.sessions: SessionTable[Peer] = SessionTable(
+            config.limits, _session_store(registry), metrics, clock)
+        self.sessions.load(auth, self.pool)
 
     # -- connection life cycle -------------------------------------------------------
 
     def new_peer(self, address: str | None, close: Callable[[int, str], None],
-                 wake: Callable[[], None] | None) -> Peer:
-        """Create the relay state of a new connection (not yet authenticated)."""
+                 wake: Callable[[], None] | None, session_name: str | None = None) -> Peer:
+        """Create the relay state of a new connection (not yet authenticated).
+
+        *session_name* is the ``X-Fleetctl-Session`` header, if any.
+        """
         self._next_id += 1
         outbound = OutboundScheduler(
             self.limits.outbound_queue_bytes,
@@ -127,7 +144,7 @@ class RelayCore:
             wake,
             self.metrics.count_drop,
         )
-        peer = Peer(self._next_id, address, outbound, close)
+        peer = Peer(self._next_id, address, outbound, close, session_name)
         self.peers[peer.peer_id] = peer
         self.metrics.connections_total += 1
         self.metrics.connections_open += 1
@@ -152,6 +169,8 @@ class RelayCore:
             self._subscribe(peer, pattern)
         peer.outbound.push_control(protocol.welcome(peer.perms))
         log.info("%s authenticated", peer.label)
+        if peer.session_name is not None and peer.session is None:
+            self._attach_session(peer, peer.session_name)
         return True
 
     def close_peer(self, peer: Peer) -> None:
@@ -159,6 +178,8 @@ class RelayCore:
         if self.peers.pop(peer.peer_id, None) is None:
             return
         self.subs.remove(peer)
+        if peer.session is not None:
+            self._detach_session(peer)
         for name in peer.robots:
             self.registry.detach(name)
         self.metrics.connections_open -= 1
@@ -203,6 +224,8 @@ class RelayCore:
         no_drop = meta.no_drop or self._forced_no_drop(topic)
         for receiver in self.subs.receivers(topic):
             receiver.outbound.push(topic, frame, no_drop, message_id)
+        if no_drop and self.sessions.has_offline:
+            self.sessions.deliver(topic, frame)
 
     def on_text(self, peer: Peer, text: str) -> None:
         """Handle one text frame: a token frame or a ``list_robots`` request."""
@@ -214,7 +237,7 @@ class RelayCore:
             self._malformed(peer, "malformed_frame", None, "text frame is not a JSON object")
             return
         if "token" in data:
-            self.on_token(peer, data["token"])
+            self.on_token(peer, data["token"], data.get("session"))
         elif data.get("type") == "list_robots" and peer.perms is not None:
             peer.malformed_in_row = 0
             peer.outbound.push_control(json.dumps({"type": "robots",
@@ -225,20 +248,107 @@ class RelayCore:
             self._malformed(peer, "unknown_type", None,
                             "text frames are {'token': ...} or {'type': 'list_robots'}")
 
-    def on_token(self, peer: Peer, token: Any) -> None:
-        """Authenticate *peer* by a token; close with 4401 if it matches no identity."""
+    def on_token(self, peer: Peer, token: Any, session: Any = None) -> None:
+        """Authenticate *peer* by a token; close with 4401 if it matches no identity.
+
+        *session* (the token frame's ``session`` field) names the connection's session;
+        it is taken only before the connection has a session or subscriptions (else 4400).
+        """
         identity = self.auth.match_token(token) if isinstance(token, str) and token else None
         if identity is None:
             self.metrics.count_error("bad_token")
             peer.outbound.push_control(protocol.error("bad_token", None, "unknown token"))
             self._close(peer, protocol.CLOSE_BAD_TOKEN, "bad token")
             return
+        if session is not None and session != peer.session_name:
+            if not isinstance(session, str):
+                self._bad_session(peer, "the session name must be a string")
+                return
+            if peer.session_name is not None or self.subs.patterns(peer):
+                self._bad_session(peer, "name the session once, before subscribing")
+                return
+            peer.session_name = session
         self.authenticate(peer, [identity])
 
     def robots_for(self, perms: Permissions) -> list[dict[str, Any]]:
         """Robots whose ``/<name>/status`` *perms* may receive, as JSON-ready dicts."""
         names = [n for n in self.registry.names() if perms.may_receive(f"/{n}/status")]
         return self.registry.as_json(names)
+
+    def session_gauges(self) -> list[tuple[str, str, str, dict[str, float]]]:
+        """Session gauges for ``/metrics``: sessions by state, mailbox depth per session
+        (its mailbox while offline, the part not yet sent once a connection attached)."""
+        frames: dict[str, float] = {}
+        nbytes: dict[str, float] = {}
+        for session in self.sessions:
+            peer = session.attached
+            if peer is None:
+                frames[session.label] = float(len(session.mailbox))
+                nbytes[session.label] = float(session.mailbox.nbytes)
+            else:
+                frames[session.label] = float(peer.outbound.backlog_frames)
+                nbytes[session.label] = float(peer.outbound.backlog_bytes)
+        offline = self.sessions.offline_count
+        return [
+            ("fleetctl_sessions", "Named sessions by state.", "state",
+             {"online": float(len(self.sessions) - offline), "offline": float(offline)}),
+            ("fleetctl_session_mailbox_frames", "no_drop frames held for a session.",
+             "session", frames),
+            ("fleetctl_session_mailbox_bytes", "Bytes held for a session.", "session", nbytes),
+        ]
+
+    # -- sessions -----------------------------------------------------------------------
+
+    def _attach_session(self, peer: Peer, name: str) -> None:
+        """Attach an authenticated *peer* to its session: mailbox first, then the
+        session's subscriptions, re-checked against the peer's permissions."""
+        assert peer.perms is not None
+        try:
+            check_session_name(name)
+        except BadSessionName as exc:
+            self._bad_session(peer, str(exc))
+            return
+        key = (tuple(sorted(i.name for i in peer.identities)), name)
+        existing = self.sessions.get(key)
+        if existing is not None and existing.attached is not None:
+            old = existing.attached
+            log.warning("%s takes session %s over from %s", peer.label, existing.label,
+                        old.label)
+            self.subs.remove(old)
+            self._detach_session(old)
+            self._close(old, protocol.CLOSE_SESSION_TAKEN_OVER,
+                        "session taken over by a newer connection")
+        session = self.sessions.attach(key, peer.perms, peer)
+        if session is None:
+            self._bad_session(peer, f"identity holds {self.limits.max_sessions_per_identity}"
+                                    " sessions already")
+            return
+        resumed = session is existing
+        peer.session = session
+        backlog = session.mailbox.take()
+        patterns = list(session.patterns)
+        peer.outbound.track_acks()
+        peer.outbound.push_control(protocol.session(name, resumed, len(backlog), patterns))
+        peer.outbound.push_backlog(backlog)
+        for pattern in patterns:  # the client's own resubscribe is then a no-op
+            if self._subscribe(peer, pattern):
+                peer.outbound.push_control(protocol.ack("subscribed", pattern))
+            else:
+                self.sessions.forget_pattern(session, pattern)
+        if resumed:
+            log.info("%s resumed session %s: %d mailbox frames, %d subscriptions "
+                     "(%d frames dropped in total)", peer.label, session.label,
+                     len(backlog), len(patterns), session.dropped)
+
+    def _detach_session(self, peer: Peer) -> None:
+        """*peer* leaves its session: what it may not have delivered goes to the mailbox."""
+        session, peer.session = peer.session, None
+        assert session is not None
+        self.sessions.detach(session, peer.outbound.take_no_drop())
+
+    def _bad_session(self, peer: Peer, message: str) -> None:
+        self._error(peer, "bad_session", None, message)
+        self._close(peer, protocol.CLOSE_BAD_SESSION, message[:120])
 
     # -- helpers ----------------------------------------------------------------------
 
@@ -311,8 +421,12 @@ class RelayCore:
         pattern, subscribe = fields
         if not subscribe:
             self.subs.unsubscribe(peer, pattern)
+            if peer.session is not None:
+                self.sessions.unsubscribed(peer.session, pattern)
             peer.outbound.push_control(protocol.ack("unsubscribed", pattern))
         elif self._subscribe(peer, pattern):
+            if peer.session is not None:
+                self.sessions.subscribed(peer.session, pattern)
             peer.outbound.push_control(protocol.ack("subscribed", pattern))
 
     def _subscribe(self, peer: Peer, pattern: str) -> bool:
@@ -328,6 +442,14 @@ class RelayCore:
                                 "subscription flood past the limit")
             return False
         return True
+
+
+def _session_store(registry: RobotRegistry) -> SessionStore | None:
+    try:
+        return SessionStore(registry.db)
+    except sqlite3.Error:  # sessions then live in memory only; the relay still runs
+        log.exception("cannot open the sessions table: sessions will not survive a restart")
+        return None
 
 
 def _fragment_id(frame: bytes, root: int) -> int:

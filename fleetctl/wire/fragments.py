@@ -282,8 +282,19 @@ class Reassembler:
         if partial.received_bytes != partial.total_bytes:
             self.stats.malformed += 1
             return None
+        whole = b"".join(partial.parts[i] for i in range(partial.count))
+        # The server checks permissions on the fragments' topic only, so a message whose own
+        # metadata names another topic (or that is itself a fragment) would let a sender
+        # publish past its rules: refuse it like any malformed message.
+        try:
+            inner = read_metadata(whole)
+        except WireError:
+            inner = None
+        if inner is None or inner.topic != topic or inner.type == FRAGMENT_TYPE:
+            self.stats.malformed += 1
+            return None
         self.stats.completed += 1
-        return b"".join(partial.parts[i] for i in range(partial.count))
+        return whole
 
     def _drop(self, topic: str) -> None:
         partial = self._partials.pop(topic)

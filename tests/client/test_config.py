@@ -75,6 +75,26 @@ def test_defaults_and_type_normalization() -> None:
     assert isinstance(cfg.publish, tuple)
 
 
+def test_compression_defaults_to_none_and_accepts_the_codecs(tmp_path: Path) -> None:
+    path = tmp_path / "client.yaml"
+    path.write_text(DESIGN_EXAMPLE.replace("    remote_topic: null\n", "    remote_topic: null\n"
+                                           "    compression: zstd\n"
+                                           "  - topic: /map\n"
+                                           "    type: nav_msgs/msg/OccupancyGrid\n"
+                                           "    compression: deflate\n"
+                                           "  - topic: /odom\n"
+                                           "    type: nav_msgs/msg/Odometry\n"
+                                           "  - topic: /plan\n"
+                                           "    type: nav_msgs/msg/Path\n"
+                                           "    compression: null\n"))
+    cfg = load_client_config(path)
+    assert [p.compression for p in cfg.publish] == ["zstd", "deflate", "none", "none"]
+    # The status topic may be published by an entry, uncompressed.
+    status = parse_client_config(minimal(publish=[
+        {"topic": "/status", "type": "amrl_msgs/msg/RobofleetStatus", "compression": "none"}]))
+    assert status.publish[0].remote_topic == status.status_topic
+
+
 def test_token_file_is_read_relative_and_never_shown(tmp_path: Path) -> None:
     (tmp_path / "secret").write_text("s3cret-token\n")
     (tmp_path / "client.yaml").write_text(
@@ -110,6 +130,16 @@ def test_token_file_is_read_relative_and_never_shown(tmp_path: Path) -> None:
                       {"topic": "/b", "type": "std_msgs/msg/String", "remote_topic": "/r1/a"}]),
      "publish[1] (/b): remote_topic: /r1/a is already sent by publish[0]"),
     (minimal(publish=["/a"]), "publish[0]: entry: must be a mapping"),
+    (minimal(publish=[{"topic": "/a", "type": "std_msgs/msg/String", "compression": "gzip"}]),
+     "publish[0] (/a): compression: must be one of none, zstd, deflate, got 'gzip'"),
+    (minimal(publish=[{"topic": "/a", "type": "std_msgs/msg/String", "compression": True}]),
+     "publish[0] (/a): compression: must be one of"),
+    (minimal(publish=[{"topic": "/status", "type": "amrl_msgs/msg/RobofleetStatus",
+                       "compression": "zstd"}]),
+     "publish[0] (/status): compression: must be none on the status topic"),
+    (minimal(publish=[{"topic": "/s", "type": "amrl_msgs/msg/RobofleetStatus",
+                       "remote_topic": "/r1/status", "compression": "deflate"}]),
+     "publish[0] (/s): compression: must be none on the status topic"),
     (minimal(subscribe=[{"remote_topic": "/a/(", "type": "std_msgs/msg/String"}]),
      "subscribe[0] (/a/(): remote_topic: neither a topic nor a valid RE2 regex"),
     (minimal(subscribe=[{"remote_topic": "/a", "type": "std_msgs/msg/String",

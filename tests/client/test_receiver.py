@@ -1,4 +1,5 @@
-"""The link's receive path in isolation: bad frames, callback errors, reassembly, dedupe."""
+"""The link's receive path in isolation: bad frames, callback errors, reassembly,
+decompression, dedupe."""
 
 from __future__ import annotations
 
@@ -7,8 +8,9 @@ import logging
 import pytest
 
 from fleetctl.client.receiver import Receiver
+from fleetctl.wire.compression import CompressionCodec, compress
 from fleetctl.wire.fragments import split
-from tests.support import decode_text, string_frame
+from tests.support import compressed_frame, decode_text, string_frame
 
 
 def make(received: list[bytes], *, fail: bool = False) -> Receiver:
@@ -65,3 +67,39 @@ def test_dedupe_window_accepts_a_restarted_sender() -> None:
     rx.on_binary(string_frame("/d", "droppable repeats are not deduped", seq=6))
     rx.on_binary(string_frame("/d", "droppable repeats are not deduped", seq=6))
     assert len(received) == 6
+
+
+def test_compressed_fragments_are_reassembled_then_decompressed() -> None:
+    received: list[bytes] = []
+    rx = make(received)
+    whole = string_frame("/map", "m" * 50_000, no_drop=True, seq=7)
+    packed = compress(whole, codec=CompressionCodec.ZSTD, topic="/map", no_drop=True)
+    assert len(packed) < 1000
+    for part in split(packed, topic="/map", message_id=1, max_fragment_bytes=600, no_drop=True):
+        rx.on_binary(part)
+    assert received == [whole]
+    stats = rx.stats()["decompression"]
+    assert stats["decompressed"] == 1 and stats["failed"] == 0
+    assert stats["compressed_bytes"] == len(packed)
+    assert stats["decompressed_bytes"] == len(whole)
+    # Dedupe sees the original's seq: a resend of the same message is dropped.
+    rx.on_binary(packed)
+    assert len(received) == 1 and rx.stats()["duplicates"] == 1
+
+
+def test_undecompressible_frames_are_counted_logged_and_never_delivered(
+    caplog: pytest.LogCaptureFixture,
+) -> None:
+    received: list[bytes] = []
+    rx = Receiver(lambda: 0.0, received.append, reassembly_max_bytes=10**6,
+                  reassembly_timeout_s=5.0, dedupe_window=100, max_decompressed_bytes=20_000)
+    big = compress(string_frame("/m", "x" * 30_000), codec=CompressionCodec.DEFLATE,
+                   topic="/m", no_drop=False)
+    corrupt = compressed_frame("/m", codec=1, original_bytes=100, payload=b"\x00" * 50)
+    rx.on_binary(big)  # over max_decompressed_bytes
+    rx.on_binary(corrupt)
+    rx.on_binary(string_frame("/m", "plain"))
+    assert [decode_text(f) for f in received] == ["plain"]
+    assert rx.stats()["decompression"]["failed"] == 2
+    assert "dropped a compressed frame (1 so far)" in caplog.text
+    assert "over the limit of 20000" in caplog.text

@@ -220,7 +220,9 @@ def rounds(s: Scheduler, rtts_s: list[float]) -> list[int]:
 
 
 def test_window_doubles_per_rtt_while_the_queue_is_empty() -> None:
-    s = make(max_fragment_bytes=1000, initial_window_bytes=4000, max_window_bytes=10**9)
+    # The delay-based window alone (the rate cap lags a doubling window by design).
+    s = make(max_fragment_bytes=1000, initial_window_bytes=4000, max_window_bytes=10**9,
+             rate_cap_gain=None)
     windows = rounds(s, [0.001] * 6)
     assert all(b >= 1.7 * a for a, b in itertools.pairwise(windows))
     assert windows[-1] >= 2**5 * 4000 * 0.9
@@ -231,6 +233,32 @@ def test_window_shrinks_to_one_fragment_when_the_queue_grows() -> None:
     windows = rounds(s, [0.001] + [0.05] * 8)  # RTT 50 ms over a 1 ms min: queueing
     assert windows[0] > 64_000
     assert windows[-1] == s.fragment_bytes() == 1000
+
+
+def test_window_is_capped_at_link_rate_times_min_rtt_plus_target() -> None:
+    # A token bucket's burst makes acks look instant; the cap from the busy-time link rate
+    # keeps the window at one min RTT plus the target queue of the real rate.
+    s = make(max_fragment_bytes=1000, initial_window_bytes=64_000, target_queue_delay_s=0.004)
+    rounds(s, [0.001])
+    assert s.window_bytes() > 64_000
+    s._link_rate.clear()
+    s._link_rate.add(0.0, 750_000.0)  # 6 Mbit/s
+    s._update_limits()
+    assert s.window_bytes() == int(750_000 * (0.001 + 0.004))
+    uncapped = make(max_fragment_bytes=1000, initial_window_bytes=64_000, rate_cap_gain=None)
+    rounds(uncapped, [0.001])
+    uncapped._link_rate.add(0.0, 750_000.0)
+    uncapped._update_limits()
+    assert uncapped.window_bytes() > 64_000
+
+
+def test_window_cap_never_goes_below_one_fragment() -> None:
+    s = make(max_fragment_bytes=4096, min_fragment_bytes=4096, initial_window_bytes=64_000)
+    rounds(s, [0.001])
+    s._link_rate.clear()
+    s._link_rate.add(0.0, 1000.0)  # 1 KB/s: the cap would be 5 bytes
+    s._update_limits()
+    assert s.window_bytes() == s.fragment_bytes() == 4096
 
 
 def test_window_holds_near_the_target_delay() -> None:

@@ -15,6 +15,7 @@ from fleetctl.client.transport import LinkTuning, RobotLink, backoff_delay_s
 from fleetctl.server.app import RelayServer
 from fleetctl.wire.fragments import split
 from tests.client.conftest import (
+    ROBOT_TOKEN,
     Consumer,
     TcpForwarder,
     make_server,
@@ -184,6 +185,59 @@ async def test_silent_link_is_detected_and_no_drop_survives(
         assert any("no pong" in r.getMessage() for r in caplog.records)
     finally:
         await forwarder.refuse()
+
+
+async def test_commands_sent_while_the_robot_is_away_arrive_once_in_order(
+    server: RelayServer, tmp_path: Path
+) -> None:
+    """The robot's session: commands sent into a silent link or while it reconnects are
+    kept by the server and delivered after the reconnect, in order, each once."""
+    forwarder = TcpForwarder(server.port)
+    await forwarder.accept()
+    cfg = robot_config(url_of(forwarder.port), tmp_path,
+                       limits={"reconnect_min_s": 0.05, "reconnect_max_s": 0.2})
+    received: list[bytes] = []
+
+    async def command(operator: Consumer, first: int, n: int) -> None:
+        for seq in range(first, first + n):
+            await operator.ws.send(string_frame("/r1/cmd", f"c{seq}", no_drop=True, seq=seq))
+
+    try:
+        async with Consumer.open(server.url) as operator, running(
+            RobotLink(cfg, on_frame=received.append, tuning=FAST)
+        ) as link:
+            await wait_until(lambda: link.stats()["subscribed"] == ["/r1/cmd.*"])
+            await command(operator, 1, 20)
+            await wait_until(lambda: len(received) == 20)
+            forwarder.stall()  # the radio goes silent: bytes written now go nowhere
+            await command(operator, 21, 80)
+            await wait_until(lambda: link.stats()["reconnects"] >= 1)
+            await command(operator, 101, 20)
+            await wait_until(lambda: len(received) >= 120)
+            assert [decode_text(f) for f in received] == [f"c{i}" for i in range(1, 121)]
+            assert link.stats()["session_resumes"] >= 1
+        # stop() unsubscribed everything: that ended the session on the server.
+        assert len(server.core.sessions) == 0
+    finally:
+        await forwarder.refuse()
+
+
+async def test_reinstated_subscriptions_not_in_the_config_are_dropped(
+    server: RelayServer, tmp_path: Path
+) -> None:
+    from websockets.asyncio.client import connect
+
+    from fleetctl.wire.control import encode_subscription
+
+    headers = {"Authorization": f"Bearer {ROBOT_TOKEN}", "X-Fleetctl-Session": "r1"}
+    async with connect(server.url, additional_headers=headers) as old_run:
+        for pattern in ("/r1/cmd.*", "/r1/cmd_old"):
+            await old_run.send(encode_subscription(pattern))
+        await wait_until(lambda: len(next(iter(server.core.sessions)).patterns) == 2)
+    cfg = robot_config(server.url, tmp_path)
+    async with running(RobotLink(cfg, on_frame=lambda f: None, tuning=FAST)):
+        await wait_until(lambda: list(next(iter(server.core.sessions)).patterns)
+                         == ["/r1/cmd.*"])
 
 
 async def test_clean_link_window_is_not_one_message_per_rtt(

@@ -39,6 +39,9 @@ def test_client_configs_load_with_the_client_loader(tmp_path: Path) -> None:
     remote = {spec.remote_topic: spec for spec in config.publish}
     assert remote["/robot1/events"].no_drop
     assert remote["/robot1/scan"].type == "sensor_msgs/msg/LaserScan"
+    # The cloud goes out deflate-compressed: the webviz inflates it in the browser.
+    assert remote["/robot1/points"].compression == "deflate"
+    assert {s.compression for s in config.publish} == {"none", "deflate"}
     assert {s.local_topic for s in config.subscribe} == {"/goal_pose", "/initialpose"}
     assert config.status.battery_topic == "/battery"
 

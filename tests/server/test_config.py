@@ -31,6 +31,19 @@ limits: {max_frame_bytes: 1024, robot_offline_after_s: 2}
     assert cfg.limits.max_frame_bytes == 1024
     assert cfg.limits.robot_offline_after_s == 2.0
     assert cfg.limits.outbound_no_drop_messages == 1024
+    assert cfg.limits.session_expiry_s == 3600.0
+    assert cfg.limits.session_mailbox_messages == 10000
+
+
+def test_session_limits(tmp_path: Path) -> None:
+    cfg = load_server_config(write(tmp_path, """
+auth_map: auth.yaml
+limits: {session_expiry_s: 60, session_mailbox_messages: 5, session_mailbox_bytes: 4096,
+         max_sessions_per_identity: 2}
+"""))
+    assert cfg.limits.session_expiry_s == 60.0 and cfg.limits.session_mailbox_messages == 5
+    assert cfg.limits.session_mailbox_bytes == 4096
+    assert cfg.limits.max_sessions_per_identity == 2
 
 
 @pytest.mark.parametrize(
@@ -43,6 +56,9 @@ limits: {max_frame_bytes: 1024, robot_offline_after_s: 2}
         ("auth_map: a.yaml\nno_drop_topics: ['a(b']", "no_drop_topics[0]"),
         ("auth_map: a.yaml\nlimits: {max_frame_bytes: -1}", "limits.max_frame_bytes"),
         ("auth_map: a.yaml\nlimits: {bogus: 1}", "limits.bogus"),
+        ("auth_map: a.yaml\nlimits: {session_expiry_s: 0}", "limits.session_expiry_s"),
+        ("auth_map: a.yaml\nlimits: {session_mailbox_bytes: 1.5}",
+         "limits.session_mailbox_bytes"),
         ("auth_map: a.yaml\nlisten_prot: 1", "listen_prot"),
         ("- just a list", "top level"),
         ("a: [", "not valid YAML"),

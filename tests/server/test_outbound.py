@@ -90,3 +90,54 @@ def test_wake_on_empty_to_nonempty_and_control_bound() -> None:
         s.push_control("e")
     assert s.drops[CONTROL_TOPIC] == 300 - 256 and len(drops) == 44
     assert len(s.pop_batch(100)) == 100
+
+
+def test_backlog_goes_first_outside_the_fifo_bounds() -> None:
+    woken: list[int] = []
+    s = OutboundScheduler(100, 2, wake=lambda: woken.append(1))
+    s.push_backlog([("/e", b"m%d" % i) for i in range(5)])  # > 2 frames, > 100 bytes total
+    assert woken == [1] and len(s) == 5 and s.backlog_frames == 5 and s.queued_bytes == 0
+    assert s.push("/e", b"live1", no_drop=True)  # the FIFO bound counts live frames only
+    assert s.push("/e", b"live2", no_drop=True)
+    assert not s.push("/e", b"live3", no_drop=True)  # the live FIFO is full: counted
+    assert s.push("/x", b"x", no_drop=False)  # backlog bytes leave room for droppable data
+    assert [f for _, f in drain(s)] == [b"m0", b"m1", b"m2", b"m3", b"m4", b"live1",
+                                        b"live2", b"x"]
+    assert s.drops == {"/e": 1} and s.backlog_frames == 0 and s.backlog_bytes == 0
+    assert s.queued_bytes == 0 and len(s) == 0
+
+
+def test_ack_tracking_keeps_popped_no_drop_frames_until_acked() -> None:
+    s = OutboundScheduler(10_000, 100)
+    s.push("/e", b"e0", no_drop=True)
+    assert s.pop() == ("/e", b"e0")
+    assert s.ack_mark() is None and s.unacked_frames == 0  # not tracking: nothing kept
+    s.track_acks()
+    for i in range(1, 4):
+        s.push("/e", b"e%d" % i, no_drop=True)
+    s.push("/x", b"x", no_drop=False)
+    assert [f for _, f in s.pop_batch(6)] == [b"e1", b"e2", b"e3"]  # 6 bytes: three frames
+    first = s.ack_mark()
+    assert first == 3 and s.ack_mark() is None  # nothing new since the mark
+    s.push("/e", b"e4", no_drop=True)
+    assert s.pop() == ("/e", b"e4")
+    second = s.ack_mark()
+    assert second == 4 and s.unacked_frames == 4
+    s.acked(first)
+    assert s.unacked_frames == 1  # e4 was sent after the first ping
+    s.push("/e", b"e5", no_drop=True)
+    # The connection is gone: unacknowledged, then queued, in order; droppable stays.
+    assert s.take_no_drop() == [("/e", b"e4"), ("/e", b"e5")]
+    assert s.unacked_frames == 0 and len(s) == 1 and s.queued_bytes == 1
+    s.acked(second)  # a late pong changes nothing
+    assert drain(s) == [("/x", b"x")]
+
+
+def test_take_no_drop_includes_an_unsent_backlog() -> None:
+    s = OutboundScheduler(10_000, 10)
+    s.track_acks()
+    s.push_backlog([("/e", b"b0"), ("/e", b"b1")])
+    s.push("/e", b"l0", no_drop=True)
+    assert s.pop() == ("/e", b"b0")
+    assert [f for _, f in s.take_no_drop()] == [b"b0", b"b1", b"l0"]
+    assert len(s) == 0 and s.queued_bytes == 0 and s.backlog_bytes == 0

@@ -3,6 +3,8 @@ robots that are real WebSocket clients publishing real encoded frames.
 
 Robots are identified by source address as on WireGuard: each binds its own loopback
 address (127.0.0.2, 127.0.0.3, ...), the auth map names them by ``ip``; people use tokens.
+Maps go out compressed, as a robot with ``compression:`` on its map topic sends them: r1 with
+deflate (the page inflates it), the others with zstd (the page says it cannot).
 """
 
 from __future__ import annotations
@@ -28,6 +30,7 @@ from fleetctl.server.app import RelayServer
 from fleetctl.server.authmap import load_auth_map
 from fleetctl.server.config import ServerConfig
 from fleetctl.wire.codec import Codec
+from fleetctl.wire.compression import CompressionCodec, compress
 from fleetctl.wire.control import encode_status, encode_subscription
 from fleetctl.wire.registry import TypeRegistry
 from tests.webviz.msgs import make
@@ -252,8 +255,13 @@ class WsRobot:
                 "altitude": 150.0,
             },
         )
+        method = CompressionCodec.DEFLATE if n == "r1" else CompressionCodec.ZSTD
+        plain = c.encode(grid, "nav_msgs/msg/OccupancyGrid", f"/{n}/map", publish_time_ns=now,
+                         seq=seq)
+        map_frame = compress(plain, codec=method, topic=f"/{n}/map", no_drop=False, frame_codec=c)
+        assert map_frame is not plain, "the test map must compress"
         return [
-            c.encode(grid, "nav_msgs/msg/OccupancyGrid", f"/{n}/map", publish_time_ns=now, seq=seq),
+            map_frame,
             c.encode(
                 markers,
                 "visualization_msgs/msg/MarkerArray",

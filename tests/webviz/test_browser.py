@@ -108,7 +108,9 @@ async def check_robot_views(page: Any) -> None:
     await check_sensor_panels(page, "r1", beams=360, camera_min_fraction=0.9)
     await wait_js(page, "document.querySelector('#odom-text').textContent.includes('0.60 m/s')")
     await wait_js(page, "document.querySelector('#gps-text').textContent.startsWith('30.286200')")
-    # The occupancy grid (8 m square = 320x320 of the 640x480 canvas at 40 px/m) is drawn.
+    # The occupancy grid (8 m square = 320x320 of the 640x480 canvas at 40 px/m) is drawn;
+    # r1 sends it deflate-compressed, so Chromium's DecompressionStream inflated it.
+    await wait_js(page, "fleetviz.views.map.grid !== null && fleetviz.conn.stats.decompressed >= 1")
     shot = await page.locator("#map-canvas").screenshot()
     assert drawn_fraction(shot, MAP_BG) > 0.25
     await page.locator("#health tbody tr", has_text="/r1/scan").wait_for(timeout=TIMEOUT_MS)
@@ -175,6 +177,27 @@ async def test_operator_sees_fleet_and_robot_and_sends_a_goal(
         if SCREENSHOTS:
             await page.screenshot(path=str(Path(SCREENSHOTS) / "robot.png"), full_page=True)
         await check_topic_selection_and_pause(page)
+        assert not problems, problems
+
+
+async def test_a_zstd_topic_is_explained_in_its_panel(
+    tmp_path: Path, browser: Any, webviz_factory: list[Any]
+) -> None:
+    async with running_fleet(tmp_path, ("r1", "r2")) as fleet:  # r2 sends its map with zstd
+        web = webviz_server(fleet.url).start()
+        webviz_factory.append(web)
+        page = await browser.new_page()
+        problems = watch_errors(page)
+        await sign_in(page, web.url, OPERATOR_TOKEN)
+        await page.goto(web.url + "#/robot/r2")
+        said = "/r2/map is compressed with zstd, which browsers cannot decode"
+        note = page.locator("#panel-map .panel-note", has_text=said)
+        await note.wait_for(timeout=TIMEOUT_MS)
+        assert "set compression: deflate for this topic" in (await note.text_content() or "")
+        # The rest of the page is unaffected.
+        await wait_js(page, "Number(document.querySelector('#scan-canvas').dataset.beams || 0)"
+                            " === 360")
+        assert await page.evaluate("fleetviz.conn.stats.decodeErrors") == 0
         assert not problems, problems
 
 

@@ -2,9 +2,10 @@
 
 Everything is real: the demo subprocess runs the relay server, two rclpy sim robots with
 their ``fleetctl client`` processes and the webviz. The operator signs in, sees both robots,
-opens robot1, sees a camera frame, a scan and a cloud drawn (pixels in screenshots), drags a
-navigation goal and the test reads it from robot1's *local* ``/goal_pose`` with a real rclpy
-listener in robot1's ROS domain. A viewer is refused the same command by the page and by the
+opens robot1, sees a camera frame, a scan and a cloud drawn (pixels in screenshots; the cloud
+is deflate-compressed by the robot's client and inflated by the page), drags a navigation
+goal and the test reads it from robot1's *local* ``/goal_pose`` with a real rclpy listener in
+robot1's ROS domain. A viewer is refused the same command by the page and by the
 server. Set ``FLEETCTL_WEBVIZ_SCREENSHOTS=docs/screenshots`` to refresh the demo screenshots.
 """
 
@@ -101,6 +102,10 @@ async def check_robot_views(page: Any) -> None:
     await wait_js(page, f"{points} && {points}.received >= 3")
     rate_hz = await page.evaluate(f"{points}.summary(Date.now()).rateHz")
     assert 0 < rate_hz <= 8, rate_hz
+    # The demo robots send /points with compression: deflate (fleetctl/demo/fleet.py): the
+    # clouds drawn above were inflated by Chromium's DecompressionStream.
+    await wait_js(page, "fleetviz.conn.stats.decompressed >= 3")
+    assert await page.evaluate("fleetviz.conn.stats.unsupported") == 0
     assert not await page.is_visible("#command-denied")
 
 

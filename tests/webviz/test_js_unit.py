@@ -10,11 +10,14 @@ import shutil
 import subprocess
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 from fleetctl.wire.codec import Codec
+from fleetctl.wire.compression import COMPRESSED_TYPE, CompressionCodec, compress
 from fleetctl.wire.fragments import split
 from fleetctl.wire.registry import TypeRegistry
+from fleetctl.wire.samples import occupancy_grid
 from fleetctl.wire.schema import describe
 from tests.webviz.msgs import to_json, to_plain
 from tests.webviz.samples import samples
@@ -59,16 +62,53 @@ def _write_cases(out: Path, registry: TypeRegistry, codec: Codec) -> list[dict[s
     assert len(frags) > 2
     for j, frag in enumerate(frags):
         (out / "frames" / f"frag{j}.bin").write_bytes(frag)
+    # The same cloud in fragments of another topic: the page must refuse it (the server
+    # checked permissions on the fragments' topic only).
+    smuggled = split(
+        cloud, topic="/r9/allowed", message_id=8, max_fragment_bytes=4096, no_drop=False,
+        codec=codec,
+    )
+    for j, frag in enumerate(smuggled):
+        (out / "frames" / f"smuggled{j}.bin").write_bytes(frag)
     (out / "cases.json").write_text(
         json.dumps(
             {
                 "decode": cases,
                 "build": builds,
-                "fragments": {"count": len(frags), "original": "sample1.bin"},
+                "fragments": {"count": len(frags), "original": "sample1.bin",
+                              "smuggled": len(smuggled)},
+                "compressed": _write_compressed(out, codec),
             }
         )
     )
     return builds
+
+
+def _write_compressed(out: Path, codec: Codec) -> dict[str, object]:
+    """A 384 x 384 map compressed as a robot sends it: deflate (fragmented too) and zstd."""
+    grid_type = "nav_msgs/msg/OccupancyGrid"
+    grid = occupancy_grid(codec.registry)
+    original = codec.encode(grid, grid_type, "/r1/map", seq=9, publish_time_ns=1_700_000_000)
+    deflated = compress(original, codec=CompressionCodec.DEFLATE, topic="/r1/map", no_drop=False)
+    zstd = compress(codec.encode(grid, grid_type, "/r2/map"), codec=CompressionCodec.ZSTD,
+                    topic="/r2/map", no_drop=False)
+    assert len(deflated) < len(original) / 10 and len(zstd) < len(original) / 10
+    frags = split(deflated, topic="/r1/map", message_id=5, max_fragment_bytes=1024,
+                  no_drop=False, codec=codec)
+    assert len(frags) > 2
+    files = {"map_original.bin": original, "map_deflate.bin": deflated, "map_zstd.bin": zstd,
+             # A plain frame right behind the compressed one: it must not overtake it.
+             "map_plain_after.bin": codec.encode(grid, grid_type, "/r1/map", seq=10)}
+    files.update({f"map_frag{j}.bin": f for j, f in enumerate(frags)})
+    for name, data in files.items():
+        (out / "frames" / name).write_bytes(data)
+    values, counts = np.unique(grid.data, return_counts=True)
+    for t in (COMPRESSED_TYPE, grid_type):
+        path = out / "types" / f"{t}.json"
+        path.parent.mkdir(parents=True, exist_ok=True)
+        path.write_text(json.dumps(describe(codec.registry, t)))
+    return {"fragments": len(frags), "width": int(grid.info.width),
+            "cells": {str(int(v)): int(c) for v, c in zip(values, counts, strict=True)}}
 
 
 @pytest.mark.skipif(shutil.which("node") is None, reason="node is not installed")

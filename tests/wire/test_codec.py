@@ -25,8 +25,9 @@ def _cdr(registry: TypeRegistry, msg: Any, name: str) -> bytes:
 
 
 def test_the_store_is_all_there() -> None:
-    assert len(ALL_TYPES) >= 162 + 3  # Jazzy store + amrl_msgs (2) + Fragment
+    assert len(ALL_TYPES) >= 162 + 4  # Jazzy store + amrl_msgs (2) + Fragment + Compressed
     assert {"amrl_msgs/msg/RobofleetStatus", "fleetctl_msgs/msg/Fragment",
+            "fleetctl_msgs/msg/Compressed",
             "sensor_msgs/msg/PointCloud2", "tf2_msgs/msg/TFMessage"} <= set(ALL_TYPES)
 
 

@@ -151,3 +151,23 @@ def test_inconsistent_and_undecodable_fragments_are_counted(codec: Codec) -> Non
     assert reasm.feed(bad, 0.0) is None
     assert reasm.stats.malformed == 5
     assert reasm.stats.completed == 0 and reasm.pending_messages == 0
+
+
+def test_message_whose_own_topic_differs_from_its_fragments_is_refused(codec: Codec) -> None:
+    # The server checks permissions on the fragments' topic: a frame for /other smuggled in
+    # fragments of TOPIC must never come out of the reassembler.
+    smuggled = _frame(codec, 30_000, topic="/husky1/cmd_vel")
+    parts = split(smuggled, topic=TOPIC, message_id=1, max_fragment_bytes=4096, no_drop=False)
+    assert {read_metadata(p).topic for p in parts} == {TOPIC}
+    reasm = Reassembler(max_bytes=1 << 20, timeout_s=5.0)
+    assert [r for r in (reasm.feed(p, 0.0) for p in parts) if r is not None] == []
+    assert (reasm.stats.malformed, reasm.stats.completed) == (1, 0)
+
+
+def test_fragments_of_fragments_are_refused(codec: Codec) -> None:
+    inner = split(_frame(codec, 30_000), topic=TOPIC, message_id=1, max_fragment_bytes=20_000,
+                  no_drop=False)[0]
+    parts = split(inner, topic=TOPIC, message_id=2, max_fragment_bytes=4096, no_drop=False)
+    reasm = Reassembler(max_bytes=1 << 20, timeout_s=5.0)
+    assert [r for r in (reasm.feed(p, 0.0) for p in parts) if r is not None] == []
+    assert reasm.stats.malformed == 1

@@ -22,7 +22,7 @@ SAMPLE_TYPES = [
     "sensor_msgs/msg/LaserScan", "sensor_msgs/msg/PointCloud2", "nav_msgs/msg/Path",
     "visualization_msgs/msg/MarkerArray", "rcl_interfaces/msg/ParameterEvent",
     "tf2_msgs/msg/TFMessage", "geometry_msgs/msg/PoseWithCovarianceStamped",
-    "amrl_msgs/msg/RobofleetStatus", "fleetctl_msgs/msg/Fragment",
+    "amrl_msgs/msg/RobofleetStatus", "fleetctl_msgs/msg/Fragment", "fleetctl_msgs/msg/Compressed",
     "trajectory_msgs/msg/MultiDOFJointTrajectory", "sensor_msgs/msg/JointState",
 ]
 _FRAMES = {

@@ -4,9 +4,11 @@
 *raw* subscription (CDR bytes, no Python message object is ever built by rclpy) whose
 reliability follows the topic's publishers (:mod:`fleetctl.client.ros.qos`) and, in the
 callback, asks the link whether the topic is due (Robofleet Algorithm 1's rate limit) before
-doing any work, then converts CDR -> rosbags message -> FlatBuffer frame and hands the frame
-to the link. For every ``subscribe`` entry it holds a publisher; frames from the link are
-decoded, serialized to CDR and published as bytes.
+doing any work, then converts CDR -> rosbags message -> FlatBuffer frame, compresses it when
+the entry asks for it (:mod:`fleetctl.wire.compression`; the link fragments afterwards) and
+hands the frame to the link. For every ``subscribe`` entry it holds a publisher; frames from
+the link (reassembled and decompressed by the link) are decoded, serialized to CDR and
+published as bytes.
 
 The node knows nothing about WebSockets: it talks to the link through two callables
 (:class:`LinkPort`) so it is tested without a server, and the link is tested without ROS.
@@ -37,6 +39,7 @@ from fleetctl.client.ros import qos
 from fleetctl.client.ros.msgtypes import message_class
 from fleetctl.client.ros.qos import AdaptiveSubscription
 from fleetctl.errors import ConfigError
+from fleetctl.wire.compression import CompressionCodec, compress
 
 log = logging.getLogger(__name__)
 
@@ -76,7 +79,10 @@ class BridgeStats:
         local_in: raw messages received from local topics.
         rate_limited: of those, skipped because the link said not yet.
         sent: frames handed to the link.
-        encode_errors: local messages that could not be encoded (logged).
+        compressed: of those, sent as a Compressed frame.
+        compression_skipped: of those, sent plain on a compressed topic because
+            compression would not have saved 5 % (incompressible data).
+        encode_errors: local messages that could not be encoded or compressed (logged).
         frames_in: frames received from the link.
         published_local: of those, published on a local topic.
         decode_errors: frames that could not be decoded or serialized (logged).
@@ -90,6 +96,8 @@ class BridgeStats:
     local_in: int = 0
     rate_limited: int = 0
     sent: int = 0
+    compressed: int = 0
+    compression_skipped: int = 0
     encode_errors: int = 0
     frames_in: int = 0
     published_local: int = 0
@@ -244,6 +252,8 @@ class Bridge(Node):
                 publish_time_ns=self._clock_ns(),
                 seq=self._next_seq(spec.remote_topic),
             )
+            if spec.compression != "none":
+                frame = self._compress(spec, frame)
         except Exception as exc:  # a bad local message must never stop the node
             self.stats.encode_errors += 1
             log.warning("cannot encode %s from %s: %s", spec.type, spec.topic, exc)
@@ -253,6 +263,16 @@ class Bridge(Node):
         self.stats.per_topic_sent[spec.remote_topic] = (
             self.stats.per_topic_sent.get(spec.remote_topic, 0) + 1
         )
+
+    def _compress(self, spec: PublishSpec, frame: bytes) -> bytes:
+        """Before the link fragments it: receivers reassemble, then decompress."""
+        out = compress(frame, codec=CompressionCodec.from_name(spec.compression),
+                       topic=spec.remote_topic, no_drop=spec.no_drop, frame_codec=self._codec)
+        if out is frame:
+            self.stats.compression_skipped += 1
+        else:
+            self.stats.compressed += 1
+        return out
 
     def _next_seq(self, topic: str) -> int:
         # Sequence numbers start at the wall clock in microseconds, so a restarted client's

@@ -21,8 +21,11 @@ from fleetctl.client.config import PublishSpec, parse_client_config  # noqa: E40
 from fleetctl.client.ros.bridge import COMMAND_QOS, Bridge, LinkPort  # noqa: E402
 from fleetctl.client.ros.runner import status_encoder  # noqa: E402
 from fleetctl.wire.codec import Codec  # noqa: E402
+from fleetctl.wire.compression import COMPRESSED_TYPE, decompress  # noqa: E402
 from fleetctl.wire.control import decode_status  # noqa: E402
+from fleetctl.wire.metadata import read_metadata  # noqa: E402
 from fleetctl.wire.registry import TypeRegistry  # noqa: E402
+from fleetctl.wire.samples import occupancy_grid  # noqa: E402
 from tests.support import wait_for_value  # noqa: E402
 
 pytestmark = pytest.mark.ros
@@ -33,6 +36,7 @@ CONFIG = {
     "publish": [
         {"topic": "/scan", "type": "sensor_msgs/msg/LaserScan"},
         {"topic": "/events", "type": "std_msgs/msg/String", "no_drop": True, "priority": 3},
+        {"topic": "/map", "type": "nav_msgs/msg/OccupancyGrid", "compression": "deflate"},
     ],
     "subscribe": [
         {"remote_topic": "/r1/goal_pose", "type": "geometry_msgs/msg/PoseStamped",
@@ -150,6 +154,26 @@ def test_no_drop_topic_keeps_order_and_consecutive_seqs(
     assert all(meta.no_drop for meta, _ in decoded)
 
 
+def test_compressed_entry_sends_compressed_frames_when_that_saves(
+    setup: tuple[Bridge, Node, FakePort], codec: Codec
+) -> None:
+    bridge, _peer, fake = setup
+    spec = next(p for p in parse_client_config(CONFIG).publish if p.compression == "deflate")
+    ts = codec.registry.typestore
+    grid = occupancy_grid(codec.registry, 128)
+    bridge.on_local_message(spec, bytes(ts.serialize_cdr(grid, spec.type)))
+    grid.data = grid.data[:1]
+    grid.info.width = grid.info.height = 1
+    bridge.on_local_message(spec, bytes(ts.serialize_cdr(grid, spec.type)))  # too small
+    (_, packed), (_, tiny) = fake.sent
+    assert read_metadata(packed).type == COMPRESSED_TYPE
+    assert len(packed) < 128 * 128 / 10
+    meta, msg = codec.decode(decompress(packed, 1 << 20))
+    assert (meta.type, meta.topic, msg.info.width) == (spec.type, "/r1/map", 128)
+    assert codec.decode(tiny)[0].type == spec.type
+    assert (bridge.stats.compressed, bridge.stats.compression_skipped) == (1, 1)
+
+
 def test_rate_limited_messages_are_skipped_and_counted(
     setup: tuple[Bridge, Node, FakePort]
 ) -> None:
@@ -246,7 +270,7 @@ def test_local_subscriptions_follow_their_publishers_reliability(
     from std_msgs.msg import String
 
     bridge, peer, fake = setup
-    scan_input, events_input = bridge.inputs
+    scan_input, events_input, _map_input = bridge.inputs
     assert not scan_input.reliable and events_input.reliable  # the starting points
     peer.create_publisher(LaserScan, "/scan", 10)  # reliable (the rclpy default)
     wait_for(lambda: scan_input.reliable)

@@ -8,12 +8,14 @@ processes publish and listen on each robot's local ROS graph (tests/client/ros/r
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import hashlib
 import json
 import math
 import signal
 import time
-from collections.abc import Iterator
+import urllib.request
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -38,6 +40,7 @@ pytestmark = [pytest.mark.ros, pytest.mark.slow]
 ALPHA_DOMAIN, BRAVO_DOMAIN = 21, 22  # this engineer's range is 20-39
 OPERATOR_TOKEN = "operator-token-for-tests"
 STARTUP_S = 30.0
+MAP_TYPE = "nav_msgs/msg/OccupancyGrid"
 
 
 @dataclass
@@ -72,7 +75,7 @@ def _configs(root: Path, port: int) -> None:
             {"topic": "/alpha/(goal_pose|initialpose)", "op": "receive"}]},
         {"name": "bravo", "ip": "127.0.1.3", "rules": [
             {"topic": "/bravo/.*", "op": "send"},
-            {"topic": "/alpha/(scan|events)", "op": "receive"}]},
+            {"topic": "/alpha/(scan|events|map)", "op": "receive"}]},
         {"name": "operator", "token_sha256": hashlib.sha256(OPERATOR_TOKEN.encode()).hexdigest(),
          "rules": [{"topic": ".*", "op": "receive"},
                    {"topic": "/alpha/goal_pose", "op": "send"}]},
@@ -82,7 +85,8 @@ def _configs(root: Path, port: int) -> None:
     _write(root / "alpha.yaml", {
         "server_url": url, "robot_name": "alpha", "bind_address": "127.0.1.2",
         "publish": [{"topic": "/scan", "type": "sensor_msgs/msg/LaserScan"},
-                    {"topic": "/events", "type": "std_msgs/msg/String", "no_drop": True}],
+                    {"topic": "/events", "type": "std_msgs/msg/String", "no_drop": True},
+                    {"topic": "/map", "type": MAP_TYPE, "compression": "zstd"}],
         "subscribe": [{"remote_topic": "/alpha/goal_pose",
                        "type": "geometry_msgs/msg/PoseStamped", "local_topic": "/goal_pose"}],
         "limits": fast})
@@ -91,7 +95,9 @@ def _configs(root: Path, port: int) -> None:
         "subscribe": [{"remote_topic": "/alpha/scan", "type": "sensor_msgs/msg/LaserScan",
                        "local_topic": "/alpha_scan"},
                       {"remote_topic": "/alpha/events", "type": "std_msgs/msg/String",
-                       "local_topic": "/alpha_events"}],
+                       "local_topic": "/alpha_events"},
+                      {"remote_topic": "/alpha/map", "type": MAP_TYPE,
+                       "local_topic": "/alpha_map"}],
         "limits": fast})
 
 
@@ -146,6 +152,57 @@ def test_laser_scan_from_alpha_arrives_on_bravo_unchanged(fleet: Fleet) -> None:
         received = deserialize_message(bytes.fromhex(line["cdr"]), LaserScan)
         assert received == deserialize_message(cdr, LaserScan)
         assert len(received.ranges) == 720
+    finally:
+        if publisher is not None:
+            publisher.stop()
+        listener.stop()
+
+
+async def _first_whole_frame(url: str, topic: str) -> bytes:
+    """The first complete frame on *topic* as the server relays it (fragments reassembled)."""
+    from websockets.asyncio.client import connect
+
+    from fleetctl.wire.control import encode_subscription
+    from fleetctl.wire.fragments import Reassembler
+
+    reassembler = Reassembler(1 << 24, 10.0)
+    async with connect(url, additional_headers={"Authorization": f"Bearer {OPERATOR_TOKEN}"},
+                       ping_interval=None) as ws:
+        await ws.send(encode_subscription(topic))
+        async for message in ws:
+            if isinstance(message, bytes):
+                whole = reassembler.feed(message, time.monotonic())
+                if whole is not None:
+                    return whole
+    raise AssertionError("the server closed the connection")
+
+
+def test_compressed_map_from_alpha_arrives_on_bravo_intact(fleet: Fleet) -> None:
+    """alpha sends /map with zstd: the server relays Compressed frames, bravo gets the map."""
+    from nav_msgs.msg import OccupancyGrid
+
+    from fleetctl.wire.compression import COMPRESSED_TYPE
+    from fleetctl.wire.metadata import read_metadata
+    from fleetctl.wire.registry import TypeRegistry
+    from fleetctl.wire.samples import occupancy_grid
+
+    registry = TypeRegistry.default()
+    cdr = bytes(registry.typestore.serialize_cdr(occupancy_grid(registry), MAP_TYPE))
+    (fleet.root / "map.cdr").write_bytes(cdr)
+    listener = ros_helper("listen", ["/alpha_map", MAP_TYPE], BRAVO_DOMAIN,
+                          fleet.root / "map-listener.log")
+    publisher = None
+    try:
+        listener.wait_for(lambda line: line.get("ready", False), STARTUP_S, "bravo map listener")
+        publisher = ros_helper("publish", ["/map", MAP_TYPE, f"@{fleet.root / 'map.cdr'}", "5"],
+                               ALPHA_DOMAIN, fleet.root / "map-publisher.log")
+        line = listener.wait_for(lambda line: "cdr" in line, STARTUP_S, "the map on bravo")
+        expected = deserialize_message(cdr, OccupancyGrid)
+        assert deserialize_message(bytes.fromhex(line["cdr"]), OccupancyGrid) == expected
+        url = f"ws://127.0.0.1:{fleet.port}/"
+        wire = asyncio.run(asyncio.wait_for(_first_whole_frame(url, "/alpha/map"), STARTUP_S))
+        assert read_metadata(wire).type == COMPRESSED_TYPE
+        assert len(wire) < len(cdr) / 10  # 147 kB of map in a few kB
     finally:
         if publisher is not None:
             publisher.stop()
@@ -210,28 +267,24 @@ def _last_seen_s(fleet: Fleet, robot: str) -> float:
                 if r.get("name") == robot), default=0.0)
 
 
-def test_server_restart_keeps_every_no_drop_message_in_order(fleet: Fleet) -> None:
-    """A server restart mid-stream: every no_drop message arrives, in order, exactly once.
+@contextlib.contextmanager
+def _event_stream(fleet: Fleet, tag: str, count: int) -> Iterator[
+        tuple[JsonProc, list[str], Callable[[dict[str, Any]], bool], JsonProc]]:
+    """alpha publishes *count* no_drop events (40 Hz) that bravo's listener collects.
 
-    Messages alpha takes from ROS while the server is down wait in its no_drop FIFO. The
-    relay stores nothing, so the receiver must have resubscribed before alpha resends them;
-    the test makes that order deterministic by pausing alpha's client (SIGSTOP) from just
-    before the server comes back until bravo is connected again. (If the sender reconnects
-    first, the relay drops what it has no subscriber for yet: measured without the pause,
-    alpha came back 0.23 s before bravo and 58 of 200 messages were lost. Closing that gap
-    needs the server to hold no_drop frames for subscribers that have not come back yet.)
+    Yields ``(events, got, take, listener)`` once the first 40 arrived: ``take`` is the
+    listener predicate that appends each event's text to ``got``; both processes stop on
+    exit.
     """
     from std_msgs.msg import String
 
-    count = 200
     listener = ros_helper("listen", ["/alpha_events", "std_msgs/msg/String"], BRAVO_DOMAIN,
-                          fleet.root / "events-listener.log")
+                          fleet.root / f"{tag}-listener.log")
     events = None
-    alpha = fleet.clients["alpha"]
     try:
         listener.wait_for(lambda line: line.get("ready", False), STARTUP_S, "events listener")
         events = ros_helper("events", ["/events", str(count), "40"], ALPHA_DOMAIN,
-                            fleet.root / "events.log")
+                            fleet.root / f"{tag}-events.log")
         got: list[str] = []
 
         def take(line: dict[str, Any]) -> bool:
@@ -240,6 +293,26 @@ def test_server_restart_keeps_every_no_drop_message_in_order(fleet: Fleet) -> No
             return len(got) >= 40
 
         listener.wait_for(take, STARTUP_S, "40 events before the restart")
+        yield events, got, take, listener
+    finally:
+        if events is not None:
+            events.stop()
+        listener.stop()
+
+
+def test_server_restart_keeps_every_no_drop_message_in_order(fleet: Fleet) -> None:
+    """A server restart mid-stream: every no_drop message arrives, in order, exactly once.
+
+    Messages alpha takes from ROS while the server is down wait in its no_drop FIFO. Here
+    the receiver comes back first: the test pauses alpha's client (SIGSTOP) from just
+    before the server comes back until bravo is connected again. The opposite order (the
+    sender flushes before the receiver is back) is the next test: bravo's server session
+    keeps the frames for it. (Before sessions existed, measured without the pause, alpha
+    came back 0.23 s before bravo and 58 of 200 messages were lost.)
+    """
+    count = 200
+    alpha = fleet.clients["alpha"]
+    with _event_stream(fleet, "events", count) as (events, got, take, listener):
         assert fleet.server.stop() == 0  # graceful shutdown mid-stream
         sent_at_stop = events.wait_for(lambda line: "sent" in line, 10.0, "a sent event")["sent"]
         # 20 more events (0.5 s) published during the outage go into alpha's no_drop FIFO.
@@ -256,7 +329,42 @@ def test_server_restart_keeps_every_no_drop_message_in_order(fleet: Fleet) -> No
         listener.wait_for(lambda line: take(line) and got[-1] == f"event-{count}", 60.0,
                           f"event-{count} after the restart")
         assert got == [f"event-{i}" for i in range(1, count + 1)]
-    finally:
-        if events is not None:
-            events.stop()
-        listener.stop()
+
+
+def _mailbox_frames(fleet: Fleet, session: str) -> float:
+    """The server's ``fleetctl_session_mailbox_frames`` of *session* (0 if not reported)."""
+    try:
+        with urllib.request.urlopen(f"{fleet.http}/metrics", timeout=2.0) as response:
+            text = response.read().decode("utf-8")
+    except OSError:
+        return 0.0
+    prefix = f'fleetctl_session_mailbox_frames{{session="{session}"}} '
+    return max((float(line[len(prefix):]) for line in text.splitlines()
+                if line.startswith(prefix)), default=0.0)
+
+
+def test_receiver_back_after_the_sender_flushed_gets_every_no_drop_message(
+        fleet: Fleet) -> None:
+    """The receiver comes back last: bravo's client is paused (SIGSTOP) while the server
+    restarts and alpha reconnects and resends its backlog; the server keeps the frames in
+    bravo's session (subscriptions loaded from SQLite) until bravo is back. Every message
+    arrives at the ROS level in order, exactly once."""
+    count = 200
+    bravo = fleet.clients["bravo"]
+    with _event_stream(fleet, "late", count) as (events, got, take, listener):
+        assert fleet.server.stop() == 0
+        bravo.signal(signal.SIGSTOP)
+        try:
+            sent_at_stop = events.wait_for(lambda line: "sent" in line, 10.0,
+                                           "a sent event")["sent"]
+            events.wait_for(lambda line: line.get("sent", 0) >= sent_at_stop + 20, 10.0,
+                            "events during the outage")
+            fleet.start_server()
+            # alpha is back and has resent its outage backlog: it waits in bravo's mailbox.
+            wait_until(lambda: _mailbox_frames(fleet, "bravo/bravo") >= 20, STARTUP_S,
+                       describe="alpha's backlog in bravo's session mailbox")
+        finally:
+            bravo.signal(signal.SIGCONT)
+        listener.wait_for(lambda line: take(line) and got[-1] == f"event-{count}", 60.0,
+                          f"event-{count} after the restart")
+        assert got == [f"event-{i}" for i in range(1, count + 1)]

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import io
+import re
 import threading
 from collections.abc import Callable, Iterator
 from typing import Any
@@ -74,7 +75,9 @@ def test_every_topic_is_published_with_its_size(
     with Image.open(io.BytesIO(bytes(image.data))) as decoded:
         assert decoded.format == "JPEG" and decoded.size == (640, 480)
     assert 0.05 <= got["/battery"][0].percentage <= 1.0
-    assert got["/events"][0].data.endswith("simtest started")
+    # The "started" event can go out before this peer's subscription is matched (DDS
+    # discovery is slower on a loaded machine), so any event of this robot will do.
+    assert re.fullmatch(r"\[\d+\] simtest (started|alive)", got["/events"][0].data)
     assert got["/pose"][0].header.frame_id == "map"
 
 

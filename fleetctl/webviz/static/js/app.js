@@ -37,6 +37,7 @@ class App {
     conn.addEventListener("robots", (e) => this.onRobots(e.detail));
     conn.addEventListener("message", (e) => this.onMessage(e.detail));
     conn.addEventListener("server-error", (e) => this.onServerError(e.detail));
+    conn.addEventListener("unsupported", () => this.renderNotes());
     conn.start();
     $("#signin").hidden = true;
     $("#main").hidden = false;
@@ -166,6 +167,7 @@ class App {
     this.commandStatus("");
     this.applyVisibility();
     this.updateCommands();
+    this.renderNotes();
   }
 
   setSubscriptions(robot, visible) {
@@ -234,14 +236,34 @@ class App {
     el.classList.toggle("bad", bad);
   }
 
+  /** A panel whose topic arrives in a form the page cannot decode says so, and how to fix it. */
+  renderNotes() {
+    if (!this.robot || !this.conn) return;
+    for (const p of PANELS) {
+      const notes = p.topics.map((t) => this.conn.unsupported.get(`/${this.robot}${t}`)).filter(Boolean);
+      const panel = $(`#panel-${p.id}`);
+      let note = panel.querySelector(".panel-note");
+      if (!note && notes.length) {
+        note = document.createElement("p");
+        note.className = "panel-note bad";
+        note.setAttribute("role", "status");
+        panel.querySelector("h3").after(note);
+      }
+      if (!note) continue;
+      note.textContent = notes.join(" ");
+      note.hidden = notes.length === 0;
+    }
+  }
+
   renderHealth() {
     if (!this.conn) return;
     if (!this.robot) return this.renderOverview();
+    this.renderNotes();
     const rows = this.conn.health.rows(`/${this.robot}/`);
     $("#health tbody").innerHTML = rows.map((r) =>
       `<tr><td>${r.topic}</td><td>${r.rateHz.toFixed(1)}</td><td>${Number.isFinite(r.latencyMs) ? r.latencyMs.toFixed(0) : "–"}</td><td>${r.drops}</td><td>${r.received}</td></tr>`).join("");
     const s = this.conn.stats;
-    $("#client-stats").textContent = `frames ${s.framesIn}, decode errors ${s.decodeErrors}, dropped while loading a type ${s.droppedNoLayout}, fragments dropped ${this.conn.reassembler.totalDropped()}`;
+    $("#client-stats").textContent = `frames ${s.framesIn}, decode errors ${s.decodeErrors}, dropped while loading a type ${s.droppedNoLayout}, fragments dropped ${this.conn.reassembler.totalDropped()}, decompressed ${s.decompressed}, compressed but undecodable here ${s.unsupported}, dropped behind decompression ${s.droppedInflateQueue}`;
   }
 
   frame() {

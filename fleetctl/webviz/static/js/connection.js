@@ -4,8 +4,11 @@
 // re-sends them after every reconnect, reconnects with exponential backoff (reset by a
 // welcome), and turns binary frames into decoded messages (reassembling fragments).
 // Nothing here is unbounded: a frame whose type layout is still loading is dropped and
-// counted, and fragments are reassembled under a byte bound.
+// counted, fragments are reassembled under a byte bound, and compressed frames (decompressed
+// asynchronously, after reassembly) wait in a short per-topic queue that keeps each topic's
+// messages in order.
 
+import { COMPRESSED_TYPE, UnsupportedCompression, decompress } from "./compression.js";
 import { Builder } from "./fb/builder.js";
 import { readMetadata, Reader, DecodeError } from "./fb/reader.js";
 import { FRAGMENT_TYPE, Reassembler } from "./fragments.js";
@@ -16,6 +19,9 @@ export const SUBSCRIPTION_TYPE = "amrl_msgs/msg/RobofleetSubscription";
 const BACKOFF_MIN_MS = 250;
 const BACKOFF_MAX_MS = 8000;
 const MAX_LOG = 50; // server error frames kept for display
+// Frames of one topic waiting behind an asynchronous decompression; more are dropped and
+// counted (a 1 MB cloud inflates in a few ms, so a queue this long means the page is behind).
+const MAX_INFLATE_QUEUE = 8;
 
 /** Close codes that mean "do not retry with the same credentials". */
 export const FATAL_CLOSE = { 4401: "the server refused the token", 4403: "this connection matches no identity in the auth map" };
@@ -42,7 +48,9 @@ export class Connection extends EventTarget {
     this.stopped = false;
     this.health = new LinkHealth();
     this.reassembler = new Reassembler();
-    this.stats = { framesIn: 0, decodeErrors: 0, droppedNoLayout: 0, sent: 0 };
+    this.stats = { framesIn: 0, decodeErrors: 0, droppedNoLayout: 0, sent: 0, decompressed: 0, droppedInflateQueue: 0, unsupported: 0 };
+    this.inflating = new Map(); // topic -> {tail: Promise, queued: number}
+    this.unsupported = new Map(); // topic -> message, for topics compressed with zstd
     this.errors = [];
     this.seq = 0n;
   }
@@ -138,9 +146,15 @@ export class Connection extends EventTarget {
     try {
       meta = readMetadata(bytes);
       if (meta.type === FRAGMENT_TYPE) {
+        const outer = meta;
         bytes = this.reassemble(meta, bytes);
         if (!bytes) return;
         meta = readMetadata(bytes);
+        // The server checked permissions on the fragments' topic only: a message whose
+        // own topic differs (or that nests another fragment) is refused, never delivered.
+        if (meta.topic !== outer.topic || meta.type === FRAGMENT_TYPE) {
+          throw new DecodeError(`reassembled message on ${meta.topic} came in fragments of ${outer.topic}`);
+        }
       }
       // Health counts whole messages: a 20k-point cloud in 15 fragments is one message, not
       // 15 (lost fragments show up as the reassembler's drops and as seq gaps).
@@ -148,6 +162,11 @@ export class Connection extends EventTarget {
     } catch (err) {
       return this.decodeFailed(err);
     }
+    if (meta.type === COMPRESSED_TYPE || this.inflating.has(meta.topic)) return this.inOrder(meta, bytes);
+    this.deliver(meta, bytes);
+  }
+
+  deliver(meta, bytes) {
     const layouts = this.loader.layouts;
     if (!layouts.has(meta.type)) {
       this.stats.droppedNoLayout++;
@@ -160,6 +179,53 @@ export class Connection extends EventTarget {
     } catch (err) {
       this.decodeFailed(err);
     }
+  }
+
+  /**
+   * Decompress (if compressed) and deliver after the topic's earlier frames: decompression
+   * is asynchronous, and a plain frame must not overtake a compressed one before it.
+   */
+  inOrder(meta, bytes) {
+    const topic = meta.topic;
+    const entry = this.inflating.get(topic) ?? { tail: Promise.resolve(), queued: 0 };
+    if (entry.queued >= MAX_INFLATE_QUEUE) {
+      this.stats.droppedInflateQueue++;
+      return;
+    }
+    entry.queued++;
+    entry.tail = entry.tail
+      .then(() => (meta.type === COMPRESSED_TYPE ? this.inflate(meta, bytes) : [meta, bytes]))
+      .then(([m, b]) => this.deliverLoaded(m, b))
+      .catch((err) => this.inflateFailed(topic, err))
+      .finally(() => {
+        if (--entry.queued === 0 && this.inflating.get(topic) === entry) this.inflating.delete(topic);
+      });
+    this.inflating.set(topic, entry);
+  }
+
+  async inflate(meta, bytes) {
+    // Already asynchronous: wait for the layout instead of dropping the frame (a map may be
+    // sent only once in a while).
+    const layouts = await this.loader.ensure(COMPRESSED_TYPE);
+    const msg = new Reader(layouts).decode(bytes, COMPRESSED_TYPE);
+    const original = await decompress(meta.topic, msg, this.reassembler.maxBytes);
+    this.stats.decompressed++;
+    this.unsupported.delete(meta.topic);
+    return [readMetadata(original), original];
+  }
+
+  async deliverLoaded(meta, bytes) {
+    await this.loader.ensure(meta.type);
+    this.deliver(meta, bytes);
+  }
+
+  inflateFailed(topic, err) {
+    if (!(err instanceof UnsupportedCompression)) return this.decodeFailed(err);
+    this.stats.unsupported++;
+    if (this.unsupported.has(topic)) return; // said once per topic, not per frame
+    this.unsupported.set(topic, err.message);
+    this.logError({ code: "unsupported_compression", topic, message: err.message });
+    this.dispatchEvent(new CustomEvent("unsupported", { detail: { topic, codec: err.codec, message: err.message } }));
   }
 
   reassemble(meta, bytes) {

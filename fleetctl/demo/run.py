@@ -177,7 +177,10 @@ def _start_components(
     wait_until(lambda: guard.http_ok(f"{fleet.http_url}/healthz"), options.startup_timeout_s,
                describe=f"the server at {fleet.http_url}/healthz")
     for i, robot in enumerate(fleet.robots):
-        env = {"ROS_DOMAIN_ID": str(robot.ros_domain_id)}
+        # Discovery stays on loopback: a demo robot must never join the graph of a real
+        # robot on the LAN (multicast discovery would announce its /cmd_vel there).
+        env = {"ROS_DOMAIN_ID": str(robot.ros_domain_id),
+               "ROS_AUTOMATIC_DISCOVERY_RANGE": "LOCALHOST"}
         phase = 2 * math.pi * i / len(fleet.robots)
         supervisor.start(ProcessSpec(
             f"{robot.name}-sim",
@@ -206,7 +209,7 @@ def _summary(fleet: DemoFleet, webviz_url: str | None, logs: Path) -> list[str]:
     ]
     for robot in fleet.robots:
         lines.append(f"  {robot.name:<10} client from {robot.address}, "
-                     f"ROS_DOMAIN_ID={robot.ros_domain_id}, topics /{robot.name}/...")
+                     f"ROS_DOMAIN_ID={robot.ros_domain_id} (localhost only), topics /{robot.name}/...")
     lines.append(f"  webviz     {webviz_url}  (paste a token below into the page)" if webviz_url
                  else "  webviz     not started")
     lines.append(f"  viewer token   (receive all):         {fleet.viewer_token}")

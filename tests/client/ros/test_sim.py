@@ -65,7 +65,11 @@ def test_every_topic_is_published_with_its_size(
     from PIL import Image
 
     _, _, got = sim
-    wait_for(lambda: all(got.values()))
+    try:
+        wait_for(lambda: all(got.values()))
+    except AssertionError:
+        missing = sorted(topic for topic, messages in got.items() if not messages)
+        raise AssertionError(f"nothing received on {missing}") from None
     scan = got["/scan"][0]
     assert len(scan.ranges) == 720 and min(scan.ranges) > 0
     cloud = got["/points"][0]

@@ -40,14 +40,16 @@ import threading
 import time
 from collections import Counter
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any
 
 from websockets.asyncio.client import ClientConnection, connect
 from websockets.exceptions import ConnectionClosed, InvalidHandshake, InvalidURI
+from websockets.uri import parse_uri
 
 from fleetctl.batched_connection import BatchedWritesConnection
 from fleetctl.client.config import ClientConfig
+from fleetctl.client.dialer import DialSettings, dial
 from fleetctl.client.memory import tune_malloc
 from fleetctl.client.receiver import Receiver
 from fleetctl.client.scheduler import Scheduler, SchedulerConfig
@@ -66,8 +68,7 @@ class LinkTuning:
 
     Attributes:
         open_timeout_s: Limit of one connection attempt (TCP + TLS + upgrade), seconds.
-        first_open_timeout_s: Limit of the first attempt after a connection was lost;
-            doubles per failed attempt up to ``open_timeout_s`` (seconds).
+        dial: How the TCP connection is raced (see :mod:`fleetctl.client.dialer`).
         keepalive_interval_s: A ping is sent when the link was idle this long, seconds.
         link_timeout_s: A ping unanswered this long means the link is dead, seconds.
         close_timeout_s: Time allowed for the closing handshake on stop, seconds.
@@ -86,7 +87,7 @@ class LinkTuning:
     """
 
     open_timeout_s: float = 5.0
-    first_open_timeout_s: float = 1.0
+    dial: DialSettings = field(default_factory=DialSettings)
     keepalive_interval_s: float = 0.5
     link_timeout_s: float = 3.0
     close_timeout_s: float = 1.0
@@ -298,31 +299,38 @@ class RobotLink:
         return backoff_delay_s(max(attempt - 1, 0), lim.reconnect_min_s, lim.reconnect_max_s,
                                self._rng)
 
-    def _open_timeout(self, attempt: int) -> float:
-        """Short first attempts (a SYN lost during a dropout is retried by TCP only after
-        1 s, then 3 s: a fresh attempt is quicker), doubling up to ``open_timeout_s``
-        so a slow link still gets to finish its handshake."""
-        first = self.tuning.first_open_timeout_s
-        return min(self.tuning.open_timeout_s, first * 2.0 ** min(attempt, 16))
-
     async def _wait_stop(self, timeout_s: float) -> None:
         with contextlib.suppress(TimeoutError):
             await asyncio.wait_for(self._stop.wait(), timeout_s)
 
-    async def _connect(self, attempt: int) -> LinkConnection | None:
+    async def _open(self) -> LinkConnection:
+        """One connection attempt: raced TCP connect, then TLS and the upgrade, all
+        within ``open_timeout_s``."""
         headers = {SESSION_HEADER: self.config.robot_name}
         if self.config.token is not None:
             headers["Authorization"] = f"Bearer {self.config.token}"
-        extra: dict[str, Any] = {}
-        if self.config.bind_address is not None:
-            extra["local_addr"] = (self.config.bind_address, 0)
-        connecting = asyncio.ensure_future(connect(
-            self.config.server_url, additional_headers=headers, compression=None,
-            proxy=None, open_timeout=self._open_timeout(attempt), ping_interval=None,
-            ping_timeout=None, close_timeout=self.tuning.close_timeout_s,
-            max_size=self.tuning.max_receive_frame_bytes,
-            write_limit=self.tuning.write_limit_bytes,
-            create_connection=LinkConnection, **extra))
+        uri = parse_uri(self.config.server_url)
+        local = (None if self.config.bind_address is None
+                 else (self.config.bind_address, 0))
+        async with asyncio.timeout(self.tuning.open_timeout_s):
+            sock = await dial(uri.host, uri.port, self.tuning.open_timeout_s,
+                              self.tuning.dial, local_addr=local)
+            try:
+                ws = await connect(
+                    self.config.server_url, sock=sock, additional_headers=headers,
+                    compression=None, proxy=None, open_timeout=None, ping_interval=None,
+                    ping_timeout=None, close_timeout=self.tuning.close_timeout_s,
+                    max_size=self.tuning.max_receive_frame_bytes,
+                    write_limit=self.tuning.write_limit_bytes,
+                    create_connection=LinkConnection)
+            except BaseException:
+                sock.close()  # the handshake failed or timed out: the socket is ours
+                raise
+        assert isinstance(ws, LinkConnection)
+        return ws
+
+    async def _connect(self, attempt: int) -> LinkConnection | None:
+        connecting = asyncio.ensure_future(self._open())
         stopper = asyncio.ensure_future(self._stop.wait())
         # stop() must not wait for a connection attempt to time out.
         await asyncio.wait({connecting, stopper}, return_when=asyncio.FIRST_COMPLETED)

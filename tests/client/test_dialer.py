@@ -1,0 +1,75 @@
+"""The racing TCP dialer: loopback for the basics, a real cut link for the lost SYN."""
+
+from __future__ import annotations
+
+import asyncio
+import socket
+import time
+
+import pytest
+
+from fleetctl.client.dialer import DialSettings, dial
+from fleetctl.deploy.shaping import LinkShaper, detect
+from tests.netns import NEEDS_ROOT, SINK_TCP_PORT, Link, host_run
+
+
+async def test_connects_on_loopback() -> None:
+    server = await asyncio.start_server(lambda r, w: w.close(), "127.0.0.1", 0)
+    port = server.sockets[0].getsockname()[1]
+    async with server:
+        sock = await dial("127.0.0.1", port, timeout_s=5.0)
+        try:
+            assert sock.getpeername() == ("127.0.0.1", port)
+            assert not sock.getblocking()
+        finally:
+            sock.close()
+
+
+async def test_refused_is_raised_at_once() -> None:
+    with socket.socket() as probe:  # a port nobody listens on
+        probe.bind(("127.0.0.1", 0))
+        port = probe.getsockname()[1]
+    started = time.monotonic()
+    with pytest.raises(ConnectionRefusedError):
+        await dial("127.0.0.1", port, timeout_s=5.0)
+    assert time.monotonic() - started < 1.0  # not retried until the deadline
+
+
+async def test_unresolvable_name_is_an_os_error() -> None:
+    with pytest.raises(OSError):
+        await dial("no-such-host.invalid", 80, timeout_s=5.0)
+
+
+@pytest.mark.netns
+@NEEDS_ROOT
+async def test_a_lost_syn_does_not_wait_for_tcp_retransmission(link: Link) -> None:
+    """Cut the link, start a plain connect and the dialer, restore after 0.3 s: the
+    plain connect's SYN was lost and Linux resends it only at 1 s; the dialer's next
+    staggered SYN (every 0.25 s) gets through right after the restore."""
+    shaper = LinkShaper(host_run, link.dev, detect(host_run, link.dev))
+    loop = asyncio.get_running_loop()
+    address = (link.peer_ip, SINK_TCP_PORT)
+    # One connection first: the neighbour (ARP) entry is resolved before the cut, as it
+    # is on a link that was working (an unresolved one is retried only every 1 s).
+    socket.create_connection(address, timeout=5.0).close()
+    shaper.cut()
+    try:
+        started = loop.time()
+
+        async def plain() -> float:
+            _, writer = await asyncio.open_connection(*address)
+            writer.close()
+            return loop.time() - started
+
+        async def raced() -> float:
+            sock = await dial(*address, timeout_s=5.0, settings=DialSettings(stagger_s=0.25))
+            sock.close()
+            return loop.time() - started
+
+        # The cut's length is the scenario, not a synchronization.
+        loop.call_later(0.3, shaper.restore)
+        plain_s, raced_s = await asyncio.gather(plain(), raced())
+    finally:
+        shaper.clear()
+    assert plain_s >= 0.9, plain_s  # the kernel's 1 s SYN retransmission
+    assert 0.3 <= raced_s < 0.8, raced_s

@@ -56,6 +56,7 @@ def run_baseline(cpu: int, ports: Any) -> None:
     """A plain websockets relay: every frame to every subscriber."""
     _pin(cpu)
     from websockets.asyncio.server import ServerConnection, serve
+    from websockets.exceptions import ConnectionClosed
 
     subscribers: set[ServerConnection] = set()
 
@@ -69,7 +70,9 @@ def run_baseline(cpu: int, ports: Any) -> None:
             return
         async for message in ws:
             for sub in list(subscribers):
-                await sub.send(message)
+                # A subscriber leaving at the end of a phase is not an error.
+                with contextlib.suppress(ConnectionClosed):
+                    await sub.send(message)
 
     async def main() -> None:
         async with serve(handler, "127.0.0.1", 0, max_size=2**24, compression=None) as srv:

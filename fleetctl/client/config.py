@@ -34,9 +34,11 @@ _PUBLISH_KEYS = frozenset(
 COMPRESSIONS = ("none", "zstd", "deflate")
 _SUBSCRIBE_KEYS = frozenset({"remote_topic", "type", "local_topic"})
 _STATUS_KEYS = frozenset({"battery_topic", "period_s"})
-_LIMIT_KEYS = frozenset(
-    {"max_fragment_bytes", "no_drop_queue_messages", "reconnect_min_s", "reconnect_max_s"}
-)
+_LIMIT_KEYS = frozenset({"max_fragment_bytes", "no_drop_queue_messages", "reconnect_min_s",
+                         "reconnect_max_s", "scheduler"})
+# adaptive: fragments sized to the link, window from RTT and delivery rate (the default).
+# robofleet: the paper's behaviour (whole frames, one frame in flight), for comparison runs.
+SCHEDULERS = ("adaptive", "robofleet")
 
 # A fragment must hold the Fragment table's own metadata plus some payload; the server's
 # default max_frame_bytes (16 MiB) is the upper end.
@@ -112,12 +114,15 @@ class ClientLimits:
         no_drop_queue_messages: Bound of the no_drop FIFO, kept across reconnects.
         reconnect_min_s: First reconnect delay in seconds (doubles per failure, jittered).
         reconnect_max_s: Cap of the reconnect delay in seconds.
+        scheduler: ``adaptive`` (default) or ``robofleet``: whole frames and one frame in
+            flight (Robofleet's n_T = 1), the baseline of comparison runs.
     """
 
     max_fragment_bytes: int = 1048576
     no_drop_queue_messages: int = 10000
     reconnect_min_s: float = 0.1
     reconnect_max_s: float = 5.0
+    scheduler: str = "adaptive"
 
 
 @dataclass(frozen=True)
@@ -466,4 +471,13 @@ def _limits(ctx: _Ctx, value: object) -> ClientLimits:
                                     d.no_drop_queue_messages, 1, 10_000_000),
         reconnect_min_s=lo,
         reconnect_max_s=hi,
+        scheduler=_scheduler(ctx, entry),
     )
+
+
+def _scheduler(ctx: _Ctx, entry: Mapping[str, Any]) -> str:
+    value = entry.get("scheduler", "adaptive")
+    if value not in SCHEDULERS:
+        raise ctx.error("limits", "scheduler",
+                        f"must be one of {', '.join(SCHEDULERS)}, got {value!r}")
+    return str(value)

@@ -116,9 +116,12 @@ class LinkConnection(BatchedWritesConnection, ClientConnection):
 
 def scheduler_config_for(config: ClientConfig) -> SchedulerConfig:
     """The scheduler settings implied by a client config's ``limits``."""
+    robofleet = config.limits.scheduler == "robofleet"
     return SchedulerConfig(
         max_fragment_bytes=config.limits.max_fragment_bytes,
         no_drop_queue_messages=config.limits.no_drop_queue_messages,
+        fragments=not robofleet,
+        fixed_window_messages=1 if robofleet else None,
         # Time-based ids keep a restarted client's fragments "newer" for reassemblers.
         first_message_id=time.time_ns() // 1000,
     )

@@ -208,8 +208,8 @@ def _summary(fleet: DemoFleet, webviz_url: str | None, logs: Path) -> list[str]:
         f"robots {fleet.http_url}/robots, metrics {fleet.http_url}/metrics)",
     ]
     for robot in fleet.robots:
-        lines.append(f"  {robot.name:<10} client from {robot.address}, "
-                     f"ROS_DOMAIN_ID={robot.ros_domain_id} (localhost only), topics /{robot.name}/...")
+        lines.append(f"  {robot.name:<10} client from {robot.address}, ROS_DOMAIN_ID="
+                     f"{robot.ros_domain_id} (localhost only), topics /{robot.name}/...")
     lines.append(f"  webviz     {webviz_url}  (paste a token below into the page)" if webviz_url
                  else "  webviz     not started")
     lines.append(f"  viewer token   (receive all):         {fleet.viewer_token}")

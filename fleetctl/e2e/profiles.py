@@ -49,11 +49,13 @@ class Profile:
         name: Profile name (``--profile`` of the load publisher).
         topics: What is published.
         max_fragment_bytes: Client fragment size (bytes).
+        scheduler: The client's ``limits.scheduler`` (``adaptive`` or ``robofleet``).
     """
 
     name: str
     topics: tuple[TopicLoad, ...]
     max_fragment_bytes: int = 16384
+    scheduler: str = "adaptive"
 
     def topic(self, local: str) -> TopicLoad:
         """The entry of local topic *local*.
@@ -103,13 +105,12 @@ def all_no_drop(p: Profile) -> Profile:
 
 
 def robofleet_like(p: Profile) -> Profile:
-    """Baseline of priority: every topic the same priority and no fragments.
+    """Baseline of priority: Robofleet's scheduling, every topic the same priority.
 
-    The client's ``client.yaml`` has no n_T setting (``SchedulerConfig.fixed_window_messages``
-    is not exposed), so this is the closest Robofleet behaviour a stock client gives.
+    ``limits.scheduler: robofleet`` sends whole frames with one frame in flight (n_T = 1).
     """
     return replace(p, topics=tuple(replace(t, priority=1.0) for t in p.topics),
-                   max_fragment_bytes=MAX_FRAGMENT_BYTES)
+                   max_fragment_bytes=MAX_FRAGMENT_BYTES, scheduler="robofleet")
 
 
 def client_config(p: Profile, server_url: str) -> dict[str, Any]:
@@ -123,5 +124,5 @@ def client_config(p: Profile, server_url: str) -> dict[str, Any]:
             for t in p.topics
         ],
         "status": {"period_s": 1.0},
-        "limits": {"max_fragment_bytes": p.max_fragment_bytes},
+        "limits": {"max_fragment_bytes": p.max_fragment_bytes, "scheduler": p.scheduler},
     }

@@ -149,8 +149,8 @@ def run_priority(fr: FleetRun, caps: Capabilities, duration_s: float,
     link.clear()
     result = analysis.priority(variants, base.topics[0].remote_topic,
                                base.topics[1].remote_topic, t0)
-    result["notes"].insert(0, "baseline: same priority for both topics and no fragments "
-                           "(client.yaml has no n_T setting)")
+    result["notes"].insert(0, "baseline: Robofleet's scheduling (limits.scheduler: robofleet: "
+                           "whole frames, one in flight), same priority for both topics")
     return result
 
 

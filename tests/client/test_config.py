@@ -152,6 +152,8 @@ def test_token_file_is_read_relative_and_never_shown(tmp_path: Path) -> None:
     (minimal(limits={"reconnect_min_s": 2.0, "reconnect_max_s": 1.0}),
      "limits: reconnect_max_s: must be >= reconnect_min_s"),
     (minimal(limits={"reconnect_min_s": float("nan")}), "reconnect_min_s: must be > 0"),
+    (minimal(limits={"scheduler": "fifo"}),
+     "limits: scheduler: must be one of adaptive, robofleet, got 'fifo'"),
     ([1, 2], "document: must be a mapping"),
 ])
 def test_bad_field_names_file_entry_and_field(data: Any, expected: str) -> None:
@@ -160,6 +162,17 @@ def test_bad_field_names_file_entry_and_field(data: Any, expected: str) -> None:
     assert expected in str(info.value)
     assert str(info.value).startswith("client.yaml: ")
     assert info.value.exit_code == ExitCode.CONFIG
+
+
+def test_robofleet_scheduler_sends_whole_frames_one_in_flight() -> None:
+    from fleetctl.client.transport import scheduler_config_for
+
+    adaptive = scheduler_config_for(parse_client_config(minimal(), source="c.yaml"))
+    assert adaptive.fragments and adaptive.fixed_window_messages is None
+    cfg = parse_client_config(minimal(limits={"scheduler": "robofleet"}), source="c.yaml")
+    assert cfg.limits.scheduler == "robofleet"
+    robofleet = scheduler_config_for(cfg)
+    assert not robofleet.fragments and robofleet.fixed_window_messages == 1
 
 
 def test_file_errors(tmp_path: Path) -> None:

@@ -75,6 +75,7 @@ def test_client_configs_of_profiles_and_baselines() -> None:
     rf = profiles.robofleet_like(profiles.profile("priority"))
     assert {t.priority for t in rf.topics} == {1.0}
     assert rf.max_fragment_bytes >= 65_536 * 2
+    assert profiles.client_config(rf, "ws://x:1/")["limits"]["scheduler"] == "robofleet"
     json.dumps(cfg)
     with pytest.raises(FleetError, match="unknown load profile"):
         profiles.profile("nope")

@@ -11,7 +11,7 @@ from tests.netns import Link, veth_link
 
 # ROS 2 discovery stays on loopback for every rclpy node a test starts, in this process or
 # in a child: the tests must not send multicast onto the machine's network, and on a
-# loaded machine multicast discovery over the LAN interface was seen to match too late.
+# loaded CI machine a test using multicast discovery missed its discovery deadline.
 os.environ["ROS_AUTOMATIC_DISCOVERY_RANGE"] = "LOCALHOST"
 
 

@@ -178,7 +178,7 @@ def _start_components(
                describe=f"the server at {fleet.http_url}/healthz")
     for i, robot in enumerate(fleet.robots):
         # Discovery stays on loopback: a demo robot must never join the graph of a real
-        # robot on the LAN (multicast discovery would announce its /cmd_vel there).
+        # robot on the LAN (multicast discovery would put its /goal_pose, /odom there).
         env = {"ROS_DOMAIN_ID": str(robot.ros_domain_id),
                "ROS_AUTOMATIC_DISCOVERY_RANGE": "LOCALHOST"}
         phase = 2 * math.pi * i / len(fleet.robots)

@@ -72,4 +72,4 @@ async def test_a_lost_syn_does_not_wait_for_tcp_retransmission(link: Link) -> No
     finally:
         shaper.clear()
     assert plain_s >= 0.9, plain_s  # the kernel's 1 s SYN retransmission
-    assert 0.3 <= raced_s < 0.8, raced_s
+    assert 0.3 <= raced_s < 0.9, raced_s  # the next staggered SYN, not the 1 s resend

@@ -40,34 +40,48 @@ async def dial(host: str, port: int, timeout_s: float, settings: DialSettings = 
                local_addr: tuple[str, int] | None = None) -> socket.socket:
     """Return a connected non-blocking TCP socket to *host*:*port*.
 
+    The addresses *host* resolves to are tried in order, as the event loop's own
+    ``create_connection`` does: ``localhost`` may resolve to ``::1`` first while the
+    server listens on 127.0.0.1 only.
+
     Raises:
         TimeoutError: No attempt connected within *timeout_s*.
-        OSError: The name did not resolve, or an attempt was refused or unreachable (the
-            server is reachable and said no: retrying at once would not help).
+        OSError: The name did not resolve, or every address refused or was unreachable
+            (the server is reachable and said no: retrying at once would not help).
     """
     loop = asyncio.get_running_loop()
     async with asyncio.timeout(timeout_s):
         infos = await loop.getaddrinfo(host, port, type=socket.SOCK_STREAM)
-        family, _, proto, _, address = infos[0]
-        attempts: list[asyncio.Task[socket.socket]] = []
-        try:
-            while True:
-                if len(attempts) >= settings.max_in_flight:
-                    oldest = attempts.pop(0)
-                    oldest.cancel()
-                attempts.append(asyncio.create_task(
-                    _attempt(family, proto, address, local_addr)))
-                done, _ = await asyncio.wait(attempts, timeout=settings.stagger_s,
-                                             return_when=asyncio.FIRST_COMPLETED)
-                for task in done:
-                    attempts.remove(task)
-                    return task.result()  # a refusal or unreachable network raises here
-        finally:
-            for task in attempts:
-                task.cancel()
-            for task in attempts:
-                with contextlib.suppress(asyncio.CancelledError, OSError):
-                    (await task).close()  # one that connected while being cancelled
+        error: OSError | None = None
+        for family, _, proto, _, address in infos:
+            try:
+                return await _race(family, proto, address, local_addr, settings)
+            except OSError as exc:
+                error = exc
+        raise error or OSError(f"{host} resolved to no address")
+
+
+async def _race(family: int, proto: int, address: tuple[str, int] | tuple[str, int, int, int],
+                local_addr: tuple[str, int] | None, settings: DialSettings) -> socket.socket:
+    """Staggered attempts to one address until one connects or one is refused."""
+    attempts: list[asyncio.Task[socket.socket]] = []
+    try:
+        while True:
+            if len(attempts) >= settings.max_in_flight:
+                oldest = attempts.pop(0)
+                oldest.cancel()
+            attempts.append(asyncio.create_task(_attempt(family, proto, address, local_addr)))
+            done, _ = await asyncio.wait(attempts, timeout=settings.stagger_s,
+                                         return_when=asyncio.FIRST_COMPLETED)
+            for task in done:
+                attempts.remove(task)
+                return task.result()  # a refusal or unreachable network raises here
+    finally:
+        for task in attempts:
+            task.cancel()
+        for task in attempts:
+            with contextlib.suppress(asyncio.CancelledError, OSError):
+                (await task).close()  # one that connected while being cancelled
 
 
 async def _attempt(family: int, proto: int, address: tuple[str, int] | tuple[str, int, int, int],

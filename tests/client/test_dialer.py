@@ -5,6 +5,7 @@ from __future__ import annotations
 import asyncio
 import socket
 import time
+from typing import Any
 
 import pytest
 
@@ -33,6 +34,30 @@ async def test_refused_is_raised_at_once() -> None:
     with pytest.raises(ConnectionRefusedError):
         await dial("127.0.0.1", port, timeout_s=5.0)
     assert time.monotonic() - started < 1.0  # not retried until the deadline
+
+
+async def test_next_address_is_tried_when_the_first_refuses(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """Like ``localhost`` resolving to ::1 first while the server listens on 127.0.0.1."""
+    server = await asyncio.start_server(lambda r, w: w.close(), "127.0.0.1", 0)
+    port = server.sockets[0].getsockname()[1]
+    loop = asyncio.get_running_loop()
+    resolved = [
+        (socket.AF_INET6, socket.SOCK_STREAM, 6, "", ("::1", port, 0, 0)),
+        (socket.AF_INET, socket.SOCK_STREAM, 6, "", ("127.0.0.1", port)),
+    ]
+
+    async def getaddrinfo(*_: object, **__: object) -> list[Any]:
+        return resolved
+
+    monkeypatch.setattr(loop, "getaddrinfo", getaddrinfo)
+    async with server:
+        sock = await dial("dual-stack.test", port, timeout_s=5.0)
+        try:
+            assert sock.family == socket.AF_INET and sock.getpeername()[1] == port
+        finally:
+            sock.close()
 
 
 async def test_unresolvable_name_is_an_os_error() -> None:

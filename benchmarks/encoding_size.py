@@ -137,21 +137,27 @@ def measure(codec: Codec, repeat: int) -> list[dict[str, Any]]:
     ]
 
 
+def markdown_table(header: list[str], rows: list[list[str]]) -> str:
+    """A Markdown table: the first column left-aligned, the others right-aligned."""
+    def line(cells: list[str]) -> str:
+        return "| " + " | ".join(cells) + " |"
+
+    return "\n".join([line(header), "|---|" + "---:|" * (len(header) - 1),
+                      *(line(r) for r in rows)])
+
+
 def render(rows: list[dict[str, Any]]) -> str:
     """A Markdown table of the rows."""
-    lines = [
-        "| Message | CDR (B) | fleetctl frame (B) | frame - CDR (B) | frame / CDR "
-        "| rosbridge JSON (B) | encode (ms) | decode (ms) | CDR ser. (ms) | CDR deser. (ms) |",
-        "|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|",
-    ]
-    for r in rows:
-        lines.append(
-            f"| {r['label']} | {r['cdr']:,} | {r['ours']:,} | {r['ours'] - r['cdr']:+,} "
-            f"| {r['ours'] / r['cdr']:.4f} | {r['json']:,} "
-            f"| {r['encode_s'] * 1e3:.3f} | {r['decode_s'] * 1e3:.3f} "
-            f"| {r['cdr_encode_s'] * 1e3:.3f} | {r['cdr_decode_s'] * 1e3:.3f} |"
-        )
-    return "\n".join(lines)
+    header = ["Message", "CDR (B)", "fleetctl frame (B)", "frame - CDR (B)", "frame / CDR",
+              "rosbridge JSON (B)", "encode (ms)", "decode (ms)", "CDR ser. (ms)",
+              "CDR deser. (ms)"]
+    return markdown_table(header, [
+        [r["label"], f"{r['cdr']:,}", f"{r['ours']:,}", f"{r['ours'] - r['cdr']:+,}",
+         f"{r['ours'] / r['cdr']:.4f}", f"{r['json']:,}", f"{r['encode_s'] * 1e3:.3f}",
+         f"{r['decode_s'] * 1e3:.3f}", f"{r['cdr_encode_s'] * 1e3:.3f}",
+         f"{r['cdr_decode_s'] * 1e3:.3f}"]
+        for r in rows
+    ])
 
 
 def measure_compression(codec: Codec, repeat: int) -> list[dict[str, Any]]:
@@ -187,19 +193,18 @@ def _compression_cells(codec: Codec, label: str, frame: bytes, topic: str,
 
 def render_compression(rows: list[dict[str, Any]]) -> str:
     """A Markdown table of the compression rows (ratio = original / compressed frame)."""
-    lines = [
-        "| Message | frame (B) | zstd (B) | ratio | compress (ms) | decompress (ms) "
-        "| deflate (B) | ratio | compress (ms) | decompress (ms) |",
-        "|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|",
-    ]
+    header = ["Message", "frame (B)"]
+    for name in ("zstd", "deflate"):
+        header += [f"{name} (B)", "ratio", "compress (ms)", "decompress (ms)"]
+    table = []
     for r in rows:
         cells = [r["label"], f"{r['original']:,}"]
         for key in ("zstd", "deflate"):
             cells += [f"{r[key]:,}", f"{r['original'] / r[key]:.2f}",
                       f"{r[key + '_compress_s'] * 1e3:.3f}",
                       f"{r[key + '_decompress_s'] * 1e3:.3f}"]
-        lines.append("| " + " | ".join(cells) + " |")
-    return "\n".join(lines)
+        table.append(cells)
+    return markdown_table(header, table)
 
 
 LEVELS: list[tuple[str, Callable[[bytes], bytes]]] = [
@@ -212,16 +217,16 @@ LEVELS: list[tuple[str, Callable[[bytes], bytes]]] = [
 
 def render_levels(codec: Codec, repeat: int) -> str:
     """Raw codecs on the encoded frames: compressed size / original, and ms per message."""
-    lines = ["| Message | " + " | ".join(f"{name} size | {name} ms" for name, _ in LEVELS)
-             + " |", "|---|" + "---:|---:|" * len(LEVELS)]
+    header = ["Message"] + [cell for name, _ in LEVELS for cell in (f"{name} size", f"{name} ms")]
+    table = []
     for label, type_name, topic, make in COMPRESSION_CASES:
         frame = codec.encode(make(codec.registry), type_name, topic)
         cells = [label]
         for _name, fn in LEVELS:
             cells += [f"{len(fn(frame)) / len(frame):.3f}",
                       f"{_mean_s(functools.partial(fn, frame), repeat) * 1e3:.3f}"]
-        lines.append("| " + " | ".join(cells) + " |")
-    return "\n".join(lines)
+        table.append(cells)
+    return markdown_table(header, table)
 
 
 def main() -> None:

@@ -314,10 +314,8 @@ def test_server_restart_keeps_every_no_drop_message_in_order(fleet: Fleet) -> No
     alpha = fleet.clients["alpha"]
     with _event_stream(fleet, "events", count) as (events, got, take, listener):
         assert fleet.server.stop() == 0  # graceful shutdown mid-stream
-        sent_at_stop = events.wait_for(lambda line: "sent" in line, 10.0, "a sent event")["sent"]
         # 20 more events (0.5 s) published during the outage go into alpha's no_drop FIFO.
-        events.wait_for(lambda line: line.get("sent", 0) >= sent_at_stop + 20, 10.0,
-                        "events during the outage")
+        _wait_events_sent_during_outage(events, 20)
         alpha.signal(signal.SIGSTOP)
         try:
             fleet.start_server()
@@ -326,9 +324,23 @@ def test_server_restart_keeps_every_no_drop_message_in_order(fleet: Fleet) -> No
                        describe="bravo reconnected to the new server")
         finally:
             alpha.signal(signal.SIGCONT)
-        listener.wait_for(lambda line: take(line) and got[-1] == f"event-{count}", 60.0,
-                          f"event-{count} after the restart")
-        assert got == [f"event-{i}" for i in range(1, count + 1)]
+        _assert_every_event_arrives_in_order(listener, take, got, count)
+
+
+def _wait_events_sent_during_outage(events: JsonProc, extra: int) -> None:
+    """Wait until the publisher reports *extra* events sent after the server went away."""
+    sent_at_stop = events.wait_for(lambda line: "sent" in line, 10.0, "a sent event")["sent"]
+    events.wait_for(lambda line: line.get("sent", 0) >= sent_at_stop + extra, 10.0,
+                    "events during the outage")
+
+
+def _assert_every_event_arrives_in_order(listener: JsonProc,
+                                         take: Callable[[dict[str, Any]], bool],
+                                         got: list[str], count: int) -> None:
+    """Every event reaches the listener's ROS topic, in order, exactly once."""
+    listener.wait_for(lambda line: take(line) and got[-1] == f"event-{count}", 60.0,
+                      f"event-{count} after the restart")
+    assert got == [f"event-{i}" for i in range(1, count + 1)]
 
 
 def _mailbox_frames(fleet: Fleet, session: str) -> float:
@@ -355,16 +367,11 @@ def test_receiver_back_after_the_sender_flushed_gets_every_no_drop_message(
         assert fleet.server.stop() == 0
         bravo.signal(signal.SIGSTOP)
         try:
-            sent_at_stop = events.wait_for(lambda line: "sent" in line, 10.0,
-                                           "a sent event")["sent"]
-            events.wait_for(lambda line: line.get("sent", 0) >= sent_at_stop + 20, 10.0,
-                            "events during the outage")
+            _wait_events_sent_during_outage(events, 20)
             fleet.start_server()
             # alpha is back and has resent its outage backlog: it waits in bravo's mailbox.
             wait_until(lambda: _mailbox_frames(fleet, "bravo/bravo") >= 20, STARTUP_S,
                        describe="alpha's backlog in bravo's session mailbox")
         finally:
             bravo.signal(signal.SIGCONT)
-        listener.wait_for(lambda line: take(line) and got[-1] == f"event-{count}", 60.0,
-                          f"event-{count} after the restart")
-        assert got == [f"event-{i}" for i in range(1, count + 1)]
+        _assert_every_event_arrives_in_order(listener, take, got, count)

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import asyncio
 import hashlib
+import ipaddress
 import json
 from collections.abc import AsyncIterator, Callable
 from pathlib import Path
@@ -15,6 +16,7 @@ from websockets.asyncio.client import ClientConnection, connect
 from fleetctl.server.app import RelayServer
 from fleetctl.server.authmap import AuthMap, parse_auth_map
 from fleetctl.server.config import ServerConfig, ServerLimits
+from fleetctl.server.relay import Peer, RelayCore
 from tests.support import wait_until
 
 ALICE_TOKEN = "alice-secret-token"
@@ -130,3 +132,30 @@ async def subscribe(ws: ClientConnection, pattern: str) -> dict[str, Any]:
                     return data
 
     return await asyncio.wait_for(scan(), 5.0)
+
+
+def raw_peer(core: RelayCore, address: str | None = None, session: str | None = None) -> Peer:
+    """A relay-core connection that has not authenticated yet; its close requests are
+    recorded (read them with :func:`closes`)."""
+    requests: list[tuple[int, str]] = []
+    p = core.new_peer(address, lambda c, r: requests.append((c, r)), None, session_name=session)
+    p.closes = requests  # type: ignore[attr-defined]
+    return p
+
+
+def authed_peer(core: RelayCore, address: str | None = None, token: str | None = None, *,
+            session: str | None = None) -> Peer:
+    """A relay-core connection authenticated by its source *address* and/or *token*."""
+    p = raw_peer(core, address, session)
+    ids = core.auth.match_address(ipaddress.ip_address(address)) if address else []
+    if token:
+        ids.append(core.auth.match_token(token))  # type: ignore[arg-type]
+    core.authenticate(p, ids)
+    return p
+
+
+def closes(p: Peer) -> list[tuple[int, str]]:
+    """The (code, reason) close requests of a peer made by :func:`raw_peer`."""
+    found: list[tuple[int, str]] = p.closes  # type: ignore[attr-defined]
+    return found
+

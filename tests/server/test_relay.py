@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import ipaddress
 import json
 
 from hypothesis import HealthCheck, given, settings
@@ -14,7 +13,7 @@ from fleetctl.server.registry import RobotRegistry
 from fleetctl.server.relay import Peer, RelayCore
 from fleetctl.wire import fragments
 from fleetctl.wire.control import encode_subscription
-from tests.server.conftest import ALICE_TOKEN, auth_map
+from tests.server.conftest import ALICE_TOKEN, auth_map, authed_peer, closes
 from tests.support import string_frame
 
 
@@ -23,24 +22,13 @@ def make_core(**limits: int) -> RelayCore:
     return RelayCore(config, auth_map(), RobotRegistry(None, 5.0), Metrics())
 
 
-def peer(core: RelayCore, address: str | None = None, token: str | None = None) -> Peer:
-    closes: list[tuple[int, str]] = []
-    p = core.new_peer(address, lambda c, r: closes.append((c, r)), None)
-    p.closes = closes  # type: ignore[attr-defined]
-    ids = core.auth.match_address(ipaddress.ip_address(address)) if address else []
-    if token:
-        ids.append(core.auth.match_token(token))  # type: ignore[arg-type]
-    core.authenticate(p, ids)
-    return p
-
-
 def texts(p: Peer) -> list[dict[str, object]]:
     return [json.loads(f) for _, f in p.outbound.pop_batch(10**9) if isinstance(f, str)]
 
 
 def test_forced_no_drop_topics_and_fragments_routed() -> None:
     core = make_core()
-    robot, alice = peer(core, "127.0.0.2"), peer(core, token=ALICE_TOKEN)
+    robot, alice = authed_peer(core, "127.0.0.2"), authed_peer(core, token=ALICE_TOKEN)
     core.on_binary(alice, encode_subscription("/husky1/.*"))
     texts(alice)
     for i in range(3):  # config says /.*/events is no_drop: all three kept, in order
@@ -58,7 +46,7 @@ def test_forced_no_drop_topics_and_fragments_routed() -> None:
 
 def test_token_frame_adds_identity_and_rewelcomes() -> None:
     core = make_core()
-    robot = peer(core, "127.0.0.2")
+    robot = authed_peer(core, "127.0.0.2")
     assert texts(robot)[0]["identities"] == ["husky1"]
     core.on_text(robot, json.dumps({"token": ALICE_TOKEN}))
     assert texts(robot)[0]["identities"] == ["husky1", "alice"]
@@ -67,7 +55,7 @@ def test_token_frame_adds_identity_and_rewelcomes() -> None:
 
 def test_close_peer_cleans_up() -> None:
     core = make_core()
-    robot, alice = peer(core, "127.0.0.2"), peer(core, token=ALICE_TOKEN)
+    robot, alice = authed_peer(core, "127.0.0.2"), authed_peer(core, token=ALICE_TOKEN)
     core.on_binary(alice, encode_subscription(".*"))
     core.on_binary(robot, string_frame("/husky1/a"))
     core.close_peer(alice)
@@ -94,8 +82,8 @@ def mutated(draw: st.DrawFn) -> bytes:
                        max_size=20))
 def test_fuzzed_frames_never_crash_or_leak_to_others(frames: list[bytes]) -> None:
     core = make_core(max_malformed_in_row=1000)
-    attacker, robot = peer(core, token=ALICE_TOKEN), peer(core, "127.0.0.2")
-    watcher = peer(core, token=ALICE_TOKEN)
+    attacker, robot = authed_peer(core, token=ALICE_TOKEN), authed_peer(core, "127.0.0.2")
+    watcher = authed_peer(core, token=ALICE_TOKEN)
     texts(attacker)
     core.on_binary(watcher, encode_subscription("/husky1/scan"))
     texts(watcher)
@@ -106,4 +94,4 @@ def test_fuzzed_frames_never_crash_or_leak_to_others(frames: list[bytes]) -> Non
     assert delivered and delivered[-1] == FRAME  # the watcher is still served
     for msg in texts(attacker):
         assert msg["type"] in ("error", "subscribed", "unsubscribed")
-    assert not attacker.closes  # type: ignore[attr-defined]
+    assert not closes(attacker)

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import ipaddress
 import json
 import logging
 import sqlite3
@@ -19,7 +18,7 @@ from fleetctl.server.sessions import BadSessionName, Mailbox, check_session_name
 from fleetctl.server.sessionstore import SessionStore
 from fleetctl.wire import fragments
 from fleetctl.wire.control import encode_subscription
-from tests.server.conftest import ALICE_TOKEN, BOB_TOKEN, auth_map
+from tests.server.conftest import ALICE_TOKEN, BOB_TOKEN, auth_map, authed_peer, closes, raw_peer
 from tests.support import decode_text, string_frame
 
 
@@ -35,29 +34,6 @@ def make_core(db: Path | None = None, clock: Clock | None = None, **limits: Any)
     config = ServerConfig(limits=ServerLimits(**limits))
     return RelayCore(config, auth_map(), RobotRegistry(db, 5.0), Metrics(),
                      clock=clock or Clock())
-
-
-def raw_peer(core: RelayCore, address: str | None = None, session: str | None = None) -> Peer:
-    """A connection that has not authenticated yet; its close requests in ``.closes``."""
-    closes: list[tuple[int, str]] = []
-    p = core.new_peer(address, lambda c, r: closes.append((c, r)), None, session_name=session)
-    p.closes = closes  # type: ignore[attr-defined]
-    return p
-
-
-def connect(core: RelayCore, *, address: str | None = None, token: str | None = None,
-            session: str | None = None) -> Peer:
-    p = raw_peer(core, address, session)
-    ids = core.auth.match_address(ipaddress.ip_address(address)) if address else []
-    if token:
-        ids.append(core.auth.match_token(token))  # type: ignore[arg-type]
-    core.authenticate(p, ids)
-    return p
-
-
-def closes(p: Peer) -> list[tuple[int, str]]:
-    found: list[tuple[int, str]] = p.closes  # type: ignore[attr-defined]
-    return found
 
 
 def drain(p: Peer) -> tuple[list[dict[str, Any]], list[bytes]]:
@@ -93,7 +69,7 @@ def test_session_names_are_checked() -> None:
 @pytest.mark.parametrize("name", ["bad name", "x" * 65, "a,b"])
 def test_bad_session_header_closes_4400_with_a_reason(name: str) -> None:
     core = make_core()
-    p = connect(core, token=ALICE_TOKEN, session=name)
+    p = authed_peer(core, token=ALICE_TOKEN, session=name)
     texts, _ = drain(p)
     assert texts[-1]["type"] == "error" and texts[-1]["code"] == "bad_session"
     assert closes(p) and closes(p)[0][0] == 4400 and "bad session name" in closes(p)[0][1]
@@ -105,7 +81,7 @@ def test_token_frame_names_a_session_only_before_subscribing() -> None:
     p = raw_peer(core)
     core.on_text(p, json.dumps({"token": ALICE_TOKEN, "session": "browser-1"}))
     assert p.session is not None and p.session.key == (("alice",), "browser-1")
-    late = connect(core, address="127.0.0.2")
+    late = authed_peer(core, address="127.0.0.2")
     core.on_binary(late, encode_subscription("/husky1/goal_pose"))
     core.on_text(late, json.dumps({"token": ALICE_TOKEN, "session": "too-late"}))
     assert closes(late) == [(4400, "name the session once, before subscribing")]
@@ -119,7 +95,7 @@ def test_token_frame_names_a_session_only_before_subscribing() -> None:
 
 def test_subscriptions_persist_and_clean_end_removes_the_session(tmp_path: Path) -> None:
     core = make_core(tmp_path / "fleet.db")
-    alice = connect(core, token=ALICE_TOKEN, session="console")
+    alice = authed_peer(core, token=ALICE_TOKEN, session="console")
     for pattern in ("/husky1/.*", "/husky2/events", "/husky1/.*"):  # a duplicate: no-op
         core.on_binary(alice, encode_subscription(pattern))
     assert stored(core) == {(("alice",), "console"): ("/husky1/.*", "/husky2/events")}
@@ -129,29 +105,29 @@ def test_subscriptions_persist_and_clean_end_removes_the_session(tmp_path: Path)
     core.on_binary(alice, encode_subscription("/husky1/.*", subscribe=False))
     core.close_peer(alice)
     assert stored(core) == {} and len(core.sessions) == 0
-    robot = connect(core, address="127.0.0.2")
+    robot = authed_peer(core, address="127.0.0.2")
     events(robot, core, 0, 3)
     assert not core.sessions.has_offline
 
 
 def test_a_session_without_subscriptions_leaves_nothing_behind() -> None:
     core = make_core()
-    core.close_peer(connect(core, token=ALICE_TOKEN, session="idle"))
+    core.close_peer(authed_peer(core, token=ALICE_TOKEN, session="idle"))
     assert len(core.sessions) == 0 and core.sessions.offline_count == 0
 
 
 def test_offline_mailbox_then_resume_delivers_first_in_order(tmp_path: Path) -> None:
     core = make_core(tmp_path / "fleet.db")
-    alice = connect(core, token=ALICE_TOKEN, session="console")
+    alice = authed_peer(core, token=ALICE_TOKEN, session="console")
     core.on_binary(alice, encode_subscription("/husky1/.*"))
-    robot = connect(core, address="127.0.0.2")
+    robot = authed_peer(core, address="127.0.0.2")
     core.close_peer(alice)
     assert core.sessions.offline_count == 1
     events(robot, core, 0, 5)
     core.on_binary(robot, string_frame("/husky1/scan", "droppable"))  # not mailboxed
     (session,) = core.sessions
     assert [decode_text(f) for _, f in session.mailbox.frames] == [f"e{i}" for i in range(5)]
-    again = connect(core, token=ALICE_TOKEN, session="console")
+    again = authed_peer(core, token=ALICE_TOKEN, session="console")
     assert core.sessions.offline_count == 0 and not core.sessions.has_offline
     events(robot, core, 5, 2)  # live frames after the attach queue behind the mailbox
     texts, frames = drain(again)
@@ -167,10 +143,10 @@ def test_offline_mailbox_then_resume_delivers_first_in_order(tmp_path: Path) -> 
 
 def test_mailbox_takes_only_what_the_identity_may_receive() -> None:
     core = make_core()
-    bob = connect(core, token=BOB_TOKEN, session="viewer")  # bob receives /husky1/.* only
+    bob = authed_peer(core, token=BOB_TOKEN, session="viewer")  # bob receives /husky1/.* only
     core.on_binary(bob, encode_subscription(".*"))
     core.close_peer(bob)
-    alice = connect(core, token=ALICE_TOKEN)  # alice may send anything
+    alice = authed_peer(core, token=ALICE_TOKEN)  # alice may send anything
     for topic in ("/husky1/events", "/husky2/events", "/husky1/log"):
         core.on_binary(alice, string_frame(topic, topic, no_drop=True))
     (session,) = core.sessions
@@ -180,14 +156,14 @@ def test_mailbox_takes_only_what_the_identity_may_receive() -> None:
 def test_sessions_are_per_identity_and_name() -> None:
     core = make_core()
     for token, name in ((ALICE_TOKEN, "x"), (BOB_TOKEN, "x"), (ALICE_TOKEN, "y")):
-        p = connect(core, token=token, session=name)
+        p = authed_peer(core, token=token, session=name)
         core.on_binary(p, encode_subscription("/husky1/events"))
         core.close_peer(p)
-    both = connect(core, address="127.0.0.2", token=ALICE_TOKEN, session="x")
+    both = authed_peer(core, address="127.0.0.2", token=ALICE_TOKEN, session="x")
     assert both.session is not None and both.session.key == (("alice", "husky1"), "x")
     assert {s.key for s in core.sessions} == {
         (("alice",), "x"), (("bob",), "x"), (("alice",), "y"), (("alice", "husky1"), "x")}
-    robot = connect(core, address="127.0.0.2")
+    robot = authed_peer(core, address="127.0.0.2")
     events(robot, core, 0, 1)
     # Bob's "x" got its frame too: the same name under another identity is another session.
     assert sorted(len(s.mailbox) for s in core.sessions) == [0, 1, 1, 1]
@@ -196,10 +172,10 @@ def test_sessions_are_per_identity_and_name() -> None:
 def test_mailbox_overflow_drops_oldest_counted_and_logged_once(
         caplog: pytest.LogCaptureFixture) -> None:
     core = make_core(session_mailbox_messages=3)
-    alice = connect(core, token=ALICE_TOKEN, session="console")
+    alice = authed_peer(core, token=ALICE_TOKEN, session="console")
     core.on_binary(alice, encode_subscription("/husky1/.*"))
     core.close_peer(alice)
-    robot = connect(core, address="127.0.0.2")
+    robot = authed_peer(core, address="127.0.0.2")
     with caplog.at_level(logging.WARNING, logger="fleetctl.server"):
         events(robot, core, 0, 5)
         events(robot, core, 5, 1, topic="/husky1/other")
@@ -226,10 +202,10 @@ def test_mailbox_byte_bound() -> None:
 
 def test_fragments_of_no_drop_messages_are_mailboxed() -> None:
     core = make_core()
-    alice = connect(core, token=ALICE_TOKEN, session="console")
+    alice = authed_peer(core, token=ALICE_TOKEN, session="console")
     core.on_binary(alice, encode_subscription("/husky1/events"))
     core.close_peer(alice)
-    robot = connect(core, address="127.0.0.2")
+    robot = authed_peer(core, address="127.0.0.2")
     big = string_frame("/husky1/events", "p" * 3000, no_drop=True, seq=1)
     parts = fragments.split(big, topic="/husky1/events", message_id=5,
                             max_fragment_bytes=1024, no_drop=True)
@@ -243,10 +219,10 @@ def test_fragments_of_no_drop_messages_are_mailboxed() -> None:
 def test_expiry_drops_the_session_and_counts_its_mailbox(tmp_path: Path) -> None:
     clock = Clock()
     core = make_core(tmp_path / "fleet.db", clock, session_expiry_s=60.0)
-    alice = connect(core, token=ALICE_TOKEN, session="console")
+    alice = authed_peer(core, token=ALICE_TOKEN, session="console")
     core.on_binary(alice, encode_subscription("/husky1/.*"))
     core.close_peer(alice)
-    events(connect(core, address="127.0.0.2"), core, 0, 2)
+    events(authed_peer(core, address="127.0.0.2"), core, 0, 2)
     clock.now += 59
     assert core.sessions.expire() == 0
     clock.now += 2
@@ -258,7 +234,7 @@ def test_expiry_drops_the_session_and_counts_its_mailbox(tmp_path: Path) -> None
 def test_restart_loads_sessions_offline_and_rechecks_them(tmp_path: Path) -> None:
     db = tmp_path / "fleet.db"
     core = make_core(db)
-    alice = connect(core, token=ALICE_TOKEN, session="console")
+    alice = authed_peer(core, token=ALICE_TOKEN, session="console")
     core.on_binary(alice, encode_subscription("/husky1/.*"))
     core.registry.close()  # the server died with the session online
     conn = sqlite3.connect(str(db))
@@ -267,8 +243,8 @@ def test_restart_loads_sessions_offline_and_rechecks_them(tmp_path: Path) -> Non
     again = make_core(db)
     assert [s.key for s in again.sessions] == [(("alice",), "console")]
     assert again.sessions.offline_count == 1
-    events(connect(again, address="127.0.0.2"), again, 0, 3)  # the sender comes back first
-    resumed = connect(again, token=ALICE_TOKEN, session="console")
+    events(authed_peer(again, address="127.0.0.2"), again, 0, 3)  # the sender comes back first
+    resumed = authed_peer(again, token=ALICE_TOKEN, session="console")
     texts, frames = drain(resumed)
     assert texts[1]["resumed"] is True and texts[1]["mailbox_frames"] == 3
     assert [decode_text(f) for f in frames] == ["e0", "e1", "e2"]
@@ -277,13 +253,13 @@ def test_restart_loads_sessions_offline_and_rechecks_them(tmp_path: Path) -> Non
 
 def test_takeover_moves_unsent_and_unacked_frames_to_the_new_connection() -> None:
     core = make_core()
-    old = connect(core, token=ALICE_TOKEN, session="console")
+    old = authed_peer(core, token=ALICE_TOKEN, session="console")
     core.on_binary(old, encode_subscription("/husky1/events"))
     drain(old)
-    robot = connect(core, address="127.0.0.2")
+    robot = authed_peer(core, address="127.0.0.2")
     events(robot, core, 0, 4)
     assert len(old.outbound.pop_batch(1)) == 1  # e0 written, never acknowledged
-    new = connect(core, token=ALICE_TOKEN, session="console")
+    new = authed_peer(core, token=ALICE_TOKEN, session="console")
     assert closes(old) == [(4409, "session taken over by a newer connection")]
     assert core.subs.receivers("/husky1/events") == (new,)
     events(robot, core, 4, 1)
@@ -297,18 +273,18 @@ def test_takeover_moves_unsent_and_unacked_frames_to_the_new_connection() -> Non
 def test_too_many_sessions_per_identity() -> None:
     core = make_core(max_sessions_per_identity=2)
     for name in ("a", "b"):
-        core.on_binary(connect(core, token=ALICE_TOKEN, session=name),
+        core.on_binary(authed_peer(core, token=ALICE_TOKEN, session=name),
                        encode_subscription("/x"))
-    third = connect(core, token=ALICE_TOKEN, session="c")
+    third = authed_peer(core, token=ALICE_TOKEN, session="c")
     assert closes(third) == [(4400, "identity holds 2 sessions already")]
-    assert connect(core, token=BOB_TOKEN, session="c").session is not None  # another identity
+    assert authed_peer(core, token=BOB_TOKEN, session="c").session is not None  # another identity
 
 
 def test_droppable_relay_path_unchanged_without_sessions() -> None:
     core = make_core()
-    alice = connect(core, token=ALICE_TOKEN)
+    alice = authed_peer(core, token=ALICE_TOKEN)
     core.on_binary(alice, encode_subscription("/husky1/.*"))
-    robot = connect(core, address="127.0.0.2")
+    robot = authed_peer(core, address="127.0.0.2")
     events(robot, core, 0, 2)
     assert alice.outbound.ack_mark() is None  # no session: no acknowledgement tracking
     assert [decode_text(f) for f in drain(alice)[1]] == ["e0", "e1"]

@@ -118,7 +118,7 @@ class ClientLimits:
             flight (Robofleet's n_T = 1), the baseline of comparison runs.
     """
 
-    max_fragment_bytes: int = 1048576
+    max_fragment_bytes: int = 4194304
     no_drop_queue_messages: int = 10000
     reconnect_min_s: float = 0.1
     reconnect_max_s: float = 5.0

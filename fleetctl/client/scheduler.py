@@ -111,7 +111,7 @@ class SchedulerConfig:
             a restarted client are newer than the previous run's.
     """
 
-    max_fragment_bytes: int = 1048576
+    max_fragment_bytes: int = 4194304
     min_fragment_bytes: int = 1024
     initial_fragment_bytes: int = 4096
     fragment_time_s: float = 0.003
@@ -229,7 +229,7 @@ class Scheduler:
         self.no_drop_overflow = 0
         self.last_error: str | None = None
         self._delay_window = float(self.config.initial_window_bytes)
-        self._fragment = self._window = 0
+        self._fragment = self._whole = self._window = 0
         self._update_limits()
 
     # -- Algorithm 1 ------------------------------------------------------------------
@@ -368,11 +368,10 @@ class Scheduler:
         if msg.fragments is None:
             msg.message_id = next(self._message_ids)
             cfg = self.config
-            size = self.fragment_bytes()
-            if cfg.fragments and len(msg.frame) > size:
+            if cfg.fragments and len(msg.frame) > self._whole:
                 msg.fragments = self._split(
                     msg.frame, topic=msg.topic.name, message_id=msg.message_id,
-                    max_fragment_bytes=size, no_drop=msg.no_drop)
+                    max_fragment_bytes=self.fragment_bytes(), no_drop=msg.no_drop)
             else:
                 msg.fragments = [msg.frame]
         return msg.fragments[msg.next_index]
@@ -537,8 +536,16 @@ class Scheduler:
 
     def _update_limits(self) -> None:
         """Recompute the cached fragment size and window (they change only on acks)."""
-        self._fragment = self._compute_fragment_bytes()
-        floor = float(self._fragment if self.config.fragments else 1)
+        cfg = self.config
+        self._whole = self._compute_whole_bytes()
+        if self._link_rate.value(None, 0.0) <= 0:
+            self._fragment = self._whole  # the configured initial size, as given
+        else:
+            # Rounding never goes below the configured floor (a cap under
+            # min_fragment_bytes that is not a power of two is itself the size).
+            self._fragment = max(min(cfg.min_fragment_bytes, cfg.max_fragment_bytes),
+                                 _power_of_two_floor(self._whole))
+        floor = float(self._fragment if cfg.fragments else 1)
         window = min(self._delay_window, self.rate_cap_bytes())
         self._window = int(min(max(window, floor), self.config.max_window_bytes))
 
@@ -568,14 +575,24 @@ class Scheduler:
         """The fragment size in use now (bytes); see ``SchedulerConfig.fragment_time_s``."""
         return self._fragment
 
-    def _compute_fragment_bytes(self) -> int:
-        """The fragment size for the current rate estimate.
+    def whole_frame_bytes(self) -> int:
+        """The longest frame sent unsplit now (bytes): ``fragment_time_s`` of link time,
+        not rounded (see :meth:`_compute_whole_bytes`)."""
+        return self._whole
+
+    def _compute_whole_bytes(self) -> int:
+        """The link-time budget of one frame, between the fragment bounds.
 
         Pound sizes fragments to the radio's MTU; here the link is TCP, so the size
         follows the link rate instead: small enough that an urgent message waits at most
-        ``fragment_time_s`` behind a fragment, large enough that a fast link is not
-        limited by per-frame costs (a 16 KB fragment on a 1.5 GB/s loopback: 3x slower).
-        Powers of two keep the fragmenter's per-size templates reusable.
+        ``fragment_time_s`` behind a frame, large enough that a fast link is not limited
+        by per-frame costs (a 16 KB fragment on a 1.5 GB/s loopback: 3x slower). A frame
+        within this budget goes whole; a longer one is split into fragments of the
+        power of two below it (:meth:`fragment_bytes`), which keeps the fragmenter's
+        per-size templates reusable. Rounding only the split size matters for frames
+        just over a power of two: a cloud of 1 MiB of points is a 1 MiB + 700 B frame,
+        which a rounded budget split into 1 MiB and 700 B, two frames and a reassembly
+        per cloud, however fast the link.
         """
         cfg = self.config
         top = cfg.max_fragment_bytes
@@ -583,9 +600,7 @@ class Scheduler:
         if rate <= 0:
             return min(top, cfg.initial_fragment_bytes)
         low = min(cfg.min_fragment_bytes, top)
-        want = max(low, min(top, int(rate * cfg.fragment_time_s)))
-        size = 1 << (want.bit_length() - 1)
-        return max(low, size)
+        return max(low, min(top, int(rate * cfg.fragment_time_s)))
 
     def _adapt_window(self, rtt_s: float, acked_bytes: int, app_limited: bool) -> None:
         """Delay-based window update (LEDBAT-like, with doubling growth).
@@ -665,4 +680,10 @@ class Scheduler:
             "bdp_bytes": self.bdp_bytes(),
             "rate_cap_bytes": self.rate_cap_bytes(),
             "fragment_bytes": self.fragment_bytes(),
+            "whole_frame_bytes": self.whole_frame_bytes(),
         }
+
+
+def _power_of_two_floor(size: int) -> int:
+    """The largest power of two not above *size* (*size* >= 1)."""
+    return 1 << (size.bit_length() - 1)

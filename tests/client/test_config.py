@@ -35,7 +35,7 @@ status:
   battery_topic: null
   period_s: 1.0
 limits:
-  max_fragment_bytes: 1048576
+  max_fragment_bytes: 4194304
   no_drop_queue_messages: 10000
   reconnect_min_s: 0.1
   reconnect_max_s: 5.0

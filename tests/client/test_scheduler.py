@@ -283,6 +283,20 @@ def test_fragment_size_follows_link_rate() -> None:
     assert slow.fragment_bytes() == 1024  # floored
 
 
+def test_frame_within_the_link_time_budget_goes_whole() -> None:
+    # 3 ms at 400 kB/s is 1200 B: fragments of 1024 B, but a 1100 B frame (just over
+    # the power of two, like a cloud of 1 MiB of points) is not split into 1024 + 76.
+    s = make(max_fragment_bytes=65536, min_fragment_bytes=256, fragment_time_s=0.003,
+             initial_window_bytes=10**6)
+    s._link_rate.add(0.0, 400_000.0)
+    s._update_limits()
+    assert (s.fragment_bytes(), s.whole_frame_bytes()) == (1024, 1200)
+    s.offer("/cloud", b"c" * 1100, 0.0, priority=1.0, no_drop=False)
+    assert FakeLink(s).drain(0.0) == [b"c" * 1100]
+    s.offer("/cloud", b"d" * 1300, 0.1, priority=1.0, no_drop=False)  # over the budget
+    assert [tag(f) for f in FakeLink(s).drain(0.1)] == ["/cloud#0", "/cloud#1"]
+
+
 def test_in_flight_message_bound() -> None:
     s = make(max_window_messages=3, initial_window_bytes=10**6)
     for i in range(5):

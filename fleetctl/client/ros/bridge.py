@@ -27,6 +27,7 @@ from typing import Any
 
 import re2
 from rclpy.node import Node
+from rclpy.parameter import Parameter
 from rclpy.qos import (
     DurabilityPolicy,
     HistoryPolicy,
@@ -194,7 +195,12 @@ class Bridge(Node):
         context: Any = None,
     ) -> None:
         _check_no_echo(config)
-        super().__init__(f"fleetctl_client_{config.robot_name}", context=context)
+        # No services: the node's settings come from the client's YAML file, and its
+        # executor (fleetctl.client.ros.executor) serves topics and timers only.
+        super().__init__(
+            f"fleetctl_client_{config.robot_name}", context=context,
+            start_parameter_services=False,
+            parameter_overrides=[Parameter("start_type_description_service", value=False)])
         self.stats = BridgeStats()
         self._config = config
         self._codec = codec
@@ -244,7 +250,8 @@ class Bridge(Node):
             return
         try:
             msg = self._typestore.deserialize_cdr(cdr, spec.type)
-            frame = self._codec.encode(
+            # A view, not a copy: the link only reads it (fragments are new buffers).
+            frame = self._codec.encode_view(
                 msg,
                 spec.type,
                 spec.remote_topic,

@@ -22,11 +22,11 @@ from typing import Any
 
 import rclpy
 from rclpy.context import Context
-from rclpy.executors import SingleThreadedExecutor
 from rclpy.signals import SignalHandlerOptions
 
 from fleetctl.client.config import ClientConfig, PublishSpec
 from fleetctl.client.ros.bridge import Bridge, LinkPort
+from fleetctl.client.ros.executor import NodeExecutor
 from fleetctl.client.transport import RobotLink
 from fleetctl.wire.codec import Codec
 from fleetctl.wire.control import encode_status
@@ -84,7 +84,7 @@ def _port(link: RobotLink, status_topic: str) -> LinkPort:
     return LinkPort(admit=link.admit, send=send, send_status=send_status)
 
 
-def _spin(executor: SingleThreadedExecutor, loop: asyncio.AbstractEventLoop,
+def _spin(executor: NodeExecutor, loop: asyncio.AbstractEventLoop,
           stop: asyncio.Event) -> None:
     """Spin until shutdown; if spinning fails, log it and stop the client (never stall)."""
     try:
@@ -106,8 +106,7 @@ async def _serve(config: ClientConfig, context: Context) -> dict[str, Any]:
     link = RobotLink(config, on_frame=on_frame)
     bridge = Bridge(config, codec, codec.registry.typestore, _port(link, config.status_topic),
                     status_encoder(codec, config.robot_name), context=context)
-    executor = SingleThreadedExecutor(context=context)
-    executor.add_node(bridge)
+    executor = NodeExecutor(bridge, context)
     loop = asyncio.get_running_loop()
     stop = asyncio.Event()
     spinner = threading.Thread(target=_spin, args=(executor, loop, stop), name="rclpy-executor",

@@ -19,6 +19,7 @@ from rclpy.serialization import deserialize_message, serialize_message  # noqa: 
 
 from fleetctl.client.config import PublishSpec, parse_client_config  # noqa: E402
 from fleetctl.client.ros.bridge import COMMAND_QOS, Bridge, LinkPort  # noqa: E402
+from fleetctl.client.ros.executor import NodeExecutor  # noqa: E402
 from fleetctl.client.ros.runner import status_encoder  # noqa: E402
 from fleetctl.wire.codec import Codec  # noqa: E402
 from fleetctl.wire.compression import COMPRESSED_TYPE, decompress  # noqa: E402
@@ -86,16 +87,21 @@ def setup(codec: Codec) -> Iterator[tuple[Bridge, Node, FakePort]]:
     bridge = Bridge(config, codec, codec.registry.typestore, fake.port(),
                     status_encoder(codec, "r1"), context=context)
     peer = Node("peer", context=context)
+    # The bridge on the client's own executor, as in `fleetctl client`; the peer on rclpy's.
+    bridge_executor = NodeExecutor(bridge, context)
     executor = SingleThreadedExecutor(context=context)
-    executor.add_node(bridge)
     executor.add_node(peer)
-    thread = threading.Thread(target=executor.spin, daemon=True)
-    thread.start()
+    threads = [threading.Thread(target=bridge_executor.spin, daemon=True),
+               threading.Thread(target=executor.spin, daemon=True)]
+    for thread in threads:
+        thread.start()
     try:
         yield bridge, peer, fake
     finally:
+        bridge_executor.shutdown()
         executor.shutdown()
-        thread.join(5)
+        for thread in threads:
+            thread.join(5)
         bridge.destroy_node()
         peer.destroy_node()
         context.try_shutdown()

@@ -18,11 +18,13 @@ The robot client (:class:`fleetctl.client.transport.LinkConnection`) and the rel
 
 from __future__ import annotations
 
+import asyncio
 import contextlib
 from collections.abc import Iterable
 from typing import cast
 
 from websockets.asyncio.connection import Connection
+from websockets.exceptions import ConcurrencyError
 from websockets.protocol import Side
 
 from fleetctl.masked_frame import masked_binary_frame
@@ -35,11 +37,18 @@ ONE_PASS_MIN_BYTES = 16 * 1024
 class BatchedWritesConnection(Connection):
     """Connection with batched frame sends and coalesced transport writes."""
 
-    async def send_frames(self, frames: Iterable[bytes | str]) -> None:
-        """Send each item as one frame (``str`` as text, ``bytes`` as binary), in order.
+    async def send_frames(self, frames: Iterable[bytes | str],
+                          ping: bytes | None = None) -> asyncio.Future[float] | None:
+        """Send each item as one frame (``str`` as text, ``bytes`` as binary), in order,
+        then a ping carrying *ping* if given, all in one transport round.
+
+        Returns:
+            With *ping*: the future of its pong, as ``Connection.ping`` returns it
+            (its result is the round trip in seconds). Without: None.
 
         Raises:
             ConnectionClosed: The connection is closed or closing.
+            ConcurrencyError: A ping with the same payload still waits for its pong.
         """
         async with self.send_context():
             protocol = self.protocol
@@ -55,6 +64,16 @@ class BatchedWritesConnection(Connection):
                     protocol.writes.append(cast(bytes, masked_binary_frame(frame)))
                 else:
                     protocol.send_binary(frame)
+            if ping is None:
+                return None
+            # As Connection.ping registers its waiter (websockets 13-15), so that the
+            # connection's pong handling completes it and acknowledges earlier pings.
+            if ping in self.pong_waiters:
+                raise ConcurrencyError("already waiting for a pong with the same data")
+            waiter: asyncio.Future[float] = self.loop.create_future()
+            self.pong_waiters[ping] = (waiter, self.loop.time())
+            protocol.send_ping(ping)
+            return waiter
 
     def send_data(self) -> None:
         """Write pending protocol output; consecutive data chunks go in one write call."""

@@ -53,6 +53,7 @@ from fleetctl.client.dialer import DialSettings, dial
 from fleetctl.client.memory import tune_malloc
 from fleetctl.client.receiver import Receiver
 from fleetctl.client.scheduler import Scheduler, SchedulerConfig
+from fleetctl.client.wakeup import Wakeup
 from fleetctl.wire.control import encode_subscription
 
 logger = logging.getLogger("fleetctl.client.link")
@@ -171,7 +172,7 @@ class RobotLink:
         self._loop: asyncio.AbstractEventLoop | None = None
         with contextlib.suppress(RuntimeError):
             self._loop = asyncio.get_running_loop()
-        self._wake = asyncio.Event()
+        self._wake = Wakeup()
         self._stop = asyncio.Event()
         self._stopped = asyncio.Event()
         self._running = False
@@ -437,28 +438,32 @@ class RobotLink:
                 size += len(frame)
                 due = sched.ack_due()
                 if due or size >= batch_limit:
-                    await ws.send_frames(batch)
+                    await self._send(ws, batch, now, ping=due)
                     batch, size = [], 0
-                    self._last_send_s = now = clock()
-                    if due:
-                        await self._ping(ws, now)
+                    now = clock()
             if batch:
-                await ws.send_frames(batch)
-                self._last_send_s = now = clock()
-            # next_frame said no (queue empty or window full): only a pong can help now.
-            if sched.has_unpinged():
-                await self._ping(ws, now)
+                # next_frame said no (queue empty or window full): only a pong can help
+                # now, so the batch goes with a ping.
+                await self._send(ws, batch, now, ping=True)
+            elif sched.has_unpinged():
+                await self._send(ws, [], now, ping=True)
             elif not self._pings and now - self._last_send_s >= self.tuning.keepalive_interval_s:
-                await self._ping(ws, now)  # keepalive: proves the link and samples RTT
+                await self._send(ws, [], now, ping=True)  # keepalive: proves the link
             idle_left = self.tuning.keepalive_interval_s - (clock() - self._last_send_s)
-            with contextlib.suppress(TimeoutError):
-                await asyncio.wait_for(self._wake.wait(), max(idle_left, 0.01))
+            await self._wake.wait(max(idle_left, 0.01))
 
-    async def _ping(self, ws: ClientConnection, now_s: float) -> None:
+    async def _send(self, ws: LinkConnection, batch: list[bytes], now_s: float, *,
+                    ping: bool) -> None:
+        """Write *batch*, and with *ping* an ack point after it, in one transport round."""
+        if not ping:
+            await ws.send_frames(batch)
+            self._last_send_s = self._clock()
+            return
         token = self._scheduler.ack_point(now_s)
         self._pings[token] = now_s
-        self._last_send_s = now_s
-        waiter = asyncio.ensure_future(await ws.ping(token.to_bytes(8, "big")))
+        waiter = await ws.send_frames(batch, ping=token.to_bytes(8, "big"))
+        self._last_send_s = self._clock()
+        assert waiter is not None
         waiter.add_done_callback(functools.partial(self._on_pong, token))
 
     def _on_pong(self, token: int, fut: asyncio.Future[float]) -> None:

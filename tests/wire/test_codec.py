@@ -138,3 +138,23 @@ def test_large_point_cloud_is_not_copied_element_by_element(codec: Codec) -> Non
     assert np.array_equal(back.data, cloud.data)
     # A Python loop over 1.2 M bytes takes > 50 ms here; whole copies take ~1 ms.
     assert elapsed_s < 0.05
+
+
+def test_uninitialized_builder_memory_never_reaches_a_frame(
+        monkeypatch: pytest.MonkeyPatch) -> None:
+    # new_builder starts large buffers uninitialized; here every buffer starts as garbage
+    # (0xA5), and each frame must still be byte-identical to one built on zeroes.
+    import fleetctl.wire.codec as codec_module
+
+    reference = Codec(TypeRegistry.default())
+    garbage = Codec(TypeRegistry.default())
+    messages = [(name, message(reference.registry, name, random.Random(seed), max_len=3 * seed))
+                for name in ALL_TYPES for seed in range(3)]
+    expected = [reference.encode(msg, name, "/r/t", seq=7) for name, msg in messages]
+    monkeypatch.setattr(codec_module, "_UNINITIALIZED_FROM_BYTES", 0)
+    monkeypatch.setattr(codec_module, "np", type("GarbageNumpy", (), {
+        "uint8": np.uint8,
+        "empty": staticmethod(lambda n, dtype: np.full(n, 0xA5, dtype=dtype))}))
+    assert codec_module.new_builder(64).Bytes[0] == 0xA5  # the garbage path is taken
+    got = [garbage.encode(msg, name, "/r/t", seq=7) for name, msg in messages]
+    assert got == expected

@@ -249,7 +249,9 @@ class Bridge(Node):
             self.stats.rate_limited += 1
             return
         try:
-            msg = self._typestore.deserialize_cdr(cdr, spec.type)
+            # A view: rosbags slices off the CDR header, which copies a bytes object
+            # (1 MB per cloud) but not a view; arrays then reference rclpy's buffer.
+            msg = self._typestore.deserialize_cdr(memoryview(cdr), spec.type)
             # A view, not a copy: the link only reads it (fragments are new buffers).
             frame = self._codec.encode_view(
                 msg,

@@ -2,7 +2,7 @@
 
 Usage::
 
-    .venv/bin/python benchmarks/client_process.py [--seconds 20] [--warmup 5]
+    .venv/bin/python benchmarks/client_process.py [--seconds 20] [--rounds 3] [--warmup 5]
 
 ``benchmarks/client_link.py`` (c) measures the client's own per-message path in-process;
 this measures what an operator sees in ``top``: the real ``fleetctl client`` process (rclpy
@@ -10,8 +10,14 @@ node, raw-CDR subscription, encode, fragments, WebSocket) fed by a separate rclp
 process over DDS, relaying to a fleetctl relay with one consumer, side by side in the same
 run with a bare rclpy raw subscriber process on the same topic (the floor any rclpy-based
 client pays for receiving 10 MB/s from DDS; Robofleet's Table II also excludes "native
-ROS"). CPU = utime + stime from ``/proc/PID/stat`` over the measuring window, as a share of
-one core; memory = ``VmRSS`` at the end. The consumer's count proves the stream flowed.
+ROS"). The bare subscriber raises glibc's malloc thresholds as the client does for itself
+(``fleetctl.client.memory``), so the two differ by the client's own work only.
+CPU = utime + stime from ``/proc/PID/stat`` over each measuring window, as a share of one
+core, for ``--rounds`` consecutive windows of the same processes (the machine's speed drifts;
+the median is the figure); the client's share is also split by thread
+(``/proc/PID/task``: the asyncio thread is the main one, the rclpy executor the other
+``fleetctl`` thread, Fast DDS's are named ``dds.*``). Memory = ``VmRSS`` at the end. The
+consumer's frame count proves the stream flowed.
 """
 
 from __future__ import annotations
@@ -19,6 +25,7 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import statistics
 import subprocess
 import sys
 import tempfile
@@ -59,6 +66,8 @@ rclpy.spin(node)
 """
 
 BARE_SUBSCRIBER = """
+from fleetctl.client.memory import tune_malloc
+tune_malloc()
 import rclpy
 from rclpy.qos import QoSProfile, ReliabilityPolicy, HistoryPolicy
 from fleetctl.client.ros.msgtypes import message_class
@@ -75,10 +84,30 @@ rclpy.spin(node)
 """
 
 
-def cpu_seconds(pid: int) -> float:
-    """utime + stime of *pid* in seconds (fields 14 and 15 of /proc/PID/stat)."""
-    fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
+def cpu_seconds(pid: int, tid: str | None = None) -> float:
+    """utime + stime of *pid* (or its thread *tid*) in seconds (fields 14 and 15 of stat)."""
+    path = Path(f"/proc/{pid}/stat" if tid is None else f"/proc/{pid}/task/{tid}/stat")
+    fields = path.read_text().rsplit(")", 1)[1].split()
     return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
+
+
+def thread_cpu_seconds(pid: int) -> dict[str, float]:
+    """CPU seconds per thread of *pid*, keyed ``asyncio``, ``rclpy executor`` or ``DDS``."""
+    out: dict[str, float] = {}
+    for task in Path(f"/proc/{pid}/task").iterdir():
+        try:
+            name = (task / "comm").read_text().strip()
+            seconds = cpu_seconds(pid, task.name)
+        except OSError:  # the thread ended between listing and reading
+            continue
+        if int(task.name) == pid:
+            key = "asyncio"
+        elif name.startswith("dds.") or name.startswith("ros2") or name != "fleetctl":
+            key = "DDS"
+        else:
+            key = "rclpy executor"
+        out[key] = out.get(key, 0.0) + seconds
+    return out
 
 
 def rss_mb(pid: int) -> float:
@@ -100,9 +129,31 @@ def wait_ready(proc: subprocess.Popen[str], what: str) -> None:
         raise SystemExit(f"{what} failed to start (exit {proc.poll()})")
 
 
-def run(seconds: float, warmup: float, work: Path) -> dict[str, Any]:
+def window(procs: dict[str, subprocess.Popen[str]], seconds: float,
+           peer: Peer) -> dict[str, Any]:
+    """One measuring window: CPU % of each process and of the client's threads."""
+    client_pid = procs["fleetctl client"].pid
+    peer.cmd("reset")
+    before = {name: cpu_seconds(p.pid) for name, p in procs.items()}
+    threads_before = thread_cpu_seconds(client_pid)
+    t0 = time.monotonic()
+    time.sleep(seconds)  # the measuring window itself
+    elapsed = time.monotonic() - t0
+    after = {name: cpu_seconds(p.pid) for name, p in procs.items()}
+    threads_after = thread_cpu_seconds(client_pid)
+    frames = peer.cmd("report").get(REMOTE, {}).get("frames", 0)
+    return {
+        "cpu_pct": {name: 100 * (after[name] - before[name]) / elapsed for name in procs},
+        "client_threads_pct": {k: 100 * (v - threads_before.get(k, 0.0)) / elapsed
+                               for k, v in threads_after.items()},
+        "frames": frames, "seconds": elapsed,
+    }
+
+
+def run(seconds: float, rounds: int, warmup: float, work: Path) -> dict[str, Any]:
     env = {**os.environ, "PYTHONPATH": str(HERE.parent),
-           "ROS_DOMAIN_ID": str(100 + os.getpid() % 100), "ROS_LOCALHOST_ONLY": "1"}
+           "ROS_DOMAIN_ID": str(100 + os.getpid() % 100),
+           "ROS_AUTOMATIC_DISCOVERY_RANGE": "LOCALHOST"}
     peer = Peer([], "127.0.0.1", write_auth(work))
     procs: list[subprocess.Popen[str]] = []
     try:
@@ -123,19 +174,11 @@ def run(seconds: float, warmup: float, work: Path) -> dict[str, Any]:
         wait_ready(bare, "bare subscriber")
         wait_ready(publisher, "publisher")
         peer.wait_frames(REMOTE, 10, 60.0)  # the stream flows end to end
-        time.sleep(warmup)  # steady state: measuring window starts after the warm-up
-        peer.cmd("reset")
-        before = {p.pid: cpu_seconds(p.pid) for p in (client, bare)}
-        t0 = time.monotonic()
-        time.sleep(seconds)  # the measuring window itself
-        elapsed = time.monotonic() - t0
-        after = {p.pid: cpu_seconds(p.pid) for p in (client, bare)}
-        report = peer.cmd("report").get(REMOTE, {})
-        out = {name: {"cpu_pct": 100 * (after[p.pid] - before[p.pid]) / elapsed,
-                      "rss_mb": rss_mb(p.pid)}
-               for name, p in (("fleetctl client", client), ("bare rclpy subscriber", bare))}
-        out["delivered"] = {"frames": report.get("frames", 0), "seconds": elapsed}
-        return out
+        time.sleep(warmup)  # steady state: measuring windows start after the warm-up
+        measured = {"fleetctl client": client, "bare rclpy subscriber": bare}
+        windows = [window(measured, seconds, peer) for _ in range(rounds)]
+        return {"windows": windows, "rss_mb": {name: rss_mb(p.pid)
+                                               for name, p in measured.items()}}
     finally:
         for p in procs:
             p.terminate()
@@ -150,17 +193,32 @@ def run(seconds: float, warmup: float, work: Path) -> dict[str, Any]:
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--seconds", type=float, default=20.0)
+    parser.add_argument("--rounds", type=int, default=3)
     parser.add_argument("--warmup", type=float, default=5.0)
+    parser.add_argument("--json", type=Path, help="also write the figures here")
     args = parser.parse_args()
     with tempfile.TemporaryDirectory() as tmp:
-        res = run(args.seconds, args.warmup, Path(tmp))
-    print(f"10 Hz PointCloud2 of 1 MiB over DDS, {args.seconds:.0f} s after "
-          f"{args.warmup:.0f} s warm-up; delivered {res['delivered']['frames']} frames")
-    print(f"    {'process':28s} {'CPU % of one core':>18s} {'RSS MB':>8s}")
+        res = run(args.seconds, args.rounds, args.warmup, Path(tmp))
+    windows = res["windows"]
+    print(f"10 Hz PointCloud2 of 1 MiB over DDS, {args.rounds} windows of {args.seconds:.0f} s "
+          f"after {args.warmup:.0f} s warm-up; frames delivered per window: "
+          f"{', '.join(str(w['frames']) for w in windows)}")
+    print(f"    {'process':28s} {'CPU % of one core: median (windows)':>40s} {'RSS MB':>8s}")
+    medians = {}
     for name in ("fleetctl client", "bare rclpy subscriber"):
-        print(f"    {name:28s} {res[name]['cpu_pct']:18.2f} {res[name]['rss_mb']:8.1f}")
-    extra = res["fleetctl client"]["cpu_pct"] - res["bare rclpy subscriber"]["cpu_pct"]
-    print(f"    client cost above the bare subscriber: {extra:.2f} % (bar: whole client < 3 %)")
+        values = [w["cpu_pct"][name] for w in windows]
+        medians[name] = statistics.median(values)
+        spread = ", ".join(f"{v:.2f}" for v in values)
+        print(f"    {name:28s} {medians[name]:14.2f} ({spread})".ljust(74)
+              + f"{res['rss_mb'][name]:8.1f}")
+    for key in ("rclpy executor", "asyncio", "DDS"):
+        values = [w["client_threads_pct"].get(key, 0.0) for w in windows]
+        print(f"      client thread: {key:16s} {statistics.median(values):6.2f}")
+    extra = medians["fleetctl client"] - medians["bare rclpy subscriber"]
+    print(f"    client cost above the bare subscriber: {extra:.2f} % "
+          f"(bar: whole client < 3 %: {'met' if medians['fleetctl client'] < 3 else 'NOT met'})")
+    if args.json:
+        args.json.write_text(json.dumps(res, indent=2))
 
 
 if __name__ == "__main__":

@@ -471,7 +471,10 @@ class RobotLink:
             return
         self._acked_any = True
         self._scheduler.on_ack(token, self._clock())
-        self._wake.set()
+        # A pong matters to the send loop only when something waits for the window it
+        # opened; otherwise waking it costs a loop round per message for nothing.
+        if self._scheduler.has_sendable():
+            self._wake.set()
 
     async def _watchdog(self, ws: ClientConnection) -> None:
         period = self.tuning.link_timeout_s / 4

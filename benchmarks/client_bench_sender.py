@@ -188,9 +188,11 @@ async def cpu(args: argparse.Namespace) -> dict[str, Any]:
     def publish() -> None:
         nonlocal seq
         seq += 1
-        msg = store.deserialize_cdr(cdr, "sensor_msgs/msg/PointCloud2")
-        frame = codec.encode(msg, "sensor_msgs/msg/PointCloud2", "/bench/points",
-                             seq=seq, publish_time_ns=time.time_ns())
+        # As the client's node does (fleetctl.client.ros.bridge): CDR as a view, frame as
+        # a view of the builder's buffer.
+        msg = store.deserialize_cdr(memoryview(cdr), "sensor_msgs/msg/PointCloud2")
+        frame = codec.encode_view(msg, "sensor_msgs/msg/PointCloud2", "/bench/points",
+                                  seq=seq, publish_time_ns=time.time_ns())
         if link.admit("/bench/points"):
             link.offer("/bench/points", frame, priority=1.0, no_drop=False)
 

@@ -68,44 +68,17 @@ class NodeExecutor:
     def spin_once(self, timeout_ns: int) -> None:
         """Wait up to *timeout_ns* for work, then run every ready callback once."""
         node = self._node
-        subscriptions = list(node.subscriptions)
-        timers = list(node.timers)
-        guards = [*node.guards, self._wake]
-        waitables = list(node.waitables)
         with ExitStack() as held:
             # Entering a handle keeps it alive (not destroyed) while the wait set uses it.
-            subscriptions = _enter_all(held, subscriptions)
-            timers = _enter_all(held, timers)
-            guards = _enter_all(held, guards)
-            # A waitable brings its own entities (rclpy's QoS event handlers: events).
-            extra = [0] * 6
-            for waitable in list(waitables):
-                try:
-                    held.enter_context(waitable)
-                except InvalidHandle:
-                    waitables.remove(waitable)
-                    continue
-                n = waitable.get_num_entities()
-                for i, count in enumerate((n.num_subscriptions, n.num_guard_conditions,
-                                           n.num_timers, n.num_clients, n.num_services,
-                                           n.num_events)):
-                    extra[i] += count
+            subscriptions = _enter_all(held, list(node.subscriptions))
+            timers = _enter_all(held, list(node.timers))
+            guards = _enter_all(held, [*node.guards, self._wake])
+            waitables = _enter_all(held, list(node.waitables), handle=False)
             context_handle = self._context.handle
             if context_handle is None:  # shut down: nothing to wait for
                 return
             held.enter_context(context_handle)
-            wait_set = _rclpy.WaitSet(
-                len(subscriptions) + extra[0], len(guards) + extra[1], len(timers) + extra[2],
-                extra[3], extra[4], extra[5], context_handle)
-            wait_set.clear_entities()
-            for sub in subscriptions:
-                wait_set.add_subscription(sub.handle)
-            for timer in timers:
-                wait_set.add_timer(timer.handle)
-            for guard in guards:
-                wait_set.add_guard_condition(guard.handle)
-            for waitable in waitables:
-                waitable.add_to_wait_set(wait_set)
+            wait_set = _wait_set(context_handle, subscriptions, timers, guards, waitables)
             wait_set.wait(timeout_ns)
             if self._stopping.is_set() or not self._context.ok():
                 return
@@ -157,16 +130,42 @@ class NodeExecutor:
         _drive(waitable.execute(data))
 
 
-def _enter_all(held: ExitStack, entities: list[Any]) -> list[Any]:
-    """The entities whose handles could be entered (destroyed ones are skipped)."""
+def _enter_all(held: ExitStack, entities: list[Any], *, handle: bool = True) -> list[Any]:
+    """The entities that could be entered (destroyed ones are skipped): their handles,
+    or with ``handle=False`` the entities themselves (waitables are context managers)."""
     alive = []
     for entity in entities:
         try:
-            held.enter_context(entity.handle)
+            held.enter_context(entity.handle if handle else entity)
         except InvalidHandle:
             continue
         alive.append(entity)
     return alive
+
+
+def _wait_set(context_handle: Any, subscriptions: list[Any], timers: list[Any],
+              guards: list[Any], waitables: list[Any]) -> Any:
+    """An rcl wait set holding all of these (each waitable adds its own entities:
+    rclpy's QoS event handlers add events)."""
+    extra = [0] * 6
+    for waitable in waitables:
+        n = waitable.get_num_entities()
+        for i, count in enumerate((n.num_subscriptions, n.num_guard_conditions, n.num_timers,
+                                   n.num_clients, n.num_services, n.num_events)):
+            extra[i] += count
+    wait_set = _rclpy.WaitSet(
+        len(subscriptions) + extra[0], len(guards) + extra[1], len(timers) + extra[2],
+        extra[3], extra[4], extra[5], context_handle)
+    wait_set.clear_entities()
+    for sub in subscriptions:
+        wait_set.add_subscription(sub.handle)
+    for timer in timers:
+        wait_set.add_timer(timer.handle)
+    for guard in guards:
+        wait_set.add_guard_condition(guard.handle)
+    for waitable in waitables:
+        waitable.add_to_wait_set(wait_set)
+    return wait_set
 
 
 def _call(callback: Any, *args: Any) -> None:

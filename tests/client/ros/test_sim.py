@@ -13,7 +13,7 @@ import pytest
 rclpy = pytest.importorskip("rclpy")
 
 from rclpy.context import Context  # noqa: E402
-from rclpy.executors import MultiThreadedExecutor  # noqa: E402
+from rclpy.executors import SingleThreadedExecutor  # noqa: E402
 from rclpy.node import Node  # noqa: E402
 
 from fleetctl.client.ros.sim import SimConfig, SimRobot  # noqa: E402
@@ -44,16 +44,24 @@ def sim() -> Iterator[tuple[SimRobot, Node, dict[str, list[Any]]]]:
                        ("/camera/image/compressed", CompressedImage), ("/events", String)]:
         got[topic] = []
         peer.create_subscription(cls, topic, got[topic].append, 10)
-    executor = MultiThreadedExecutor(num_threads=2, context=context)
-    executor.add_node(robot)
-    executor.add_node(peer)
-    thread = threading.Thread(target=executor.spin, daemon=True)
-    thread.start()
+    # Each node on its own single-threaded executor, as `fleetctl sim` spins the robot.
+    # One MultiThreadedExecutor for both starved the robot's last timer (/battery, 1 Hz):
+    # its callbacks share a mutually exclusive group, a timer found ready while another
+    # callback of the group runs is skipped, and the earlier, faster timers were always
+    # taken first (first battery message after 7-20 s instead of 1 s).
+    executors = [SingleThreadedExecutor(context=context) for _ in range(2)]
+    executors[0].add_node(robot)
+    executors[1].add_node(peer)
+    threads = [threading.Thread(target=e.spin, daemon=True) for e in executors]
+    for thread in threads:
+        thread.start()
     try:
         yield robot, peer, got
     finally:
-        executor.shutdown()
-        thread.join(5)
+        for executor in executors:
+            executor.shutdown()
+        for thread in threads:
+            thread.join(5)
         robot.destroy_node()
         peer.destroy_node()
         context.try_shutdown()

@@ -11,11 +11,12 @@ clock. The transport feeds it messages (:meth:`Scheduler.offer`), pulls frames t
 - Algorithm 2: Q_n first, then Q_f in DESCENDING ``priority x time since the topic's last
   send`` (Robofleet's code sorts ascending; that is a bug we do not copy). Ties go to the
   topic that waited longer, so priority 0 topics still progress when nothing else waits.
-- Fragments (Pound section 5.1): frames above the fragment size (adapted to the link
-  rate, at most ``max_fragment_bytes``, see :meth:`Scheduler.fragment_bytes`) are split and the
-  choice above is made per fragment, so an urgent small message waits behind at most one
-  fragment of a large one. A topic's "last send" is its last fragment, which makes
-  fragment streams of equal score interleave instead of one topic hogging the link.
+- Fragments (Pound section 5.1): frames longer than the link-time budget (adapted to the
+  link rate, at most ``max_fragment_bytes``, see :meth:`Scheduler.whole_frame_bytes`) are
+  split into fragments of :meth:`Scheduler.fragment_bytes` and the choice above is made per
+  fragment, so an urgent small message waits behind at most one fragment of a large one.
+  A topic's "last send" is its last fragment, which makes fragment streams of equal score
+  interleave instead of one topic hogging the link.
 - Supersede: newer data for a droppable topic drops the remaining fragments of an older
   message still being sent. To rule out livelock on a link slower than the topic
   (every message superseded, none delivered), at most ``max_consecutive_supersedes``
@@ -74,10 +75,10 @@ class SchedulerConfig:
     """Tunables of the scheduler.
 
     Attributes:
-        max_fragment_bytes: Largest fragment (bytes). The fragment size in use is about
-            ``fragment_time_s`` of link time at the measured delivery rate, rounded down
-            to a power of two, between ``min_fragment_bytes`` and this; frames longer
-            than it are split.
+        max_fragment_bytes: Largest frame or fragment (bytes). Frames up to about
+            ``fragment_time_s`` of link time at the measured delivery rate (and at most
+            this) go whole; longer ones are split into fragments of that budget rounded
+            down to a power of two, between ``min_fragment_bytes`` and this.
         min_fragment_bytes: Smallest fragment size on a slow link (bytes).
         initial_fragment_bytes: Fragment size before the first rate sample (bytes).
         fragment_time_s: Link time one fragment may take (seconds): the longest an urgent

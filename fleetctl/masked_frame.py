@@ -18,8 +18,8 @@ import struct
 from typing import Any
 
 import numpy as np
+from websockets.frames import Opcode
 
-OP_BINARY = 0x2
 _FIN = 0x80
 _MASK_BIT = 0x80
 _HEAD_7 = struct.Struct("!BB")
@@ -30,7 +30,7 @@ _MASK_BYTES = 4
 
 def _header(length: int) -> bytes:
     """Section 5.2: FIN + opcode, then MASK + payload length (7, 7+16 or 7+64 bits)."""
-    first = _FIN | OP_BINARY
+    first = _FIN | int(Opcode.BINARY)
     if length < 126:
         return _HEAD_7.pack(first, _MASK_BIT | length)
     if length < 65536:

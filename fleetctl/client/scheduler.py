@@ -538,8 +538,9 @@ class Scheduler:
     def _update_limits(self) -> None:
         """Recompute the cached fragment size and window (they change only on acks)."""
         cfg = self.config
-        self._whole = self._compute_whole_bytes()
-        if self._link_rate.value(None, 0.0) <= 0:
+        rate = self._link_rate.value(None, 0.0)
+        self._whole = self._compute_whole_bytes(rate)
+        if rate <= 0:
             self._fragment = self._whole  # the configured initial size, as given
         else:
             # Rounding never goes below the configured floor (a cap under
@@ -581,8 +582,9 @@ class Scheduler:
         not rounded (see :meth:`_compute_whole_bytes`)."""
         return self._whole
 
-    def _compute_whole_bytes(self) -> int:
-        """The link-time budget of one frame, between the fragment bounds.
+    def _compute_whole_bytes(self, rate: float) -> int:
+        """The link-time budget of one frame at *rate* (bytes/s, 0 before the first
+        sample), between the fragment bounds.
 
         Pound sizes fragments to the radio's MTU; here the link is TCP, so the size
         follows the link rate instead: small enough that an urgent message waits at most
@@ -597,7 +599,6 @@ class Scheduler:
         """
         cfg = self.config
         top = cfg.max_fragment_bytes
-        rate = self._link_rate.value(None, 0.0)
         if rate <= 0:
             return min(top, cfg.initial_fragment_bytes)
         low = min(cfg.min_fragment_bytes, top)

@@ -25,6 +25,8 @@ _MIN_BUILDER_BYTES = 256
 _MAX_HINT_BYTES = 64 << 20
 # From this size a builder starts on uninitialized memory instead of bytearray's zeroes.
 _UNINITIALIZED_FROM_BYTES = 64 * 1024
+# Anything else a decoder could raise on input its checks missed is still a bad frame.
+_DECODE_ERRORS = (struct.error, IndexError, ValueError, TypeError, OverflowError, RecursionError)
 
 
 def new_builder(size: int) -> flatbuffers.Builder:
@@ -36,13 +38,12 @@ def new_builder(size: int) -> flatbuffers.Builder:
     uninitialized ``vector_downward``; ``tests/wire/test_codec.py`` encodes every fixture
     on a buffer filled with garbage to hold it to that.
     """
-    builder = flatbuffers.Builder(0 if size >= _UNINITIALIZED_FROM_BYTES else size)
-    if size >= _UNINITIALIZED_FROM_BYTES:
-        builder.Bytes = np.empty(size, dtype=np.uint8).data
-        builder.head = size
+    if size < _UNINITIALIZED_FROM_BYTES:
+        return flatbuffers.Builder(size)
+    builder = flatbuffers.Builder(0)
+    builder.Bytes = np.empty(size, dtype=np.uint8).data
+    builder.head = size
     return builder
-# Anything else a decoder could raise on input its checks missed is still a bad frame.
-_DECODE_ERRORS = (struct.error, IndexError, ValueError, TypeError, OverflowError, RecursionError)
 
 
 class Codec:
@@ -102,7 +103,8 @@ class Codec:
 
         Saves one copy of the frame (a cold pass over 1 MB per point cloud on the robot's
         send path). The buffer belongs to this call alone, so the view stays valid and
-        unchanged; it is somewhat larger than the frame (the size hint's headroom).
+        unchanged; the buffer behind it is somewhat larger than the frame (the size
+        hint's headroom), which the view keeps alive.
         """
         name = normalize_type(type_name)
         if name == METADATA_TYPE:

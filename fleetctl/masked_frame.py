@@ -7,8 +7,12 @@ a robot sending 10 MB/s of point clouds each pass is a cold 1 MB walk through me
 largest share of the link's CPU after the kernel's own copy. Here the frame is written
 into one uninitialized buffer and the mask is applied on the way in: one pass.
 
-The payload starts at an 8-byte aligned offset of the buffer (the header is placed just
-before it), so the XOR runs on aligned 64-bit words.
+The XOR runs on 64-bit words, which numpy only streams when both sides are 8-byte aligned:
+on an unaligned view it copies every block to a scratch buffer first, a second pass over
+the payload (a frame from the FlatBuffers builder starts wherever the builder's head
+ended). So the header is placed to give the payload the same address modulo 8 as the
+source, the few bytes before the first aligned word are masked one by one, and the words
+in between use the key rotated to their phase.
 """
 
 from __future__ import annotations
@@ -59,23 +63,42 @@ def masked_binary_frame(payload: bytes | bytearray | memoryview,
     src = np.frombuffer(payload, dtype=np.uint8)
     length = src.size
     head = _header(length) + key
-    start = -len(head) % 8  # so that the payload begins on an 8-byte boundary
+    out = np.empty(len(head) + 7 + length, dtype=np.uint8)
+    # Place the header so that the payload lands at the source's address modulo 8.
+    start = (_address(src) - _address(out) - len(head)) % 8
     body = start + len(head)
-    out = np.empty(body + length, dtype=np.uint8)
     out[start:body] = np.frombuffer(head, dtype=np.uint8)
-    _xor_into(out[body:], src, key)
-    return memoryview(out.data)[start:]
+    _xor_into(out[body:body + length], src, key)
+    return memoryview(out.data)[start:body + length]
+
+
+def _address(array: np.ndarray[Any, Any]) -> int:
+    return int(array.__array_interface__["data"][0])
 
 
 def _xor_into(dst: np.ndarray[Any, Any], src: np.ndarray[Any, Any], key: bytes) -> None:
-    """``dst[i] = src[i] ^ key[i % 4]`` (section 5.3), 8 bytes at a time where possible."""
-    words = src.size // 8
+    """``dst[i] = src[i] ^ key[i % 4]`` (section 5.3), 8 bytes at a time where aligned.
+
+    *dst* and *src* have the same size and the same address modulo 8.
+    """
+    size = src.size
+    lead = min(-_address(src) % 8, size)
+    words = (size - lead) // 8
+    _xor_bytes(dst[:lead], src[:lead], key, 0)
     if words:
-        key64 = np.frombuffer(key * 2, dtype=np.uint64)[0]
-        np.bitwise_xor(src[:words * 8].view(np.uint64), key64,
-                       out=dst[:words * 8].view(np.uint64))
-    tail = src.size - words * 8
-    if tail:
-        # words * 8 is a multiple of 4, so the key's phase restarts at the tail.
-        pattern = np.frombuffer((key * 2)[:tail], dtype=np.uint8)
-        np.bitwise_xor(src[words * 8:], pattern, out=dst[words * 8:])
+        phase = lead % _MASK_BYTES
+        rotated = key[phase:] + key[:phase]
+        key64 = np.frombuffer(rotated * 2, dtype=np.uint64)[0]
+        end = lead + words * 8
+        np.bitwise_xor(src[lead:end].view(np.uint64), key64, out=dst[lead:end].view(np.uint64))
+    tail = lead + words * 8
+    _xor_bytes(dst[tail:], src[tail:], key, tail)
+
+
+def _xor_bytes(dst: np.ndarray[Any, Any], src: np.ndarray[Any, Any], key: bytes,
+               offset: int) -> None:
+    """Mask fewer than 8 bytes that start at *offset* of the payload."""
+    if src.size:
+        phase = offset % _MASK_BYTES
+        pattern = np.frombuffer((key * 3)[phase:phase + src.size], dtype=np.uint8)
+        np.bitwise_xor(src, pattern, out=dst)

@@ -47,6 +47,18 @@ def test_unaligned_view_input(offset: int, monkeypatch: pytest.MonkeyPatch) -> N
     assert backing == before  # masking wrote to the new frame, not into the caller's buffer
 
 
+@pytest.mark.parametrize("offset", range(8))
+@pytest.mark.parametrize("length", [0, 1, 5, 7, 8, 9, 15, 16, 17, 4096 + 3])
+def test_every_alignment_and_short_lengths(offset: int, length: int,
+                                           monkeypatch: pytest.MonkeyPatch) -> None:
+    # The bytes before the first aligned word, the words and the tail each take their own
+    # path; every source address modulo 8 and lengths around a word exercise all three.
+    backing = bytearray(os.urandom(offset + length))
+    view = memoryview(backing)[offset:]
+    frame = masked_binary_frame(view, KEY)
+    assert bytes(frame) == reference(bytes(view), monkeypatch)
+
+
 def test_fresh_key_each_frame_and_parses_back() -> None:
     payload = os.urandom(4099)
     first, second = masked_binary_frame(payload), masked_binary_frame(payload)

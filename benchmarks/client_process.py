@@ -8,16 +8,20 @@ Usage::
 this measures what an operator sees in ``top``: the real ``fleetctl client`` process (rclpy
 node, raw-CDR subscription, encode, fragments, WebSocket) fed by a separate rclpy publisher
 process over DDS, relaying to a fleetctl relay with one consumer, side by side in the same
-run with a bare rclpy raw subscriber process on the same topic (the floor any rclpy-based
-client pays for receiving 10 MB/s from DDS; Robofleet's Table II also excludes "native
-ROS"). The bare subscriber raises glibc's malloc thresholds as the client does for itself
-(``fleetctl.client.memory``), so the two differ by the client's own work only.
-CPU = utime + stime from ``/proc/PID/stat`` over each measuring window, as a share of one
-core, for ``--rounds`` consecutive windows of the same processes (the machine's speed drifts;
-the median is the figure); the client's share is also split by thread
-(``/proc/PID/task``: the asyncio thread is the main one, the rclpy executor the other
-``fleetctl`` thread, Fast DDS's are named ``dds.*``). Memory = ``VmRSS`` at the end. The
-consumer's frame count proves the stream flowed.
+run with a bare rclpy raw subscriber process (the floor any rclpy-based client pays for
+receiving 10 MB/s from DDS; Robofleet's Table II also excludes "native ROS"). The bare
+subscriber raises glibc's malloc thresholds as the client does for itself
+(``fleetctl.client.memory``), so the two differ by the client's own work only. It gets the
+same cloud on a topic of its own, published 50 ms after the client's, so that the two do
+not compete for the machine's two cores at the same instants.
+
+CPU = the time each thread ran, from ``/proc/PID/task/TID/schedstat`` (nanoseconds; ``stat``'s
+clock ticks are too coarse), summed over the process, over each measuring window, as a
+share of one core, for ``--rounds`` consecutive windows of the same processes (the
+machine's speed drifts; the median is the figure); the client's share is also split by
+thread (the asyncio thread is the main one, the rclpy executor the other ``fleetctl``
+thread, Fast DDS's are named ``dds.*``). Memory = ``VmRSS`` at the end. The consumer's frame
+count proves the stream flowed (the run stops with an error when it does not).
 """
 
 from __future__ import annotations
@@ -40,6 +44,7 @@ from client_link import ROBOT_TOKEN, Peer, write_auth  # noqa: E402
 
 PY = sys.executable
 TOPIC = "/points"
+BARE_TOPIC = "/points_bare"
 REMOTE = "/bench/points"
 TYPE = "sensor_msgs/msg/PointCloud2"
 
@@ -54,13 +59,17 @@ store = registry.typestore
 rclpy.init()
 node = rclpy.create_node("bench_cloud_publisher")
 qos = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=2, reliability=ReliabilityPolicy.RELIABLE)
-pub = node.create_publisher(message_class("{type}"), "{topic}", qos)
+topics = {topics!r}
+pubs = [node.create_publisher(message_class("{type}"), t, qos) for t in topics]
 msg = point_cloud(registry)
+turn = 0
 def tick():
+    global turn
     now = time.time_ns()
     msg.header.stamp.sec, msg.header.stamp.nanosec = divmod(now, 10**9)
-    pub.publish(bytes(store.serialize_cdr(msg, "{type}")))
-node.create_timer(0.1, tick)
+    pubs[turn].publish(bytes(store.serialize_cdr(msg, "{type}")))
+    turn = (turn + 1) % len(pubs)
+node.create_timer(0.1 / len(pubs), tick)
 print("ready", flush=True)
 rclpy.spin(node)
 """
@@ -84,11 +93,14 @@ rclpy.spin(node)
 """
 
 
-def cpu_seconds(pid: int, tid: str | None = None) -> float:
-    """utime + stime of *pid* (or its thread *tid*) in seconds (fields 14 and 15 of stat)."""
-    path = Path(f"/proc/{pid}/stat" if tid is None else f"/proc/{pid}/task/{tid}/stat")
-    fields = path.read_text().rsplit(")", 1)[1].split()
-    return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
+def thread_seconds(pid: int, tid: str) -> float:
+    """Time thread *tid* of *pid* ran on a CPU, in seconds.
+
+    ``schedstat``'s first field is the scheduler's own count in nanoseconds; ``stat``'s
+    utime + stime come in clock ticks (10 ms), 0.05 % of a core over a 20 s window, too
+    coarse to tell changes of a tenth of a percent apart.
+    """
+    return int(Path(f"/proc/{pid}/task/{tid}/schedstat").read_text().split()[0]) / 1e9
 
 
 def thread_cpu_seconds(pid: int) -> dict[str, float]:
@@ -97,7 +109,7 @@ def thread_cpu_seconds(pid: int) -> dict[str, float]:
     for task in Path(f"/proc/{pid}/task").iterdir():
         try:
             name = (task / "comm").read_text().strip()
-            seconds = cpu_seconds(pid, task.name)
+            seconds = thread_seconds(pid, task.name)
         except OSError:  # the thread ended between listing and reading
             continue
         if int(task.name) == pid:
@@ -108,6 +120,11 @@ def thread_cpu_seconds(pid: int) -> dict[str, float]:
             key = "rclpy executor"
         out[key] = out.get(key, 0.0) + seconds
     return out
+
+
+def cpu_seconds(pid: int) -> float:
+    """CPU seconds of all live threads of *pid* (the processes measured keep theirs)."""
+    return sum(thread_cpu_seconds(pid).values())
 
 
 def rss_mb(pid: int) -> float:
@@ -150,6 +167,17 @@ def window(procs: dict[str, subprocess.Popen[str]], seconds: float,
     }
 
 
+def client_config(work: Path, peer: Peer, name: str, topic: str, remote: str) -> Path:
+    token = work / "token"
+    token.write_text(ROBOT_TOKEN)
+    config = work / f"{name}.yaml"
+    config.write_text(json.dumps({
+        "server_url": peer.url, "robot_name": name, "token_file": str(token),
+        "publish": [{"topic": topic, "type": TYPE, "remote_topic": remote}],
+    }))
+    return config
+
+
 def run(seconds: float, rounds: int, warmup: float, work: Path) -> dict[str, Any]:
     env = {**os.environ, "PYTHONPATH": str(HERE.parent),
            "ROS_DOMAIN_ID": str(100 + os.getpid() % 100),
@@ -157,25 +185,23 @@ def run(seconds: float, rounds: int, warmup: float, work: Path) -> dict[str, Any
     peer = Peer([], "127.0.0.1", write_auth(work))
     procs: list[subprocess.Popen[str]] = []
     try:
-        token = work / "token"
-        token.write_text(ROBOT_TOKEN)
-        config = work / "client.yaml"
-        config.write_text(json.dumps({
-            "server_url": peer.url, "robot_name": "bench", "token_file": str(token),
-            "publish": [{"topic": TOPIC, "type": TYPE, "remote_topic": REMOTE}],
-        }))
-        client = start([str(Path(PY).parent / "fleetctl"), "client", "--config", str(config)], env,
+        client = start([str(Path(PY).parent / "fleetctl"), "client", "--config",
+                        str(client_config(work, peer, "bench", TOPIC, REMOTE))], env,
                        work / "client.log")
-        bare = start([PY, "-c", BARE_SUBSCRIBER.format(type=TYPE, topic=TOPIC)], env,
+        procs.append(client)
+        measured = {"fleetctl client": client}
+        bare = start([PY, "-c", BARE_SUBSCRIBER.format(type=TYPE, topic=BARE_TOPIC)], env,
                      work / "bare.log")
-        publisher = start([PY, "-c", PUBLISHER.format(type=TYPE, topic=TOPIC)], env,
+        topics = [TOPIC, BARE_TOPIC]
+        publisher = start([PY, "-c", PUBLISHER.format(type=TYPE, topics=topics)], env,
                           work / "publisher.log")
-        procs += [client, bare, publisher]
+        procs += [bare, publisher]
+        measured["bare rclpy subscriber"] = bare
         wait_ready(bare, "bare subscriber")
         wait_ready(publisher, "publisher")
-        peer.wait_frames(REMOTE, 10, 60.0)  # the stream flows end to end
+        if peer.wait_frames(REMOTE, 10, 60.0).get("frames", 0) < 10:
+            raise SystemExit(f"no stream on {REMOTE} within 60 s: see {work / 'client.log'}")
         time.sleep(warmup)  # steady state: measuring windows start after the warm-up
-        measured = {"fleetctl client": client, "bare rclpy subscriber": bare}
         windows = [window(measured, seconds, peer) for _ in range(rounds)]
         return {"windows": windows, "rss_mb": {name: rss_mb(p.pid)
                                                for name, p in measured.items()}}
@@ -205,7 +231,7 @@ def main() -> None:
           f"{', '.join(str(w['frames']) for w in windows)}")
     print(f"    {'process':28s} {'CPU % of one core: median (windows)':>40s} {'RSS MB':>8s}")
     medians = {}
-    for name in ("fleetctl client", "bare rclpy subscriber"):
+    for name in windows[0]["cpu_pct"]:
         values = [w["cpu_pct"][name] for w in windows]
         medians[name] = statistics.median(values)
         spread = ", ".join(f"{v:.2f}" for v in values)

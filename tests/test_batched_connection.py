@@ -47,3 +47,34 @@ def test_mixed_batch_arrives_intact_and_in_order() -> None:
         return got
 
     assert asyncio.run(main()) == expected
+
+
+def test_ping_pongs_after_large_small_and_no_frames() -> None:
+    # A ping after a large (one-pass) frame, after a small one, or alone: each time the
+    # server's pong completes the waiter, and the frames before it have arrived.
+    batches: list[list[bytes | str]] = [[os.urandom(ONE_PASS_MIN_BYTES * 4)], [b"small"], []]
+
+    async def main() -> tuple[list[bytes | str], list[float]]:
+        got: list[bytes | str] = []
+
+        async def handler(ws: ServerConnection) -> None:
+            async for message in ws:
+                got.append(message)
+
+        rtts = []
+        async with serve(handler, "127.0.0.1", 0, compression=None, max_size=None) as server:
+            port = server.sockets[0].getsockname()[1]
+            async with connect(f"ws://127.0.0.1:{port}", compression=None,
+                               create_connection=BatchedClient) as ws:
+                assert isinstance(ws, BatchedClient)
+                for i, batch in enumerate(batches):
+                    waiter = await ws.send_frames(batch, ping=i.to_bytes(8, "big"))
+                    assert waiter is not None
+                    rtts.append(await asyncio.wait_for(waiter, 10.0))
+                    assert len(got) == sum(len(b) for b in batches[:i + 1])
+        return got, rtts
+
+    got, rtts = asyncio.run(main())
+    assert got == [batches[0][0], b"small"]
+    assert all(rtt >= 0 for rtt in rtts)
+

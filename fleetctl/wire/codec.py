@@ -15,6 +15,7 @@ from typing import Any
 import flatbuffers
 import numpy as np
 
+from fleetctl.wire.builder import LeanBuilder
 from fleetctl.wire.decoder import DecodeContext, DecoderFactory
 from fleetctl.wire.encoder import EncoderFactory
 from fleetctl.wire.errors import WireError
@@ -30,7 +31,8 @@ _DECODE_ERRORS = (struct.error, IndexError, ValueError, TypeError, OverflowError
 
 
 def new_builder(size: int) -> flatbuffers.Builder:
-    """A FlatBuffers builder with room for *size* bytes before it has to grow.
+    """A FlatBuffers builder (:class:`LeanBuilder`: the library's bytes, fewer calls) with
+    room for *size* bytes before it has to grow.
 
     Large buffers start uninitialized: ``bytearray(size)`` zeroes all of it first, a pass
     over a megabyte per point cloud that nothing reads. The builder writes every byte it
@@ -39,8 +41,8 @@ def new_builder(size: int) -> flatbuffers.Builder:
     on a buffer filled with garbage to hold it to that.
     """
     if size < _UNINITIALIZED_FROM_BYTES:
-        return flatbuffers.Builder(size)
-    builder = flatbuffers.Builder(0)
+        return LeanBuilder(size)
+    builder = LeanBuilder(0)
     builder.Bytes = np.empty(size, dtype=np.uint8).data
     builder.head = size
     return builder

@@ -29,6 +29,7 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import signal
 import statistics
 import subprocess
 import sys
@@ -223,6 +224,9 @@ def main() -> None:
     parser.add_argument("--warmup", type=float, default=5.0)
     parser.add_argument("--json", type=Path, help="also write the figures here")
     args = parser.parse_args()
+    # The child processes run in sessions of their own (so a terminal's Ctrl-C reaches
+    # them only through this script): on SIGTERM too, unwind so run()'s cleanup stops them.
+    signal.signal(signal.SIGTERM, lambda *_: sys.exit(128 + signal.SIGTERM))
     with tempfile.TemporaryDirectory() as tmp:
         res = run(args.seconds, args.rounds, args.warmup, Path(tmp))
     windows = res["windows"]

@@ -168,17 +168,6 @@ def window(procs: dict[str, subprocess.Popen[str]], seconds: float,
     }
 
 
-def client_config(work: Path, peer: Peer, name: str, topic: str, remote: str) -> Path:
-    token = work / "token"
-    token.write_text(ROBOT_TOKEN)
-    config = work / f"{name}.yaml"
-    config.write_text(json.dumps({
-        "server_url": peer.url, "robot_name": name, "token_file": str(token),
-        "publish": [{"topic": topic, "type": TYPE, "remote_topic": remote}],
-    }))
-    return config
-
-
 def run(seconds: float, rounds: int, warmup: float, work: Path) -> dict[str, Any]:
     env = {**os.environ, "PYTHONPATH": str(HERE.parent),
            "ROS_DOMAIN_ID": str(100 + os.getpid() % 100),
@@ -186,23 +175,28 @@ def run(seconds: float, rounds: int, warmup: float, work: Path) -> dict[str, Any
     peer = Peer([], "127.0.0.1", write_auth(work))
     procs: list[subprocess.Popen[str]] = []
     try:
-        client = start([str(Path(PY).parent / "fleetctl"), "client", "--config",
-                        str(client_config(work, peer, "bench", TOPIC, REMOTE))], env,
+        token = work / "token"
+        token.write_text(ROBOT_TOKEN)
+        config = work / "client.yaml"
+        config.write_text(json.dumps({
+            "server_url": peer.url, "robot_name": "bench", "token_file": str(token),
+            "publish": [{"topic": TOPIC, "type": TYPE, "remote_topic": REMOTE}],
+        }))
+        client = start([str(Path(PY).parent / "fleetctl"), "client", "--config", str(config)], env,
                        work / "client.log")
         procs.append(client)
-        measured = {"fleetctl client": client}
         bare = start([PY, "-c", BARE_SUBSCRIBER.format(type=TYPE, topic=BARE_TOPIC)], env,
                      work / "bare.log")
-        topics = [TOPIC, BARE_TOPIC]
-        publisher = start([PY, "-c", PUBLISHER.format(type=TYPE, topics=topics)], env,
-                          work / "publisher.log")
-        procs += [bare, publisher]
-        measured["bare rclpy subscriber"] = bare
+        procs.append(bare)
+        publisher = start([PY, "-c", PUBLISHER.format(type=TYPE, topics=[TOPIC, BARE_TOPIC])],
+                          env, work / "publisher.log")
+        procs.append(publisher)
         wait_ready(bare, "bare subscriber")
         wait_ready(publisher, "publisher")
         if peer.wait_frames(REMOTE, 10, 60.0).get("frames", 0) < 10:
             raise SystemExit(f"no stream on {REMOTE} within 60 s: see {work / 'client.log'}")
         time.sleep(warmup)  # steady state: measuring windows start after the warm-up
+        measured = {"fleetctl client": client, "bare rclpy subscriber": bare}
         windows = [window(measured, seconds, peer) for _ in range(rounds)]
         return {"windows": windows, "rss_mb": {name: rss_mb(p.pid)
                                                for name, p in measured.items()}}
@@ -235,7 +229,7 @@ def main() -> None:
           f"{', '.join(str(w['frames']) for w in windows)}")
     print(f"    {'process':28s} {'CPU % of one core: median (windows)':>40s} {'RSS MB':>8s}")
     medians = {}
-    for name in windows[0]["cpu_pct"]:
+    for name in ("fleetctl client", "bare rclpy subscriber"):
         values = [w["cpu_pct"][name] for w in windows]
         medians[name] = statistics.median(values)
         spread = ", ".join(f"{v:.2f}" for v in values)

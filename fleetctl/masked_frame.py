@@ -65,10 +65,11 @@ def masked_binary_frame(payload: bytes | bytearray | memoryview,
     head = _header(length) + key
     out = np.empty(len(head) + 7 + length, dtype=np.uint8)
     # Place the header so that the payload lands at the source's address modulo 8.
-    start = (_address(src) - _address(out) - len(head)) % 8
+    src_address = _address(src)
+    start = (src_address - _address(out) - len(head)) % 8
     body = start + len(head)
     out[start:body] = np.frombuffer(head, dtype=np.uint8)
-    _xor_into(out[body:body + length], src, key)
+    _xor_into(out[body:body + length], src, key, lead=-src_address % 8)
     return memoryview(out.data)[start:body + length]
 
 
@@ -76,13 +77,15 @@ def _address(array: np.ndarray[Any, Any]) -> int:
     return int(array.__array_interface__["data"][0])
 
 
-def _xor_into(dst: np.ndarray[Any, Any], src: np.ndarray[Any, Any], key: bytes) -> None:
+def _xor_into(dst: np.ndarray[Any, Any], src: np.ndarray[Any, Any], key: bytes, *,
+              lead: int) -> None:
     """``dst[i] = src[i] ^ key[i % 4]`` (section 5.3), 8 bytes at a time where aligned.
 
-    *dst* and *src* have the same size and the same address modulo 8.
+    *dst* and *src* have the same size and the same address modulo 8; *lead* bytes of
+    them come before the first 8-byte aligned address.
     """
     size = src.size
-    lead = min(-_address(src) % 8, size)
+    lead = min(lead, size)
     words = (size - lead) // 8
     _xor_bytes(dst[:lead], src[:lead], key, 0)
     if words:

@@ -19,7 +19,7 @@
   reconnect, see below) and hands complete frames to ``on_frame``.
 
 Threading: everything runs on one asyncio loop, except :meth:`RobotLink.admit` (any thread)
-and :meth:`RobotLink.offer_threadsafe` (any thread; hops onto the loop).
+and :meth:`RobotLink.offer_threadsafe` (any thread; hops onto the loop from others).
 
 Duplicates: a no_drop message sent but not acknowledged when the link died is sent again
 (at-least-once). Receivers drop a no_drop frame whose ``seq`` is not above the last one
@@ -170,8 +170,10 @@ class RobotLink:
         self._admit_lock = threading.Lock()
         self._rng = random.Random()
         self._loop: asyncio.AbstractEventLoop | None = None
+        self._loop_thread: int | None = None
         with contextlib.suppress(RuntimeError):
             self._loop = asyncio.get_running_loop()
+            self._loop_thread = threading.get_ident()
         self._wake = Wakeup()
         self._stop = asyncio.Event()
         self._stopped = asyncio.Event()
@@ -227,7 +229,10 @@ class RobotLink:
     def offer_threadsafe(
         self, remote_topic: str, frame: bytes, *, priority: float, no_drop: bool
     ) -> None:
-        """:meth:`offer` from another thread (e.g. an rclpy executor).
+        """:meth:`offer` from any thread (e.g. an rclpy executor's).
+
+        On the loop's own thread the frame is queued at once; from another it hops onto
+        the loop (which wakes the loop's thread).
 
         Raises:
             RuntimeError: The link has no event loop yet (create it inside the loop or
@@ -236,6 +241,9 @@ class RobotLink:
         loop = self._loop
         if loop is None:
             raise RuntimeError("RobotLink has no event loop yet: create it inside the loop")
+        if threading.get_ident() == self._loop_thread:
+            self.offer(remote_topic, frame, priority=priority, no_drop=no_drop)
+            return
         loop.call_soon_threadsafe(
             functools.partial(self.offer, remote_topic, frame, priority=priority,
                               no_drop=no_drop))
@@ -245,6 +253,7 @@ class RobotLink:
         if self.tuning.tune_malloc:
             tune_malloc()
         self._loop = asyncio.get_running_loop()
+        self._loop_thread = threading.get_ident()
         self._running = True
         attempt = 0
         try:

@@ -311,6 +311,16 @@ async def test_offer_threadsafe_and_admit_from_another_thread(
         assert link.stats()["topics"]["/r1/chatter"]["rate_limited"] == 2
 
 
+async def test_offer_threadsafe_on_the_loop_thread_queues_at_once(tmp_path: Path) -> None:
+    # The loop-thread intake (fleetctl.client.ros.intake) calls it there: a hop through
+    # call_soon_threadsafe would write the loop's self-pipe and wake it for nothing.
+    cfg = robot_config("ws://127.0.0.1:9/", tmp_path)
+    link = RobotLink(cfg, on_frame=lambda f: None, tuning=FAST)
+    link.offer_threadsafe("/r1/chatter", string_frame("/r1/chatter"), priority=1.0,
+                          no_drop=False)
+    assert link.scheduler.has_sendable()  # no await in between: queued synchronously
+
+
 async def test_invalid_frame_is_dropped_and_link_survives(
     server: RelayServer, tmp_path: Path
 ) -> None:

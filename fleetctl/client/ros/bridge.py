@@ -12,8 +12,11 @@ published as bytes.
 
 The node knows nothing about WebSockets: it talks to the link through two callables
 (:class:`LinkPort`) so it is tested without a server, and the link is tested without ROS.
-Callbacks run on the rclpy executor thread; :meth:`Bridge.deliver` is called from the asyncio
-thread (rclpy publishers may be used from any thread).
+Callbacks run on the rclpy executor thread, except those of uncompressed ``publish`` topics
+when the node is given a :class:`~fleetctl.client.ros.intake.LoopIntake` (then on the asyncio
+thread);
+:meth:`Bridge.deliver` is called from the asyncio thread (rclpy publishers may be used from
+any thread).
 """
 
 from __future__ import annotations
@@ -37,6 +40,7 @@ from rclpy.qos import (
 
 from fleetctl.client.config import ClientConfig, PublishSpec, SubscribeSpec
 from fleetctl.client.ros import qos
+from fleetctl.client.ros.intake import LoopIntake
 from fleetctl.client.ros.msgtypes import message_class
 from fleetctl.client.ros.qos import AdaptiveSubscription
 from fleetctl.errors import ConfigError
@@ -182,6 +186,8 @@ class Bridge(Node):
             RobofleetStatus frame; battery is a fraction in [0, 1] or None when unknown.
         clock_ns: wall clock in ns since the epoch (injected for tests).
         context: the rclpy context of the node (None: the global one).
+        intake: takes the uncompressed ``publish`` topics' messages in the asyncio loop's
+            thread (None: the executor does).
     """
 
     def __init__(
@@ -193,6 +199,7 @@ class Bridge(Node):
         encode_status: Callable[[float | None], bytes],
         clock_ns: Callable[[], int] = time.time_ns,
         context: Any = None,
+        intake: LoopIntake | None = None,
     ) -> None:
         _check_no_echo(config)
         # No services: the node's settings come from the client's YAML file, and its
@@ -215,7 +222,10 @@ class Bridge(Node):
         for i, spec in enumerate(config.publish):
             cls = _entry_class(f"publish[{i}] ({spec.topic})", spec.type)
             self.inputs.append(AdaptiveSubscription(
-                self, cls, spec.topic, self._make_callback(spec), no_drop=spec.no_drop))
+                self, cls, spec.topic, self._make_callback(spec), no_drop=spec.no_drop,
+                # A compressed topic's zstd/deflate work (milliseconds per megabyte, with
+                # the GIL released) stays off the loop, which other topics' frames wait on.
+                intake=intake if spec.compression == "none" else None))
         self.create_timer(QOS_REFRESH_PERIOD_S, self._refresh_qos)
         self._routes: list[_Route] = []
         for i, sub in enumerate(config.subscribe):

@@ -12,6 +12,8 @@ timers, guard conditions and waitables (the QoS event handlers rclpy attaches to
 subscriptions), in one wait set per round, and calls callbacks directly. It does not serve
 services or clients, and runs no coroutines: the client node is created without parameter
 services (its settings come from the YAML file) and has no services or clients of its own.
+Subscriptions whose callback is a :class:`~fleetctl.client.ros.intake.LoopServed` are left
+to the asyncio loop's thread (:mod:`fleetctl.client.ros.intake`).
 
 It uses the wait set of rclpy's C extension (``rclpy_implementation.WaitSet``), as rclpy's
 executors do; that API is internal to rclpy, so ``tests/client/ros/test_executor.py`` runs it
@@ -33,6 +35,8 @@ from rclpy.guard_condition import GuardCondition
 from rclpy.impl.implementation_singleton import rclpy_implementation as _rclpy
 from rclpy.node import Node
 
+from fleetctl.client.ros.intake import LoopServed
+
 log = logging.getLogger(__name__)
 
 WAIT_TIMEOUT_NS = 1_000_000_000  # a bound on each wait; shutdown wakes it earlier anyway
@@ -52,6 +56,7 @@ class NodeExecutor:
         self._context = context
         self._stopping = threading.Event()
         self._wake = GuardCondition(None, None, context=context)
+        self.rounds = 0  # waits done: a test's view of spurious wakeups
         context.on_shutdown(self.shutdown)
 
     def spin(self) -> None:
@@ -67,10 +72,12 @@ class NodeExecutor:
 
     def spin_once(self, timeout_ns: int) -> None:
         """Wait up to *timeout_ns* for work, then run every ready callback once."""
+        self.rounds += 1
         node = self._node
         with ExitStack() as held:
             # Entering a handle keeps it alive (not destroyed) while the wait set uses it.
-            subscriptions = _enter_all(held, list(node.subscriptions))
+            subscriptions = _enter_all(held, [
+                sub for sub in node.subscriptions if not isinstance(sub.callback, LoopServed)])
             timers = _enter_all(held, list(node.timers))
             guards = _enter_all(held, [*node.guards, self._wake])
             waitables = _enter_all(held, list(node.waitables), handle=False)

@@ -15,8 +15,11 @@ import logging
 from collections.abc import Callable
 from typing import Any
 
+from rclpy.event_handler import SubscriptionEventCallbacks
 from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
+
+from fleetctl.client.ros.intake import LoopIntake, LoopServed
 
 log = logging.getLogger(__name__)
 
@@ -34,12 +37,17 @@ def profile(reliable: bool, no_drop: bool) -> QoSProfile:
     )
 
 
-def publishers_reliable(node: Node, topic: str) -> bool | None:
-    """True if every discovered publisher of *topic* is reliable; None if there are none."""
-    infos = node.get_publishers_info_by_topic(topic)
+def publishers_reliable(infos: list[Any]) -> bool | None:
+    """True if every publisher in *infos* (``get_publishers_info_by_topic``) is reliable;
+    None if there are none."""
     if not infos:
         return None
     return all(info.qos_profile.reliability == ReliabilityPolicy.RELIABLE for info in infos)
+
+
+def type_name(msg_type: Any) -> str:
+    """``pkg/msg/Name`` of an rclpy message class (as publisher infos spell topic types)."""
+    return f"{msg_type.__module__.split('.')[0]}/msg/{msg_type.__name__}"
 
 
 class AdaptiveSubscription:
@@ -57,12 +65,18 @@ class AdaptiveSubscription:
         topic: local topic.
         callback: receives raw CDR bytes.
         no_drop: the topic is no_drop (deeper history, reliable first).
+        intake: Serve the subscription in the asyncio loop's thread (None: the executor
+            serves it). If the intake cannot take it, the executor does, with a warning.
     """
 
     def __init__(self, node: Node, msg_type: Any, topic: str,
-                 callback: Callable[[bytes], None], *, no_drop: bool) -> None:
+                 callback: Callable[[bytes], None], *, no_drop: bool,
+                 intake: LoopIntake | None = None) -> None:
         self._node = node
+        self._intake = intake
         self._msg_type = msg_type
+        self._type_name = type_name(msg_type)
+        self._warned_types: set[str] = set()
         self._topic = topic
         self._callback = callback
         self._no_drop = no_drop
@@ -71,19 +85,59 @@ class AdaptiveSubscription:
         self._subscription = self._create()
 
     def _create(self) -> Any:
+        intake = self._intake
+        if intake is None:
+            return self._subscribe(self._callback)
+        # The marker is set at creation, so the executor never serves this subscription.
+        # Without rclpy's default QoS event handlers: the executor would wait on this
+        # reader's status condition without taking its data, and on Fast DDS that wait
+        # returns at once while data keeps arriving (the executor spun ~900 rounds/s).
+        # What those handlers log (incompatible QoS or type) is covered by refresh():
+        # the QoS follows the publishers, and other types are warned about there.
+        subscription = self._subscribe(
+            LoopServed(self._callback),
+            event_callbacks=SubscriptionEventCallbacks(use_default_callbacks=False))
+        try:
+            intake.attach(subscription)
+        except OSError as exc:
+            log.warning("%s: taken by the executor thread (the loop cannot serve it: %s)",
+                        self._topic, exc)
+            self._intake = None
+            self._node.destroy_subscription(subscription)
+            return self._subscribe(self._callback)
+        return subscription
+
+    def _subscribe(self, callback: Callable[[bytes], None], **options: Any) -> Any:
         return self._node.create_subscription(
-            self._msg_type, self._topic, self._callback,
-            profile(self.reliable, self._no_drop), raw=True,
+            self._msg_type, self._topic, callback,
+            profile(self.reliable, self._no_drop), raw=True, **options,
         )
+
+    def _warn_other_types(self, infos: list[Any]) -> None:
+        for info in infos:
+            other = info.topic_type
+            if other != self._type_name and other not in self._warned_types:
+                self._warned_types.add(other)
+                log.warning("%s: a publisher sends %s, this client expects %s: its messages "
+                            "are not received", self._topic, other, self._type_name)
+
+    @property
+    def loop_served(self) -> bool:
+        """True when the asyncio loop's thread takes this topic's messages."""
+        return self._intake is not None
 
     def refresh(self) -> None:
         """Match the reliability of the publishers discovered so far (none: keep as is)."""
-        wanted = publishers_reliable(self._node, self._topic)
+        infos = self._node.get_publishers_info_by_topic(self._topic)
+        self._warn_other_types(infos)
+        wanted = publishers_reliable(infos)
         if wanted is None or wanted == self.reliable:
             return
         if self._no_drop and not wanted:
             log.warning("no_drop topic %s has a best-effort publisher: messages can be lost "
                         "before the client sees them", self._topic)
+        if self._intake is not None:
+            self._intake.detach(self._subscription)
         self._node.destroy_subscription(self._subscription)
         self.reliable = wanted
         self.switches += 1

@@ -1,12 +1,16 @@
 """``fleetctl client``: the robot client process (rclpy node + WebSocket link).
 
-Threads: the rclpy executor spins in a worker thread (ROS callbacks encode frames there, off
-the network loop); the asyncio loop with :class:`~fleetctl.client.transport.RobotLink` runs in
-the main thread. Frames cross from ROS to the loop with ``RobotLink.offer_threadsafe`` and
-from the loop to ROS with ``Bridge.deliver`` (rclpy publishers are thread-safe).
+Threads: the asyncio loop with :class:`~fleetctl.client.transport.RobotLink` runs in the main
+thread, and so do the ``publish`` topics' subscriptions where the middleware can wake the
+loop itself (:mod:`fleetctl.client.ros.intake`): their messages are taken, encoded and queued
+without a thread hop. The rclpy executor spins in a worker thread for the rest (timers, the
+battery topic, QoS events, and the ``publish`` topics where the intake is unavailable); its
+frames cross to the loop with ``RobotLink.offer_threadsafe``, and frames go from the loop to
+ROS with ``Bridge.deliver`` (rclpy publishers are thread-safe).
 
-Shutdown on SIGINT/SIGTERM: the link unsubscribes and closes, then the executor stops and
-the node is destroyed (which removes its subscriptions), then rclpy shuts down.
+Shutdown on SIGINT/SIGTERM: the link unsubscribes and closes, the intake lets go of its
+subscriptions, then the executor stops and the node is destroyed (which removes its
+subscriptions), then rclpy shuts down.
 """
 
 from __future__ import annotations
@@ -27,6 +31,7 @@ from rclpy.signals import SignalHandlerOptions
 from fleetctl.client.config import ClientConfig, PublishSpec
 from fleetctl.client.ros.bridge import Bridge, LinkPort
 from fleetctl.client.ros.executor import NodeExecutor
+from fleetctl.client.ros.intake import LoopIntake, load_wakeups
 from fleetctl.client.transport import RobotLink
 from fleetctl.wire.codec import Codec
 from fleetctl.wire.control import encode_status
@@ -104,10 +109,12 @@ async def _serve(config: ClientConfig, context: Context) -> dict[str, Any]:
             bridge.deliver(frame)
 
     link = RobotLink(config, on_frame=on_frame)
-    bridge = Bridge(config, codec, codec.registry.typestore, _port(link, config.status_topic),
-                    status_encoder(codec, config.robot_name), context=context)
-    executor = NodeExecutor(bridge, context)
     loop = asyncio.get_running_loop()
+    wakeups = load_wakeups()
+    intake = None if wakeups is None else LoopIntake(loop, wakeups)
+    bridge = Bridge(config, codec, codec.registry.typestore, _port(link, config.status_topic),
+                    status_encoder(codec, config.robot_name), context=context, intake=intake)
+    executor = NodeExecutor(bridge, context)
     stop = asyncio.Event()
     spinner = threading.Thread(target=_spin, args=(executor, loop, stop), name="rclpy-executor",
                                daemon=True)
@@ -115,13 +122,17 @@ async def _serve(config: ClientConfig, context: Context) -> dict[str, Any]:
         loop.add_signal_handler(signum, stop.set)
     spinner.start()
     runner = asyncio.create_task(link.run())
-    log.info("client %s: %d topics out, %d in, server %s", config.robot_name,
-             len(config.publish), len(config.subscribe), config.server_url)
+    log.info("client %s: %d topics out (%d taken on the loop thread), %d in, server %s",
+             config.robot_name, len(config.publish),
+             sum(entry.loop_served for entry in bridge.inputs), len(config.subscribe),
+             config.server_url)
     try:
         await asyncio.wait([runner, asyncio.create_task(stop.wait())],
                            return_when=asyncio.FIRST_COMPLETED)
     finally:
         await link.stop()
+        if intake is not None:
+            intake.close()
         executor.shutdown()
         spinner.join(_EXECUTOR_JOIN_S)
         bridge.destroy_node()

@@ -375,3 +375,10 @@ def test_receiver_back_after_the_sender_flushed_gets_every_no_drop_message(
         finally:
             bravo.signal(signal.SIGCONT)
         _assert_every_event_arrives_in_order(listener, take, got, count)
+
+
+def test_alpha_takes_its_uncompressed_topics_on_the_loop_thread(fleet: Fleet) -> None:
+    # /scan and /events through the intake (fleetctl.client.ros.intake), /map (zstd) on the
+    # executor: the other tests of this module then exercise both paths.
+    log = fleet.clients["alpha"].log_path.read_text(encoding="utf-8")
+    assert "3 topics out (2 taken on the loop thread)" in log

@@ -67,7 +67,7 @@ class LinkPort:
         admit: ``admit(remote_topic) -> bool``: False when the topic's rate limit says skip
             this message (checked before any decoding work).
         send: ``send(spec, frame)``: queue an encoded frame of publish entry *spec*
-            (thread-safe; called from the rclpy executor thread).
+            (thread-safe; called from the rclpy executor's thread or the loop's).
         send_status: ``send_status(frame)``: queue an encoded RobofleetStatus frame.
     """
 
@@ -216,7 +216,7 @@ class Bridge(Node):
         self._encode_status = encode_status
         self._clock_ns = clock_ns
         self._seq: dict[str, int] = {}
-        self._seq_lock = threading.Lock()  # callbacks may run on several executor threads
+        self._seq_lock = threading.Lock()  # callbacks run on the executor's and the loop's thread
         self._battery: float | None = None
         self.inputs: list[AdaptiveSubscription] = []
         for i, spec in enumerate(config.publish):

@@ -1,10 +1,11 @@
 """``fleetctl client``: the robot client process (rclpy node + WebSocket link).
 
 Threads: the asyncio loop with :class:`~fleetctl.client.transport.RobotLink` runs in the main
-thread, and so do the ``publish`` topics' subscriptions where the middleware can wake the
-loop itself (:mod:`fleetctl.client.ros.intake`): their messages are taken, encoded and queued
-without a thread hop. The rclpy executor spins in a worker thread for the rest (timers, the
-battery topic, QoS events, and the ``publish`` topics where the intake is unavailable); its
+thread, and so do the uncompressed ``publish`` topics' subscriptions where the middleware can
+wake the loop itself (:mod:`fleetctl.client.ros.intake`): their messages are taken, encoded
+and queued without a thread hop. The rclpy executor spins in a worker thread for the rest
+(timers, the battery topic, QoS events, compressed topics, and every ``publish`` topic where
+the intake is unavailable); its
 frames cross to the loop with ``RobotLink.offer_threadsafe``, and frames go from the loop to
 ROS with ``Bridge.deliver`` (rclpy publishers are thread-safe).
 

@@ -32,6 +32,7 @@ import hashlib
 import json
 import os
 import shutil
+import signal
 import statistics
 import subprocess
 import sys
@@ -242,15 +243,20 @@ def bench_dropout(auth: Path, cut_s: float, rate: str) -> dict[str, Any]:
                  "--url", peer.url, "--events", "--seconds", str(before_s + cut_s + after_s)],
                 stdout=subprocess.PIPE, text=True, env={**os.environ,
                                                         "PYTHONPATH": str(HERE.parent)})
-            time.sleep(1.0 + before_s)  # the scenario's timeline (warm-up, steady state)
-            cut_ns = time.time_ns()
-            sh("tc", "-n", ns.robot, "qdisc", "replace", "dev", ns.veth_r, "root", "bfifo",
-               "limit", "0")
-            time.sleep(cut_s)
-            sh("tc", "-n", ns.robot, "qdisc", "replace", "dev", ns.veth_r, "root", "tbf",
-               "rate", rate, "burst", "32kbit", "latency", "400ms")
-            restore_ns = time.time_ns()
-            out, _ = proc.communicate(timeout=120)
+            with proc:  # an interrupted run must not leave the sender behind
+                try:
+                    time.sleep(1.0 + before_s)  # the scenario's timeline (warm-up, steady)
+                    cut_ns = time.time_ns()
+                    sh("tc", "-n", ns.robot, "qdisc", "replace", "dev", ns.veth_r, "root",
+                       "bfifo", "limit", "0")
+                    time.sleep(cut_s)
+                    sh("tc", "-n", ns.robot, "qdisc", "replace", "dev", ns.veth_r, "root",
+                       "tbf", "rate", rate, "burst", "32kbit", "latency", "400ms")
+                    restore_ns = time.time_ns()
+                    out, _ = proc.communicate(timeout=120)
+                except BaseException:
+                    proc.kill()
+                    raise
             sent = json.loads(out.strip().splitlines()[-1])
             report = peer.cmd("report")
         finally:
@@ -302,6 +308,9 @@ def main() -> None:
     parser.add_argument("--skip", default="")
     parser.add_argument("--json", type=Path)
     args = parser.parse_args()
+    # The relay, senders and network namespaces are cleaned up by context managers and
+    # finally blocks; on SIGTERM too, unwind through them instead of dying in place.
+    signal.signal(signal.SIGTERM, lambda *_: sys.exit(128 + signal.SIGTERM))
     skip = set(args.skip.split(",")) - {""}
     results: dict[str, Any] = {}
     with tempfile.TemporaryDirectory() as tmp:

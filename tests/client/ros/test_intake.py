@@ -3,10 +3,11 @@
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import logging
 import os
 import threading
-from collections.abc import AsyncIterator
+from collections.abc import AsyncIterator, Iterator
 from typing import Any
 
 import pytest
@@ -53,6 +54,19 @@ async def nodes() -> AsyncIterator[Nodes]:
         n.node.destroy_node()
         n.peer.destroy_node()
         context.try_shutdown()
+
+
+@contextlib.contextmanager
+def executor_spinning(nodes: Nodes) -> Iterator[NodeExecutor]:
+    """The client's executor spinning the node under test in a thread, stopped on exit."""
+    executor = NodeExecutor(nodes.node, nodes.context)
+    spinner = threading.Thread(target=executor.spin, daemon=True)
+    spinner.start()
+    try:
+        yield executor
+    finally:
+        executor.shutdown()
+        spinner.join(5)
 
 
 def wakeups() -> Wakeups:
@@ -120,14 +134,8 @@ async def test_the_executor_leaves_loop_served_subscriptions_alone(nodes: Nodes)
     plain: list[str] = []
     raw_subscription(nodes.node, "/shared", served.append)  # not attached: nobody takes it
     nodes.node.create_subscription(String, "/shared", lambda m: plain.append(m.data), QOS)
-    executor = NodeExecutor(nodes.node, nodes.context)
-    spinner = threading.Thread(target=executor.spin, daemon=True)
-    spinner.start()
-    try:
+    with executor_spinning(nodes):
         await publish_until(nodes.publisher("/shared"), "x", lambda: len(plain) >= 3)
-    finally:
-        executor.shutdown()
-        spinner.join(5)
     assert served == []
 
 
@@ -227,15 +235,9 @@ async def test_adaptive_subscription_falls_back_to_the_executor(
     assert "taken by the executor thread" in caplog.text
     subs = list(nodes.node.subscriptions)
     assert len(subs) == 1 and not isinstance(subs[0].callback, LoopServed)
-    executor = NodeExecutor(nodes.node, nodes.context)
-    spinner = threading.Thread(target=executor.spin, daemon=True)
-    spinner.start()
-    try:
+    with executor_spinning(nodes):
         best_effort = QoSProfile(depth=10, reliability=ReliabilityPolicy.BEST_EFFORT)
         await publish_until(nodes.publisher("/fallback", best_effort), "y", lambda: got)
-    finally:
-        executor.shutdown()
-        spinner.join(5)
 
 
 async def test_the_executor_does_not_spin_beside_a_loop_served_topic(nodes: Nodes) -> None:
@@ -249,15 +251,9 @@ async def test_the_executor_does_not_spin_beside_a_loop_served_topic(nodes: Node
     entry = AdaptiveSubscription(nodes.node, String, "/quiet", got.append, no_drop=False,
                                  intake=intake)
     assert entry._subscription.event_handlers == []
-    executor = NodeExecutor(nodes.node, nodes.context)
-    spinner = threading.Thread(target=executor.spin, daemon=True)
-    spinner.start()
-    try:
+    with executor_spinning(nodes) as executor:
         best_effort = QoSProfile(depth=10, reliability=ReliabilityPolicy.BEST_EFFORT)
         await publish_until(nodes.publisher("/quiet", best_effort), "z", lambda: len(got) >= 20)
-    finally:
-        executor.shutdown()
-        spinner.join(5)
     # One wait of up to 1 s (WAIT_TIMEOUT_NS) at a time, woken by nothing while 20+
     # messages went past on the loop; a spinning executor did thousands.
     assert executor.rounds < 10

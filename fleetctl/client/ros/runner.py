@@ -144,6 +144,8 @@ async def _serve(config: ClientConfig, context: Context) -> dict[str, Any]:
         raise failure
     stats = link.stats()
     stats["bridge"] = vars(bridge.stats)
+    if intake is not None:
+        stats["intake"] = {"taken": intake.taken, "failed_callbacks": intake.failed_callbacks}
     return stats
 
 

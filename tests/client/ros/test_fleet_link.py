@@ -111,7 +111,8 @@ def fleet(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Fleet]:
     try:
         for name, domain in (("alpha", ALPHA_DOMAIN), ("bravo", BRAVO_DOMAIN)):
             fleet.clients[name] = JsonProc(
-                fleetctl_argv("client", "--config", str(root / f"{name}.yaml")),
+                fleetctl_argv("client", "--config", str(root / f"{name}.yaml"),
+                              "--print-stats"),
                 {"ROS_DOMAIN_ID": str(domain)}, root / f"{name}.log")
         wait_until(lambda: online_robots(fleet.http) >= {"alpha", "bravo"}, STARTUP_S,
                    describe="both robots online")
@@ -121,6 +122,11 @@ def fleet(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Fleet]:
         fleet.server.stop()
     # SIGTERM is a clean shutdown (unsubscribe, close, destroy the node): exit code 0.
     assert codes == {"alpha": 0, "bravo": 0}, [p.stderr_tail() for p in fleet.clients.values()]
+    # The final stats (--print-stats, the last stdout line): alpha's /scan and /events went
+    # through the loop-thread intake, and none of its callbacks failed.
+    alpha_stats = list(fleet.clients["alpha"].lines.queue)[-1]
+    assert alpha_stats["intake"]["taken"] > 0
+    assert alpha_stats["intake"]["failed_callbacks"] == 0
 
 
 def _scan_cdr() -> bytes:

@@ -14,9 +14,8 @@ The node knows nothing about WebSockets: it talks to the link through two callab
 (:class:`LinkPort`) so it is tested without a server, and the link is tested without ROS.
 Callbacks run on the rclpy executor thread, except those of uncompressed ``publish`` topics
 when the node is given a :class:`~fleetctl.client.ros.intake.LoopIntake` (then on the asyncio
-thread);
-:meth:`Bridge.deliver` is called from the asyncio thread (rclpy publishers may be used from
-any thread).
+thread); :meth:`Bridge.deliver` is called from the asyncio thread (rclpy publishers may be
+used from any thread).
 """
 
 from __future__ import annotations

@@ -85,14 +85,11 @@ async def publish_until(pub: Any, text: str, done: Any, timeout_s: float = 10.0)
     """Publish until ``done()`` (discovery takes a moment), yielding to the loop between."""
     from std_msgs.msg import String
 
-    async def attempt() -> bool:
+    def attempt() -> bool:
         pub.publish(String(data=text))
-        await asyncio.sleep(0.02)  # polling interval of a deadline-bounded wait
         return bool(done())
 
-    deadline = asyncio.get_running_loop().time() + timeout_s
-    while not await attempt():
-        assert asyncio.get_running_loop().time() < deadline, "not delivered before the deadline"
+    await wait_until(attempt, timeout_s)
 
 
 async def test_messages_are_taken_on_the_loop_thread(nodes: Nodes) -> None:

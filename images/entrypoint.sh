@@ -50,7 +50,30 @@ if [ -n "${WG_CONFIG:-}" ]; then
   fi
 fi
 
+# FLEETCTL_SECRETS names a read-only directory of secret files (the TLS key) that the
+# unprivileged process must read: copy them, as root, into a 0700 directory it owns, each 0600.
+# The host's copies stay 0600 root-owned; nothing is ever made world-readable.
+hand_over_secrets() {
+  local src=$1 dst=/run/fleetctl/secrets f
+  install -d -m 0700 /run/fleetctl "$dst"
+  for f in "$src"/*; do
+    [ -f "$f" ] || continue
+    install -m 0600 "$f" "$dst/$(basename "$f")"
+  done
+  if [ "$(id -u)" = 0 ] && id fleetctl >/dev/null 2>&1; then
+    chown -R fleetctl:fleetctl /run/fleetctl
+  fi
+}
+
+if [ -n "${FLEETCTL_SECRETS:-}" ]; then
+  hand_over_secrets "$FLEETCTL_SECRETS"
+fi
+
 if [ "$(id -u)" = 0 ] && [ "${RUN_AS_ROOT:-0}" != 1 ] && id fleetctl >/dev/null 2>&1; then
+  # setpriv changes the ids, not the environment: without this HOME stays /root and ROS
+  # (rcl logging in ~/.ros/log) cannot start.
+  HOME=$(getent passwd fleetctl | cut -d: -f6)
+  export HOME USER=fleetctl LOGNAME=fleetctl
   exec setpriv --reuid=fleetctl --regid=fleetctl --init-groups --inh-caps=-all "$@"
 fi
 exec "$@"

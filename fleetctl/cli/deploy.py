@@ -1,18 +1,36 @@
-"""``fleetctl build``, ``up``, ``down``, ``status``, ``logs``: images and a compose deployment.
+"""``fleetctl build``, ``up``, ``down``, ``status``, ``logs``: images and the server host's
+compose deployment.
 
 The commands are thin: each calls a library function in :mod:`fleetctl.deploy.images` or
-:mod:`fleetctl.deploy.compose` and prints its result as text or ``--output json``.
+:mod:`fleetctl.deploy.composerun` and prints its result as text or ``--output json``. The
+fleet directory comes from ``--fleet DIR``, else ``$FLEET_DIR``, else the current directory,
+as for every other fleet command.
 """
 
 from __future__ import annotations
 
-import json
 from pathlib import Path
+from typing import Any
 
 import typer
 
-from fleetctl.deploy import compose, images
+from fleetctl.cli.output import OutputFormat, emit, output_option
+from fleetctl.deploy import composerun, images
+from fleetctl.deploy.compose import DEFAULT_BIND
 from fleetctl.deploy.dockercli import require_docker
+from fleetctl.errors import FleetError
+
+_FLEET_HELP = "Fleet directory (default: $FLEET_DIR, else the current directory)."
+
+
+def _fleet_option() -> Any:
+    return typer.Option(Path("."), "--fleet", "-f", envvar="FLEET_DIR", help=_FLEET_HELP,
+                        show_default=False)
+
+
+def _project_option() -> Any:
+    return typer.Option(None, "--project", help="Compose project name "
+                        "(default: the one `up` used, else fleetctl + the directory's name).")
 
 
 def _progress(line: str) -> None:
@@ -23,76 +41,101 @@ def build(
     image: list[str] = typer.Option(
         [], "--image", "-i", help="Image to build (repeatable); default: all."
     ),
-    source: Path | None = typer.Option(None, "--source", help="fleetctl source checkout."),
+    source: Path | None = typer.Option(
+        None, "--source", help="Build from this fleetctl checkout (default: the installed "
+        "fleetctl, or the checkout it runs from)."),
     base_image: str = typer.Option(
         images.BASE_IMAGE, "--base-image", help="Base image; the default is made locally."
     ),
     mirror: str | None = typer.Option(
         None, "--mirror", help="Debian mirror for debootstrap (default: apt's)."
     ),
+    output: OutputFormat = output_option(),
 ) -> None:
     """Build the server, client, webviz and router images (no registry needed)."""
     require_docker()
     cfg = images.BuildConfig(
-        source_dir=source or images.find_source_dir(),
+        source_dir=images.check_source_dir(source) if source else images.find_source_dir(),
         base_image=base_image,
         mirror_url=mirror,
         images=tuple(image) or images.IMAGE_NAMES,
     )
-    for tag in images.build_all(cfg, progress=_progress):
-        typer.echo(tag)
+    tags = images.build_all(cfg, progress=_progress)
+    emit({"images": tags}, output, lambda: "\n".join(tags))
 
 
 def up(
-    fleet_dir: Path = typer.Argument(Path("."), help="Fleet directory (has fleet.yaml)."),
+    fleet: Path = _fleet_option(),
     wireguard: str = typer.Option(
-        "auto", "--wireguard", help="auto | on | off: run robots over WireGuard."
-    ),
+        "auto", "--wireguard", help="auto | on | off: run the tunnel (auto: when /dev/net/tun "
+        "exists)."),
+    sim: bool = typer.Option(
+        False, "--sim", help="Also run a simulated robot (ROS 2 sim + real client) for every "
+        "robot of the fleet, to try the fleet out on this host."),
+    bind: str = typer.Option(
+        DEFAULT_BIND, "--bind", help="Host address the HTTPS and WireGuard ports are "
+        "published on (127.0.0.1: this host only)."),
+    https_port: int | None = typer.Option(
+        None, "--https-port", min=1, max=65535,
+        help="Host port of the page + WebSocket (default: the fleet's https_port)."),
     project: str | None = typer.Option(None, "--project", help="Compose project name."),
+    output: OutputFormat = output_option(),
 ) -> None:
-    """Render the compose file of the fleet and start it."""
+    """Start the fleet on this server host: server, web page and WireGuard (docker compose).
+
+    On a running fleet it applies what changed and leaves the rest running.
+    """
     require_docker()
-    result = compose.up(compose.plan_for(fleet_dir, wireguard=wireguard, project=project),
-                        progress=_progress)
-    typer.echo(f"compose file: {result.compose_file}")
-    typer.echo(f"wireguard: {result.wireguard_note}")
+    options = composerun.default_options(fleet, project=project, wireguard=wireguard,
+                                         sim=sim, bind=bind, https_port=https_port)
+    result = composerun.up(fleet, options, progress=_progress)
+
+    def text() -> str:
+        robots = ", ".join(result.robots) or "none yet"
+        return (f"fleet is up: open {result.url} and sign in with a user token "
+                f"(`fleetctl add-user`)\nwireguard: {result.wireguard_note}\n"
+                f"robots: {robots}{' (simulated)' if result.simulated else ''}\n"
+                f"compose file: {result.compose_file}\nnext: fleetctl status")
+
+    emit(result, output, text)
 
 
 def down(
-    fleet_dir: Path = typer.Argument(Path("."), help="Fleet directory."),
-    project: str | None = typer.Option(None, "--project", help="Compose project name."),
+    fleet: Path = _fleet_option(),
+    delete_data: bool = typer.Option(
+        False, "--delete-data", help="Also delete the server's data volume (robot registry, "
+        "sessions). Without it, data is kept for the next `up`."),
+    project: str | None = _project_option(),
 ) -> None:
-    """Stop and remove the fleet's containers and networks."""
+    """Stop the fleet: remove its containers and networks, keep its data."""
     require_docker()
-    compose.down(compose.existing(fleet_dir, project=project), progress=_progress)
+    options = composerun.existing_options(fleet, project)
+    composerun.down(fleet, options, delete_data=delete_data, progress=_progress)
 
 
 def status(
-    fleet_dir: Path = typer.Argument(Path("."), help="Fleet directory."),
-    project: str | None = typer.Option(None, "--project", help="Compose project name."),
-    output: str = typer.Option("text", "--output", "-o", help="text | json"),
+    fleet: Path = _fleet_option(),
+    project: str | None = _project_option(),
+    output: OutputFormat = output_option(),
 ) -> None:
-    """Show each service's health and each robot's online state."""
+    """Show each container (state, health, restarts), each robot and each tunnel peer."""
     require_docker()
-    report = compose.status(compose.existing(fleet_dir, project=project))
-    if output == "json":
-        typer.echo(json.dumps(report.to_json(), indent=2))
-        return
-    typer.echo(report.render_text())
+    report = composerun.status(fleet, composerun.existing_options(fleet, project))
+    emit(report.to_json(), output, report.render_text)
 
 
 def logs(
-    fleet_dir: Path = typer.Argument(Path("."), help="Fleet directory."),
-    service: list[str] = typer.Argument(None, help="Services (default: all)."),
-    follow: bool = typer.Option(False, "--follow", "-f", help="Follow the logs."),
-    project: str | None = typer.Option(None, "--project", help="Compose project name."),
+    service: list[str] = typer.Argument(None, help="Services (default: all), e.g. server."),
+    fleet: Path = _fleet_option(),
+    follow: bool = typer.Option(False, "--follow", help="Keep printing new lines."),
+    project: str | None = _project_option(),
 ) -> None:
     """Show (or follow) the logs of the fleet's services."""
     require_docker()
-    code = compose.logs(compose.existing(fleet_dir, project=project), list(service or []),
-                        follow=follow)
+    code = composerun.logs(fleet, composerun.existing_options(fleet, project),
+                           list(service or []), follow=follow)
     if code != 0:
-        raise typer.Exit(code)
+        raise FleetError(f"compose logs exited with {code}")
 
 
 def register(app: typer.Typer) -> None:

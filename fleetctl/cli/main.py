@@ -28,6 +28,17 @@ _COMMAND_MODULES = (
 )
 
 
+# `fleetctl --help` groups commands by what an operator is doing.
+_SETUP, _RUN, _DEPLOY, _TEST = "Set up a fleet", "Run one component", "Deploy", "Test"
+_PANELS = {
+    **dict.fromkeys(("init", "set-endpoint", "add-robot", "remove-robot", "add-user",
+                     "remove-user", "list", "list-fleet", "render", "export", "schema"), _SETUP),
+    **dict.fromkeys(("server", "client", "webviz", "demo"), _RUN),
+    **dict.fromkeys(("build", "up", "down", "status", "logs"), _DEPLOY),
+    "e2e": _TEST,
+}
+
+
 def _version_callback(value: bool) -> None:
     if value:
         typer.echo(f"fleetctl {__version__}")
@@ -40,6 +51,7 @@ def build_app() -> typer.Typer:
         name="fleetctl",
         help="Communication, monitoring and tasking for fleets of ROS 2 robots.",
         no_args_is_help=True,
+        context_settings={"help_option_names": ["-h", "--help"]},
         pretty_exceptions_enable=False,
         add_completion=False,
     )
@@ -54,6 +66,11 @@ def build_app() -> typer.Typer:
 
     for name in _COMMAND_MODULES:
         importlib.import_module(name).register(app)
+    for info in app.registered_commands:
+        name = info.name or (info.callback.__name__ if info.callback else "")
+        info.rich_help_panel = info.rich_help_panel or _PANELS.get(name.replace("_", "-"))
+    for group in app.registered_groups:
+        group.rich_help_panel = group.rich_help_panel or _PANELS.get(group.name or "")
     return app
 
 

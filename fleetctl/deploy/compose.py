@@ -1,21 +1,35 @@
-"""A docker compose deployment of a fleet directory: render, up, down, status, logs.
+"""The server host's compose deployment of a fleet directory: plan, render, write files.
 
-The compose file is generated from the fleet directory layout of docs/design.md section 6
-(``server/``, ``robots/NAME/``), written to ``FLEET/.compose/docker-compose.yml`` with the
-files the containers need (a server.yaml with container paths, robot WireGuard configs whose
-``Endpoint`` is the server container) and run with whichever Compose is installed.
+``fleetctl up`` turns the fleet directory (docs/design.md section 6) into
+``FLEET/.compose/docker-compose.yml`` plus container-side files; running it is
+:mod:`fleetctl.deploy.composerun`. What runs:
+
+- ``server``: the relay, the web page and WireGuard in one container. People reach page and
+  WebSocket through ONE published HTTPS port (the server's ``web:`` listener, TLS with the
+  fleet's certificate); robots reach the plain ``ws://`` listener only inside the tunnel
+  (it binds the server's WireGuard address and loopback). The WireGuard UDP port is
+  published for real robots.
+- ``robot-NAME`` (only with ``--sim``): a simulated robot with its real client, joining over
+  WireGuard like a real robot would (``Endpoint = server:PORT``).
+
+Live files are mounted, not copied: ``FLEET/server`` is mounted read-only, so the server
+sees ``auth.yaml`` changes (it reloads them) and ``wg syncconf`` reads the current peers.
+Secrets the unprivileged server process needs (the TLS key) are handed over by the image
+entrypoint (``FLEETCTL_SECRETS``), which copies them to a root-owned-then-chowned 0600 file
+before dropping privileges; they are never made world-readable on the host.
 
 Networking has two modes, both keeping the server's IP identity of robots real:
 
 - WireGuard (default when ``/dev/net/tun`` exists): server and robots run ``wireguard-go``
-  with the configs ``fleetctl`` generated; robots reach ``10.8.0.1`` through the tunnel.
+  with the configs ``fleetctl`` generated.
 - plain (``--wireguard off``, or no TUN device): the compose network *is* the fleet subnet;
-  each robot container gets its fleet address, so the auth map still matches. ``up`` says so
+  each simulated robot gets its fleet address, so the auth map still matches. ``up`` says so
   loudly.
 
 The file format is Compose "2.4", which both Debian's ``docker-compose`` v1 and the
 ``docker compose`` v2 plugin accept (v1 cannot read the newer unversioned format's
-``depends_on`` conditions).
+``depends_on`` conditions). The compose file is data: dicts dumped as YAML, every command an
+argument list, never a shell string.
 """
 
 from __future__ import annotations
@@ -24,26 +38,29 @@ import ipaddress
 import json
 import os
 import re
-import shutil
-import subprocess
-from collections.abc import Callable, Sequence
-from dataclasses import dataclass, field
+from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Any
 
 import yaml
 
 from fleetctl import __version__
-from fleetctl.deploy.dockercli import check, subprocess_runner
+from fleetctl.deploy.files import FileWrite, write_file
 from fleetctl.deploy.images import image_tag
 from fleetctl.errors import ConfigError, EnvironmentMissing, FleetError
 from fleetctl.yamlfile import read_yaml
 
-Progress = Callable[[str], None]
 COMPOSE_DIR = ".compose"
 COMPOSE_FILE = "docker-compose.yml"
-SERVER_ETC = "/etc/fleetctl/server"
+STATE_FILE = "state.json"
+RUN_ETC = "/etc/fleetctl/run"  # the compose dir's server files (server.yaml, cert)
+FLEET_ETC = "/etc/fleetctl/fleet"  # FLEET/server, live (auth.yaml, wireguard/wg0.conf)
+SECRETS_ETC = "/etc/fleetctl/secrets"  # handed to the server user by the entrypoint
+SECRETS_RUN = "/run/fleetctl/secrets"
 ROBOT_ETC = "/etc/fleetctl/robot"
+SERVER_WG_CONF = f"{FLEET_ETC}/wireguard/wg0.conf"
+WG_INTERFACE = "wg0"  # the entrypoint names the interface after the config file
+DEFAULT_BIND = "0.0.0.0"
 
 
 @dataclass(frozen=True)
@@ -62,36 +79,74 @@ class RobotEntry:
 
 
 @dataclass(frozen=True)
+class Options:
+    """What the operator chose for ``up``; kept in ``.compose/state.json`` so that ``down``,
+    ``status``, ``logs`` and live changes act on the deployment as it was started.
+
+    Attributes:
+        project: Compose project name (container name prefix).
+        wireguard: ``auto``, ``on`` or ``off`` as asked.
+        sim: Run a simulated robot for every robot of the fleet.
+        bind: Host address the HTTPS and WireGuard ports are published on.
+        https_port: Host port of the HTTPS listener; ``None``: the fleet's ``https_port``.
+        version: fleetctl version (image tag) the deployment was started with.
+    """
+
+    project: str
+    wireguard: str = "auto"
+    sim: bool = False
+    bind: str = DEFAULT_BIND
+    https_port: int | None = None
+    version: str = __version__
+
+
+@dataclass(frozen=True)
 class ComposePlan:
     """Everything needed to render and run one fleet's compose project.
 
     Attributes:
         fleet_dir: The fleet directory.
-        project: Compose project name (container name prefix).
-        wireguard: Run robots over WireGuard (else the plain network, see module doc).
+        options: The operator's choices.
+        wireguard: Run over WireGuard (else the plain network, see the module doc).
         wireguard_note: Why that mode was chosen, shown to the user.
         robots: The robots, in name order.
-        server_port: Server WebSocket/HTTP port inside the network.
-        webviz_port: Webviz HTTP port (published on 127.0.0.1).
+        server_port: The plain (in-tunnel) WebSocket/HTTP port.
+        https_port: The server's HTTPS port inside the container.
+        tls_cert: The certificate on the host.
+        tls_key: Its private key on the host.
         wireguard_port: Server WireGuard UDP port.
         fleet_subnet: The fleet subnet (``10.8.0.0/24``).
         server_ip: The server's fleet address.
-        version: Image tag.
-        sim: Run the simulated robot next to each client.
     """
 
     fleet_dir: Path
-    project: str
+    options: Options
     wireguard: bool
     wireguard_note: str
     robots: tuple[RobotEntry, ...]
-    server_port: int = 8080
-    webviz_port: int = 8000
+    server_port: int
+    https_port: int
+    tls_cert: Path
+    tls_key: Path
     wireguard_port: int = 51820
     fleet_subnet: str = "10.8.0.0/24"
     server_ip: str = "10.8.0.1"
-    version: str = __version__
-    sim: bool = True
+
+    @property
+    def project(self) -> str:
+        """Compose project name."""
+        return self.options.project
+
+    @property
+    def published_https_port(self) -> int:
+        """The host port people open in the browser."""
+        return self.options.https_port or self.https_port
+
+    @property
+    def url(self) -> str:
+        """The page's URL on the server host."""
+        host = "localhost" if self.options.bind in ("0.0.0.0", "::") else self.options.bind
+        return f"https://{host}:{self.published_https_port}/"
 
     @property
     def compose_dir(self) -> Path:
@@ -104,32 +159,11 @@ class ComposePlan:
         return self.compose_dir / COMPOSE_FILE
 
 
-@dataclass(frozen=True)
-class UpResult:
-    """What ``up`` did."""
-
-    compose_file: Path
-    wireguard_note: str
+# --- reading the fleet directory --------------------------------------------------------
 
 
-def compose_command(runner: Callable[..., Any] = subprocess_runner) -> list[str]:
-    """The Compose command here: ``docker compose`` (v2 plugin) or ``docker-compose`` (v1).
-
-    Raises:
-        EnvironmentMissing: neither is installed.
-    """
-    if runner(["docker", "compose", "version"], None, True).returncode == 0:
-        return ["docker", "compose"]
-    if shutil.which("docker-compose"):
-        return ["docker-compose"]
-    raise EnvironmentMissing(
-        "neither `docker compose` (v2) nor `docker-compose` (v1) is installed "
-        "(Debian: apt-get install docker-compose)"
-    )
-
-
-def _read_server_config(path: Path) -> dict[str, Any]:
-    data = read_yaml(path, "server config")
+def _read_mapping(path: Path, what: str) -> dict[str, Any]:
+    data = read_yaml(path, what)
     if not isinstance(data, dict):
         raise ConfigError(f"{path}: expected a mapping at the top level")
     return data
@@ -155,7 +189,8 @@ def _robot_ip(robot_dir: Path) -> str:
         raise ConfigError(f"{conf}: field Address: {address!r} is not an IP address") from exc
 
 
-def _project_name(fleet_dir: Path) -> str:
+def project_name(fleet_dir: Path) -> str:
+    """The default compose project of a fleet directory (``fleetctl`` + its name)."""
     name = re.sub(r"[^a-z0-9]+", "", fleet_dir.resolve().name.lower()) or "fleet"
     return f"fleetctl{name}"
 
@@ -171,7 +206,7 @@ def wireguard_mode(requested: str, tun: Path = Path("/dev/net/tun")) -> tuple[bo
     if requested == "off":
         return False, "off (requested): robots use the plain network with their fleet IPs"
     if tun.exists():
-        return True, "on: wireguard-go in the server and robot containers"
+        return True, "on: wireguard-go in the server (and simulated robot) containers"
     if requested == "on":
         raise EnvironmentMissing(f"--wireguard on, but {tun} does not exist on this host")
     return False, (
@@ -180,90 +215,141 @@ def wireguard_mode(requested: str, tun: Path = Path("/dev/net/tun")) -> tuple[bo
     )
 
 
-def plan_for(
-    fleet_dir: Path, *, wireguard: str = "auto", project: str | None = None, sim: bool = True
-) -> ComposePlan:
+def _port(value: Any, path: Path, field: str) -> int:
+    if isinstance(value, bool) or not isinstance(value, int) or not 0 < value < 65536:
+        raise ConfigError(f"{path}: field {field}: expected a port 1..65535, got {value!r}")
+    return int(value)
+
+
+def _web_section(server_yaml: Path, cfg: dict[str, Any]) -> tuple[int, Path, Path]:
+    web = cfg.get("web")
+    if not isinstance(web, dict):
+        raise ConfigError(f"{server_yaml}: field web: missing (made by a fleetctl without "
+                          "HTTPS); run `fleetctl render`")
+    port = _port(web.get("listen_port", 8443), server_yaml, "web.listen_port")
+    paths = []
+    for field in ("tls_cert", "tls_key"):
+        value = web.get(field)
+        if not isinstance(value, str) or not value:
+            raise ConfigError(f"{server_yaml}: field web.{field}: missing")
+        path = (server_yaml.parent / value).resolve()
+        if not path.is_file():
+            raise ConfigError(f"{server_yaml}: field web.{field}: {path} does not exist")
+        paths.append(path)
+    return port, paths[0], paths[1]
+
+
+def read_robots(fleet_dir: Path) -> tuple[RobotEntry, ...]:
+    """The robots with a client config under ``FLEET/robots``, in name order.
+
+    Raises:
+        ConfigError: a robot's WireGuard config has no usable ``Address``.
+    """
+    robots_dir = fleet_dir / "robots"
+    found = []
+    for robot_dir in sorted(robots_dir.iterdir()) if robots_dir.is_dir() else []:
+        if (robot_dir / "client.yaml").is_file():
+            found.append(RobotEntry(robot_dir.name, _robot_ip(robot_dir), robot_dir))
+    return tuple(found)
+
+
+def plan_for(fleet_dir: Path, options: Options | None = None) -> ComposePlan:
     """Read the fleet directory and decide the deployment.
 
     Raises:
         ConfigError: the fleet directory, a config or a WireGuard config is missing or bad
             (the message names file and field).
+        FleetError: a bad ``--wireguard`` choice.
     """
     fleet_dir = fleet_dir.resolve()
     if not (fleet_dir / "fleet.yaml").is_file():
-        raise ConfigError(f"{fleet_dir / 'fleet.yaml'}: missing; is this a fleet directory?")
-    server = _read_server_config(fleet_dir / "server" / "server.yaml")
-    port = server.get("listen_port", 8080)
-    if not isinstance(port, int) or not 0 < port < 65536:
-        raise ConfigError(f"{fleet_dir / 'server/server.yaml'}: field listen_port: bad port")
-    robots = []
-    robots_dir = fleet_dir / "robots"
-    for robot_dir in sorted(robots_dir.iterdir()) if robots_dir.is_dir() else []:
-        if (robot_dir / "client.yaml").is_file():
-            robots.append(RobotEntry(robot_dir.name, _robot_ip(robot_dir), robot_dir))
-    wg_on, note = wireguard_mode(wireguard)
-    wg_port = _wg_value(fleet_dir / "server" / "wireguard" / "wg0.conf", "ListenPort")
-    server_addr = _wg_value(fleet_dir / "server" / "wireguard" / "wg0.conf", "Address")
+        raise ConfigError(f"{fleet_dir / 'fleet.yaml'}: missing; is this a fleet directory? "
+                          "(set --fleet or FLEET_DIR)")
+    options = options or Options(project_name(fleet_dir))
+    server_yaml = fleet_dir / "server" / "server.yaml"
+    server = _read_mapping(server_yaml, "server config")
+    port = _port(server.get("listen_port", 8080), server_yaml, "listen_port")
+    https_port, cert, key = _web_section(server_yaml, server)
+    wg_on, note = wireguard_mode(options.wireguard)
+    wg_conf = fleet_dir / "server" / "wireguard" / "wg0.conf"
+    wg_port = _wg_value(wg_conf, "ListenPort")
+    server_addr = _wg_value(wg_conf, "Address")
+    if server_addr is None:
+        raise ConfigError(f"{wg_conf}: field Address: missing (run `fleetctl render`?)")
+    iface = ipaddress.ip_interface(server_addr)
     return ComposePlan(
-        fleet_dir=fleet_dir,
-        project=project or _project_name(fleet_dir),
-        wireguard=wg_on,
-        wireguard_note=note,
-        robots=tuple(robots),
-        server_port=port,
+        fleet_dir=fleet_dir, options=options, wireguard=wg_on, wireguard_note=note,
+        robots=read_robots(fleet_dir), server_port=port, https_port=https_port,
+        tls_cert=cert, tls_key=key,
         wireguard_port=int(wg_port) if wg_port and wg_port.isdigit() else 51820,
-        server_ip=str(ipaddress.ip_interface(server_addr).ip) if server_addr else "10.8.0.1",
-        fleet_subnet=str(ipaddress.ip_interface(server_addr).network)
-        if server_addr
-        else "10.8.0.0/24",
-        sim=sim,
+        server_ip=str(iface.ip), fleet_subnet=str(iface.network),
     )
 
 
-def _server_service(plan: ComposePlan) -> dict[str, Any]:
-    svc: dict[str, Any] = {
-        "image": image_tag("server", plan.version),
-        "command": ["fleetctl", "server", "--config", f"{SERVER_ETC}/server.yaml"],
-        "volumes": [
-            f"{plan.compose_dir / 'server'}:{SERVER_ETC}:ro",
-            "server-data:/var/lib/fleetctl",
-        ],
-        "environment": {"FLEETCTL_HEALTH": f"http://127.0.0.1:{plan.server_port}/healthz"},
-        "restart": "unless-stopped",
-        "networks": {"fleet": _static(plan, plan.server_ip)},
-    }
-    if plan.wireguard:
-        svc.update(_wg_privileges(f"{SERVER_ETC}/wg0.conf"))
+# --- rendering -------------------------------------------------------------------------
+
+
+def _static(plan: ComposePlan, ip: str) -> dict[str, Any]:
+    # Plain mode: the compose network is the fleet subnet, so robots keep their identity.
+    return {"fleet": None if plan.wireguard else {"ipv4_address": ip}}
+
+
+def _wireguard(conf: str) -> dict[str, Any]:
+    # wireguard-go needs NET_ADMIN and the TUN device; the entrypoint starts it as root and
+    # drops to the fleetctl user once the tunnel is up.
+    return {"cap_add": ["NET_ADMIN"], "devices": ["/dev/net/tun:/dev/net/tun"],
+            "environment": {"WG_CONFIG": conf, "WG_REQUIRED": "1"}}
+
+
+def _merge(svc: dict[str, Any], extra: dict[str, Any]) -> dict[str, Any]:
+    for key, value in extra.items():
+        if isinstance(value, dict) and isinstance(svc.get(key), dict):
+            svc[key] = {**svc[key], **value}
+        else:
+            svc[key] = value
     return svc
 
 
-def _static(plan: ComposePlan, ip: str) -> dict[str, str] | None:
-    # Plain mode: the compose network is the fleet subnet, so robots keep their identity.
-    return None if plan.wireguard else {"ipv4_address": ip}
-
-
-def _wg_privileges(conf: str) -> dict[str, Any]:
-    # wireguard-go needs root, NET_ADMIN and the TUN device; the entrypoint drops to the
-    # fleetctl user once the tunnel is up.
-    return {
+def _server_service(plan: ComposePlan) -> dict[str, Any]:
+    bind, https = plan.options.bind, plan.published_https_port
+    ports = [f"{bind}:{https}:{plan.https_port}/tcp"]
+    if plan.wireguard:
+        ports.append(f"{bind}:{plan.wireguard_port}:{plan.wireguard_port}/udp")
+    svc: dict[str, Any] = {
+        "image": image_tag("server", plan.options.version),
+        "command": ["fleetctl", "server", "--config", f"{RUN_ETC}/server.yaml"],
+        # root only until the entrypoint has set up WireGuard and handed over the secrets.
         "user": "root",
-        "cap_add": ["NET_ADMIN"],
-        "devices": ["/dev/net/tun:/dev/net/tun"],
-        "environment_wg": {"WG_CONFIG": conf, "WG_REQUIRED": "1"},
+        "volumes": [
+            f"{plan.compose_dir / 'server'}:{RUN_ETC}:ro",
+            f"{plan.fleet_dir / 'server'}:{FLEET_ETC}:ro",
+            f"{plan.compose_dir / 'secrets'}:{SECRETS_ETC}:ro",
+            "server-data:/var/lib/fleetctl",
+        ],
+        "environment": {
+            "FLEETCTL_HEALTH": f"http://127.0.0.1:{plan.server_port}/healthz",
+            "FLEETCTL_SECRETS": SECRETS_ETC,
+        },
+        "ports": ports,
+        "restart": "unless-stopped",
+        "networks": _static(plan, plan.server_ip),
     }
+    return _merge(svc, _wireguard(SERVER_WG_CONF)) if plan.wireguard else svc
+
+
+_SIM_SCRIPT = (
+    'python3 -c "import sys; from fleetctl.client.ros.sim import SimConfig, run_sim; '
+    'run_sim(SimConfig(name=sys.argv[1]))" "$1" & exec fleetctl client --config "$2"'
+)
 
 
 def _robot_service(plan: ComposePlan, robot: RobotEntry) -> dict[str, Any]:
-    client = f"fleetctl client --config {ROBOT_ETC}/client.yaml"
-    sim = (
-        "python3 -c 'import sys; from fleetctl.client.ros.sim import SimConfig, run_sim; "
-        f"run_sim(SimConfig(name=sys.argv[1]))' {robot.name} & "
-        if plan.sim
-        else ""
-    )
     svc: dict[str, Any] = {
-        "image": image_tag("client", plan.version),
-        "command": ["bash", "-c", f"{sim}exec {client}"],
+        "image": image_tag("client", plan.options.version),
+        # The name and path travel as positional parameters, never inside the script.
+        "command": ["bash", "-c", _SIM_SCRIPT, "fleetctl-sim", robot.name,
+                    f"{ROBOT_ETC}/client.yaml"],
+        "user": "root",
         "volumes": [f"{robot.robot_dir}:{ROBOT_ETC}:ro"],
         "environment": {
             # Each robot's ROS graph stays inside its container: everything between robots
@@ -272,34 +358,21 @@ def _robot_service(plan: ComposePlan, robot: RobotEntry) -> dict[str, Any]:
         },
         "depends_on": {"server": {"condition": "service_healthy"}},
         "restart": "unless-stopped",
-        "networks": {"fleet": _static(plan, robot.fleet_ip)},
+        "networks": _static(plan, robot.fleet_ip),
     }
     if plan.wireguard:
         svc["volumes"].append(f"{plan.compose_dir / 'robots' / robot.name}:/etc/fleetctl/wg:ro")
-        svc.update(_wg_privileges("/etc/fleetctl/wg/wg0.conf"))
+        _merge(svc, _wireguard("/etc/fleetctl/wg/wg0.conf"))
     return svc
-
-
-def _webviz_service(plan: ComposePlan) -> dict[str, Any]:
-    return {
-        "image": image_tag("webviz", plan.version),
-        "command": ["fleetctl", "webviz", "--host", "0.0.0.0", "--port", str(plan.webviz_port)],
-        "environment": {"FLEETCTL_HEALTH": f"http://127.0.0.1:{plan.webviz_port}/"},
-        "ports": [f"127.0.0.1:{plan.webviz_port}:{plan.webviz_port}"],
-        "restart": "unless-stopped",
-        "networks": {"fleet": None},
-    }
 
 
 def render(plan: ComposePlan) -> dict[str, Any]:
     """The compose document of *plan* (pure: no files touched)."""
-    services: dict[str, Any] = {"server": _server_service(plan), "webviz": _webviz_service(plan)}
-    for robot in plan.robots:
-        services[f"robot-{robot.name}"] = _robot_service(plan, robot)
+    services: dict[str, Any] = {"server": _server_service(plan)}
+    if plan.options.sim:
+        for robot in plan.robots:
+            services[f"robot-{robot.name}"] = _robot_service(plan, robot)
     for svc in services.values():
-        env = svc.pop("environment_wg", None)
-        if env:
-            svc["environment"] = {**svc.get("environment", {}), **env}
         svc["networks"] = {k: v for k, v in svc["networks"].items() if v} or ["fleet"]
     network: dict[str, Any] = {"driver": "bridge"}
     if not plan.wireguard:
@@ -317,178 +390,76 @@ def render(plan: ComposePlan) -> dict[str, Any]:
     }
 
 
+# --- files ---------------------------------------------------------------------------
+
+
+def container_server_config(plan: ComposePlan) -> dict[str, Any]:
+    """The fleet's server.yaml with container paths and listeners (pure)."""
+    cfg = _read_mapping(plan.fleet_dir / "server" / "server.yaml", "server config")
+    # Plain ws:// only inside the tunnel (and loopback, for the health check and status).
+    cfg["listen_host"] = [plan.server_ip, "127.0.0.1"] if plan.wireguard else "0.0.0.0"
+    cfg["database"] = "/var/lib/fleetctl/fleet.db"
+    auth = Path(str(cfg.get("auth_map") or "auth.yaml"))
+    if auth.is_absolute() or ".." in auth.parts:
+        raise ConfigError(f"{plan.fleet_dir / 'server/server.yaml'}: field auth_map: must be "
+                          "a file inside server/ for a compose deployment")
+    cfg["auth_map"] = f"{FLEET_ETC}/{auth.as_posix()}"
+    cfg["tls_cert"] = cfg["tls_key"] = None
+    cfg["web"] = {**cfg["web"], "listen_host": "0.0.0.0", "tls_cert": f"{RUN_ETC}/tls-cert.pem",
+                  "tls_key": f"{SECRETS_RUN}/tls.key"}
+    return cfg
+
+
+def robot_wireguard(plan: ComposePlan, robot: RobotEntry) -> str:
+    """The robot's wg0.conf with ``Endpoint = server:PORT``: inside compose the server is
+    reached by its service name, whatever public endpoint fleet.yaml names (or none yet)."""
+    text = (robot.robot_dir / "wireguard" / "wg0.conf").read_text()
+    endpoint = f"Endpoint = server:{plan.wireguard_port}"
+    text, count = re.subn(r"(?m)^\s*Endpoint\s*=.*$", endpoint, text)
+    if count == 0:
+        text = re.sub(r"(?m)^(\s*PublicKey\s*=.*)$", rf"\g<1>\n{endpoint}", text, count=1)
+    return text
+
+
 def write_files(plan: ComposePlan) -> Path:
-    """Write the compose file and the container-side configs under ``FLEET/.compose``."""
+    """Write the compose file, state and container-side files under ``FLEET/.compose``."""
     out = plan.compose_dir
-    (out / "server").mkdir(parents=True, exist_ok=True)
-    os.chmod(out, 0o700)  # holds copies of WireGuard private keys
-    _write_server_config(plan, out / "server")
-    for robot in plan.robots:
-        if plan.wireguard:
-            _write_robot_wg(plan, robot, out / "robots" / robot.name)
-    plan.compose_file.write_text(
-        "# Generated by `fleetctl up` from the fleet directory; do not edit.\n"
-        + yaml.safe_dump(render(plan), sort_keys=False)
-    )
+    for sub in (out, out / "secrets"):
+        sub.mkdir(parents=True, exist_ok=True)
+        os.chmod(sub, 0o700)  # copies of private keys live below
+    (out / "server").mkdir(exist_ok=True)
+    _write(out / "server" / "server.yaml", yaml.safe_dump(container_server_config(plan),
+                                                            sort_keys=False))
+    _write(out / "server" / "tls-cert.pem", plan.tls_cert.read_text())
+    _write(out / "secrets" / "tls.key", plan.tls_key.read_text(), secret=True)
+    if plan.wireguard and plan.options.sim:
+        for robot in plan.robots:
+            _write(out / "robots" / robot.name / "wg0.conf", robot_wireguard(plan, robot),
+                   secret=True)
+    _write(plan.compose_file, "# Generated by `fleetctl up` from the fleet directory; "
+           "do not edit.\n" + yaml.safe_dump(render(plan), sort_keys=False))
+    _write(out / STATE_FILE, json.dumps(asdict(plan.options), indent=2) + "\n")
     return plan.compose_file
 
 
-def _write_server_config(plan: ComposePlan, out: Path) -> None:
-    src = plan.fleet_dir / "server"
-    cfg = _read_server_config(src / "server.yaml")
-    cfg["listen_host"] = "0.0.0.0"
-    # The config directory is mounted read-only; the database lives in a named volume.
-    cfg["database"] = "/var/lib/fleetctl/fleet.db"
-    auth = cfg.get("auth_map", "auth.yaml")
-    shutil.copy2(src / str(auth), out / "auth.yaml")
-    cfg["auth_map"] = f"{SERVER_ETC}/auth.yaml"
-    for key in ("tls_cert", "tls_key"):
-        if cfg.get(key):
-            shutil.copy2(src / str(cfg[key]), out / Path(str(cfg[key])).name)
-            cfg[key] = f"{SERVER_ETC}/{Path(str(cfg[key])).name}"
-    (out / "server.yaml").write_text(yaml.safe_dump(cfg, sort_keys=False))
-    wg = src / "wireguard" / "wg0.conf"
-    if plan.wireguard:
-        _copy_secret(wg.read_text(), out / "wg0.conf")
+def _write(path: Path, text: str, *, secret: bool = False) -> None:
+    # Atomic, mode set at creation, never through a symlink planted in .compose/.
+    mode = 0o600 if secret else 0o644
+    write_file(FileWrite(path, text.encode(), mode, 0o700 if secret else None))
 
 
-def _write_robot_wg(plan: ComposePlan, robot: RobotEntry, out: Path) -> None:
-    out.mkdir(parents=True, exist_ok=True)
-    text = (robot.robot_dir / "wireguard" / "wg0.conf").read_text()
-    # Inside compose the server is reached by its service name, whatever public endpoint
-    # fleet.yaml names for real robots.
-    text = re.sub(r"(?m)^(\s*Endpoint\s*=\s*).*$", rf"\g<1>server:{plan.wireguard_port}", text)
-    _copy_secret(text, out / "wg0.conf")
-
-
-def _copy_secret(text: str, dest: Path) -> None:
-    fd = os.open(dest, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o600)
-    with os.fdopen(fd, "w") as fh:
-        fh.write(text)
-    os.chmod(dest, 0o600)
-
-
-def _compose(plan: ComposePlan, *args: str) -> list[str]:
-    return [*compose_command(), "-p", plan.project, "-f", str(plan.compose_file), *args]
-
-
-def up(plan: ComposePlan, progress: Progress = print) -> UpResult:
-    """Render and start the deployment (detached); returns where the file is.
+def saved_options(fleet_dir: Path) -> Options | None:
+    """The options of the deployment ``up`` last started here, or ``None``.
 
     Raises:
-        FleetError: compose failed (its output is shown).
+        ConfigError: the state file is unreadable or malformed.
     """
-    progress(f"wireguard: {plan.wireguard_note}")
-    path = write_files(plan)
-    progress(f"compose file {path}; starting {len(plan.robots)} robot(s)")
-    check(subprocess_runner(_compose(plan, "up", "-d"), None, False), "compose up")
-    return UpResult(path, plan.wireguard_note)
-
-
-def existing(fleet_dir: Path, *, project: str | None = None) -> ComposePlan:
-    """The plan of a deployment ``up`` already rendered (for down, status, logs).
-
-    Raises:
-        FleetError: nothing was rendered in *fleet_dir*.
-    """
-    fleet_dir = fleet_dir.resolve()
-    path = fleet_dir / COMPOSE_DIR / COMPOSE_FILE
+    path = fleet_dir.resolve() / COMPOSE_DIR / STATE_FILE
     if not path.is_file():
-        raise FleetError(f"{path}: missing; run `fleetctl up {fleet_dir}` first")
-    return ComposePlan(fleet_dir, project or _project_name(fleet_dir), False, "", ())
-
-
-def down(plan: ComposePlan, progress: Progress = print) -> None:
-    """Stop and remove the containers, networks and the server's data volume."""
-    progress(f"stopping {plan.project}")
-    check(subprocess_runner(_compose(plan, "down", "-v", "--remove-orphans"), None, False),
-          "compose down")
-
-
-def logs(plan: ComposePlan, services: Sequence[str], *, follow: bool) -> int:
-    """Print the logs (following when *follow*); returns compose's exit code."""
-    args = ["logs", "--no-color", *(["-f"] if follow else []), *services]
-    return subprocess.run(_compose(plan, *args), check=False).returncode
-
-
-@dataclass(frozen=True)
-class ServiceState:
-    """One container: its service, run state and health (``none`` without a check)."""
-
-    service: str
-    state: str
-    health: str
-
-
-@dataclass(frozen=True)
-class StatusReport:
-    """Services' states and the server's robot list (``None``: the server did not answer)."""
-
-    services: tuple[ServiceState, ...]
-    robots: list[dict[str, Any]] | None
-    robots_error: str = ""
-    extra: dict[str, Any] = field(default_factory=dict)
-
-    def to_json(self) -> dict[str, Any]:
-        """A JSON-ready dict."""
-        return {
-            "services": [s.__dict__ for s in self.services],
-            "robots": self.robots,
-            "robots_error": self.robots_error or None,
-        }
-
-    def render_text(self) -> str:
-        """A plain-text table."""
-        lines = [f"{'SERVICE':<24} {'STATE':<10} HEALTH"]
-        lines += [f"{s.service:<24} {s.state:<10} {s.health}" for s in self.services]
-        lines.append("")
-        if self.robots is None:
-            lines.append(f"robots: unknown ({self.robots_error})")
-        else:
-            lines.append(f"{'ROBOT':<24} {'ONLINE':<7} LAST SEEN")
-            for r in self.robots:
-                lines.append(
-                    f"{r.get('name', '?')!s:<24} {'yes' if r.get('online') else 'no':<7} "
-                    f"{r.get('last_seen', '-')}"
-                )
-        return "\n".join(lines)
-
-
-def status(plan: ComposePlan) -> StatusReport:
-    """Each container's state and health, and the robots as the server reports them."""
-    ids = check(subprocess_runner(_compose(plan, "ps", "-q"), None, True), "compose ps")
-    services = []
-    server_id = None
-    for cid in ids.stdout.split():
-        res = subprocess_runner(["docker", "inspect", cid], None, True)
-        if res.returncode != 0:
-            continue
-        info = json.loads(res.stdout)[0]
-        name = info["Config"]["Labels"].get("com.docker.compose.service", cid[:12])
-        health = info["State"].get("Health", {}).get("Status", "none")
-        services.append(ServiceState(name, info["State"]["Status"], health))
-        server_id = cid if name == "server" else server_id
-    robots, error = _server_robots(server_id)
-    return StatusReport(tuple(sorted(services, key=lambda s: s.service)), robots, error)
-
-
-_ROBOTS_SNIPPET = (
-    "import os,urllib.request;u=os.environ['FLEETCTL_HEALTH'].rsplit('/',1)[0]+'/robots';"
-    "print(urllib.request.urlopen(u,timeout=3).read().decode())"
-)
-
-
-def _server_robots(server_id: str | None) -> tuple[list[dict[str, Any]] | None, str]:
-    if server_id is None:
-        return None, "no server container"
-    # Asked from inside the server container: /robots answers loopback without a token.
-    res = subprocess_runner(["docker", "exec", server_id, "python3", "-c", _ROBOTS_SNIPPET],
-                            None, True)
-    if res.returncode != 0:
-        return None, (res.stderr.strip().splitlines() or ["server did not answer"])[-1]
+        return None
     try:
-        data = json.loads(res.stdout)
-    except json.JSONDecodeError:
-        return None, "server /robots is not JSON"
-    robots = data.get("robots", data) if isinstance(data, dict) else data
-    return (robots if isinstance(robots, list) else None), ""
+        data = json.loads(path.read_text())
+        return Options(**data)
+    except (OSError, ValueError, TypeError) as exc:
+        raise ConfigError(f"{path}: unreadable deployment state ({exc}); "
+                          "remove it and run `fleetctl up` again") from None

@@ -25,11 +25,14 @@ import tempfile
 import tomllib
 from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass, field
+from importlib import metadata
 from pathlib import Path
 
 from fleetctl import __version__
+from fleetctl.deploy.assets import asset_dir
 from fleetctl.deploy.dockercli import Runner, check, image_exists, subprocess_runner
-from fleetctl.errors import EnvironmentMissing, FleetError
+from fleetctl.deploy.selfwheel import DIST_NAME, fleetctl_wheel, source_checkout
+from fleetctl.errors import ConfigError, EnvironmentMissing, FleetError
 
 BASE_IMAGE = "fleetctl/base:bookworm"
 # Debian packages in the base: python for the runtime, iproute2 for tc and ip (router and
@@ -56,17 +59,20 @@ class BuildConfig:
     """What ``fleetctl build`` builds.
 
     Attributes:
-        source_dir: Repository root (has ``pyproject.toml`` and ``images/``).
+        source_dir: A checkout to build from (has ``pyproject.toml`` and ``images/``);
+            ``None`` builds the installed fleetctl (its wheel repacked, its packaged
+            ``images/``), which needs no checkout.
         base_image: Base image name; another one (from a registry) skips debootstrap.
         mirror_url: Debian mirror for debootstrap; ``None`` means the one apt here uses.
         suite: Debian suite of the base.
         images: Which images to build, from :data:`IMAGE_NAMES`.
         version: Image tag and ``org.opencontainers.image.version`` label.
         context_dir: Where the build context is assembled; ``None`` means
-            ``source_dir/build/docker``.
+            ``source_dir/build/docker``, or ``$XDG_CACHE_HOME/fleetctl/build`` without a
+            checkout.
     """
 
-    source_dir: Path
+    source_dir: Path | None = None
     base_image: str = BASE_IMAGE
     mirror_url: str | None = None
     suite: str = "bookworm"
@@ -78,7 +84,17 @@ class BuildConfig:
     @property
     def context(self) -> Path:
         """The build context directory."""
-        return self.context_dir or self.source_dir / "build" / "docker"
+        if self.context_dir is not None:
+            return self.context_dir
+        if self.source_dir is not None:
+            return self.source_dir / "build" / "docker"
+        cache = Path(os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache")
+        return cache / "fleetctl" / "build"
+
+    @property
+    def images_dir(self) -> Path:
+        """The Dockerfiles: the checkout's ``images/`` or the packaged copy."""
+        return self.source_dir / "images" if self.source_dir else asset_dir("images")
 
 
 def image_tag(name: str, version: str = __version__) -> str:
@@ -86,23 +102,33 @@ def image_tag(name: str, version: str = __version__) -> str:
     return f"fleetctl/{name}:{version}"
 
 
-def find_source_dir(start: Path | None = None) -> Path:
-    """Find the repository root: the first parent with ``pyproject.toml`` and ``images/``.
+def find_source_dir(start: Path | None = None) -> Path | None:
+    """The fleetctl checkout to build from, or ``None`` to build the installed fleetctl.
 
-    Looks upward from *start* (default: the current directory), then from this package.
+    Only this package's own checkout counts (an editable install), or *start* when it is
+    one: a user's unrelated project with a ``pyproject.toml`` is never picked up.
+    """
+    for root in (start, source_checkout()):
+        if root is not None and _is_checkout(root):
+            return root
+    return None
+
+
+def _is_checkout(root: Path) -> bool:
+    return ((root / "pyproject.toml").is_file() and (root / "images").is_dir()
+            and (root / "fleetctl" / "__init__.py").is_file())
+
+
+def check_source_dir(path: Path) -> Path:
+    """Check that ``--source PATH`` is a fleetctl checkout.
 
     Raises:
-        FleetError: no checkout found (images are built from the source tree).
+        ConfigError: it is not (the message says what is missing).
     """
-    candidates = [start or Path.cwd(), Path(__file__).resolve().parent]
-    for origin in candidates:
-        for parent in [origin, *origin.parents]:
-            if (parent / "pyproject.toml").is_file() and (parent / "images").is_dir():
-                return parent
-    raise FleetError(
-        "cannot find the fleetctl source tree (a directory with pyproject.toml and images/); "
-        "run from the checkout or pass --source"
-    )
+    if not _is_checkout(path):
+        raise ConfigError(f"--source {path}: not a fleetctl checkout (needs pyproject.toml, "
+                          "images/ and fleetctl/)")
+    return path
 
 
 def detect_mirror(sources: Iterable[Path] | None = None, suite: str = "bookworm") -> str:
@@ -241,6 +267,34 @@ def _import_rootfs(rootfs: Path, image: str) -> None:
         raise FleetError(f"docker import of {rootfs} failed: {imp.stderr.decode()[-300:]}")
 
 
+def installed_requirements(extras: Sequence[str] = ()) -> list[str]:
+    """The installed fleetctl's requirements (core, then *extras*), from its metadata.
+
+    Raises:
+        EnvironmentMissing: fleetctl is not installed as a distribution.
+    """
+    try:
+        requires = metadata.requires(DIST_NAME) or []
+    except metadata.PackageNotFoundError as exc:
+        raise EnvironmentMissing("fleetctl is not installed (no distribution metadata)") from exc
+    core, extra = [], []
+    for spec in requires:
+        req, _, marker = spec.partition(";")
+        found = re.search(r"extra\s*==\s*[\"']([^\"']+)[\"']", marker)
+        if found is None:
+            core.append(req.strip())
+        elif found.group(1) in extras:
+            extra.append(req.strip())
+    return core + extra
+
+
+def requirements(cfg: BuildConfig, extras: Sequence[str] = ()) -> list[str]:
+    """Requirements of the fleetctl being built (the checkout's, else the installed one's)."""
+    if cfg.source_dir is not None:
+        return project_requirements(cfg.source_dir / "pyproject.toml", extras)
+    return installed_requirements(extras)
+
+
 def project_requirements(pyproject: Path, extras: Sequence[str] = ()) -> list[str]:
     """The dependency specifiers of the project (and *extras*) from ``pyproject.toml``.
 
@@ -281,9 +335,8 @@ def prepare_context(
     """
     ctx = cfg.context
     (ctx / "wheels").mkdir(parents=True, exist_ok=True)
-    pyproject = cfg.source_dir / "pyproject.toml"
-    base_reqs = project_requirements(pyproject)
-    ros_reqs = project_requirements(pyproject, ["ros"])[len(base_reqs):]
+    base_reqs = requirements(cfg)
+    ros_reqs = requirements(cfg, ["ros"])[len(base_reqs):]
     for name, reqs in (("base", base_reqs), ("ros", ros_reqs)):
         house = ctx / "wheels" / name
         if _fresh(house, "\n".join(reqs)):
@@ -298,18 +351,17 @@ def prepare_context(
             _remove_duplicates(house, ctx / "wheels" / "base")
         _stamp(house, "\n".join(reqs))
     app = ctx / "wheels" / "app"
-    digest = source_digest(cfg.source_dir)
+    digest = source_digest(cfg.source_dir) if cfg.source_dir else installed_digest()
     if _fresh(app, digest):
         # A rebuilt wheel differs in its zip timestamps and would invalidate the image's
         # code layer: keep the old one while the source is unchanged.
         progress("wheel: fleetctl up to date")
     else:
         shutil.rmtree(app, ignore_errors=True)
-        progress("wheel: fleetctl")
-        check(runner([sys.executable, "-m", "pip", "wheel", "-q", "--no-deps", "-w", str(app),
-                      str(cfg.source_dir)], None, True), "pip wheel fleetctl")
+        progress(f"wheel: fleetctl (from {cfg.source_dir or 'the installed package'})")
+        fleetctl_wheel(app, cfg.source_dir)
         _stamp(app, digest)
-    for dockerfile in (cfg.source_dir / "images").glob("*"):
+    for dockerfile in cfg.images_dir.glob("*"):
         if dockerfile.is_file():
             shutil.copy2(dockerfile, ctx / dockerfile.name)
     return ctx
@@ -338,6 +390,12 @@ def source_digest(source_dir: Path) -> str:
             h.update(str(path.relative_to(source_dir)).encode() + b"\0")
             h.update(path.read_bytes())
     return h.hexdigest()
+
+
+def installed_digest() -> str:
+    """SHA-256 of the installed fleetctl's RECORD (it lists every file's digest)."""
+    dist = metadata.distribution(DIST_NAME)
+    return hashlib.sha256((dist.read_text("RECORD") or "").encode()).hexdigest()
 
 
 def _remove_duplicates(extra: Path, base: Path) -> None:

@@ -1,0 +1,320 @@
+"""Running a fleet's compose deployment: up, down, status, logs (see :mod:`.compose`).
+
+Every command is an argument list given to the ``docker`` CLI through a
+:class:`~fleetctl.deploy.dockercli.Runner`; whichever Compose is installed (the v2 plugin or
+Debian's ``docker-compose`` v1) runs the file.
+"""
+
+from __future__ import annotations
+
+import json
+import shutil
+import subprocess
+import time
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field, replace
+from pathlib import Path
+from typing import Any
+
+from fleetctl.deploy.compose import (
+    WG_INTERFACE,
+    ComposePlan,
+    Options,
+    plan_for,
+    project_name,
+    read_robots,
+    saved_options,
+    write_files,
+)
+from fleetctl.deploy.dockercli import Runner, check, image_exists, subprocess_runner
+from fleetctl.deploy.images import image_tag
+from fleetctl.errors import ConflictError, EnvironmentMissing, FleetError
+
+Progress = Callable[[str], None]
+
+
+@dataclass(frozen=True)
+class UpResult:
+    """What ``up`` did."""
+
+    compose_file: Path
+    wireguard_note: str
+    url: str
+    robots: tuple[str, ...]
+    simulated: bool
+
+
+def compose_command(runner: Runner = subprocess_runner) -> list[str]:
+    """The Compose command here: ``docker compose`` (v2 plugin) or ``docker-compose`` (v1).
+
+    Raises:
+        EnvironmentMissing: neither is installed.
+    """
+    if runner(["docker", "compose", "version"], None, True).returncode == 0:
+        return ["docker", "compose"]
+    if shutil.which("docker-compose"):
+        return ["docker-compose"]
+    raise EnvironmentMissing(
+        "neither `docker compose` (v2) nor `docker-compose` (v1) is installed "
+        "(Debian: apt-get install docker-compose)"
+    )
+
+
+def compose_argv(fleet_dir: Path, project: str, *args: str,
+                 runner: Runner = subprocess_runner) -> list[str]:
+    """A compose command on the fleet's generated file."""
+    path = fleet_dir.resolve() / ".compose" / "docker-compose.yml"
+    return [*compose_command(runner), "-p", project, "-f", str(path), *args]
+
+
+def container_id(fleet_dir: Path, project: str, service: str,
+                 runner: Runner = subprocess_runner) -> str | None:
+    """The running container of *service*, or ``None`` (not created or not running)."""
+    res = runner(["docker", "ps", "-q", "--filter", f"label=com.docker.compose.project={project}",
+                  "--filter", f"label=com.docker.compose.service={service}"], None, True)
+    ids = res.stdout.split() if res.returncode == 0 else []
+    return ids[0] if ids else None
+
+
+def _check_not_changed(fleet_dir: Path, wanted: Options, runner: Runner) -> None:
+    """Refuse to switch a running deployment's mode underneath it (a stale compose file)."""
+    running = saved_options(fleet_dir)
+    if running is None or container_id(fleet_dir, running.project, "server", runner) is None:
+        return
+    for name in ("project", "wireguard", "sim", "bind", "https_port"):
+        old, new = getattr(running, name), getattr(wanted, name)
+        if old != new:
+            raise ConflictError(
+                f"{fleet_dir / '.compose/state.json'}: the fleet runs with {name}={old!r}, "
+                f"not {new!r}; run `fleetctl down` first (data is kept)")
+
+
+def _require_images(plan: ComposePlan, runner: Runner) -> None:
+    names = ["server", *(["client"] if plan.options.sim and plan.robots else [])]
+    for name in names:
+        tag = image_tag(name, plan.options.version)
+        if not image_exists(runner, tag):
+            raise EnvironmentMissing(f"image {tag} not found: run `fleetctl build` first")
+
+
+def up(fleet_dir: Path, options: Options, progress: Progress = print,
+       runner: Runner = subprocess_runner) -> UpResult:
+    """Render and start (or update) the deployment, detached.
+
+    Services whose definition did not change keep running: ``up`` on a running fleet only
+    adds, removes or recreates what changed.
+
+    Raises:
+        ConfigError: the fleet directory is incomplete (the message names file and field).
+        ConflictError: the fleet already runs with other options.
+        EnvironmentMissing: an image or Compose is missing.
+        FleetError: compose failed (its output is shown).
+    """
+    plan = plan_for(fleet_dir, options)
+    _check_not_changed(plan.fleet_dir, options, runner)
+    _require_images(plan, runner)
+    progress(f"wireguard: {plan.wireguard_note}")
+    path = write_files(plan)
+    sims = len(plan.robots) if options.sim else 0
+    progress(f"compose file {path}; server + {sims} simulated robot(s)")
+    check(runner(compose_argv(plan.fleet_dir, plan.project, "up", "-d", "--remove-orphans",
+                              runner=runner), None, False), "compose up")
+    return UpResult(path, plan.wireguard_note, plan.url,
+                    tuple(r.name for r in plan.robots), options.sim)
+
+
+def existing_options(fleet_dir: Path, project: str | None = None) -> Options:
+    """The options of the deployment ``up`` started in *fleet_dir*.
+
+    Raises:
+        FleetError: nothing was started there.
+    """
+    options = saved_options(fleet_dir)
+    if options is None:
+        raise FleetError(f"{fleet_dir.resolve() / '.compose'}: no deployment here; "
+                         "run `fleetctl up` first (or set --fleet / FLEET_DIR)")
+    return replace(options, project=project) if project else options
+
+
+def down(fleet_dir: Path, options: Options, *, delete_data: bool = False,
+         progress: Progress = print, runner: Runner = subprocess_runner) -> None:
+    """Stop and remove the containers and networks; the data volume only if *delete_data*.
+
+    Raises:
+        FleetError: compose failed.
+    """
+    args = ["down", "--remove-orphans", *(["-v"] if delete_data else [])]
+    what = "containers, networks and the server's data" if delete_data else \
+        "containers and networks (the server's data volume is kept)"
+    progress(f"stopping {options.project}: removing {what}")
+    check(runner(compose_argv(fleet_dir, options.project, *args, runner=runner), None, False),
+          "compose down")
+
+
+def logs(fleet_dir: Path, options: Options, services: Sequence[str], *, follow: bool) -> int:
+    """Print the logs (following when *follow*); returns compose's exit code."""
+    args = ["logs", "--no-color", *(["--follow"] if follow else []), *services]
+    return subprocess.run(compose_argv(fleet_dir, options.project, *args), check=False).returncode
+
+
+# --- status ----------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class ServiceState:
+    """One container: its service, run state, health (``none`` without a check), restarts."""
+
+    service: str
+    state: str
+    health: str
+    restarts: int
+
+
+@dataclass(frozen=True)
+class TunnelPeer:
+    """One WireGuard peer of the server: who, and seconds since its last handshake."""
+
+    robot: str
+    address: str
+    handshake_age_s: float | None  # None: never
+
+
+@dataclass(frozen=True)
+class StatusReport:
+    """Services, the server's robot list and the tunnel (``None``: could not be read)."""
+
+    services: tuple[ServiceState, ...]
+    robots: list[dict[str, Any]] | None
+    robots_error: str = ""
+    tunnel: tuple[TunnelPeer, ...] | None = None
+    tunnel_note: str = ""
+    extra: dict[str, Any] = field(default_factory=dict)
+
+    @property
+    def healthy(self) -> bool:
+        """Every service runs and is healthy (or has no check)."""
+        return bool(self.services) and all(
+            s.state == "running" and s.health in ("healthy", "none") for s in self.services)
+
+    def to_json(self) -> dict[str, Any]:
+        """A JSON-ready dict."""
+        return {
+            "healthy": self.healthy,
+            "services": [s.__dict__ for s in self.services],
+            "robots": self.robots,
+            "robots_error": self.robots_error or None,
+            "tunnel": None if self.tunnel is None else [t.__dict__ for t in self.tunnel],
+            "tunnel_note": self.tunnel_note or None,
+        }
+
+    def render_text(self) -> str:
+        """Plain-text tables."""
+        lines = [f"{'SERVICE':<24} {'STATE':<11} {'HEALTH':<10} RESTARTS"]
+        lines += [f"{s.service:<24} {s.state:<11} {s.health:<10} {s.restarts}"
+                  for s in self.services] or ["(no containers: the fleet is not running)"]
+        lines.append("")
+        if self.robots is None:
+            lines.append(f"robots: unknown ({self.robots_error})")
+        else:
+            lines.append(f"{'ROBOT':<24} {'ONLINE':<7} LAST SEEN")
+            lines += [f"{r.get('name', '?')!s:<24} {'yes' if r.get('online') else 'no':<7} "
+                      f"{r.get('last_seen', '-')}" for r in self.robots] or ["(no robots yet)"]
+        lines.append("")
+        if self.tunnel is None:
+            lines.append(f"tunnel: {self.tunnel_note}")
+        else:
+            lines.append(f"{'TUNNEL PEER':<24} {'ADDRESS':<16} LAST HANDSHAKE")
+            lines += [f"{t.robot:<24} {t.address:<16} " + (
+                "never" if t.handshake_age_s is None else f"{t.handshake_age_s:.0f} s ago")
+                for t in self.tunnel] or ["(no peers)"]
+        return "\n".join(lines)
+
+
+def status(fleet_dir: Path, options: Options,
+           runner: Runner = subprocess_runner) -> StatusReport:
+    """Each container's state, health and restarts; robots as the server reports them;
+    the server's WireGuard peers and their last handshakes."""
+    res = runner(["docker", "ps", "-aq", "--filter",
+                  f"label=com.docker.compose.project={options.project}"], None, True)
+    services = []
+    for cid in check(res, "docker ps").stdout.split():
+        info = _inspect(cid, runner)
+        if info is None:
+            continue
+        name = info["Config"]["Labels"].get("com.docker.compose.service", cid[:12])
+        health = info["State"].get("Health", {}).get("Status", "none")
+        services.append(ServiceState(name, info["State"]["Status"], health,
+                                     int(info.get("RestartCount", 0))))
+    server_id = container_id(fleet_dir, options.project, "server", runner)
+    robots, error = _server_robots(server_id, runner)
+    tunnel, note = _tunnel(fleet_dir, server_id, runner)
+    return StatusReport(tuple(sorted(services, key=lambda s: s.service)), robots, error,
+                        tunnel, note)
+
+
+def _inspect(cid: str, runner: Runner) -> dict[str, Any] | None:
+    res = runner(["docker", "inspect", cid], None, True)
+    if res.returncode != 0:
+        return None
+    data: list[dict[str, Any]] = json.loads(res.stdout)
+    return data[0] if data else None
+
+
+_ROBOTS_SNIPPET = (
+    "import os,urllib.request;u=os.environ['FLEETCTL_HEALTH'].rsplit('/',1)[0]+'/robots';"
+    "print(urllib.request.urlopen(u,timeout=3).read().decode())"
+)
+
+
+def _server_robots(server_id: str | None,
+                   runner: Runner) -> tuple[list[dict[str, Any]] | None, str]:
+    if server_id is None:
+        return None, "the server container is not running"
+    # Asked from inside the server container: /robots answers loopback without a token.
+    res = runner(["docker", "exec", "--user", "fleetctl", server_id, "python3", "-c",
+                  _ROBOTS_SNIPPET], None, True)
+    if res.returncode != 0:
+        return None, (res.stderr.strip().splitlines() or ["server did not answer"])[-1]
+    try:
+        data = json.loads(res.stdout)
+    except json.JSONDecodeError:
+        return None, "server /robots is not JSON"
+    robots = data.get("robots", data) if isinstance(data, dict) else data
+    return (robots if isinstance(robots, list) else None), ""
+
+
+def _tunnel(fleet_dir: Path, server_id: str | None,
+            runner: Runner) -> tuple[tuple[TunnelPeer, ...] | None, str]:
+    if server_id is None:
+        return None, "unknown (the server container is not running)"
+    res = runner(["docker", "exec", server_id, "wg", "show", WG_INTERFACE, "dump"], None, True)
+    if res.returncode != 0:
+        return None, "off (no WireGuard interface in the server container)"
+    names = _peer_names(fleet_dir)
+    now = time.time()
+    peers = []
+    # `wg show dump`: the interface line, then per peer: public-key, preshared-key,
+    # endpoint, allowed-ips, latest-handshake (epoch s, 0 = never), rx, tx, keepalive.
+    for line in res.stdout.splitlines()[1:]:
+        cols = line.split("\t")
+        if len(cols) < 5:
+            continue
+        address = cols[3].split(",")[0].split("/")[0]
+        stamp = int(cols[4]) if cols[4].isdigit() else 0
+        peers.append(TunnelPeer(names.get(address, "?"), address,
+                                None if stamp == 0 else max(0.0, now - stamp)))
+    return tuple(peers), ""
+
+
+def _peer_names(fleet_dir: Path) -> dict[str, str]:
+    """Robot address -> name, from the fleet's robot WireGuard configs."""
+    try:
+        return {r.fleet_ip: r.name for r in read_robots(fleet_dir.resolve())}
+    except FleetError:
+        return {}
+
+
+def default_options(fleet_dir: Path, **chosen: Any) -> Options:
+    """Options for ``up`` with the default project name of *fleet_dir*."""
+    project = chosen.pop("project", None) or project_name(fleet_dir)
+    return Options(project=project, **chosen)

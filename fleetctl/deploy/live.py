@@ -1,0 +1,64 @@
+"""Fleet changes applied to a running deployment, without restarting what did not change.
+
+After ``add-robot``, ``remove-robot``, ``add-user``, ``remove-user``, ``render`` and
+``set-endpoint`` the CLI calls :func:`sync_running`:
+
+- **auth.yaml**: nothing to do here. The server watches the file (mounted live from
+  ``FLEET/server``) and reloads it within a second; revoked connections are closed, the rest
+  keep theirs.
+- **WireGuard peers**: ``wg syncconf`` in the server container from the live
+  ``FLEET/server/wireguard/wg0.conf``: new peers are added, removed ones dropped, and the
+  sessions of unchanged peers are untouched (unlike ``wg setconf`` or a restart).
+- **simulated robots** (a deployment started with ``--sim``): the compose file is
+  re-rendered and ``up`` creates the new robot's container (or removes a removed one's);
+  the server and the other robots are not recreated, as their definitions did not change.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from pathlib import Path
+
+from fleetctl.deploy import composerun
+from fleetctl.deploy.compose import SERVER_WG_CONF, WG_INTERFACE, saved_options
+from fleetctl.deploy.dockercli import Runner, check, subprocess_runner
+from fleetctl.errors import FleetError
+
+
+def sync_running(fleet_dir: Path, progress: Callable[[str], None],
+                 runner: Runner = subprocess_runner) -> str | None:
+    """Apply the fleet directory's current state to its running deployment, if any.
+
+    Returns:
+        A one-line note of what was applied, or ``None`` when no deployment of this fleet
+        runs (nothing to do: the next ``fleetctl up`` uses the new files).
+
+    Raises:
+        FleetError: the deployment runs but could not be updated (the message says how far
+            it got; the fleet directory is already changed, so ``fleetctl up`` retries it).
+    """
+    options = saved_options(fleet_dir)
+    if options is None:
+        return None
+    server = composerun.container_id(fleet_dir, options.project, "server", runner)
+    if server is None:
+        return None
+    done = []
+    if _has_wireguard(server, runner):
+        sync = f"wg syncconf {WG_INTERFACE} <(wg-quick strip {SERVER_WG_CONF})"
+        check(runner(["docker", "exec", server, "bash", "-c", sync], None, True),
+              "wg syncconf in the server container")
+        done.append("WireGuard peers synced")
+    if options.sim:
+        try:
+            composerun.up(fleet_dir, options, progress=progress, runner=runner)
+        except FleetError as exc:
+            raise FleetError(f"{'; '.join(done) or 'nothing applied'}; then: {exc}") from None
+        done.append("simulated robots updated")
+    done.append("auth.yaml is reloaded by the server itself")
+    return "running fleet: " + "; ".join(done)
+
+
+def _has_wireguard(server: str, runner: Runner) -> bool:
+    res = runner(["docker", "exec", server, "wg", "show", WG_INTERFACE], None, True)
+    return res.returncode == 0

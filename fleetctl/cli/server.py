@@ -10,14 +10,17 @@ import typer
 
 from fleetctl.errors import ConfigError
 
-CONFIG_HELP = """Run the relay server (WebSocket + HTTP on one port).
+CONFIG_HELP = """Run the relay server (WebSocket + HTTP on one port, optionally the web
+page + WebSocket on a second, HTTPS port).
 
 \b
 server.yaml (relative paths are relative to the file):
-  listen_host: 0.0.0.0          address to bind
+  listen_host: 0.0.0.0          address to bind, or a list of addresses
+                                (e.g. [10.8.0.1, 127.0.0.1])
   listen_port: 8080             TCP port (0 = any free port)
   auth_map: auth.yaml           identities (ip | cidr | token_sha256) and
-                                rules {topic: RE2, op: send|receive|both}
+                                rules {topic: RE2, op: send|receive|both};
+                                reloaded on change and on SIGHUP
   database: fleet.db            SQLite robot registry (survives restarts)
   tls_cert: null                PEM cert and key for wss://; both or neither
   tls_key: null
@@ -35,9 +38,20 @@ server.yaml (relative paths are relative to the file):
     session_mailbox_messages: 10000    no_drop frames kept per offline session
     session_mailbox_bytes: 16777216
     max_sessions_per_identity: 64
+  web:                          optional: the web page and the relay on one
+                                HTTPS origin (identity by token only)
+    listen_host: 0.0.0.0        address, or a list of addresses
+    listen_port: 8443           TCP port (0 = any free port)
+    tls_cert: tls/cert.pem      required, PEM certificate (chain)
+    tls_key: tls/key.pem        required, its unencrypted PEM private key
+    vendor_dir: /usr/share/javascript   Debian libjs-three / libjs-leaflet
 
 \b
-HTTP: GET /healthz, GET /metrics (Prometheus), GET /robots (JSON).
+HTTP: GET /healthz, GET /metrics (Prometheus), GET /robots (JSON); on the
+web port: the page (/, /config.json, /types/..., /vendor/...) and /healthz.
+auth.yaml: a changed file (checked every 0.25 s) or SIGHUP reloads it; an
+invalid file is logged and the previous map stays. Connections whose
+identities are gone are closed with 4403; the others keep their connection.
 Stops gracefully on SIGTERM / SIGINT. See docs/server.md.
 """
 
@@ -50,7 +64,7 @@ def register(app: typer.Typer) -> None:
         config: Path = typer.Option(..., "--config", "-c", help="Path of server.yaml."),
         log_level: str = typer.Option("info", "--log-level", help="debug, info, warning."),
     ) -> None:
-        from fleetctl.server.app import RelayServer, run_server
+        from fleetctl.server.app import ListenError, RelayServer, run_server
         from fleetctl.server.config import load_server_config
 
         level = getattr(logging, log_level.upper(), None)
@@ -61,10 +75,10 @@ def register(app: typer.Typer) -> None:
 
         def ready(srv: RelayServer) -> None:
             typer.echo(f"fleetctl server listening on {srv.url}", err=True)
+            if srv.web_url is not None:
+                typer.echo(f"fleetctl server web page on {srv.web_url}", err=True)
 
         try:
             asyncio.run(run_server(cfg, ready=ready))
-        except OSError as exc:
-            raise ConfigError(
-                f"{config}: cannot listen on {cfg.listen_host}:{cfg.listen_port}: {exc.strerror}"
-            ) from None
+        except ListenError as exc:
+            raise ConfigError(f"{config}: {exc}") from None

@@ -1,7 +1,11 @@
 """The relay server: websockets + HTTP on one port, wired to :class:`RelayCore`.
 
+With a ``web:`` section, a second listener (TLS) serves the same relay and the web page on
+one HTTPS origin (:mod:`fleetctl.server.web`). The auth map is reloaded when its file
+changes and on SIGHUP (:mod:`fleetctl.server.authreload`).
+
 Use :class:`RelayServer` as an async context manager (tests, benchmarks) or
-:func:`run_server` (``fleetctl server``), which also handles SIGTERM/SIGINT.
+:func:`run_server` (``fleetctl server``), which also handles SIGTERM/SIGINT and SIGHUP.
 """
 
 from __future__ import annotations
@@ -14,7 +18,7 @@ import logging
 import signal
 import ssl
 from collections.abc import Callable
-from typing import Any
+from typing import Any, NamedTuple, cast
 
 from websockets.asyncio.server import Server, ServerConnection, serve
 from websockets.exceptions import ConnectionClosed
@@ -22,7 +26,8 @@ from websockets.http11 import Request, Response
 
 from fleetctl.server import endpoints, protocol
 from fleetctl.server.authmap import AuthMap, Identity, IPAddress, load_auth_map
-from fleetctl.server.config import ServerConfig
+from fleetctl.server.authreload import AuthReloader
+from fleetctl.server.config import Hosts, ServerConfig, host_list, hosts_text
 from fleetctl.server.connection import RelayConnection
 from fleetctl.server.identity import bearer_token, effective_address, parse_address
 from fleetctl.server.metrics import Metrics
@@ -30,12 +35,16 @@ from fleetctl.server.outbound import OutboundScheduler
 from fleetctl.server.registry import RobotRegistry
 from fleetctl.server.relay import Peer, RelayCore
 from fleetctl.server.sessions import SESSION_HEADER
+from fleetctl.server.tls import server_context
+from fleetctl.server.web import QuietSuccess, page_response, wants_websocket, web_page
+from fleetctl.webviz.httpserver import WebPage
 
 log = logging.getLogger("fleetctl.server")
 # websockets logs every request header (Authorization: Bearer ...) at DEBUG; its logger
 # for our connections is pinned at INFO so tokens never reach a log, whatever the root level.
 ws_log = logging.getLogger("fleetctl.server.websockets")
 ws_log.setLevel(logging.INFO)
+ws_log.addFilter(QuietSuccess())  # a health check every 5 s is not a "rejection"
 
 # Why small: the kernel socket buffer already holds plenty; bytes parked in asyncio's
 # buffer cannot be dropped or superseded, bytes in our scheduler can (Pound, Robofleet n_T).
@@ -45,69 +54,161 @@ WRITE_BATCH_BYTES = 64 * 1024
 REGISTRY_FLUSH_PERIOD_S = 1.0
 
 
+class ListenError(Exception):
+    """A listener cannot bind; the message names the config field (``listen_port`` or
+    ``web.listen_port``), the address and the reason."""
+
+
+class _Handshake(NamedTuple):
+    """What the upgrade request said, kept on the connection until its handler runs."""
+
+    peer: Peer
+    identities: list[Identity]
+    bad_token: bool
+    wake: asyncio.Event
+    auth: AuthMap  # the map *identities* were matched against
+
+
 class RelayServer:
     """A running relay.
 
     Args:
         config: Server config; ``listen_port`` 0 picks a free port (see :attr:`port`).
-        auth: Auth map; read from ``config.auth_map`` when ``None``.
+        auth: Auth map; read from ``config.auth_map`` when ``None``. Either way the file
+            is watched from :meth:`start` on and reloaded when it changes.
     """
 
     def __init__(self, config: ServerConfig, auth: AuthMap | None = None) -> None:
         self.config = config
-        self.auth = auth if auth is not None else load_auth_map(config.auth_map)
+        auth = auth if auth is not None else load_auth_map(config.auth_map)
         self.metrics = Metrics()
         self.registry = RobotRegistry(config.database, config.limits.robot_offline_after_s)
-        self.core = RelayCore(config, self.auth, self.registry, self.metrics)
+        self.core = RelayCore(config, auth, self.registry, self.metrics)
+        self.reloader = AuthReloader(config.auth_map, self.core.reload_auth, self.metrics)
         self._server: Server | None = None
+        self._web_server: Server | None = None
+        self._page: WebPage | None = None
         self._tasks: set[asyncio.Task[Any]] = set()
-        self._flusher: asyncio.Task[None] | None = None
+        self._background: list[asyncio.Task[None]] = []
+
+    @property
+    def auth(self) -> AuthMap:
+        """The auth map in force (replaced by each successful reload)."""
+        return self.core.auth
 
     @property
     def port(self) -> int:
-        """The bound TCP port."""
+        """The bound TCP port of the relay listener (its first address)."""
+        return self.addresses[0][1]
+
+    @property
+    def addresses(self) -> list[tuple[str, int]]:
+        """``(host, port)`` of every relay socket (one per ``listen_host`` address)."""
         assert self._server is not None, "server not started"
-        port: int = next(iter(self._server.sockets)).getsockname()[1]
-        return port
+        return _addresses(self._server)
 
     @property
     def url(self) -> str:
-        """``ws://host:port/`` (``wss`` with TLS) of the bound socket."""
+        """``ws://host:port/`` (``wss`` with TLS) of the first relay socket."""
         scheme = "wss" if self.config.tls_cert else "ws"
-        host = next(iter(self._server.sockets)).getsockname()[0] if self._server else "?"
-        return f"{scheme}://{host}:{self.port}/"
+        return _url(scheme, *self.addresses[0]) if self._server else f"{scheme}://?/"
+
+    @property
+    def web_addresses(self) -> list[tuple[str, int]]:
+        """``(host, port)`` of every web listener socket (empty without ``web:``)."""
+        return _addresses(self._web_server) if self._web_server is not None else []
+
+    @property
+    def web_port(self) -> int:
+        """The bound TCP port of the web listener (its first address)."""
+        assert self._web_server is not None, "no web listener"
+        return self.web_addresses[0][1]
+
+    @property
+    def web_url(self) -> str | None:
+        """``https://host:port/`` of the page on the web listener, or ``None``."""
+        addresses = self.web_addresses
+        return _url("https", *addresses[0]) if addresses else None
 
     async def start(self) -> None:
-        """Bind and start serving."""
-        self._server = await serve(
-            self._handler,
-            self.config.listen_host,
-            self.config.listen_port,
-            create_connection=RelayConnection,
-            process_request=self._process_request,
-            process_response=self._process_response,
-            max_size=self.config.limits.max_frame_bytes,
-            max_queue=16,
-            write_limit=WRITE_LIMIT_BYTES,
-            ssl=self._ssl_context(),
-            logger=ws_log,
-            compression=None,  # per-message deflate costs CPU per frame; payloads are binary
-        )
-        self._flusher = asyncio.create_task(self._flush_registry())
-        log.info("relay listening on %s", self.url)
+        """Bind and start serving; start watching the auth map.
+
+        Raises:
+            ConfigError: A certificate or key cannot be loaded.
+            ListenError: An address cannot be bound.
+        """
+        config, web = self.config, self.config.web
+        main_ssl = (server_context(config.tls_cert, config.tls_key)
+                    if config.tls_cert is not None and config.tls_key is not None else None)
+        web_ssl = server_context(web.tls_cert, web.tls_key) if web is not None else None
+        try:
+            self._server = await self._listen(config.listen_host, config.listen_port, main_ssl,
+                                              web=False, field="listen_port")
+            if web is not None:
+                self._page = web_page(web)
+                self._web_server = await self._listen(web.listen_host, web.listen_port,
+                                                      web_ssl, web=True,
+                                                      field="web.listen_port")
+        except BaseException:
+            await self.stop()
+            raise
+        self._background = [asyncio.create_task(self._flush_registry()),
+                            asyncio.create_task(self.reloader.watch())]
+        log.info("relay listening on %s", ", ".join(
+            _url("wss" if main_ssl else "ws", *a) for a in self.addresses))
+        if self._web_server is not None:
+            log.info("web page and relay listening on %s", ", ".join(
+                _url("https", *a) for a in self.web_addresses))
 
     async def stop(self) -> None:
         """Close every connection (1001), stop listening, flush the registry."""
-        if self._flusher is not None:
-            self._flusher.cancel()
+        for task in self._background:
+            task.cancel()
             with contextlib.suppress(asyncio.CancelledError):
-                await self._flusher
-        if self._server is not None:
-            self._server.close(close_connections=True)
-            await self._server.wait_closed()
+                await task
+        self._background = []
+        for server in (self._server, self._web_server):
+            if server is not None:
+                server.close(close_connections=True)
+                await server.wait_closed()
         for task in list(self._tasks):
             task.cancel()
         self.registry.close()
+
+    def reload_auth(self, reason: str = "reload requested") -> bool:
+        """Reload the auth map file now (SIGHUP does this); see :class:`AuthReloader`.
+
+        Returns:
+            Whether the new map is in force (an invalid file keeps the previous one).
+        """
+        return self.reloader.reload(reason)
+
+    async def _listen(self, hosts: Hosts, port: int, ssl_context: ssl.SSLContext | None, *,
+                      web: bool, field: str) -> Server:
+        def respond(connection: ServerConnection, request: Request,
+                    response: Response) -> None:
+            self._process_response(connection, request, response, by_address=not web)
+
+        try:
+            return await serve(
+                self._handler,
+                # asyncio's create_server binds every address of a sequence; websockets
+                # passes the value through but annotates it as one string.
+                cast(str, host_list(hosts)),
+                port,
+                create_connection=RelayConnection,
+                process_request=self._web_request if web else self._process_request,
+                process_response=respond,
+                max_size=self.config.limits.max_frame_bytes,
+                max_queue=16,
+                write_limit=WRITE_LIMIT_BYTES,
+                ssl=ssl_context,
+                logger=ws_log,
+                compression=None,  # per-message deflate costs CPU per frame; payloads binary
+            )
+        except OSError as exc:
+            raise ListenError(f"field {field!r}: cannot listen on {hosts_text(hosts)}:{port}: "
+                              f"{exc.strerror or exc}") from None
 
     async def __aenter__(self) -> RelayServer:
         await self.start()
@@ -115,13 +216,6 @@ class RelayServer:
 
     async def __aexit__(self, *exc: object) -> None:
         await self.stop()
-
-    def _ssl_context(self) -> ssl.SSLContext | None:
-        if self.config.tls_cert is None or self.config.tls_key is None:
-            return None
-        context = ssl.SSLContext(ssl.PROTOCOL_TLS_SERVER)
-        context.load_cert_chain(self.config.tls_cert, self.config.tls_key)
-        return context
 
     async def _flush_registry(self) -> None:
         while True:  # periodic write-behind and session expiry, not synchronization
@@ -153,9 +247,17 @@ class RelayServer:
             return self._robots(connection, request)
         return None
 
+    def _web_request(self, connection: ServerConnection, request: Request) -> Response | None:
+        # The web listener: the page and /healthz; /metrics and /robots stay on the relay
+        # port (often not exposed to the internet).
+        if wants_websocket(request):
+            return None
+        assert self._page is not None
+        return page_response(self._page, request)
+
     def _robots(self, connection: ServerConnection, request: Request) -> Response:
         address = self._address(connection, request)
-        identities, bad = self._identities(address, request)
+        identities, bad = self._identities(address, request, by_address=True)
         perms = self.core.pool.get(identities) if identities else None
         allowed, perms = endpoints.robots_allowed(address, perms, bad)
         if not allowed:
@@ -166,19 +268,23 @@ class RelayServer:
         return endpoints.json_response({"robots": self.core.robots_for(perms)})
 
     def _identities(
-        self, address: IPAddress | None, request: Request
+        self, address: IPAddress | None, request: Request, by_address: bool
     ) -> tuple[list[Identity], bool]:
-        identities = self.auth.match_address(address)
+        """Identities of an upgrade or HTTP request (address ones only if *by_address*),
+        and whether it presented a token that matches nothing."""
+        auth = self.core.auth
+        identities = auth.match_address(address) if by_address else []
         token = bearer_token(request.headers.get("Authorization"))
         if token is None:
             return identities, False
-        found = self.auth.match_token(token)
+        found = auth.match_token(token)
         if found is None:
             return identities, True
         return [*identities, found], False
 
     def _process_response(
-        self, connection: ServerConnection, request: Request, response: Response
+        self, connection: ServerConnection, request: Request, response: Response,
+        by_address: bool,
     ) -> None:
         if response.status_code != http.HTTPStatus.SWITCHING_PROTOCOLS:
             return
@@ -190,10 +296,12 @@ class RelayServer:
         session_name = ",".join(names) if names else None
         peer = self.core.new_peer(
             str(address) if address else None, close=self._closer(connection), wake=wake.set,
-            session_name=session_name,
+            session_name=session_name, by_address=by_address,
         )
-        identities, bad = self._identities(address, request)
-        connection.relay_state = (peer, identities, bad, wake)
+        identities, bad = self._identities(address, request, by_address)
+        # Only the hash of a token is kept (a reload re-checks the connection by it).
+        peer.token_digests.update(i.token_sha256 for i in identities if i.token_sha256)
+        connection.relay_state = _Handshake(peer, identities, bad, wake, self.core.auth)
         core = self.core
 
         def sink(frame: bytes) -> bool:
@@ -219,7 +327,7 @@ class RelayServer:
         state = connection.relay_state
         if state is not None:
             # Let queued control frames (the error that explains the close) go first.
-            peer: Peer = state[0]
+            peer: Peer = state.peer
             with contextlib.suppress(ConnectionClosed):
                 await connection.send_frames(
                     [f for _, f in peer.outbound.pop_batch(WRITE_BATCH_BYTES)
@@ -231,8 +339,11 @@ class RelayServer:
 
     async def _handler(self, connection: ServerConnection) -> None:
         assert isinstance(connection, RelayConnection)
-        peer, identities, bad_token, wake = connection.relay_state
-        writer = asyncio.create_task(self._write_loop(connection, peer, wake))
+        state: _Handshake = connection.relay_state
+        peer, identities, bad_token = state.peer, state.identities, state.bad_token
+        if state.auth is not self.core.auth:  # reloaded since the upgrade: match again
+            identities = self.core.current_identities(peer)
+        writer = asyncio.create_task(self._write_loop(connection, peer, state.wake))
         try:
             if bad_token:
                 self.core.on_token(peer, "")
@@ -310,13 +421,24 @@ def _on_pong(outbound: OutboundScheduler, mark: int, waiter: asyncio.Future[floa
         outbound.acked(mark)
 
 
+def _addresses(server: Server) -> list[tuple[str, int]]:
+    return [tuple(s.getsockname()[:2]) for s in server.sockets]  # type: ignore[misc]
+
+
+def _url(scheme: str, host: str, port: int) -> str:
+    return f"{scheme}://{f'[{host}]' if ':' in host else host}:{port}/"
+
+
 async def run_server(config: ServerConfig, ready: Callable[[RelayServer], None] | None = None,
                      stop: asyncio.Event | None = None) -> None:
     """Run until SIGTERM/SIGINT (or *stop* is set), then shut down gracefully.
 
+    SIGHUP reloads the auth map (:meth:`RelayServer.reload_auth`).
+
     Args:
         config: The server config.
-        ready: Called with the started server (e.g. to print the URL).
+        ready: Called with the started server (e.g. to print the URL), once SIGHUP is
+            handled.
         stop: Optional event that stops the server when set.
     """
     stop = stop or asyncio.Event()
@@ -325,7 +447,13 @@ async def run_server(config: ServerConfig, ready: Callable[[RelayServer], None] 
         with contextlib.suppress(NotImplementedError, RuntimeError):
             loop.add_signal_handler(sig, stop.set)
     async with RelayServer(config) as server:
-        if ready is not None:
-            ready(server)
-        await stop.wait()
-        log.info("shutting down")
+        with contextlib.suppress(NotImplementedError, RuntimeError):
+            loop.add_signal_handler(signal.SIGHUP, server.reload_auth, "SIGHUP")
+        try:
+            if ready is not None:
+                ready(server)
+            await stop.wait()
+            log.info("shutting down")
+        finally:
+            with contextlib.suppress(NotImplementedError, RuntimeError):
+                loop.remove_signal_handler(signal.SIGHUP)

@@ -100,7 +100,11 @@ class AuthMap:
 
     def match_token(self, token: str) -> Identity | None:
         """Return the identity whose ``token_sha256`` is the hash of *token*, or ``None``."""
-        digest = hash_token(token)
+        return self.match_digest(hash_token(token))
+
+    def match_digest(self, digest: str) -> Identity | None:
+        """Return the identity whose ``token_sha256`` is *digest* (lower-case hex), or
+        ``None``; what a reload re-checks a connection's token by (only its hash is kept)."""
         found = self._by_digest.get(digest)
         # Constant-time confirm so the lookup leaks nothing beyond what a dict hit does.
         if found is not None and hmac.compare_digest(found.token_sha256 or "", digest):

@@ -8,6 +8,7 @@ field at fault; it never returns a half-valid config.
 from __future__ import annotations
 
 import ipaddress
+import os
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -15,9 +16,15 @@ from typing import Any
 import re2
 
 from fleetctl.errors import ConfigError
+from fleetctl.server.tls import server_context
+from fleetctl.webviz.config import DEBIAN_JS_DIR
 from fleetctl.yamlfile import read_yaml
 
 DEFAULT_PORT = 8080
+DEFAULT_WEB_PORT = 8443
+
+Hosts = str | tuple[str, ...]
+"""One address to bind, or several (e.g. the WireGuard address and 127.0.0.1)."""
 
 
 @dataclass(frozen=True)
@@ -56,12 +63,31 @@ class ServerLimits:
 
 
 @dataclass(frozen=True)
+class WebConfig:
+    """The web listener: the page and the relay's WebSocket on one HTTPS origin.
+
+    Attributes:
+        tls_cert: PEM certificate path (required: browsers need a secure origin).
+        tls_key: PEM private key path (required).
+        listen_host: Address or addresses to bind.
+        listen_port: TCP port; 0 picks a free port.
+        vendor_dir: Directory holding Debian's ``three/`` and ``leaflet/``.
+    """
+
+    tls_cert: Path
+    tls_key: Path
+    listen_host: Hosts = "0.0.0.0"
+    listen_port: int = DEFAULT_WEB_PORT
+    vendor_dir: Path = DEBIAN_JS_DIR
+
+
+@dataclass(frozen=True)
 class ServerConfig:
     """Everything ``fleetctl server`` needs to run.
 
     Attributes:
-        listen_host: Address to bind.
-        listen_port: TCP port to bind; 0 picks a free port.
+        listen_host: Address to bind, or a tuple of addresses (each is bound).
+        listen_port: TCP port to bind; 0 picks a free port (per address).
         auth_map: Path of the auth map (``auth.yaml``).
         database: Path of the SQLite robot registry; ``None`` keeps it in memory.
         tls_cert: PEM certificate path, or ``None`` for plain ``ws://``.
@@ -69,9 +95,10 @@ class ServerConfig:
         trusted_proxies: Networks whose ``X-Forwarded-For`` header is believed.
         no_drop_topics: RE2 full-match patterns of topics always treated as no_drop.
         limits: Resource bounds.
+        web: The HTTPS web listener (page + WebSocket), or ``None`` for none.
     """
 
-    listen_host: str = "0.0.0.0"
+    listen_host: Hosts = "0.0.0.0"
     listen_port: int = DEFAULT_PORT
     auth_map: Path = Path("auth.yaml")
     database: Path | None = Path("fleet.db")
@@ -80,6 +107,17 @@ class ServerConfig:
     trusted_proxies: tuple[ipaddress.IPv4Network | ipaddress.IPv6Network, ...] = ()
     no_drop_topics: tuple[str, ...] = ()
     limits: ServerLimits = field(default_factory=ServerLimits)
+    web: WebConfig | None = None
+
+
+def host_list(hosts: Hosts) -> list[str]:
+    """Return *hosts* as a list (what ``loop.create_server`` is given)."""
+    return [hosts] if isinstance(hosts, str) else list(hosts)
+
+
+def hosts_text(hosts: Hosts) -> str:
+    """*hosts* for messages: ``0.0.0.0`` or ``10.8.0.1,127.0.0.1``."""
+    return ",".join(host_list(hosts))
 
 
 _TOP_KEYS = {
@@ -92,7 +130,9 @@ _TOP_KEYS = {
     "trusted_proxies",
     "no_drop_topics",
     "limits",
+    "web",
 }
+_WEB_KEYS = {"listen_host", "listen_port", "tls_cert", "tls_key", "vendor_dir"}
 _INT_LIMITS = (
     "max_frame_bytes",
     "max_subscriptions_per_connection",
@@ -137,9 +177,11 @@ def parse_server_config(raw: dict[str, Any], path: Path) -> ServerConfig:
     key = _opt_path(raw, "tls_key", base, path)
     if (cert is None) != (key is None):
         raise ConfigError(f"{path}: field 'tls_cert'/'tls_key': set both or neither")
+    if cert is not None and key is not None:
+        _check_tls(cert, key, "", path)
     return ServerConfig(
-        listen_host=_str(raw, "listen_host", "0.0.0.0", path),
-        listen_port=_port(raw, path),
+        listen_host=_hosts(raw, "listen_host", path),
+        listen_port=_port(raw, "listen_port", DEFAULT_PORT, path),
         auth_map=_req_path(raw, "auth_map", base, path),
         database=_opt_path(raw, "database", base, path, default="fleet.db"),
         tls_cert=cert,
@@ -147,21 +189,71 @@ def parse_server_config(raw: dict[str, Any], path: Path) -> ServerConfig:
         trusted_proxies=_networks(raw.get("trusted_proxies") or [], path),
         no_drop_topics=_regexes(raw.get("no_drop_topics") or [], path),
         limits=_limits(raw.get("limits") or {}, path),
+        web=_web(raw.get("web"), base, path),
     )
 
 
-def _str(raw: dict[str, Any], name: str, default: str, path: Path) -> str:
-    value = raw.get(name, default)
-    if not isinstance(value, str) or not value:
-        raise ConfigError(f"{path}: field {name!r} must be a non-empty string")
-    return value
+def _hosts(raw: dict[str, Any], name: str, path: Path, prefix: str = "") -> Hosts:
+    value = raw.get(name, "0.0.0.0")
+    if isinstance(value, str) and value:
+        return value
+    if (isinstance(value, list) and value
+            and all(isinstance(v, str) and v for v in value)):
+        return tuple(value)
+    raise ConfigError(f"{path}: field '{prefix}{name}' must be an address or a non-empty "
+                      "list of addresses")
 
 
-def _port(raw: dict[str, Any], path: Path) -> int:
-    value = raw.get("listen_port", DEFAULT_PORT)
+def _port(raw: dict[str, Any], name: str, default: int, path: Path) -> int:
+    value = raw.get(name.rpartition(".")[2], default)
     if isinstance(value, bool) or not isinstance(value, int) or not 0 <= value <= 65535:
-        raise ConfigError(f"{path}: field 'listen_port' must be an integer 0..65535")
+        raise ConfigError(f"{path}: field {name!r} must be an integer 0..65535")
     return int(value)
+
+
+def _web(value: Any, base: Path, path: Path) -> WebConfig | None:
+    if value is None:
+        return None
+    if not isinstance(value, dict):
+        raise ConfigError(f"{path}: field 'web' must be a mapping")
+    unknown = sorted(set(value) - _WEB_KEYS)
+    if unknown:
+        raise ConfigError(f"{path}: unknown field 'web.{unknown[0]}'")
+    cert = _readable(value, "tls_cert", base, path)
+    key = _readable(value, "tls_key", base, path)
+    _check_tls(cert, key, "web.", path)
+    vendor = _opt_path(value, "vendor_dir", base, path, default=str(DEBIAN_JS_DIR), prefix="web.")
+    assert vendor is not None
+    return WebConfig(
+        tls_cert=cert,
+        tls_key=key,
+        listen_host=_hosts(value, "listen_host", path, prefix="web."),
+        listen_port=_port(value, "web.listen_port", DEFAULT_WEB_PORT, path),
+        vendor_dir=vendor,
+    )
+
+
+def _readable(raw: dict[str, Any], name: str, base: Path, path: Path) -> Path:
+    found = _opt_path(raw, name, base, path, prefix="web.")
+    if found is None:
+        raise ConfigError(f"{path}: field 'web.{name}' is required (a PEM file)")
+    try:
+        with found.open("rb"):
+            pass
+    except OSError as exc:
+        reason = exc.strerror or str(exc)
+        raise ConfigError(f"{path}: field 'web.{name}': cannot read {found}: {reason}") from None
+    if not found.is_file() or not os.access(found, os.R_OK):
+        raise ConfigError(f"{path}: field 'web.{name}': {found} is not a readable file")
+    return found
+
+
+def _check_tls(cert: Path, key: Path, prefix: str, path: Path) -> None:
+    """Load the pair once now, so a bad one is a config error, not a traceback at start."""
+    try:
+        server_context(cert, key)
+    except ConfigError as exc:
+        raise ConfigError(f"{path}: field '{prefix}tls_cert'/'{prefix}tls_key': {exc}") from None
 
 
 def _req_path(raw: dict[str, Any], name: str, base: Path, path: Path) -> Path:
@@ -172,14 +264,15 @@ def _req_path(raw: dict[str, Any], name: str, base: Path, path: Path) -> Path:
 
 
 def _opt_path(
-    raw: dict[str, Any], name: str, base: Path, path: Path, default: str | None = None
+    raw: dict[str, Any], name: str, base: Path, path: Path, default: str | None = None,
+    prefix: str = "",
 ) -> Path | None:
     value = raw.get(name, default)
     if value is None:
         return None
     if not isinstance(value, str) or not value:
-        raise ConfigError(f"{path}: field {name!r} must be a path string or null")
-    return base / value
+        raise ConfigError(f"{path}: field '{prefix}{name}' must be a path string or null")
+    return base / value  # an absolute value stays absolute
 
 
 def _networks(

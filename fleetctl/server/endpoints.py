@@ -1,4 +1,5 @@
-"""HTTP endpoints served on the WebSocket port: ``/healthz``, ``/metrics``, ``/robots``."""
+"""HTTP endpoints served on the WebSocket port: ``/healthz``, ``/metrics``, ``/robots``
+(and the page's files on the web listener, see :mod:`fleetctl.webviz.httpserver`)."""
 
 from __future__ import annotations
 
@@ -15,14 +16,19 @@ from fleetctl.server.permissions import Permissions
 PROMETHEUS_CONTENT_TYPE = "text/plain; version=0.0.4; charset=utf-8"
 
 
-def response(status: http.HTTPStatus, body: bytes, content_type: str) -> Response:
-    """Build a complete HTTP response (no keep-alive: websockets closes after it)."""
+def response(status: http.HTTPStatus, body: bytes, content_type: str,
+             cache_control: str = "no-store") -> Response:
+    """Build a complete HTTP response (no keep-alive: websockets closes after it).
+
+    *cache_control* is ``no-store`` for live data, ``no-cache`` for the page's files
+    (kept, but revalidated: they change with the package).
+    """
     headers = Headers(
         [
             ("Content-Type", content_type),
             ("Content-Length", str(len(body))),
             ("Connection", "close"),
-            ("Cache-Control", "no-store"),
+            ("Cache-Control", cache_control),
         ]
     )
     return Response(status.value, status.phrase, headers, body)

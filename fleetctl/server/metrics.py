@@ -29,6 +29,8 @@ class Metrics:
     errors: dict[str, int] = field(default_factory=dict)
     closes: dict[int, int] = field(default_factory=dict)
     session_drops: dict[tuple[str, str], int] = field(default_factory=dict)
+    auth_reloads: int = 0
+    auth_reload_failures: int = 0
 
     def label(self, topic: str) -> str:
         """Return *topic*, or ``<other>`` once the label bound is reached."""
@@ -89,6 +91,11 @@ class Metrics:
                 self.connections_total)
         _scalar(out, "fleetctl_connections_open", "gauge", "Connections open now.",
                 self.connections_open)
+        _scalar(out, "fleetctl_auth_reloads_total", "counter",
+                "Auth map reloads applied (file change or SIGHUP).", self.auth_reloads)
+        _scalar(out, "fleetctl_auth_reload_failures_total", "counter",
+                "Auth map reloads refused (unreadable or invalid file; the previous map "
+                "stays).", self.auth_reload_failures)
         by_topic = (
             ("fleetctl_messages_in_total", "Frames received per topic.", self.messages_in),
             ("fleetctl_bytes_in_total", "Bytes received per topic.", self.bytes_in),

@@ -22,6 +22,7 @@ from typing import Any
 from fleetctl.server import protocol
 from fleetctl.server.authmap import AuthMap, Identity
 from fleetctl.server.config import ServerConfig
+from fleetctl.server.identity import parse_address
 from fleetctl.server.metrics import Metrics
 from fleetctl.server.outbound import OutboundScheduler
 from fleetctl.server.permissions import Permissions, PermissionsPool
@@ -54,6 +55,12 @@ class Peer:
         close: Asks the I/O layer to close with ``(code, reason)``.
         session_name: The session the client named on the upgrade, if any (validated
             when the connection authenticates).
+        by_address: Whether ``ip``/``cidr`` identities apply to this connection (not on
+            the web listener, where people sign in with tokens).
+
+    Attributes:
+        token_digests: SHA-256 hex digests of the tokens the connection authenticated
+            with (never the tokens): what an auth map reload re-checks it by.
     """
 
     def __init__(
@@ -63,11 +70,14 @@ class Peer:
         outbound: OutboundScheduler,
         close: Callable[[int, str], None],
         session_name: str | None = None,
+        by_address: bool = True,
     ) -> None:
         self.peer_id = peer_id
         self.session_name = session_name
         self.session: Session[Peer] | None = None
         self.address = address
+        self.by_address = by_address
+        self.token_digests: set[str] = set()
         self.outbound = outbound
         self._close = close
         self.perms: Permissions | None = None
@@ -132,10 +142,12 @@ class RelayCore:
     # -- connection life cycle -------------------------------------------------------
 
     def new_peer(self, address: str | None, close: Callable[[int, str], None],
-                 wake: Callable[[], None] | None, session_name: str | None = None) -> Peer:
+                 wake: Callable[[], None] | None, session_name: str | None = None,
+                 by_address: bool = True) -> Peer:
         """Create the relay state of a new connection (not yet authenticated).
 
-        *session_name* is the ``X-Fleetctl-Session`` header, if any.
+        *session_name* is the ``X-Fleetctl-Session`` header, if any; *by_address* says
+        whether address identities apply (see :class:`Peer`).
         """
         self._next_id += 1
         outbound = OutboundScheduler(
@@ -144,7 +156,7 @@ class RelayCore:
             wake,
             self.metrics.count_drop,
         )
-        peer = Peer(self._next_id, address, outbound, close, session_name)
+        peer = Peer(self._next_id, address, outbound, close, session_name, by_address)
         self.peers[peer.peer_id] = peer
         self.metrics.connections_total += 1
         self.metrics.connections_open += 1
@@ -172,6 +184,69 @@ class RelayCore:
         if peer.session_name is not None and peer.session is None:
             self._attach_session(peer, peer.session_name)
         return True
+
+    def reload_auth(self, auth: AuthMap) -> tuple[int, int]:
+        """Switch to a reloaded auth map and re-authorize every open connection.
+
+        Each authenticated connection's identities are recomputed from its address
+        (address identities) and its token digests. A connection left with none is closed
+        with 4403 and stops receiving at once; the others keep their connection, get the
+        new permissions (a new ``welcome`` if its rules changed) and lose the
+        subscriptions they may no longer hold (an ``error`` and an ``unsubscribed`` frame
+        each). Permission caches and receiver caches are rebuilt; sessions follow
+        (:meth:`SessionTable.reauthorize`).
+
+        Returns:
+            ``(kept, closed)``: authenticated connections kept and closed.
+        """
+        self.auth = auth
+        self.pool = PermissionsPool()  # the old one caches answers of the old rules
+        self.sessions.reauthorize(auth, self.pool)
+        kept = closed = 0
+        for peer in list(self.peers.values()):
+            if peer.perms is None or peer.closing:
+                continue  # not authenticated yet: it will be, against the new map
+            identities = self.current_identities(peer)
+            if identities:
+                self._regrant(peer, identities)
+                kept += 1
+            else:
+                self.subs.remove(peer)  # nothing more is queued for it from now on
+                self._close(peer, protocol.CLOSE_NO_IDENTITY,
+                            "credentials revoked (auth map reloaded)")
+                closed += 1
+        return kept, closed
+
+    def current_identities(self, peer: Peer) -> list[Identity]:
+        """*peer*'s identities under the current auth map: address ones (if they apply to
+        it) and those of its token digests, deduplicated by name."""
+        found: dict[str, Identity] = {}
+        if peer.by_address:
+            for ident in self.auth.match_address(parse_address(peer.address)):
+                found.setdefault(ident.name, ident)
+        for digest in sorted(peer.token_digests):
+            by_token = self.auth.match_digest(digest)
+            if by_token is not None:
+                found.setdefault(by_token.name, by_token)
+        return list(found.values())
+
+    def _regrant(self, peer: Peer, identities: list[Identity]) -> None:
+        """Give a still-allowed *peer* the permissions of its recomputed *identities*."""
+        assert peer.perms is not None
+        before = protocol.welcome(peer.perms)
+        peer.identities = identities
+        peer.perms = self.pool.get(identities)
+        peer.is_robot = any(i.by_address for i in identities)
+        peer.refused_topics.clear()  # a refused send may be allowed now, and the reverse
+        welcome = protocol.welcome(peer.perms)
+        if welcome != before:
+            peer.outbound.push_control(welcome)
+            log.info("%s re-authorized: rules changed", peer.label)
+        for pattern, refusal in self.subs.set_permissions(peer, peer.perms):
+            self._error(peer, refusal.code, pattern, f"{refusal.message} (auth map reloaded)")
+            peer.outbound.push_control(protocol.ack("unsubscribed", pattern))
+            if peer.session is not None:
+                self.sessions.forget_pattern(peer.session, pattern)
 
     def close_peer(self, peer: Peer) -> None:
         """Forget a closed connection; count what its scheduler dropped."""
@@ -268,6 +343,8 @@ class RelayCore:
                 self._bad_session(peer, "name the session once, before subscribing")
                 return
             peer.session_name = session
+        if identity.token_sha256 is not None:  # the hash of *token*: matched by it
+            peer.token_digests.add(identity.token_sha256)
         self.authenticate(peer, [identity])
 
     def robots_for(self, perms: Permissions) -> list[dict[str, Any]]:

@@ -216,6 +216,37 @@ class SessionTable(Generic[C]):
         if self._sessions:
             log.info("loaded %d sessions from the database", len(self._sessions))
 
+    def reauthorize(self, auth: AuthMap, pool: PermissionsPool) -> None:
+        """Apply a reloaded auth map to every session.
+
+        A session's permissions become those of its key's identities in *auth*. An offline
+        session whose identities are no longer all in *auth* is dropped (with its
+        mailbox, counted as drops); an offline session's patterns it may no longer
+        subscribe are dropped. An online session whose identities are gone keeps its
+        connection (the relay decides about that) but gets no permission, so nothing of
+        it survives the connection going offline.
+        """
+        by_name = {i.name: i for i in auth.identities}
+        for session in list(self._sessions.values()):
+            names = session.key[0]
+            complete = all(n in by_name for n in names)
+            if not complete and session.attached is None:
+                log.info("session %s dropped: its identities changed in the auth map "
+                         "(%d mailbox frames dropped)", session.label, len(session.mailbox))
+                self._drop(session)
+                continue
+            session.perms = pool.get([by_name[n] for n in names] if complete else [])
+            if session.attached is None:
+                self._recheck_offline(session)
+
+    def _recheck_offline(self, session: Session[C]) -> None:
+        for pattern, refusal in self._offline.set_permissions(session, session.perms):
+            log.info("session %s: pattern %r dropped after the auth map reload: %s",
+                     session.label, pattern, refusal)
+            self.forget_pattern(session, pattern)
+        if not session.patterns:
+            self._forget(session)
+
     def attach(self, key: SessionKey, perms: Permissions, conn: C) -> Session[C] | None:
         """Attach *conn* to the session of *key*, creating it if needed.
 
@@ -285,10 +316,7 @@ class SessionTable(Generic[C]):
         for session in old:
             log.info("session %s expired after %.0f s offline (%d mailbox frames dropped)",
                      session.label, self.limits.session_expiry_s, len(session.mailbox))
-            for topic, _ in session.mailbox.take():
-                self._on_drop(session, topic, overflow=False)
-            self._persist_delete(session.key)
-            self._forget(session)
+            self._drop(session)
         return len(old)
 
     # -- hot path -------------------------------------------------------------------------
@@ -330,6 +358,13 @@ class SessionTable(Generic[C]):
             session.offline_since_s = None
             self._offline_count -= 1
             self.has_offline = self._offline_count > 0
+
+    def _drop(self, session: Session[C]) -> None:
+        """End an offline session now: its mailbox frames count as drops."""
+        for topic, _ in session.mailbox.take():
+            self._on_drop(session, topic, overflow=False)
+        self._persist_delete(session.key)
+        self._forget(session)
 
     def _forget(self, session: Session[C]) -> None:
         self._set_online(session)

@@ -71,11 +71,14 @@ class SubscriptionMap(Generic[C]):
             compiled = compile_full(pattern)
         except BadRegex as exc:
             raise Refusal("bad_regex", f"bad RE2 regex {pattern!r}: {exc}") from None
-        if compiled.literal is not None and not perms.may_receive(compiled.literal):
-            raise Refusal("subscription_refused", f"no receive permission on {pattern!r}")
-        if compiled.literal is None and not perms.any_receive:
-            raise Refusal("subscription_refused", "this identity may not receive any topic")
-        subs = self._subs.setdefault(conn, (perms, {}))[1]
+        refusal = _refusal(perms, pattern, compiled)
+        if refusal is not None:
+            raise refusal
+        entry = self._subs.get(conn)
+        subs = entry[1] if entry is not None else {}
+        if entry is None or entry[0] is not perms:  # new, or its permissions changed
+            self._subs[conn] = (perms, subs)
+            self._cache.clear()
         if pattern in subs:
             return
         if len(subs) >= self.max_per_connection:
@@ -93,6 +96,31 @@ class SubscriptionMap(Generic[C]):
             return False
         self._cache.clear()
         return True
+
+    def set_permissions(self, conn: C, perms: Permissions) -> list[tuple[str, Refusal]]:
+        """Give *conn*'s subscriptions new permissions (the auth map was reloaded).
+
+        Every pattern is checked again as :meth:`subscribe` would; refused ones are
+        removed. The receiver cache is cleared, so deliveries follow the new permissions
+        from the next frame on.
+
+        Returns:
+            The removed patterns with the reason, in subscription order.
+        """
+        entry = self._subs.get(conn)
+        if entry is None:
+            return []
+        refused: list[tuple[str, Refusal]] = []
+        kept: dict[str, FullMatch] = {}
+        for pattern, compiled in entry[1].items():
+            reason = _refusal(perms, pattern, compiled)
+            if reason is None:
+                kept[pattern] = compiled
+            else:
+                refused.append((pattern, reason))
+        self._subs[conn] = (perms, kept)
+        self._cache.clear()
+        return refused
 
     def remove(self, conn: C) -> None:
         """Forget every subscription of a closed connection."""
@@ -112,3 +140,12 @@ class SubscriptionMap(Generic[C]):
                 self._cache.clear()
             self._cache[topic] = found
         return found
+
+
+def _refusal(perms: Permissions, pattern: str, compiled: FullMatch) -> Refusal | None:
+    """Why *perms* may not hold the subscription *pattern*, or ``None`` if they may."""
+    if compiled.literal is not None and not perms.may_receive(compiled.literal):
+        return Refusal("subscription_refused", f"no receive permission on {pattern!r}")
+    if compiled.literal is None and not perms.any_receive:
+        return Refusal("subscription_refused", "this identity may not receive any topic")
+    return None

@@ -20,7 +20,8 @@ class WebvizConfig:
         listen_host: Address to bind (``127.0.0.1`` serves this machine only).
         listen_port: TCP port; 0 picks a free one (tests).
         server_url: Fleet server WebSocket URL given to the page in ``config.json``; None
-            lets the page use ``ws://<its own host>:8080/``.
+            gives ``ws://<the host the browser asked for>:8080/`` (``wss://`` behind a
+            proxy that sends ``X-Forwarded-Proto: https``).
         vendor_dir: Directory holding ``three/`` and ``leaflet/`` (Debian's
             ``/usr/share/javascript`` or a copy made at image build).
         static_dir: The page's files.

@@ -1,8 +1,9 @@
-"""The small HTTP server of the web visualizer (stdlib only).
+"""The routes of the web visualizer page, and the small stdlib HTTP server of
+``fleetctl webviz`` that answers them.
 
-Routes:
+Routes (:meth:`WebPage.lookup`, shared with the relay's web listener):
     ``/``                 the page (``static/index.html``)
-    ``/config.json``      ``{"server_url": ...}`` for the page
+    ``/config.json``      ``{"server_url": ...}`` for the page (``null``: its own origin)
     ``/types/<T>.json``   FlatBuffer layout of ROS type ``T`` (see :mod:`.layouts`)
     ``/vendor/<lib>/...`` Debian's three.js / Leaflet (see :mod:`.vendor`)
     anything else         a file under ``static/``
@@ -14,8 +15,10 @@ from __future__ import annotations
 
 import json
 import logging
+import re
 import threading
 from collections.abc import Callable
+from dataclasses import dataclass
 from http import HTTPStatus
 from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
 from pathlib import Path
@@ -26,6 +29,9 @@ from fleetctl.webviz.layouts import LayoutError
 from fleetctl.webviz.vendor import VENDOR_LIBS
 
 log = logging.getLogger(__name__)
+
+DEFAULT_RELAY_PORT = 8080
+"""The relay's default port: where a page served without ``--server-url`` looks for it."""
 
 LayoutSource = Callable[[str], bytes]
 """Returns the JSON layout of a ROS type name; raises LayoutError when unknown."""
@@ -53,6 +59,127 @@ def _inside(root: Path, rel: str) -> Path | None:
     return path
 
 
+@dataclass(frozen=True)
+class PageReply:
+    """One answer of :meth:`WebPage.lookup`.
+
+    Attributes:
+        status: HTTP status.
+        body: The body bytes.
+        content_type: ``Content-Type`` header value.
+        error: Why, for a non-200 status (also in the JSON body), else ``None``.
+    """
+
+    status: HTTPStatus
+    body: bytes
+    content_type: str
+    error: str | None = None
+
+
+class WebPage:
+    """The page's routes, whatever HTTP server answers them (the stdlib server of
+    ``fleetctl webviz`` or the relay's web listener).
+
+    Files are read on each request (they are small, and the page revalidates them);
+    type layouts come from *layouts*, which caches them.
+
+    Args:
+        static_dir: The page's files.
+        vendor_dir: Directory holding ``three/`` and ``leaflet/``.
+        layouts: Source of ``/types/<T>.json`` bodies.
+    """
+
+    def __init__(self, static_dir: Path, vendor_dir: Path, layouts: LayoutSource) -> None:
+        self.static_dir = static_dir
+        self.vendor_dir = vendor_dir
+        self.layouts = layouts
+
+    def lookup(self, target: str, server_url: str | None) -> PageReply:
+        """Answer ``GET target``.
+
+        Args:
+            target: The request target (path, maybe with a query), percent-encoded.
+            server_url: What ``/config.json`` tells the page; ``None`` means the page's
+                own origin (``wss://`` under https).
+
+        Returns:
+            The reply: 200 with the file, or 404 with a JSON ``{"error": ...}`` body.
+        """
+        path = unquote(urlsplit(target).path)
+        if path in ("/", "/index.html"):
+            return self._file(self.static_dir / "index.html")
+        if path == "/config.json":
+            return _reply(json.dumps({"server_url": server_url}).encode(), ".json")
+        if path.startswith("/types/") and path.endswith(".json"):
+            return self._layout(path[len("/types/") : -len(".json")])
+        if path.startswith("/vendor/"):
+            return self._vendor(path[len("/vendor/") :])
+        found = _inside(self.static_dir, path.lstrip("/"))
+        if found is None:
+            return _not_found(f"no such file: {path}")
+        return self._file(found)
+
+    def _layout(self, type_name: str) -> PageReply:
+        try:
+            return _reply(self.layouts(type_name), ".json")
+        except LayoutError as exc:
+            return _not_found(str(exc))
+
+    def _vendor(self, rel: str) -> PageReply:
+        lib, _, rest = rel.partition("/")
+        if lib not in {v.name for v in VENDOR_LIBS}:
+            return _not_found(f"no vendored library {lib!r}")
+        found = _inside(self.vendor_dir / lib, rest)
+        if found is None:
+            pkg = next(v.debian_package for v in VENDOR_LIBS if v.name == lib)
+            return _not_found(f"{lib}/{rest} is not installed (Debian package {pkg})")
+        return self._file(found)
+
+    @staticmethod
+    def _file(path: Path) -> PageReply:
+        try:
+            body = path.read_bytes()
+        except OSError as exc:
+            return _not_found(f"cannot read {path.name}: {exc.strerror}")
+        return _reply(body, path.suffix)
+
+
+def _reply(body: bytes, suffix: str) -> PageReply:
+    content_type = _CONTENT_TYPES.get(suffix, "application/octet-stream")
+    return PageReply(HTTPStatus.OK, body, content_type)
+
+
+def _not_found(message: str) -> PageReply:
+    body = json.dumps({"error": message}).encode()
+    return PageReply(HTTPStatus.NOT_FOUND, body, _CONTENT_TYPES[".json"], message)
+
+
+_HOST_RE = re.compile(r"[A-Za-z0-9.-]+|\[[0-9A-Fa-f:.]+\]")
+
+
+def default_server_url(host_header: str | None, forwarded_proto: str | None,
+                       fallback_host: str) -> str:
+    """The relay URL a page served without ``--server-url`` connects to.
+
+    ``ws://<hostname the browser used>:8080/``, ``wss://`` when a TLS proxy in front says
+    ``X-Forwarded-Proto: https`` (what the page itself chose before this was explicit).
+
+    Args:
+        host_header: The request's ``Host`` header, if any.
+        forwarded_proto: The ``X-Forwarded-Proto`` header, if any.
+        fallback_host: Used when the header is missing or not a plain host name.
+    """
+    host = (host_header or "").strip()
+    if host.startswith("["):
+        host = host.partition("]")[0] + "]"
+    else:
+        host = host.rpartition(":")[0] if host.count(":") == 1 else host
+    if not _HOST_RE.fullmatch(host):
+        host = fallback_host
+    scheme = "wss" if (forwarded_proto or "").strip().lower() == "https" else "ws"
+    return f"{scheme}://{host}:{DEFAULT_RELAY_PORT}/"
+
+
 class _Handler(BaseHTTPRequestHandler):
     server: WebvizHTTPServer
     server_version = "fleetctl-webviz"
@@ -61,57 +188,20 @@ class _Handler(BaseHTTPRequestHandler):
         log.debug("%s " + format, self.address_string(), *args)
 
     def do_GET(self) -> None:
-        path = unquote(urlsplit(self.path).path)
-        if path in ("/", "/index.html"):
-            return self._file(self.server.config.static_dir / "index.html")
-        if path == "/config.json":
-            return self._bytes(self.server.config_json(), ".json")
-        if path.startswith("/types/") and path.endswith(".json"):
-            return self._layout(path[len("/types/") : -len(".json")])
-        if path.startswith("/vendor/"):
-            return self._vendor(path[len("/vendor/") :])
-        found = _inside(self.server.config.static_dir, path.lstrip("/"))
-        if found is None:
-            return self._error(HTTPStatus.NOT_FOUND, f"no such file: {path}")
-        return self._file(found)
-
-    def _layout(self, type_name: str) -> None:
-        try:
-            body = self.server.layouts(type_name)
-        except LayoutError as exc:
-            return self._error(HTTPStatus.NOT_FOUND, str(exc))
-        self._bytes(body, ".json")
-
-    def _vendor(self, rel: str) -> None:
-        lib, _, rest = rel.partition("/")
-        if lib not in {v.name for v in VENDOR_LIBS}:
-            return self._error(HTTPStatus.NOT_FOUND, f"no vendored library {lib!r}")
-        found = _inside(self.server.config.vendor_dir / lib, rest)
-        if found is None:
-            pkg = next(v.debian_package for v in VENDOR_LIBS if v.name == lib)
-            msg = f"{lib}/{rest} is not installed (Debian package {pkg})"
-            return self._error(HTTPStatus.NOT_FOUND, msg)
-        self._file(found)
-
-    def _file(self, path: Path) -> None:
-        try:
-            body = path.read_bytes()
-        except OSError as exc:
-            return self._error(HTTPStatus.NOT_FOUND, f"cannot read {path.name}: {exc.strerror}")
-        self._bytes(body, path.suffix)
-
-    def _bytes(self, body: bytes, suffix: str, status: HTTPStatus = HTTPStatus.OK) -> None:
-        self.send_response(status)
-        self.send_header("Content-Type", _CONTENT_TYPES.get(suffix, "application/octet-stream"))
-        self.send_header("Content-Length", str(len(body)))
+        url = self.server.config.server_url or default_server_url(
+            self.headers.get("Host"), self.headers.get("X-Forwarded-Proto"),
+            self.server.local_host(),
+        )
+        reply = self.server.page.lookup(self.path, url)
+        if reply.error is not None:
+            log.info("webviz: %s %s: %s", reply.status.value, self.path, reply.error)
+        self.send_response(reply.status)
+        self.send_header("Content-Type", reply.content_type)
+        self.send_header("Content-Length", str(len(reply.body)))
         # The page is small and changes with the package: always revalidate.
         self.send_header("Cache-Control", "no-cache")
         self.end_headers()
-        self.wfile.write(body)
-
-    def _error(self, status: HTTPStatus, message: str) -> None:
-        log.info("webviz: %s %s: %s", status.value, self.path, message)
-        self._bytes(json.dumps({"error": message}).encode(), ".json", status)
+        self.wfile.write(reply.body)
 
 
 class WebvizHTTPServer(ThreadingHTTPServer):
@@ -130,7 +220,7 @@ class WebvizHTTPServer(ThreadingHTTPServer):
             OSError: the address cannot be bound.
         """
         self.config = config
-        self.layouts = layouts
+        self.page = WebPage(config.static_dir, config.vendor_dir, layouts)
         super().__init__((config.listen_host, config.listen_port), _Handler)
 
     @property
@@ -138,9 +228,12 @@ class WebvizHTTPServer(ThreadingHTTPServer):
         """The bound TCP port."""
         return int(self.server_address[1])
 
-    def config_json(self) -> bytes:
-        """The body of ``/config.json``."""
-        return json.dumps({"server_url": self.config.server_url}).encode()
+    def local_host(self) -> str:
+        """The bound address as a URL host (``127.0.0.1`` for a wildcard bind)."""
+        host = str(self.server_address[0])
+        if host in ("0.0.0.0", "", "::"):
+            return "127.0.0.1"
+        return f"[{host}]" if ":" in host else host
 
 
 class BackgroundWebviz:

@@ -52,7 +52,7 @@ def run_webviz(config: WebvizConfig) -> None:
     log.info(
         "webviz: serving %s (fleet server %s)",
         server.url,
-        config.server_url or "ws://<page host>:8080/",
+        config.server_url or "ws://<the page's host>:8080/",
     )
     done = threading.Event()
 

@@ -90,7 +90,8 @@ def make_server(tmp_path: Path) -> Callable[..., RelayServer]:
         auth = kwargs.pop("auth", None) or auth_map()
         limits = kwargs.pop("limits", ServerLimits())
         config = ServerConfig(
-            listen_host="127.0.0.1", listen_port=0, auth_map=tmp_path / "auth.yaml",
+            listen_host=kwargs.pop("listen_host", "127.0.0.1"), listen_port=0,
+            auth_map=tmp_path / "auth.yaml",
             database=kwargs.pop("database", tmp_path / "fleet.db"), limits=limits, **kwargs,
         )
         return RelayServer(config, auth)

@@ -13,8 +13,11 @@ import pytest
 
 from fleetctl.server.app import RelayServer
 from fleetctl.server.authmap import load_auth_map
-from fleetctl.server.config import ServerConfig
+from fleetctl.server.config import ServerConfig, WebConfig
+from fleetctl.wire.codec import Codec
 from fleetctl.wire.metadata import read_metadata
+from fleetctl.wire.registry import TypeRegistry
+from tests.server.certs import self_signed
 from tests.webviz.conftest import webviz_server
 from tests.webviz.fleet import (
     OPERATOR_TOKEN,
@@ -269,3 +272,34 @@ async def test_banner_while_disconnected_then_reconnects(
         assert await page.is_hidden("#banner")
     finally:
         await second.stop()
+
+
+async def test_page_from_the_relays_https_web_listener(tmp_path: Path, browser: Any) -> None:
+    """One HTTPS origin: the relay serves the page and its WebSocket (config null -> wss to
+    the page's own host and port)."""
+    cert, key = self_signed(tmp_path / "tls")
+    auth = load_auth_map(write_auth_map(tmp_path / "auth.yaml", {"r1": "127.0.0.2"}))
+    config = ServerConfig(
+        listen_host="127.0.0.1", listen_port=0, auth_map=tmp_path / "auth.yaml", database=None,
+        web=WebConfig(tls_cert=cert, tls_key=key, listen_host="127.0.0.1", listen_port=0),
+    )
+    async with RelayServer(config, auth) as server:
+        robot = WsRobot("r1", "127.0.0.2", server.url, Codec(TypeRegistry.default()))
+        await robot.start()
+        context = await browser.new_context(ignore_https_errors=True)
+        try:
+            page = await context.new_page()
+            problems = watch_errors(page)
+            assert server.web_url is not None
+            await sign_in(page, server.web_url, OPERATOR_TOKEN)
+            assert await page.text_content("#server-url") == f"wss://127.0.0.1:{server.web_port}/"
+            row = page.locator('#robots tr[data-robot="r1"]')
+            await row.locator("td.state", has_text="online").wait_for(timeout=TIMEOUT_MS)
+            assert "signed in as operator" in await page.text_content("#identity")
+            await page.click('#robots a[href="#/robot/r1"]')
+            await wait_js(page, "Number(document.querySelector('#scan-canvas').dataset.beams"
+                                " || 0) === 360")
+            assert not problems, problems
+        finally:
+            await context.close()
+            await robot.stop()

@@ -1,4 +1,5 @@
-"""The webviz HTTP server: routes, content types, path confinement, clear 404s."""
+"""The webviz HTTP server: routes, content types, path confinement, clear 404s, and the
+route lookup it shares with the relay's web listener."""
 
 from __future__ import annotations
 
@@ -10,8 +11,11 @@ from pathlib import Path
 
 import pytest
 
-from fleetctl.webviz.httpserver import BackgroundWebviz
+from fleetctl.webviz.config import STATIC_DIR
+from fleetctl.webviz.httpserver import BackgroundWebviz, WebPage, default_server_url
+from fleetctl.webviz.layouts import LayoutCache
 from fleetctl.webviz.vendor import missing_vendor_libs
+from fleetctl.wire.registry import TypeRegistry
 from tests.webviz.conftest import webviz_server
 
 
@@ -81,3 +85,39 @@ def test_missing_vendor_libs_name_the_debian_package(tmp_path: Path) -> None:
     assert len(lines) == 2
     assert "libjs-three" in lines[0] and "libjs-leaflet" in lines[1]
     assert missing_vendor_libs(Path("/usr/share/javascript")) == []
+
+
+def test_without_server_url_config_names_port_8080_on_the_requested_host() -> None:
+    with webviz_server(None) as w:
+        req = urllib.request.Request(w.url + "config.json", headers={"Host": "fleet.example:8000"})
+        with urllib.request.urlopen(req, timeout=10) as r:
+            assert json.loads(r.read()) == {"server_url": "ws://fleet.example:8080/"}
+        req.add_header("X-Forwarded-Proto", "https")  # behind a TLS proxy
+        with urllib.request.urlopen(req, timeout=10) as r:
+            assert json.loads(r.read()) == {"server_url": "wss://fleet.example:8080/"}
+        _, _, body = get(w.url + "config.json")  # urllib sends Host: 127.0.0.1:<port>
+        assert json.loads(body) == {"server_url": "ws://127.0.0.1:8080/"}
+
+
+@pytest.mark.parametrize(
+    ("host", "expected"),
+    [
+        ("robots.example", "ws://robots.example:8080/"),
+        ("10.8.0.1:8000", "ws://10.8.0.1:8080/"),
+        ("[fd00::1]:8000", "ws://[fd00::1]:8080/"),
+        (None, "ws://127.0.0.1:8080/"),
+        ("evil/\"x:1", "ws://127.0.0.1:8080/"),
+    ],
+)
+def test_default_server_url(host: str | None, expected: str) -> None:
+    assert default_server_url(host, None, "127.0.0.1") == expected
+
+
+def test_one_lookup_for_every_server(tmp_path: Path) -> None:
+    page = WebPage(STATIC_DIR, tmp_path, LayoutCache(TypeRegistry.default()))
+    reply = page.lookup("/config.json?x=1", None)
+    assert (reply.status, json.loads(reply.body)) == (200, {"server_url": None})
+    reply = page.lookup("/js/%61pp.js", None)
+    assert reply.status == 200 and reply.content_type.startswith("text/javascript")
+    reply = page.lookup("/vendor/three/three.module.js", None)
+    assert reply.status == 404 and reply.error is not None and "libjs-three" in reply.error

@@ -284,7 +284,8 @@ async function main() {
     return;
   }
   if (!config.server_url) {
-    config.server_url = `${location.protocol === "https:" ? "wss" : "ws"}://${location.hostname}:8080/`;
+    // null: the relay serves this page itself, so its WebSocket is on the page's own origin.
+    config.server_url = `${location.protocol === "https:" ? "wss" : "ws"}://${location.host}/`;
   }
   $("#server-url").textContent = config.server_url;
   const app = new App(config);

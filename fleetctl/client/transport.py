@@ -32,6 +32,7 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import errno
 import functools
 import json
 import logging
@@ -85,6 +86,9 @@ class LinkTuning:
             can be superseded), large enough that one batch does not stall on it.
         tune_malloc: Raise glibc's malloc thresholds when :meth:`RobotLink.run` starts
             (process-wide; see :mod:`fleetctl.client.memory`).
+        bind_reminder_interval_s: While ``bind_address`` is on no interface (the tunnel is
+            down), the failed attempts are logged at DEBUG, with a WARNING reminder at most
+            this often, seconds (the first one explains).
     """
 
     open_timeout_s: float = 5.0
@@ -99,6 +103,12 @@ class LinkTuning:
     send_batch_bytes: int = 1024 * 1024
     write_limit_bytes: int = 1024 * 1024
     tune_malloc: bool = True
+    bind_reminder_interval_s: float = 30.0
+
+
+# What to look at when bind_address is on no interface; fleet0 is the interface the bundle
+# of `fleetctl export` sets up (docs/robot.md).
+TUNNEL_HINT = "check `sudo wg show` and `systemctl status wg-quick@fleet0`"
 
 
 class LinkDead(Exception):
@@ -191,6 +201,10 @@ class RobotLink:
         self._identities: list[str] = []
         self._subscribed: set[str] = set()  # confirmed by the server on this connection
         self._acked_any = False  # a pong came back on the current connection
+        # While bind_address is on no interface: since when, the last WARNING, attempts.
+        self._unbound_since_s: float | None = None
+        self._unbound_warned_s = 0.0
+        self._unbound_attempts = 0
 
     # -- the API used by the ROS node -----------------------------------------------------
 
@@ -355,15 +369,51 @@ class RobotLink:
         try:
             ws = connecting.result()
             assert isinstance(ws, LinkConnection)
-            return ws
         except (OSError, TimeoutError, InvalidHandshake, InvalidURI) as exc:
             self._counters["connect_failures"] += 1
             delay = self._backoff(attempt + 1)
-            # The token is never logged: only the URL and the reason.
-            logger.warning("cannot connect to %s: %s; retrying in %.2f s",
-                           self.config.server_url, exc or type(exc).__name__, delay)
+            if isinstance(exc, OSError) and exc.errno == errno.EADDRNOTAVAIL:
+                self._log_unbound(delay)
+            else:
+                self._log_bound_again()
+                # The token is never logged: only the URL and the reason.
+                logger.warning("cannot connect to %s: %s; retrying in %.2f s",
+                               self.config.server_url, exc or type(exc).__name__, delay)
             await self._wait_stop(delay)
             return None
+        self._log_bound_again()
+        return ws
+
+    def _log_unbound(self, delay_s: float) -> None:
+        """Log a connect that failed with EADDRNOTAVAIL: ``bind_address`` is on no
+        interface, i.e. the WireGuard tunnel is down. Explain once per outage, then remind
+        every ``bind_reminder_interval_s``; the attempts in between go to DEBUG."""
+        now = self._clock()
+        self._unbound_attempts += 1
+        address = self.config.bind_address
+        if self._unbound_since_s is None:
+            self._unbound_since_s = self._unbound_warned_s = now
+            logger.warning(
+                "cannot bind %s (bind_address in the client config): it is on no interface: "
+                "the WireGuard tunnel is down? %s; retrying every %.0f s or less, quietly",
+                address, TUNNEL_HINT, self.config.limits.reconnect_max_s)
+        elif now - self._unbound_warned_s >= self.tuning.bind_reminder_interval_s:
+            self._unbound_warned_s = now
+            logger.warning("still cannot bind %s: the tunnel has been down for %.0f s "
+                           "(%d attempts); %s", address, now - self._unbound_since_s,
+                           self._unbound_attempts, TUNNEL_HINT)
+        else:
+            logger.debug("cannot bind %s (tunnel down); retrying in %.2f s", address, delay_s)
+
+    def _log_bound_again(self) -> None:
+        """End an outage of ``bind_address`` (it is on an interface again), if one ran."""
+        if self._unbound_since_s is None:
+            return
+        logger.info("%s is on an interface again after %.0f s (%d attempts failed)",
+                    self.config.bind_address, self._clock() - self._unbound_since_s,
+                    self._unbound_attempts)
+        self._unbound_since_s = None
+        self._unbound_attempts = 0
 
     async def _session(self, ws: LinkConnection) -> bool:
         """Run one connection until it fails or stop(); True if a pong ever came back."""

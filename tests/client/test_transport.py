@@ -383,3 +383,72 @@ def test_backoff_is_exponential_capped_and_jittered() -> None:
     assert all(2.5 <= d <= 5.0 for d in delays[8:])
     assert len({round(d, 6) for d in delays}) == len(delays)  # jittered
 
+
+
+class ManualClock:
+    """A monotonic clock the test moves by hand."""
+
+    def __init__(self) -> None:
+        self.now_s = 1000.0
+
+    def __call__(self) -> float:
+        return self.now_s
+
+
+def _warnings(caplog: pytest.LogCaptureFixture) -> list[str]:
+    return [r.getMessage() for r in caplog.records if r.levelno == logging.WARNING]
+
+
+async def test_bind_address_on_no_interface_is_explained_once_then_reminded(
+    server: RelayServer, tmp_path: Path, caplog: pytest.LogCaptureFixture
+) -> None:
+    # 192.0.2.0/24 (TEST-NET-1) is on no interface here: bind() fails with EADDRNOTAVAIL,
+    # as the robot's WireGuard address does while its tunnel is down.
+    limits = {"reconnect_min_s": 0.01, "reconnect_max_s": 0.02}
+    cfg = robot_config(server.url, tmp_path, bind_address="192.0.2.7", limits=limits)
+    clock = ManualClock()
+    caplog.set_level(logging.DEBUG, "fleetctl.client.link")
+    link = RobotLink(cfg, on_frame=lambda f: None, clock=clock,
+                     tuning=LinkTuning(bind_reminder_interval_s=30.0, open_timeout_s=1.0))
+    async with running(link):
+        await wait_until(lambda: link.stats()["connect_failures"] >= 20)
+        warnings = _warnings(caplog)
+        assert len(warnings) == 1, warnings
+        assert "cannot bind 192.0.2.7 (bind_address" in warnings[0]
+        assert "the WireGuard tunnel is down?" in warnings[0]
+        assert "wg show" in warnings[0] and "wg-quick@fleet0" in warnings[0]
+        assert not any("cannot connect to" in m for m in warnings)
+
+        clock.now_s += 29.0  # not yet a reminder
+        failures = link.stats()["connect_failures"]
+        await wait_until(lambda: link.stats()["connect_failures"] >= failures + 5)
+        assert len(_warnings(caplog)) == 1
+
+        clock.now_s += 2.0  # 31 s into the outage: one reminder, then quiet again
+        failures = link.stats()["connect_failures"]
+        await wait_until(lambda: link.stats()["connect_failures"] >= failures + 5)
+        warnings = _warnings(caplog)
+        assert len(warnings) == 2, warnings
+        assert warnings[1].startswith("still cannot bind 192.0.2.7: the tunnel has been down "
+                                      "for 31 s")
+
+        # The tunnel comes back: the address is usable again and the link connects.
+        link.config = type(cfg)(**{**cfg.__dict__, "bind_address": "127.0.0.1"})
+        await wait_until(lambda: link.stats()["connected"])
+    assert any(r.levelno == logging.INFO and "on an interface again after 31 s" in r.getMessage()
+               for r in caplog.records)
+
+
+async def test_a_new_outage_is_explained_again(tmp_path: Path,
+                                               caplog: pytest.LogCaptureFixture) -> None:
+    cfg = robot_config("ws://127.0.0.1:9/", tmp_path, bind_address="192.0.2.7",
+                       limits={"reconnect_min_s": 0.01, "reconnect_max_s": 0.02})
+    caplog.set_level(logging.WARNING, "fleetctl.client.link")
+    link = RobotLink(cfg, on_frame=lambda f: None, tuning=FAST)
+    async with running(link):
+        await wait_until(lambda: link.stats()["connect_failures"] >= 3)
+        # Bound again, but nothing listens on port 9: an ordinary failure ends the outage.
+        link.config = type(cfg)(**{**cfg.__dict__, "bind_address": "127.0.0.1"})
+        await wait_until(lambda: any("cannot connect to" in m for m in _warnings(caplog)))
+        link.config = cfg
+        await wait_until(lambda: sum("cannot bind" in m for m in _warnings(caplog)) == 2)

@@ -1,10 +1,11 @@
-"""Fleet life-cycle commands: init, add-robot, remove-robot, add-user, remove-user, list,
-render, export.
+"""Fleet life-cycle commands: init, set-endpoint, add-robot, remove-robot, add-user,
+remove-user, list, render, export.
 
 Each command calls one function of :mod:`fleetctl.deploy.operations` (or
 :mod:`fleetctl.deploy.export`) and prints its result with :mod:`fleetctl.cli.output`.
 The fleet directory comes from ``--fleet DIR``, else ``$FLEET_DIR``, else the current
-directory.
+directory. After a command that changed the fleet (not a dry run), a running deployment
+of it is brought up to date (:func:`fleetctl.deploy.live.sync_running`).
 """
 
 from __future__ import annotations
@@ -14,10 +15,24 @@ from typing import Any
 
 import typer
 
-from fleetctl.cli.output import OutputFormat, changes_text, emit, output_option, table
+from fleetctl.cli.output import (
+    OutputFormat,
+    changes_text,
+    emit,
+    output_option,
+    progress_line,
+    table,
+    warn,
+)
 from fleetctl.deploy import operations as ops
 from fleetctl.deploy.export import export_robot
-from fleetctl.deploy.fleet import DEFAULT_MTU_BYTES, DEFAULT_SERVER_PORT, DEFAULT_SUBNET
+from fleetctl.deploy.fleet import (
+    DEFAULT_HTTPS_PORT,
+    DEFAULT_MTU_BYTES,
+    DEFAULT_SERVER_PORT,
+    DEFAULT_SUBNET,
+    Fleet,
+)
 
 _FLEET_HELP = "Fleet directory (default: $FLEET_DIR, else the current directory)."
 _DRY_RUN_HELP = "Show what would be written, write nothing."
@@ -37,10 +52,31 @@ def _header(outcome: ops.Outcome, what: str) -> str:
     return f"{prefix}{what}\n" + changes_text(outcome.changes, outcome.fleet_dir, outcome.dry_run)
 
 
+def _endpoint_text(f: Fleet) -> str:
+    return f.endpoint or "endpoint not set (fleetctl set-endpoint HOST:PORT)"
+
+
+def _finish(outcome: ops.Outcome, output: OutputFormat) -> None:
+    """Print the outcome's warnings, then bring a running deployment up to date."""
+    for line in outcome.warnings:
+        warn(line)
+    if outcome.dry_run:
+        return
+    # Imported here: only change commands need it, and it may pull in Docker tooling.
+    from fleetctl.deploy.live import sync_running
+
+    note = sync_running(outcome.fleet_dir, progress_line)
+    if note is not None:
+        # JSON on stdout stays one parseable document; the note goes to stderr then.
+        typer.echo(note, err=output is OutputFormat.JSON)
+
+
 def init(
     directory: Path | None = typer.Argument(
         None, help="Directory to create the fleet in (default: --fleet / $FLEET_DIR / .)."),
-    endpoint: str = typer.Option(..., "--endpoint", help="HOST:PORT robots reach WireGuard on."),
+    endpoint: str | None = typer.Option(
+        None, "--endpoint", help="HOST:PORT robots reach WireGuard on (default: none yet; "
+        "set it later with `fleetctl set-endpoint`)."),
     subnet: str = typer.Option(DEFAULT_SUBNET, "--subnet", help="VPN subnet (CIDR)."),
     server_ip: str | None = typer.Option(
         None, "--server-ip", help="Server's VPN address (default: first host of the subnet)."),
@@ -48,7 +84,9 @@ def init(
                                     help="TCP port of the fleet server's WebSocket."),
     wireguard_port: int | None = typer.Option(
         None, "--wireguard-port", min=1, max=65535,
-        help="UDP port WireGuard listens on (default: the endpoint's port)."),
+        help="UDP port WireGuard listens on (default: the endpoint's port, else 51820)."),
+    https_port: int = typer.Option(DEFAULT_HTTPS_PORT, "--https-port", min=1, max=65535,
+                                   help="TCP port of the HTTPS listener (web page, wss://)."),
     name: str | None = typer.Option(None, "--name", help="Fleet name (default: directory name)."),
     force: bool = typer.Option(False, "--force",
                                help="Replace an existing fleet, its keys and generated files."),
@@ -56,16 +94,20 @@ def init(
     dry_run: bool = _dry_run_option(),
     output: OutputFormat = output_option(),
 ) -> None:
-    """Create a fleet: fleet.yaml, server WireGuard key and config, server config, auth map."""
+    """Create a fleet: fleet.yaml, server WireGuard key and config, server config, auth map,
+    a self-signed HTTPS certificate."""
     result = ops.create_fleet(
         directory or fleet, endpoint=endpoint, name=name, subnet=subnet, server_ip=server_ip,
-        server_port=server_port, wireguard_port=wireguard_port, force=force, dry_run=dry_run)
+        server_port=server_port, wireguard_port=wireguard_port, https_port=https_port,
+        force=force, dry_run=dry_run)
     f = result.fleet
 
     def text() -> str:
         return (_header(result.outcome, f"fleet {f.name!r}: subnet {f.subnet}, server "
-                        f"{f.server_ip}, WireGuard {f.endpoint}")
-                + f"\nserver public key: {result.server_public_key}")
+                        f"{f.server_ip}, WireGuard {_endpoint_text(f)}")
+                + f"\nserver public key: {result.server_public_key}"
+                + f"\nHTTPS port {f.https_port}: self-signed certificate server/tls/cert.pem "
+                "(set tls in fleet.yaml to use your own)")
 
     emit(result, output, text)
 
@@ -88,6 +130,7 @@ def add_robot(
                 + f"\nnext: fleetctl export {name}   (the bundle to copy to the robot)")
 
     emit(result, output, text)
+    _finish(result.outcome, output)
 
 
 def remove_robot(
@@ -99,6 +142,7 @@ def remove_robot(
     """Remove a robot, its keys and files, its server peer and its auth rules."""
     result = ops.remove_robot(fleet, name, dry_run=dry_run)
     emit(result, output, lambda: _header(result.outcome, f"removed robot {name!r}"))
+    _finish(result.outcome, output)
 
 
 def add_user(
@@ -120,6 +164,7 @@ def add_user(
         return out
 
     emit(shown, output, text)
+    _finish(result.outcome, output)
 
 
 def remove_user(
@@ -131,6 +176,7 @@ def remove_user(
     """Remove a user; their token stops working once the server reloads auth.yaml."""
     result = ops.remove_user(fleet, email, dry_run=dry_run)
     emit(result, output, lambda: _header(result.outcome, f"removed user {email!r}"))
+    _finish(result.outcome, output)
 
 
 def list_fleet(
@@ -147,20 +193,44 @@ def list_fleet(
              info.robot_public_keys.get(r.name, "(no keys yet)")) for r in f.robots])
         users = table(["USER", "ROLE"], [(u.email, u.role.value) for u in f.users])
         return (f"fleet {f.name!r}: subnet {f.subnet}, server {f.server_ip}:{f.server_port}, "
-                f"WireGuard {f.endpoint}\nserver public key: {info.server_public_key}\n\n"
+                f"WireGuard {_endpoint_text(f)}, HTTPS port {f.https_port}\n"
+                f"server public key: {info.server_public_key}\n\n"
                 f"{robots if f.robots else '(no robots)'}\n\n{users if f.users else '(no users)'}")
 
     emit(info, output, text)
 
 
 def render(
+    force: bool = typer.Option(False, "--force",
+                               help="Overwrite generated files that were edited by hand."),
     fleet: Path = _fleet_option(),
     dry_run: bool = _dry_run_option(),
     output: OutputFormat = output_option(),
 ) -> None:
     """Regenerate every config from fleet.yaml and the keys (unchanged files stay untouched)."""
-    outcome = ops.render_fleet(fleet, dry_run=dry_run)
+    outcome = ops.render_fleet(fleet, dry_run=dry_run, force=force)
     emit(outcome, output, lambda: _header(outcome, f"rendered {outcome.fleet_dir}"))
+    _finish(outcome, output)
+
+
+def set_endpoint(
+    endpoint: str = typer.Argument(..., help="HOST:PORT robots reach the server's WireGuard on."),
+    fleet: Path = _fleet_option(),
+    dry_run: bool = _dry_run_option(),
+    output: OutputFormat = output_option(),
+) -> None:
+    """Set where robots reach the server's WireGuard (HOST:PORT), then re-render."""
+    result = ops.set_endpoint(fleet, endpoint, dry_run=dry_run)
+
+    def text() -> str:
+        out = _header(result.outcome, f"endpoint {result.endpoint} (was "
+                      f"{result.previous or 'not set'})")
+        if result.certificate_regenerated:
+            out += "\nself-signed HTTPS certificate made again for the new host"
+        return out
+
+    emit(result, output, text)
+    _finish(result.outcome, output)
 
 
 def export(
@@ -180,6 +250,7 @@ def export(
 def register(app: typer.Typer) -> None:
     """Add this group's commands to *app*."""
     app.command("init")(init)
+    app.command("set-endpoint")(set_endpoint)
     app.command("add-robot")(add_robot)
     app.command("remove-robot")(remove_robot)
     app.command("add-user")(add_user)

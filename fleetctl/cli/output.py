@@ -62,6 +62,16 @@ def emit(result: object, fmt: OutputFormat, text: Callable[[], str]) -> None:
         typer.echo(text().rstrip("\n"))
 
 
+def warn(line: str) -> None:
+    """Print one warning line to stderr (``fleetctl: warning: ...``)."""
+    typer.echo(f"fleetctl: warning: {line}", err=True)
+
+
+def progress_line(line: str) -> None:
+    """Print one progress line of a longer step to stderr (stdout stays the result)."""
+    typer.echo(f"  {line}", err=True)
+
+
 def table(headers: Sequence[str], rows: Sequence[Sequence[object]]) -> str:
     """Return a plain text table with columns padded to their widest cell."""
     cells = [[str(h) for h in headers], *[[str(c) for c in row] for row in rows]]

@@ -51,11 +51,15 @@ def command_regex(robot: Robot) -> str | None:
 
 
 def robot_rules(robot: Robot) -> tuple[Rule, ...]:
-    """A robot sends its own namespace and receives its command topics and extras."""
+    """A robot sends its own namespace and receives its command topics, the topics of its
+    ``subscribe`` list (validated topic names: ``[A-Za-z0-9_/]``, a regex matching only
+    themselves) and its extras.
+    """
     rules = [Rule(f"/{robot.name}/.*", "send")]
     commands = command_regex(robot)
     if commands is not None:
         rules.append(Rule(commands, "receive"))
+    rules += [Rule(s.remote_topic, "receive") for s in robot.subscribe]
     rules += [Rule(p, "send") for p in robot.extra_send]
     rules += [Rule(p, "receive") for p in robot.extra_receive]
     return tuple(rules)

@@ -337,9 +337,10 @@ def _server_service(plan: ComposePlan) -> dict[str, Any]:
     return _merge(svc, _wireguard(SERVER_WG_CONF)) if plan.wireguard else svc
 
 
+# "$$" is Compose's escape of "$": the shell sees "$1" and "$2".
 _SIM_SCRIPT = (
     'python3 -c "import sys; from fleetctl.client.ros.sim import SimConfig, run_sim; '
-    'run_sim(SimConfig(name=sys.argv[1]))" "$1" & exec fleetctl client --config "$2"'
+    'run_sim(SimConfig(name=sys.argv[1]))" "$$1" & exec fleetctl client --config "$$2"'
 )
 
 

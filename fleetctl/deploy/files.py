@@ -3,18 +3,28 @@
 Every fleet operation first computes a :class:`Plan` in memory (so bad input changes
 nothing), then either previews it (``--dry-run``) or applies it. Writes are atomic (a temp
 file in the same directory, fsync, rename) and skipped when the bytes and mode are already
-right, so regenerating an unchanged fleet leaves every file and its mtime alone.
+right, so regenerating an unchanged fleet leaves every file and its mtime alone. Nothing
+is written through a symlink: the temp file is created exclusively without following
+links, and a symlink at the target is replaced, never followed.
+
+Generated files carry a first line ``# fleetctl: generated, sha256=HEX`` (an HTML comment
+in Markdown) where HEX is the SHA-256 of everything after that line. A file whose rest no
+longer matches was edited by hand; :func:`check_overwrite` refuses to replace it.
 """
 
 from __future__ import annotations
 
 import contextlib
 import enum
+import hashlib
 import os
+import re
 import shutil
 import stat
 from dataclasses import dataclass, field
 from pathlib import Path
+
+from fleetctl.errors import ConfigError
 
 SECRET_FILE_MODE = 0o600
 SECRET_DIR_MODE = 0o700
@@ -102,11 +112,22 @@ class Plan:
 
 def _write_kind(w: FileWrite) -> ChangeKind:
     try:
-        st = w.path.stat()
+        st = w.path.lstat()
     except FileNotFoundError:
         return ChangeKind.CREATE
+    if not stat.S_ISREG(st.st_mode):
+        return ChangeKind.UPDATE  # a symlink (or other) is replaced by a regular file
     same = stat.S_IMODE(st.st_mode) == w.mode and w.path.read_bytes() == w.data
     return ChangeKind.UNCHANGED if same else ChangeKind.UPDATE
+
+
+def _same_bytes(path: Path, data: bytes) -> bool:
+    """True when *path* is a regular file (not a symlink) holding exactly *data*."""
+    try:
+        st = path.lstat()
+    except FileNotFoundError:
+        return False
+    return stat.S_ISREG(st.st_mode) and path.read_bytes() == data
 
 
 def _remove(path: Path) -> bool:
@@ -137,11 +158,14 @@ def write_file(w: FileWrite) -> ChangeKind:
     kind = _write_kind(w)
     if kind is ChangeKind.UNCHANGED:
         return kind
-    if kind is ChangeKind.UPDATE and w.path.read_bytes() == w.data:
+    if kind is ChangeKind.UPDATE and _same_bytes(w.path, w.data):
         w.path.chmod(w.mode)  # only the mode was wrong: keep the content and mtime
         return kind
     tmp = w.path.with_name(f".{w.path.name}.{os.getpid()}.tmp")
-    fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, w.mode)
+    with contextlib.suppress(FileNotFoundError):
+        tmp.unlink()  # a stale temp file (or a planted symlink): unlink never follows it
+    # O_EXCL | O_NOFOLLOW: never open through a symlink someone raced into that name.
+    fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_EXCL | os.O_NOFOLLOW, w.mode)
     with os.fdopen(fd, "wb") as f:
         os.fchmod(fd, w.mode)  # the umask may have narrowed the mode os.open used
         f.write(w.data)
@@ -154,3 +178,60 @@ def write_file(w: FileWrite) -> ChangeKind:
             tmp.unlink()
         raise
     return kind
+
+
+# --- generated-file stamps -------------------------------------------------------------
+
+STAMP_PREFIX = "fleetctl: generated, sha256="
+_STAMP = re.compile(r"(?:# |<!-- )fleetctl: generated, sha256=([0-9a-f]{64})(?: -->)?")
+
+
+def stamp(body: str, *, markdown: bool = False) -> str:
+    """Return *body* with its digest line first (an HTML comment when *markdown*)."""
+    digest = hashlib.sha256(body.encode("utf-8")).hexdigest()
+    line = f"<!-- {STAMP_PREFIX}{digest} -->" if markdown else f"# {STAMP_PREFIX}{digest}"
+    return f"{line}\n{body}"
+
+
+def edit_state(data: bytes, new_text: str) -> str:
+    """Say whether a generated file's current bytes may be replaced by *new_text*.
+
+    Returns:
+        ``"generated"``: untouched since fleetctl wrote it (its digest matches);
+        ``"edited"``: it carries a digest line, but the rest no longer matches it;
+        ``"unstamped"``: no digest line, and not what fleetctl would write now.
+    """
+    if data == new_text.encode("utf-8"):
+        return "generated"
+    first, _, rest = data.partition(b"\n")
+    match = _STAMP.fullmatch(first.decode("utf-8", "replace").rstrip("\r"))
+    if match is None:
+        # Without a header: fine only if it is exactly what fleetctl would write now.
+        body = new_text.partition("\n")[2].encode("utf-8")
+        return "generated" if data == body else "unstamped"
+    return "generated" if hashlib.sha256(rest).hexdigest() == match.group(1) else "edited"
+
+
+def check_overwrite(path: Path, new_text: str, label: str, hint: str) -> None:
+    """Refuse to replace the generated file *path* if someone edited it.
+
+    Args:
+        path: the file (missing is fine).
+        new_text: what would be written (stamped).
+        label: how the error names the file.
+        hint: where the setting belongs instead, e.g. ``put topics in fleet.yaml ...``.
+
+    Raises:
+        ConfigError: one line naming the file, where the setting belongs and the fix.
+    """
+    try:
+        st = path.lstat()
+    except FileNotFoundError:
+        return
+    state = "edited" if not stat.S_ISREG(st.st_mode) else edit_state(path.read_bytes(), new_text)
+    if state == "generated":
+        return
+    what = ("was edited by hand" if state == "edited" else
+            "has no fleetctl digest line (edited by hand, or written by an older fleetctl)")
+    raise ConfigError(f"{label} {what}: {hint}, then run `fleetctl render --force` to "
+                      "overwrite")

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import enum
 import ipaddress
+import os
 import re
 from dataclasses import dataclass
 from ipaddress import IPv4Address, IPv4Network
@@ -16,19 +17,43 @@ from pathlib import Path
 import re2
 import yaml
 
-from fleetctl.deploy.yamlnodes import Document, FieldPath
+from fleetctl.deploy.topics import (
+    DEFAULT_PUBLISH,
+    PublishTopic,
+    SubscribeTopic,
+    build_publish,
+    build_subscribe,
+    check_publish,
+    check_subscribe,
+    check_topic,
+    check_type,
+    dump_publish,
+    dump_subscribe,
+)
+from fleetctl.deploy.yamlnodes import Document, FieldPath, FleetInvalid
 from fleetctl.errors import ConfigError
+
+__all__ = ["FleetInvalid"]  # defined beside Document, raised and re-exported here
 
 FLEET_FILE = "fleet.yaml"
 FORMAT_VERSION = 1
 DEFAULT_SUBNET = "10.8.0.0/24"
 DEFAULT_SERVER_PORT = 8080
 DEFAULT_WIREGUARD_PORT = 51820
+DEFAULT_HTTPS_PORT = 8443
 # WireGuard's default 1420 assumes a 1500-byte path; LTE carriers often give 1428-1450 or
 # less after their own tunnelling. 1280 is the IPv6 minimum and works on every path.
 DEFAULT_MTU_BYTES = 1280
 MIN_MTU_BYTES = 576
 MAX_MTU_BYTES = 9000
+MAX_NAME_CHARS = 100
+# ROS_DOMAIN_ID: 0..232 is what every RMW maps to valid UDP ports (ROS 2 docs, "The ROS
+# DOMAIN ID"); 0 is ROS's own default.
+DEFAULT_ROS_DOMAIN_ID = 0
+MAX_ROS_DOMAIN_ID = 232
+DEFAULT_RMW_IMPLEMENTATION = "rmw_fastrtps_cpp"
+RMW_IMPLEMENTATIONS = ("rmw_fastrtps_cpp", "rmw_cyclonedds_cpp", "rmw_connextdds",
+                       "rmw_zenoh_cpp")
 
 # A ROS 2 name token: letters, digits, underscores, not starting with a digit, no "__"
 # (rcl reserves repeated underscores). A robot name is one namespace segment.
@@ -79,6 +104,13 @@ class Robot:
         command_topics: topics operators send it (it may receive ``/<name>/<topic>``).
         extra_send: more RE2 full-match topic regexes it may send (e.g. to another robot).
         extra_receive: more RE2 full-match topic regexes it may receive.
+        publish: local topics it sends; ``None`` (no ``publish`` in fleet.yaml): the
+            default set :data:`~fleetctl.deploy.topics.DEFAULT_PUBLISH`.
+        subscribe: fleet topics it receives and republishes, beyond its command topics.
+        battery_topic: its local ``sensor_msgs/msg/BatteryState`` topic, or ``None``.
+        ros_domain_id: the ``ROS_DOMAIN_ID`` its ROS 2 graph uses (0..232).
+        rmw_implementation: the ``RMW_IMPLEMENTATION`` it runs (one of
+            :data:`RMW_IMPLEMENTATIONS`).
     """
 
     name: str
@@ -87,6 +119,16 @@ class Robot:
     command_topics: tuple[CommandTopic, ...] = DEFAULT_COMMAND_TOPICS
     extra_send: tuple[str, ...] = ()
     extra_receive: tuple[str, ...] = ()
+    ros_domain_id: int = DEFAULT_ROS_DOMAIN_ID
+    rmw_implementation: str = DEFAULT_RMW_IMPLEMENTATION
+    publish: tuple[PublishTopic, ...] | None = None
+    subscribe: tuple[SubscribeTopic, ...] = ()
+    battery_topic: str | None = None
+
+    @property
+    def publish_topics(self) -> tuple[PublishTopic, ...]:
+        """What it publishes: its ``publish`` list, or the default set."""
+        return DEFAULT_PUBLISH if self.publish is None else self.publish
 
 
 @dataclass(frozen=True)
@@ -99,28 +141,55 @@ class User:
 
 
 @dataclass(frozen=True)
+class TlsFiles:
+    """The operator's own certificate and key for the HTTPS port (``tls:`` in fleet.yaml).
+
+    Attributes:
+        cert: PEM certificate (chain) path as written: absolute, or relative to the fleet
+            directory.
+        key: PEM private key path, the same way.
+    """
+
+    cert: str
+    key: str
+
+    def paths(self, fleet_dir: Path) -> tuple[Path, Path]:
+        """Return the absolute certificate and key paths (``..`` folded away)."""
+        cert, key = (Path(os.path.normpath((fleet_dir / p).absolute()))
+                     for p in (self.cert, self.key))
+        return cert, key
+
+
+@dataclass(frozen=True)
 class Fleet:
     """The whole fleet.
 
     Attributes:
-        name: a label for the fleet.
-        endpoint: ``HOST:PORT`` robots reach the server's WireGuard on.
+        name: a label for the fleet (one printable line).
+        endpoint: ``HOST:PORT`` robots reach the server's WireGuard on; ``None``: not
+            known yet (robots' WireGuard configs then have no ``Endpoint``; see
+            :func:`require_endpoint`).
         subnet: the VPN subnet; robots get a /32 inside it.
         server_ip: the server's VPN address (inside *subnet*).
-        server_port: TCP port of the fleet server's WebSocket.
+        server_port: TCP port of the fleet server's WebSocket (plain ws://, inside the tunnel).
         wireguard_port: UDP port the server's WireGuard listens on.
         robots: in the order they were added.
         users: in the order they were added.
+        https_port: TCP port of the one HTTPS listener people use (web page and wss://).
+        tls: the operator's certificate and key; ``None``: a self-signed one that
+            fleetctl generates (``server/tls/cert.pem``, ``keys/tls.key``).
     """
 
     name: str
-    endpoint: str
+    endpoint: str | None
     subnet: IPv4Network
     server_ip: IPv4Address
     server_port: int = DEFAULT_SERVER_PORT
     wireguard_port: int = DEFAULT_WIREGUARD_PORT
     robots: tuple[Robot, ...] = ()
     users: tuple[User, ...] = ()
+    https_port: int = DEFAULT_HTTPS_PORT
+    tls: TlsFiles | None = None
 
     def robot(self, name: str) -> Robot | None:
         """Return the robot called *name*, or ``None``."""
@@ -129,20 +198,6 @@ class Fleet:
     def user(self, email: str) -> User | None:
         """Return the user with *email*, or ``None``."""
         return next((u for u in self.users if u.email == email), None)
-
-
-class FleetInvalid(Exception):
-    """A semantic error in a fleet, with the field path it concerns.
-
-    Attributes:
-        path: the field, e.g. ``("robots", 2, "ip")``.
-        conflict: True when the problem is a duplicate (a name or address already used).
-    """
-
-    def __init__(self, path: FieldPath, message: str, *, conflict: bool = False) -> None:
-        super().__init__(message)
-        self.path = path
-        self.conflict = conflict
 
 
 # --- validation ------------------------------------------------------------------------
@@ -208,6 +263,7 @@ def _check_robot_topics(robot: Robot, path: FieldPath) -> None:
     if not MIN_MTU_BYTES <= robot.mtu_bytes <= MAX_MTU_BYTES:
         raise FleetInvalid((*path, "mtu_bytes"),
                            f"must be between {MIN_MTU_BYTES} and {MAX_MTU_BYTES}")
+    taken: dict[str, str] = {}
     for j, cmd in enumerate(robot.command_topics):
         if not _RELATIVE_TOPIC.fullmatch(cmd.topic) or "__" in cmd.topic:
             raise FleetInvalid((*path, "command_topics", j, "topic"),
@@ -215,9 +271,28 @@ def _check_robot_topics(robot: Robot, path: FieldPath) -> None:
         if not _TYPE.fullmatch(cmd.type):
             raise FleetInvalid((*path, "command_topics", j, "type"),
                                f"{cmd.type!r} is not a ROS type name (pkg/msg/Name)")
+        check_type(cmd.type, (*path, "command_topics", j, "type"))
+        taken[f"remote /{robot.name}/{cmd.topic}"] = f"command_topics[{j}]"
+        taken[f"local /{cmd.topic}"] = f"command_topics[{j}]"
     for field_name in ("extra_send", "extra_receive"):
         for j, pattern in enumerate(getattr(robot, field_name)):
             check_regex(pattern, (*path, field_name, j))
+    if robot.publish is not None:
+        check_publish(robot.publish, (*path, "publish"))
+    check_subscribe(robot.subscribe, taken, (*path, "subscribe"))
+    if robot.battery_topic is not None:
+        check_topic(robot.battery_topic, (*path, "battery_topic"))
+    _check_ros_environment(robot, path)
+
+
+def _check_ros_environment(robot: Robot, path: FieldPath) -> None:
+    if not 0 <= robot.ros_domain_id <= MAX_ROS_DOMAIN_ID:
+        raise FleetInvalid((*path, "ros_domain_id"),
+                           f"must be between 0 and {MAX_ROS_DOMAIN_ID}, got {robot.ros_domain_id}")
+    if robot.rmw_implementation not in RMW_IMPLEMENTATIONS:
+        raise FleetInvalid((*path, "rmw_implementation"),
+                           f"unknown RMW implementation {robot.rmw_implementation!r} "
+                           f"(expected one of {', '.join(RMW_IMPLEMENTATIONS)})")
 
 
 def _check_user(i: int, user: User, seen: set[str]) -> None:
@@ -239,7 +314,17 @@ def validate(fleet: Fleet) -> None:
     """
     if not fleet.name.strip():
         raise FleetInvalid(("name",), "must not be empty")
-    parse_endpoint(fleet.endpoint)
+    if not fleet.name.isprintable() or len(fleet.name) > MAX_NAME_CHARS:
+        # It lands in comments of every generated file, WireGuard's INI included.
+        raise FleetInvalid(("name",), f"must be one line of at most {MAX_NAME_CHARS} "
+                           f"printable characters, got {fleet.name!r}")
+    if fleet.endpoint is not None:
+        parse_endpoint(fleet.endpoint)
+    if fleet.https_port == fleet.server_port:
+        raise FleetInvalid(("https_port",), f"{fleet.https_port} is also server_port "
+                           "(the plain ws:// port); the two listeners need two ports")
+    if fleet.tls is not None:
+        _check_tls_paths(fleet.tls)
     if fleet.subnet.num_addresses < 4:
         raise FleetInvalid(("subnet",), f"{fleet.subnet} is too small (at most /30)")
     _check_host_ip(fleet, fleet.server_ip, ("server_ip",))
@@ -249,6 +334,25 @@ def validate(fleet: Fleet) -> None:
     emails: set[str] = set()
     for i, user in enumerate(fleet.users):
         _check_user(i, user, emails)
+
+
+def _check_tls_paths(tls: TlsFiles) -> None:
+    for field_name, value in (("cert", tls.cert), ("key", tls.key)):
+        if not value.strip() or not value.isprintable():
+            raise FleetInvalid(("tls", field_name), f"not a file path: {value!r}")
+
+
+def require_endpoint(fleet: Fleet, fleet_dir: Path) -> str:
+    """Return the fleet's endpoint, for what cannot work without one (a robot bundle).
+
+    Raises:
+        ConfigError: ``FLEET/fleet.yaml: endpoint: not set; run ...`` naming the fix.
+    """
+    if fleet.endpoint is None:
+        raise ConfigError(f"{fleet_file(fleet_dir)}: endpoint: not set; run "
+                          "`fleetctl set-endpoint HOST:PORT` (where robots reach the server's "
+                          "WireGuard)")
+    return fleet.endpoint
 
 
 def next_free_ip(fleet: Fleet) -> IPv4Address:
@@ -309,29 +413,44 @@ def load_fleet(fleet_dir: Path) -> Fleet:
                           "(create one with 'fleetctl init')") from None
     except (OSError, UnicodeDecodeError) as exc:
         raise ConfigError(f"{path}: cannot read: {exc}") from None
-    return parse_fleet(path, text)
+    return parse_fleet(path, text, fleet_dir)
 
 
-def parse_fleet(path: Path, text: str) -> Fleet:
-    """Parse and validate fleet.yaml text; *path* is only used in error messages."""
+def parse_fleet(path: Path, text: str, fleet_dir: Path | None = None) -> Fleet:
+    """Parse and validate fleet.yaml text.
+
+    Args:
+        path: the file, only used in error messages.
+        text: its content.
+        fleet_dir: when given, files fleet.yaml points at (``tls``) are checked too,
+            relative to this directory; ``None`` checks the text alone.
+
+    Raises:
+        ConfigError: ``FILE:LINE: FIELD: problem``.
+    """
     doc = Document(path, text)
     try:
         fleet = _build_fleet(doc)
         validate(fleet)
+        if fleet_dir is not None and fleet.tls is not None:
+            from fleetctl.deploy.tls import check_operator_files
+
+            check_operator_files(*fleet.tls.paths(fleet_dir))
     except FleetInvalid as exc:
         raise doc.error(exc.path, str(exc)) from None
     return fleet
 
 
 def _build_fleet(doc: Document) -> Fleet:
-    f = doc.mapping(doc.root, (), ["version", "name", "endpoint", "subnet", "server_ip"],
-                    ["server_port", "wireguard_port", "robots", "users"])
+    f = doc.mapping(doc.root, (), ["version", "name", "subnet", "server_ip"],
+                    ["endpoint", "server_port", "wireguard_port", "https_port", "tls", "robots",
+                     "users"])
     version = doc.integer(f["version"], ("version",), 1, 1_000_000)
     if version != FORMAT_VERSION:
         raise FleetInvalid(("version",), f"unsupported version {version} "
                            f"(this fleetctl reads version {FORMAT_VERSION})")
     name = doc.string(f["name"], ("name",))
-    endpoint = doc.string(f["endpoint"], ("endpoint",))
+    endpoint = doc.optional_string(f["endpoint"], ("endpoint",)) if "endpoint" in f else None
     subnet = parse_subnet(doc.string(f["subnet"], ("subnet",)))
     server_ip = parse_ip(doc.string(f["server_ip"], ("server_ip",)), ("server_ip",))
     robot_nodes = doc.sequence(f["robots"], ("robots",)) if "robots" in f else []
@@ -345,7 +464,14 @@ def _build_fleet(doc: Document) -> Fleet:
         wireguard_port=_port(doc, f, "wireguard_port", DEFAULT_WIREGUARD_PORT),
         robots=tuple(_build_robot(doc, n, ("robots", i)) for i, n in enumerate(robot_nodes)),
         users=tuple(_build_user(doc, n, ("users", i)) for i, n in enumerate(user_nodes)),
+        https_port=_port(doc, f, "https_port", DEFAULT_HTTPS_PORT),
+        tls=_build_tls(doc, f["tls"]) if "tls" in f and not doc.is_null(f["tls"]) else None,
     )
+
+
+def _build_tls(doc: Document, node: yaml.Node) -> TlsFiles:
+    f = doc.mapping(node, ("tls",), ["cert", "key"], [])
+    return TlsFiles(doc.string(f["cert"], ("tls", "cert")), doc.string(f["key"], ("tls", "key")))
 
 
 def _port(doc: Document, f: dict[str, yaml.Node], key: str, default: int) -> int:
@@ -354,7 +480,9 @@ def _port(doc: Document, f: dict[str, yaml.Node], key: str, default: int) -> int
 
 def _build_robot(doc: Document, node: yaml.Node, path: FieldPath) -> Robot:
     f = doc.mapping(node, path, ["name", "ip"],
-                    ["mtu_bytes", "command_topics", "extra_send", "extra_receive"])
+                    ["mtu_bytes", "command_topics", "extra_send", "extra_receive",
+                     "ros_domain_id", "rmw_implementation", "publish", "subscribe",
+                     "battery_topic"])
     cmds = DEFAULT_COMMAND_TOPICS
     if "command_topics" in f:
         cpath = (*path, "command_topics")
@@ -368,6 +496,17 @@ def _build_robot(doc: Document, node: yaml.Node, path: FieldPath) -> Robot:
         command_topics=cmds,
         extra_send=_strings(doc, f, "extra_send", path),
         extra_receive=_strings(doc, f, "extra_receive", path),
+        ros_domain_id=(doc.integer(f["ros_domain_id"], (*path, "ros_domain_id"), 0,
+                                   MAX_ROS_DOMAIN_ID)
+                       if "ros_domain_id" in f else DEFAULT_ROS_DOMAIN_ID),
+        rmw_implementation=(doc.string(f["rmw_implementation"], (*path, "rmw_implementation"))
+                            if "rmw_implementation" in f else DEFAULT_RMW_IMPLEMENTATION),
+        publish=(build_publish(doc, f["publish"], (*path, "publish"))
+                 if "publish" in f and not doc.is_null(f["publish"]) else None),
+        subscribe=(build_subscribe(doc, f["subscribe"], (*path, "subscribe"))
+                   if "subscribe" in f else ()),
+        battery_topic=(doc.optional_string(f["battery_topic"], (*path, "battery_topic"))
+                       if "battery_topic" in f else None),
     )
 
 
@@ -401,6 +540,7 @@ def _build_user(doc: Document, node: yaml.Node, path: FieldPath) -> User:
 _HEADER = (
     "# fleetctl fleet: the one source of truth. Edit it by hand or with fleetctl, then run\n"
     "# 'fleetctl render' to regenerate every config. Keys live in keys/ (never in here).\n"
+    "# A robot without 'publish' sends the default topic set (docs/operator.md).\n"
 )
 
 
@@ -414,6 +554,8 @@ def dump_fleet(fleet: Fleet) -> str:
         "server_ip": str(fleet.server_ip),
         "server_port": fleet.server_port,
         "wireguard_port": fleet.wireguard_port,
+        "https_port": fleet.https_port,
+        "tls": {"cert": fleet.tls.cert, "key": fleet.tls.key} if fleet.tls else None,
         "robots": [_dump_robot(r) for r in fleet.robots],
         "users": [{"email": u.email, "role": u.role.value, "token_sha256": u.token_sha256}
                   for u in fleet.users],
@@ -423,11 +565,18 @@ def dump_fleet(fleet: Fleet) -> str:
 
 
 def _dump_robot(robot: Robot) -> dict[str, object]:
-    return {
+    out: dict[str, object] = {
         "name": robot.name,
         "ip": str(robot.ip),
         "mtu_bytes": robot.mtu_bytes,
         "command_topics": [{"topic": c.topic, "type": c.type} for c in robot.command_topics],
         "extra_send": list(robot.extra_send),
         "extra_receive": list(robot.extra_receive),
+        "ros_domain_id": robot.ros_domain_id,
+        "rmw_implementation": robot.rmw_implementation,
     }
+    if robot.publish is not None:  # absent means the default set, which may change
+        out["publish"] = dump_publish(robot.publish)
+    out["subscribe"] = dump_subscribe(robot.subscribe)
+    out["battery_topic"] = robot.battery_topic
+    return out

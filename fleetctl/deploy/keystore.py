@@ -5,6 +5,7 @@ Layout::
     keys/server.key          server WireGuard private key
     keys/robots/NAME.key     robot WireGuard private key
     keys/robots/NAME.psk     preshared key of the robot <-> server pair
+    keys/tls.key             private key of the generated HTTPS certificate (tls.py)
 
 Public keys are always derived from private keys, never stored, so they cannot disagree.
 """
@@ -76,6 +77,14 @@ def load_robot_keys(fleet_dir: Path, name: str) -> RobotKeys | None:
 def new_robot_keys(source: KeySource) -> RobotKeys:
     """Make a robot key pair's private half and a preshared key."""
     return RobotKeys(new_private_key(source), new_preshared_key(source))
+
+
+def plan_secret_file(plan: Plan, path: Path, text: str) -> None:
+    """Add writing a secret file under ``keys/`` to *plan*: 0600 in 0700 directories,
+    written through a temp file that is never opened through a symlink.
+    """
+    plan.directory(path.parent, SECRET_DIR_MODE)
+    plan.write(path, text, secret=True)
 
 
 def plan_server_key(plan: Plan, fleet_dir: Path, key: Secret) -> None:

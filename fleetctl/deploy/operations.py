@@ -12,13 +12,15 @@ from dataclasses import dataclass, replace
 from ipaddress import IPv4Address
 from pathlib import Path
 
-from fleetctl.deploy import keystore
+from fleetctl.deploy import keystore, tls
 from fleetctl.deploy.files import Change, Plan
 from fleetctl.deploy.fleet import (
     DEFAULT_COMMAND_TOPICS,
+    DEFAULT_HTTPS_PORT,
     DEFAULT_MTU_BYTES,
     DEFAULT_SERVER_PORT,
     DEFAULT_SUBNET,
+    DEFAULT_WIREGUARD_PORT,
     Fleet,
     FleetInvalid,
     Robot,
@@ -49,17 +51,40 @@ from fleetctl.deploy.yamlnodes import FieldPath, format_path
 from fleetctl.errors import ConfigError, ConflictError, ExitCode, FleetError
 
 _SYSTEM_KEYS = SystemKeySource()
+# The certificate is never byte-reproducible (its signature is randomized, its dates are
+# today's), so its key always comes from the OS: injected sources stay for WireGuard keys
+# and tokens, whose sequence golden files pin.
+_TLS_KEYS = SystemKeySource()
 # What `init --force` replaces: only what fleetctl itself generates.
 _GENERATED = ("server", "robots", keystore.KEYS_DIR)
 
 
 @dataclass(frozen=True)
 class Outcome:
-    """What an operation did (or, with ``dry_run``, would do) to the fleet directory."""
+    """What an operation did (or, with ``dry_run``, would do) to the fleet directory.
+
+    Attributes:
+        fleet_dir: the directory.
+        changes: per file, in the order applied.
+        dry_run: nothing was written.
+        warnings: one line each: something the result still lacks, and the command that
+            fixes it (e.g. no endpoint yet).
+    """
 
     fleet_dir: Path
     changes: tuple[Change, ...]
     dry_run: bool
+    warnings: tuple[str, ...] = ()
+
+
+@dataclass(frozen=True)
+class EndpointResult:
+    """Result of :func:`set_endpoint`."""
+
+    endpoint: str
+    previous: str | None
+    certificate_regenerated: bool
+    outcome: Outcome
 
 
 @dataclass(frozen=True)
@@ -155,16 +180,56 @@ def _load_keys(fleet_dir: Path, fleet: Fleet, source: KeySource, plan: Plan) -> 
     return FleetKeys(keystore.load_server_key(fleet_dir), robots)
 
 
-def _plan_fleet(plan: Plan, fleet_dir: Path, fleet: Fleet, keys: FleetKeys) -> Plan:
-    plan.write(fleet_file(fleet_dir), dump_fleet(fleet))
-    plan_artifacts(plan, fleet_dir, fleet_artifacts(fleet, keys))
+def _plan_fleet(plan: Plan, fleet_dir: Path, fleet: Fleet, keys: FleetKeys, *,
+                write_fleet: bool = True, force: bool = False) -> Plan:
+    """Plan fleet.yaml (unless *write_fleet* is false) and every artifact.
+
+    Raises:
+        ConfigError: (unless *force*) a generated file was edited by hand.
+    """
+    if write_fleet:
+        plan.write(fleet_file(fleet_dir), dump_fleet(fleet))
+    plan_artifacts(plan, fleet_dir, fleet_artifacts(fleet, keys, fleet_dir), force=force)
     return plan
 
 
-def finish_plan(plan: Plan, fleet_dir: Path, dry_run: bool) -> Outcome:
+def _plan_tls(plan: Plan, fleet_dir: Path, fleet: Fleet, *, refresh: bool = False) -> bool:
+    """Make the self-signed HTTPS certificate if the fleet uses one and it is missing.
+
+    Args:
+        plan: where the writes go.
+        fleet_dir: the fleet directory.
+        fleet: the fleet (with ``tls`` set, the operator's files are used: nothing to do).
+        refresh: also replace an existing generated certificate whose names are not the
+            ones the fleet needs now (the endpoint's host changed).
+
+    Returns:
+        True when a certificate is (re)generated.
+    """
+    if fleet.tls is not None:
+        return False
+    cert_path, key_path = fleet_dir / tls.CERT_RELPATH, fleet_dir / tls.KEY_RELPATH
+    host = parse_endpoint(fleet.endpoint)[0] if fleet.endpoint else None
+    names = tls.san_names(host)
+    missing = not (cert_path.is_file() and key_path.is_file())
+    if not missing and not (refresh and tls.cert_names(cert_path) != names):
+        return False
+    tls.plan_self_signed(plan, fleet_dir, tls.self_signed(names, _TLS_KEYS))
+    return True
+
+
+def _endpoint_warning(fleet: Fleet, fleet_dir: Path) -> tuple[str, ...]:
+    if fleet.endpoint is not None or not fleet.robots:
+        return ()
+    return (f"{fleet_file(fleet_dir)} has no endpoint, so the robots' wg0.conf have no "
+            "Endpoint and cannot reach the server: run `fleetctl set-endpoint HOST:PORT`",)
+
+
+def finish_plan(plan: Plan, fleet_dir: Path, dry_run: bool,
+                warnings: tuple[str, ...] = ()) -> Outcome:
     """Apply *plan* (or only preview it when *dry_run*) and return the outcome."""
     changes = plan.preview() if dry_run else plan.apply()
-    return Outcome(fleet_dir, tuple(changes), dry_run)
+    return Outcome(fleet_dir, tuple(changes), dry_run, warnings)
 
 
 # --- operations ------------------------------------------------------------------------
@@ -173,26 +238,31 @@ def finish_plan(plan: Plan, fleet_dir: Path, dry_run: bool) -> Outcome:
 def create_fleet(
     fleet_dir: Path,
     *,
-    endpoint: str,
+    endpoint: str | None = None,
     name: str | None = None,
     subnet: str = DEFAULT_SUBNET,
     server_ip: str | None = None,
     server_port: int = DEFAULT_SERVER_PORT,
     wireguard_port: int | None = None,
+    https_port: int = DEFAULT_HTTPS_PORT,
     force: bool = False,
     dry_run: bool = False,
     keys: KeySource = _SYSTEM_KEYS,
 ) -> InitResult:
-    """Create a fleet directory: fleet.yaml, server key, server configs, auth map.
+    """Create a fleet directory: fleet.yaml, server key, server configs, auth map, and a
+    self-signed HTTPS certificate.
 
     Args:
         fleet_dir: the directory (created if missing).
-        endpoint: ``HOST:PORT`` robots reach the server's WireGuard on.
+        endpoint: ``HOST:PORT`` robots reach the server's WireGuard on; ``None``: not
+            known yet (set it later with :func:`set_endpoint`).
         name: fleet label; default: the directory's name.
         subnet: VPN subnet in CIDR form.
         server_ip: server's VPN address; default: the subnet's first host.
-        server_port: TCP port of the fleet server.
-        wireguard_port: UDP port WireGuard listens on; default: the endpoint's port.
+        server_port: TCP port of the fleet server (plain ws://, inside the tunnel).
+        wireguard_port: UDP port WireGuard listens on; default: the endpoint's port, else
+            51820.
+        https_port: TCP port of the HTTPS listener (web page and wss://).
         force: replace an existing fleet (its fleet.yaml, keys and generated files).
         dry_run: compute and return the changes without writing anything.
         keys: where key material comes from.
@@ -206,14 +276,14 @@ def create_fleet(
                             "(use --force to replace the fleet and all its keys)")
     try:
         net = parse_subnet(subnet)
-        _, endpoint_port = parse_endpoint(endpoint)
+        endpoint_port = parse_endpoint(endpoint)[1] if endpoint else DEFAULT_WIREGUARD_PORT
         server = parse_ip(server_ip, ("server_ip",)) if server_ip else next(net.hosts())
     except FleetInvalid as exc:
         raise ConfigError(f"{format_path(exc.path)}: {exc}") from None
     fleet = _checked(Fleet(
         name=name or fleet_dir.resolve().name or "fleet",
-        endpoint=endpoint, subnet=net, server_ip=server, server_port=server_port,
-        wireguard_port=wireguard_port or endpoint_port,
+        endpoint=endpoint or None, subnet=net, server_ip=server, server_port=server_port,
+        wireguard_port=wireguard_port or endpoint_port, https_port=https_port,
     ))
     plan = Plan()
     if force:
@@ -221,7 +291,10 @@ def create_fleet(
             plan.delete(fleet_dir / sub)
     server_key = new_private_key(keys)
     keystore.plan_server_key(plan, fleet_dir, server_key)
-    _plan_fleet(plan, fleet_dir, fleet, FleetKeys(server_key, {}))
+    # A fresh certificate (not _plan_tls: with --force the old one is being deleted).
+    host = parse_endpoint(endpoint)[0] if endpoint else None
+    tls.plan_self_signed(plan, fleet_dir, tls.self_signed(tls.san_names(host), _TLS_KEYS))
+    _plan_fleet(plan, fleet_dir, fleet, FleetKeys(server_key, {}), force=force)
     return InitResult(fleet, public_key(server_key), finish_plan(plan, fleet_dir, dry_run))
 
 
@@ -258,9 +331,11 @@ def add_robot(
     new = _checked(replace(fleet, robots=(*fleet.robots, robot)))
     plan = Plan()
     fleet_keys = _load_keys(fleet_dir, new, keys, plan)
+    _plan_tls(plan, fleet_dir, new)
     _plan_fleet(plan, fleet_dir, new, fleet_keys)
     pub = public_key(fleet_keys.robot(name).private_key)
-    return RobotResult(robot, pub, finish_plan(plan, fleet_dir, dry_run))
+    outcome = finish_plan(plan, fleet_dir, dry_run, _endpoint_warning(new, fleet_dir))
+    return RobotResult(robot, pub, outcome)
 
 
 def remove_robot(fleet_dir: Path, name: str, *, dry_run: bool = False) -> RobotResult:
@@ -278,6 +353,7 @@ def remove_robot(fleet_dir: Path, name: str, *, dry_run: bool = False) -> RobotR
     fleet_keys = _load_keys(fleet_dir, new, _SYSTEM_KEYS, plan)
     plan.delete(fleet_dir / "robots" / name)
     plan.deletes.extend(keystore.robot_key_paths(fleet_dir, name))
+    _plan_tls(plan, fleet_dir, new)
     _plan_fleet(plan, fleet_dir, new, fleet_keys)
     return RobotResult(robot, None, finish_plan(plan, fleet_dir, dry_run))
 
@@ -315,6 +391,7 @@ def add_user(
     user = User(email, role, token_sha256(token))
     new = _checked(replace(fleet, users=(*fleet.users, user)))
     plan = Plan()
+    _plan_tls(plan, fleet_dir, new)
     _plan_fleet(plan, fleet_dir, new, _load_keys(fleet_dir, new, keys, plan))
     outcome = finish_plan(plan, fleet_dir, dry_run)
     return UserResult(user, None if dry_run else token, outcome)
@@ -332,24 +409,60 @@ def remove_user(fleet_dir: Path, email: str, *, dry_run: bool = False) -> UserRe
         raise ConfigError(f"user {email!r} is not in {fleet_file(fleet_dir)}")
     new = replace(fleet, users=tuple(u for u in fleet.users if u.email != email))
     plan = Plan()
+    _plan_tls(plan, fleet_dir, new)
     _plan_fleet(plan, fleet_dir, new, _load_keys(fleet_dir, new, _SYSTEM_KEYS, plan))
     return UserResult(user, None, finish_plan(plan, fleet_dir, dry_run))
 
 
-def render_fleet(fleet_dir: Path, *, dry_run: bool = False,
+def render_fleet(fleet_dir: Path, *, dry_run: bool = False, force: bool = False,
                  keys: KeySource = _SYSTEM_KEYS) -> Outcome:
     """Regenerate every artifact from fleet.yaml and the key files.
 
+    fleet.yaml itself is only read, never rewritten (its comments and layout stay).
     Files whose bytes are already right are not touched (their mtime stays), so running it
-    twice changes nothing. Robots listed in fleet.yaml without keys get new keys.
+    twice changes nothing. Robots listed in fleet.yaml without keys get new keys; a missing
+    self-signed certificate is made, an existing one kept.
+
+    Args:
+        fleet_dir: the fleet directory.
+        dry_run: compute and return the changes without writing anything.
+        force: overwrite generated files that were edited by hand.
+        keys: where key material comes from.
 
     Raises:
-        ConfigError: the fleet directory, fleet.yaml or a key file is missing or malformed.
+        ConfigError: the fleet directory, fleet.yaml or a key file is missing or malformed,
+            or (without *force*) a generated file was edited by hand.
     """
     fleet = load_fleet(fleet_dir)
     plan = Plan()
-    _plan_fleet(plan, fleet_dir, fleet, _load_keys(fleet_dir, fleet, keys, plan))
-    return finish_plan(plan, fleet_dir, dry_run)
+    _plan_tls(plan, fleet_dir, fleet)
+    _plan_fleet(plan, fleet_dir, fleet, _load_keys(fleet_dir, fleet, keys, plan),
+                write_fleet=False, force=force)
+    return finish_plan(plan, fleet_dir, dry_run, _endpoint_warning(fleet, fleet_dir))
+
+
+def set_endpoint(fleet_dir: Path, endpoint: str, *, dry_run: bool = False,
+                 keys: KeySource = _SYSTEM_KEYS) -> EndpointResult:
+    """Set where robots reach the server's WireGuard, and re-render.
+
+    The self-signed HTTPS certificate (not the operator's own) is made again when the
+    endpoint's host is not among its names. ``wireguard_port`` (where the server listens)
+    is left alone: behind port forwarding the two may differ.
+
+    Raises:
+        ConfigError: *endpoint* is not ``HOST:PORT``, or the fleet directory is bad.
+    """
+    fleet = load_fleet(fleet_dir)
+    try:
+        parse_endpoint(endpoint)
+    except FleetInvalid as exc:
+        raise ConfigError(f"{format_path(exc.path)}: {exc}") from None
+    new = _checked(replace(fleet, endpoint=endpoint))
+    plan = Plan()
+    regenerated = _plan_tls(plan, fleet_dir, new, refresh=True)
+    _plan_fleet(plan, fleet_dir, new, _load_keys(fleet_dir, new, keys, plan))
+    outcome = finish_plan(plan, fleet_dir, dry_run)
+    return EndpointResult(endpoint, fleet.endpoint, regenerated, outcome)
 
 
 def describe_fleet(fleet_dir: Path) -> FleetInfo:

@@ -2,13 +2,16 @@
 
 Rendering is a pure function of the :class:`~fleetctl.deploy.fleet.Fleet` and its keys:
 the same inputs give the same bytes, so re-rendering an unchanged fleet writes nothing.
+Every value goes through the filter of its output format (``y`` for YAML, ``wg`` for
+WireGuard's INI), and every rendered file starts with its digest line
+(:func:`fleetctl.deploy.files.stamp`), so hand edits are noticed before an overwrite.
 """
 
 from __future__ import annotations
 
 import functools
 import json
-import os
+import math
 from collections.abc import Mapping
 from dataclasses import dataclass
 from pathlib import Path
@@ -16,12 +19,13 @@ from pathlib import Path
 import jinja2
 
 from fleetctl.deploy import auth
-from fleetctl.deploy.files import Plan
+from fleetctl.deploy.assets import asset_dir
+from fleetctl.deploy.files import Plan, check_overwrite, stamp
 from fleetctl.deploy.fleet import Fleet, Robot
 from fleetctl.deploy.keys import public_key
 from fleetctl.deploy.keystore import RobotKeys
 from fleetctl.deploy.secrets import Secret
-from fleetctl.deploy.topics import DEFAULT_PUBLISH
+from fleetctl.deploy.tls import CERT_RELPATH, KEY_RELPATH
 from fleetctl.errors import ConfigError, EnvironmentMissing
 
 TEMPLATES_ENV = "FLEETCTL_TEMPLATES"  # overrides where templates/ is looked up
@@ -53,21 +57,57 @@ class Artifact:
     relpath: str
     text: str
     secret: bool = False
+    hint: str = "change fleet.yaml instead"  # where its settings belong (hand-edit error)
 
 
 def templates_dir() -> Path:
     """Return the ``templates/`` directory (``$FLEETCTL_TEMPLATES`` overrides)."""
-    override = os.environ.get(TEMPLATES_ENV)
-    if override:
-        return Path(override)
-    return Path(__file__).resolve().parents[2] / "templates"
+    return asset_dir("templates")
+
+
+def _yaml_char(c: str) -> str:
+    if c in '"\\':
+        return "\\" + c
+    if " " <= c <= "~":
+        return c
+    # Everything else escaped: YAML's \uXXXX / \UXXXXXXXX (YAML 1.1 section 5.7), so no
+    # line break (\n, \x85, \u2028) or control character reaches the file raw.
+    return f"\\u{ord(c):04x}" if ord(c) <= 0xFFFF else f"\\U{ord(c):08x}"
 
 
 def _yaml_scalar(value: object) -> str:
-    """Format a scalar for YAML; JSON scalars are valid YAML flow scalars, quotes included."""
-    if not isinstance(value, str | int | float | bool) and value is not None:
+    """Format a scalar as a one-line YAML flow scalar (strings double-quoted and escaped).
+
+    Raises:
+        TypeError: not a str, int, float, bool or None.
+        ValueError: a float that is not finite.
+        jinja2.UndefinedError: *value* is undefined (``StrictUndefined``).
+    """
+    if isinstance(value, jinja2.Undefined):
+        str(value)  # StrictUndefined raises here, naming the variable
+    if isinstance(value, str):
+        return '"' + "".join(_yaml_char(c) for c in value) + '"'
+    if isinstance(value, float) and not math.isfinite(value):
+        raise ValueError(f"not a finite number: {value}")
+    if not isinstance(value, int | float | bool) and value is not None:
         raise TypeError(f"not a YAML scalar: {type(value).__name__}")
     return json.dumps(value)
+
+
+def _wg_value(value: object) -> str:
+    """Format a value for a WireGuard INI line (or a comment in one).
+
+    wg-quick reads line by line and has no quoting, so the only defence is refusing any
+    value that could end the line or start a new ``[Peer]``: everything reaching these
+    templates is validated (names, addresses, base64 keys), and this catches a slip.
+
+    Raises:
+        ValueError: a value with a control character (a newline, a carriage return...).
+    """
+    text = str(value)
+    if not text.isprintable():
+        raise ValueError(f"a WireGuard config value must be one printable line: {text!r}")
+    return text
 
 
 @functools.cache
@@ -83,15 +123,17 @@ def _environment(root: Path) -> jinja2.Environment:
         lstrip_blocks=True,
     )
     env.filters["y"] = _yaml_scalar
+    env.filters["wg"] = _wg_value
     return env
 
 
 def render_template(name: str, **context: object) -> str:
-    """Render one template; a missing variable is an error, never an empty string."""
+    """Render one template, its digest line first; a missing variable is an error."""
     try:
-        return _environment(templates_dir()).get_template(name).render(**context)
+        body = _environment(templates_dir()).get_template(name).render(**context)
     except jinja2.TemplateNotFound:
         raise EnvironmentMissing(f"template {templates_dir() / name} not found") from None
+    return stamp(body, markdown=name.endswith(".md.j2"))
 
 
 def server_wireguard(fleet: Fleet, keys: FleetKeys) -> str:
@@ -128,7 +170,7 @@ def robot_wireguard(fleet: Fleet, robot: Robot, keys: FleetKeys) -> str:
         private_key=robot_keys.private_key.reveal(),
         preshared_key=robot_keys.preshared_key.reveal(),
         server_public_key=public_key(keys.server_private_key, "server key"),
-        endpoint=fleet.endpoint,
+        endpoint=fleet.endpoint,  # None: no Endpoint line (set-endpoint adds it)
         subnet=str(fleet.subnet),
     )
 
@@ -139,10 +181,13 @@ def server_url(fleet: Fleet) -> str:
 
 
 def client_config(fleet: Fleet, robot: Robot) -> str:
-    """Return robot's ``client.yaml`` with the default mobile-robot topic set."""
+    """Return robot's ``client.yaml``: its topics (or the default set), command topics."""
     subscribe = [
         {"remote_topic": f"/{robot.name}/{c.topic}", "type": c.type, "local_topic": f"/{c.topic}"}
         for c in robot.command_topics
+    ] + [
+        {"remote_topic": s.remote_topic, "type": s.type, "local_topic": s.local}
+        for s in robot.subscribe
     ]
     return render_template(
         "client/client.yaml.j2",
@@ -150,22 +195,9 @@ def client_config(fleet: Fleet, robot: Robot) -> str:
         robot_name=robot.name,
         server_url=server_url(fleet),
         bind_address=str(robot.ip),
-        publish=DEFAULT_PUBLISH,
+        publish=robot.publish_topics,
         subscribe=subscribe,
-    )
-
-
-def robot_readme(fleet: Fleet, robot: Robot) -> str:
-    """Return the README of robot's export bundle: what is in it and how to start it."""
-    return render_template(
-        "client/README.md.j2",
-        fleet_name=fleet.name,
-        robot_name=robot.name,
-        ip=str(robot.ip),
-        endpoint=fleet.endpoint,
-        mtu_bytes=robot.mtu_bytes,
-        server_url=server_url(fleet),
-        server_ip=str(fleet.server_ip),
+        battery_topic=robot.battery_topic,
     )
 
 
@@ -175,36 +207,63 @@ def auth_map(fleet: Fleet) -> str:
                            identities=auth.identities(fleet))
 
 
-def server_config(fleet: Fleet) -> str:
-    """Return ``server.yaml`` (docs/design.md section 4)."""
+def tls_paths(fleet: Fleet, fleet_dir: Path) -> tuple[str, str]:
+    """Return the HTTPS certificate and key paths as ``server.yaml`` names them.
+
+    The generated pair is named relative to ``server.yaml``'s directory (``FLEET/server``),
+    so the fleet directory can move; the operator's own files by their absolute paths.
+    """
+    if fleet.tls is None:
+        return (str(Path(CERT_RELPATH).relative_to("server")), f"../{KEY_RELPATH}")
+    cert, key = fleet.tls.paths(fleet_dir.resolve())
+    return str(cert), str(key)
+
+
+def server_config(fleet: Fleet, fleet_dir: Path) -> str:
+    """Return ``server.yaml`` (docs/design.md section 4), its HTTPS listener in ``web``."""
+    cert, key = tls_paths(fleet, fleet_dir)
     return render_template("server/server.yaml.j2", fleet_name=fleet.name,
-                           listen_port=fleet.server_port)
+                           listen_port=fleet.server_port, https_port=fleet.https_port,
+                           tls_cert=cert, tls_key=key)
 
 
-def robot_bundle(fleet: Fleet, robot: Robot, keys: FleetKeys) -> list[Artifact]:
-    """Return the files robot *robot* needs: ``wg0.conf``, ``client.yaml``, ``README.md``."""
-    return [
-        Artifact("wg0.conf", robot_wireguard(fleet, robot, keys), secret=True),
-        Artifact("client.yaml", client_config(fleet, robot)),
-        Artifact("README.md", robot_readme(fleet, robot)),
-    ]
-
-
-def fleet_artifacts(fleet: Fleet, keys: FleetKeys) -> list[Artifact]:
+def fleet_artifacts(fleet: Fleet, keys: FleetKeys, fleet_dir: Path) -> list[Artifact]:
     """Return every generated file of the fleet directory (docs/design.md section 6)."""
     out = [
-        Artifact("server/server.yaml", server_config(fleet)),
-        Artifact("server/auth.yaml", auth_map(fleet)),
-        Artifact("server/wireguard/wg0.conf", server_wireguard(fleet, keys), secret=True),
+        Artifact("server/server.yaml", server_config(fleet, fleet_dir),
+                 hint="set server_port, https_port and tls in fleet.yaml"),
+        Artifact("server/auth.yaml", auth_map(fleet),
+                 hint="put rules in fleet.yaml (robots' extra_send, extra_receive and "
+                      "subscribe; users)"),
+        Artifact("server/wireguard/wg0.conf", server_wireguard(fleet, keys), secret=True,
+                 hint="set subnet, server_ip and wireguard_port in fleet.yaml"),
     ]
-    for robot in fleet.robots:
-        out.append(Artifact(f"robots/{robot.name}/client.yaml", client_config(fleet, robot)))
-        out.append(Artifact(f"robots/{robot.name}/wireguard/wg0.conf",
-                            robot_wireguard(fleet, robot, keys), secret=True))
+    for i, robot in enumerate(fleet.robots):
+        out.append(Artifact(
+            f"robots/{robot.name}/client.yaml", client_config(fleet, robot),
+            hint=f"put topics in fleet.yaml robots[{i}].publish / subscribe / battery_topic"))
+        out.append(Artifact(
+            f"robots/{robot.name}/wireguard/wg0.conf", robot_wireguard(fleet, robot, keys),
+            secret=True, hint=f"set ip and mtu_bytes in fleet.yaml robots[{i}] and the "
+                              "endpoint with `fleetctl set-endpoint`"))
     return out
 
 
-def plan_artifacts(plan: Plan, root: Path, artifacts: list[Artifact]) -> None:
-    """Add writing *artifacts* under *root* to *plan* (secrets 0600 in 0700 dirs)."""
+def plan_artifacts(plan: Plan, root: Path, artifacts: list[Artifact], *,
+                   force: bool = False) -> None:
+    """Add writing *artifacts* under *root* to *plan* (secrets 0600 in 0700 dirs).
+
+    Args:
+        plan: the plan to extend.
+        root: the directory the artifacts' paths are relative to.
+        artifacts: the files.
+        force: replace files edited by hand too.
+
+    Raises:
+        ConfigError: (unless *force*) a file there was edited by hand; nothing is planned.
+    """
+    if not force:
+        for a in artifacts:
+            check_overwrite(root / a.relpath, a.text, str(root / a.relpath), a.hint)
     for a in artifacts:
         plan.write(root / a.relpath, a.text, secret=a.secret)

@@ -1,8 +1,30 @@
-"""The default topic set of a mobile robot's client config (docs/design.md section 7)."""
+"""A robot's topics in ``fleet.yaml`` (``publish``, ``subscribe``, ``battery_topic``), their
+default set (docs/design.md section 7), and their checks.
+
+The rules match what the robot client accepts in ``client.yaml``
+(:mod:`fleetctl.client.config`), so every fleet that validates renders a client config the
+client loads: absolute topic names of ``[A-Za-z0-9_]`` tokens, ``priority >= 0``,
+``rate_limit_hz > 0`` or ``null``, compression ``none | zstd | deflate``, and a message
+type the wire registry knows (the rosbags ROS 2 Jazzy store plus fleetctl's shipped types).
+"""
 
 from __future__ import annotations
 
+import functools
+import re
 from dataclasses import dataclass
+
+import yaml
+
+from fleetctl.deploy.yamlnodes import Document, FieldPath, FleetInvalid
+
+# As fleetctl.client.config: absolute, tokens of [A-Za-z0-9_] separated by single slashes.
+TOPIC = re.compile(r"(/[A-Za-z_][A-Za-z0-9_]*)+")
+# "none" or a codec of fleetctl.wire.compression; the same tuple as the client's COMPRESSIONS.
+COMPRESSIONS = ("none", "zstd", "deflate")
+# The client publishes its own RobofleetStatus on /<robot>/status.
+STATUS_TOPIC = "/status"
+DEFAULT_PRIORITY = 1.0  # the client's default
 
 
 @dataclass(frozen=True)
@@ -12,9 +34,10 @@ class PublishTopic:
     Attributes:
         topic: the local ROS topic; it goes out as ``/<robot><topic>``.
         type: ROS 2 type name.
-        priority: weight in the client's fair-priority queue (higher goes first).
+        priority: weight in the client's fair-priority queue (higher goes first), >= 0.
         rate_limit_hz: at most this many messages per second; ``None``: no limit.
         no_drop: reliable, in-order delivery (never replaced by a newer message).
+        compression: ``none``, ``zstd`` or ``deflate`` (deflate if a web page shows it).
     """
 
     topic: str
@@ -22,6 +45,28 @@ class PublishTopic:
     priority: float
     rate_limit_hz: float | None
     no_drop: bool = False
+    compression: str = "none"
+
+
+@dataclass(frozen=True)
+class SubscribeTopic:
+    """A fleet topic the robot receives and republishes locally (beyond its command topics).
+
+    Attributes:
+        remote_topic: the fleet topic, e.g. ``/husky1/map``; the robot is allowed to
+            receive it (auth.yaml) because it is listed here.
+        type: ROS 2 type name.
+        local_topic: where it is republished on the robot; ``None``: the remote name.
+    """
+
+    remote_topic: str
+    type: str
+    local_topic: str | None = None
+
+    @property
+    def local(self) -> str:
+        """The local topic it is republished on."""
+        return self.local_topic or self.remote_topic
 
 
 # Why these numbers: localization and odometry are small and what an operator watches most,
@@ -37,3 +82,151 @@ DEFAULT_PUBLISH: tuple[PublishTopic, ...] = (
     PublishTopic("/points", "sensor_msgs/msg/PointCloud2", 0.5, 2.0),
     PublishTopic("/events", "std_msgs/msg/String", 10.0, None, no_drop=True),
 )
+
+
+# --- checks ----------------------------------------------------------------------------
+
+
+@functools.cache
+def _known_types() -> frozenset[str]:
+    # Imported here: building the registry parses ~170 definitions (~0.25 s), paid once and
+    # only by commands that validate a fleet.
+    from fleetctl.wire.registry import TypeRegistry
+
+    return frozenset(TypeRegistry.default().names())
+
+
+def check_type(name: str, path: FieldPath) -> None:
+    """Raise :class:`FleetInvalid` unless *name* is a ROS 2 type the wire registry knows.
+
+    ``pkg/Name`` is accepted as ``pkg/msg/Name``, as the client does.
+    """
+    from fleetctl.wire.errors import WireError
+    from fleetctl.wire.metadata import normalize_type
+
+    try:
+        normalized = normalize_type(name)
+    except WireError:
+        raise FleetInvalid(path, f"{name!r} is not a ROS type name (pkg/msg/Name)") from None
+    if normalized not in _known_types():
+        raise FleetInvalid(path, f"unknown ROS type {name!r} (not in the ROS 2 Jazzy type "
+                                 "store nor fleetctl's shipped types)")
+
+
+def check_topic(topic: str, path: FieldPath) -> None:
+    """Raise :class:`FleetInvalid` unless *topic* is an absolute ROS topic name."""
+    if not TOPIC.fullmatch(topic):
+        raise FleetInvalid(path, f"{topic!r} is not an absolute ROS topic name (/a/b_c)")
+
+
+def check_publish(publish: tuple[PublishTopic, ...], path: FieldPath) -> None:
+    """Check a robot's ``publish`` list (*path* is the list's field path)."""
+    seen: dict[str, int] = {}
+    for j, p in enumerate(publish):
+        where = (*path, j)
+        check_topic(p.topic, (*where, "topic"))
+        if p.topic == STATUS_TOPIC:
+            raise FleetInvalid((*where, "topic"), "/status is sent by the client itself "
+                               "(fleetctl_msgs/msg/RobofleetStatus); pick another name")
+        if p.topic in seen:
+            other = format_index(path, seen[p.topic])
+            raise FleetInvalid((*where, "topic"), f"duplicate topic {p.topic!r} (also {other})")
+        seen[p.topic] = j
+        check_type(p.type, (*where, "type"))
+        _check_numbers(p, where)
+        if p.compression not in COMPRESSIONS:
+            raise FleetInvalid((*where, "compression"), f"must be one of "
+                               f"{', '.join(COMPRESSIONS)}, got {p.compression!r}")
+
+
+def format_index(path: FieldPath, index: int) -> str:
+    """Return ``publish[3]`` for the list field *path* and *index*."""
+    return f"{path[-1]}[{index}]"
+
+
+def _check_numbers(p: PublishTopic, where: FieldPath) -> None:
+    if not p.priority >= 0:
+        raise FleetInvalid((*where, "priority"), f"must be >= 0, got {p.priority}")
+    if p.rate_limit_hz is not None and not p.rate_limit_hz > 0:
+        raise FleetInvalid((*where, "rate_limit_hz"), f"must be > 0 or null, got {p.rate_limit_hz}")
+
+
+def check_subscribe(subscribe: tuple[SubscribeTopic, ...], taken: dict[str, str],
+                    path: FieldPath) -> None:
+    """Check a robot's ``subscribe`` list.
+
+    Args:
+        subscribe: the entries.
+        taken: remote and local topics already used (by the command topics), each mapped
+            to what uses it; updated in place.
+        path: the list's field path.
+    """
+    for j, s in enumerate(subscribe):
+        where = (*path, j)
+        check_topic(s.remote_topic, (*where, "remote_topic"))
+        if s.local_topic is not None:
+            check_topic(s.local_topic, (*where, "local_topic"))
+        check_type(s.type, (*where, "type"))
+        for key, field_name in ((f"remote {s.remote_topic}", "remote_topic"),
+                                (f"local {s.local}", "local_topic")):
+            if key in taken:
+                raise FleetInvalid((*where, field_name),
+                                   f"{key.split()[1]!r} is already received by {taken[key]}")
+            taken[key] = format_index(path, j)
+
+
+# --- fleet.yaml ------------------------------------------------------------------------
+
+_PUBLISH_FIELDS = ["priority", "rate_limit_hz", "no_drop", "compression"]
+
+
+def build_publish(doc: Document, node: yaml.Node, path: FieldPath) -> tuple[PublishTopic, ...]:
+    """Read a ``publish`` list (missing optional fields take the client's defaults)."""
+    return tuple(_build_one_publish(doc, n, (*path, j))
+                 for j, n in enumerate(doc.sequence(node, path)))
+
+
+def _build_one_publish(doc: Document, node: yaml.Node, path: FieldPath) -> PublishTopic:
+    f = doc.mapping(node, path, ["topic", "type"], _PUBLISH_FIELDS)
+    rate = None
+    if "rate_limit_hz" in f and not doc.is_null(f["rate_limit_hz"]):
+        rate = doc.number(f["rate_limit_hz"], (*path, "rate_limit_hz"))
+    compression = "none"
+    if "compression" in f:
+        compression = doc.optional_string(f["compression"], (*path, "compression")) or "none"
+    return PublishTopic(
+        topic=doc.string(f["topic"], (*path, "topic")),
+        type=doc.string(f["type"], (*path, "type")),
+        priority=(doc.number(f["priority"], (*path, "priority")) if "priority" in f
+                  else DEFAULT_PRIORITY),
+        rate_limit_hz=rate,
+        no_drop=doc.boolean(f["no_drop"], (*path, "no_drop")) if "no_drop" in f else False,
+        compression=compression,
+    )
+
+
+def build_subscribe(doc: Document, node: yaml.Node,
+                    path: FieldPath) -> tuple[SubscribeTopic, ...]:
+    """Read a ``subscribe`` list."""
+    out = []
+    for j, n in enumerate(doc.sequence(node, path)):
+        where = (*path, j)
+        f = doc.mapping(n, where, ["remote_topic", "type"], ["local_topic"])
+        local = (doc.optional_string(f["local_topic"], (*where, "local_topic"))
+                 if "local_topic" in f else None)
+        out.append(SubscribeTopic(doc.string(f["remote_topic"], (*where, "remote_topic")),
+                                  doc.string(f["type"], (*where, "type")), local))
+    return tuple(out)
+
+
+def dump_publish(publish: tuple[PublishTopic, ...]) -> list[dict[str, object]]:
+    """Return the ``fleet.yaml`` form of a ``publish`` list (every field written out)."""
+    return [{"topic": p.topic, "type": p.type, "priority": p.priority,
+             "rate_limit_hz": p.rate_limit_hz, "no_drop": p.no_drop,
+             "compression": p.compression} for p in publish]
+
+
+def dump_subscribe(subscribe: tuple[SubscribeTopic, ...]) -> list[dict[str, object]]:
+    """Return the ``fleet.yaml`` form of a ``subscribe`` list."""
+    return [{"remote_topic": s.remote_topic, "type": s.type, "local_topic": s.local_topic}
+            for s in subscribe]

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 from collections.abc import Iterable
 from pathlib import Path
 
@@ -15,6 +16,21 @@ _STR = "tag:yaml.org,2002:str"
 _INT = "tag:yaml.org,2002:int"
 _FLOAT = "tag:yaml.org,2002:float"
 _NULL = "tag:yaml.org,2002:null"
+_BOOL = "tag:yaml.org,2002:bool"
+
+
+class FleetInvalid(Exception):
+    """A semantic error in a fleet, with the field path it concerns.
+
+    Attributes:
+        path: the field, e.g. ``("robots", 2, "ip")``.
+        conflict: True when the problem is a duplicate (a name or address already used).
+    """
+
+    def __init__(self, path: FieldPath, message: str, *, conflict: bool = False) -> None:
+        super().__init__(message)
+        self.path = path
+        self.conflict = conflict
 
 
 def format_path(path: FieldPath) -> str:
@@ -114,3 +130,33 @@ class Document:
         if not low <= value <= high:
             raise self.error(path, f"must be between {low} and {high}, got {value}")
         return value
+
+    def is_null(self, node: yaml.Node) -> bool:
+        """Return True for a ``null`` / ``~`` / empty scalar."""
+        return isinstance(node, yaml.ScalarNode) and node.tag == _NULL
+
+    def optional_string(self, node: yaml.Node, path: FieldPath) -> str | None:
+        """Return a string scalar, or ``None`` for ``null``."""
+        self._seen(node, path)
+        return None if self.is_null(node) else self.string(node, path)
+
+    def number(self, node: yaml.Node, path: FieldPath) -> float:
+        """Return a finite integer or float scalar as a float."""
+        self._seen(node, path)
+        if not isinstance(node, yaml.ScalarNode) or node.tag not in (_INT, _FLOAT):
+            raise self.error(path, "expected a number")
+        try:
+            value = float(int(str(node.value).replace("_", ""), 0)) if node.tag == _INT else (
+                float(yaml.safe_load(node.value)))
+        except (ValueError, TypeError):
+            raise self.error(path, "expected a number") from None
+        if not math.isfinite(value):
+            raise self.error(path, f"must be a finite number, got {node.value}")
+        return value
+
+    def boolean(self, node: yaml.Node, path: FieldPath) -> bool:
+        """Return a ``true`` / ``false`` scalar."""
+        self._seen(node, path)
+        if not isinstance(node, yaml.ScalarNode) or node.tag != _BOOL:
+            raise self.error(path, "expected true or false")
+        return bool(yaml.safe_load(node.value))

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import hashlib
 import json
+from collections.abc import Callable
 from pathlib import Path
 
 import pytest
@@ -26,8 +27,24 @@ class Cli:
 
 
 @pytest.fixture
+def synced(monkeypatch: pytest.MonkeyPatch) -> list[Path]:
+    """Replace the running-deployment sync by a recorder (no Docker here)."""
+    from fleetctl.deploy import live
+
+    calls: list[Path] = []
+
+    def fake(fleet_dir: Path, progress: Callable[[str], None]) -> str | None:
+        calls.append(fleet_dir)
+        progress("checking")
+        return None
+
+    monkeypatch.setattr(live, "sync_running", fake)
+    return calls
+
+
+@pytest.fixture
 def cli(capsys: pytest.CaptureFixture[str], tmp_path: Path,
-        monkeypatch: pytest.MonkeyPatch) -> Cli:
+        monkeypatch: pytest.MonkeyPatch, synced: list[Path]) -> Cli:
     fleet = tmp_path / "fleet"
     monkeypatch.setenv("FLEET_DIR", str(fleet))
     return Cli(capsys, fleet)
@@ -46,8 +63,8 @@ def fleet(cli: Cli) -> Path:
 
 def test_help_lists_every_command() -> None:
     out = CliRunner().invoke(build_app(), ["--help"]).output
-    for cmd in ("init", "add-robot", "remove-robot", "add-user", "remove-user", "list",
-                "render", "export"):
+    for cmd in ("init", "set-endpoint", "add-robot", "remove-robot", "add-user",
+                "remove-user", "list", "render", "export"):
         assert cmd in out
 
 
@@ -215,3 +232,77 @@ def test_keys_never_in_output(fleet: Path, cli: Cli) -> None:
     for out in outputs:
         for secret in secrets:
             assert secret not in out
+
+
+def test_init_without_arguments_then_set_endpoint(cli: Cli, synced: list[Path]) -> None:
+    cli.fleet.mkdir()
+    out, err = cli("init")
+    assert "endpoint not set" in out and "HTTPS port 8443" in out and not err
+    assert yaml.safe_load((cli.fleet / "fleet.yaml").read_text())["endpoint"] is None
+    out, err = cli("add-robot", "husky1")
+    warnings = [line for line in err.splitlines() if "warning" in line]
+    assert warnings == [
+        f"fleetctl: warning: {cli.fleet / 'fleet.yaml'} has no endpoint, so the robots' "
+        "wg0.conf have no Endpoint and cannot reach the server: run "
+        "`fleetctl set-endpoint HOST:PORT`"]
+    conf = cli.fleet / "robots/husky1/wireguard/wg0.conf"
+    assert "\nEndpoint" not in conf.read_text()
+    assert (cli.fleet / "robots/husky1/client.yaml").exists()
+    assert "husky1" in (cli.fleet / "server/auth.yaml").read_text()
+    out, _ = cli("set-endpoint", "vpn.example.com:51820")
+    assert "endpoint vpn.example.com:51820 (was not set)" in out
+    assert "certificate made again" in out
+    assert "\nEndpoint = vpn.example.com:51820\n" in conf.read_text()
+    assert yaml.safe_load((cli.fleet / "fleet.yaml").read_text())["endpoint"] == (
+        "vpn.example.com:51820")
+    assert synced == [cli.fleet, cli.fleet]  # add-robot, set-endpoint (not init)
+    _, err = cli("render")
+    assert "warning" not in err
+
+
+@pytest.mark.parametrize("endpoint", ["vpn.example.com", "vpn:0", "a b:1", "h:99999",
+                                      "x\n[Peer]:1"])
+def test_set_endpoint_bad_input_changes_nothing(fleet: Path, cli: Cli, endpoint: str,
+                                                synced: list[Path]) -> None:
+    before = _snapshot(fleet)
+    calls = len(synced)
+    _, err = cli("set-endpoint", endpoint, code=ExitCode.CONFIG)
+    assert err.startswith("fleetctl: error: endpoint: expected HOST:PORT")
+    assert len(err.strip().splitlines()) == 1
+    assert _snapshot(fleet) == before and len(synced) == calls
+
+
+def test_change_commands_sync_a_running_fleet(fleet: Path, cli: Cli,
+                                              synced: list[Path]) -> None:
+    synced.clear()
+    cli("add-user", "a@example.com", "--role", "viewer")
+    cli("remove-user", "a@example.com")
+    cli("add-robot", "r2", "--dry-run")  # a dry run changes nothing: no sync
+    cli("render", "-o", "json")
+    cli("remove-robot", "husky1")
+    cli("list")
+    assert synced == [fleet] * 4
+
+
+def test_sync_note_is_printed(fleet: Path, cli: Cli, monkeypatch: pytest.MonkeyPatch) -> None:
+    from fleetctl.deploy import live
+
+    monkeypatch.setattr(live, "sync_running", lambda d, p: "running fleet: peers synced")
+    out, _ = cli("render")
+    assert out.rstrip().endswith("running fleet: peers synced")
+    out, err = cli("render", "-o", "json")
+    json.loads(out)  # stdout stays one JSON document
+    assert "running fleet: peers synced" in err
+
+
+def test_render_force_after_hand_edit(fleet: Path, cli: Cli) -> None:
+    client = fleet / "robots/husky1/client.yaml"
+    client.write_text(client.read_text() + "# my change\n")
+    before = _snapshot(fleet)
+    _, err = cli("render", code=ExitCode.CONFIG)
+    assert err == (f"fleetctl: error: {client} was edited by hand: put topics in fleet.yaml "
+                   "robots[0].publish / subscribe / battery_topic, then run "
+                   "`fleetctl render --force` to overwrite\n")
+    assert _snapshot(fleet) == before
+    cli("render", "--force")
+    assert "# my change" not in client.read_text()

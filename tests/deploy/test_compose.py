@@ -1,18 +1,23 @@
-"""Rendering the compose deployment of a real fleet directory (made by `fleetctl init`)."""
+"""Rendering and running the compose deployment of a real fleet directory (made by
+`fleetctl init`), with the docker CLI replaced by a recorder (no Docker needed)."""
 
 from __future__ import annotations
 
 import shutil
 import stat
 import subprocess
+from collections.abc import Sequence
+from dataclasses import replace
 from pathlib import Path
 
 import pytest
 import yaml
 
 from fleetctl.cli.main import main
-from fleetctl.deploy import compose
-from fleetctl.errors import ConfigError, EnvironmentMissing, FleetError
+from fleetctl.deploy import compose, composerun, live
+from fleetctl.deploy.compose import Options
+from fleetctl.deploy.dockercli import Completed
+from fleetctl.errors import ConfigError, ConflictError, EnvironmentMissing, FleetError
 
 
 @pytest.fixture
@@ -24,19 +29,37 @@ def fleet(tmp_path: Path) -> Path:
     return fleet_dir
 
 
-def test_plan_reads_robots_and_addresses(fleet: Path) -> None:
-    plan = compose.plan_for(fleet, wireguard="off")
+def _opts(fleet: Path, **kw: object) -> Options:
+    return composerun.default_options(fleet, **kw)
+
+
+def test_plan_reads_robots_addresses_and_the_https_listener(fleet: Path) -> None:
+    plan = compose.plan_for(fleet, _opts(fleet, wireguard="off"))
     assert [(r.name, r.fleet_ip) for r in plan.robots] == [
         ("husky1", "10.8.0.2"), ("jackal2", "10.8.0.3")]
-    assert (plan.server_ip, plan.fleet_subnet, plan.server_port) == (
-        "10.8.0.1", "10.8.0.0/24", 8080)
+    assert (plan.server_ip, plan.fleet_subnet, plan.server_port, plan.https_port) == (
+        "10.8.0.1", "10.8.0.0/24", 8080, 8443)
     assert plan.project == "fleetctlyard"
+    assert plan.tls_cert.is_file() and plan.tls_key.is_file()
+    assert plan.url == "https://localhost:8443/"
 
 
-def test_plain_mode_puts_robots_on_their_fleet_ips(fleet: Path) -> None:
-    doc = compose.render(compose.plan_for(fleet, wireguard="off"))
+def test_without_sim_only_the_server_runs_and_publishes_one_https_port(fleet: Path) -> None:
+    plan = compose.plan_for(fleet, _opts(fleet, wireguard="off", bind="127.0.0.1",
+                                          https_port=9443))
+    doc = compose.render(plan)
+    assert set(doc["services"]) == {"server"}
+    server = doc["services"]["server"]
+    assert server["ports"] == ["127.0.0.1:9443:8443/tcp"]
+    assert server["user"] == "root"  # until the entrypoint hands over secrets and drops
+    assert "server-data:/var/lib/fleetctl" in server["volumes"]
+    assert plan.url == "https://127.0.0.1:9443/"
+
+
+def test_plain_mode_puts_simulated_robots_on_their_fleet_ips(fleet: Path) -> None:
+    doc = compose.render(compose.plan_for(fleet, _opts(fleet, wireguard="off", sim=True)))
     assert doc["version"] == "2.4"
-    assert set(doc["services"]) == {"server", "webviz", "robot-husky1", "robot-jackal2"}
+    assert set(doc["services"]) == {"server", "robot-husky1", "robot-jackal2"}
     robot = doc["services"]["robot-husky1"]
     assert robot["networks"]["fleet"] == {"ipv4_address": "10.8.0.2"}
     assert doc["services"]["server"]["networks"]["fleet"] == {"ipv4_address": "10.8.0.1"}
@@ -44,38 +67,61 @@ def test_plain_mode_puts_robots_on_their_fleet_ips(fleet: Path) -> None:
     assert ipam == {"subnet": "10.8.0.0/24", "gateway": "10.8.0.254"}
     assert "cap_add" not in robot and "WG_CONFIG" not in robot["environment"]
     assert robot["depends_on"] == {"server": {"condition": "service_healthy"}}
-    assert doc["services"]["webviz"]["ports"] == ["127.0.0.1:8000:8000"]
+    # The robot's name reaches the shell as a positional parameter, not inside the script.
+    assert robot["command"][0:2] == ["bash", "-c"] and "husky1" not in robot["command"][2]
+    assert robot["command"][3:5] == ["fleetctl-sim", "husky1"]
 
 
-def test_wireguard_mode_runs_wireguard_go_with_endpoint_rewritten(fleet: Path) -> None:
-    plan = compose.plan_for(fleet, wireguard="auto")
+def test_wireguard_mode_publishes_udp_and_rewrites_the_endpoint(fleet: Path) -> None:
+    plan = compose.plan_for(fleet, _opts(fleet, wireguard="auto", sim=True))
     if not plan.wireguard:
         pytest.skip("no /dev/net/tun on this host")
     doc = compose.render(plan)
-    robot = doc["services"]["robot-husky1"]
+    robot, server = doc["services"]["robot-husky1"], doc["services"]["server"]
     assert robot["cap_add"] == ["NET_ADMIN"] and robot["user"] == "root"
     assert robot["environment"]["WG_CONFIG"] == "/etc/fleetctl/wg/wg0.conf"
-    assert doc["services"]["server"]["environment"]["WG_REQUIRED"] == "1"
+    assert server["environment"]["WG_REQUIRED"] == "1"
+    assert server["environment"]["WG_CONFIG"] == compose.SERVER_WG_CONF
+    assert "0.0.0.0:51820:51820/udp" in server["ports"]
     compose.write_files(plan)
     conf = plan.compose_dir / "robots" / "husky1" / "wg0.conf"
     assert "Endpoint = server:51820" in conf.read_text()
-    assert stat.S_IMODE(conf.stat().st_mode) == 0o600
+    assert "fleet.example" not in conf.read_text()
+    for secret in (conf, plan.compose_dir / "secrets" / "tls.key"):
+        assert stat.S_IMODE(secret.stat().st_mode) == 0o600
     assert stat.S_IMODE(plan.compose_dir.stat().st_mode) == 0o700
 
 
-def test_written_server_config_uses_container_paths(fleet: Path) -> None:
-    plan = compose.plan_for(fleet, wireguard="off")
+def test_robot_config_without_endpoint_gets_one_inside_compose(fleet: Path) -> None:
+    plan = compose.plan_for(fleet, _opts(fleet, wireguard="off", sim=True))
+    robot = plan.robots[0]
+    conf = robot.robot_dir / "wireguard" / "wg0.conf"
+    conf.write_text("\n".join(line for line in conf.read_text().splitlines()
+                              if not line.startswith("Endpoint")) + "\n")
+    text = compose.robot_wireguard(plan, robot)
+    assert text.count("Endpoint = server:51820") == 1
+    assert text.index("PublicKey") < text.index("Endpoint")
+
+
+def test_container_server_config_binds_plain_ws_inside_the_tunnel_only(fleet: Path) -> None:
+    plan = compose.plan_for(fleet, _opts(fleet, wireguard="off"))
+    wg_plan = replace(plan, wireguard=True)
+    cfg = compose.container_server_config(wg_plan)
+    assert cfg["listen_host"] == ["10.8.0.1", "127.0.0.1"]
+    assert compose.container_server_config(plan)["listen_host"] == "0.0.0.0"
+    assert cfg["database"] == "/var/lib/fleetctl/fleet.db"
+    # Live from the fleet directory: the server reloads it when fleetctl changes it.
+    assert cfg["auth_map"] == "/etc/fleetctl/fleet/auth.yaml"
+    assert cfg["web"]["tls_key"] == "/run/fleetctl/secrets/tls.key"
+    assert cfg["web"]["tls_cert"] == "/etc/fleetctl/run/tls-cert.pem"
     path = compose.write_files(plan)
-    server = yaml.safe_load((plan.compose_dir / "server" / "server.yaml").read_text())
-    assert server["database"] == "/var/lib/fleetctl/fleet.db"
-    assert server["auth_map"] == "/etc/fleetctl/server/auth.yaml"
-    assert (plan.compose_dir / "server" / "auth.yaml").is_file()
     assert yaml.safe_load(path.read_text()) == compose.render(plan)
+    assert compose.saved_options(fleet) == plan.options
 
 
 @pytest.mark.skipif(shutil.which("docker-compose") is None, reason="needs docker-compose")
 def test_compose_v1_accepts_the_file(fleet: Path) -> None:
-    path = compose.write_files(compose.plan_for(fleet, wireguard="off"))
+    path = compose.write_files(compose.plan_for(fleet, _opts(fleet, wireguard="off", sim=True)))
     res = subprocess.run(["docker-compose", "-f", str(path), "config", "-q"],
                          capture_output=True, text=True, check=False)
     assert res.returncode == 0, res.stderr
@@ -84,11 +130,31 @@ def test_compose_v1_accepts_the_file(fleet: Path) -> None:
 def test_bad_fleet_dirs_are_named(tmp_path: Path, fleet: Path) -> None:
     with pytest.raises(ConfigError, match=r"fleet\.yaml: missing"):
         compose.plan_for(tmp_path)
+    with pytest.raises(FleetError, match="run `fleetctl up"):
+        composerun.existing_options(tmp_path)
     (fleet / "robots" / "husky1" / "wireguard" / "wg0.conf").write_text("[Interface]\n")
     with pytest.raises(ConfigError, match=r"wg0.conf: field Address: missing"):
-        compose.plan_for(fleet, wireguard="off")
-    with pytest.raises(FleetError, match="run `fleetctl up"):
-        compose.existing(tmp_path)
+        compose.plan_for(fleet, _opts(fleet, wireguard="off"))
+
+
+def test_a_server_config_without_https_is_named(fleet: Path) -> None:
+    server_yaml = fleet / "server" / "server.yaml"
+    data = yaml.safe_load(server_yaml.read_text())
+    data["web"]["tls_cert"] = "nowhere.pem"
+    server_yaml.write_text(yaml.safe_dump(data))
+    with pytest.raises(ConfigError, match=r"server.yaml: field web.tls_cert: .*does not exist"):
+        compose.plan_for(fleet, _opts(fleet, wireguard="off"))
+    del data["web"]
+    server_yaml.write_text(yaml.safe_dump(data))
+    with pytest.raises(ConfigError, match=r"field web: missing.*fleetctl render"):
+        compose.plan_for(fleet, _opts(fleet, wireguard="off"))
+
+
+def test_a_corrupt_state_file_is_named(fleet: Path) -> None:
+    (fleet / ".compose").mkdir()
+    (fleet / ".compose" / "state.json").write_text("{not json")
+    with pytest.raises(ConfigError, match=r"state.json: unreadable deployment state"):
+        composerun.existing_options(fleet)
 
 
 def test_wireguard_mode_choice(tmp_path: Path) -> None:
@@ -102,3 +168,74 @@ def test_wireguard_mode_choice(tmp_path: Path) -> None:
     assert compose.wireguard_mode("auto", absent)[0] is True
     with pytest.raises(FleetError, match="auto, on or off"):
         compose.wireguard_mode("maybe", absent)
+
+
+class FakeDocker:
+    """Records docker commands; answers `ps` with a running server when told to."""
+
+    def __init__(self, *, server_running: bool = False, images: bool = True) -> None:
+        self.calls: list[list[str]] = []
+        self.server_running = server_running
+        self.images = images
+
+    def __call__(self, argv: Sequence[str], stdin: bytes | None, capture: bool) -> Completed:
+        argv = list(argv)
+        self.calls.append(argv)
+        out, code = "", 0
+        if argv[:2] == ["docker", "ps"] and self.server_running:
+            out = "abc123\n"
+        elif argv[:3] == ["docker", "image", "inspect"]:
+            code = 0 if self.images else 1
+        elif argv[:2] == ["docker", "compose"]:
+            code = 0
+        return Completed(tuple(argv), code, out, "")
+
+    def compose_calls(self) -> list[list[str]]:
+        return [c for c in self.calls if c[:2] == ["docker", "compose"] and "version" not in c]
+
+
+def test_down_keeps_the_data_volume_unless_asked(fleet: Path) -> None:
+    docker = FakeDocker()
+    opts = _opts(fleet, wireguard="off")
+    composerun.down(fleet, opts, progress=lambda _: None, runner=docker)
+    composerun.down(fleet, opts, delete_data=True, progress=lambda _: None, runner=docker)
+    keep, delete = docker.compose_calls()
+    assert "down" in keep and "-v" not in keep
+    assert "down" in delete and "-v" in delete
+
+
+def test_up_needs_the_images(fleet: Path) -> None:
+    with pytest.raises(EnvironmentMissing, match=r"fleetctl/server:.* not found.*fleetctl build"):
+        composerun.up(fleet, _opts(fleet, wireguard="off"), progress=lambda _: None,
+                      runner=FakeDocker(images=False))
+    assert not (fleet / ".compose").exists()
+
+
+def test_up_refuses_to_change_the_mode_of_a_running_fleet(fleet: Path) -> None:
+    docker = FakeDocker()
+    composerun.up(fleet, _opts(fleet, wireguard="off"), progress=lambda _: None, runner=docker)
+    before = (fleet / ".compose" / "docker-compose.yml").read_text()
+    docker.server_running = True
+    with pytest.raises(ConflictError, match=r"runs with sim=False, not True.*fleetctl down"):
+        composerun.up(fleet, _opts(fleet, wireguard="off", sim=True), progress=lambda _: None,
+                      runner=docker)
+    assert (fleet / ".compose" / "docker-compose.yml").read_text() == before
+
+
+def test_live_sync_does_nothing_without_a_deployment(fleet: Path) -> None:
+    docker = FakeDocker(server_running=True)
+    assert live.sync_running(fleet, lambda _: None, runner=docker) is None
+    assert docker.calls == []
+
+
+def test_live_sync_reloads_peers_and_adds_simulated_robots(fleet: Path) -> None:
+    docker = FakeDocker()
+    composerun.up(fleet, _opts(fleet, wireguard="off", sim=True), progress=lambda _: None,
+                  runner=docker)
+    assert main(["add-robot", "rover3", "--fleet", str(fleet)]) == 0
+    docker.server_running = True
+    note = live.sync_running(fleet, lambda _: None, runner=docker)
+    assert note is not None and "wg syncconf" not in note
+    assert any("wg syncconf wg0" in " ".join(c) for c in docker.calls)
+    doc = yaml.safe_load((fleet / ".compose" / "docker-compose.yml").read_text())
+    assert "robot-rover3" in doc["services"]

@@ -6,7 +6,7 @@ from pathlib import Path
 
 import pytest
 
-from fleetctl.deploy.fleet import dump_fleet, load_fleet, parse_fleet
+from fleetctl.deploy.fleet import dump_fleet, load_fleet, parse_fleet, require_endpoint
 from fleetctl.errors import ConfigError
 
 GOOD = """\
@@ -95,3 +95,108 @@ def test_missing_directory_and_file(tmp_path: Path) -> None:
         load_fleet(tmp_path / "nope")
     with pytest.raises(ConfigError, match=r"fleet\.yaml: not found"):
         load_fleet(tmp_path)
+
+
+TOPICS = GOOD.replace("    extra_receive: [\"/husky1/scan\"]\n", """\
+    extra_receive: ["/husky1/scan"]
+    publish:
+      - {topic: /map, type: nav_msgs/msg/OccupancyGrid, rate_limit_hz: 1}
+      - {topic: /gps/fix, type: sensor_msgs/msg/NavSatFix}
+      - {topic: /scan, type: sensor_msgs/msg/LaserScan, compression: zstd}
+    subscribe:
+      - {remote_topic: /husky1/map, type: nav_msgs/msg/OccupancyGrid}
+    battery_topic: /battery_state
+    ros_domain_id: 7
+    rmw_implementation: rmw_cyclonedds_cpp
+""")
+
+
+def test_topics_and_ros_fields_round_trip() -> None:
+    fleet = parse_fleet(Path("fleet.yaml"), TOPICS)
+    jackal = fleet.robots[1]
+    assert [p.topic for p in jackal.publish_topics] == ["/map", "/gps/fix", "/scan"]
+    assert jackal.publish is not None and jackal.publish[0].rate_limit_hz == 1.0
+    assert jackal.publish[1].priority == 1.0 and jackal.publish[2].compression == "zstd"
+    assert jackal.battery_topic == "/battery_state"
+    assert (jackal.ros_domain_id, jackal.rmw_implementation) == (7, "rmw_cyclonedds_cpp")
+    assert fleet.robots[0].publish is None  # the default set, kept as "absent"
+    assert len(fleet.robots[0].publish_topics) == 6
+    again = parse_fleet(Path("fleet.yaml"), dump_fleet(fleet))
+    assert again == fleet
+    assert "  publish:" not in dump_fleet(fleet).split("- name: jackal2")[0]
+
+
+def test_endpoint_null_and_absent() -> None:
+    for text in (GOOD.replace("vpn.example.com:51820", "null"),
+                 GOOD.replace("endpoint: vpn.example.com:51820\n", "")):
+        fleet = parse_fleet(Path("fleet.yaml"), text)
+        assert fleet.endpoint is None
+        assert "endpoint: null" in dump_fleet(fleet)
+
+
+def test_require_endpoint(tmp_path: Path) -> None:
+    fleet = parse_fleet(Path("fleet.yaml"), GOOD.replace("vpn.example.com:51820", "null"))
+    with pytest.raises(ConfigError) as info:
+        require_endpoint(fleet, tmp_path)
+    assert str(info.value) == (
+        f"{tmp_path / 'fleet.yaml'}: endpoint: not set; run `fleetctl set-endpoint HOST:PORT` "
+        "(where robots reach the server's WireGuard)")
+    assert require_endpoint(parse_fleet(Path("f"), GOOD), tmp_path) == "vpn.example.com:51820"
+
+
+@pytest.mark.parametrize(
+    ("old", "new", "expected"),
+    [
+        ("/gps/fix, type: sensor_msgs/msg/NavSatFix", "/gps/fix, type: foo_msgs/msg/Bar",
+         "/f/fleet.yaml:14: robots[1].publish[1].type: unknown ROS type 'foo_msgs/msg/Bar'"),
+        ("/gps/fix, type: sensor_msgs/msg/NavSatFix", "/gps/fix, type: NavSatFix",
+         "/f/fleet.yaml:14: robots[1].publish[1].type: 'NavSatFix' is not a ROS type name"),
+        ("{topic: /gps/fix,", "{topic: gps/fix,",
+         "/f/fleet.yaml:14: robots[1].publish[1].topic: 'gps/fix' is not an absolute ROS topic"),
+        ("{topic: /gps/fix,", "{topic: /map,",
+         "/f/fleet.yaml:14: robots[1].publish[1].topic: duplicate topic '/map' (also publish[0])"),
+        ("{topic: /gps/fix,", "{topic: /status,",
+         "/f/fleet.yaml:14: robots[1].publish[1].topic: /status is sent by the client itself"),
+        ("rate_limit_hz: 1}", "rate_limit_hz: 0}",
+         "/f/fleet.yaml:13: robots[1].publish[0].rate_limit_hz: must be > 0 or null, got 0"),
+        ("rate_limit_hz: 1}", "rate_limit_hz: fast}",
+         "/f/fleet.yaml:13: robots[1].publish[0].rate_limit_hz: expected a number"),
+        ("rate_limit_hz: 1}", "rate_limit_hz: 1, priority: -1}",
+         "/f/fleet.yaml:13: robots[1].publish[0].priority: must be >= 0, got -1.0"),
+        ("rate_limit_hz: 1}", "rate_limit_hz: .inf}",
+         "/f/fleet.yaml:13: robots[1].publish[0].rate_limit_hz: must be a finite number"),
+        ("compression: zstd}", "compression: lz4}",
+         "/f/fleet.yaml:15: robots[1].publish[2].compression: must be one of none, zstd, "
+         "deflate, got 'lz4'"),
+        ("compression: zstd}", "no_drop: maybe}",
+         "/f/fleet.yaml:15: robots[1].publish[2].no_drop: expected true or false"),
+        ("compression: zstd}", "qos: best}",
+         "/f/fleet.yaml:15: robots[1].publish[2].qos: unknown field"),
+        ("{remote_topic: /husky1/map, type: nav_msgs/msg/OccupancyGrid}",
+         "{remote_topic: /husky1/map, type: nav_msgs/msg/Nope}",
+         "/f/fleet.yaml:17: robots[1].subscribe[0].type: unknown ROS type 'nav_msgs/msg/Nope'"),
+        ("{remote_topic: /husky1/map,", "{remote_topic: /jackal2/goal_pose,",
+         "/f/fleet.yaml:17: robots[1].subscribe[0].remote_topic: '/jackal2/goal_pose' is "
+         "already received by command_topics[0]"),
+        ("OccupancyGrid}\n", "OccupancyGrid, local_topic: /initialpose}\n",
+         "/f/fleet.yaml:17: robots[1].subscribe[0].local_topic: '/initialpose' is already "
+         "received by command_topics[1]"),
+        ("battery_topic: /battery_state", "battery_topic: battery",
+         "/f/fleet.yaml:18: robots[1].battery_topic: 'battery' is not an absolute ROS topic"),
+        ("ros_domain_id: 7", "ros_domain_id: 233",
+         "/f/fleet.yaml:19: robots[1].ros_domain_id: must be between 0 and 232, got 233"),
+        ("rmw_implementation: rmw_cyclonedds_cpp", "rmw_implementation: rmw_fast",
+         "/f/fleet.yaml:20: robots[1].rmw_implementation: unknown RMW implementation 'rmw_fast'"),
+        ("server_ip: 10.8.0.1\n", "server_ip: 10.8.0.1\nhttps_port: 8080\n",
+         "/f/fleet.yaml:6: https_port: 8080 is also server_port"),
+        ("server_ip: 10.8.0.1\n", "server_ip: 10.8.0.1\ntls: {cert: a.pem}\n",
+         "/f/fleet.yaml:6: tls: missing required field 'key'"),
+        ("name: campus\n", "name: \"a\\nb\"\n", "/f/fleet.yaml:2: name: must be one line"),
+        ("    ip: 10.8.0.3\n",
+         "    ip: 10.8.0.3\n    command_topics: [{topic: go, type: x/msg/Y}]\n",
+         "/f/fleet.yaml:11: robots[1].command_topics[0].type: unknown ROS type 'x/msg/Y'"),
+    ],
+)
+def test_topic_errors_name_file_line_field(old: str, new: str, expected: str) -> None:
+    assert old in TOPICS
+    assert _error(TOPICS.replace(old, new, 1)).startswith(expected)

@@ -10,7 +10,7 @@ import pytest
 
 from fleetctl.deploy import images
 from fleetctl.deploy.dockercli import Completed, require_docker
-from fleetctl.errors import EnvironmentMissing, FleetError
+from fleetctl.errors import ConfigError, EnvironmentMissing, FleetError
 
 REPO = Path(__file__).resolve().parents[2]
 
@@ -118,5 +118,22 @@ def test_docker_absent_is_an_environment_error() -> None:
         require_docker(which=lambda name: None)
 
 
-def test_find_source_dir_from_the_package() -> None:
-    assert images.find_source_dir(Path("/")) == REPO
+def test_find_source_dir_is_this_checkout_never_a_foreign_project(tmp_path: Path) -> None:
+    # Running from the checkout (editable install): build from it.
+    assert images.find_source_dir() == REPO
+    (tmp_path / "pyproject.toml").write_text("[project]\nname = 'other'\n")
+    (tmp_path / "images").mkdir()
+    assert images.find_source_dir(tmp_path) == REPO
+    with pytest.raises(ConfigError, match=r"--source .*not a fleetctl checkout"):
+        images.check_source_dir(tmp_path)
+
+
+def test_without_a_checkout_the_packaged_images_and_metadata_are_used() -> None:
+    cfg = images.BuildConfig(source_dir=None)
+    assert (cfg.images_dir / "server.Dockerfile").is_file()
+    assert cfg.context.parts[-2:] == ("fleetctl", "build")
+    core = images.installed_requirements()
+    with_ros = images.installed_requirements(["ros"])
+    assert any(r.startswith("websockets") for r in core)
+    assert with_ros[: len(core)] == core
+    assert any(r.startswith("ros-jazzy-rclpy") for r in with_ros[len(core):])

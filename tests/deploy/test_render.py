@@ -2,10 +2,10 @@
 
 from __future__ import annotations
 
+import hashlib
 import os
 import shutil
 import stat
-import tarfile
 from pathlib import Path
 
 import jinja2
@@ -14,8 +14,9 @@ import yaml
 
 from fleetctl.deploy import operations as ops
 from fleetctl.deploy.export import export_robot
-from fleetctl.deploy.files import ChangeKind
+from fleetctl.deploy.files import ChangeKind, FileWrite, edit_state, stamp, write_file
 from fleetctl.deploy.render import render_template
+from fleetctl.errors import ConfigError
 from tests.deploy.conftest import make_fleet
 
 GOLDEN = Path(__file__).parent / "golden"
@@ -57,26 +58,123 @@ def test_render_twice_changes_nothing(fleet_dir: Path) -> None:
     assert _snapshot(fleet_dir) == before  # bytes, modes and mtimes
 
 
-def test_render_restores_deleted_and_edited_files(fleet_dir: Path) -> None:
+def test_render_restores_deleted_files_and_modes(fleet_dir: Path) -> None:
     before = {k: v[:2] for k, v in _snapshot(fleet_dir).items()}
     shutil.rmtree(fleet_dir / "robots")
-    (fleet_dir / "server" / "auth.yaml").write_text("hand edit\n")
     (fleet_dir / "server" / "wireguard" / "wg0.conf").chmod(0o644)
     ops.render_fleet(fleet_dir)
     assert {k: v[:2] for k, v in _snapshot(fleet_dir).items()} == before
+
+
+def test_hand_edit_is_refused_then_forced(fleet_dir: Path) -> None:
+    client = fleet_dir / "robots/husky1/client.yaml"
+    client.write_text(client.read_text().replace("/odom", "/odometry"))
+    before = _snapshot(fleet_dir)
+    with pytest.raises(ConfigError) as info:
+        ops.render_fleet(fleet_dir)
+    message = str(info.value)
+    assert message == (
+        f"{client} was edited by hand: put topics in fleet.yaml robots[0].publish / "
+        "subscribe / battery_topic, then run `fleetctl render --force` to overwrite")
+    assert "\n" not in message
+    assert _snapshot(fleet_dir) == before  # nothing written, not even other files
+    with pytest.raises(ConfigError, match="was edited by hand"):
+        ops.add_user(fleet_dir, "new@example.com", "viewer")  # every re-render refuses
+    assert _snapshot(fleet_dir) == before
+    ops.render_fleet(fleet_dir, force=True)
+    assert "/odometry" not in client.read_text()
+    assert {c.kind for c in ops.render_fleet(fleet_dir).changes} == {ChangeKind.UNCHANGED}
+
+
+@pytest.mark.parametrize("relpath", ["server/auth.yaml", "server/wireguard/wg0.conf",
+                                     "robots/jackal2/wireguard/wg0.conf", "server/server.yaml"])
+def test_every_generated_file_is_guarded(fleet_dir: Path, relpath: str) -> None:
+    path = fleet_dir / relpath
+    path.write_text(path.read_text() + "# mine\n")
+    with pytest.raises(ConfigError, match=f"{relpath} was edited by hand: .+fleet.yaml"):
+        ops.render_fleet(fleet_dir)
+    assert path.read_text().endswith("# mine\n")
+
+
+def test_digest_line_is_the_sha256_of_the_rest(fleet_dir: Path) -> None:
+    for rel in GENERATED[1:]:
+        first, rest = (fleet_dir / rel).read_bytes().split(b"\n", 1)
+        assert first == b"# fleetctl: generated, sha256=" + (
+            hashlib.sha256(rest).hexdigest().encode()), rel
+
+
+def test_file_without_digest_line(fleet_dir: Path) -> None:
+    """Old fleets: a file without the line is kept unless it is exactly what we'd write."""
+    auth = fleet_dir / "server/auth.yaml"
+    auth.write_text(auth.read_text().split("\n", 1)[1])  # as if written before digests
+    ops.render_fleet(fleet_dir)
+    assert auth.read_text().startswith("# fleetctl: generated")
+    auth.write_text("hand made\n")
+    with pytest.raises(ConfigError, match="has no fleetctl digest line"):
+        ops.render_fleet(fleet_dir)
+    assert auth.read_text() == "hand made\n"
+
+
+def test_edit_state_and_stamp() -> None:
+    text = stamp("a: 1\n")
+    assert edit_state(text.encode(), text) == "generated"
+    assert edit_state(text.encode(), stamp("a: 2\n")) == "generated"  # untouched, outdated
+    assert edit_state(text.encode().replace(b"1", b"3"), text) == "edited"
+    assert edit_state(b"a: 1\n", text) == "generated"
+    assert edit_state(b"a: 3\n", text) == "unstamped"
+    assert stamp("x\n", markdown=True).startswith("<!-- fleetctl: generated, sha256=")
+    md = stamp("# Title\n", markdown=True)
+    assert edit_state(md.encode(), md) == "generated"
+    assert edit_state(md.encode() + b"more\n", md) == "edited"
+
+
+def test_render_never_rewrites_fleet_yaml(fleet_dir: Path) -> None:
+    path = fleet_dir / "fleet.yaml"
+    path.write_text("# my notes\n" + path.read_text())
+    ops.render_fleet(fleet_dir)
+    assert path.read_text().startswith("# my notes\n")
+
+
+def test_symlink_at_a_secret_target_is_replaced_not_followed(fleet_dir: Path,
+                                                              tmp_path: Path) -> None:
+    victim = tmp_path / "victim"
+    victim.write_text("keep\n")
+    conf = fleet_dir / "robots/husky1/wireguard/wg0.conf"
+    expected = conf.read_bytes()
+    conf.unlink()
+    conf.symlink_to(victim)
+    ops.render_fleet(fleet_dir, force=True)
+    assert victim.read_text() == "keep\n"
+    assert not conf.is_symlink() and conf.read_bytes() == expected
+    assert stat.S_IMODE(conf.stat().st_mode) == 0o600
+
+
+def test_temp_file_symlink_is_not_followed(tmp_path: Path) -> None:
+    victim = tmp_path / "victim"
+    victim.write_text("keep\n")
+    target = tmp_path / "d" / "secret"
+    target.parent.mkdir()
+    (target.parent / f".secret.{os.getpid()}.tmp").symlink_to(victim)
+    write_file(FileWrite(target, b"s3cret\n", 0o600, 0o700))
+    assert victim.read_text() == "keep\n" and target.read_bytes() == b"s3cret\n"
+
+
+TLS_FILES = ("keys/tls.key", "server/tls/cert.pem")
 
 
 def test_same_inputs_same_bytes(tmp_path: Path, fleet_dir: Path) -> None:
     other = make_fleet(tmp_path / "again")
     mine, theirs = _snapshot(fleet_dir), _snapshot(other)
     assert mine.keys() == theirs.keys()
-    for key in mine:
+    for key in mine.keys() - set(TLS_FILES):  # a certificate is signed with a random nonce
         assert mine[key][:2] == theirs[key][:2], key
 
 
 def test_secret_permissions(fleet_dir: Path) -> None:
     secret_files = ["keys/server.key", "keys/robots/husky1.key", "keys/robots/husky1.psk",
-                    "server/wireguard/wg0.conf", "robots/husky1/wireguard/wg0.conf"]
+                    "keys/tls.key", "server/wireguard/wg0.conf",
+                    "robots/husky1/wireguard/wg0.conf"]
+    assert stat.S_IMODE((fleet_dir / "server/tls/cert.pem").stat().st_mode) == 0o644
     for rel in secret_files:
         assert stat.S_IMODE((fleet_dir / rel).stat().st_mode) == 0o600, rel
     for rel in ["keys", "keys/robots", "server/wireguard", "robots/husky1/wireguard"]:
@@ -124,23 +222,120 @@ def test_strict_undefined() -> None:
         render_template("server/server.yaml.j2", fleet_name="x")
 
 
-def test_export_directory_and_tarball(fleet_dir: Path, tmp_path: Path) -> None:
+def test_export_directory_matches_the_fleet_files(fleet_dir: Path, tmp_path: Path) -> None:
     bundle = export_robot(fleet_dir, "husky1", tmp_path / "b").path
-    assert sorted(p.name for p in bundle.iterdir()) == ["README.md", "client.yaml", "wg0.conf"]
+    assert {"README.md", "client.yaml", "wg0.conf"} <= {p.name for p in bundle.iterdir()}
     assert stat.S_IMODE(bundle.stat().st_mode) == 0o700
     assert stat.S_IMODE((bundle / "wg0.conf").stat().st_mode) == 0o600
     assert (bundle / "wg0.conf").read_bytes() == (
         fleet_dir / "robots/husky1/wireguard/wg0.conf").read_bytes()
-    assert "wg-quick up ./wg0.conf" in (bundle / "README.md").read_text()
-    (tmp_path / "t1").mkdir(mode=0o755)
-    (tmp_path / "t1").chmod(0o755)
-    first = export_robot(fleet_dir, "husky1", tmp_path / "t1" / "husky1.tar.gz").path
-    second = export_robot(fleet_dir, "husky1", tmp_path / "t2" / "husky1.tar.gz").path
-    assert first.read_bytes() == second.read_bytes()
-    assert stat.S_IMODE(first.stat().st_mode) == 0o600
-    assert stat.S_IMODE(first.parent.stat().st_mode) == 0o755  # the caller's dir: untouched
-    with tarfile.open(first) as tar:
-        names = {m.name: m.mode for m in tar.getmembers()}
-        assert names["husky1/wg0.conf"] == 0o600
-        wg = tar.extractfile("husky1/wg0.conf")
-        assert wg is not None and wg.read() == (bundle / "wg0.conf").read_bytes()
+    assert (bundle / "README.md").read_text().startswith("<!-- fleetctl: generated, sha256=")
+    # The tarball and the rest of the bundle: tests/deploy/test_bundle*.py (bundle.py).
+
+
+MAPPER = """\
+- name: mapper
+  ip: 10.8.0.30
+  publish:
+    - {topic: /map, type: nav_msgs/msg/OccupancyGrid, priority: 2, rate_limit_hz: 0.5,
+       compression: deflate}
+    - {topic: /gps/fix, type: sensor_msgs/msg/NavSatFix, priority: 4.5}
+    - {topic: /events, type: std_msgs/msg/String, no_drop: true, rate_limit_hz: null}
+  subscribe:
+    - {remote_topic: /husky1/map, type: nav_msgs/msg/OccupancyGrid, local_topic: /peer_map}
+  battery_topic: /battery_state
+"""
+
+
+def _add_mapper(fleet_dir: Path) -> None:
+    path = fleet_dir / "fleet.yaml"
+    path.write_text(path.read_text().replace("users:\n", MAPPER + "users:\n", 1))
+
+
+def test_custom_topics_render_and_load_in_the_client(fleet_dir: Path) -> None:
+    from fleetctl.client.config import load_client_config
+
+    _add_mapper(fleet_dir)
+    ops.render_fleet(fleet_dir)
+    actual = (fleet_dir / "robots/mapper/client.yaml").read_text()
+    golden = GOLDEN / "robots__mapper__client.yaml"
+    if os.environ.get("UPDATE_GOLDEN"):
+        golden.write_text(actual)
+    assert actual == golden.read_text()
+    cfg = load_client_config(fleet_dir / "robots/mapper/client.yaml")
+    assert [(p.topic, p.remote_topic, p.compression) for p in cfg.publish] == [
+        ("/map", "/mapper/map", "deflate"), ("/gps/fix", "/mapper/gps/fix", "none"),
+        ("/events", "/mapper/events", "none")]
+    assert cfg.publish[0].rate_limit_hz == 0.5 and cfg.publish[2].no_drop
+    assert [s.local_topic for s in cfg.subscribe] == ["/goal_pose", "/initialpose", "/peer_map"]
+    assert cfg.status.battery_topic == "/battery_state"
+    # Listing the topic in subscribe is what lets the robot receive it.
+    auth = yaml.safe_load((fleet_dir / "server/auth.yaml").read_text())
+    mapper = next(i for i in auth["identities"] if i["name"] == "mapper")
+    assert {"topic": "/husky1/map", "op": "receive"} in mapper["rules"]
+
+
+def test_default_topics_client_config_loads(fleet_dir: Path) -> None:
+    from fleetctl.client.config import COMPRESSIONS, load_client_config
+    from fleetctl.deploy.topics import COMPRESSIONS as FLEET_COMPRESSIONS
+
+    assert FLEET_COMPRESSIONS == COMPRESSIONS
+    cfg = load_client_config(fleet_dir / "robots/husky1/client.yaml")
+    assert len(cfg.publish) == 6 and cfg.status.battery_topic is None
+
+
+def test_no_endpoint_robot_config_has_no_endpoint_line(tmp_path: Path) -> None:
+    fleet_dir = tmp_path / "f"
+    ops.create_fleet(fleet_dir)
+    result = ops.add_robot(fleet_dir, "r1")
+    conf = (fleet_dir / "robots/r1/wireguard/wg0.conf").read_text()
+    assert "Endpoint" not in conf.replace("# No Endpoint", "")
+    assert "PersistentKeepalive = 25" in conf
+    assert len(result.outcome.warnings) == 1
+    assert "fleetctl set-endpoint HOST:PORT" in result.outcome.warnings[0]
+
+
+def test_server_yaml_web_section_and_server_loader(fleet_dir: Path) -> None:
+    server = yaml.safe_load((fleet_dir / "server/server.yaml").read_text())
+    assert server["web"] == {"listen_host": "0.0.0.0", "listen_port": 8443,
+                             "tls_cert": "tls/cert.pem", "tls_key": "../keys/tls.key"}
+    assert server["listen_port"] == 8080 and server["tls_cert"] is None
+    base = fleet_dir / "server"
+    assert (base / server["web"]["tls_cert"]).is_file()
+    assert (base / server["web"]["tls_key"]).is_file()
+
+
+@pytest.mark.parametrize("text", ["plain", 'quo"te \\ back', "new\nline", "tab\there",
+                                  "\u2028sep\x85", "caf\u00e9 \U0001f916", "#not: a comment",
+                                  "- [x]", "", "null", "yes"])
+def test_yaml_filter_round_trips(text: str) -> None:
+    from fleetctl.deploy.render import _yaml_scalar
+
+    rendered = _yaml_scalar(text)
+    assert "\n" not in rendered and "\u2028" not in rendered and "\x85" not in rendered
+    assert yaml.safe_load(f"k: {rendered}\n") == {"k": text}
+
+
+def test_yaml_filter_refuses_non_finite() -> None:
+    from fleetctl.deploy.render import _yaml_scalar
+
+    with pytest.raises(ValueError):
+        _yaml_scalar(float("nan"))
+
+
+@pytest.mark.parametrize("value", ["x\n[Peer]", "x\rAllowedIPs = 0.0.0.0/0", "a\x00"])
+def test_wireguard_filter_refuses_line_breaks(value: str) -> None:
+    from fleetctl.deploy.render import _wg_value
+
+    with pytest.raises(ValueError):
+        _wg_value(value)
+
+
+def test_fleet_name_cannot_inject_into_wireguard(fleet_dir: Path) -> None:
+    path = fleet_dir / "fleet.yaml"
+    path.write_text(path.read_text().replace(
+        "name: campus", 'name: "campus\\n[Peer]\\nAllowedIPs = 0.0.0.0/0"'))
+    before = _snapshot(fleet_dir)
+    with pytest.raises(ConfigError, match=r"fleet\.yaml:5: name: must be one line"):
+        ops.render_fleet(fleet_dir)
+    assert _snapshot(fleet_dir) == before

@@ -1,0 +1,218 @@
+"""The deployment as an operator runs it, on the real images with WireGuard on.
+
+`init` -> `add-robot` x2 -> `up --sim` -> both robots online over the tunnel -> Chromium opens
+the one published HTTPS port, signs in with a token, sees both robots and a live scan ->
+`add-robot` a third on the running fleet: it comes online and the other two never reconnect
+-> `remove-user`: the token is refused within 2 s with no restart -> restart the server
+container: the registry keeps the robots -> `down` -> `up`: the registry is still there ->
+`down --delete-data`: the volume is gone.
+
+Every step is the `fleetctl` command line a user types (a subprocess); docker compose runs
+the containers. Waits are conditions with deadlines.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import json
+import os
+import shutil
+import socket
+import ssl
+import subprocess
+import sys
+import time
+import uuid
+from collections.abc import Callable, Iterator
+from pathlib import Path
+from typing import Any
+
+import pytest
+from websockets.asyncio.client import connect
+from websockets.exceptions import ConnectionClosed, InvalidStatus
+
+from fleetctl import __version__
+from tests.webviz.test_browser import TIMEOUT_MS, sign_in, wait_js
+
+pytestmark = [pytest.mark.docker, pytest.mark.browser, pytest.mark.ros, pytest.mark.slow]
+
+FLEETCTL = str(Path(sys.executable).parent / "fleetctl")
+ONLINE_TIMEOUT_S = 30.0
+REVOKE_TIMEOUT_S = 2.0
+
+
+def _images_present() -> bool:
+    if shutil.which("docker") is None:
+        return False
+    for name in ("server", "client"):
+        res = subprocess.run(["docker", "image", "inspect", f"fleetctl/{name}:{__version__}"],
+                             capture_output=True, check=False)
+        if res.returncode != 0:
+            return False
+    return True
+
+
+def _free_port(kind: int = socket.SOCK_STREAM) -> int:
+    with socket.socket(socket.AF_INET, kind) as s:
+        s.bind(("127.0.0.1", 0))
+        return int(s.getsockname()[1])
+
+
+class Operator:
+    """Runs `fleetctl` as a user would, in a working directory outside the checkout."""
+
+    def __init__(self, work: Path, fleet: Path) -> None:
+        self.work = work
+        self.env = {**os.environ, "FLEET_DIR": str(fleet)}
+
+    def run(self, *args: str, ok: bool = True, timeout_s: float = 600) -> str:
+        res = subprocess.run([FLEETCTL, *args], cwd=self.work, env=self.env, text=True,
+                             capture_output=True, timeout=timeout_s, check=False)
+        if ok:
+            assert res.returncode == 0, f"fleetctl {' '.join(args)}:\n{res.stdout}\n{res.stderr}"
+        return res.stdout
+
+    def json(self, *args: str) -> Any:
+        return json.loads(self.run(*args, "-o", "json"))
+
+
+def wait_until(what: str, check: Callable[[], bool], timeout_s: float) -> float:
+    """Poll *check* until true; return the seconds it took; fail naming *what*."""
+    start = time.monotonic()
+    while not check():
+        if time.monotonic() - start > timeout_s:
+            pytest.fail(f"{what}: not within {timeout_s:.0f} s")
+        time.sleep(0.2)  # polling interval of the condition, not a synchronization
+    return time.monotonic() - start
+
+
+@pytest.fixture
+def deployment(tmp_path: Path) -> Iterator[tuple[Operator, Path, str]]:
+    if not _images_present():
+        pytest.skip(f"images fleetctl/server and client:{__version__} not built")
+    if not Path("/dev/net/tun").exists():
+        pytest.skip("no /dev/net/tun: WireGuard cannot run here")
+    fleet = tmp_path / "yard"
+    project = f"fleetctllife{uuid.uuid4().hex[:8]}"
+    op = Operator(tmp_path, fleet)
+    try:
+        yield op, fleet, project
+    finally:
+        if (fleet / ".compose" / "state.json").is_file():
+            op.run("down", "--delete-data", ok=False)
+
+
+def robots(op: Operator) -> dict[str, dict[str, Any]]:
+    data = op.json("status")
+    return {r["name"]: r for r in data.get("robots") or []}
+
+
+def online(op: Operator, names: set[str]) -> bool:
+    seen = robots(op)
+    return all(seen.get(n, {}).get("online") for n in names)
+
+
+def server_container(project: str) -> str:
+    return subprocess.run(["docker", "ps", "-aq", "--filter",
+                           f"label=com.docker.compose.project={project}", "--filter",
+                           "label=com.docker.compose.service=server"],
+                          capture_output=True, text=True, check=True).stdout.split()[0]
+
+
+def server_log(project: str) -> str:
+    res = subprocess.run(["docker", "logs", server_container(project)], capture_output=True,
+                         text=True, check=True)
+    return res.stdout + res.stderr
+
+
+def connections_of(project: str, robot: str) -> int:
+    """How many times the server authenticated *robot*'s connection (its log lines)."""
+    return sum(1 for line in server_log(project).splitlines()
+               if "authenticated" in line and robot in line)
+
+
+async def token_refused(url: str, token: str) -> bool:
+    context = ssl.create_default_context()
+    context.check_hostname = False
+    context.verify_mode = ssl.CERT_NONE
+    try:
+        async with connect(url, ssl=context, open_timeout=3,
+                           additional_headers={"Authorization": f"Bearer {token}"}) as ws:
+            await asyncio.wait_for(ws.recv(), 3)
+            return False
+    except (ConnectionClosed, InvalidStatus):
+        return True
+    except TimeoutError:
+        return False
+
+
+async def browse(url: str, token: str) -> None:
+    from playwright.async_api import async_playwright
+
+    async with async_playwright() as p:
+        browser = await p.chromium.launch(executable_path="/usr/bin/chromium",
+                                          args=["--no-sandbox"])
+        try:
+            page = await (await browser.new_context(ignore_https_errors=True)).new_page()
+            await sign_in(page, url, token)
+            for name in ("husky1", "jackal2"):
+                row = page.locator(f'#robots tr[data-robot="{name}"]')
+                await row.locator("td.state", has_text="online").wait_for(timeout=TIMEOUT_MS)
+            await page.click('#robots a[href="#/robot/husky1"]')
+            await wait_js(page, "Number(document.querySelector('#scan-canvas').dataset.beams"
+                                " || 0) > 0")
+            shots = os.environ.get("FLEETCTL_WEBVIZ_SCREENSHOTS")
+            if shots:
+                await page.screenshot(path=str(Path(shots) / "up-robot.png"), full_page=True)
+        finally:
+            await browser.close()
+
+
+def test_the_fleet_life_cycle_on_the_real_images(
+        deployment: tuple[Operator, Path, str]) -> None:
+    op, fleet, project = deployment
+    https, udp = _free_port(), _free_port(socket.SOCK_DGRAM)
+    op.run("init", str(fleet), "--endpoint", f"127.0.0.1:{udp}")
+    op.run("add-robot", "husky1")
+    op.run("add-robot", "jackal2")
+    token = op.json("add-user", "alice@example.com", "--role", "viewer")["token"]
+    up = ["up", "--sim", "--wireguard", "on", "--bind", "127.0.0.1", "--https-port", str(https),
+          "--project", project]
+    op.run(*up)
+    took = wait_until("husky1 and jackal2 online", lambda: online(op, {"husky1", "jackal2"}),
+                      ONLINE_TIMEOUT_S)
+    print(f"robots online {took:.1f} s after `up` returned")
+    tunnel = op.json("status")["tunnel"]
+    assert {t["robot"] for t in tunnel if t["handshake_age_s"] is not None} >= {
+        "husky1", "jackal2"}, tunnel
+
+    url = f"https://127.0.0.1:{https}/"
+    asyncio.run(browse(url, token))
+
+    before = {n: connections_of(project, n) for n in ("husky1", "jackal2")}
+    assert all(v >= 1 for v in before.values()), before
+    op.run("add-robot", "rover3")
+    wait_until("rover3 online", lambda: online(op, {"husky1", "jackal2", "rover3"}),
+               ONLINE_TIMEOUT_S)
+    assert {n: connections_of(project, n) for n in before} == before
+
+    op.run("remove-user", "alice@example.com")
+    start = time.monotonic()
+    while not asyncio.run(token_refused(f"wss://127.0.0.1:{https}/", token)):
+        assert time.monotonic() - start < REVOKE_TIMEOUT_S, "token still accepted"
+    assert {n: connections_of(project, n) for n in before} == before
+
+    first_seen = {n: r["first_seen_s"] for n, r in robots(op).items()}
+    subprocess.run(["docker", "restart", server_container(project)], capture_output=True,
+                   check=True)
+    wait_until("registry after a server restart", lambda: set(robots(op)) >= set(first_seen),
+               ONLINE_TIMEOUT_S)
+    op.run("down")
+    op.run(*up)
+    kept = robots(op)
+    assert {n: kept[n]["first_seen_s"] for n in first_seen} == first_seen
+    op.run("down", "--delete-data")
+    volumes = subprocess.run(["docker", "volume", "ls", "-q", "--filter",
+                              f"name={project}_server-data"], capture_output=True, text=True,
+                             check=True).stdout.split()
+    assert volumes == []

@@ -34,6 +34,7 @@ argument list, never a shell string.
 
 from __future__ import annotations
 
+import hashlib
 import ipaddress
 import json
 import os
@@ -190,9 +191,12 @@ def _robot_ip(robot_dir: Path) -> str:
 
 
 def project_name(fleet_dir: Path) -> str:
-    """The default compose project of a fleet directory (``fleetctl`` + its name)."""
-    name = re.sub(r"[^a-z0-9]+", "", fleet_dir.resolve().name.lower()) or "fleet"
-    return f"fleetctl{name}"
+    """The default compose project of a fleet directory: ``fleetctl`` + its name + a short
+    hash of its path, so two fleets with the same directory name never share containers."""
+    resolved = fleet_dir.resolve()
+    name = re.sub(r"[^a-z0-9]+", "", resolved.name.lower())[:20] or "fleet"
+    digest = hashlib.sha256(str(resolved).encode()).hexdigest()[:6]
+    return f"fleetctl{name}{digest}"
 
 
 def wireguard_mode(requested: str, tun: Path = Path("/dev/net/tun")) -> tuple[bool, str]:

@@ -69,11 +69,20 @@ def compose_argv(fleet_dir: Path, project: str, *args: str,
 
 def container_id(fleet_dir: Path, project: str, service: str,
                  runner: Runner = subprocess_runner) -> str | None:
-    """The running container of *service*, or ``None`` (not created or not running)."""
+    """The running container of *service* of THIS fleet's deployment, or ``None``.
+
+    Compose labels each container with the file it came from; a container of the same
+    project name started from another fleet directory is not ours and is never touched.
+    """
+    compose_file = fleet_dir.resolve() / ".compose" / "docker-compose.yml"
     res = runner(["docker", "ps", "-q", "--filter", f"label=com.docker.compose.project={project}",
-                  "--filter", f"label=com.docker.compose.service={service}"], None, True)
+                  "--filter", f"label=com.docker.compose.service={service}",
+                  "--filter", f"label={CONFIG_FILES_LABEL}={compose_file}"], None, True)
     ids = res.stdout.split() if res.returncode == 0 else []
     return ids[0] if ids else None
+
+
+CONFIG_FILES_LABEL = "com.docker.compose.project.config_files"
 
 
 def _check_not_changed(fleet_dir: Path, wanted: Options, runner: Runner) -> None:
@@ -218,7 +227,7 @@ class StatusReport:
         else:
             lines.append(f"{'ROBOT':<24} {'ONLINE':<7} LAST SEEN")
             lines += [f"{r.get('name', '?')!s:<24} {'yes' if r.get('online') else 'no':<7} "
-                      f"{r.get('last_seen', '-')}" for r in self.robots] or ["(no robots yet)"]
+                      f"{_ago(r.get('last_seen_s'))}" for r in self.robots] or ["(no robots yet)"]
         lines.append("")
         if self.tunnel is None:
             lines.append(f"tunnel: {self.tunnel_note}")
@@ -228,6 +237,13 @@ class StatusReport:
                 "never" if t.handshake_age_s is None else f"{t.handshake_age_s:.0f} s ago")
                 for t in self.tunnel] or ["(no peers)"]
         return "\n".join(lines)
+
+
+def _ago(stamp: object, now: float | None = None) -> str:
+    """``12 s ago`` for a wall-clock time in seconds since the epoch; ``-`` when unknown."""
+    if not isinstance(stamp, int | float):
+        return "-"
+    return f"{max(0.0, (now or time.time()) - stamp):.0f} s ago"
 
 
 def status(fleet_dir: Path, options: Options,

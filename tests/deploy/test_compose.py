@@ -15,6 +15,7 @@ import yaml
 
 from fleetctl.cli.main import main
 from fleetctl.deploy import compose, composerun, live
+from fleetctl.deploy import operations as ops
 from fleetctl.deploy.compose import Options
 from fleetctl.deploy.dockercli import Completed
 from fleetctl.errors import ConfigError, ConflictError, EnvironmentMissing, FleetError
@@ -39,7 +40,9 @@ def test_plan_reads_robots_addresses_and_the_https_listener(fleet: Path) -> None
         ("husky1", "10.8.0.2"), ("jackal2", "10.8.0.3")]
     assert (plan.server_ip, plan.fleet_subnet, plan.server_port, plan.https_port) == (
         "10.8.0.1", "10.8.0.0/24", 8080, 8443)
-    assert plan.project == "fleetctlyard"
+    assert plan.project.startswith("fleetctlyard") and len(plan.project) == 18
+    # Same directory name elsewhere: another project, never the same containers.
+    assert compose.project_name(fleet.parent / "other" / "yard") != plan.project
     assert plan.tls_cert.is_file() and plan.tls_key.is_file()
     assert plan.url == "https://localhost:8443/"
 
@@ -232,10 +235,13 @@ def test_live_sync_reloads_peers_and_adds_simulated_robots(fleet: Path) -> None:
     docker = FakeDocker()
     composerun.up(fleet, _opts(fleet, wireguard="off", sim=True), progress=lambda _: None,
                   runner=docker)
-    assert main(["add-robot", "rover3", "--fleet", str(fleet)]) == 0
+    ops.add_robot(fleet, "rover3")
     docker.server_running = True
     note = live.sync_running(fleet, lambda _: None, runner=docker)
     assert note is not None and "wg syncconf" not in note
     assert any("wg syncconf wg0" in " ".join(c) for c in docker.calls)
+    # Only this fleet's containers: those compose made from this fleet's file.
+    mine = f"label=com.docker.compose.project.config_files={fleet.resolve()}/.compose/"
+    assert all(mine in " ".join(c) for c in docker.calls if c[:2] == ["docker", "ps"])
     doc = yaml.safe_load((fleet / ".compose" / "docker-compose.yml").read_text())
     assert "robot-rover3" in doc["services"]

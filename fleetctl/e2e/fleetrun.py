@@ -5,9 +5,11 @@ auth map (docs/design.md sections 3 and 4) into a work directory mounted at ``/e
 container, starts components with :class:`~fleetctl.e2e.topology.Topology`, and reads the
 consumers' sample files back. Every wait is a poll of a condition with a deadline.
 
-Identities: the robot by its source address (the robot network's CIDR: routed, not NATed,
-through the router, so the server sees the robot container's own address); consumers by a
-Bearer token whose SHA-256 is in the auth map.
+Identities: the robot by its source address; consumers by a Bearer token whose SHA-256 is in
+the auth map. With WireGuard (:mod:`fleetctl.e2e.wireguard`, as ``fleetctl up`` deploys a
+fleet) robots reach the server through the tunnel and the robot is its VPN address; without,
+the robot is the robot network's CIDR (routed, not NATed, through the router, so the server
+sees the robot container's own address). Consumers always use the server network directly.
 """
 
 from __future__ import annotations
@@ -18,6 +20,7 @@ import time
 from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Any
 
 import yaml
 
@@ -25,6 +28,7 @@ from fleetctl.deploy.images import image_tag
 from fleetctl.e2e import profiles
 from fleetctl.e2e.samples import Sample, load
 from fleetctl.e2e.topology import IDLE_COMMAND, ROBOT_SIDE, SERVER_SIDE, Endpoint, Topology
+from fleetctl.e2e.wireguard import TUN_DEVICE, Tunnel
 from fleetctl.errors import FleetError
 from fleetctl.tokens import hash_token
 from fleetctl.waiting import wait_until
@@ -64,13 +68,17 @@ class FleetRun:
         source_dir: A source tree whose ``fleetctl/`` package is mounted over the images'
             (development: test code changes without ``fleetctl build``); None uses the
             images as built.
+        tunnel: Run server and robots over this WireGuard tunnel; None: the routed
+            network only.
     """
 
     topo: Topology
     work: Path
     source_dir: Path | None = None
+    tunnel: Tunnel | None = None
     token: str = field(default_factory=lambda: secrets.token_urlsafe(24), repr=False)
     server: Endpoint | None = None
+    wg_ifaces: dict[str, str] = field(default_factory=dict)  # robot container -> interface
 
     @property
     def out(self) -> Path:
@@ -84,6 +92,13 @@ class FleetRun:
             raise FleetError("the server is not started")
         return f"ws://{self.server.ip}:{SERVER_PORT}/"
 
+    @property
+    def robot_server_url(self) -> str:
+        """The server's URL as robots reach it (through the tunnel, when there is one)."""
+        if self.tunnel is None:
+            return self.server_url
+        return self.tunnel.server_url(SERVER_PORT)
+
     def mounts(self) -> list[str]:
         """``-v`` specifications every fleet container gets."""
         mounts = [f"{self.work}:{CONTAINER_DIR}"]
@@ -96,8 +111,10 @@ class FleetRun:
         self.out.mkdir(parents=True, exist_ok=True)
         for path in (self.work, self.out):
             path.chmod(0o777)
+        robot: dict[str, str] = ({"ip": self.tunnel.robot_vpn_ip} if self.tunnel
+                                 else {"cidr": self.topo.subnets[ROBOT_SIDE]})
         auth = {"version": 1, "identities": [
-            {"name": profiles.ROBOT, "cidr": self.topo.subnets[ROBOT_SIDE],
+            {"name": profiles.ROBOT, **robot,
              "rules": [{"topic": f"/{profiles.ROBOT}/.*", "op": "send"}]},
             {"name": "e2e-consumer",
              "token_sha256": hash_token(self.token),
@@ -112,16 +129,59 @@ class FleetRun:
         token_file.chmod(0o644)  # the consumers run as another user; the token is a test's
 
     def start_server(self) -> Endpoint:
-        """Start ``fleetctl server`` and wait until ``/healthz`` answers."""
+        """Start ``fleetctl server`` and wait until ``/healthz`` answers.
+
+        With a tunnel, the server's WireGuard is up first, and the robots' ``Endpoint`` is
+        set to the server container's address.
+
+        Raises:
+            FleetError: the server container stopped, or did not answer in time.
+        """
+        if self.tunnel is not None:
+            self.tunnel.create([self.topo.subnets[ROBOT_SIDE], self.topo.subnets[SERVER_SIDE]])
         self.write_configs()
         self.server = self.topo.start(
             "server", SERVER_SIDE, image_tag("server"),
             ["fleetctl", "server", "--config", f"{CONTAINER_DIR}/server.yaml"],
-            mounts=self.mounts())
+            mounts=self.mounts(),
+            **self._wireguard(self.tunnel.server_iface if self.tunnel else None))
+        if self.tunnel is not None:
+            self.tunnel.set_endpoint(self.server.ip)
         name = self.server.name
-        wait_for("the server's /healthz", lambda: self.topo.exec(
+        self.wait_healthy(name, "the server's /healthz", lambda: self.topo.exec(
             name, ["python3", "-c", _HEALTH]).returncode == 0, 30.0)
         return self.server
+
+    def _wireguard(self, iface: str | None) -> dict[str, Any]:
+        """``Topology.start`` arguments that bring *iface* up in the container (or none)."""
+        if self.tunnel is None or iface is None:
+            return {}
+        # The entrypoint needs root, NET_ADMIN (every e2e container has it) and the TUN
+        # device for wireguard-go; it drops to the fleetctl user before the command runs.
+        return {"env": self.tunnel.container_env(iface), "user": "root",
+                "devices": [str(TUN_DEVICE)]}
+
+    def wait_healthy(self, name: str, what: str, condition: Callable[[], bool],
+                     timeout_s: float) -> None:
+        """Wait for *condition*; fail at once (with the container's log) if *name* stops.
+
+        Raises:
+            FleetError: the container stopped, or the deadline passed.
+        """
+        def ready() -> bool:
+            if condition():
+                return True
+            if not self.topo.running(name):
+                raise FleetError(f"{name} stopped while waiting for {what}: "
+                                 f"{self.topo.logs(name)[-800:]}")
+            return False
+
+        try:
+            wait_for(what, ready, timeout_s)
+        except FleetError as exc:
+            if "stopped while" in str(exc):
+                raise
+            raise FleetError(f"{exc}; log of {name}: {self.topo.logs(name)[-800:]}") from exc
 
     def start_robot(self, role: str, client_profile: profiles.Profile,
                     load_profile: str) -> Endpoint:
@@ -132,15 +192,32 @@ class FleetRun:
             client_profile: What the client config says (the baseline's differs).
             load_profile: Profile name the load publisher publishes.
         """
-        cfg = profiles.client_config(client_profile, self.server_url)
+        cfg = profiles.client_config(client_profile, self.robot_server_url)
         (self.work / f"{role}.yaml").write_text(yaml.safe_dump(cfg, sort_keys=False))
         script = (f"python3 -m fleetctl.e2e.load --profile {load_profile} "
                   f"--out {CONTAINER_DIR}/out/{role}-published.json & "
                   "echo $! > /tmp/load.pid; "
                   f"exec fleetctl client --config {CONTAINER_DIR}/{role}.yaml")
-        return self.topo.start(role, ROBOT_SIDE, image_tag("client"), ["bash", "-c", script],
-                               env={"ROS_AUTOMATIC_DISCOVERY_RANGE": "LOCALHOST"},
-                               mounts=self.mounts())
+        iface = self.tunnel.robot_iface() if self.tunnel else None
+        wg = self._wireguard(iface)
+        env = {"ROS_AUTOMATIC_DISCOVERY_RANGE": "LOCALHOST", **wg.pop("env", {})}
+        robot = self.topo.start(role, ROBOT_SIDE, image_tag("client"), ["bash", "-c", script],
+                                env=env, mounts=self.mounts(), **wg)
+        if iface is not None:
+            self.wg_ifaces[robot.name] = iface
+        return robot
+
+    def latest_handshake_ns(self, robot: Endpoint) -> int | None:
+        """When *robot*'s WireGuard last completed a handshake (ns since the epoch, one
+        second resolution); None without a tunnel or before the first handshake."""
+        iface = self.wg_ifaces.get(robot.name)
+        if iface is None:
+            return None
+        res = self.topo.exec(robot.name, ["wg", "show", iface, "latest-handshakes"])
+        fields = res.stdout.split()
+        if res.returncode != 0 or len(fields) < 2 or not fields[1].isdigit():
+            return None
+        return int(fields[1]) * 1_000_000_000 or None
 
     def stop_load(self, robot: Endpoint, role: str) -> dict[str, dict[str, int]]:
         """Stop the robot's load publisher; returns what it published per wire topic."""

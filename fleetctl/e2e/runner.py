@@ -7,7 +7,9 @@ Scenarios (MISSION.md "End-to-end runs"; parameters are the issue's):
 - ``dropout``, ``multi-consumer``, ``ramp``, ``priority``: the fleet (server, robot client,
   consumers) over the shaped link. They need the ``fleetctl server`` and ``fleetctl client``
   commands in the images; a preflight checks that and reports ``not_run`` (a failure) with
-  the reason instead of pretending.
+  the reason instead of pretending. With WireGuard (``--wireguard auto|on``; off by default
+  for now) robots reach the server through the tunnel, as ``fleetctl up`` deploys them; the
+  tunnel's UDP crosses the same shaped router.
 """
 
 from __future__ import annotations
@@ -23,6 +25,7 @@ from typing import Any
 from fleetctl.deploy.dockercli import Runner, image_exists, subprocess_runner
 from fleetctl.deploy.images import BASE_IMAGE, image_tag
 from fleetctl.deploy.shaping import Capabilities, RateSpec, mbit
+from fleetctl.e2e import cleanup, wireguard
 from fleetctl.e2e.fleetrun import FleetRun
 from fleetctl.e2e.scenarios import SCENARIO_FUNCS
 from fleetctl.e2e.topology import IDLE_COMMAND, ROBOT_SIDE, SERVER_SIDE, Topology
@@ -78,12 +81,18 @@ class RunConfig:
             means a new temporary directory. Its ``out/`` is emptied first.
         source_dir: Mount this checkout's ``fleetctl/`` over the images' package
             (development without ``fleetctl build``); None runs the images as built.
+        wireguard: ``auto`` (WireGuard when ``/dev/net/tun`` exists), ``on`` or ``off``
+            (the default until multi-consumer's flatness holds over the tunnel, docs/e2e.md).
+        run_id: Id of the run in container names and labels (at most 8 of ``a-z0-9``);
+            None: random.
     """
 
     scenarios: tuple[str, ...] = SCENARIOS
     duration_s: float = 30.0
     work_dir: Path | None = None
     source_dir: Path | None = None
+    wireguard: str = "off"
+    run_id: str | None = None
 
 
 def _crit(name: str, value: float, bound: float, ok: bool) -> dict[str, Any]:
@@ -102,14 +111,18 @@ def preflight(runner: Runner = subprocess_runner) -> None:
 
 
 def missing_components(scenario: str, runner: Runner = subprocess_runner,
-                       mounts: Sequence[str] = ()) -> list[str]:
-    """The ``image: command`` pairs *scenario* needs that do not work (empty: all present)."""
+                       mounts: Sequence[str] = (), labels: Sequence[str] = ()) -> list[str]:
+    """The ``image: command`` pairs *scenario* needs that do not work (empty: all present).
+
+    Args:
+        labels: ``--label`` arguments for the probe containers (the run's).
+    """
     missing = []
     volumes = [arg for m in mounts for arg in ("-v", m)]
     for image, command in _NEEDS.get(scenario, ()):
         tag = image_tag(image)
-        res = runner(["docker", "run", "--rm", "--network", "none", *volumes, tag, "fleetctl",
-                      command, "--help"], None, True)
+        res = runner(["docker", "run", "--rm", "--network", "none", *labels, *volumes, tag,
+                      "fleetctl", command, "--help"], None, True)
         if res.returncode != 0:
             missing.append(f"{tag}: `fleetctl {command}`")
     return missing
@@ -186,19 +199,26 @@ def run(cfg: RunConfig, progress: Progress = print,
     """Run *cfg*'s scenarios; returns the environment description and one result each.
 
     Raises:
-        EnvironmentMissing: images are missing.
+        EnvironmentMissing: images are missing, or ``--wireguard on`` without a TUN device.
+        Interrupted: a signal stopped the run (with :class:`SignalGuard` active); every
+            container and network of the run was removed first.
     """
+    mode = wireguard.decide(cfg.wireguard)
     preflight(runner)
     results: list[dict[str, Any]] = []
     work = cfg.work_dir or Path(tempfile.mkdtemp(prefix="fleetctl-e2e-"))
     shutil.rmtree(work / "out", ignore_errors=True)
     work.mkdir(parents=True, exist_ok=True)
-    with Topology(runner=runner) as topo:
-        fleet = FleetRun(topo, work.resolve(), cfg.source_dir)
+    topology = Topology(runner=runner) if cfg.run_id is None else Topology(cfg.run_id, runner)
+    with topology as topo:
+        progress(f"run {topo.run_id} (label {cleanup.RUN_LABEL}={topo.run_id})")
+        fleet = FleetRun(topo, work.resolve(), cfg.source_dir, _tunnel(topo, work, mode))
         caps = topo.capabilities()
         env = {"tc": caps.describe(), "router": topo.router, "duration_s": cfg.duration_s,
-               "clock": "one host clock (containers share the kernel's CLOCK_REALTIME)"}
+               "clock": "one host clock (containers share the kernel's CLOCK_REALTIME)",
+               "wireguard": _describe_wireguard(mode, fleet.tunnel, topo)}
         progress(f"topology up; {caps.describe()}")
+        progress(f"wireguard: {env['wireguard']}")
         for i, name in enumerate(cfg.scenarios, 1):
             progress(f"[{i}/{len(cfg.scenarios)}] scenario {name}")
             if name == "link":
@@ -208,10 +228,27 @@ def run(cfg: RunConfig, progress: Progress = print,
     return env, results
 
 
+def _tunnel(topo: Topology, work: Path, mode: wireguard.Mode) -> wireguard.Tunnel | None:
+    if not mode.on:
+        return None
+    link = topo.mtu(topo.router, topo.router_devs[ROBOT_SIDE])
+    return wireguard.Tunnel(work.resolve(), topo.run_id, wireguard.tunnel_mtu(link))
+
+
+def _describe_wireguard(mode: wireguard.Mode, tunnel: wireguard.Tunnel | None,
+                        topo: Topology) -> str:
+    """The report's ``wireguard`` line: on or off, and why."""
+    if tunnel is None:
+        return mode.describe()
+    link = topo.mtu(topo.router, topo.router_devs[ROBOT_SIDE])
+    return (f"{mode.describe()}; tunnel MTU {tunnel.mtu_bytes} on a {link}-byte link; "
+            "the link scenario and the DDS baseline use the routed network")
+
+
 def _fleet_scenario(name: str, fleet: FleetRun, caps: Capabilities, cfg: RunConfig,
                     progress: Progress) -> dict[str, Any]:
     """Run one fleet scenario; a component that cannot start makes it ``not_run``."""
-    missing = missing_components(name, fleet.topo.runner, fleet.mounts())
+    missing = missing_components(name, fleet.topo.runner, fleet.mounts(), fleet.topo.labels)
     if missing:
         reason = "needs " + ", ".join(missing)
         progress(f"{name}: NOT RUN: {reason}")

@@ -105,6 +105,7 @@ def run_dropout(fr: FleetRun, caps: Capabilities, duration_s: float,
     base = profiles.profile("dropout")
     link = Link(fr, caps)
     variants, published, marks = {}, {}, {}
+    handshakes: dict[str, float] = {}  # variant -> latest handshake - restore (s)
     no_drop = [t.remote_topic for t in base.topics if t.no_drop]
     for v, client in (("fleetctl", base), ("baseline", profiles.all_no_drop(base))):
         link.rate(4.0)
@@ -120,14 +121,23 @@ def run_dropout(fr: FleetRun, caps: Capabilities, duration_s: float,
             restore = time.time_ns()
             progress(f"dropout/{v}: restored")
             hold(max(10.0, duration_s / 2))
+            handshake = fr.latest_handshake_ns(run.robot)
             variants[v] = run.stop(no_drop)
             published[v] = run.published
             marks[v] = {"t0": t0, "cut": cut, "restore": restore}
+            if handshake is not None:
+                handshakes[v] = (handshake - restore) / 1e9
     link.clear()
     droppable = [t.remote_topic for t in base.topics if not t.no_drop]
     result = analysis.dropout(variants, published, droppable, no_drop[0], marks)
     result["notes"].insert(0, "link 4 Mbit/s both ways; cut: "
-                           f"{caps.cut_method} on both router egresses")
+                           f"{caps.cut_method} on both router egresses"
+                           + ("; robots over WireGuard (the tunnel's UDP is what is cut)"
+                              if fr.tunnel else ""))
+    for v, offset_s in handshakes.items():
+        result["notes"].append(
+            f"{v}: the robot's latest WireGuard handshake was {offset_s:+.0f} s from the "
+            "restore (1 s resolution; negative: the session from before the cut carried on)")
     return result
 
 

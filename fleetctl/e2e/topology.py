@@ -11,11 +11,14 @@ routed traffic whose source or destination is outside its subnet, which is all o
 every container, router included, has its default route deleted: they reach each other only
 through the router, and nothing outside the machine. Each endpoint container gets NET_ADMIN
 so the runner can set its routes. Driven with the docker CLI; :meth:`Topology.close`
-removes everything it made.
+removes everything it made: by name, and by the run's label (:mod:`fleetctl.e2e.cleanup`),
+which also finds a container whose ``docker run`` was interrupted before it returned. The
+removal runs with signals deferred (:func:`fleetctl.e2e.interrupt.deferred`).
 """
 
 from __future__ import annotations
 
+import contextlib
 import ipaddress
 import json
 import secrets
@@ -25,13 +28,14 @@ from dataclasses import dataclass, field
 from fleetctl.deploy.dockercli import Completed, Runner, check, subprocess_runner
 from fleetctl.deploy.images import image_tag
 from fleetctl.deploy.shaping import Capabilities, LinkShaper, detect
+from fleetctl.e2e import cleanup
+from fleetctl.e2e.interrupt import deferred
 from fleetctl.errors import FleetError
 
 ROBOT_SIDE = "robot"
 SERVER_SIDE = "server"
 # A container command that does nothing until it is told to stop (a process to exec into).
 IDLE_COMMAND = ["python3", "-c", "import signal; signal.sigwait({signal.SIGTERM, signal.SIGINT})"]
-_LABEL = "io.fleetctl.e2e"
 
 
 @dataclass(frozen=True)
@@ -48,13 +52,15 @@ class Topology:
     """Networks, router and endpoints of one e2e run.
 
     Args:
-        run_id: Unique suffix of every name (default: random).
+        run_id: Unique suffix of every name and value of its run label (default: random).
         runner: Runs docker commands (replaceable in unit tests).
         router_image: Image of the router (iproute2 + python3).
+        owner: Owner label value (default: this process, :func:`cleanup.owner`).
     """
 
     run_id: str = field(default_factory=lambda: secrets.token_hex(3))
     runner: Runner = subprocess_runner
+    owner: str = field(default_factory=cleanup.owner)
     router_image: str = image_tag("router")
     networks: dict[str, str] = field(default_factory=dict)  # side -> network name
     subnets: dict[str, str] = field(default_factory=dict)  # side -> CIDR
@@ -62,6 +68,11 @@ class Topology:
     router_devs: dict[str, str] = field(default_factory=dict)  # side -> router interface
     endpoints: list[Endpoint] = field(default_factory=list)
     router: str = ""
+
+    @property
+    def labels(self) -> list[str]:
+        """``--label`` arguments every container and network of this run gets."""
+        return cleanup.label_args(self.run_id, self.owner)
 
     def _docker(self, *args: str, what: str) -> Completed:
         return check(self.runner(["docker", *args], None, True), what)
@@ -74,14 +85,14 @@ class Topology:
         """Make both networks and start the router; read its interfaces."""
         for side in (ROBOT_SIDE, SERVER_SIDE):
             name = f"fce2e-{self.run_id}-{side}"
-            self._docker("network", "create", "--label", _LABEL, name,
+            self._docker("network", "create", *self.labels, name,
                          what=f"network create {name}")
             self.networks[side] = name
             info = json.loads(self._docker("network", "inspect", name, what="inspect").stdout)
             self.subnets[side] = info[0]["IPAM"]["Config"][0]["Subnet"]
         self.router = f"fce2e-{self.run_id}-router"
         self._docker(
-            "run", "-d", "--name", self.router, "--label", _LABEL, "--cap-add", "NET_ADMIN",
+            "run", "-d", "--name", self.router, *self.labels, "--cap-add", "NET_ADMIN",
             "--sysctl", "net.ipv4.ip_forward=1", "--network", self.networks[ROBOT_SIDE],
             self.router_image, what="start router",
         )
@@ -104,7 +115,7 @@ class Topology:
     def start(
         self, role: str, side: str, image: str, command: Sequence[str], *,
         env: Mapping[str, str] | None = None, mounts: Sequence[str] = (),
-        user: str | None = None,
+        user: str | None = None, devices: Sequence[str] = (),
     ) -> Endpoint:
         """Start a container on *side* and route the other side's subnet via the router.
 
@@ -116,10 +127,13 @@ class Topology:
             env: Environment variables.
             mounts: ``-v`` specifications.
             user: Run as this user (default: the image's).
+            devices: ``--device`` specifications (``/dev/net/tun`` for WireGuard).
         """
         name = f"fce2e-{self.run_id}-{role}"
-        argv = ["run", "-d", "--name", name, "--label", _LABEL, "--cap-add", "NET_ADMIN",
+        argv = ["run", "-d", "--name", name, *self.labels, "--cap-add", "NET_ADMIN",
                 "--network", self.networks[side], "--network-alias", role]
+        for device in devices:
+            argv += ["--device", device]
         for key, value in (env or {}).items():
             argv += ["-e", f"{key}={value}"]
         for mount in mounts:
@@ -160,23 +174,46 @@ class Topology:
                     "read tx_bytes")
         return int(res.stdout.strip())
 
+    def running(self, container: str) -> bool:
+        """Whether *container* exists and runs."""
+        res = self.runner(["docker", "inspect", "-f", "{{.State.Running}}", container],
+                          None, True)
+        return res.returncode == 0 and res.stdout.strip() == "true"
+
+    def mtu(self, container: str, dev: str) -> int:
+        """The MTU of *dev* in *container* (bytes)."""
+        res = check(self.exec(container, ["cat", f"/sys/class/net/{dev}/mtu"]), "read mtu")
+        return int(res.stdout.strip())
+
     def logs(self, container: str) -> str:
         """The container's output so far (stdout and stderr)."""
         res = self.runner(["docker", "logs", container], None, True)
         return res.stdout + res.stderr
 
     def close(self) -> None:
-        """Remove every container and network of this run (best effort, never raises)."""
-        names = [e.name for e in self.endpoints] + ([self.router] if self.router else [])
-        if names:
-            self.runner(["docker", "rm", "-f", *names], None, True)
-        for net in self.networks.values():
-            self.runner(["docker", "network", "rm", net], None, True)
-        self.endpoints.clear()
-        self.networks.clear()
+        """Remove every container and network of this run (best effort, never raises).
+
+        A signal that arrives meanwhile is raised when the removal is done.
+        """
+        with deferred():
+            names = [e.name for e in self.endpoints] + ([self.router] if self.router else [])
+            if names:
+                self.runner(["docker", "rm", "-f", *names], None, True)
+            for net in self.networks.values():
+                self.runner(["docker", "network", "rm", net], None, True)
+            # What was made but not yet recorded (a `docker run` cut short by a signal).
+            with contextlib.suppress(FleetError):
+                cleanup.remove_run(self.runner, self.run_id)
+            self.endpoints.clear()
+            self.networks.clear()
+            self.router = ""
 
     def __enter__(self) -> Topology:
-        self.create()
+        try:
+            self.create()
+        except BaseException:  # __exit__ does not run when __enter__ raises
+            self.close()
+            raise
         return self
 
     def __exit__(self, *exc: object) -> None:

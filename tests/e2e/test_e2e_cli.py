@@ -34,3 +34,13 @@ def test_link_scenario_writes_a_passing_report(tmp_path: Path,
 def test_bad_scenario_is_a_usage_error(capsys: pytest.CaptureFixture[str]) -> None:
     assert main(["e2e", "--scenario", "bogus"]) == 2
     assert "unknown ['bogus']" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize(("argv", "message"), [
+    (["--wireguard", "sometimes"], "--wireguard must be auto, on or off"),
+    (["--run-id", "Not-An-Id"], "--run-id: 1 to 8 of a-z, 0-9"),
+])
+def test_bad_options_are_usage_errors(argv: list[str], message: str,
+                                      capsys: pytest.CaptureFixture[str]) -> None:
+    assert main(["e2e", *argv]) == 2
+    assert message in capsys.readouterr().err

@@ -138,12 +138,12 @@ async def token_refused(url: str, token: str) -> bool:
     try:
         async with connect(url, ssl=context, open_timeout=3,
                            additional_headers={"Authorization": f"Bearer {token}"}) as ws:
-            await asyncio.wait_for(ws.recv(), 3)
-            return False
+            while True:  # an error frame may come first; then the close, or a welcome
+                frame = await asyncio.wait_for(ws.recv(), 3)
+                if isinstance(frame, str) and json.loads(frame).get("type") == "welcome":
+                    return False
     except (ConnectionClosed, InvalidStatus):
         return True
-    except TimeoutError:
-        return False
 
 
 async def browse(url: str, token: str) -> None:

@@ -9,6 +9,9 @@ After ``add-robot``, ``remove-robot``, ``add-user``, ``remove-user``, ``render``
 - **WireGuard peers**: ``wg syncconf`` in the server container from the live
   ``FLEET/server/wireguard/wg0.conf``: new peers are added, removed ones dropped, and the
   sessions of unchanged peers are untouched (unlike ``wg setconf`` or a restart).
+- **TLS certificate** (``set-endpoint`` makes a new self-signed one for the new name): the
+  container's copy is refreshed and the server restarted, as it loads the certificate at
+  start; robots reconnect by themselves.
 - **simulated robots** (a deployment started with ``--sim``): the compose file is
   re-rendered and ``up`` creates the new robot's container (or removes a removed one's);
   the server and the other robots are not recreated, as their definitions did not change.
@@ -20,7 +23,14 @@ from collections.abc import Callable
 from pathlib import Path
 
 from fleetctl.deploy import composerun
-from fleetctl.deploy.compose import SERVER_WG_CONF, WG_INTERFACE, saved_options
+from fleetctl.deploy.compose import (
+    SERVER_WG_CONF,
+    WG_INTERFACE,
+    Options,
+    plan_for,
+    saved_options,
+    write_files,
+)
 from fleetctl.deploy.dockercli import Runner, check, subprocess_runner
 from fleetctl.errors import FleetError
 
@@ -49,6 +59,12 @@ def sync_running(fleet_dir: Path, progress: Callable[[str], None],
         check(runner(["docker", "exec", server, "bash", "-c", sync], None, True),
               "wg syncconf in the server container")
         done.append("WireGuard peers synced")
+    if _certificate_changed(fleet_dir, options):
+        # The server loads its certificate at start: a new one (set-endpoint regenerates the
+        # self-signed one for the new name) needs a restart; robots reconnect on their own.
+        write_files(plan_for(fleet_dir, options))
+        check(runner(["docker", "restart", server], None, True), "restart of the server")
+        done.append("server restarted with the new TLS certificate")
     if options.sim:
         try:
             composerun.up(fleet_dir, options, progress=progress, runner=runner)
@@ -57,6 +73,15 @@ def sync_running(fleet_dir: Path, progress: Callable[[str], None],
         done.append("simulated robots updated")
     done.append("auth.yaml is reloaded by the server itself")
     return "running fleet: " + "; ".join(done)
+
+
+def _certificate_changed(fleet_dir: Path, options: Options) -> bool:
+    plan = plan_for(fleet_dir, options)
+    deployed = plan.compose_dir / "server" / "tls-cert.pem"
+    try:
+        return deployed.read_bytes() != plan.tls_cert.read_bytes()
+    except OSError:
+        return True
 
 
 def _has_wireguard(server: str, runner: Runner) -> bool:

@@ -245,3 +245,17 @@ def test_live_sync_reloads_peers_and_adds_simulated_robots(fleet: Path) -> None:
     assert all(mine in " ".join(c) for c in docker.calls if c[:2] == ["docker", "ps"])
     doc = yaml.safe_load((fleet / ".compose" / "docker-compose.yml").read_text())
     assert "robot-rover3" in doc["services"]
+
+
+def test_live_sync_restarts_the_server_only_for_a_new_certificate(fleet: Path) -> None:
+    docker = FakeDocker()
+    composerun.up(fleet, _opts(fleet, wireguard="off"), progress=lambda _: None, runner=docker)
+    docker.server_running = True
+    live.sync_running(fleet, lambda _: None, runner=docker)
+    assert not any(c[:2] == ["docker", "restart"] for c in docker.calls)
+    ops.set_endpoint(fleet, "other.example:51820")  # a new self-signed cert for the new name
+    note = live.sync_running(fleet, lambda _: None, runner=docker)
+    assert note is not None and "new TLS certificate" in note
+    assert sum(c[:2] == ["docker", "restart"] for c in docker.calls) == 1
+    deployed = fleet / ".compose" / "server" / "tls-cert.pem"
+    assert deployed.read_bytes() == (fleet / "server" / "tls" / "cert.pem").read_bytes()

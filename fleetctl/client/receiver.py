@@ -3,16 +3,22 @@
 Fragments are reassembled (``fleetctl.wire.fragments.Reassembler``: a message with a lost
 fragment is dropped and counted, never delivered corrupt), then Compressed frames are
 decompressed (``fleetctl.wire.compression``: bounded; a frame that fails is dropped,
-counted and logged, never delivered); a no_drop frame whose ``seq``
-is not above the last seen on its topic is a resend after a reconnect and is dropped
-(at-least-once delivery made exactly-once for in-order streams), unless it lies more than
-``dedupe_window`` below: that is a restarted sender counting from a new base.
+counted and logged, never delivered); a no_drop frame that repeats one already delivered
+is a resend after a reconnect and is dropped (at-least-once delivery made exactly-once).
+
+Duplicates are recognised per sender, without a wire change: a resend is the same frame
+again, so it carries the same ``(seq, publish_time_ns)``; another sender on the same topic
+(a second operator, a reloaded page whose ``seq`` restarts at 1, a restarted robot client)
+stamps its own publish times. So the receiver remembers, per topic, the
+``(seq, publish_time_ns)`` of the last :data:`MAX_REMEMBERED_PER_TOPIC` no_drop frames
+(at most ``dedupe_window``) and drops exactly those repeats. Two senders collide only if
+they send the same ``seq`` in the same clock tick (a page stamps milliseconds).
 """
 
 from __future__ import annotations
 
 import logging
-from collections import Counter
+from collections import Counter, OrderedDict, deque
 from collections.abc import Callable
 from typing import Any
 
@@ -23,6 +29,31 @@ from fleetctl.wire.metadata import read_metadata
 
 logger = logging.getLogger("fleetctl.client.link")
 _LOG_EVERY = 1000  # a misbehaving sender must not flood the log: first, then every 1000th
+# Why 4096: resends after a reconnect are what was in flight (the server's socket buffers,
+# a sender's un-ponged frames); far fewer no_drop frames than that per topic.
+MAX_REMEMBERED_PER_TOPIC = 4096
+# Why: topics come from the server; a flood of new no_drop topics evicts the oldest.
+MAX_DEDUPE_TOPICS = 1024
+
+
+class _Seen:
+    """The ``(seq, publish_time_ns)`` of a topic's recent no_drop frames, bounded."""
+
+    __slots__ = ("keys", "order")
+
+    def __init__(self) -> None:
+        self.keys: set[tuple[int, int]] = set()
+        self.order: deque[tuple[int, int]] = deque()
+
+    def add(self, key: tuple[int, int], limit: int) -> bool:
+        """Remember *key*; return ``False`` if it was already remembered."""
+        if key in self.keys:
+            return False
+        self.keys.add(key)
+        self.order.append(key)
+        while len(self.order) > limit:
+            self.keys.discard(self.order.popleft())
+        return True
 
 
 class Receiver:
@@ -33,8 +64,8 @@ class Receiver:
         on_frame: Gets every complete frame; its exceptions are logged and counted.
         reassembly_max_bytes: Bytes of incomplete fragmented messages kept.
         reassembly_timeout_s: An incomplete fragmented message is dropped after this.
-        dedupe_window: How far below the last seen seq a no_drop frame counts as a
-            duplicate rather than a restarted sender.
+        dedupe_window: How many recent no_drop frames per topic are remembered to
+            recognise resends (capped at :data:`MAX_REMEMBERED_PER_TOPIC`).
         max_decompressed_bytes: Largest frame a Compressed frame may expand to; None means
             ``reassembly_max_bytes`` (the largest frame reassembly can produce).
     """
@@ -44,10 +75,10 @@ class Receiver:
                  dedupe_window: int, max_decompressed_bytes: int | None = None) -> None:
         self._clock = clock
         self._on_frame = on_frame
-        self._dedupe_window = dedupe_window
+        self._dedupe_window = max(1, min(dedupe_window, MAX_REMEMBERED_PER_TOPIC))
         self._reassembler = Reassembler(reassembly_max_bytes, reassembly_timeout_s)
         self._max_decompressed_bytes = max_decompressed_bytes or reassembly_max_bytes
-        self._last_seq: dict[str, int] = {}
+        self._seen: OrderedDict[str, _Seen] = OrderedDict()
         self._counters: Counter[str] = Counter()
         self._decompression: Counter[str] = Counter()
 
@@ -69,7 +100,7 @@ class Receiver:
             if inflated is None:
                 return
             frame, meta = inflated, read_metadata(inflated)  # checked by decompress
-        if meta.no_drop and self._is_duplicate(meta.topic, meta.seq):
+        if meta.no_drop and self._is_duplicate(meta.topic, meta.seq, meta.publish_time_ns):
             self._counters["duplicates"] += 1
             return
         self._counters["frames"] += 1
@@ -94,15 +125,18 @@ class Receiver:
         self._decompression["decompressed_bytes"] += len(inflated)
         return inflated
 
-    def _is_duplicate(self, topic: str, seq: int) -> bool:
-        last = self._last_seq.get(topic)
-        if last is not None and last - self._dedupe_window < seq <= last:
-            return True
-        self._last_seq[topic] = seq
-        return False
+    def _is_duplicate(self, topic: str, seq: int, publish_time_ns: int) -> bool:
+        seen = self._seen.get(topic)
+        if seen is None:
+            seen = self._seen[topic] = _Seen()
+            if len(self._seen) > MAX_DEDUPE_TOPICS:
+                self._seen.popitem(last=False)
+        else:
+            self._seen.move_to_end(topic)
+        return not seen.add((seq, publish_time_ns), self._dedupe_window)
 
     def on_disconnect(self) -> None:
-        """Keep seqs (duplicates come right after a reconnect); nothing else to reset."""
+        """Keep what was seen (duplicates come right after a reconnect)."""
 
     def stats(self) -> dict[str, Any]:
         """Counters: frames, duplicates, malformed, callback_errors, reassembly, and

@@ -22,10 +22,10 @@ Threading: everything runs on one asyncio loop, except :meth:`RobotLink.admit` (
 and :meth:`RobotLink.offer_threadsafe` (any thread; hops onto the loop from others).
 
 Duplicates: a no_drop message sent but not acknowledged when the link died is sent again
-(at-least-once). Receivers drop a no_drop frame whose ``seq`` is not above the last one
-seen on its topic, unless it is far below (``dedupe_window``): that is a restarted sender.
-Senders should start ``seq`` at a time-based value (e.g. microseconds since the epoch) so
-a restarted sender's numbers are newer than its previous run's.
+(at-least-once). A resend is the same frame, so receivers drop a no_drop frame whose
+``(seq, publish_time_ns)`` they saw recently on its topic (see :mod:`.receiver`): a second
+sender, or a reloaded page whose ``seq`` restarts at 1, stamps other publish times and is
+never mistaken for a resend.
 """
 
 from __future__ import annotations
@@ -77,8 +77,8 @@ class LinkTuning:
         max_receive_frame_bytes: Largest frame accepted from the server (bytes).
         reassembly_max_bytes: Bytes of incomplete fragmented messages kept (bytes).
         reassembly_timeout_s: An incomplete fragmented message is dropped after this.
-        dedupe_window: How far below the last seen seq a no_drop frame counts as a
-            duplicate rather than a restarted sender.
+        dedupe_window: How many recent no_drop frames per topic are remembered to drop
+            resends (at most 4096).
         send_batch_bytes: Frames are handed to the transport in batches up to this size
             (bytes); a batch also ends where an ack point (ping) is due.
         write_limit_bytes: High-water mark of the transport's write buffer (bytes): a

@@ -25,18 +25,25 @@ from websockets.exceptions import ConnectionClosed
 from websockets.http11 import Request, Response
 
 from fleetctl.server import endpoints, protocol
-from fleetctl.server.authmap import AuthMap, Identity, IPAddress, load_auth_map
+from fleetctl.server.admission import UnauthenticatedGate
+from fleetctl.server.authmap import AuthMap, Identity, load_auth_map
 from fleetctl.server.authreload import AuthReloader
 from fleetctl.server.config import Hosts, ServerConfig, host_list, hosts_text
 from fleetctl.server.connection import RelayConnection
-from fleetctl.server.identity import bearer_token, effective_address, parse_address
+from fleetctl.server.handshake import (
+    BadRequest,
+    HandshakeLog,
+    Upgrade,
+    read_request,
+    wants_websocket,
+)
+from fleetctl.server.identity import PROXY_HEADERS, parse_address, within
 from fleetctl.server.metrics import Metrics
 from fleetctl.server.outbound import OutboundScheduler
 from fleetctl.server.registry import RobotRegistry
 from fleetctl.server.relay import Peer, RelayCore
-from fleetctl.server.sessions import SESSION_HEADER
 from fleetctl.server.tls import server_context
-from fleetctl.server.web import QuietSuccess, page_response, wants_websocket, web_page
+from fleetctl.server.web import QuietSuccess, page_response, web_page
 from fleetctl.webviz.httpserver import WebPage
 
 log = logging.getLogger("fleetctl.server")
@@ -45,6 +52,7 @@ log = logging.getLogger("fleetctl.server")
 ws_log = logging.getLogger("fleetctl.server.websockets")
 ws_log.setLevel(logging.INFO)
 ws_log.addFilter(QuietSuccess())  # a health check every 5 s is not a "rejection"
+ws_log.addFilter(HandshakeLog())  # a port scan or a POST is one line, not a traceback
 
 # Why small: the kernel socket buffer already holds plenty; bytes parked in asyncio's
 # buffer cannot be dropped or superseded, bytes in our scheduler can (Pound, Robofleet n_T).
@@ -69,6 +77,15 @@ class _Handshake(NamedTuple):
     auth: AuthMap  # the map *identities* were matched against
 
 
+class _Request(NamedTuple):
+    """A request read by ``process_request``, kept for ``process_response``."""
+
+    upgrade: Upgrade
+    identities: list[Identity]
+    bad_token: bool
+    auth: AuthMap
+
+
 class RelayServer:
     """A running relay.
 
@@ -90,6 +107,14 @@ class RelayServer:
         self._page: WebPage | None = None
         self._tasks: set[asyncio.Task[Any]] = set()
         self._background: list[asyncio.Task[None]] = []
+        self._flushing: asyncio.Future[None] | None = None
+        proxies = config.trusted_proxies
+        self.gate = UnauthenticatedGate(
+            config.limits.max_unauthenticated_connections,
+            config.limits.max_unauthenticated_per_address,
+            exempt=lambda a: within(parse_address(a), proxies),
+            refused=self.metrics.connections_refused)
+        self._warned_proxy = False
 
     @property
     def auth(self) -> AuthMap:
@@ -167,12 +192,16 @@ class RelayServer:
             with contextlib.suppress(asyncio.CancelledError):
                 await task
         self._background = []
+        if self._flushing is not None:  # a write in a worker thread: let it finish
+            with contextlib.suppress(Exception):
+                await self._flushing
         for server in (self._server, self._web_server):
             if server is not None:
                 server.close(close_connections=True)
                 await server.wait_closed()
         for task in list(self._tasks):
             task.cancel()
+        self.core.sessions.flush()
         self.registry.close()
 
     def reload_auth(self, reason: str = "reload requested") -> bool:
@@ -196,7 +225,9 @@ class RelayServer:
                 # passes the value through but annotates it as one string.
                 cast(str, host_list(hosts)),
                 port,
-                create_connection=RelayConnection,
+                # The gate argument goes to RelayConnection; websockets' annotation is a type.
+                create_connection=cast(Any, functools.partial(RelayConnection,
+                                                              gate=self.gate)),
                 process_request=self._web_request if web else self._process_request,
                 process_response=respond,
                 max_size=self.config.limits.max_frame_bytes,
@@ -220,46 +251,86 @@ class RelayServer:
     async def _flush_registry(self) -> None:
         while True:  # periodic write-behind and session expiry, not synchronization
             await asyncio.sleep(REGISTRY_FLUSH_PERIOD_S)
+            self.core.sessions.expire()
+            jobs: list[Callable[[], object]] = [
+                j for j in (self.registry.take_flush(), self.core.sessions.take_changes())
+                if j is not None]
+            if not jobs:
+                continue
+            # SQLite commits (an fsync each) run in a worker thread: the relay goes on.
+            # Both jobs share the registry's connection: one worker call, one at a time.
+            self._flushing = asyncio.get_running_loop().run_in_executor(
+                None, _run_jobs, jobs)
             try:
-                self.registry.flush()
+                await asyncio.shield(self._flushing)
+            except asyncio.CancelledError:
+                raise
             except Exception:  # a full disk must not stop the relay
                 log.exception("robot registry flush failed")
-            self.core.sessions.expire()
+            self._flushing = None
 
     # -- handshake ----------------------------------------------------------------------
 
-    def _address(self, connection: ServerConnection, request: Request) -> IPAddress | None:
-        remote = connection.remote_address
-        peer = parse_address(remote[0] if remote else None)
-        return effective_address(
-            peer, request.headers.get("X-Forwarded-For"), self.config.trusted_proxies
-        )
+    def _read(self, connection: ServerConnection, request: Request,
+              by_address: bool) -> _Request:
+        """Read *request*'s sender and resolve its identities (never raises but
+        :class:`BadRequest`); kept on the connection for ``process_response``."""
+        upgrade = read_request(connection, request, self.config.trusted_proxies)
+        if upgrade.proxied_loopback and not self._warned_proxy:
+            self._warned_proxy = True
+            log.warning("a request from loopback carries a proxy header (%s) but loopback "
+                        "is not in trusted_proxies: such requests get no loopback "
+                        "privilege on /robots and /metrics; if a reverse proxy runs on "
+                        "this host, list 127.0.0.1 in trusted_proxies",
+                        "/".join(PROXY_HEADERS))
+        auth = self.core.auth
+        identities = auth.match_address(upgrade.address) if by_address else []
+        bad = False
+        if upgrade.token is not None:
+            found = auth.match_token(upgrade.token)  # None for anything not a token
+            bad = found is None
+            identities = identities if found is None else [*identities, found]
+        parsed = _Request(upgrade, identities, bad, auth)
+        cast(RelayConnection, connection).relay_request = parsed
+        return parsed
 
     def _process_request(self, connection: ServerConnection, request: Request) -> Response | None:
+        try:
+            parsed = self._read(connection, request, by_address=True)
+        except BadRequest as exc:
+            return endpoints.text(http.HTTPStatus.BAD_REQUEST, f"{exc}\n")
         path = request.path.split("?", 1)[0]
         if path == "/healthz":
             return endpoints.text(http.HTTPStatus.OK, "ok\n")
+        if wants_websocket(request):
+            return None
         if path == "/metrics":
-            body = self.metrics.render(self._gauges(), self.core.session_gauges()).encode()
-            return endpoints.response(http.HTTPStatus.OK, body,
-                                      endpoints.PROMETHEUS_CONTENT_TYPE)
-        if path == "/robots" and "upgrade" not in request.headers.get("Connection", "").lower():
-            return self._robots(connection, request)
-        return None
+            return self._metrics(parsed)
+        if path == "/robots":
+            return self._robots(parsed)
+        return endpoints.text(http.HTTPStatus.NOT_FOUND, "not found: this port serves "
+                              "WebSocket upgrades, /healthz, /metrics and /robots\n")
 
     def _web_request(self, connection: ServerConnection, request: Request) -> Response | None:
         # The web listener: the page and /healthz; /metrics and /robots stay on the relay
         # port (often not exposed to the internet).
+        try:
+            self._read(connection, request, by_address=False)
+        except BadRequest as exc:
+            return endpoints.text(http.HTTPStatus.BAD_REQUEST, f"{exc}\n")
         if wants_websocket(request):
             return None
         assert self._page is not None
         return page_response(self._page, request)
 
-    def _robots(self, connection: ServerConnection, request: Request) -> Response:
-        address = self._address(connection, request)
-        identities, bad = self._identities(address, request, by_address=True)
-        perms = self.core.pool.get(identities) if identities else None
-        allowed, perms = endpoints.robots_allowed(address, perms, bad)
+    def _caller(self, parsed: _Request) -> tuple[bool, Any]:
+        """``(allowed, perms)`` of a /robots or /metrics caller (``perms`` ``None``: a
+        local caller without identity, who sees everything)."""
+        perms = self.core.pool.get(parsed.identities) if parsed.identities else None
+        return endpoints.robots_allowed(parsed.upgrade.is_local, perms, parsed.bad_token)
+
+    def _robots(self, parsed: _Request) -> Response:
+        allowed, perms = self._caller(parsed)
         if not allowed:
             return endpoints.text(http.HTTPStatus.UNAUTHORIZED,
                                   "GET /robots needs loopback or a valid Bearer token\n")
@@ -267,20 +338,14 @@ class RelayServer:
             return endpoints.json_response({"robots": self.registry.as_json()})
         return endpoints.json_response({"robots": self.core.robots_for(perms)})
 
-    def _identities(
-        self, address: IPAddress | None, request: Request, by_address: bool
-    ) -> tuple[list[Identity], bool]:
-        """Identities of an upgrade or HTTP request (address ones only if *by_address*),
-        and whether it presented a token that matches nothing."""
-        auth = self.core.auth
-        identities = auth.match_address(address) if by_address else []
-        token = bearer_token(request.headers.get("Authorization"))
-        if token is None:
-            return identities, False
-        found = auth.match_token(token)
-        if found is None:
-            return identities, True
-        return [*identities, found], False
+    def _metrics(self, parsed: _Request) -> Response:
+        allowed, _ = self._caller(parsed)
+        if not allowed:
+            return endpoints.text(http.HTTPStatus.UNAUTHORIZED,
+                                  "GET /metrics needs loopback or a valid Bearer token\n")
+        text = self.metrics.render(self._gauges(), self.core.session_gauges())
+        return endpoints.response(http.HTTPStatus.OK, text.encode("utf-8", "backslashreplace"),
+                                  endpoints.PROMETHEUS_CONTENT_TYPE)
 
     def _process_response(
         self, connection: ServerConnection, request: Request, response: Response,
@@ -289,19 +354,30 @@ class RelayServer:
         if response.status_code != http.HTTPStatus.SWITCHING_PROTOCOLS:
             return
         assert isinstance(connection, RelayConnection)
-        address = self._address(connection, request)
+        parsed: _Request = connection.relay_request
+        upgrade = parsed.upgrade
         wake = asyncio.Event()
-        names = request.headers.get_all(SESSION_HEADER)
-        # Several headers: keep them all as one (invalid) name, refused on authentication.
-        session_name = ",".join(names) if names else None
         peer = self.core.new_peer(
-            str(address) if address else None, close=self._closer(connection), wake=wake.set,
-            session_name=session_name, by_address=by_address,
+            str(upgrade.address) if upgrade.address else None, close=self._closer(connection),
+            wake=wake.set, session_name=upgrade.session_name, by_address=by_address,
         )
-        identities, bad = self._identities(address, request, by_address)
+        try:
+            self._wire(connection, peer, parsed, wake)
+        except BaseException:  # never leave a peer behind a failed handshake
+            self.core.close_peer(peer)
+            raise
+
+    def _wire(self, connection: RelayConnection, peer: Peer, parsed: _Request,
+              wake: asyncio.Event) -> None:
+        """Connect *peer* to *connection*: identities, frame sink, clean-up on loss."""
         # Only the hash of a token is kept (a reload re-checks the connection by it).
-        peer.token_digests.update(i.token_sha256 for i in identities if i.token_sha256)
-        connection.relay_state = _Handshake(peer, identities, bad, wake, self.core.auth)
+        peer.token_digests.update(i.token_sha256 for i in parsed.identities if i.token_sha256)
+        connection.relay_state = _Handshake(peer, parsed.identities, parsed.bad_token, wake,
+                                            parsed.auth)
+        connection.relay_request = None
+        max_frame_bytes = self.config.limits.max_frame_bytes
+        peer.on_authenticated = lambda: connection.authenticated(max_frame_bytes)
+        peer.throttle = lambda delay_s: connection.throttle(delay_s, peer)
         core = self.core
 
         def sink(frame: bytes) -> bool:
@@ -351,7 +427,7 @@ class RelayServer:
                 self.core.authenticate(peer, identities)
             else:
                 asyncio.get_running_loop().call_later(
-                    self.config.limits.auth_timeout_s, self._auth_timeout, peer
+                    self.config.limits.auth_timeout_s, self._auth_timeout, connection, peer
                 )
             await self._read_loop(connection, peer)
         finally:
@@ -362,22 +438,38 @@ class RelayServer:
             if connection.close_code == protocol.CLOSE_TOO_BIG:
                 self.metrics.count_close(protocol.CLOSE_TOO_BIG)
 
-    def _auth_timeout(self, peer: Peer) -> None:
+    def _auth_timeout(self, connection: RelayConnection, peer: Peer) -> None:
+        # Abort, not close: a graceful close would hold the connection (and whatever it
+        # buffered) for websockets' close timeout too.
         if peer.perms is None and not peer.closing:
-            peer.close(protocol.CLOSE_NO_IDENTITY, "no identity: no token frame in time")
+            peer.closing = True
+            self.metrics.count_close(protocol.CLOSE_NO_IDENTITY)
+            log.warning("%s aborted: no identity within %.0f s", peer.label,
+                        self.config.limits.auth_timeout_s)
+            connection.abort_with(protocol.CLOSE_NO_IDENTITY, "no identity: no token frame "
+                                  "in time")
 
     async def _read_loop(self, connection: RelayConnection, peer: Peer) -> None:
         # Only text frames and fragmented binary messages arrive here; complete binary
         # frames went through the sink already.
         with contextlib.suppress(ConnectionClosed):
             async for message in connection:
-                if peer.closing:
-                    pass
-                elif isinstance(message, str):
-                    self.core.on_text(peer, message)
-                else:
-                    self.core.on_binary(peer, message)
+                if not peer.closing:
+                    self._handle(peer, message)
                 connection.message_handled()
+
+    def _handle(self, peer: Peer, message: str | bytes) -> None:
+        """One text frame or fragmented binary message. A bug the frame triggers costs the
+        frame (an error frame, one log line with the traceback), never the connection."""
+        try:
+            if isinstance(message, str):
+                self.core.on_text(peer, message)
+            else:
+                self.core.on_binary(peer, message)
+        except Exception as exc:
+            log.exception("%s: frame not handled", peer.label)
+            self.core.send_error(peer, "malformed_frame", None,
+                                 f"the server could not handle this frame ({type(exc).__name__})")
 
     async def _write_loop(
         self, connection: RelayConnection, peer: Peer, wake: asyncio.Event
@@ -405,9 +497,10 @@ class RelayServer:
         waiter.add_done_callback(functools.partial(_on_pong, outbound, mark))
 
     def _gauges(self) -> list[tuple[str, str, dict[str, float]]]:
-        depth = {p.label: float(len(p.outbound)) for p in self.core.peers.values()}
-        nbytes = {p.label: float(p.outbound.queued_bytes) for p in self.core.peers.values()}
-        dropped = {p.label: float(p.outbound.dropped_total) for p in self.core.peers.values()}
+        peers = self.core.peers.values()
+        depth = {p.metric_label: float(len(p.outbound)) for p in peers}
+        nbytes = {p.metric_label: float(p.outbound.queued_bytes) for p in peers}
+        dropped = {p.metric_label: float(p.outbound.dropped_total) for p in peers}
         return [
             ("fleetctl_outbound_queue_frames", "Frames queued per connection.", depth),
             ("fleetctl_outbound_queue_bytes", "Bytes queued per connection.", nbytes),
@@ -419,6 +512,11 @@ def _on_pong(outbound: OutboundScheduler, mark: int, waiter: asyncio.Future[floa
     # A closed connection fails its waiters: then take_no_drop() keeps the frames.
     if not waiter.cancelled() and waiter.exception() is None:
         outbound.acked(mark)
+
+
+def _run_jobs(jobs: list[Callable[[], object]]) -> None:
+    for job in jobs:
+        job()
 
 
 def _addresses(server: Server) -> list[tuple[str, int]]:

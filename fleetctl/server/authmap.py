@@ -17,7 +17,7 @@ from typing import Any
 
 from fleetctl.errors import ConfigError
 from fleetctl.server.regex import BadRegex, FullMatch, compile_full
-from fleetctl.tokens import hash_token
+from fleetctl.tokens import hash_token, is_wellformed_token
 from fleetctl.yamlfile import read_yaml
 
 IPNetwork = ipaddress.IPv4Network | ipaddress.IPv6Network
@@ -98,8 +98,12 @@ class AuthMap:
             and address in i.network
         ]
 
-    def match_token(self, token: str) -> Identity | None:
-        """Return the identity whose ``token_sha256`` is the hash of *token*, or ``None``."""
+    def match_token(self, token: object) -> Identity | None:
+        """Return the identity whose ``token_sha256`` is the hash of *token*, or ``None``
+        (also for anything that cannot be a token: not a string, non-ASCII, too long)."""
+        if not is_wellformed_token(token):
+            return None
+        assert isinstance(token, str)
         return self.match_digest(hash_token(token))
 
     def match_digest(self, digest: str) -> Identity | None:
@@ -146,6 +150,7 @@ def _identity(item: Any, index: int, path: Path) -> Identity:
     name = item.get("name")
     if not isinstance(name, str) or not name:
         raise ConfigError(f"{where}: field 'name' must be a non-empty string")
+    name = clean_name(name)
     where = f"{path}: identity {name!r}"
     keys = [k for k in ("ip", "cidr", "token_sha256") if item.get(k) is not None]
     if len(keys) != 1:
@@ -168,6 +173,19 @@ def _identity(item: Any, index: int, path: Path) -> Identity:
     if not isinstance(rules, list):
         raise ConfigError(f"{where}: field 'rules' must be a list")
     return Identity(name, network, digest, tuple(_rule(r, j, where) for j, r in enumerate(rules)))
+
+
+def clean_name(name: str) -> str:
+    """Return *name* as text every sink takes (UTF-8 logs, SQLite, metrics, JSON).
+
+    A YAML writer that escapes non-BMP characters as JSON surrogate pairs
+    (``"\\ud83d\\ude00"``) makes the parser return two lone surrogates: a pair is joined
+    back into its character; a surrogate left alone becomes its ``\\udXXX`` escape text.
+    """
+    if not any("\ud800" <= c <= "\udfff" for c in name):
+        return name
+    joined = name.encode("utf-16-le", "surrogatepass").decode("utf-16-le", "surrogatepass")
+    return joined.encode("utf-8", "backslashreplace").decode("utf-8")
 
 
 def _rule(item: Any, index: int, where: str) -> Rule:

@@ -47,6 +47,21 @@ class ServerLimits:
         session_mailbox_bytes: Bytes one offline session's mailbox holds (same policy).
         max_sessions_per_identity: Named sessions one identity set may hold at a time;
             a connection naming one more closes with 4400.
+        max_connections_per_identity: Open authenticated connections per identity name;
+            one more closes with 4429 (a robot's address identity and a person's token
+            each count separately).
+        max_control_requests_per_s: Sustained rate of control requests per connection
+            (subscribe/unsubscribe frames, token frames, ``list_robots``) per identity
+            set, per second; bursts of ``max_subscriptions_per_connection`` (at least 64)
+            pass (a full resubscribe after a reconnect). Over it a request is refused
+            with ``rate_limited``.
+        max_pattern_bytes_per_connection: UTF-8 bytes of subscription patterns one
+            connection may hold; one more pattern is refused (``too_many_subscriptions``).
+        max_pattern_bytes_per_identity: The same over every connection of one identity.
+        max_unauthenticated_connections: Connections (handshake included) without an
+            identity yet, server-wide; more are aborted at accept.
+        max_unauthenticated_per_address: The same per TCP source address (trusted
+            proxies are exempt: they carry many clients).
     """
 
     max_frame_bytes: int = 16 * 1024 * 1024
@@ -60,6 +75,12 @@ class ServerLimits:
     session_mailbox_messages: int = 10000
     session_mailbox_bytes: int = 16 * 1024 * 1024
     max_sessions_per_identity: int = 64
+    max_connections_per_identity: int = 64
+    max_control_requests_per_s: float = 20.0
+    max_pattern_bytes_per_connection: int = 64 * 1024
+    max_pattern_bytes_per_identity: int = 1024 * 1024
+    max_unauthenticated_connections: int = 256
+    max_unauthenticated_per_address: int = 16
 
 
 @dataclass(frozen=True)
@@ -142,8 +163,14 @@ _INT_LIMITS = (
     "session_mailbox_messages",
     "session_mailbox_bytes",
     "max_sessions_per_identity",
+    "max_connections_per_identity",
+    "max_pattern_bytes_per_connection",
+    "max_pattern_bytes_per_identity",
+    "max_unauthenticated_connections",
+    "max_unauthenticated_per_address",
 )
-_FLOAT_LIMITS = ("robot_offline_after_s", "auth_timeout_s", "session_expiry_s")
+_FLOAT_LIMITS = ("robot_offline_after_s", "auth_timeout_s", "session_expiry_s",
+                 "max_control_requests_per_s")
 
 
 def load_server_config(path: Path) -> ServerConfig:

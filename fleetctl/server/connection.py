@@ -10,6 +10,12 @@ hot path:
   instead of one ``write()`` (often one syscall) per frame (from
   :class:`~fleetctl.batched_connection.BatchedWritesConnection`, shared with the client).
 
+Before authentication the connection is small (docs/security.md): it holds a slot of
+the server's :class:`~fleetctl.server.admission.UnauthenticatedGate` (no slot: aborted at
+accept) and its frames and messages may be at most :data:`PRE_AUTH_MAX_FRAME_BYTES`
+(websockets checks ``max_size`` per frame and over the fragments of a message). The
+relay calls :meth:`RelayConnection.authenticated` to lift both.
+
 Flow control is unchanged: ``send_frames`` waits while the transport's write buffer is
 above ``write_limit``, so a writer never queues more than that in the kernel-facing
 buffer; everything else waits in the per-connection
@@ -18,6 +24,9 @@ buffer; everything else waits in the per-connection
 
 from __future__ import annotations
 
+import asyncio
+import contextlib
+import logging
 from collections.abc import Callable
 from typing import Any
 
@@ -25,18 +34,37 @@ from websockets.asyncio.server import ServerConnection
 from websockets.frames import Frame, Opcode
 
 from fleetctl.batched_connection import BatchedWritesConnection
+from fleetctl.server.admission import UnauthenticatedGate
 
 _DATA = (Opcode.TEXT, Opcode.BINARY, Opcode.CONT)
+# Why 8 KiB: before authentication a client may send only its token frame (at most 4096
+# characters of JSON); frames or fragmented messages past this close with 1009.
+PRE_AUTH_MAX_FRAME_BYTES = 8 * 1024
+log = logging.getLogger("fleetctl.server")
+ABORT_AFTER_S = 1.0
+# Throttling a client over its control request rate (see RelayConnection.throttle): why
+# these: a flooding client should cost a few frames per pause, an honest one that hit the
+# limit once (a page subscribing to hundreds of topics) loses well under a second.
+MIN_THROTTLE_S = 0.05
+MAX_THROTTLE_S = 1.0
+THROTTLE_MEMORY_S = 5.0
+THROTTLED_READ_BYTES = 4096  # a peer that does not read our close frame is cut off after this
+_LOG_EVERY = 1000  # refusals are logged first, then every 1000th (counted in metrics)
 
 
 class RelayConnection(BatchedWritesConnection, ServerConnection):
     """Server connection with a synchronous binary-frame sink and batched writes."""
 
-    def __init__(self, *args: Any, **kwargs: Any) -> None:
+    def __init__(self, *args: Any, gate: UnauthenticatedGate | None = None,
+                 **kwargs: Any) -> None:
         super().__init__(*args, **kwargs)
+        self._gate = gate
+        self._slot: str | None = None  # address holding an unauthenticated slot
+        self._strikes = 0  # throttles in a row (see throttle)
         self.frame_sink: Callable[[bytes], bool] | None = None
         self.on_lost: Callable[[], None] | None = None
         self.relay_state: Any = None
+        self.relay_request: Any = None  # from process_request to process_response
         self._fragmenting = False
         # Messages handed to the recv() path and not yet marked handled by the reader
         # (message_handled). While any is pending, binary frames queue behind them too,
@@ -73,8 +101,90 @@ class RelayConnection(BatchedWritesConnection, ServerConnection):
         """Mark one message from ``recv()`` as handled (see :attr:`pending_messages`)."""
         self.pending_messages = max(0, self.pending_messages - 1)
 
+    def connection_made(self, transport: asyncio.BaseTransport) -> None:
+        """Take an unauthenticated slot, or abort the connection when there is none."""
+        super().connection_made(transport)
+        if self._gate is None:
+            return
+        peer = transport.get_extra_info("peername")
+        address = str(peer[0]) if peer else "?"
+        refused = self._gate.admit(address)
+        if refused is None:
+            self._slot = address
+            self.protocol.max_size = PRE_AUTH_MAX_FRAME_BYTES
+            return
+        count = self._gate.refused[refused]
+        if count % _LOG_EVERY == 1:
+            log.warning("connection from %s refused: %s unauthenticated connections at "
+                        "their cap (%d refused so far)", address, refused.replace("_", " "),
+                        count)
+        self.transport.abort()
+
+    def authenticated(self, max_size: int) -> None:
+        """The connection has an identity: frames up to *max_size* bytes, slot given back."""
+        self.protocol.max_size = max_size
+        self._release()
+
+    def abort_with(self, code: int, reason: str) -> None:
+        """Fail the connection now (RFC 6455 7.1.7): one close frame, then the TCP
+        connection is closed without waiting for the peer's close frame, and anything it
+        sent or buffered is discarded (no close timeout holding memory). Aborted outright
+        if the close frame cannot be written within :data:`ABORT_AFTER_S`."""
+        transport = self.transport
+        with contextlib.suppress(Exception):  # already closing: abort is enough
+            self.protocol.fail(code, reason)
+            self.send_data()
+            transport.close()
+        asyncio.get_running_loop().call_later(ABORT_AFTER_S, transport.abort)
+
+    def throttle(self, delay_s: float, peer: Any) -> None:
+        """Stop reading for *delay_s* seconds, then clear ``peer.throttled`` and read
+        again (the relay's rate limit, docs/security.md).
+
+        Each further throttle within :data:`THROTTLE_MEMORY_S` doubles the pause (from
+        :data:`MIN_THROTTLE_S` up to :data:`MAX_THROTTLE_S`), and meanwhile the socket is
+        read :data:`THROTTLED_READ_BYTES` at a time (plain TCP), so what a flooding client
+        already sent costs a few frames per pause, not a 256 KiB read of tiny frames.
+        """
+        self.transport.pause_reading()
+        self._strikes += 1
+        self._set_read_bytes(THROTTLED_READ_BYTES)
+        pause_s = min(MAX_THROTTLE_S, max(delay_s, MIN_THROTTLE_S * 2 ** (self._strikes - 1)))
+        strikes = self._strikes
+        loop = asyncio.get_running_loop()
+
+        def resume() -> None:
+            peer.throttled = False
+            if not self.transport.is_closing():
+                self.transport.resume_reading()
+
+        def forgive() -> None:
+            if self._strikes == strikes:  # no throttle since: a normal client again
+                self._strikes = 0
+                self._set_read_bytes(None)
+
+        loop.call_later(pause_s, resume)
+        loop.call_later(pause_s + THROTTLE_MEMORY_S, forgive)
+
+    def _set_read_bytes(self, nbytes: int | None) -> None:
+        # asyncio's plain socket transport reads max_size bytes per recv (256 KiB); a
+        # TLS transport has no such knob and relies on the pauses alone.
+        transport = self.transport
+        if hasattr(type(transport), "max_size"):
+            if nbytes is None:
+                with contextlib.suppress(AttributeError):
+                    del transport.max_size  # type: ignore[attr-defined]
+            else:
+                transport.max_size = nbytes  # type: ignore[attr-defined]
+
+    def _release(self) -> None:
+        slot, self._slot = self._slot, None
+        if slot is not None and self._gate is not None:
+            self._gate.release(slot)
+
     def connection_lost(self, exc: Exception | None) -> None:
-        """Run :attr:`on_lost` once the TCP connection is gone."""
+        """Give back the slot; run :attr:`on_lost` once the TCP connection is gone."""
+        self._release()
         super().connection_lost(exc)
         on_lost, self.on_lost = self.on_lost, None
         if on_lost is not None:

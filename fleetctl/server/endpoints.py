@@ -10,7 +10,6 @@ from typing import Any
 from websockets.datastructures import Headers
 from websockets.http11 import Response
 
-from fleetctl.server.authmap import IPAddress
 from fleetctl.server.permissions import Permissions
 
 PROMETHEUS_CONTENT_TYPE = "text/plain; version=0.0.4; charset=utf-8"
@@ -45,12 +44,13 @@ def json_response(data: Any) -> Response:
 
 
 def robots_allowed(
-    address: IPAddress | None, perms: Permissions | None, bad_token: bool
+    local: bool, perms: Permissions | None, bad_token: bool
 ) -> tuple[bool, Permissions | None]:
-    """Decide who may read ``/robots`` (docs/design.md section 2).
+    """Decide who may read ``/robots`` and ``/metrics`` (docs/security.md).
 
     Args:
-        address: The caller's effective address.
+        local: The caller is on loopback and not behind a proxy header
+            (:attr:`fleetctl.server.handshake.Upgrade.is_local`).
         perms: Permissions of the caller's identities (address and token), if any.
         bad_token: The caller presented a token that matches no identity.
 
@@ -62,4 +62,4 @@ def robots_allowed(
         return False, None
     if perms is not None:
         return True, perms
-    return address is not None and address.is_loopback, None
+    return local, None

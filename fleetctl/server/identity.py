@@ -12,10 +12,40 @@ import ipaddress
 import json
 from collections.abc import Iterable
 
+from websockets.datastructures import Headers
+
 from fleetctl.server.authmap import IPAddress, IPNetwork
 
 # Why a cap: the token frame arrives before the client is known; never parse megabytes.
 MAX_TOKEN_FRAME_CHARS = 4096
+
+
+# Headers a reverse proxy sets; from an untrusted peer they are ignored (and, from
+# loopback, a sign of an unconfigured same-host proxy: see docs/security.md).
+PROXY_HEADERS = ("X-Forwarded-For", "Forwarded", "X-Real-IP")
+
+
+class BadRequest(ValueError):
+    """A request the server answers with 400; the message says why."""
+
+
+def one_header(headers: Headers, name: str) -> str | None:
+    """The value of a header that may appear at most once, or ``None`` if absent.
+
+    Raises:
+        BadRequest: The header appears more than once (which one would count is
+            ambiguous: a proxy and the client may each have set one).
+    """
+    values = headers.get_all(name)
+    if len(values) > 1:
+        raise BadRequest(f"{len(values)} {name} headers: send one")
+    return values[0] if values else None
+
+
+def list_header(headers: Headers, name: str) -> str | None:
+    """A comma-separated list header, repeated headers joined (RFC 9110 5.3)."""
+    values = headers.get_all(name)
+    return ", ".join(values) if values else None
 
 
 def parse_address(text: str | None) -> IPAddress | None:
@@ -58,6 +88,11 @@ def effective_address(
         if not _within(hop, proxies):
             return hop
     return peer
+
+
+def within(addr: IPAddress | None, networks: Iterable[IPNetwork]) -> bool:
+    """Whether *addr* is in one of *networks* (``False`` for ``None``)."""
+    return addr is not None and _within(addr, tuple(networks))
 
 
 def _within(addr: IPAddress, networks: tuple[IPNetwork, ...]) -> bool:

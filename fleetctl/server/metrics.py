@@ -31,6 +31,7 @@ class Metrics:
     session_drops: dict[tuple[str, str], int] = field(default_factory=dict)
     auth_reloads: int = 0
     auth_reload_failures: int = 0
+    connections_refused: dict[str, int] = field(default_factory=dict)
 
     def label(self, topic: str) -> str:
         """Return *topic*, or ``<other>`` once the label bound is reached."""
@@ -108,6 +109,9 @@ class Metrics:
             _labelled(out, name, "counter", help_text, "topic", values)
         _labelled(out, "fleetctl_errors_total", "counter", "Error frames per code.", "code",
                   self.errors)
+        _labelled(out, "fleetctl_connections_refused_total", "counter",
+                  "Connections aborted at accept: unauthenticated connections at their "
+                  "cap (total, per_address).", "cap", self.connections_refused)
         closes = {str(k): v for k, v in self.closes.items()}
         _labelled(out, "fleetctl_closes_total", "counter",
                   "Connections closed by the server per close code.", "code", closes)

@@ -16,7 +16,8 @@ CLOSE_BAD_SESSION = 4400  # bad session name, or one session too many for the id
 CLOSE_BAD_TOKEN = 4401
 CLOSE_NO_IDENTITY = 4403
 CLOSE_SESSION_TAKEN_OVER = 4409  # a newer connection attached to the same session
-CLOSE_SUBSCRIPTION_FLOOD = 4429
+CLOSE_SUBSCRIPTION_FLOOD = 4429  # refused control requests past the flood bound
+CLOSE_TOO_MANY = 4429  # the identity is at max_connections_per_identity
 CLOSE_GOING_AWAY = 1001  # server shutdown
 
 # Why: client text frames are tiny JSON requests; refuse to parse anything large.
@@ -31,6 +32,7 @@ ERROR_CODES = (
     "too_many_subscriptions",
     "bad_token",
     "bad_session",
+    "rate_limited",
 )
 
 

@@ -85,7 +85,10 @@ class RobotRegistry:
     ) -> None:
         self.offline_after_s = offline_after_s
         self._clock = clock
-        self._db = sqlite3.connect(str(path) if path is not None else ":memory:")
+        # Used from one thread at a time: the event loop, or the worker that runs
+        # take_flush()'s job while the loop waits for it (RelayServer).
+        self._db = sqlite3.connect(str(path) if path is not None else ":memory:",
+                                   check_same_thread=False)
         self._db.execute(_SCHEMA)
         self._db.commit()
         self._robots: dict[str, RobotRecord] = {}
@@ -175,8 +178,14 @@ class RobotRegistry:
 
     def flush(self) -> int:
         """Write changed robots to SQLite in one transaction; return how many."""
+        job = self.take_flush()
+        return job() if job is not None else 0
+
+    def take_flush(self) -> Callable[[], int] | None:
+        """Take the changed robots now; return the job that writes them (one transaction,
+        safe in a worker thread; returns how many), or ``None`` when nothing changed."""
         if not self._dirty:
-            return 0
+            return None
         rows = []
         for name in self._dirty:
             rec = self.get(name)
@@ -185,11 +194,16 @@ class RobotRegistry:
                 rows.append(tuple(d[c] for c in _COLUMNS))
         self._dirty.clear()
         marks = ", ".join("?" for _ in _COLUMNS)
-        with self._db:
-            self._db.executemany(
-                f"INSERT OR REPLACE INTO robots ({', '.join(_COLUMNS)}) VALUES ({marks})", rows
-            )
-        return len(rows)
+        db = self._db
+
+        def job() -> int:
+            with db:
+                db.executemany(
+                    f"INSERT OR REPLACE INTO robots ({', '.join(_COLUMNS)}) VALUES ({marks})",
+                    rows)
+            return len(rows)
+
+        return job
 
     def close(self) -> None:
         """Flush and close the database."""

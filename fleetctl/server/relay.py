@@ -19,16 +19,17 @@ import time
 from collections.abc import Callable
 from typing import Any
 
-from fleetctl.server import protocol
+from fleetctl.server import protocol, reauth
+from fleetctl.server.admission import IdentityConnections, TokenBucket
 from fleetctl.server.authmap import AuthMap, Identity
 from fleetctl.server.config import ServerConfig
-from fleetctl.server.identity import parse_address
 from fleetctl.server.metrics import Metrics
 from fleetctl.server.outbound import OutboundScheduler
+from fleetctl.server.peer import Peer
 from fleetctl.server.permissions import Permissions, PermissionsPool
 from fleetctl.server.regex import compile_full
 from fleetctl.server.registry import RobotRegistry, robot_name
-from fleetctl.server.sessions import BadSessionName, Session, SessionTable, check_session_name
+from fleetctl.server.sessions import BadSessionName, SessionTable, check_session_name
 from fleetctl.server.sessionstore import SessionStore
 from fleetctl.server.subscriptions import Refusal, SubscriptionMap
 from fleetctl.wire.errors import WireError
@@ -44,63 +45,11 @@ _U64 = struct.Struct("<Q").unpack_from
 # Why: per-peer memo tables are keyed by client-chosen topics; keep them small.
 _MAX_MEMO = 1024
 
+# Control requests an identity set may make at once: a full resubscribe of every tab or
+# robot connection after a reconnect (at least max_subscriptions_per_connection).
+MIN_CONTROL_BURST = 64
 
-class Peer:
-    """One connection as the relay sees it.
-
-    Args:
-        peer_id: Unique number of the connection (logs, metrics).
-        address: Address used for identity matching, as text (``None`` if unknown).
-        outbound: The connection's scheduler.
-        close: Asks the I/O layer to close with ``(code, reason)``.
-        session_name: The session the client named on the upgrade, if any (validated
-            when the connection authenticates).
-        by_address: Whether ``ip``/``cidr`` identities apply to this connection (not on
-            the web listener, where people sign in with tokens).
-
-    Attributes:
-        token_digests: SHA-256 hex digests of the tokens the connection authenticated
-            with (never the tokens): what an auth map reload re-checks it by.
-    """
-
-    def __init__(
-        self,
-        peer_id: int,
-        address: str | None,
-        outbound: OutboundScheduler,
-        close: Callable[[int, str], None],
-        session_name: str | None = None,
-        by_address: bool = True,
-    ) -> None:
-        self.peer_id = peer_id
-        self.session_name = session_name
-        self.session: Session[Peer] | None = None
-        self.address = address
-        self.by_address = by_address
-        self.token_digests: set[str] = set()
-        self.outbound = outbound
-        self._close = close
-        self.perms: Permissions | None = None
-        self.identities: list[Identity] = []
-        self.is_robot = False
-        self.closing = False
-        self.malformed_in_row = 0
-        self.over_limit_subscriptions = 0
-        self.robots: set[str] = set()
-        self.topic_robot: dict[str, str | None] = {}
-        self.refused_topics: set[str] = set()
-
-    @property
-    def label(self) -> str:
-        """Short text naming the connection in log lines."""
-        names = ",".join(i.name for i in self.identities) or "-"
-        return f"conn#{self.peer_id}[{names}@{self.address}]"
-
-    def close(self, code: int, reason: str) -> None:
-        """Ask the I/O layer to close this connection (once)."""
-        if not self.closing:
-            self.closing = True
-            self._close(code, reason)
+__all__ = ["Peer", "RelayCore"]
 
 
 class RelayCore:
@@ -123,14 +72,21 @@ class RelayCore:
         clock: Callable[[], float] = time.monotonic,
     ) -> None:
         self.config = config
-        self.limits = config.limits
+        self.limits = limits = config.limits
         self.auth = auth
         self.registry = registry
         self.metrics = metrics
         self.pool = PermissionsPool()
         self.subs: SubscriptionMap[Peer] = SubscriptionMap(
-            config.limits.max_subscriptions_per_connection
+            limits.max_subscriptions_per_connection,
+            limits.max_pattern_bytes_per_connection,
+            limits.max_pattern_bytes_per_identity,
         )
+        self.connections = IdentityConnections(limits.max_connections_per_identity)
+        # Control requests, per identity set (a reconnect gets no fresh bucket). Bounded
+        # by the identity sets that connect, i.e. by the auth map.
+        self._buckets: dict[tuple[str, ...], TokenBucket] = {}
+        self._clock = clock
         self.peers: dict[int, Peer] = {}
         self._no_drop_res = tuple(compile_full(p) for p in config.no_drop_topics)
         self._no_drop_memo: dict[str, bool] = {}
@@ -166,87 +122,55 @@ class RelayCore:
         """Grant *peer* the union of *identities* (added to what it has) and welcome it.
 
         Returns:
-            ``False`` (and closes with 4403) when the peer ends up with no identity.
+            ``False`` when the peer ends up with no identity (closed with 4403) or one of
+            its identities is at ``max_connections_per_identity`` (closed with 4429).
         """
         merged = {i.name: i for i in peer.identities}
         merged.update({i.name: i for i in identities})
         if not merged:
-            self._close(peer, protocol.CLOSE_NO_IDENTITY, "connection matches no identity")
+            self.close_with(peer, protocol.CLOSE_NO_IDENTITY, "connection matches no identity")
             return False
+        full = self.connections.full(n for n in merged if n not in peer.counted)
+        if full is not None:
+            self.close_with(peer, protocol.CLOSE_TOO_MANY, f"identity {full!r} has "
+                            f"{self.limits.max_connections_per_identity} connections open")
+            return False
+        first = peer.perms is None
+        before = peer.perms
         peer.identities = list(merged.values())
         peer.perms = self.pool.get(peer.identities)
         peer.is_robot = any(i.by_address for i in peer.identities)
-        for pattern in self.subs.patterns(peer):  # re-check: rules changed
-            self.subs.unsubscribe(peer, pattern)
-            self._subscribe(peer, pattern)
+        self.recount(peer)
+        if before is not None and peer.perms is not before:  # rules grew: re-check
+            for pattern, refusal in self.subs.set_permissions(peer, peer.perms):
+                self.send_error(peer, refusal.code, pattern, refusal.message)
         peer.outbound.push_control(protocol.welcome(peer.perms))
-        log.info("%s authenticated", peer.label)
+        log.info("%s authenticated (metrics: %s)", peer.label, peer.metric_label)
+        if first and peer.on_authenticated is not None:
+            peer.on_authenticated()
         if peer.session_name is not None and peer.session is None:
             self._attach_session(peer, peer.session_name)
         return True
 
-    def reload_auth(self, auth: AuthMap) -> tuple[int, int]:
-        """Switch to a reloaded auth map and re-authorize every open connection.
+    def recount(self, peer: Peer) -> None:
+        """Count *peer* under its current identity names (the per-identity cap)."""
+        self.connections.remove(peer.counted)
+        peer.counted = peer.identity_names
+        self.connections.add(peer.counted)
 
-        Each authenticated connection's identities are recomputed from its address
-        (address identities) and its token digests. A connection left with none is closed
-        with 4403 and stops receiving at once; the others keep their connection, get the
-        new permissions (a new ``welcome`` if its rules changed) and lose the
-        subscriptions they may no longer hold (an ``error`` and an ``unsubscribed`` frame
-        each). Permission caches and receiver caches are rebuilt; sessions follow
-        (:meth:`SessionTable.reauthorize`).
+    def reload_auth(self, auth: AuthMap) -> tuple[int, int]:
+        """Switch to a reloaded auth map and re-authorize every open connection
+        (:func:`fleetctl.server.reauth.reload_auth`).
 
         Returns:
             ``(kept, closed)``: authenticated connections kept and closed.
         """
-        self.auth = auth
-        self.pool = PermissionsPool()  # the old one caches answers of the old rules
-        self.sessions.reauthorize(auth, self.pool)
-        kept = closed = 0
-        for peer in list(self.peers.values()):
-            if peer.perms is None or peer.closing:
-                continue  # not authenticated yet: it will be, against the new map
-            identities = self.current_identities(peer)
-            if identities:
-                self._regrant(peer, identities)
-                kept += 1
-            else:
-                self.subs.remove(peer)  # nothing more is queued for it from now on
-                self._close(peer, protocol.CLOSE_NO_IDENTITY,
-                            "credentials revoked (auth map reloaded)")
-                closed += 1
-        return kept, closed
+        return reauth.reload_auth(self, auth)
 
     def current_identities(self, peer: Peer) -> list[Identity]:
-        """*peer*'s identities under the current auth map: address ones (if they apply to
-        it) and those of its token digests, deduplicated by name."""
-        found: dict[str, Identity] = {}
-        if peer.by_address:
-            for ident in self.auth.match_address(parse_address(peer.address)):
-                found.setdefault(ident.name, ident)
-        for digest in sorted(peer.token_digests):
-            by_token = self.auth.match_digest(digest)
-            if by_token is not None:
-                found.setdefault(by_token.name, by_token)
-        return list(found.values())
-
-    def _regrant(self, peer: Peer, identities: list[Identity]) -> None:
-        """Give a still-allowed *peer* the permissions of its recomputed *identities*."""
-        assert peer.perms is not None
-        before = protocol.welcome(peer.perms)
-        peer.identities = identities
-        peer.perms = self.pool.get(identities)
-        peer.is_robot = any(i.by_address for i in identities)
-        peer.refused_topics.clear()  # a refused send may be allowed now, and the reverse
-        welcome = protocol.welcome(peer.perms)
-        if welcome != before:
-            peer.outbound.push_control(welcome)
-            log.info("%s re-authorized: rules changed", peer.label)
-        for pattern, refusal in self.subs.set_permissions(peer, peer.perms):
-            self._error(peer, refusal.code, pattern, f"{refusal.message} (auth map reloaded)")
-            peer.outbound.push_control(protocol.ack("unsubscribed", pattern))
-            if peer.session is not None:
-                self.sessions.forget_pattern(peer.session, pattern)
+        """*peer*'s identities under the current auth map
+        (:func:`fleetctl.server.reauth.current_identities`)."""
+        return reauth.current_identities(self, peer)
 
     def close_peer(self, peer: Peer) -> None:
         """Forget a closed connection; count what its scheduler dropped."""
@@ -257,9 +181,11 @@ class RelayCore:
             self._detach_session(peer)
         for name in peer.robots:
             self.registry.detach(name)
+        self.connections.remove(peer.counted)
+        peer.counted = ()
         self.metrics.connections_open -= 1
 
-    def _close(self, peer: Peer, code: int, reason: str) -> None:
+    def close_with(self, peer: Peer, code: int, reason: str) -> None:
         if not peer.closing:
             self.metrics.count_close(code)
             log.warning("%s closed %d: %s", peer.label, code, reason)
@@ -269,9 +195,12 @@ class RelayCore:
 
     def on_binary(self, peer: Peer, frame: bytes) -> None:
         """Handle one binary frame from *peer* (Algorithm 3)."""
+        if peer.throttled:
+            self.discard(peer)
+            return
         perms = peer.perms
         if perms is None:
-            self._close(peer, protocol.CLOSE_NO_IDENTITY,
+            self.close_with(peer, protocol.CLOSE_NO_IDENTITY,
                         "connection matches no identity: send a token frame first")
             return
         try:
@@ -304,12 +233,17 @@ class RelayCore:
 
     def on_text(self, peer: Peer, text: str) -> None:
         """Handle one text frame: a token frame or a ``list_robots`` request."""
+        if peer.throttled:
+            self.discard(peer)
+            return
         try:
             data: Any = json.loads(text) if len(text) <= protocol.MAX_TEXT_CHARS else None
-        except ValueError:
+        except (ValueError, RecursionError):  # RecursionError: "[[[[...": deep nesting
             data = None
         if not isinstance(data, dict):
             self._malformed(peer, "malformed_frame", None, "text frame is not a JSON object")
+            return
+        if ("token" in data or data.get("type") == "list_robots") and not self._allow(peer):
             return
         if "token" in data:
             self.on_token(peer, data["token"], data.get("session"))
@@ -318,7 +252,7 @@ class RelayCore:
             peer.outbound.push_control(json.dumps({"type": "robots",
                                                    "robots": self.robots_for(peer.perms)}))
         elif peer.perms is None:
-            self._close(peer, protocol.CLOSE_NO_IDENTITY, "connection matches no identity")
+            self.close_with(peer, protocol.CLOSE_NO_IDENTITY, "connection matches no identity")
         else:
             self._malformed(peer, "unknown_type", None,
                             "text frames are {'token': ...} or {'type': 'list_robots'}")
@@ -329,11 +263,11 @@ class RelayCore:
         *session* (the token frame's ``session`` field) names the connection's session;
         it is taken only before the connection has a session or subscriptions (else 4400).
         """
-        identity = self.auth.match_token(token) if isinstance(token, str) and token else None
+        identity = self.auth.match_token(token)  # None for anything not a token
         if identity is None:
             self.metrics.count_error("bad_token")
             peer.outbound.push_control(protocol.error("bad_token", None, "unknown token"))
-            self._close(peer, protocol.CLOSE_BAD_TOKEN, "bad token")
+            self.close_with(peer, protocol.CLOSE_BAD_TOKEN, "bad token")
             return
         if session is not None and session != peer.session_name:
             if not isinstance(session, str):
@@ -358,13 +292,13 @@ class RelayCore:
         frames: dict[str, float] = {}
         nbytes: dict[str, float] = {}
         for session in self.sessions:
-            peer = session.attached
+            peer, label = session.attached, session.metric_id
             if peer is None:
-                frames[session.label] = float(len(session.mailbox))
-                nbytes[session.label] = float(session.mailbox.nbytes)
+                frames[label] = float(len(session.mailbox))
+                nbytes[label] = float(session.mailbox.nbytes)
             else:
-                frames[session.label] = float(peer.outbound.backlog_frames)
-                nbytes[session.label] = float(peer.outbound.backlog_bytes)
+                frames[label] = float(peer.outbound.backlog_frames)
+                nbytes[label] = float(peer.outbound.backlog_bytes)
         offline = self.sessions.offline_count
         return [
             ("fleetctl_sessions", "Named sessions by state.", "state",
@@ -393,7 +327,7 @@ class RelayCore:
                         old.label)
             self.subs.remove(old)
             self._detach_session(old)
-            self._close(old, protocol.CLOSE_SESSION_TAKEN_OVER,
+            self.close_with(old, protocol.CLOSE_SESSION_TAKEN_OVER,
                         "session taken over by a newer connection")
         session = self.sessions.attach(key, peer.perms, peer)
         if session is None:
@@ -413,9 +347,12 @@ class RelayCore:
             else:
                 self.sessions.forget_pattern(session, pattern)
         if resumed:
-            log.info("%s resumed session %s: %d mailbox frames, %d subscriptions "
-                     "(%d frames dropped in total)", peer.label, session.label,
-                     len(backlog), len(patterns), session.dropped)
+            log.info("%s resumed session %s (metrics: %s): %d mailbox frames, %d "
+                     "subscriptions (%d frames dropped in total)", peer.label, session.label,
+                     session.metric_id, len(backlog), len(patterns), session.dropped)
+        else:
+            log.info("%s opened session %s (metrics: %s)", peer.label, session.label,
+                     session.metric_id)
 
     def _detach_session(self, peer: Peer) -> None:
         """*peer* leaves its session: what it may not have delivered goes to the mailbox."""
@@ -424,20 +361,20 @@ class RelayCore:
         self.sessions.detach(session, peer.outbound.take_no_drop())
 
     def _bad_session(self, peer: Peer, message: str) -> None:
-        self._error(peer, "bad_session", None, message)
-        self._close(peer, protocol.CLOSE_BAD_SESSION, message[:120])
+        self.send_error(peer, "bad_session", None, message)
+        self.close_with(peer, protocol.CLOSE_BAD_SESSION, message[:120])
 
     # -- helpers ----------------------------------------------------------------------
 
-    def _error(self, peer: Peer, code: str, topic: str | None, message: str) -> None:
+    def send_error(self, peer: Peer, code: str, topic: str | None, message: str) -> None:
         self.metrics.count_error(code)
         peer.outbound.push_control(protocol.error(code, topic, message))
 
     def _malformed(self, peer: Peer, code: str, topic: str | None, message: str) -> None:
-        self._error(peer, code, topic, message)
+        self.send_error(peer, code, topic, message)
         peer.malformed_in_row += 1
         if peer.malformed_in_row >= self.limits.max_malformed_in_row:
-            self._close(peer, protocol.CLOSE_MALFORMED,
+            self.close_with(peer, protocol.CLOSE_MALFORMED,
                         f"{peer.malformed_in_row} malformed frames in a row")
 
     def _unauthorized(self, peer: Peer, topic: str) -> None:
@@ -480,12 +417,54 @@ class RelayCore:
         if is_status and topic == f"/{name}/status":
             status = protocol.decode_status_fields(frame)
             if status is None:
-                self._error(peer, "malformed_frame", topic, "RobofleetStatus does not decode")
+                self.send_error(peer, "malformed_frame", topic, "RobofleetStatus does not decode")
             else:
                 self.registry.set_status(name, *status)
 
+    def _allow(self, peer: Peer) -> bool:
+        """Spend one control request of *peer*'s identity set. Free before the connection
+        has an identity (its first token frame).
+
+        An empty bucket throttles the connection: one ``rate_limited`` error frame, then
+        the I/O layer stops reading from it until the bucket has a token again, and every
+        frame it already sent is discarded (counted), unparsed. A flooding client thus
+        costs the relay one socket read per refill, not work per frame, and gets no
+        answers to reconnect over.
+        """
+        if peer.perms is None:
+            return True
+        key = peer.identity_names
+        bucket = self._buckets.get(key)
+        if bucket is None:
+            limits = self.limits
+            burst = max(limits.max_subscriptions_per_connection, MIN_CONTROL_BURST)
+            bucket = self._buckets[key] = TokenBucket(
+                limits.max_control_requests_per_s, burst, self._clock)
+        if bucket.take():
+            return True
+        self.send_error(peer, "rate_limited", None, "more than "
+                        f"{self.limits.max_control_requests_per_s:g} control requests/s "
+                        "(subscribe, unsubscribe, token, list_robots): frames are "
+                        "discarded for a moment")
+        peer.throttled = True
+        if peer.throttle is not None:
+            peer.throttle(bucket.wait_s())
+        return False
+
+    def discard(self, peer: Peer) -> None:
+        """Count one frame of a throttled *peer*, discarded unread."""
+        self.metrics.count_error("rate_limited")
+
+    def _count_refusal(self, peer: Peer) -> None:
+        peer.over_limit_subscriptions += 1
+        if peer.over_limit_subscriptions > self.limits.max_subscriptions_per_connection:
+            self.close_with(peer, protocol.CLOSE_SUBSCRIPTION_FLOOD,
+                            "subscription flood past the limit")
+
     def _on_subscription(self, peer: Peer, frame: bytes, type_name: str) -> None:
         # Sending on /subscriptions needs no rule (docs/design.md section 3).
+        if not self._allow(peer):
+            return
         if type_name != SUBSCRIPTION_TYPE:
             self._malformed(peer, "unknown_type", SUBSCRIPTION_TOPIC,
                             f"/subscriptions carries RobofleetSubscription, not {type_name}")
@@ -509,14 +488,11 @@ class RelayCore:
     def _subscribe(self, peer: Peer, pattern: str) -> bool:
         assert peer.perms is not None
         try:
-            self.subs.subscribe(peer, peer.perms, pattern)
+            self.subs.subscribe(peer, peer.perms, pattern, peer.identity_names)
         except Refusal as refusal:
-            self._error(peer, refusal.code, pattern, refusal.message)
+            self.send_error(peer, refusal.code, pattern[:200], refusal.message)
             if refusal.code == "too_many_subscriptions":
-                peer.over_limit_subscriptions += 1
-                if peer.over_limit_subscriptions > self.limits.max_subscriptions_per_connection:
-                    self._close(peer, protocol.CLOSE_SUBSCRIPTION_FLOOD,
-                                "subscription flood past the limit")
+                self._count_refusal(peer)
             return False
         return True
 

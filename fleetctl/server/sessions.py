@@ -6,8 +6,9 @@ session on the upgrade (``X-Fleetctl-Session: NAME``) or in its first token fram
 sorted names of the auth-map identities the connection matched, and the name; so a client
 can only reach sessions of its own identity set.
 
-- The session's subscription patterns are stored in SQLite on every change
-  (:class:`~fleetctl.server.sessionstore.SessionStore`) and survive server restarts.
+- The session's subscription patterns are stored in SQLite, written behind
+  (:meth:`SessionTable.take_changes` / :meth:`SessionTable.flush`; the server writes them
+  in a worker thread about once a second) and survive server restarts.
 - While the session has no connection (it dropped, or the server restarted), every
   no_drop frame matching one of its patterns that its identities may receive goes into
   its :class:`Mailbox` (bounded in frames and bytes; overflow drops the oldest, counted).
@@ -23,6 +24,7 @@ Nothing here does I/O except the store.
 
 from __future__ import annotations
 
+import hashlib
 import logging
 import re
 import sqlite3
@@ -70,8 +72,16 @@ def check_session_name(value: object) -> str:
 
 
 def session_label(key: SessionKey) -> str:
-    """``identity[+identity...]/name``: the session in logs and metric labels."""
+    """``identity[+identity...]/name``: the session in log lines."""
     return f"{'+'.join(key[0])}/{key[1]}"
+
+
+def session_metric_id(key: SessionKey) -> str:
+    """``session#1a2b3c4d5e6f``: the session in metric labels, opaque (identity names are
+    e-mail addresses; ``/metrics`` must not list who uses the fleet) and stable across
+    restarts. Log lines name both (:func:`session_label` and this)."""
+    digest = hashlib.sha256(session_label(key).encode("utf-8", "backslashreplace"))
+    return f"session#{digest.hexdigest()[:12]}"
 
 
 class Mailbox:
@@ -119,7 +129,8 @@ class Session(Generic[C]):
 
     Attributes:
         key: ``(sorted identity names, name)``.
-        label: :func:`session_label` of the key.
+        label: :func:`session_label` of the key (logs).
+        metric_id: :func:`session_metric_id` of the key (metrics).
         perms: What the key's identities may receive (checked per mailboxed frame).
         patterns: Subscription regexes, in subscription order (a dict used as an
             ordered set).
@@ -131,12 +142,13 @@ class Session(Generic[C]):
             attach (the overflow is logged once per offline episode).
     """
 
-    __slots__ = ("attached", "dropped", "key", "label", "mailbox", "offline_since_s",
-                 "overflowing", "patterns", "perms")
+    __slots__ = ("attached", "dropped", "key", "label", "mailbox", "metric_id",
+                 "offline_since_s", "overflowing", "patterns", "perms")
 
     def __init__(self, key: SessionKey, perms: Permissions, mailbox: Mailbox) -> None:
         self.key = key
         self.label = session_label(key)
+        self.metric_id = session_metric_id(key)
         self.perms = perms
         self.patterns: dict[str, None] = {}
         self.mailbox = mailbox
@@ -164,6 +176,9 @@ class SessionTable(Generic[C]):
         self._clock = clock
         self._sessions: dict[SessionKey, Session[C]] = {}
         self._per_identity: dict[tuple[str, ...], int] = {}
+        # Write-behind: the latest patterns of each changed session (None: delete it).
+        # Bounded by the number of sessions.
+        self._changes: dict[SessionKey, tuple[str, ...] | None] = {}
         # Offline sessions' patterns, with the same receiver cache the live map has.
         self._offline: SubscriptionMap[Session[C]] = SubscriptionMap(
             limits.max_subscriptions_per_connection)
@@ -378,7 +393,7 @@ class SessionTable(Generic[C]):
 
     def _on_drop(self, session: Session[C], topic: str, overflow: bool = True) -> None:
         session.dropped += 1
-        self._metrics.count_session_drop(session.label, topic)
+        self._metrics.count_session_drop(session.metric_id, topic)
         if not overflow:
             return
         session.overflowing += 1
@@ -388,18 +403,40 @@ class SessionTable(Generic[C]):
                         self.limits.session_mailbox_messages,
                         self.limits.session_mailbox_bytes, topic)
 
+    # -- persistence (write-behind) -----------------------------------------------------
+
+    def take_changes(self) -> Callable[[], None] | None:
+        """Take the changes not yet stored; return the job that stores them (one
+        transaction; safe to run in a worker thread while the relay goes on), or ``None``
+        when there is nothing to store.
+
+        The store's database connection must then be used by nobody else until the job
+        has run (the server runs it and the robot registry's write in one worker call).
+        """
+        if self._store is None or not self._changes:
+            return None
+        changes = [(k[0], k[1], p) for k, p in self._changes.items()]
+        self._changes = {}
+        store = self._store
+
+        def job() -> None:
+            try:
+                store.write(changes)
+            except sqlite3.Error:  # a full disk must not stop the relay
+                log.exception("cannot store %d session changes", len(changes))
+
+        return job
+
+    def flush(self) -> None:
+        """Store the pending changes now, on this thread (shutdown, tests)."""
+        job = self.take_changes()
+        if job is not None:
+            job()
+
     def _persist(self, session: Session[C]) -> None:
-        if self._store is None:
-            return
-        try:
-            self._store.save(session.key[0], session.key[1], list(session.patterns))
-        except sqlite3.Error:  # a full disk must not stop the relay
-            log.exception("cannot store session %s", session.label)
+        if self._store is not None:
+            self._changes[session.key] = tuple(session.patterns)
 
     def _persist_delete(self, key: SessionKey) -> None:
-        if self._store is None:
-            return
-        try:
-            self._store.delete(key[0], key[1])
-        except sqlite3.Error:
-            log.exception("cannot delete session %s", session_label(key))
+        if self._store is not None:
+            self._changes[key] = None

@@ -1,10 +1,12 @@
 """Named sessions' subscriptions in SQLite (the ``sessions`` table of the registry database).
 
-Only the subscription patterns are stored, written through on every change (a change is
-a subscribe or unsubscribe of a *new* pattern: rare, so one small transaction each); the
-mailboxes stay in memory. A row is the key ``(identities, name)`` -- the sorted identity
-names of the connection, as JSON, and the session name -- and its patterns in the order
-they were subscribed.
+Only the subscription patterns are stored; the mailboxes stay in memory. Changes are
+written behind: the session table collects the latest state of each changed session and
+:meth:`SessionStore.write` stores them in one transaction, off the event loop (the server
+does it about once a second, in a worker thread, and at shutdown), so a client toggling
+subscriptions never makes the relay wait for a disk commit. A row is the key
+``(identities, name)`` -- the sorted identity names of the connection, as JSON, and the
+session name -- and its patterns in the order they were subscribed.
 """
 
 from __future__ import annotations
@@ -90,6 +92,22 @@ class SessionStore:
                 "VALUES (?, ?, ?, ?)",
                 (_key(identities), name, json.dumps(patterns), self._clock()),
             )
+
+    def write(self, changes: list[tuple[tuple[str, ...], str, tuple[str, ...] | None]]) -> None:
+        """Store several sessions in one transaction.
+
+        Args:
+            changes: ``(identities, name, patterns)``; ``patterns`` ``None`` deletes the row.
+        """
+        now = self._clock()
+        upserts = [(_key(i), n, json.dumps(list(p)), now) for i, n, p in changes if p is not None]
+        deletes = [(_key(i), n) for i, n, p in changes if p is None]
+        with self._db:
+            self._db.executemany(
+                "INSERT OR REPLACE INTO sessions (identities, name, patterns, updated_s) "
+                "VALUES (?, ?, ?, ?)", upserts)
+            self._db.executemany("DELETE FROM sessions WHERE identities = ? AND name = ?",
+                                 deletes)
 
     def delete(self, identities: tuple[str, ...], name: str) -> None:
         """Forget session ``(identities, name)`` (no error if it is not stored)."""

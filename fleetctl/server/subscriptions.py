@@ -1,14 +1,21 @@
 """The subscription map S of Robofleet Algorithm 3, with a per-topic receiver cache.
 
-Each connection holds a bounded set of RE2 full-match subscription regexes. The relay asks
+Each connection holds a bounded set of RE2 full-match subscription regexes (bounded in
+number and in pattern bytes, per connection and per identity). The relay asks
 :meth:`SubscriptionMap.receivers` for every frame; its answer (subscribers whose regex
-matches *and* who may receive the topic) is cached per topic and invalidated whenever any
-subscription changes, so the steady state costs one dict lookup per frame.
+matches *and* who may receive the topic) is cached per topic, so the steady state costs one
+dict lookup per frame.
+
+A subscription change updates only the changed connection's place in each cached answer
+(one regex match per cached topic), never the whole cache: one client toggling
+subscriptions must not make every topic be matched again against every pattern of every
+connection (docs/security.md). Only a permission change (auth map reload) clears it.
 """
 
 from __future__ import annotations
 
-from collections.abc import Hashable
+from collections.abc import Hashable, Iterable
+from dataclasses import dataclass, field
 from typing import Generic, TypeVar
 
 from fleetctl.server.permissions import Permissions
@@ -38,63 +45,145 @@ class Refusal(Exception):
         return f"{self.code}: {self.message}"
 
 
+@dataclass
+class _Entry:
+    """One connection's subscriptions and what they are charged against."""
+
+    perms: Permissions
+    subs: dict[str, FullMatch] = field(default_factory=dict)
+    nbytes: int = 0  # UTF-8 bytes of the patterns
+    keys: tuple[str, ...] = ()  # identity names the bytes are charged to
+
+
 class SubscriptionMap(Generic[C]):
     """Subscriptions of every connection.
 
     Args:
         max_per_connection: Subscriptions one connection may hold.
+        max_bytes_per_connection: Pattern bytes (UTF-8) one connection may hold; ``None``
+            for no bound.
+        max_bytes_per_key: Pattern bytes all connections charged to one key (an identity
+            name) may hold together; ``None`` for no bound.
     """
 
-    def __init__(self, max_per_connection: int) -> None:
+    def __init__(self, max_per_connection: int, max_bytes_per_connection: int | None = None,
+                 max_bytes_per_key: int | None = None) -> None:
         self.max_per_connection = max_per_connection
-        self._subs: dict[C, tuple[Permissions, dict[str, FullMatch]]] = {}
+        self.max_bytes_per_connection = max_bytes_per_connection
+        self.max_bytes_per_key = max_bytes_per_key
+        self._subs: dict[C, _Entry] = {}
         self._cache: dict[str, tuple[C, ...]] = {}
+        self._key_bytes: dict[str, int] = {}
 
     def __len__(self) -> int:
-        return sum(len(s) for _, s in self._subs.values())
+        return sum(len(e.subs) for e in self._subs.values())
 
     def patterns(self, conn: C) -> list[str]:
         """Return the subscription regexes of *conn*."""
         entry = self._subs.get(conn)
-        return list(entry[1]) if entry else []
+        return list(entry.subs) if entry else []
 
-    def subscribe(self, conn: C, perms: Permissions, pattern: str) -> None:
+    def pattern_bytes(self, conn: C) -> int:
+        """UTF-8 bytes of *conn*'s patterns."""
+        entry = self._subs.get(conn)
+        return entry.nbytes if entry else 0
+
+    def key_bytes(self, key: str) -> int:
+        """UTF-8 bytes of the patterns charged to *key*."""
+        return self._key_bytes.get(key, 0)
+
+    def subscribe(self, conn: C, perms: Permissions, pattern: str,
+                  keys: Iterable[str] = ()) -> None:
         """Add a subscription (idempotent).
 
         A literal topic must be receivable. A pattern is taken if the connection has any
         receive rule; each delivery is then checked against the receive rules.
 
+        Args:
+            conn: The connection.
+            perms: Its permissions.
+            pattern: RE2 full-match regex (or a literal topic).
+            keys: Identity names the pattern bytes are charged to.
+
         Raises:
-            Refusal: Bad regex, nothing receivable, or over the per-connection limit.
+            Refusal: Bad regex, nothing receivable, or over a per-connection or per-key
+                bound.
         """
+        entry = self._entry(conn, perms, tuple(keys))
+        if pattern in entry.subs:
+            return
+        size = len(pattern.encode("utf-8", "surrogatepass"))
+        self._check_quota(entry, size)  # before compiling: an RE2 compile is the dear part
         try:
             compiled = compile_full(pattern)
         except BadRegex as exc:
-            raise Refusal("bad_regex", f"bad RE2 regex {pattern!r}: {exc}") from None
+            raise Refusal("bad_regex", f"bad RE2 regex {pattern!r:.200}: {exc}") from None
         refusal = _refusal(perms, pattern, compiled)
         if refusal is not None:
             raise refusal
+        entry.subs[pattern] = compiled
+        self._charge(entry, size)
+        for topic, found in self._cache.items():  # only this connection's place changes
+            if conn not in found and compiled.matches(topic) and perms.may_receive(topic):
+                self._cache[topic] = (*found, conn)
+
+    def _entry(self, conn: C, perms: Permissions, keys: tuple[str, ...]) -> _Entry:
         entry = self._subs.get(conn)
-        subs = entry[1] if entry is not None else {}
-        if entry is None or entry[0] is not perms:  # new, or its permissions changed
-            self._subs[conn] = (perms, subs)
+        if entry is None:
+            entry = self._subs[conn] = _Entry(perms, keys=keys)
+        elif entry.perms is not perms:  # its permissions changed: answers may differ
+            entry.perms = perms
             self._cache.clear()
-        if pattern in subs:
-            return
-        if len(subs) >= self.max_per_connection:
+        if entry.keys != keys:  # e.g. a token frame added an identity
+            self._charge_keys(entry.keys, -entry.nbytes)
+            entry.keys = keys
+            self._charge_keys(keys, entry.nbytes)
+        return entry
+
+    def _check_quota(self, entry: _Entry, size: int) -> None:
+        if len(entry.subs) >= self.max_per_connection:
             raise Refusal(
                 "too_many_subscriptions",
                 f"limit of {self.max_per_connection} subscriptions per connection reached",
             )
-        subs[pattern] = compiled
-        self._cache.clear()
+        limit = self.max_bytes_per_connection
+        if limit is not None and entry.nbytes + size > limit:
+            raise Refusal("too_many_subscriptions",
+                          f"limit of {limit} pattern bytes per connection reached")
+        limit = self.max_bytes_per_key
+        full = next((k for k in entry.keys if limit is not None
+                     and self._key_bytes.get(k, 0) + size > limit), None)
+        if full is not None:
+            raise Refusal("too_many_subscriptions",
+                          f"limit of {limit} pattern bytes per identity reached ({full!r})")
+
+    def _charge(self, entry: _Entry, size: int) -> None:
+        """Add *size* bytes (negative: release) to *entry* and to its keys."""
+        entry.nbytes += size
+        self._charge_keys(entry.keys, size)
+
+    def _charge_keys(self, keys: tuple[str, ...], size: int) -> None:
+        for key in keys:
+            left = self._key_bytes.get(key, 0) + size
+            if left > 0:
+                self._key_bytes[key] = left
+            else:
+                self._key_bytes.pop(key, None)
 
     def unsubscribe(self, conn: C, pattern: str) -> bool:
         """Remove a subscription; return whether it existed."""
         entry = self._subs.get(conn)
-        if entry is None or entry[1].pop(pattern, None) is None:
+        if entry is None:
             return False
-        self._cache.clear()
+        compiled = entry.subs.pop(pattern, None)
+        if compiled is None:
+            return False
+        self._charge(entry, -len(pattern.encode("utf-8", "surrogatepass")))
+        rest = entry.subs.values()
+        for topic, found in self._cache.items():
+            if (conn in found and compiled.matches(topic)
+                    and not any(m.matches(topic) for m in rest)):
+                self._cache[topic] = tuple(c for c in found if c != conn)
         return True
 
     def set_permissions(self, conn: C, perms: Permissions) -> list[tuple[str, Refusal]]:
@@ -111,21 +200,25 @@ class SubscriptionMap(Generic[C]):
         if entry is None:
             return []
         refused: list[tuple[str, Refusal]] = []
-        kept: dict[str, FullMatch] = {}
-        for pattern, compiled in entry[1].items():
+        for pattern, compiled in list(entry.subs.items()):
             reason = _refusal(perms, pattern, compiled)
-            if reason is None:
-                kept[pattern] = compiled
-            else:
+            if reason is not None:
                 refused.append((pattern, reason))
-        self._subs[conn] = (perms, kept)
+                del entry.subs[pattern]
+                self._charge(entry, -len(pattern.encode("utf-8", "surrogatepass")))
+        entry.perms = perms
         self._cache.clear()
         return refused
 
     def remove(self, conn: C) -> None:
         """Forget every subscription of a closed connection."""
-        if self._subs.pop(conn, None) is not None:
-            self._cache.clear()
+        entry = self._subs.pop(conn, None)
+        if entry is None:
+            return
+        self._charge(entry, -entry.nbytes)
+        for topic, found in self._cache.items():
+            if conn in found:
+                self._cache[topic] = tuple(c for c in found if c != conn)
 
     def receivers(self, topic: str) -> tuple[C, ...]:
         """Return the connections that get a frame on *topic* (Algorithm 3 lines 15-16)."""
@@ -133,8 +226,9 @@ class SubscriptionMap(Generic[C]):
         if found is None:
             found = tuple(
                 conn
-                for conn, (perms, subs) in self._subs.items()
-                if any(m.matches(topic) for m in subs.values()) and perms.may_receive(topic)
+                for conn, entry in self._subs.items()
+                if any(m.matches(topic) for m in entry.subs.values())
+                and entry.perms.may_receive(topic)
             )
             if len(self._cache) >= MAX_CACHED_TOPICS:
                 self._cache.clear()

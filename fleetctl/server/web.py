@@ -37,11 +37,6 @@ def web_page(config: WebConfig) -> WebPage:
     return WebPage(STATIC_DIR, config.vendor_dir, layouts)
 
 
-def wants_websocket(request: Request) -> bool:
-    """Whether *request* asks for a WebSocket upgrade (else it is a plain GET)."""
-    return request.headers.get("Upgrade", "").strip().lower() == "websocket"
-
-
 def page_response(page: WebPage, request: Request) -> Response:
     """Answer a plain GET on the web listener: ``/healthz`` or one of the page's routes."""
     if request.path.split("?", 1)[0] == "/healthz":

@@ -22,6 +22,7 @@ from dataclasses import dataclass
 from http import HTTPStatus
 from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
 from pathlib import Path
+from typing import Any
 from urllib.parse import unquote, urlsplit
 
 from fleetctl.webviz.config import WebvizConfig
@@ -180,9 +181,16 @@ def default_server_url(host_header: str | None, forwarded_proto: str | None,
     return f"{scheme}://{host}:{DEFAULT_RELAY_PORT}/"
 
 
+# Why: each connection holds a thread; a silent client must not hold one for long, and
+# many clients must not make many threads (the page makes a few dozen small requests).
+REQUEST_TIMEOUT_S = 10.0
+MAX_CONNECTION_THREADS = 64
+
+
 class _Handler(BaseHTTPRequestHandler):
     server: WebvizHTTPServer
     server_version = "fleetctl-webviz"
+    timeout = REQUEST_TIMEOUT_S  # socket timeout: a silent or slow client is dropped
 
     def log_message(self, format: str, *args: object) -> None:
         log.debug("%s " + format, self.address_string(), *args)
@@ -205,23 +213,52 @@ class _Handler(BaseHTTPRequestHandler):
 
 
 class WebvizHTTPServer(ThreadingHTTPServer):
-    """Serves the page; one thread per request (the page makes few, small requests)."""
+    """Serves the page; one thread per connection, at most :attr:`max_threads` at once
+    (one more connection is closed at accept, counted in :attr:`refused`), each dropped
+    after :data:`REQUEST_TIMEOUT_S` of silence."""
 
     daemon_threads = True
 
-    def __init__(self, config: WebvizConfig, layouts: LayoutSource) -> None:
+    def __init__(self, config: WebvizConfig, layouts: LayoutSource,
+                 max_threads: int = MAX_CONNECTION_THREADS) -> None:
         """Bind the listening socket (port 0 picks a free port).
 
         Args:
             config: What to serve and where.
             layouts: Source of ``/types/<T>.json`` bodies.
+            max_threads: Connections served at once.
 
         Raises:
             OSError: the address cannot be bound.
         """
         self.config = config
         self.page = WebPage(config.static_dir, config.vendor_dir, layouts)
+        self.max_threads = max_threads
+        self._slots = threading.BoundedSemaphore(max_threads)
+        self.refused = 0
         super().__init__((config.listen_host, config.listen_port), _Handler)
+
+    def process_request(self, request: Any, client_address: Any) -> None:
+        """Serve *request* in a thread if one is free, else close it at once."""
+        if not self._slots.acquire(blocking=False):
+            self.refused += 1
+            if self.refused % 1000 == 1:
+                log.warning("webviz: %d connections open, refusing more (%d refused so far)",
+                            self.max_threads, self.refused)
+            self.shutdown_request(request)
+            return
+        try:
+            super().process_request(request, client_address)
+        except BaseException:
+            self._slots.release()
+            raise
+
+    def process_request_thread(self, request: Any, client_address: Any) -> None:
+        """Serve one connection, then give its slot back."""
+        try:
+            super().process_request_thread(request, client_address)
+        finally:
+            self._slots.release()
 
     @property
     def port(self) -> int:

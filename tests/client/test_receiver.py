@@ -57,16 +57,45 @@ def test_fragments_reassemble_and_lost_fragment_is_never_delivered() -> None:
     assert rx.stats()["reassembly"]["superseded"] == 1
 
 
-def test_dedupe_window_accepts_a_restarted_sender() -> None:
+def test_resends_are_dropped_once_seen() -> None:
     received: list[bytes] = []
     rx = make(received)
-    for seq in (1000, 1001, 1001, 999, 5, 6):  # 5: far below -> a restarted sender
-        rx.on_binary(string_frame("/e", f"s{seq}", no_drop=True, seq=seq))
-    assert [decode_text(f) for f in received] == ["s1000", "s1001", "s5", "s6"]
+    frames = [string_frame("/e", f"s{seq}", no_drop=True, seq=seq) for seq in (1000, 1001)]
+    for frame in [*frames, frames[1], frames[0]]:  # resent after a reconnect
+        rx.on_binary(frame)
+    assert [decode_text(f) for f in received] == ["s1000", "s1001"]
     assert rx.stats()["duplicates"] == 2
-    rx.on_binary(string_frame("/d", "droppable repeats are not deduped", seq=6))
-    rx.on_binary(string_frame("/d", "droppable repeats are not deduped", seq=6))
-    assert len(received) == 6
+    droppable = string_frame("/d", "droppable repeats are not deduped", seq=6)
+    rx.on_binary(droppable)
+    rx.on_binary(droppable)
+    assert len(received) == 4
+
+
+def test_two_senders_on_one_topic_are_deduped_separately() -> None:
+    """A second operator, or a reloaded page whose seq restarts at 1, is not a resend
+    (issue 14 item 6): both senders' goals arrive, each sender's resends do not."""
+    received: list[bytes] = []
+    rx = make(received)
+    first = [string_frame("/husky1/goal", f"a{seq}", no_drop=True, seq=seq) for seq in (1, 2, 3)]
+    second = [string_frame("/husky1/goal", f"b{seq}", no_drop=True, seq=seq) for seq in (1, 2)]
+    for frame in [first[0], first[1], second[0], first[2], second[1]]:
+        rx.on_binary(frame)
+    for frame in [first[1], second[0]]:  # each sender's resend
+        rx.on_binary(frame)
+    assert [decode_text(f) for f in received] == ["a1", "a2", "b1", "a3", "b2"]
+    assert rx.stats()["duplicates"] == 2
+
+
+def test_dedupe_memory_is_bounded() -> None:
+    received: list[bytes] = []
+    rx = Receiver(lambda: 0.0, received.append, reassembly_max_bytes=10**6,
+                  reassembly_timeout_s=5.0, dedupe_window=3)
+    frames = [string_frame("/e", f"s{i}", no_drop=True, seq=i) for i in range(5)]
+    for frame in frames:
+        rx.on_binary(frame)
+    rx.on_binary(frames[4])  # remembered: dropped
+    rx.on_binary(frames[0])  # forgotten (window 3): delivered again
+    assert [decode_text(f) for f in received] == ["s0", "s1", "s2", "s3", "s4", "s0"]
 
 
 def test_compressed_fragments_are_reassembled_then_decompressed() -> None:

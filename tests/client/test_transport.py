@@ -92,8 +92,11 @@ async def test_duplicate_no_drop_frames_are_dropped_on_receive(
         RobotLink(cfg, on_frame=received.append, tuning=FAST)
     ) as link:
         await wait_until(lambda: link.stats()["subscribed"] == ["/r1/cmd.*"])
+        # A resend is the same frame again (same seq and publish time).
+        frames = {seq: string_frame("/r1/cmd", f"s{seq}", no_drop=True, seq=seq)
+                  for seq in (1, 2, 3, 4)}
         for seq in [1, 2, 2, 3, 1, 4]:
-            await operator.ws.send(string_frame("/r1/cmd", f"s{seq}", no_drop=True, seq=seq))
+            await operator.ws.send(frames[seq])
         await operator.ws.send(string_frame("/r1/cmd", "end", no_drop=True, seq=5))
         await wait_until(lambda: bool(received) and decode_text(received[-1]) == "end")
         assert [decode_text(f) for f in received] == ["s1", "s2", "s3", "s4", "end"]

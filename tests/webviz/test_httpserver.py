@@ -121,3 +121,31 @@ def test_one_lookup_for_every_server(tmp_path: Path) -> None:
     assert reply.status == 200 and reply.content_type.startswith("text/javascript")
     reply = page.lookup("/vendor/three/three.module.js", None)
     assert reply.status == 404 and reply.error is not None and "libjs-three" in reply.error
+
+
+def test_idle_connections_time_out_and_threads_are_bounded(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """Silent clients cannot each hold a thread forever (issue 14, low item)."""
+    import socket
+    import threading
+
+    from fleetctl.webviz import httpserver
+    from tests.support import wait_for_value
+
+    monkeypatch.setattr(httpserver._Handler, "timeout", 0.5)
+    with webviz_server(None) as w:
+        w.server._slots = threading.BoundedSemaphore(3)  # a small bound for the test
+        w.server.max_threads = 3
+        port = w.server.port
+        silent = [socket.create_connection(("127.0.0.1", port)) for _ in range(3)]
+        extra = socket.create_connection(("127.0.0.1", port))
+        extra.settimeout(5)
+        assert extra.recv(1) == b""  # refused at once: no fourth thread
+        assert wait_for_value(lambda: w.server.refused == 1, 5)
+        for s in silent:  # each silent connection is dropped after the timeout
+            s.settimeout(5)
+            assert s.recv(1) == b""
+        assert get(w.url)[0] == 200  # the slots came back
+        for s in [*silent, extra]:
+            s.close()

@@ -10,6 +10,7 @@ of it is brought up to date (:func:`fleetctl.deploy.live.sync_running`).
 
 from __future__ import annotations
 
+import re
 from pathlib import Path
 from typing import Any
 
@@ -36,6 +37,32 @@ from fleetctl.deploy.fleet import (
 
 _FLEET_HELP = "Fleet directory (default: $FLEET_DIR, else the current directory)."
 _DRY_RUN_HELP = "Show what would be written, write nothing."
+
+
+class AsciiInt:
+    """Parse an integer option of ASCII digits in ``[low, high]`` (``int()`` and click's
+    INT also take other scripts' digits, e.g. full-width ones)."""
+
+    def __init__(self, low: int, high: int) -> None:
+        self.low, self.high = low, high
+        self.__name__ = "integer"  # how click names the type in messages
+
+    def __call__(self, value: str | int) -> int:
+        """Return the integer.
+
+        Raises:
+            typer.BadParameter: not ASCII digits, or out of range (usage, exit code 2).
+        """
+        if isinstance(value, int):
+            return value
+        if not re.fullmatch(r"[0-9]{1,9}", value):
+            raise typer.BadParameter(f"{value[:40]!r} is not an integer (ASCII digits)")
+        if not self.low <= int(value) <= self.high:
+            raise typer.BadParameter(f"{value} is not in {self.low}..{self.high}")
+        return int(value)
+
+
+_PORT = AsciiInt(1, 65535)
 
 
 def _fleet_option() -> Any:
@@ -80,14 +107,16 @@ def init(
     subnet: str = typer.Option(DEFAULT_SUBNET, "--subnet", help="VPN subnet (CIDR)."),
     server_ip: str | None = typer.Option(
         None, "--server-ip", help="Server's VPN address (default: first host of the subnet)."),
-    server_port: int = typer.Option(DEFAULT_SERVER_PORT, "--server-port", min=1, max=65535,
+    server_port: int = typer.Option(DEFAULT_SERVER_PORT, "--server-port", parser=_PORT,
                                     help="TCP port of the fleet server's WebSocket."),
     wireguard_port: int | None = typer.Option(
-        None, "--wireguard-port", min=1, max=65535,
+        None, "--wireguard-port", parser=_PORT,
         help="UDP port WireGuard listens on (default: the endpoint's port, else 51820)."),
-    https_port: int = typer.Option(DEFAULT_HTTPS_PORT, "--https-port", min=1, max=65535,
+    https_port: int = typer.Option(DEFAULT_HTTPS_PORT, "--https-port", parser=_PORT,
                                    help="TCP port of the HTTPS listener (web page, wss://)."),
-    name: str | None = typer.Option(None, "--name", help="Fleet name (default: directory name)."),
+    name: str | None = typer.Option(
+        None, "--name", help="Fleet name: up to 63 ASCII letters, digits, '.', '_', '-' "
+        "(default: the directory's name, other characters made '-')."),
     force: bool = typer.Option(False, "--force",
                                help="Replace an existing fleet, its keys and generated files."),
     fleet: Path = _fleet_option(),
@@ -115,8 +144,8 @@ def init(
 def add_robot(
     name: str = typer.Argument(..., help="Robot name (a ROS namespace segment)."),
     ip: str | None = typer.Option(None, "--ip", help="VPN address (default: next free one)."),
-    mtu: int = typer.Option(DEFAULT_MTU_BYTES, "--mtu", help="WireGuard MTU in bytes "
-                            "(1280 suits LTE)."),
+    mtu: int = typer.Option(DEFAULT_MTU_BYTES, "--mtu", parser=AsciiInt(1, 65535),
+                            help="WireGuard MTU in bytes (1280 suits LTE)."),
     fleet: Path = _fleet_option(),
     dry_run: bool = _dry_run_option(),
     output: OutputFormat = output_option(),
@@ -236,8 +265,8 @@ def set_endpoint(
 def export(
     name: str = typer.Argument(..., help="Robot to export."),
     out: Path | None = typer.Option(
-        None, "--out", help="Bundle directory, or a path ending in .tar.gz "
-        "(default: ./NAME-bundle)."),
+        None, "--out", help="Bundle directory (made 0700 if missing), or a path ending in "
+        ".tar.gz or .tgz (default: ./NAME-bundle)."),
     fleet: Path = _fleet_option(),
     dry_run: bool = _dry_run_option(),
     output: OutputFormat = output_option(),

@@ -5,15 +5,14 @@ Written for a robot running Ubuntu 24.04 with ROS 2 Jazzy from apt, amd64 or arm
 on the robot's own rclpy, under systemd, or in the ``fleetctl/client`` image
 (``--network host``, amd64 only: its ROS 2 comes from x86_64 PyPI wheels).
 
-Each generated format has one escaping function here, applied to every value before it
-reaches a template: :func:`sh_quote` (shell), :func:`env_value` (an env file read by systemd,
-``docker --env-file`` and ``sh``), :func:`unit_text` (systemd unit settings),
-:func:`md_text` (Markdown prose). YAML goes through ``yaml.safe_dump`` or the ``y`` filter.
+Values reach the templates raw and each goes through the filter of its file's format
+(:mod:`fleetctl.deploy.render`: ``sh``, ``env``, ``unit``, ``md``, ``comment``, ``y``,
+``wg``); ``compose.yaml`` is data dumped with ``yaml.safe_dump``. Shell lines built here
+(``docker run``) quote every word with :func:`sh_quote`.
 """
 
 from __future__ import annotations
 
-import re
 import shlex
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -24,8 +23,11 @@ import fleetctl
 from fleetctl.deploy.files import PUBLIC_FILE_MODE, SECRET_FILE_MODE
 from fleetctl.deploy.fleet import DEFAULT_RMW_IMPLEMENTATION, Fleet, Robot
 from fleetctl.deploy.render import (
+    Escaped,
     FleetKeys,
     client_config,
+    comment_text,
+    env_assignment,
     render_template,
     robot_wireguard,
     server_url,
@@ -64,13 +66,6 @@ ROS_WHEELS = (
     "pillow>=10,<14",
 )
 
-# Values an env file may hold bare: systemd, `docker --env-file` (which takes quotes
-# literally) and sh must all read the same value, so nothing that needs quoting.
-_ENV_NAME = re.compile(r"[A-Z_][A-Z0-9_]*")
-_ENV_VALUE = re.compile(r"[A-Za-z0-9_.,:/+@=-]*")
-_CONTROL = re.compile(r"[\x00-\x1f\x7f]")
-_MD_SPECIAL = re.compile(r"([\\`*_{}\[\]<>()#+!|~])")
-
 
 @dataclass(frozen=True)
 class BundleFile:
@@ -107,27 +102,7 @@ def env_value(name: str, value: str | int) -> str:
         ValueError: the name is not an environment variable name, or the value needs
             quoting (no quoting means the same thing to all three readers).
     """
-    text = str(value)
-    if not _ENV_NAME.fullmatch(name):
-        raise ValueError(f"not an environment variable name: {name!r}")
-    if not _ENV_VALUE.fullmatch(text):
-        raise ValueError(f"{name}: value {text!r} would need quoting in an env file")
-    return f"{name}={text}"
-
-
-def unit_text(value: str) -> str:
-    """Make free text safe as a systemd unit setting value (e.g. ``Description=``).
-
-    ``%`` starts a specifier (doubled); a control character could end the line or start a
-    new setting, a trailing backslash continue it: both become spaces.
-    """
-    text = _CONTROL.sub(" ", value).replace("%", "%%")
-    return text.rstrip("\\ ").strip()
-
-
-def md_text(value: str) -> str:
-    """Make free text literal in Markdown prose (one line, special characters escaped)."""
-    return _MD_SPECIAL.sub(r"\\\1", _CONTROL.sub(" ", value))
+    return str(env_assignment((name, value)))
 
 
 # --- the generated files ----------------------------------------------------------------
@@ -140,20 +115,18 @@ def client_image(version: str = fleetctl.__version__) -> str:
 
 def robot_env(fleet: Fleet, robot: Robot) -> str:
     """Return ``fleetctl.env``: the robot's ROS 2 graph (domain, RMW) from ``fleet.yaml``."""
-    lines = [
-        env_value("ROS_DOMAIN_ID", robot.ros_domain_id),
-        env_value("RMW_IMPLEMENTATION", robot.rmw_implementation),
-    ]
+    environment = [("ROS_DOMAIN_ID", robot.ros_domain_id),
+                   ("RMW_IMPLEMENTATION", robot.rmw_implementation)]
     return render_template(
-        "robot/fleetctl.env.j2", robot_name=robot.name, fleet_name=unit_text(fleet.name),
-        assignments=lines, fastdds=robot.rmw_implementation == FASTDDS_RMW)
+        "robot/fleetctl.env.j2", robot_name=robot.name, fleet_name=fleet.name,
+        environment=environment, fastdds=robot.rmw_implementation == FASTDDS_RMW)
 
 
 def client_unit(fleet: Fleet, robot: Robot) -> str:
     """Return ``fleetctl-client.service``: the client under systemd, after the tunnel."""
     return render_template(
         "robot/fleetctl-client.service.j2",
-        description=unit_text(f"fleetctl robot client of {robot.name} (fleet {fleet.name})"),
+        description=f"fleetctl robot client of {robot.name} (fleet {fleet.name})",
         interface=WIREGUARD_INTERFACE, env_file=f"{ETC_DIR}/{ENV_FILE}",
         wrapper=WRAPPER_PATH, state_dir=STATE_DIR)
 
@@ -162,8 +135,7 @@ def client_wrapper(robot: Robot) -> str:
     """Return ``fleetctl-client``: runs ``fleetctl client`` in the robot's ROS 2 env."""
     text = render_template(
         "robot/fleetctl-client.sh.j2", robot_name=robot.name,
-        ros_setup=sh_quote(ROS_SETUP), venv=sh_quote(VENV_DIR),
-        config=sh_quote(f"{ETC_DIR}/{CLIENT_FILE}"))
+        ros_setup=ROS_SETUP, venv=VENV_DIR, config=f"{ETC_DIR}/{CLIENT_FILE}")
     return shebang_first(text)
 
 
@@ -194,15 +166,16 @@ def docker_run_args(robot: Robot, version: str = fleetctl.__version__) -> list[s
     return args
 
 
-def docker_run_line(robot: Robot, version: str = fleetctl.__version__) -> str:
-    """:func:`docker_run_args` as one shell line (``$PWD`` left for the shell to expand)."""
+def docker_run_line(robot: Robot, version: str = fleetctl.__version__) -> Escaped:
+    """:func:`docker_run_args` as one shell line (``$PWD`` left for the shell to expand):
+    every word quoted with :func:`sh_quote`, so the line goes into the README as it is."""
     words = []
     for arg in docker_run_args(robot, version):
         if arg.startswith("$PWD/"):
             words.append(f'"$PWD"/{sh_quote(arg.removeprefix("$PWD/"))}')
         else:
             words.append(sh_quote(arg))
-    return " ".join(words)
+    return Escaped(" ".join(words))
 
 
 def client_compose(fleet: Fleet, robot: Robot, version: str = fleetctl.__version__) -> str:
@@ -220,7 +193,7 @@ def client_compose(fleet: Fleet, robot: Robot, version: str = fleetctl.__version
     service["volumes"] = [f"./{CLIENT_FILE}:{IMAGE_CONFIG}:ro"]
     service["command"] = ["fleetctl", "client", "--config", IMAGE_CONFIG]
     doc = {"version": "2.4", "services": {"fleetctl-client": service}}
-    header = (f"# The fleetctl client of robot {robot.name} in a container "
+    header = (f"# The fleetctl client of robot {comment_text(robot.name)} in a container "
               f"(amd64 only). Generated by 'fleetctl export'.\n"
               "# Start: docker compose up -d   (Compose v1: docker-compose up -d)\n")
     return header + yaml.safe_dump(doc, sort_keys=False)
@@ -243,10 +216,10 @@ def robot_readme(fleet: Fleet, robot: Robot, *, wheel_name: str) -> str:
     version = fleetctl.__version__
     return render_template(
         "client/README.md.j2",
-        fleet_name=md_text(fleet.name),
+        fleet_name=fleet.name,
         robot_name=robot.name,
         ip=str(robot.ip),
-        endpoint=md_text(fleet.endpoint),
+        endpoint=fleet.endpoint,
         mtu_bytes=robot.mtu_bytes,
         server_url=server_url(fleet),
         server_ip=str(fleet.server_ip),
@@ -255,17 +228,17 @@ def robot_readme(fleet: Fleet, robot: Robot, *, wheel_name: str) -> str:
         rmw_is_fastdds=robot.rmw_implementation == FASTDDS_RMW,
         default_rmw=DEFAULT_RMW_IMPLEMENTATION,
         iface=WIREGUARD_INTERFACE,
-        wheel=sh_quote(f"./{wheel_name}"),
-        wheel_name=md_text(wheel_name),
+        wheel=f"./{wheel_name}",
+        wheel_name=wheel_name,
         venv=VENV_DIR,
         etc=ETC_DIR,
         ros_setup=ROS_SETUP,
         wrapper=WRAPPER_PATH,
         unit=CLIENT_UNIT,
         image=client_image(version),
-        image_archive=sh_quote(f"fleetctl-client-{version}.tar.gz"),
+        image_archive=f"fleetctl-client-{version}.tar.gz",
         docker_run=docker_run_line(robot, version),
-        ros_wheels=" ".join(sh_quote(w) for w in ROS_WHEELS),
+        ros_wheels=ROS_WHEELS,
         files={"wg": WG_FILE, "client": CLIENT_FILE, "env": ENV_FILE, "wrapper": WRAPPER_FILE,
                "compose": COMPOSE_FILE},
     )

@@ -1,15 +1,18 @@
 """``fleetctl export NAME``: a bundle with just what one robot needs (docs/robot.md).
 
-A directory (0700, since ``wg0.conf`` holds the robot's private key) or, when the output
-path ends in ``.tar.gz``, a reproducible tarball (fixed mtimes and owners, sorted members:
-the same fleet, keys and wheel give the same bytes). What is in it:
-:func:`fleetctl.deploy.bundle.robot_bundle`.
+A directory (made 0700, since ``wg0.conf`` holds the robot's private key; an existing
+directory keeps its mode, ``wg0.conf`` in it is 0600) or, when the output path ends in
+``.tar.gz`` or ``.tgz``, a reproducible tarball (0600; fixed mtimes and owners, sorted
+members: the same fleet, keys and wheel give the same bytes). Written like every fleet
+file: all or nothing, through temp files with random names opened ``O_EXCL |
+O_NOFOLLOW``. What is in it: :func:`fleetctl.deploy.bundle.robot_bundle`.
 """
 
 from __future__ import annotations
 
 import gzip
 import io
+import stat
 import tarfile
 import tempfile
 from collections.abc import Callable
@@ -21,15 +24,16 @@ from fleetctl.deploy.files import (
     SECRET_FILE_MODE,
     FileWrite,
     Plan,
+    WriteFailed,
 )
-from fleetctl.deploy.fleet import fleet_file, load_fleet, require_endpoint
+from fleetctl.deploy.fleet import fleet_file, load_fleet, require_endpoint, shown
 from fleetctl.deploy.keystore import load_robot_keys, load_server_key
 from fleetctl.deploy.operations import ExportResult, finish_plan
 from fleetctl.deploy.render import FleetKeys
 from fleetctl.deploy.selfwheel import fleetctl_wheel
-from fleetctl.errors import ConfigError
+from fleetctl.errors import ConfigError, ConflictError
 
-TARBALL_SUFFIX = ".tar.gz"
+TARBALL_SUFFIXES = (".tar.gz", ".tgz")
 
 
 def default_bundle_path(name: str) -> Path:
@@ -66,8 +70,9 @@ def export_robot(fleet_dir: Path, name: str, out: Path | None = None, *,
     Args:
         fleet_dir: the fleet directory.
         name: the robot.
-        out: a directory, or a path ending in ``.tar.gz``; default ``./NAME-bundle``.
-            Files already in an existing directory are replaced, others left alone.
+        out: a directory, or a path ending in ``.tar.gz`` or ``.tgz``; default
+            ``./NAME-bundle``. Files already in an existing directory are replaced,
+            others left alone, the directory's mode too.
         dry_run: compute and return the changes without writing anything.
         wheel: the fleetctl wheel to ship; ``None`` builds one of the running fleetctl
             with *build_wheel* (a few seconds from a checkout).
@@ -76,12 +81,16 @@ def export_robot(fleet_dir: Path, name: str, out: Path | None = None, *,
     Raises:
         ConfigError: no such robot, no keys for it yet, no endpoint in ``fleet.yaml``, or
             a malformed fleet directory.
+        ConflictError: *out* exists and is the wrong kind of file.
+        WriteFailed: *out* could not be written (nothing was left behind).
         FleetError: the wheel could not be built.
     """
     fleet = load_fleet(fleet_dir)
     robot = fleet.robot(name)
     if robot is None:
-        raise ConfigError(f"robot {name!r} is not in {fleet_file(fleet_dir)}")
+        raise ConfigError(f"robot {shown(name)} is not in {fleet_file(fleet_dir)}")
+    path = out if out is not None else default_bundle_path(name)
+    check_out_path(path)
     require_endpoint(fleet, fleet_dir)  # a bundle without one cannot reach the server
     robot_keys = load_robot_keys(fleet_dir, name)
     if robot_keys is None:
@@ -92,16 +101,46 @@ def export_robot(fleet_dir: Path, name: str, out: Path | None = None, *,
     else:
         with tempfile.TemporaryDirectory(prefix="fleetctl-wheel-") as tmp:
             files = robot_bundle(fleet, robot, keys, build_wheel(Path(tmp)))
-    path = out if out is not None else default_bundle_path(name)
     plan = Plan()
-    if path.name.endswith(TARBALL_SUFFIX):
-        prefix = path.name.removesuffix(TARBALL_SUFFIX)
+    suffix = tarball_suffix(path)
+    if suffix is not None:
         # 0600 file, but the directory it lands in is the caller's: leave its mode alone.
-        plan.writes.append(FileWrite(path, tarball(prefix, files), SECRET_FILE_MODE, None))
+        plan.writes.append(FileWrite(path, tarball(path.name.removesuffix(suffix), files),
+                                     SECRET_FILE_MODE, None))
     else:
-        plan.directory(path, SECRET_DIR_MODE)
+        # Made 0700 when missing; an existing directory is the caller's and keeps its mode
+        # (wg0.conf itself is 0600 either way).
+        plan.new_directory(path, SECRET_DIR_MODE)
         for f in files:
-            # Secrets stay in a 0700 directory; the bundle directory itself is already one.
-            plan.writes.append(FileWrite(path / f.relpath, f.data, f.mode,
-                                         SECRET_DIR_MODE if f.secret else None))
-    return ExportResult(robot, path, finish_plan(plan, path, dry_run))
+            plan.writes.append(FileWrite(path / f.relpath, f.data, f.mode, None))
+    try:
+        outcome = finish_plan(plan, path, dry_run)
+    except WriteFailed as exc:
+        raise WriteFailed(f"--out {path}: {exc}") from None
+    return ExportResult(robot, path, outcome)
+
+
+def tarball_suffix(path: Path) -> str | None:
+    """Return the tarball suffix *path* ends in (``.tar.gz``, ``.tgz``), else ``None``."""
+    return next((s for s in TARBALL_SUFFIXES if path.name.endswith(s)), None)
+
+
+def check_out_path(path: Path) -> None:
+    """Refuse an ``--out`` that is the wrong kind of thing already.
+
+    Raises:
+        ConflictError: a directory bundle onto an existing non-directory, or a tarball
+            onto an existing directory (or other non-file).
+    """
+    try:
+        st = path.lstat()
+    except FileNotFoundError:
+        return
+    except OSError as exc:
+        raise ConfigError(f"--out {path}: {exc.strerror}") from None
+    if tarball_suffix(path) is None and not stat.S_ISDIR(st.st_mode):
+        raise ConflictError(f"--out {path}: exists and is not a directory (give a new or "
+                            "existing directory, or a path ending in .tar.gz or .tgz)")
+    if tarball_suffix(path) is not None and not stat.S_ISREG(st.st_mode):
+        raise ConflictError(f"--out {path}: exists and is not a regular file (a tarball "
+                            "replaces only a file)")

@@ -1,11 +1,13 @@
 """Planned, atomic file changes.
 
 Every fleet operation first computes a :class:`Plan` in memory (so bad input changes
-nothing), then either previews it (``--dry-run``) or applies it. Writes are atomic (a temp
+nothing), then either previews it (``--dry-run``) or applies it. Applying is all or
+nothing across every file of the plan (:meth:`Plan.apply`); each write is atomic (a temp
 file in the same directory, fsync, rename) and skipped when the bytes and mode are already
 right, so regenerating an unchanged fleet leaves every file and its mtime alone. Nothing
-is written through a symlink: the temp file is created exclusively without following
-links, and a symlink at the target is replaced, never followed.
+is written through a symlink: temp files get random names and are created exclusively
+without following links (``mkstemp``), and a symlink at the target is replaced, never
+followed.
 
 Generated files carry a first line ``# fleetctl: generated, sha256=HEX`` (an HTML comment
 in Markdown) where HEX is the SHA-256 of everything after that line. A file whose rest no
@@ -19,12 +21,15 @@ import enum
 import hashlib
 import os
 import re
+import secrets
 import shutil
 import stat
+import tempfile
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from fleetctl.errors import ConfigError
+from fleetctl.errors import ConfigError, ExitCode, FleetError
 
 SECRET_FILE_MODE = 0o600
 SECRET_DIR_MODE = 0o700
@@ -69,15 +74,33 @@ class Change:
 
 @dataclass
 class Plan:
-    """File writes and deletions, computed before anything touches the disk."""
+    """File writes and deletions, computed before anything touches the disk.
+
+    :meth:`apply` is all or nothing: every new file is first written in full to a temp
+    file beside its target (so a full disk or a permission error is met before anything
+    is replaced), then the temp files are renamed over their targets; if any step fails,
+    every step already taken is undone (replaced files come back from hard-linked
+    backups, deleted ones from where they were moved aside, created directories are
+    removed), so the directory is as it was and running the command again works.
+    """
 
     writes: list[FileWrite] = field(default_factory=list)
     deletes: list[Path] = field(default_factory=list)
     directories: dict[Path, int] = field(default_factory=dict)
+    new_directories: dict[Path, int] = field(default_factory=dict)
 
     def directory(self, path: Path, mode: int) -> None:
-        """Make sure *path* exists with exactly *mode* (e.g. 0o700 above secret dirs)."""
+        """Make sure *path* exists with exactly *mode* (e.g. 0o700 above secret dirs).
+
+        Only for directories fleetctl owns (inside the fleet directory): an existing one
+        gets *mode* forced on it.
+        """
         self.directories[path] = mode
+
+    def new_directory(self, path: Path, mode: int) -> None:
+        """Create *path* with *mode* if it is missing; an existing directory (someone
+        else's, e.g. an ``export --out`` target) keeps its mode."""
+        self.new_directories[path] = mode
 
     def write(self, path: Path, data: bytes | str, *, secret: bool = False) -> None:
         """Add a write; *secret* files are 0600 in a 0700 directory."""
@@ -93,21 +116,180 @@ class Plan:
 
     def preview(self) -> list[Change]:
         """Return what :meth:`apply` would do, touching nothing."""
-        changes = [Change(p, ChangeKind.DELETE) for p in self.deletes if p.exists()]
+        changes = [Change(p, ChangeKind.DELETE) for p in self.deletes if _exists(p)]
         changes += [Change(w.path, _write_kind(w)) for w in self.writes]
         return changes
 
     def apply(self) -> list[Change]:
-        """Delete, then write; return what was done, in order."""
-        changes: list[Change] = []
-        for path in self.deletes:
-            if _remove(path):
-                changes.append(Change(path, ChangeKind.DELETE))
-        for path, mode in self.directories.items():
-            ensure_dir(path, mode)
-        for w in self.writes:
-            changes.append(Change(w.path, write_file(w)))
+        """Delete, then write, all or nothing; return what was done, in order.
+
+        Raises:
+            WriteFailed: a file or directory could not be written (disk full, permission
+                denied, ...): naming it; everything done so far has been undone.
+        """
+        tx = _Transaction()
+        try:
+            changes = tx.run(self)
+        except OSError as exc:
+            tx.rollback()
+            raise WriteFailed.from_os_error(exc) from None
+        except BaseException:
+            tx.rollback()
+            raise
+        tx.finish()
         return changes
+
+
+class WriteFailed(FleetError):
+    """A file could not be written; the directory was left as it was."""
+
+    exit_code = ExitCode.ENVIRONMENT
+
+    @classmethod
+    def from_os_error(cls, exc: OSError) -> WriteFailed:
+        """One line naming the file and the reason (e.g. ``No space left on device``)."""
+        where = f"{exc.filename}: " if exc.filename else ""
+        return cls(f"{where}cannot write: {exc.strerror or exc}; nothing was changed")
+
+
+def write_all(fd: int, data: bytes) -> None:
+    """Write all of *data* to the file descriptor *fd*.
+
+    The one primitive every file's content goes through (tests inject failures here).
+    """
+    view = memoryview(data)
+    while view:
+        view = view[os.write(fd, view):]
+
+
+def rename(src: Path, dst: Path) -> None:
+    """Rename *src* over *dst* atomically (the primitive every commit goes through)."""
+    os.replace(src, dst)
+
+
+def _exists(path: Path) -> bool:
+    return os.path.lexists(path)
+
+
+def _aside_name(path: Path, what: str) -> Path:
+    """A fresh hidden name beside *path* (random: nobody can plant something there first)."""
+    return path.with_name(f".{path.name}.{what}-{secrets.token_hex(6)}")
+
+
+@dataclass
+class _Transaction:
+    """The steps of one :meth:`Plan.apply`, each with its undo."""
+
+    undo: list[Callable[[], object]] = field(default_factory=list)
+    temps: list[Path] = field(default_factory=list)
+    garbage: list[Path] = field(default_factory=list)  # removed once everything succeeded
+
+    def run(self, plan: Plan) -> list[Change]:
+        changes = [Change(p, ChangeKind.DELETE) for p in plan.deletes if _exists(p)]
+        kinds = [_write_kind(w) for w in plan.writes]
+        for change in changes:
+            self._move_aside(change.path)
+        for path, mode in plan.directories.items():
+            self._directory(path, mode, force=True)
+        for path, mode in plan.new_directories.items():
+            self._directory(path, mode, force=False)
+        staged = [self._stage(w, kind) for w, kind in zip(plan.writes, kinds, strict=True)]
+        for w, temp in zip(plan.writes, staged, strict=True):
+            if temp is not None:
+                self._commit(temp, w.path)
+        return changes + [Change(w.path, kind) for w, kind in zip(plan.writes, kinds,
+                                                                  strict=True)]
+
+    def rollback(self) -> None:
+        """Undo every step taken, newest first (best effort: each step on its own)."""
+        self._cleanup(self.temps)  # first: a directory to remove must be empty
+        for step in reversed(self.undo):
+            with contextlib.suppress(OSError):
+                step()
+
+    def finish(self) -> None:
+        """Drop the backups and what was deleted (after every step succeeded)."""
+        self._cleanup(self.temps + self.garbage)
+
+    @staticmethod
+    def _cleanup(paths: list[Path]) -> None:
+        for path in paths:
+            with contextlib.suppress(OSError):
+                _remove(path)
+
+    def _move_aside(self, path: Path) -> None:
+        aside = _aside_name(path, "deleted")
+        rename(path, aside)
+        self.undo.append(lambda: rename(aside, path))
+        self.garbage.append(aside)
+
+    def _directory(self, path: Path, mode: int | None, *, force: bool) -> None:
+        """Create *path* and its missing parents (0755; *path* itself *mode*)."""
+        missing = [p for p in (path, *path.parents) if not _exists(p)]
+        for p in reversed(missing):
+            p.mkdir(PUBLIC_DIR_MODE if p != path or mode is None else mode)
+            self.undo.append(p.rmdir)
+            if p == path and mode is not None:
+                p.chmod(mode)  # the umask may have narrowed it
+        if force and not missing and mode is not None:
+            self._chmod(path, mode)
+
+    def _chmod(self, path: Path, mode: int) -> None:
+        old = stat.S_IMODE(path.stat().st_mode)
+        if old != mode:
+            path.chmod(mode)
+            self.undo.append(lambda: path.chmod(old))
+
+    def _stage(self, w: FileWrite, kind: ChangeKind) -> Path | None:
+        """Write *w* to a temp file beside it (None: nothing to write)."""
+        self._directory(w.path.parent, w.dir_mode, force=w.dir_mode is not None)
+        if kind is ChangeKind.UNCHANGED:
+            return None
+        if kind is ChangeKind.UPDATE and _same_bytes(w.path, w.data):
+            self._chmod(w.path, w.mode)  # only the mode was wrong: keep content and mtime
+            return None
+        # mkstemp: a random name opened O_CREAT | O_EXCL | O_NOFOLLOW, 0600 from the start,
+        # so nothing planted beside the target is ever opened or followed.
+        fd, name = tempfile.mkstemp(prefix=f".{w.path.name}.", suffix=".tmp",
+                                    dir=w.path.parent)
+        temp = Path(name)
+        self.temps.append(temp)
+        with contextlib.closing(_Fd(fd)):
+            os.fchmod(fd, w.mode)
+            write_all(fd, w.data)
+            os.fsync(fd)
+        return temp
+
+    def _commit(self, temp: Path, target: Path) -> None:
+        if _exists(target):
+            backup = _aside_name(target, "old")
+            try:
+                os.link(target, backup, follow_symlinks=False)  # readers never miss it
+            except OSError:
+                rename(target, backup)  # no hard link here: briefly missing, still undoable
+            self.garbage.append(backup)
+            self.undo.append(lambda: _restore(backup, target))
+        else:
+            self.undo.append(lambda: _remove(target))
+        rename(temp, target)
+
+
+def _restore(backup: Path, target: Path) -> None:
+    """Put *backup* back at *target* (a rename; or, when both still name the same file
+    because the commit never happened, drop the backup: rename would do nothing)."""
+    b, t = backup.lstat(), target.lstat()
+    if (b.st_dev, b.st_ino) == (t.st_dev, t.st_ino):
+        backup.unlink()
+    else:
+        rename(backup, target)
+
+
+@dataclass(frozen=True)
+class _Fd:
+    fd: int
+
+    def close(self) -> None:
+        os.close(self.fd)
 
 
 def _write_kind(w: FileWrite) -> ChangeKind:
@@ -151,33 +333,14 @@ def ensure_dir(path: Path, mode: int | None) -> None:
 def write_file(w: FileWrite) -> ChangeKind:
     """Write one file atomically unless it already has the right bytes and mode.
 
-    The temp file is created with the final mode (never briefly world-readable), fsynced,
-    and renamed over the target, so a reader sees the old file or the new one, never half.
+    The temp file is created with a random name, exclusively, without following links,
+    with the final mode (never briefly world-readable); it is fsynced and renamed over
+    the target, so a reader sees the old file or the new one, never half.
+
+    Raises:
+        WriteFailed: it could not be written (nothing changed).
     """
-    ensure_dir(w.path.parent, w.dir_mode)
-    kind = _write_kind(w)
-    if kind is ChangeKind.UNCHANGED:
-        return kind
-    if kind is ChangeKind.UPDATE and _same_bytes(w.path, w.data):
-        w.path.chmod(w.mode)  # only the mode was wrong: keep the content and mtime
-        return kind
-    tmp = w.path.with_name(f".{w.path.name}.{os.getpid()}.tmp")
-    with contextlib.suppress(FileNotFoundError):
-        tmp.unlink()  # a stale temp file (or a planted symlink): unlink never follows it
-    # O_EXCL | O_NOFOLLOW: never open through a symlink someone raced into that name.
-    fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_EXCL | os.O_NOFOLLOW, w.mode)
-    with os.fdopen(fd, "wb") as f:
-        os.fchmod(fd, w.mode)  # the umask may have narrowed the mode os.open used
-        f.write(w.data)
-        f.flush()
-        os.fsync(fd)
-    try:
-        os.replace(tmp, w.path)
-    except BaseException:
-        with contextlib.suppress(FileNotFoundError):
-            tmp.unlink()
-        raise
-    return kind
+    return Plan(writes=[w]).apply()[0].kind
 
 
 # --- generated-file stamps -------------------------------------------------------------

@@ -46,7 +46,11 @@ DEFAULT_HTTPS_PORT = 8443
 DEFAULT_MTU_BYTES = 1280
 MIN_MTU_BYTES = 576
 MAX_MTU_BYTES = 9000
-MAX_NAME_CHARS = 100
+# Names end up in file names, comments of every generated file, WireGuard's INI and
+# systemd units: short, ASCII, and nothing any of those formats gives a meaning to.
+MAX_NAME_CHARS = 63  # a fleet's or a robot's name (a DNS label's limit)
+MAX_EMAIL_CHARS = 254  # RFC 5321's limit on a forward path
+MAX_HOST_CHARS = 253
 # ROS_DOMAIN_ID: 0..232 is what every RMW maps to valid UDP ports (ROS 2 docs, "The ROS
 # DOMAIN ID"); 0 is ROS's own default.
 DEFAULT_ROS_DOMAIN_ID = 0
@@ -60,7 +64,9 @@ RMW_IMPLEMENTATIONS = ("rmw_fastrtps_cpp", "rmw_cyclonedds_cpp", "rmw_connextdds
 _SEGMENT = re.compile(r"[A-Za-z][A-Za-z0-9_]*")
 _RELATIVE_TOPIC = re.compile(r"[A-Za-z][A-Za-z0-9_]*(/[A-Za-z][A-Za-z0-9_]*)*")
 _TYPE = re.compile(r"[A-Za-z][A-Za-z0-9_]*/(msg/)?[A-Za-z][A-Za-z0-9_]*")
-_EMAIL = re.compile(r"[^@\s]+@[^@\s]+")
+# A fleet name: ASCII letters, digits, '.', '_' and '-', starting with a letter or digit.
+_FLEET_NAME = re.compile(r"[A-Za-z0-9][A-Za-z0-9._-]*")
+_PORT = re.compile(r"[0-9]{1,5}")  # ASCII only: str.isdigit() and int() take any digits
 _SHA256 = re.compile(r"[0-9a-f]{64}")
 _HOST = re.compile(r"[A-Za-z0-9]([A-Za-z0-9.-]*[A-Za-z0-9])?|\[[0-9A-Fa-f:.]+\]")
 _RE2_OPTIONS = re2.Options()
@@ -203,14 +209,55 @@ class Fleet:
 # --- validation ------------------------------------------------------------------------
 
 
+def shown(value: str, limit: int = 40) -> str:
+    """Return ``repr(value)``, cut to about *limit* characters (for one-line errors)."""
+    return repr(value) if len(value) <= limit else repr(value[:limit]) + "..."
+
+
 def check_robot_name(name: str) -> None:
-    """Raise :class:`FleetInvalid` unless *name* is a valid ROS namespace segment."""
+    """Raise :class:`FleetInvalid` unless *name* is a valid ROS namespace segment of at
+    most :data:`MAX_NAME_CHARS` characters."""
+    if len(name) > MAX_NAME_CHARS:
+        raise FleetInvalid(("name",), f"robot name {shown(name)} is {len(name)} characters "
+                           f"long (at most {MAX_NAME_CHARS})")
     if not _SEGMENT.fullmatch(name) or "__" in name:
         raise FleetInvalid(
             ("name",),
-            f"robot name {name!r} is not a ROS namespace segment "
-            "(letters, digits and single underscores, starting with a letter)",
+            f"robot name {shown(name)} is not a ROS namespace segment "
+            "(ASCII letters, digits and single underscores, starting with a letter)",
         )
+
+
+def check_fleet_name(name: str) -> None:
+    """Raise :class:`FleetInvalid` unless *name* is a valid fleet name: 1 to
+    :data:`MAX_NAME_CHARS` ASCII letters, digits, ``.``, ``_`` or ``-``, starting with a
+    letter or a digit (it lands in comments of every generated file)."""
+    if len(name) > MAX_NAME_CHARS:
+        raise FleetInvalid(("name",), f"fleet name {shown(name)} is {len(name)} characters "
+                           f"long (at most {MAX_NAME_CHARS})")
+    if not _FLEET_NAME.fullmatch(name):
+        raise FleetInvalid(("name",), f"fleet name {shown(name)} must be ASCII letters, "
+                           "digits, '.', '_' or '-', starting with a letter or a digit")
+
+
+def default_fleet_name(directory: Path) -> str:
+    """A valid fleet name made from a directory's name (``fleet`` if nothing is left)."""
+    text = re.sub(r"[^A-Za-z0-9._-]+", "-", directory.resolve().name)
+    return text.lstrip("._-")[:MAX_NAME_CHARS].rstrip("._-") or "fleet"
+
+
+def check_email(email: str) -> None:
+    """Raise :class:`FleetInvalid` unless *email* looks like an address: one ``@`` with
+    something on both sides, printable, no whitespace, at most :data:`MAX_EMAIL_CHARS`
+    characters (any script: it is stored and compared, never sent)."""
+    if len(email) > MAX_EMAIL_CHARS:
+        raise FleetInvalid(("email",), f"{shown(email)} is {len(email)} characters long "
+                           f"(at most {MAX_EMAIL_CHARS})")
+    local, at, domain = email.partition("@")
+    if not (at and local and domain and "@" not in domain and email.isprintable()
+            and " " not in email):
+        raise FleetInvalid(("email",), f"{shown(email)} is not an email address (one '@', "
+                           "printable, no spaces)")
 
 
 def check_regex(pattern: str, path: FieldPath) -> None:
@@ -228,8 +275,10 @@ def parse_endpoint(endpoint: str) -> tuple[str, int]:
         FleetInvalid: naming the field ``endpoint``.
     """
     host, sep, port = endpoint.rpartition(":")
-    if not sep or not _HOST.fullmatch(host) or not port.isdigit() or not 0 < int(port) < 65536:
-        raise FleetInvalid(("endpoint",), f"expected HOST:PORT, got {endpoint!r}")
+    if (not sep or len(host) > MAX_HOST_CHARS or not _HOST.fullmatch(host)
+            or not _PORT.fullmatch(port) or not 0 < int(port) < 65536):
+        raise FleetInvalid(("endpoint",), f"expected HOST:PORT (ASCII, port 1..65535), "
+                           f"got {shown(endpoint)}")
     return host, int(port)
 
 
@@ -297,10 +346,13 @@ def _check_ros_environment(robot: Robot, path: FieldPath) -> None:
 
 def _check_user(i: int, user: User, seen: set[str]) -> None:
     path: FieldPath = ("users", i)
-    if not _EMAIL.fullmatch(user.email):
-        raise FleetInvalid((*path, "email"), f"{user.email!r} is not an email address")
+    try:
+        check_email(user.email)
+    except FleetInvalid as exc:
+        raise FleetInvalid((*path, "email"), str(exc)) from None
     if user.email in seen:
-        raise FleetInvalid((*path, "email"), f"duplicate user {user.email!r}", conflict=True)
+        raise FleetInvalid((*path, "email"), f"duplicate user {shown(user.email)}",
+                           conflict=True)
     seen.add(user.email)
     if not _SHA256.fullmatch(user.token_sha256):
         raise FleetInvalid((*path, "token_sha256"), "expected 64 lowercase hex digits")
@@ -312,12 +364,7 @@ def validate(fleet: Fleet) -> None:
     Raises:
         FleetInvalid: the first problem found, with the field path it concerns.
     """
-    if not fleet.name.strip():
-        raise FleetInvalid(("name",), "must not be empty")
-    if not fleet.name.isprintable() or len(fleet.name) > MAX_NAME_CHARS:
-        # It lands in comments of every generated file, WireGuard's INI included.
-        raise FleetInvalid(("name",), f"must be one line of at most {MAX_NAME_CHARS} "
-                           f"printable characters, got {fleet.name!r}")
+    check_fleet_name(fleet.name)
     if fleet.endpoint is not None:
         parse_endpoint(fleet.endpoint)
     if fleet.https_port == fleet.server_port:
@@ -339,7 +386,7 @@ def validate(fleet: Fleet) -> None:
 def _check_tls_paths(tls: TlsFiles) -> None:
     for field_name, value in (("cert", tls.cert), ("key", tls.key)):
         if not value.strip() or not value.isprintable():
-            raise FleetInvalid(("tls", field_name), f"not a file path: {value!r}")
+            raise FleetInvalid(("tls", field_name), f"not a file path: {shown(value)}")
 
 
 def require_endpoint(fleet: Fleet, fleet_dir: Path) -> str:

@@ -26,7 +26,9 @@ from fleetctl.deploy.fleet import (
     Robot,
     Role,
     User,
+    check_fleet_name,
     check_robot_name,
+    default_fleet_name,
     dump_fleet,
     fleet_file,
     load_fleet,
@@ -159,6 +161,20 @@ def _checked(fleet: Fleet) -> Fleet:
     return fleet
 
 
+# The command-line option each top-level field of fleet.yaml comes from in `init`.
+_INIT_OPTIONS = {"name": "--name", "endpoint": "--endpoint", "subnet": "--subnet",
+                 "server_ip": "--server-ip", "server_port": "--server-port",
+                 "wireguard_port": "--wireguard-port", "https_port": "--https-port"}
+
+
+def _option_error(exc: FleetInvalid) -> FleetError:
+    """The error of a bad `init` argument, naming the field and its option."""
+    field_name = format_path(exc.path)
+    option = _INIT_OPTIONS.get(field_name)
+    where = f"{field_name} ({option})" if option else field_name
+    return (ConflictError if exc.conflict else ConfigError)(f"{where}: {exc}")
+
+
 def _error(fleet: Fleet, exc: FleetInvalid) -> FleetError:
     message = f"{_describe(fleet, exc.path)}: {exc}"
     return ConflictError(message) if exc.conflict else ConfigError(message)
@@ -275,16 +291,20 @@ def create_fleet(
         raise ConflictError(f"{fleet_file(fleet_dir)} already exists "
                             "(use --force to replace the fleet and all its keys)")
     try:
+        if name is not None:
+            check_fleet_name(name)
         net = parse_subnet(subnet)
         endpoint_port = parse_endpoint(endpoint)[1] if endpoint else DEFAULT_WIREGUARD_PORT
-        server = parse_ip(server_ip, ("server_ip",)) if server_ip else next(net.hosts())
+        server = (parse_ip(server_ip, ("server_ip",)) if server_ip
+                  else next(iter(net.hosts()), net.network_address))
+        fleet = Fleet(
+            name=name or default_fleet_name(fleet_dir),
+            endpoint=endpoint or None, subnet=net, server_ip=server, server_port=server_port,
+            wireguard_port=wireguard_port or endpoint_port, https_port=https_port,
+        )
+        validate(fleet)
     except FleetInvalid as exc:
-        raise ConfigError(f"{format_path(exc.path)}: {exc}") from None
-    fleet = _checked(Fleet(
-        name=name or fleet_dir.resolve().name or "fleet",
-        endpoint=endpoint or None, subnet=net, server_ip=server, server_port=server_port,
-        wireguard_port=wireguard_port or endpoint_port, https_port=https_port,
-    ))
+        raise _option_error(exc) from None
     plan = Plan()
     if force:
         for sub in _GENERATED:

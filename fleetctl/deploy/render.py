@@ -2,8 +2,10 @@
 
 Rendering is a pure function of the :class:`~fleetctl.deploy.fleet.Fleet` and its keys:
 the same inputs give the same bytes, so re-rendering an unchanged fleet writes nothing.
-Every value goes through the filter of its output format (``y`` for YAML, ``wg`` for
-WireGuard's INI), and every rendered file starts with its digest line
+Every value goes through the filter of its output format (``y`` YAML, ``wg`` WireGuard's
+INI, ``sh`` shell, ``unit`` systemd, ``env`` env files, ``md`` Markdown, ``comment`` a
+``#`` comment line); a value that skips it is an error (jinja's ``finalize``). Every
+rendered file starts with its digest line
 (:func:`fleetctl.deploy.files.stamp`), so hand edits are noticed before an overwrite.
 """
 
@@ -12,6 +14,8 @@ from __future__ import annotations
 import functools
 import json
 import math
+import re
+import shlex
 from collections.abc import Mapping
 from dataclasses import dataclass
 from pathlib import Path
@@ -65,49 +69,188 @@ def templates_dir() -> Path:
     return asset_dir("templates")
 
 
+class Escaped(str):
+    """Text made safe for one output format by one of the filters below.
+
+    Every ``{{ ... }}`` of a template must produce one (``finalize`` checks), so a value
+    that skipped its format's filter is an error, not a file.
+    """
+
+
+def _one_line(text: str, fmt: str) -> str:
+    # isprintable() is False for every line break (\n, \r, \x85, \u2028, \u2029), NUL and
+    # other control or format characters, and lone surrogates.
+    if not text.isprintable():
+        raise ValueError(f"a {fmt} value must be one printable line: {text[:40]!r}")
+    return text
+
+
 def _yaml_char(c: str) -> str:
     if c in '"\\':
         return "\\" + c
     if " " <= c <= "~":
         return c
     # Everything else escaped: YAML's \uXXXX / \UXXXXXXXX (YAML 1.1 section 5.7), so no
-    # line break (\n, \x85, \u2028) or control character reaches the file raw.
+    # line break (\n, \x85, \u2028) or control character reaches the file raw, and a
+    # character beyond the BMP is one \U escape (never a surrogate pair, which a YAML
+    # reader would return as two lone surrogates).
     return f"\\u{ord(c):04x}" if ord(c) <= 0xFFFF else f"\\U{ord(c):08x}"
 
 
-def _yaml_scalar(value: object) -> str:
-    """Format a scalar as a one-line YAML flow scalar (strings double-quoted and escaped).
+_YAML_KEY = re.compile(r"[a-z][a-z0-9_]*")
+_YAML_WORDS = {"y", "n", "yes", "no", "on", "off", "true", "false", "null"}
+
+
+def yaml_scalar(value: object, key: bool = False) -> Escaped:
+    """``y``: a scalar as a one-line YAML flow scalar (strings double-quoted, escaped);
+    ``y(key=True)``: a mapping key, a bare lowercase word (a quoted key longer than 1024
+    characters would not be a key at all).
 
     Raises:
         TypeError: not a str, int, float, bool or None.
-        ValueError: a float that is not finite.
+        ValueError: a float that is not finite; a key that is not a plain word.
         jinja2.UndefinedError: *value* is undefined (``StrictUndefined``).
     """
     if isinstance(value, jinja2.Undefined):
         str(value)  # StrictUndefined raises here, naming the variable
+    if key:
+        if not (isinstance(value, str) and _YAML_KEY.fullmatch(value)
+                and value not in _YAML_WORDS and len(value) <= 64):
+            raise ValueError(f"not a plain YAML key: {str(value)[:40]!r}")
+        return Escaped(value)
     if isinstance(value, str):
-        return '"' + "".join(_yaml_char(c) for c in value) + '"'
+        return Escaped('"' + "".join(_yaml_char(c) for c in value) + '"')
     if isinstance(value, float) and not math.isfinite(value):
         raise ValueError(f"not a finite number: {value}")
     if not isinstance(value, int | float | bool) and value is not None:
         raise TypeError(f"not a YAML scalar: {type(value).__name__}")
-    return json.dumps(value)
+    return Escaped(json.dumps(value))
 
 
-def _wg_value(value: object) -> str:
-    """Format a value for a WireGuard INI line (or a comment in one).
+def wg_value(value: object) -> Escaped:
+    """``wg``: a value for a WireGuard INI line (or a comment in one).
 
-    wg-quick reads line by line and has no quoting, so the only defence is refusing any
-    value that could end the line or start a new ``[Peer]``: everything reaching these
-    templates is validated (names, addresses, base64 keys), and this catches a slip.
+    wg-quick reads line by line and has no quoting: it cuts a line at its first ``#``,
+    splits it at the first ``=`` and strips blanks. So the only defence is refusing what
+    would change that: a line break (a new line, a new ``[Peer]``), a ``#``, surrounding
+    blanks. Everything reaching these templates is validated (names, addresses, base64
+    keys); this catches a slip.
 
     Raises:
-        ValueError: a value with a control character (a newline, a carriage return...).
+        ValueError: such a value.
     """
+    text = _one_line(str(value), "WireGuard config")
+    if "#" in text or text != text.strip():
+        raise ValueError(f"a WireGuard config value cannot hold '#' or surrounding blanks: "
+                         f"{text[:40]!r}")
+    return Escaped(text)
+
+
+def sh_word(value: object) -> Escaped:
+    """``sh``: a value (or a list of values) as POSIX shell words, quoted where needed.
+
+    Raises:
+        ValueError: a line break or other control character (it would end a comment, a
+            Markdown code fence or the line a reader copies).
+    """
+    values = value if isinstance(value, list | tuple) else [value]
+    return Escaped(" ".join(shlex.quote(_one_line(str(v), "shell")) for v in values))
+
+
+_UNIT_WORD = re.compile(r"[A-Za-z0-9_./@:+=,-]+")
+
+
+def unit_value(value: object, word: bool = False) -> Escaped:
+    """``unit``: a systemd unit setting's value (``unit(word=True)`` for a path or a word
+    of ``ExecStart=`` / ``Environment=``).
+
+    ``%`` starts a specifier and is doubled; a line break or control character would start
+    a new setting and a trailing backslash continue the line: refused, as are surrounding
+    blanks (systemd strips them). A word also may not hold blanks, quotes, ``$`` or
+    ``\\`` (command lines and assignments give them meaning).
+
+    Raises:
+        ValueError: such a value.
+    """
+    text = _one_line(str(value), "systemd")
+    if text != text.strip() or text.endswith("\\"):
+        raise ValueError(f"a systemd value cannot end in a backslash or have surrounding "
+                         f"blanks: {text[:40]!r}")
+    if word and not _UNIT_WORD.fullmatch(text):
+        raise ValueError(f"not a plain word for a systemd setting: {text[:40]!r}")
+    return Escaped(text.replace("%", "%%"))
+
+
+_ENV_NAME = re.compile(r"[A-Z_][A-Z0-9_]*")
+_ENV_VALUE = re.compile(r"[A-Za-z0-9_.,:/+@=-]*")
+
+
+def env_assignment(pair: tuple[str, object]) -> Escaped:
+    """``env``: ``NAME=VALUE`` for an env file read by systemd, docker and sh alike.
+
+    Raises:
+        ValueError: the name is not an environment variable name, or the value needs
+            quoting (no quoting means the same thing to all three readers).
+    """
+    name, value = pair
     text = str(value)
-    if not text.isprintable():
-        raise ValueError(f"a WireGuard config value must be one printable line: {text!r}")
-    return text
+    if not _ENV_NAME.fullmatch(name):
+        raise ValueError(f"not an environment variable name: {name!r}")
+    if not _ENV_VALUE.fullmatch(text):
+        raise ValueError(f"{name}: value {text[:40]!r} would need quoting in an env file")
+    return Escaped(f"{name}={text}")
+
+
+# What Markdown (CommonMark, GitHub's) gives a meaning to in the middle of a line: emphasis,
+# code, links, images, HTML and entities, tables, strikethrough, math. Backslash-escaped
+# (CommonMark 2.4: any ASCII punctuation may be), so the text shows as it is.
+_MD_SPECIAL = re.compile(r"([\\`*_{}\[\]<>()#+!|~&$])")
+
+
+def md_text(value: object, code: bool = False) -> Escaped:
+    """``md``: free text literal in Markdown prose; ``md(code=True)``: inside a
+    `` `code span` `` (where backslashes are literal, so a backtick or ``|`` (a table's
+    cell border) is refused instead).
+
+    Raises:
+        ValueError: a line break or control character, or surrounding blanks (Markdown
+            drops them at a line's or a cell's end); in a code span, a backtick or a ``|``.
+    """
+    text = _one_line(str(value), "Markdown")
+    if text != text.strip():
+        raise ValueError(f"a Markdown value cannot have surrounding blanks: {text[:40]!r}")
+    if not code:
+        return Escaped(_MD_SPECIAL.sub(r"\\\1", text))
+    if "`" in text or "|" in text or not text:
+        raise ValueError(f"cannot be a Markdown code span: {text[:40]!r}")
+    return Escaped(text)
+
+
+def comment_text(value: object) -> Escaped:
+    """``comment``: text in a ``#`` comment line (shell, env file, systemd unit).
+
+    Raises:
+        ValueError: a line break or control character, or a trailing backslash (systemd
+            continues such a line).
+    """
+    text = _one_line(str(value), "comment")
+    if text.endswith("\\"):
+        raise ValueError(f"a comment cannot end in a backslash: {text[:40]!r}")
+    return Escaped(text)
+
+
+FILTERS = {"y": yaml_scalar, "wg": wg_value, "sh": sh_word, "unit": unit_value,
+           "env": env_assignment, "md": md_text, "comment": comment_text}
+
+
+def _require_escaped(value: object) -> object:
+    """Jinja ``finalize``: every expression's output must come out of a format filter."""
+    if isinstance(value, Escaped):
+        return value
+    if isinstance(value, jinja2.Undefined):
+        str(value)  # StrictUndefined raises, naming the variable
+    raise TypeError(f"a {type(value).__name__} template value skipped its format's "
+                    f"escaping filter (one of {', '.join(FILTERS)})")
 
 
 @functools.cache
@@ -117,13 +260,13 @@ def _environment(root: Path) -> jinja2.Environment:
     env = jinja2.Environment(
         loader=jinja2.FileSystemLoader(str(root)),
         undefined=jinja2.StrictUndefined,
-        autoescape=False,  # configs, not HTML
+        autoescape=False,  # configs, not HTML: each format has its own filter
         keep_trailing_newline=True,
         trim_blocks=True,
         lstrip_blocks=True,
+        finalize=_require_escaped,
     )
-    env.filters["y"] = _yaml_scalar
-    env.filters["wg"] = _wg_value
+    env.filters.update(FILTERS)
     return env
 
 

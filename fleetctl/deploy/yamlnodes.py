@@ -123,8 +123,11 @@ class Document:
         self._seen(node, path)
         if not isinstance(node, yaml.ScalarNode) or node.tag != _INT:
             raise self.error(path, "expected an integer")
+        text = str(node.value).replace("_", "")
         try:
-            value = int(str(node.value).replace("_", ""), 0)
+            if not text.isascii():  # int() also reads other scripts' digits
+                raise ValueError(text)
+            value = int(text, 0)
         except ValueError:
             raise self.error(path, "expected an integer") from None
         if not low <= value <= high:
@@ -146,6 +149,8 @@ class Document:
         if not isinstance(node, yaml.ScalarNode) or node.tag not in (_INT, _FLOAT):
             raise self.error(path, "expected a number")
         try:
+            if not str(node.value).isascii():  # float() and int() read other scripts' digits
+                raise ValueError(node.value)
             value = float(int(str(node.value).replace("_", ""), 0)) if node.tag == _INT else (
                 float(yaml.safe_load(node.value)))
         except (ValueError, TypeError):

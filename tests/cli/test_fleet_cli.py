@@ -111,6 +111,10 @@ def test_add_robot_allocates_and_writes(fleet: Path, cli: Cli) -> None:
         (["9lives"], ExitCode.CONFIG, "not a ROS namespace segment"),
         (["a__b"], ExitCode.CONFIG, "not a ROS namespace segment"),
         (["other", "--mtu", "100"], ExitCode.CONFIG, "mtu_bytes"),
+        (["r" * 300], ExitCode.CONFIG, "is 300 characters long (at most 63)"),
+        (["r\u00e9"], ExitCode.CONFIG, "not a ROS namespace segment"),
+        (["other", "--mtu", "\uff11\uff12\uff18\uff10"], ExitCode.USAGE, "ASCII digits"),
+        (["other", "--ip", "\uff11\uff10.8.0.9"], ExitCode.CONFIG, "not an IPv4 address"),
     ],
 )
 def test_add_robot_errors_change_nothing(fleet: Path, cli: Cli, args: list[str], code: int,
@@ -306,3 +310,99 @@ def test_render_force_after_hand_edit(fleet: Path, cli: Cli) -> None:
     assert _snapshot(fleet) == before
     cli("render", "--force")
     assert "# my change" not in client.read_text()
+
+
+# --- issue 14: names, Unicode digits, one-line errors, round trips ----------------------
+
+
+@pytest.mark.parametrize(
+    ("args", "code", "message"),
+    [
+        (["--name", "x\n[Interface]\nPostUp = touch /tmp/PWNED #"], ExitCode.CONFIG,
+         "name (--name): fleet name 'x\\n[Interface]\\nPostUp = touch /tmp/PWNED "),
+        (["--name", "my fleet"], ExitCode.CONFIG, "name (--name): fleet name 'my fleet' must"),
+        (["--name", "f" * 64], ExitCode.CONFIG, "is 64 characters long (at most 63)"),
+        (["--endpoint", "h:\u00b2"], ExitCode.CONFIG, "endpoint (--endpoint): expected HOST:PORT"),
+        (["--endpoint", "h:\uff15\uff11\uff18\uff12\uff10"], ExitCode.CONFIG,
+         "endpoint (--endpoint): expected HOST:PORT"),
+        (["--subnet", "10.9.0.0/32"], ExitCode.CONFIG, "subnet (--subnet): 10.9.0.0/32 is too "),
+        (["--subnet", "10.9.0.0/\uff12\uff14"], ExitCode.CONFIG, "subnet (--subnet): not a "),
+        (["--https-port", "\uff18\uff14\uff14\uff13"], ExitCode.USAGE,
+         "Invalid value for '--https-port'"),
+    ],
+)
+def test_init_errors_are_one_line_and_change_nothing(cli: Cli, tmp_path: Path,
+                                                     args: list[str], code: int,
+                                                     message: str) -> None:
+    target = tmp_path / "new"
+    _, err = cli("init", str(target), *args, code=code)
+    assert message in err and "Traceback" not in err
+    if code != ExitCode.USAGE:  # click draws its own box around usage errors
+        assert err.startswith("fleetctl: error: ") and len(err.strip().splitlines()) == 1
+    assert not target.exists()
+
+
+def test_init_default_name_from_a_directory_name(cli: Cli, tmp_path: Path) -> None:
+    cli("init", str(tmp_path / "My Fleet (2)"))
+    doc = yaml.safe_load((tmp_path / "My Fleet (2)" / "fleet.yaml").read_text())
+    assert doc["name"] == "My-Fleet-2"
+
+
+def test_hand_edited_hostile_name_is_refused_by_render(fleet: Path, cli: Cli) -> None:
+    path = fleet / "fleet.yaml"
+    doc = yaml.safe_load(path.read_text())
+    doc["name"] = "x\n[Interface]\nPostUp = touch /tmp/PWNED #"
+    path.write_text(yaml.safe_dump(doc, sort_keys=False))
+    before = _snapshot(fleet)
+    _, err = cli("render", code=ExitCode.CONFIG)
+    assert f"{path}:" in err and ": name: fleet name" in err
+    assert len(err.strip().splitlines()) == 1 and _snapshot(fleet) == before
+
+
+@pytest.mark.parametrize("email", ["a\U0001f916@example.com", "\U0001d4b6@\u4f8b\u3048.jp",
+                                   "\U00020000x@example.org"])
+def test_astral_email_round_trips(fleet: Path, cli: Cli, email: str) -> None:
+    cli("add-user", email, "--role", "viewer")
+    auth = yaml.safe_load((fleet / "server/auth.yaml").read_text())
+    assert email in [i["name"] for i in auth["identities"]]
+    raw = (fleet / "server/auth.yaml").read_bytes()
+    assert raw.isascii() and b"\\ud8" not in raw.lower()  # \U escapes, never surrogates
+    assert [u["email"] for u in yaml.safe_load((fleet / "fleet.yaml").read_text())["users"]] \
+        == [email]
+    out, _ = cli("list", "-o", "json")
+    assert email in [u["email"] for u in json.loads(out)["fleet"]["users"]]
+    cli("remove-user", email)
+
+
+@pytest.mark.parametrize(("email", "message"), [
+    ("a" * 250 + "@x.org", "characters long (at most 254)"),
+    ("a b@x.org", "is not an email address"),
+    ("a\u2028b@x.org", "is not an email address"),
+    ("a@b@c", "is not an email address"),
+])
+def test_bad_email_is_refused(fleet: Path, cli: Cli, email: str, message: str) -> None:
+    before = _snapshot(fleet)
+    _, err = cli("add-user", email, "--role", "viewer", code=ExitCode.CONFIG)
+    assert message in err and len(err.strip().splitlines()) == 1
+    assert _snapshot(fleet) == before
+
+
+def test_export_out_errors(fleet: Path, cli: Cli, tmp_path: Path,
+                           monkeypatch: pytest.MonkeyPatch) -> None:
+    import functools
+
+    from fleetctl.cli import fleet as fleet_cli
+    from fleetctl.deploy.export import export_robot
+    from tests.deploy.test_bundle import fake_wheel
+
+    monkeypatch.setattr(fleet_cli, "export_robot",
+                        functools.partial(export_robot, wheel=fake_wheel(tmp_path)))
+    (tmp_path / "afile").write_text("mine\n")
+    _, err = cli("export", "husky1", "--out", str(tmp_path / "afile"), code=ExitCode.CONFLICT)
+    assert "--out" in err and "exists and is not a directory" in err
+    _, err = cli("export", "husky1", "--out", "/proc/fleetctl-nope/b",
+                 code=ExitCode.ENVIRONMENT)
+    assert err.startswith("fleetctl: error: --out /proc/fleetctl-nope/b: ")
+    assert len(err.strip().splitlines()) == 1
+    cli("export", "husky1", "--out", str(tmp_path / "b.tgz"))
+    assert (tmp_path / "b.tgz").is_file()

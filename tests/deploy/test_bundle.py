@@ -225,26 +225,32 @@ def test_readme_blocks(exported: Path) -> None:
     assert args[args.index("-v") + 1] == "/robot/client.yaml:/etc/fleetctl/robot/client.yaml:ro"
 
 
-def test_free_text_is_escaped_per_format(tmp_path: Path, wheel: Path) -> None:
-    from fleetctl.deploy import operations as ops
-    from tests.deploy.conftest import SeededKeySource
+def test_free_text_is_escaped_per_format() -> None:
+    from fleetctl.deploy.render import render_template
 
-    fleet_dir = tmp_path / "fleet"
-    name = "50% `lab` <b>x</b> [a](b)"
-    ops.create_fleet(fleet_dir, endpoint="vpn.example.com:51820", name=name,
-                     keys=SeededKeySource())
-    ops.add_robot(fleet_dir, "r1", keys=SeededKeySource("r1"))
-    out = export_robot(fleet_dir, "r1", tmp_path / "b", wheel=wheel).path
-    unit = _unit_settings((out / "fleetctl-client.service").read_text())
-    assert unit["Unit"]["Description"] == (
-        "fleetctl robot client of r1 (fleet 50%% `lab` <b>x</b> [a](b))")
-    readme = (out / "README.md").read_text()
-    assert r"# Robot r1 of fleet 50% \`lab\` \<b\>x\</b\> \[a\]\(b\)" in readme
+    # Fleet names are validated to [A-Za-z0-9._-]; the filters still hold on their own
+    # (tests/security/test_deploy_templates.py renders every template with worse).
+    unit = _unit_settings(render_template(
+        "robot/fleetctl-client.service.j2", description="50% `lab` <b>x</b> [a](b)",
+        interface="fleet0", env_file="/etc/fleetctl/fleetctl.env",
+        wrapper="/usr/local/bin/fleetctl-client", state_dir="/var/lib/fleetctl"))
+    assert unit["Unit"]["Description"] == "50%% `lab` <b>x</b> [a](b)"
 
 
 def test_escaping_functions() -> None:
-    assert bundle.unit_text("a%b\nExecStart=/bin/evil\\") == "a%%b ExecStart=/bin/evil"
-    assert bundle.md_text("*x*\n# y") == r"\*x\* \# y"
+    from fleetctl.deploy.render import md_text, unit_value
+
+    assert unit_value("a%b") == "a%%b"
+    for bad in ("a\nExecStart=/bin/evil", "x\\", " x"):
+        with pytest.raises(ValueError):
+            unit_value(bad)
+    with pytest.raises(ValueError, match="plain word"):
+        unit_value("/a b", word=True)
+    assert md_text("*x* # y") == r"\*x\* \# y"
+    with pytest.raises(ValueError):
+        md_text("x\n# y")
+    with pytest.raises(ValueError, match="code span"):
+        md_text("a`b", code=True)
     assert bundle.sh_quote("it's") == "'it'\"'\"'s'"
     assert bundle.env_value("ROS_DOMAIN_ID", 7) == "ROS_DOMAIN_ID=7"
     for bad in ("a b", "'x'", '"x"', "x\ny", "$HOME", "a;b", "`x`", "a\\b"):

@@ -8,7 +8,7 @@ import pytest
 import yaml
 
 from fleetctl.deploy.export import export_robot
-from fleetctl.errors import ConfigError, ExitCode
+from fleetctl.errors import ConfigError, ExitCode, FleetError
 from tests.deploy.test_bundle import fake_wheel
 
 
@@ -60,3 +60,65 @@ def test_export_ships_a_wheel_of_this_fleetctl(fleet_dir: Path, tmp_path: Path) 
         names = set(zf.namelist())
     assert "fleetctl/client/transport.py" in names
     assert "fleetctl/deploy/bundle.py" in names
+
+
+# --- issue 14: temp files, the --out directory, --out errors ----------------------------
+
+
+def test_export_never_follows_a_planted_temp_name(fleet_dir: Path, tmp_path: Path) -> None:
+    import os
+
+    out = tmp_path / "b"
+    out.mkdir()
+    victim = tmp_path / "victim"
+    victim.write_text("keep\n")
+    # The name the old code used, and a guess at every pid nearby: temp names are random.
+    for pid in range(os.getpid() - 5, os.getpid() + 5):
+        (out / f".wg0.conf.{pid}.tmp").symlink_to(victim)
+    export_robot(fleet_dir, "husky1", out, wheel=fake_wheel(tmp_path))
+    assert victim.read_text() == "keep\n"
+    assert (out / "wg0.conf").read_text().count("PrivateKey") == 1
+    assert not (out / "wg0.conf").is_symlink()
+
+
+def test_export_keeps_an_existing_directory_mode(fleet_dir: Path, tmp_path: Path) -> None:
+    import stat
+
+    shared = tmp_path / "shared"
+    shared.mkdir()
+    shared.chmod(0o1777)
+    export_robot(fleet_dir, "husky1", shared, wheel=fake_wheel(tmp_path))
+    assert stat.S_IMODE(shared.stat().st_mode) == 0o1777
+    assert stat.S_IMODE((shared / "wg0.conf").stat().st_mode) == 0o600
+    new = export_robot(fleet_dir, "husky1", tmp_path / "new", wheel=fake_wheel(tmp_path)).path
+    assert stat.S_IMODE(new.stat().st_mode) == 0o700
+
+
+@pytest.mark.parametrize("suffix", [".tar.gz", ".tgz"])
+def test_export_tarball_suffixes(fleet_dir: Path, tmp_path: Path, suffix: str) -> None:
+    import tarfile
+
+    out = export_robot(fleet_dir, "husky1", tmp_path / f"husky1{suffix}",
+                       wheel=fake_wheel(tmp_path)).path
+    assert out.is_file()
+    with tarfile.open(out) as tar:
+        assert "husky1/wg0.conf" in tar.getnames()
+
+
+def test_export_out_errors_change_nothing(fleet_dir: Path, tmp_path: Path) -> None:
+    from fleetctl.errors import ConflictError
+
+    wheel = fake_wheel(tmp_path)
+    afile = tmp_path / "afile"
+    afile.write_text("mine\n")
+    with pytest.raises(ConflictError, match=r"^--out .*afile: exists and is not a directory"):
+        export_robot(fleet_dir, "husky1", afile, wheel=wheel)
+    assert afile.read_text() == "mine\n"
+    adir = tmp_path / "adir.tgz"
+    adir.mkdir()
+    with pytest.raises(ConflictError, match="is not a regular file"):
+        export_robot(fleet_dir, "husky1", adir, wheel=wheel)
+    with pytest.raises(FleetError) as info:
+        export_robot(fleet_dir, "husky1", Path("/proc/fleetctl-nope/b"), wheel=wheel)
+    assert str(info.value).startswith("--out /proc/fleetctl-nope/b: ")
+    assert info.value.exit_code is ExitCode.ENVIRONMENT and "\n" not in str(info.value)

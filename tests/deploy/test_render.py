@@ -309,26 +309,27 @@ def test_server_yaml_web_section_and_server_loader(fleet_dir: Path) -> None:
                                   "\u2028sep\x85", "caf\u00e9 \U0001f916", "#not: a comment",
                                   "- [x]", "", "null", "yes"])
 def test_yaml_filter_round_trips(text: str) -> None:
-    from fleetctl.deploy.render import _yaml_scalar
+    from fleetctl.deploy.render import yaml_scalar
 
-    rendered = _yaml_scalar(text)
+    rendered = yaml_scalar(text)
     assert "\n" not in rendered and "\u2028" not in rendered and "\x85" not in rendered
     assert yaml.safe_load(f"k: {rendered}\n") == {"k": text}
 
 
 def test_yaml_filter_refuses_non_finite() -> None:
-    from fleetctl.deploy.render import _yaml_scalar
+    from fleetctl.deploy.render import yaml_scalar
 
     with pytest.raises(ValueError):
-        _yaml_scalar(float("nan"))
+        yaml_scalar(float("nan"))
 
 
-@pytest.mark.parametrize("value", ["x\n[Peer]", "x\rAllowedIPs = 0.0.0.0/0", "a\x00"])
+@pytest.mark.parametrize("value", ["x\n[Peer]", "x\rAllowedIPs = 0.0.0.0/0", "a\x00",
+                                   "a\u2028b", "key # cut", " padded"])
 def test_wireguard_filter_refuses_line_breaks(value: str) -> None:
-    from fleetctl.deploy.render import _wg_value
+    from fleetctl.deploy.render import wg_value
 
     with pytest.raises(ValueError):
-        _wg_value(value)
+        wg_value(value)
 
 
 def test_fleet_name_cannot_inject_into_wireguard(fleet_dir: Path) -> None:
@@ -336,6 +337,6 @@ def test_fleet_name_cannot_inject_into_wireguard(fleet_dir: Path) -> None:
     path.write_text(path.read_text().replace(
         "name: campus", 'name: "campus\\n[Peer]\\nAllowedIPs = 0.0.0.0/0"'))
     before = _snapshot(fleet_dir)
-    with pytest.raises(ConfigError, match=r"fleet\.yaml:5: name: must be one line"):
+    with pytest.raises(ConfigError, match=r"fleet\.yaml:5: name: fleet name .* must be ASCII"):
         ops.render_fleet(fleet_dir)
     assert _snapshot(fleet_dir) == before

@@ -25,8 +25,9 @@ def e2e(
     out: Path = typer.Option(Path("e2e-report"), "--out", help="Report directory."),
     wireguard: str = typer.Option(
         "off", "--wireguard",
-        help="Robots reach the server over WireGuard: auto (when /dev/net/tun exists), on, "
-             "off (default for now: docs/e2e.md, WireGuard)."),
+        help="Robots reach the server over WireGuard, as `fleetctl up` deploys them: auto "
+             "(when /dev/net/tun exists), on, off (the routed network; the default until "
+             "dropout recovers within 1 s over the tunnel in every run: docs/e2e.md)."),
     clean: bool = typer.Option(
         False, "--cleanup",
         help="Remove containers and networks left by e2e runs that died; run nothing else."),

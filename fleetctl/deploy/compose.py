@@ -395,6 +395,14 @@ def render(plan: ComposePlan) -> dict[str, Any]:
     }
 
 
+def server_service(plan: ComposePlan) -> dict[str, Any]:
+    """The ``server`` service exactly as :func:`render` puts it in the compose document (a
+    fresh dict, the caller's to change). ``fleetctl e2e`` starts its server from it
+    (:mod:`fleetctl.deploy.dockerrun`), so what e2e measures is what ``up`` deploys."""
+    service: dict[str, Any] = render(plan)["services"]["server"]
+    return service
+
+
 # --- files ---------------------------------------------------------------------------
 
 

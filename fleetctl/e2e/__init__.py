@@ -2,6 +2,7 @@
 
 Modules: :mod:`.samples` (what consumers record), :mod:`.metrics` (pure analysis),
 :mod:`.report` (JSON, Markdown, PNG), :mod:`.topology` (networks, router, containers),
-:mod:`.wireguard` (the fleet over the tunnel), :mod:`.interrupt` (signals unwind a run),
+:mod:`.deployment` (the fleet as ``fleetctl up`` deploys it), :mod:`.wireguard` (tunnel on
+or off, MTU, subnet), :mod:`.interrupt` (signals unwind a run),
 :mod:`.cleanup` (labels, leftovers).
 """

@@ -105,7 +105,7 @@ def remove(runner: Runner, resources: Sequence[Resource]) -> list[Resource]:
     """Remove *resources*, containers first (best effort); returns what is gone now."""
     containers = [r.name for r in resources if r.kind == "container"]
     if containers:
-        runner(["docker", "rm", "-f", *containers], None, True)
+        runner(["docker", "rm", "-f", "-v", *containers], None, True)
     for net in (r for r in resources if r.kind == "network"):
         runner(["docker", "network", "rm", net.name], None, True)
     left = {(r.kind, r.name) for r in find(runner)}

@@ -2,8 +2,12 @@
 
 Runs in a container on the server network::
 
-    python -m fleetctl.e2e.consumer --url ws://server:8080/ --token-file /e2e/token \\
-        --subscribe '/robot1/.*' --count 4 --out /e2e/out --name mc4
+    python -m fleetctl.e2e.consumer --url wss://172.20.0.3:8443/ --ca-file /e2e/tls-cert.pem \\
+        --tls-name server --token-file /e2e/token --subscribe '/robot1/.*' --count 4 \\
+        --out /e2e/out --name mc4
+
+``wss://`` URLs check the server's certificate against ``--ca-file`` (the fleet's
+self-signed one) under the name ``--tls-name`` (default: the URL's host).
 
 Each of ``--count`` connections authenticates with the Bearer token, subscribes, waits for
 the server's ``subscribed`` answer, then writes ``NAME-I.ready``. Every binary frame is
@@ -20,10 +24,12 @@ import argparse
 import asyncio
 import json
 import signal
+import ssl
 import sys
 import time
+from dataclasses import dataclass
 from pathlib import Path
-from typing import TextIO
+from typing import Any, TextIO
 
 from websockets.asyncio.client import ClientConnection, connect
 
@@ -104,7 +110,29 @@ async def _subscribe(ws: ClientConnection, regex: str) -> None:
                 raise FleetError(f"server refused the subscription: {event}")
 
 
-async def consume(url: str, token: str, regex: str, name: str, out_dir: Path) -> None:
+@dataclass(frozen=True)
+class Tls:
+    """How a ``wss://`` connection checks the server.
+
+    Attributes:
+        ca_file: PEM certificate(s) to trust; None: the system's.
+        name: The name the certificate must carry; None: the URL's host.
+    """
+
+    ca_file: Path | None = None
+    name: str | None = None
+
+    def kwargs(self, url: str) -> dict[str, Any]:
+        """``connect`` arguments for *url* (none for ``ws://``)."""
+        if not url.startswith("wss://"):
+            return {}
+        context = ssl.create_default_context(
+            cafile=str(self.ca_file) if self.ca_file is not None else None)
+        return {"ssl": context, **({"server_hostname": self.name} if self.name else {})}
+
+
+async def consume(url: str, token: str, regex: str, name: str, out_dir: Path,
+                  tls: Tls = Tls()) -> None:
     """One connection: subscribe to *regex*, record until cancelled.
 
     Raises:
@@ -114,7 +142,7 @@ async def consume(url: str, token: str, regex: str, name: str, out_dir: Path) ->
     with (out_dir / f"{name}.jsonl").open("a", buffering=1) as out:
         recorder = Recorder(name, out)
         async with connect(url, additional_headers={"Authorization": f"Bearer {token}"},
-                           max_size=MAX_FRAME_BYTES, max_queue=None) as ws:
+                           max_size=MAX_FRAME_BYTES, max_queue=None, **tls.kwargs(url)) as ws:
             # max_queue=None: frames are read as fast as they come; this process must not
             # be the bottleneck that delays receipt (the socket buffer is the only bound).
             await asyncio.wait_for(_subscribe(ws, regex), SUBSCRIBE_TIMEOUT_S)
@@ -124,13 +152,14 @@ async def consume(url: str, token: str, regex: str, name: str, out_dir: Path) ->
                     recorder.feed(frame, time.time_ns())
 
 
-async def run(url: str, token: str, regex: str, name: str, count: int, out_dir: Path) -> int:
+async def run(url: str, token: str, regex: str, name: str, count: int, out_dir: Path,
+              tls: Tls = Tls()) -> int:
     """Run *count* consumers until SIGTERM/SIGINT; returns the number that failed."""
     stop = asyncio.Event()
     loop = asyncio.get_running_loop()
     for signum in (signal.SIGTERM, signal.SIGINT):
         loop.add_signal_handler(signum, stop.set)
-    tasks = [asyncio.create_task(consume(url, token, regex, f"{name}-{i}", out_dir))
+    tasks = [asyncio.create_task(consume(url, token, regex, f"{name}-{i}", out_dir, tls))
              for i in range(count)]
     waiter = asyncio.create_task(stop.wait())
     await asyncio.wait([waiter, *tasks], return_when=asyncio.FIRST_COMPLETED)
@@ -151,6 +180,8 @@ def main(argv: list[str] | None = None) -> int:
     """Command line entry point (``python -m fleetctl.e2e.consumer``)."""
     parser = argparse.ArgumentParser(prog="python -m fleetctl.e2e.consumer")
     parser.add_argument("--url", required=True)
+    parser.add_argument("--ca-file", type=Path, help="PEM certificate to trust (wss://)")
+    parser.add_argument("--tls-name", help="name the server's certificate must carry")
     parser.add_argument("--token-file", type=Path, required=True)
     parser.add_argument("--subscribe", default=".*", help="RE2 topic regex")
     parser.add_argument("--count", type=int, default=1)
@@ -165,7 +196,8 @@ def main(argv: list[str] | None = None) -> int:
     if args.count < 1:
         print("e2e consumer: --count must be at least 1", file=sys.stderr)
         return 2
-    failed = asyncio.run(run(args.url, token, args.subscribe, args.name, args.count, args.out))
+    failed = asyncio.run(run(args.url, token, args.subscribe, args.name, args.count, args.out,
+                             Tls(args.ca_file, args.tls_name)))
     return 1 if failed else 0
 
 

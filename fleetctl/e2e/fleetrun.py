@@ -1,44 +1,40 @@
 """The fleet in the e2e topology: server, robot (client + load publisher), consumers.
 
-One :class:`FleetRun` per ``fleetctl e2e`` invocation. It writes the server's config and
-auth map (docs/design.md sections 3 and 4) into a work directory mounted at ``/e2e`` in every
-container, starts components with :class:`~fleetctl.e2e.topology.Topology`, and reads the
-consumers' sample files back. Every wait is a poll of a condition with a deadline.
+One :class:`FleetRun` per ``fleetctl e2e`` invocation. The server is the container
+``fleetctl up`` deploys, from ``up``'s own files (:mod:`fleetctl.e2e.deployment`); robots and
+consumers get their configs from a work directory mounted at ``/e2e``. Components are
+started with :class:`~fleetctl.e2e.topology.Topology`; the consumers' sample files are read
+back. Every wait is a poll of a condition with a deadline.
 
-Identities: the robot by its source address; consumers by a Bearer token whose SHA-256 is in
-the auth map. With WireGuard (:mod:`fleetctl.e2e.wireguard`, as ``fleetctl up`` deploys a
-fleet) robots reach the server through the tunnel and the robot is its VPN address; without,
-the robot is the robot network's CIDR (routed, not NATed, through the router, so the server
-sees the robot container's own address). Consumers always use the server network directly.
+Identities: the robot by its source address; consumers by the fleet's viewer token. With
+WireGuard robots reach the server's plain listener through the tunnel and the robot is its
+fleet address; without, the robot is the robot network's CIDR (routed, not NATed, through
+the router, so the server sees the robot container's own address). Consumers reach the
+HTTPS listener on the server network, as people do.
 """
 
 from __future__ import annotations
 
 import json
-import secrets
 import time
 from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
 
 import yaml
 
 from fleetctl.deploy.images import image_tag
 from fleetctl.e2e import profiles
+from fleetctl.e2e.deployment import SERVER_ALIAS, SITE_PACKAGE, WG_IFACE, Deployment
 from fleetctl.e2e.samples import Sample, load
 from fleetctl.e2e.topology import IDLE_COMMAND, ROBOT_SIDE, SERVER_SIDE, Endpoint, Topology
-from fleetctl.e2e.wireguard import TUN_DEVICE, Tunnel
 from fleetctl.errors import FleetError
-from fleetctl.tokens import hash_token
 from fleetctl.waiting import wait_until
 
 CONTAINER_DIR = "/e2e"
-SERVER_PORT = 8080
-_SITE = "/opt/fleetctl/lib/python3.11/site-packages/fleetctl"
 _POLL_S = 0.1
-_HEALTH = ("import urllib.request; urllib.request.urlopen("
-           f"'http://127.0.0.1:{SERVER_PORT}/healthz', timeout=1)")
+# The image's own HEALTHCHECK (FLEETCTL_HEALTH comes from `up`'s service definition).
+_HEALTH = ["python3", "/usr/local/bin/fleetctl-healthcheck"]
 
 
 def wait_for(what: str, condition: Callable[[], bool], timeout_s: float) -> None:
@@ -65,20 +61,41 @@ class FleetRun:
         topo: The topology (networks and router already up).
         work: Host directory mounted at ``/e2e`` (made world-writable: the images run as
             an unprivileged user).
-        source_dir: A source tree whose ``fleetctl/`` package is mounted over the images'
-            (development: test code changes without ``fleetctl build``); None uses the
-            images as built.
-        tunnel: Run server and robots over this WireGuard tunnel; None: the routed
-            network only.
+        deployment: The fleet as ``up`` deploys it (its ``work`` is this *work*; its
+            ``source_dir``, when set, is mounted over the images' package in every
+            container: development without ``fleetctl build``).
     """
 
     topo: Topology
     work: Path
-    source_dir: Path | None = None
-    tunnel: Tunnel | None = None
-    token: str = field(default_factory=lambda: secrets.token_urlsafe(24), repr=False)
+    deployment: Deployment
+    images: dict[str, str] = field(default_factory=dict)  # name -> image pinned by id
     server: Endpoint | None = None
-    wg_ifaces: dict[str, str] = field(default_factory=dict)  # robot container -> interface
+    tunnelled: set[str] = field(default_factory=set)  # robot containers with WireGuard
+
+    def image(self, name: str) -> str:
+        """The image of component *name* (``server``, ``client``): pinned to its id at the
+        run's start when :meth:`pin_images` ran, so a concurrent ``fleetctl build`` that
+        retags the images cannot change them in the middle of a run."""
+        return self.images.get(name) or image_tag(name)
+
+    def pin_images(self, *names: str) -> None:
+        """Resolve each image tag to its id now (an unresolvable tag stays a tag)."""
+        for name in names:
+            res = self.topo.runner(["docker", "image", "inspect", "-f", "{{.Id}}",
+                                    image_tag(name)], None, True)
+            if res.returncode == 0 and res.stdout.strip():
+                self.images[name] = res.stdout.strip()
+
+    @property
+    def wireguard(self) -> bool:
+        """Whether robots reach the server through WireGuard."""
+        return self.deployment.wireguard
+
+    @property
+    def source_dir(self) -> Path | None:
+        """The checkout mounted over the images' package, if any."""
+        return self.deployment.source_dir
 
     @property
     def out(self) -> Path:
@@ -86,80 +103,56 @@ class FleetRun:
         return self.work / "out"
 
     @property
-    def server_url(self) -> str:
-        """The server's WebSocket URL as robots and consumers reach it."""
+    def server_ip(self) -> str:
+        """The server container's address on the server network.
+
+        Raises:
+            FleetError: the server is not started.
+        """
         if self.server is None:
             raise FleetError("the server is not started")
-        return f"ws://{self.server.ip}:{SERVER_PORT}/"
+        return self.server.ip
+
+    @property
+    def server_url(self) -> str:
+        """The ``wss://`` URL consumers use (the HTTPS listener)."""
+        return self.deployment.consumer_url(self.server_ip)
 
     @property
     def robot_server_url(self) -> str:
-        """The server's URL as robots reach it (through the tunnel, when there is one)."""
-        if self.tunnel is None:
-            return self.server_url
-        return self.tunnel.server_url(SERVER_PORT)
+        """The ``ws://`` URL robots use (through the tunnel, when there is one)."""
+        return self.deployment.robot_url(self.server_ip)
 
     def mounts(self) -> list[str]:
         """``-v`` specifications every fleet container gets."""
         mounts = [f"{self.work}:{CONTAINER_DIR}"]
         if self.source_dir is not None:
-            mounts.append(f"{self.source_dir / 'fleetctl'}:{_SITE}:ro")
+            mounts.append(f"{self.source_dir / 'fleetctl'}:{SITE_PACKAGE}:ro")
         return mounts
 
-    def write_configs(self) -> None:
-        """Write ``server.yaml``, ``auth.yaml`` and the consumers' token file."""
+    def prepare(self) -> None:
+        """Make the work directories (world-writable: the images run unprivileged)."""
         self.out.mkdir(parents=True, exist_ok=True)
         for path in (self.work, self.out):
             path.chmod(0o777)
-        robot: dict[str, str] = ({"ip": self.tunnel.robot_vpn_ip} if self.tunnel
-                                 else {"cidr": self.topo.subnets[ROBOT_SIDE]})
-        auth = {"version": 1, "identities": [
-            {"name": profiles.ROBOT, **robot,
-             "rules": [{"topic": f"/{profiles.ROBOT}/.*", "op": "send"}]},
-            {"name": "e2e-consumer",
-             "token_sha256": hash_token(self.token),
-             "rules": [{"topic": ".*", "op": "receive"}]},
-        ]}
-        server = {"listen_host": "0.0.0.0", "listen_port": SERVER_PORT,
-                  "auth_map": "auth.yaml", "database": None}
-        (self.work / "auth.yaml").write_text(yaml.safe_dump(auth, sort_keys=False))
-        (self.work / "server.yaml").write_text(yaml.safe_dump(server, sort_keys=False))
-        token_file = self.work / "token"
-        token_file.write_text(self.token)
-        token_file.chmod(0o644)  # the consumers run as another user; the token is a test's
 
     def start_server(self) -> Endpoint:
-        """Start ``fleetctl server`` and wait until ``/healthz`` answers.
-
-        With a tunnel, the server's WireGuard is up first, and the robots' ``Endpoint`` is
-        set to the server container's address.
+        """Start ``up``'s server container and wait until its health check passes.
 
         Raises:
             FleetError: the server container stopped, or did not answer in time.
         """
-        if self.tunnel is not None:
-            self.tunnel.create([self.topo.subnets[ROBOT_SIDE], self.topo.subnets[SERVER_SIDE]])
-        self.write_configs()
-        self.server = self.topo.start(
-            "server", SERVER_SIDE, image_tag("server"),
-            ["fleetctl", "server", "--config", f"{CONTAINER_DIR}/server.yaml"],
-            mounts=self.mounts(),
-            **self._wireguard(self.tunnel.server_iface if self.tunnel else None))
-        if self.tunnel is not None:
-            self.tunnel.set_endpoint(self.server.ip)
+        self.prepare()
+        subnets = self.topo.subnets
+        self.deployment.create([subnets[ROBOT_SIDE], subnets[SERVER_SIDE]], subnets[ROBOT_SIDE])
+        service = self.deployment.server_service()
+        service["image"] = self.image("server")  # up's image, pinned (see image())
+        self.server = self.topo.start_service(SERVER_ALIAS, SERVER_SIDE, service,
+                                              {"server-data": None})
         name = self.server.name
-        self.wait_healthy(name, "the server's /healthz", lambda: self.topo.exec(
-            name, ["python3", "-c", _HEALTH]).returncode == 0, 30.0)
+        self.wait_healthy(name, "the server's health check", lambda: self.topo.exec(
+            name, _HEALTH).returncode == 0, 30.0)
         return self.server
-
-    def _wireguard(self, iface: str | None) -> dict[str, Any]:
-        """``Topology.start`` arguments that bring *iface* up in the container (or none)."""
-        if self.tunnel is None or iface is None:
-            return {}
-        # The entrypoint needs root, NET_ADMIN (every e2e container has it) and the TUN
-        # device for wireguard-go; it drops to the fleetctl user before the command runs.
-        return {"env": self.tunnel.container_env(iface), "user": "root",
-                "devices": [str(TUN_DEVICE)]}
 
     def wait_healthy(self, name: str, what: str, condition: Callable[[], bool],
                      timeout_s: float) -> None:
@@ -198,22 +191,21 @@ class FleetRun:
                   f"--out {CONTAINER_DIR}/out/{role}-published.json & "
                   "echo $! > /tmp/load.pid; "
                   f"exec fleetctl client --config {CONTAINER_DIR}/{role}.yaml")
-        iface = self.tunnel.robot_iface() if self.tunnel else None
-        wg = self._wireguard(iface)
+        wg = self.deployment.robot_options(self.server_ip)
         env = {"ROS_AUTOMATIC_DISCOVERY_RANGE": "LOCALHOST", **wg.pop("env", {})}
-        robot = self.topo.start(role, ROBOT_SIDE, image_tag("client"), ["bash", "-c", script],
-                                env=env, mounts=self.mounts(), **wg)
-        if iface is not None:
-            self.wg_ifaces[robot.name] = iface
+        mounts = [*self.mounts(), *wg.pop("mounts", [])]
+        robot = self.topo.start(role, ROBOT_SIDE, self.image("client"), ["bash", "-c", script],
+                                env=env, mounts=mounts, **wg)
+        if self.wireguard:
+            self.tunnelled.add(robot.name)
         return robot
 
     def latest_handshake_ns(self, robot: Endpoint) -> int | None:
         """When *robot*'s WireGuard last completed a handshake (ns since the epoch, one
         second resolution); None without a tunnel or before the first handshake."""
-        iface = self.wg_ifaces.get(robot.name)
-        if iface is None:
+        if robot.name not in self.tunnelled:
             return None
-        res = self.topo.exec(robot.name, ["wg", "show", iface, "latest-handshakes"])
+        res = self.topo.exec(robot.name, ["wg", "show", WG_IFACE, "latest-handshakes"])
         fields = res.stdout.split()
         if res.returncode != 0 or len(fields) < 2 or not fields[1].isdigit():
             return None
@@ -231,8 +223,9 @@ class FleetRun:
     def start_consumers(self, role: str, count: int, regex: str = ".*") -> Endpoint:
         """Start *count* WebSocket consumers in one container; wait until all subscribed."""
         ep = self.topo.start(
-            role, SERVER_SIDE, image_tag("server"),
+            role, SERVER_SIDE, self.image("server"),
             ["python3", "-m", "fleetctl.e2e.consumer", "--url", self.server_url,
+             "--ca-file", f"{CONTAINER_DIR}/tls-cert.pem", "--tls-name", SERVER_ALIAS,
              "--token-file", f"{CONTAINER_DIR}/token", "--subscribe", regex,
              "--count", str(count), "--name", role, "--out", f"{CONTAINER_DIR}/out"],
             mounts=self.mounts())
@@ -247,7 +240,7 @@ class FleetRun:
     def remove(self, *endpoints: Endpoint) -> None:
         """Stop and remove containers of this run (their files stay in the work dir)."""
         names = [e.name for e in endpoints]
-        self.topo.runner(["docker", "rm", "-f", *names], None, True)
+        self.topo.runner(["docker", "rm", "-f", "-v", *names], None, True)
         self.topo.endpoints[:] = [e for e in self.topo.endpoints if e.name not in names]
 
     def samples(self, prefix: str) -> list[Sample]:

@@ -7,8 +7,9 @@ Scenarios (MISSION.md "End-to-end runs"; parameters are the issue's):
 - ``dropout``, ``multi-consumer``, ``ramp``, ``priority``: the fleet (server, robot client,
   consumers) over the shaped link. They need the ``fleetctl server`` and ``fleetctl client``
   commands in the images; a preflight checks that and reports ``not_run`` (a failure) with
-  the reason instead of pretending. With WireGuard (``--wireguard auto|on``; off by default
-  for now) robots reach the server through the tunnel, as ``fleetctl up`` deploys them; the
+  the reason instead of pretending. The server is the container ``fleetctl up`` deploys
+  (:mod:`fleetctl.e2e.deployment`). With WireGuard (``--wireguard auto|on``; off by default
+  for now, docs/e2e.md) robots reach it through the tunnel, as ``up`` deploys them; the
   tunnel's UDP crosses the same shaped router.
 """
 
@@ -26,6 +27,7 @@ from fleetctl.deploy.dockercli import Runner, image_exists, subprocess_runner
 from fleetctl.deploy.images import BASE_IMAGE, image_tag
 from fleetctl.deploy.shaping import Capabilities, RateSpec, mbit
 from fleetctl.e2e import cleanup, wireguard
+from fleetctl.e2e.deployment import Deployment
 from fleetctl.e2e.fleetrun import FleetRun
 from fleetctl.e2e.scenarios import SCENARIO_FUNCS
 from fleetctl.e2e.topology import IDLE_COMMAND, ROBOT_SIDE, SERVER_SIDE, Topology
@@ -82,7 +84,8 @@ class RunConfig:
         source_dir: Mount this checkout's ``fleetctl/`` over the images' package
             (development without ``fleetctl build``); None runs the images as built.
         wireguard: ``auto`` (WireGuard when ``/dev/net/tun`` exists), ``on`` or ``off``
-            (the default until multi-consumer's flatness holds over the tunnel, docs/e2e.md).
+            (the default until dropout's recovery holds over the tunnel in every run,
+            docs/e2e.md).
         run_id: Id of the run in container names and labels (at most 8 of ``a-z0-9``);
             None: random.
     """
@@ -212,11 +215,18 @@ def run(cfg: RunConfig, progress: Progress = print,
     topology = Topology(runner=runner) if cfg.run_id is None else Topology(cfg.run_id, runner)
     with topology as topo:
         progress(f"run {topo.run_id} (label {cleanup.RUN_LABEL}={topo.run_id})")
-        fleet = FleetRun(topo, work.resolve(), cfg.source_dir, _tunnel(topo, work, mode))
+        link_mtu = topo.mtu(topo.router, topo.router_devs[ROBOT_SIDE])
+        deployment = Deployment(work.resolve(), topo.run_id, mode.on,
+                                wireguard.tunnel_mtu(link_mtu), cfg.source_dir)
+        fleet = FleetRun(topo, work.resolve(), deployment)
+        fleet.pin_images("server", "client")
         caps = topo.capabilities()
         env = {"tc": caps.describe(), "router": topo.router, "duration_s": cfg.duration_s,
                "clock": "one host clock (containers share the kernel's CLOCK_REALTIME)",
-               "wireguard": _describe_wireguard(mode, fleet.tunnel, topo)}
+               "wireguard": _describe_wireguard(mode, deployment, link_mtu),
+               "server": "the `server` service `fleetctl up` renders (compose.server_service), "
+                         "as `docker run` arguments, without ports, restart policy or static "
+                         "address; consumers on its HTTPS port"}
         progress(f"topology up; {caps.describe()}")
         progress(f"wireguard: {env['wireguard']}")
         for i, name in enumerate(cfg.scenarios, 1):
@@ -228,21 +238,14 @@ def run(cfg: RunConfig, progress: Progress = print,
     return env, results
 
 
-def _tunnel(topo: Topology, work: Path, mode: wireguard.Mode) -> wireguard.Tunnel | None:
-    if not mode.on:
-        return None
-    link = topo.mtu(topo.router, topo.router_devs[ROBOT_SIDE])
-    return wireguard.Tunnel(work.resolve(), topo.run_id, wireguard.tunnel_mtu(link))
-
-
-def _describe_wireguard(mode: wireguard.Mode, tunnel: wireguard.Tunnel | None,
-                        topo: Topology) -> str:
+def _describe_wireguard(mode: wireguard.Mode, deployment: Deployment,
+                        link_mtu: int) -> str:
     """The report's ``wireguard`` line: on or off, and why."""
-    if tunnel is None:
+    if not mode.on:
         return mode.describe()
-    link = topo.mtu(topo.router, topo.router_devs[ROBOT_SIDE])
-    return (f"{mode.describe()}; tunnel MTU {tunnel.mtu_bytes} on a {link}-byte link; "
-            "the link scenario and the DDS baseline use the routed network")
+    return (f"{mode.describe()}; robot tunnel MTU {deployment.mtu_bytes} on a {link_mtu}-byte "
+            "link (the server's: up's default); the link scenario and the DDS baseline use "
+            "the routed network")
 
 
 def _fleet_scenario(name: str, fleet: FleetRun, caps: Capabilities, cfg: RunConfig,

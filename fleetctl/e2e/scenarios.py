@@ -23,7 +23,6 @@ import time
 from collections.abc import Callable
 from typing import Any
 
-from fleetctl.deploy.images import image_tag
 from fleetctl.deploy.shaping import Capabilities, LinkShaper, RateSpec, mbit
 from fleetctl.e2e import analysis, profiles
 from fleetctl.e2e.fleetrun import FleetRun, hold, wait_for
@@ -133,7 +132,7 @@ def run_dropout(fr: FleetRun, caps: Capabilities, duration_s: float,
     result["notes"].insert(0, "link 4 Mbit/s both ways; cut: "
                            f"{caps.cut_method} on both router egresses"
                            + ("; robots over WireGuard (the tunnel's UDP is what is cut)"
-                              if fr.tunnel else ""))
+                              if fr.wireguard else ""))
     for v, offset_s in handshakes.items():
         result["notes"].append(
             f"{v}: the robot's latest WireGuard handshake was {offset_s:+.0f} s from the "
@@ -179,14 +178,26 @@ def _mc_step(fr: FleetRun, tag: str, n: int, seconds: float, start: Callable[[],
         except FleetError:
             if strict:
                 raise
-        dev = fr.topo.router_devs[SERVER_SIDE]
-        a_ns, a_bytes = time.time_ns(), fr.topo.tx_bytes(fr.topo.router, dev)
-        hold(seconds)
-        b_ns, b_bytes = time.time_ns(), fr.topo.tx_bytes(fr.topo.router, dev)
+        # Timed in the router, where the counter is (Topology.count_tx says why).
+        window = fr.topo.count_tx(fr.topo.router, fr.topo.router_devs[SERVER_SIDE], seconds)
     finally:
         stop(handle)
+    a_ns, b_ns = window.start_ns, window.end_ns
     samples = [s for s in fr.samples(tag) if a_ns <= s.recv_time_ns <= b_ns]
-    return analysis.step_summary(samples, n, b_bytes - a_bytes, (b_ns - a_ns) / 1e9)
+    summary = analysis.step_summary(samples, n, window.tx_bytes, window.seconds)
+    summary["window_ns"] = [a_ns, b_ns]  # wall clock: lines up with the raw sample files
+    return summary
+
+
+def window_s(duration_s: float, rate_hz: float) -> float:
+    """A multi-consumer step's window: ``max(2, D/5)`` s rounded to whole publish periods.
+
+    The uplink is one burst per published message; a window of whole periods holds the
+    same number of them wherever it starts, so the window's phase adds nothing to the
+    spread between consumer counts.
+    """
+    periods = max(1, round(max(2.0, duration_s / 5) * rate_hz))
+    return periods / rate_hz
 
 
 def run_multi_consumer(fr: FleetRun, caps: Capabilities, duration_s: float,
@@ -196,7 +207,7 @@ def run_multi_consumer(fr: FleetRun, caps: Capabilities, duration_s: float,
     topic = p.topics[0].remote_topic
     link = Link(fr, caps)
     link.rate(12.0)
-    seconds = max(2.0, duration_s / 5)
+    seconds = window_s(duration_s, p.topics[0].rate_hz)
     steps: dict[str, list[dict[str, Any]]] = {"fleetctl": [], "dds": []}
     robot = fr.start_robot("mc-robot", p, "multi-consumer")
     try:
@@ -220,8 +231,10 @@ def run_multi_consumer(fr: FleetRun, caps: Capabilities, duration_s: float,
     if not steps["dds"]:
         steps.pop("dds")
     result = analysis.multi_consumer(steps)
-    result["notes"] = [f"12 Mbit/s uplink; {seconds:.0f} s per consumer count; uplink = "
-                       "router tx bytes towards the server network", *notes, *result["notes"]]
+    result["notes"] = [f"12 Mbit/s uplink; {seconds:g} s per consumer count "
+                       f"({round(seconds * p.topics[0].rate_hz)} publish periods); uplink = "
+                       "router tx bytes towards the server network, counter and clock read "
+                       "in the router", *notes, *result["notes"]]
     return result
 
 
@@ -230,9 +243,9 @@ def _dds_baseline(fr: FleetRun, p: profiles.Profile, seconds: float,
     """Native ROS 2: consumers subscribe to the robot's DDS topic across the router."""
     dds_env = {"ROS_DOMAIN_ID": DDS_DOMAIN_ID, "FASTDDS_BUILTIN_TRANSPORTS": "UDPv4",
                "ROS_AUTOMATIC_DISCOVERY_RANGE": "SUBNET"}
-    sub_host = fr.start_idle("dds-consumers", SERVER_SIDE, image_tag("client"), dds_env)
+    sub_host = fr.start_idle("dds-consumers", SERVER_SIDE, fr.image("client"), dds_env)
     robot = fr.topo.start(
-        "dds-robot", ROBOT_SIDE, image_tag("client"),
+        "dds-robot", ROBOT_SIDE, fr.image("client"),
         ["python3", "-m", "fleetctl.e2e.load", "--profile", p.name],
         env={**dds_env, "ROS_STATIC_PEERS": sub_host.ip}, mounts=fr.mounts())
     load = p.topics[0]

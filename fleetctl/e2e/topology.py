@@ -24,8 +24,10 @@ import json
 import secrets
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
+from typing import Any
 
 from fleetctl.deploy.dockercli import Completed, Runner, check, subprocess_runner
+from fleetctl.deploy.dockerrun import run_args
 from fleetctl.deploy.images import image_tag
 from fleetctl.deploy.shaping import Capabilities, LinkShaper, detect
 from fleetctl.e2e import cleanup
@@ -36,6 +38,36 @@ ROBOT_SIDE = "robot"
 SERVER_SIDE = "server"
 # A container command that does nothing until it is told to stop (a process to exec into).
 IDLE_COMMAND = ["python3", "-c", "import signal; signal.sigwait({signal.SIGTERM, signal.SIGINT})"]
+
+
+# Run in a container: the counter of argv[1] at now and at now + argv[2] seconds, each
+# read right after the clock (CLOCK_REALTIME, shared by every container of the host).
+_TX_WINDOW = (
+    "import sys, time\n"
+    "path = f'/sys/class/net/{sys.argv[1]}/statistics/tx_bytes'\n"
+    "def read():\n"
+    "    t = time.time_ns()\n"
+    "    with open(path) as f:\n"
+    "        return t, int(f.read())\n"
+    "a = read(); end = a[0] + int(float(sys.argv[2]) * 1e9)\n"
+    "while (left := end - time.time_ns()) > 0:\n"
+    "    time.sleep(left / 1e9)\n"
+    "b = read(); print(*a, *b)\n"
+)
+
+
+@dataclass(frozen=True)
+class TxWindow:
+    """Bytes sent during a measured window (times in ns since the epoch)."""
+
+    start_ns: int
+    end_ns: int
+    tx_bytes: int
+
+    @property
+    def seconds(self) -> float:
+        """The window's length (s)."""
+        return (self.end_ns - self.start_ns) / 1e9
 
 
 @dataclass(frozen=True)
@@ -116,6 +148,7 @@ class Topology:
         self, role: str, side: str, image: str, command: Sequence[str], *,
         env: Mapping[str, str] | None = None, mounts: Sequence[str] = (),
         user: str | None = None, devices: Sequence[str] = (),
+        hosts: Mapping[str, str] | None = None,
     ) -> Endpoint:
         """Start a container on *side* and route the other side's subnet via the router.
 
@@ -128,19 +161,54 @@ class Topology:
             mounts: ``-v`` specifications.
             user: Run as this user (default: the image's).
             devices: ``--device`` specifications (``/dev/net/tun`` for WireGuard).
+            hosts: Names to resolve in the container (``--add-host NAME:IP``).
         """
-        name = f"fce2e-{self.run_id}-{role}"
-        argv = ["run", "-d", "--name", name, *self.labels, "--cap-add", "NET_ADMIN",
-                "--network", self.networks[side], "--network-alias", role]
+        name = self.container_name(role)
+        argv = ["run", "-d", "--name", name, *self._endpoint_args(role, side)]
         for device in devices:
             argv += ["--device", device]
         for key, value in (env or {}).items():
             argv += ["-e", f"{key}={value}"]
         for mount in mounts:
             argv += ["-v", mount]
+        for host, ip in (hosts or {}).items():
+            argv += ["--add-host", f"{host}:{ip}"]
         if user:
             argv += ["-u", user]
         self._docker(*argv, image, *command, what=f"start {role}")
+        return self._attach(name, role, side)
+
+    def start_service(self, role: str, side: str, service: Mapping[str, Any],
+                      volumes: Mapping[str, str | None]) -> Endpoint:
+        """Start a compose *service* (:mod:`fleetctl.deploy.dockerrun`) on *side*.
+
+        Every network the service names becomes *side*'s network; the run's labels, the
+        alias *role* and ``NET_ADMIN`` (for the routes) are added.
+
+        Args:
+            volumes: The service's named volumes -> Docker volumes (``None``: anonymous).
+
+        Raises:
+            FleetError: the service cannot be converted, or the container did not start.
+        """
+        name = self.container_name(role)
+        nets = service.get("networks") or []
+        args = run_args(service, name=name, volumes=volumes,
+                        networks={str(n): self.networks[side] for n in nets},
+                        extra=[*self.labels, "--network-alias", role, "--cap-add", "NET_ADMIN"])
+        self._docker("run", *args, what=f"start {role}")
+        return self._attach(name, role, side)
+
+    def container_name(self, role: str) -> str:
+        """The name of the run's container *role*."""
+        return f"fce2e-{self.run_id}-{role}"
+
+    def _endpoint_args(self, role: str, side: str) -> list[str]:
+        return [*self.labels, "--cap-add", "NET_ADMIN", "--network", self.networks[side],
+                "--network-alias", role]
+
+    def _attach(self, name: str, role: str, side: str) -> Endpoint:
+        """Route the other side's subnet via the router, delete the default route."""
         other = SERVER_SIDE if side == ROBOT_SIDE else ROBOT_SIDE
         check(self.exec(name, ["ip", "route", "add", self.subnets[other], "via",
                                self.router_ips[side]]), f"route in {role}")
@@ -174,6 +242,22 @@ class Topology:
                     "read tx_bytes")
         return int(res.stdout.strip())
 
+    def count_tx(self, container: str, dev: str, seconds: float) -> TxWindow:
+        """Bytes *container* sends on *dev* during the next *seconds*, timed inside it.
+
+        The clock and the counter are read together in the container, at both ends of the
+        window, so the window is *seconds* long to within a millisecond. Taking the time on
+        this side of a ``docker exec`` instead adds the exec's start-up (60-90 ms idle, more
+        on a busy host) to one end or the other: +-5% and more on a 2 s window.
+
+        Raises:
+            FleetError: the measurement failed.
+        """
+        res = check(self.exec(container, ["python3", "-c", _TX_WINDOW, dev, str(seconds)]),
+                    f"count tx bytes of {dev}")
+        start_ns, start_bytes, end_ns, end_bytes = (int(x) for x in res.stdout.split())
+        return TxWindow(start_ns, end_ns, end_bytes - start_bytes)
+
     def running(self, container: str) -> bool:
         """Whether *container* exists and runs."""
         res = self.runner(["docker", "inspect", "-f", "{{.State.Running}}", container],
@@ -198,7 +282,8 @@ class Topology:
         with deferred():
             names = [e.name for e in self.endpoints] + ([self.router] if self.router else [])
             if names:
-                self.runner(["docker", "rm", "-f", *names], None, True)
+                # -v: anonymous volumes (the server's data) go with their containers.
+                self.runner(["docker", "rm", "-f", "-v", *names], None, True)
             for net in self.networks.values():
                 self.runner(["docker", "network", "rm", net], None, True)
             # What was made but not yet recorded (a `docker run` cut short by a signal).

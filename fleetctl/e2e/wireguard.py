@@ -1,49 +1,35 @@
-"""The e2e fleet over WireGuard, as ``fleetctl up`` deploys it.
+"""Whether an e2e run uses WireGuard, the robot's tunnel MTU and the fleet subnet.
 
-Keys and configs come from fleetctl's own deploy code: :func:`create_fleet` and
-:func:`add_robot` make a fleet directory in the run's work directory (``WORK/fleet``, keys
-0600 in 0700 directories), and :func:`render_fleet` re-renders the robot's ``wg0.conf`` once
-the server container's address is known (its ``Endpoint``: the server container on the
-server network, so the tunnel's UDP packets cross the router and its shaping). The image
-entrypoint (``images/entrypoint.sh``) brings ``wireguard-go`` up from ``WG_CONFIG`` (root,
-``NET_ADMIN``, ``/dev/net/tun``), then drops to the ``fleetctl`` user.
+The fleet itself (keys, configs, the server container) is :mod:`fleetctl.e2e.deployment`'s:
+``fleetctl up``'s own files. The image entrypoint (``images/entrypoint.sh``) brings
+``wireguard-go`` up from ``WG_CONFIG`` (root, ``NET_ADMIN``, ``/dev/net/tun``), then drops to
+the ``fleetctl`` user. Every container has its own filesystem, so each names its interface
+``wg0`` as ``up``'s containers do (``wireguard-go``'s UAPI socket lives in ``/var/run``).
 
 One robot identity (``robot1``, one key, one VPN address) serves every robot container of a
 run: they run one after another, and each new container makes a fresh handshake from its own
-address (WireGuard roaming). The server's auth map names the robot by that VPN address.
+address (WireGuard roaming).
 
-Interface names are unique per container (``fs-RUN`` for the server, ``fr-RUN-N`` for
-robots): ``wireguard-go``'s UAPI socket path is not per network namespace.
-
-MTU: the tunnel's is the link's minus 80 bytes (WireGuard's own rule: 40-byte IPv6 outer
-header, 8 UDP, 32 WireGuard), so an encrypted packet is never fragmented by the router and
-always fits the shaper's bucket.
+MTU: the robot's is the link's minus 80 bytes (WireGuard's own rule: 40-byte IPv6 outer
+header, 8 UDP, 32 WireGuard; ``add_robot --mtu``), so an encrypted packet is never fragmented
+by the router and always fits the shaper's bucket. The server's is what ``up`` gives it (the
+fleet's server config names none: the entrypoint's default, 1380).
 """
 
 from __future__ import annotations
 
 import ipaddress
-import os
-import re
-import shutil
 from collections.abc import Sequence
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass
 from pathlib import Path
 
-from fleetctl.deploy import operations
-from fleetctl.deploy.files import Plan
-from fleetctl.deploy.fleet import dump_fleet, fleet_file, load_fleet
-from fleetctl.e2e import profiles
 from fleetctl.errors import EnvironmentMissing, FleetError
 
 TUN_DEVICE = Path("/dev/net/tun")
 WG_PORT = 51820
 OVERHEAD_BYTES = 80
-FLEETCTL_HOME = "/var/lib/fleetctl"  # the images' fleetctl user's home
 # VPN subnets to try, first one that overlaps no Docker network of the run wins.
 _SUBNETS = ("10.8.0.0/24", "10.88.0.0/24", "172.30.250.0/24", "192.168.250.0/24")
-# create_fleet needs an endpoint before the server container (and its address) exists.
-_PLACEHOLDER_HOST = "server.invalid"
 
 
 @dataclass(frozen=True)
@@ -95,106 +81,3 @@ def choose_subnet(avoid: Sequence[str]) -> str:
         if not any(net.overlaps(t) for t in taken):
             return candidate
     raise FleetError(f"no VPN subnet free of the run's networks {list(avoid)}")
-
-
-def _write_secret(path: Path, text: str) -> None:
-    path.parent.mkdir(mode=0o700, parents=True, exist_ok=True)
-    fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o600)
-    with os.fdopen(fd, "w") as fh:
-        fh.write(text)
-    path.chmod(0o600)
-
-
-def _with_mtu(conf: str, mtu_bytes: int) -> str:
-    """*conf* with ``MTU = mtu_bytes`` in its ``[Interface]`` (replacing one if present)."""
-    conf = re.sub(r"(?m)^\s*MTU\s*=.*\n", "", conf)
-    return re.sub(r"(?m)^\[Interface\]\n", f"[Interface]\nMTU = {mtu_bytes}\n", conf, count=1)
-
-
-@dataclass
-class Tunnel:
-    """The WireGuard side of one run: fleet directory, container configs, their names.
-
-    Args:
-        work: The run's work directory (host side; mounted at *container_dir*).
-        run_id: The run's id (part of interface names, at most 8 characters).
-        mtu_bytes: The tunnel's MTU (both ends).
-        container_dir: Where *work* is mounted in containers.
-    """
-
-    work: Path
-    run_id: str
-    mtu_bytes: int
-    container_dir: str = "/e2e"
-    server_vpn_ip: str = ""
-    robot_vpn_ip: str = ""
-    endpoint: str = ""
-    _robots: int = field(default=0, repr=False)
-
-    @property
-    def fleet_dir(self) -> Path:
-        """The fleet directory ``create_fleet`` made."""
-        return self.work / "fleet"
-
-    @property
-    def conf_dir(self) -> Path:
-        """Host directory of the configs containers read (0700, files 0600)."""
-        return self.work / "wg"
-
-    @property
-    def server_iface(self) -> str:
-        """The server's WireGuard interface (and config) name."""
-        return f"fs-{self.run_id}"
-
-    def create(self, avoid: Sequence[str]) -> None:
-        """Make the fleet (server key, robot ``robot1``) and the server's container config.
-
-        Args:
-            avoid: CIDRs the VPN subnet must not overlap (the run's Docker networks).
-        """
-        shutil.rmtree(self.fleet_dir, ignore_errors=True)
-        shutil.rmtree(self.conf_dir, ignore_errors=True)
-        init = operations.create_fleet(
-            self.fleet_dir, endpoint=f"{_PLACEHOLDER_HOST}:{WG_PORT}", name=f"e2e-{self.run_id}",
-            subnet=choose_subnet(avoid), wireguard_port=WG_PORT)
-        robot = operations.add_robot(self.fleet_dir, profiles.ROBOT, mtu_bytes=self.mtu_bytes)
-        self.server_vpn_ip, self.robot_vpn_ip = str(init.fleet.server_ip), str(robot.robot.ip)
-        conf = (self.fleet_dir / "server" / "wireguard" / "wg0.conf").read_text()
-        _write_secret(self.conf_dir / f"{self.server_iface}.conf", _with_mtu(conf, self.mtu_bytes))
-
-    def set_endpoint(self, server_host_ip: str) -> None:
-        """Point the robot's ``Endpoint`` at the server container (fleet.yaml, then render)."""
-        self.endpoint = f"{server_host_ip}:{WG_PORT}"
-        fleet = replace(load_fleet(self.fleet_dir), endpoint=self.endpoint)
-        plan = Plan()
-        plan.write(fleet_file(self.fleet_dir), dump_fleet(fleet))
-        plan.apply()
-        operations.render_fleet(self.fleet_dir)
-
-    def robot_iface(self) -> str:
-        """A config for the next robot container; returns its interface name.
-
-        Raises:
-            FleetError: :meth:`set_endpoint` was not called.
-        """
-        if not self.endpoint:
-            raise FleetError("the WireGuard endpoint is not set (start the server first)")
-        self._robots += 1
-        iface = f"fr-{self.run_id}-{self._robots}"
-        conf = (self.fleet_dir / "robots" / profiles.ROBOT / "wireguard" / "wg0.conf")
-        _write_secret(self.conf_dir / f"{iface}.conf", conf.read_text())
-        return iface
-
-    def container_env(self, iface: str) -> dict[str, str]:
-        """Environment that makes the entrypoint bring *iface* up (or fail the container).
-
-        The container starts as root; the entrypoint's ``setpriv`` drops to the ``fleetctl``
-        user but keeps ``HOME=/root``, where rclpy cannot create its log directory: HOME is
-        set to the fleetctl user's home.
-        """
-        return {"WG_CONFIG": f"{self.container_dir}/wg/{iface}.conf", "WG_REQUIRED": "1",
-                "HOME": FLEETCTL_HOME}
-
-    def server_url(self, port: int) -> str:
-        """The server's WebSocket URL through the tunnel."""
-        return f"ws://{self.server_vpn_ip}:{port}/"

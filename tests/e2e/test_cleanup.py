@@ -88,4 +88,4 @@ def test_close_removes_what_only_the_label_knows() -> None:
     topo = Topology(run_id="r1", runner=docker, owner="h:1:1")
     topo.close()
     assert docker.rows == {"container": [], "network": []}
-    assert ["docker", "rm", "-f", "fce2e-r1-server"] in docker.calls
+    assert ["docker", "rm", "-f", "-v", "fce2e-r1-server"] in docker.calls

@@ -29,6 +29,7 @@ from rclpy.serialization import deserialize_message, serialize_message
 
 from fleetctl.demo.fleet import free_port
 from fleetctl.demo.run import http_json, http_ok, online_robots
+from fleetctl.server.sessions import session_metric_id
 from fleetctl.waiting import wait_until
 from tests.client.ros.harness import (
     JsonProc,
@@ -356,7 +357,9 @@ def _mailbox_frames(fleet: Fleet, session: str) -> float:
             text = response.read().decode("utf-8")
     except OSError:
         return 0.0
-    prefix = f'fleetctl_session_mailbox_frames{{session="{session}"}} '
+    identity, _, name = session.partition("/")
+    label = session_metric_id(((identity,), name))  # metric labels are opaque
+    prefix = f'fleetctl_session_mailbox_frames{{session="{label}"}} '
     return max((float(line[len(prefix):]) for line in text.splitlines()
                 if line.startswith(prefix)), default=0.0)
 

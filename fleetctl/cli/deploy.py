@@ -14,18 +14,11 @@ from typing import Any
 
 import typer
 
-from fleetctl.cli.output import OutputFormat, emit, output_option
+from fleetctl.cli.output import OutputFormat, emit, fleet_option, output_option
 from fleetctl.deploy import composerun, images
 from fleetctl.deploy.compose import DEFAULT_BIND
 from fleetctl.deploy.dockercli import require_docker
 from fleetctl.errors import FleetError
-
-_FLEET_HELP = "Fleet directory (default: $FLEET_DIR, else the current directory)."
-
-
-def _fleet_option() -> Any:
-    return typer.Option(Path("."), "--fleet", "-f", envvar="FLEET_DIR", help=_FLEET_HELP,
-                        show_default=False)
 
 
 def _project_option() -> Any:
@@ -65,7 +58,7 @@ def build(
 
 
 def up(
-    fleet: Path = _fleet_option(),
+    fleet: Path = fleet_option(),
     wireguard: str = typer.Option(
         "auto", "--wireguard", help="auto | on | off: run the tunnel (auto: when /dev/net/tun "
         "exists)."),
@@ -101,7 +94,7 @@ def up(
 
 
 def down(
-    fleet: Path = _fleet_option(),
+    fleet: Path = fleet_option(),
     delete_data: bool = typer.Option(
         False, "--delete-data", help="Also delete the server's data volume (robot registry, "
         "sessions). Without it, data is kept for the next `up`."),
@@ -114,7 +107,7 @@ def down(
 
 
 def status(
-    fleet: Path = _fleet_option(),
+    fleet: Path = fleet_option(),
     project: str | None = _project_option(),
     output: OutputFormat = output_option(),
 ) -> None:
@@ -126,7 +119,7 @@ def status(
 
 def logs(
     service: list[str] = typer.Argument(None, help="Services (default: all), e.g. server."),
-    fleet: Path = _fleet_option(),
+    fleet: Path = fleet_option(),
     follow: bool = typer.Option(False, "--follow", help="Keep printing new lines."),
     project: str | None = _project_option(),
 ) -> None:

@@ -20,6 +20,7 @@ from fleetctl.cli.output import (
     OutputFormat,
     changes_text,
     emit,
+    fleet_option,
     output_option,
     progress_line,
     table,
@@ -35,7 +36,6 @@ from fleetctl.deploy.fleet import (
     Fleet,
 )
 
-_FLEET_HELP = "Fleet directory (default: $FLEET_DIR, else the current directory)."
 _DRY_RUN_HELP = "Show what would be written, write nothing."
 
 
@@ -63,11 +63,6 @@ class AsciiInt:
 
 
 _PORT = AsciiInt(1, 65535)
-
-
-def _fleet_option() -> Any:
-    return typer.Option(Path("."), "--fleet", "-f", envvar="FLEET_DIR", help=_FLEET_HELP,
-                        show_default=False)
 
 
 def _dry_run_option() -> Any:
@@ -119,7 +114,7 @@ def init(
         "(default: the directory's name, other characters made '-')."),
     force: bool = typer.Option(False, "--force",
                                help="Replace an existing fleet, its keys and generated files."),
-    fleet: Path = _fleet_option(),
+    fleet: Path = fleet_option(),
     dry_run: bool = _dry_run_option(),
     output: OutputFormat = output_option(),
 ) -> None:
@@ -146,7 +141,7 @@ def add_robot(
     ip: str | None = typer.Option(None, "--ip", help="VPN address (default: next free one)."),
     mtu: int = typer.Option(DEFAULT_MTU_BYTES, "--mtu", parser=AsciiInt(1, 65535),
                             help="WireGuard MTU in bytes (1280 suits LTE)."),
-    fleet: Path = _fleet_option(),
+    fleet: Path = fleet_option(),
     dry_run: bool = _dry_run_option(),
     output: OutputFormat = output_option(),
 ) -> None:
@@ -164,7 +159,7 @@ def add_robot(
 
 def remove_robot(
     name: str = typer.Argument(..., help="Robot to remove."),
-    fleet: Path = _fleet_option(),
+    fleet: Path = fleet_option(),
     dry_run: bool = _dry_run_option(),
     output: OutputFormat = output_option(),
 ) -> None:
@@ -177,7 +172,7 @@ def remove_robot(
 def add_user(
     email: str = typer.Argument(..., help="The user's email address."),
     role: str = typer.Option(..., "--role", help="viewer, operator or admin."),
-    fleet: Path = _fleet_option(),
+    fleet: Path = fleet_option(),
     dry_run: bool = _dry_run_option(),
     output: OutputFormat = output_option(),
 ) -> None:
@@ -198,7 +193,7 @@ def add_user(
 
 def remove_user(
     email: str = typer.Argument(..., help="User to remove."),
-    fleet: Path = _fleet_option(),
+    fleet: Path = fleet_option(),
     dry_run: bool = _dry_run_option(),
     output: OutputFormat = output_option(),
 ) -> None:
@@ -209,7 +204,7 @@ def remove_user(
 
 
 def list_fleet(
-    fleet: Path = _fleet_option(),
+    fleet: Path = fleet_option(),
     output: OutputFormat = output_option(),
 ) -> None:
     """List the fleet's robots and users."""
@@ -232,7 +227,7 @@ def list_fleet(
 def render(
     force: bool = typer.Option(False, "--force",
                                help="Overwrite generated files that were edited by hand."),
-    fleet: Path = _fleet_option(),
+    fleet: Path = fleet_option(),
     dry_run: bool = _dry_run_option(),
     output: OutputFormat = output_option(),
 ) -> None:
@@ -244,7 +239,7 @@ def render(
 
 def set_endpoint(
     endpoint: str = typer.Argument(..., help="HOST:PORT robots reach the server's WireGuard on."),
-    fleet: Path = _fleet_option(),
+    fleet: Path = fleet_option(),
     dry_run: bool = _dry_run_option(),
     output: OutputFormat = output_option(),
 ) -> None:
@@ -267,7 +262,7 @@ def export(
     out: Path | None = typer.Option(
         None, "--out", help="Bundle directory (made 0700 if missing), or a path ending in "
         ".tar.gz or .tgz (default: ./NAME-bundle)."),
-    fleet: Path = _fleet_option(),
+    fleet: Path = fleet_option(),
     dry_run: bool = _dry_run_option(),
     output: OutputFormat = output_option(),
 ) -> None:

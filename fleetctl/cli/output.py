@@ -35,6 +35,14 @@ def output_option() -> Any:
                         help="Print the result as text or as JSON.")
 
 
+def fleet_option() -> Any:
+    """Return the shared ``--fleet/-f DIR`` option, ``$FLEET_DIR`` else the current directory
+    (use as a parameter default): every command that acts on a fleet takes it."""
+    return typer.Option(Path("."), "--fleet", "-f", envvar="FLEET_DIR", show_default=False,
+                        help="Fleet directory (default: $FLEET_DIR, else the current "
+                        "directory).")
+
+
 def to_jsonable(value: object) -> Any:
     """Convert a result into JSON-compatible data (recursively)."""
     if isinstance(value, Secret):

@@ -199,20 +199,39 @@ def project_name(fleet_dir: Path) -> str:
     return f"fleetctl{name}{digest}"
 
 
-def wireguard_mode(requested: str, tun: Path = Path("/dev/net/tun")) -> tuple[bool, str]:
-    """Decide WireGuard on/off from ``auto|on|off`` and whether the TUN device exists.
+TUN_DEVICE = Path("/dev/net/tun")
+
+
+def wireguard_wanted(requested: str, tun: Path = TUN_DEVICE) -> bool:
+    """Whether to run WireGuard, from ``--wireguard auto|on|off`` and whether *tun* exists.
+
+    ``fleetctl up`` and ``fleetctl e2e`` decide the same way and word the reason their own.
 
     Raises:
-        FleetError: bad *requested*, or ``on`` without a TUN device.
+        FleetError: *requested* is not auto, on or off.
+        EnvironmentMissing: ``on`` without a TUN device.
     """
     if requested not in ("auto", "on", "off"):
         raise FleetError(f"--wireguard must be auto, on or off, not {requested!r}")
     if requested == "off":
-        return False, "off (requested): robots use the plain network with their fleet IPs"
+        return False
     if tun.exists():
-        return True, "on: wireguard-go in the server (and simulated robot) containers"
+        return True
     if requested == "on":
         raise EnvironmentMissing(f"--wireguard on, but {tun} does not exist on this host")
+    return False
+
+
+def wireguard_mode(requested: str, tun: Path = TUN_DEVICE) -> tuple[bool, str]:
+    """Decide WireGuard on/off (:func:`wireguard_wanted`) and say why, for ``up``.
+
+    Raises:
+        FleetError: bad *requested*, or ``on`` without a TUN device.
+    """
+    if wireguard_wanted(requested, tun):
+        return True, "on: wireguard-go in the server (and simulated robot) containers"
+    if requested == "off":
+        return False, "off (requested): robots use the plain network with their fleet IPs"
     return False, (
         f"WARNING: WireGuard NOT used: {tun} is missing on this host; robots use the plain "
         "network with their fleet IPs"

@@ -26,7 +26,7 @@ from fleetctl.deploy import composerun
 from fleetctl.deploy.compose import (
     SERVER_WG_CONF,
     WG_INTERFACE,
-    Options,
+    ComposePlan,
     plan_for,
     saved_options,
     write_files,
@@ -59,10 +59,11 @@ def sync_running(fleet_dir: Path, progress: Callable[[str], None],
         check(runner(["docker", "exec", server, "bash", "-c", sync], None, True),
               "wg syncconf in the server container")
         done.append("WireGuard peers synced")
-    if _certificate_changed(fleet_dir, options):
+    plan = plan_for(fleet_dir, options)
+    if _certificate_changed(plan):
         # The server loads its certificate at start: a new one (set-endpoint regenerates the
         # self-signed one for the new name) needs a restart; robots reconnect on their own.
-        write_files(plan_for(fleet_dir, options))
+        write_files(plan)
         check(runner(["docker", "restart", server], None, True), "restart of the server")
         done.append("server restarted with the new TLS certificate")
     if options.sim:
@@ -75,8 +76,7 @@ def sync_running(fleet_dir: Path, progress: Callable[[str], None],
     return "running fleet: " + "; ".join(done)
 
 
-def _certificate_changed(fleet_dir: Path, options: Options) -> bool:
-    plan = plan_for(fleet_dir, options)
+def _certificate_changed(plan: ComposePlan) -> bool:
     deployed = plan.compose_dir / "server" / "tls-cert.pem"
     try:
         return deployed.read_bytes() != plan.tls_cert.read_bytes()

@@ -51,7 +51,7 @@ import yaml
 from fleetctl.deploy import compose, operations
 from fleetctl.deploy.secrets import Secret
 from fleetctl.e2e import profiles
-from fleetctl.e2e.wireguard import TUN_DEVICE, WG_PORT, choose_subnet
+from fleetctl.e2e.wireguard import WG_PORT, choose_subnet
 from fleetctl.errors import FleetError
 from fleetctl.yamlfile import read_yaml
 
@@ -175,7 +175,7 @@ class Deployment:
         if not self.wireguard:
             return {}
         return {"env": {"WG_CONFIG": f"{ROBOT_WG_DIR}/wg0.conf", "WG_REQUIRED": "1"},
-                "user": "root", "devices": [str(TUN_DEVICE)],
+                "user": "root", "devices": [str(compose.TUN_DEVICE)],
                 "mounts": [f"{self.robot_wg_dir}:{ROBOT_WG_DIR}:ro"],
                 "hosts": {SERVER_ALIAS: server_ip}}
 

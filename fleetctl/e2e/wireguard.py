@@ -23,9 +23,9 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
-from fleetctl.errors import EnvironmentMissing, FleetError
+from fleetctl.deploy.compose import TUN_DEVICE, wireguard_wanted
+from fleetctl.errors import FleetError
 
-TUN_DEVICE = Path("/dev/net/tun")
 WG_PORT = 51820
 OVERHEAD_BYTES = 80
 # VPN subnets to try, first one that overlaps no Docker network of the run wins.
@@ -51,15 +51,11 @@ def decide(requested: str, tun: Path = TUN_DEVICE) -> Mode:
         FleetError: *requested* is not auto, on or off.
         EnvironmentMissing: ``on`` without a TUN device.
     """
-    if requested not in ("auto", "on", "off"):
-        raise FleetError(f"--wireguard must be auto, on or off, not {requested!r}")
-    if requested == "off":
-        return Mode(False, "--wireguard off; robots reach the server over the routed network")
-    if tun.exists():
+    if wireguard_wanted(requested, tun):
         return Mode(True, f"--wireguard {requested} and {tun} exists; wireguard-go in the "
                     "server and robot containers, robots reach the server through the tunnel")
-    if requested == "on":
-        raise EnvironmentMissing(f"--wireguard on, but {tun} does not exist on this host")
+    if requested == "off":
+        return Mode(False, "--wireguard off; robots reach the server over the routed network")
     return Mode(False, f"{tun} is missing on this host; robots reach the server over the "
                 "routed network")
 

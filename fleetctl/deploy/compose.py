@@ -335,6 +335,8 @@ def _merge(svc: dict[str, Any], extra: dict[str, Any]) -> dict[str, Any]:
 
 def _server_service(plan: ComposePlan) -> dict[str, Any]:
     bind, https = plan.options.bind, plan.published_https_port
+    if ":" in bind:  # IPv6: Compose's port syntax wants it in brackets
+        bind = f"[{bind}]"
     ports = [f"{bind}:{https}:{plan.https_port}/tcp"]
     if plan.wireguard:
         ports.append(f"{bind}:{plan.wireguard_port}:{plan.wireguard_port}/udp")

@@ -7,7 +7,9 @@ Debian's ``docker-compose`` v1) runs the file.
 
 from __future__ import annotations
 
+import ipaddress
 import json
+import re
 import shutil
 import subprocess
 import time
@@ -17,6 +19,7 @@ from pathlib import Path
 from typing import Any
 
 from fleetctl.deploy.compose import (
+    DEFAULT_BIND,
     WG_INTERFACE,
     ComposePlan,
     Options,
@@ -28,7 +31,7 @@ from fleetctl.deploy.compose import (
 )
 from fleetctl.deploy.dockercli import Runner, check, image_exists, subprocess_runner
 from fleetctl.deploy.images import image_tag
-from fleetctl.errors import ConflictError, EnvironmentMissing, FleetError
+from fleetctl.errors import ConfigError, ConflictError, EnvironmentMissing, FleetError
 
 Progress = Callable[[str], None]
 
@@ -330,7 +333,27 @@ def _peer_names(fleet_dir: Path) -> dict[str, str]:
         return {}
 
 
+_PROJECT = re.compile(r"[a-z0-9][a-z0-9_-]{0,62}")
+
+
 def default_options(fleet_dir: Path, **chosen: Any) -> Options:
-    """Options for ``up`` with the default project name of *fleet_dir*."""
+    """Options for ``up`` with the default project name of *fleet_dir*.
+
+    ``--bind`` and ``--project`` reach the compose file and the compose command line, so
+    they are checked here: an IP address (not a port mapping), and Compose's project-name
+    alphabet.
+
+    Raises:
+        ConfigError: a bad ``--bind`` or ``--project``, naming the option.
+    """
     project = chosen.pop("project", None) or project_name(fleet_dir)
+    if not _PROJECT.fullmatch(project):
+        raise ConfigError(f"--project {project!r}: expected 1-63 of a-z 0-9 _ - "
+                          "(starting with a letter or digit)")
+    bind = chosen.get("bind", DEFAULT_BIND)
+    try:
+        ipaddress.ip_address(bind)
+    except ValueError:
+        raise ConfigError(f"--bind {bind!r}: expected an IP address of this host, e.g. "
+                          "127.0.0.1 or 0.0.0.0") from None
     return Options(project=project, **chosen)

@@ -259,3 +259,12 @@ def test_live_sync_restarts_the_server_only_for_a_new_certificate(fleet: Path) -
     assert sum(c[:2] == ["docker", "restart"] for c in docker.calls) == 1
     deployed = fleet / ".compose" / "server" / "tls-cert.pem"
     assert deployed.read_bytes() == (fleet / "server" / "tls" / "cert.pem").read_bytes()
+
+
+def test_bind_and_project_are_checked_before_they_reach_compose(fleet: Path) -> None:
+    with pytest.raises(ConfigError, match=r"--bind '1.2.3.4:2222:22': expected an IP"):
+        _opts(fleet, bind="1.2.3.4:2222:22")
+    with pytest.raises(ConfigError, match=r"--project 'x y'"):
+        _opts(fleet, project="x y")
+    plan = compose.plan_for(fleet, _opts(fleet, wireguard="off", bind="::1"))
+    assert compose.render(plan)["services"]["server"]["ports"] == ["[::1]:8443:8443/tcp"]

@@ -4,7 +4,9 @@
 set -euo pipefail
 cd "$(dirname "$0")/.."
 
-APT_PACKAGES=(chromium wireguard-go wireguard-tools iproute2 debootstrap libjs-three libjs-leaflet)
+# g++ and python3-dev: scripts/ros_msgs.sh compiles tf2_msgs/foxglove_msgs for the venv.
+APT_PACKAGES=(chromium wireguard-go wireguard-tools iproute2 debootstrap libjs-three libjs-leaflet
+              g++ python3-dev)
 missing=()
 for pkg in "${APT_PACKAGES[@]}"; do
   dpkg-query -W -f='${Status}' "$pkg" 2>/dev/null | grep -q "install ok installed" || missing+=("$pkg")
@@ -20,3 +22,5 @@ PYTHON="${PYTHON:-python3}"
 [ -x .venv/bin/python ] || "$PYTHON" -m venv .venv
 .venv/bin/pip install -q --upgrade pip
 .venv/bin/pip install -q -e '.[ros,dev]'
+# tf2_msgs and foxglove_msgs have no PyPI wheel: build them into the venv (docs/client.md).
+scripts/ros_msgs.sh .venv

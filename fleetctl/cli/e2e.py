@@ -24,10 +24,9 @@ def e2e(
     duration: float = typer.Option(30.0, "--duration", help="Measured seconds per scenario."),
     out: Path = typer.Option(Path("e2e-report"), "--out", help="Report directory."),
     wireguard: str = typer.Option(
-        "off", "--wireguard",
+        "auto", "--wireguard",
         help="Robots reach the server over WireGuard, as `fleetctl up` deploys them: auto "
-             "(when /dev/net/tun exists), on, off (the routed network; the default until "
-             "dropout recovers within 1 s over the tunnel in every run: docs/e2e.md)."),
+             "(when /dev/net/tun exists), on, off (the routed network)."),
     clean: bool = typer.Option(
         False, "--cleanup",
         help="Remove containers and networks left by e2e runs that died; run nothing else."),

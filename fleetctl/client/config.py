@@ -7,16 +7,40 @@ whose message names the file, the entry (index and topic) and the field, e.g.
 
 from __future__ import annotations
 
-import math
 import re
-from collections.abc import Callable, Mapping
+from collections.abc import Mapping
 from dataclasses import dataclass, field
 from functools import lru_cache
 from pathlib import Path
 from typing import Any
 
-from fleetctl.errors import ConfigError
+from fleetctl.client.configfields import Ctx as _Ctx
+from fleetctl.client.configfields import boolean as _bool
+from fleetctl.client.configfields import integer as _int
+from fleetctl.client.configfields import mapping as _mapping
+from fleetctl.client.configfields import number as _number
+from fleetctl.client.configfields import string as _str
+from fleetctl.client.mediaconfig import (
+    VIDEO_CODECS,
+    VIDEO_TYPES,
+    VIEWER_CLOUD_TYPES,
+    TfSpec,
+    VideoSpec,
+    ViewerCloudSpec,
+    tf_remote_topics,
+    tf_spec,
+    video_spec,
+    viewer_cloud_spec,
+)
 from fleetctl.yamlfile import read_yaml
+
+# The media keys live in fleetctl.client.mediaconfig; they are imported from here.
+__all__ = [
+    "COMPRESSIONS", "MAX_FRAGMENT_BYTES", "MIN_FRAGMENT_BYTES", "SCHEDULERS", "VIDEO_CODECS",
+    "VIDEO_TYPES", "VIEWER_CLOUD_TYPES", "ClientConfig", "ClientLimits", "PublishSpec",
+    "StatusSpec", "SubscribeSpec", "TfSpec", "VideoSpec", "ViewerCloudSpec",
+    "load_client_config", "parse_client_config", "tf_remote_topics",
+]
 
 # ROS 2 topic names: absolute, tokens of [A-Za-z0-9_] separated by single slashes.
 _TOPIC_RE = re.compile(r"^(/[A-Za-z_][A-Za-z0-9_]*)+$")
@@ -25,10 +49,11 @@ _URL_RE = re.compile(r"^wss?://[^\s/]+(/\S*)?$")
 
 _TOP_KEYS = frozenset(
     {"server_url", "robot_name", "bind_address", "token_file", "publish", "subscribe",
-     "status", "limits"}
+     "status", "limits", "tf"}
 )
 _PUBLISH_KEYS = frozenset(
-    {"topic", "type", "priority", "rate_limit_hz", "no_drop", "remote_topic", "compression"}
+    {"topic", "type", "priority", "rate_limit_hz", "no_drop", "remote_topic", "compression",
+     "video", "viewer_cloud"}
 )
 # "none" or a codec of fleetctl.wire.compression (names as in CompressionCodec).
 COMPRESSIONS = ("none", "zstd", "deflate")
@@ -59,6 +84,9 @@ class PublishSpec:
         remote_topic: Topic on the wire; defaults to ``/<robot_name><topic>``.
         compression: ``none``, ``zstd`` (fleetctl receivers) or ``deflate`` (also decoded
             by the web page); a frame is sent compressed only when that saves >= 5 %.
+        video: Send an image topic as video; None sends the messages as they are.
+        viewer_cloud: Also send ``<remote_topic>/viewer`` (a ``ViewerCloud``); None: only
+            the full cloud.
     """
 
     topic: str
@@ -68,6 +96,8 @@ class PublishSpec:
     no_drop: bool
     remote_topic: str
     compression: str = "none"
+    video: VideoSpec | None = None
+    viewer_cloud: ViewerCloudSpec | None = None
 
 
 @dataclass(frozen=True)
@@ -139,6 +169,7 @@ class ClientConfig:
         subscribe: Fleet topics received and republished locally.
         status: The client's own status messages.
         limits: Link bounds.
+        tf: The TF republisher of local ``/tf`` and ``/tf_static``; None: no TF is sent.
     """
 
     server_url: str
@@ -149,22 +180,12 @@ class ClientConfig:
     subscribe: tuple[SubscribeSpec, ...] = ()
     status: StatusSpec = StatusSpec()
     limits: ClientLimits = ClientLimits()
+    tf: TfSpec | None = None
 
     @property
     def status_topic(self) -> str:
         """The remote topic of this robot's status messages."""
         return f"/{self.robot_name}/status"
-
-
-class _Ctx:
-    """Builds error messages that name the file and the place in it."""
-
-    def __init__(self, source: str) -> None:
-        self.source = source
-
-    def error(self, where: str, field_name: str, reason: str) -> ConfigError:
-        prefix = f"{self.source}: {where}: " if where else f"{self.source}: "
-        return ConfigError(f"{prefix}{field_name}: {reason}")
 
 
 def load_client_config(path: str | Path) -> ClientConfig:
@@ -213,40 +234,21 @@ def parse_client_config(
     assert robot_name is not None
     if not _ROBOT_NAME_RE.match(robot_name):
         raise ctx.error("", "robot_name", f"must match [A-Za-z][A-Za-z0-9_]*, got {robot_name!r}")
+    publish = _publish_list(ctx, top.get("publish"), robot_name)
+    tf = tf_spec(ctx, top.get("tf"))
+    if tf is not None:
+        _check_tf_topics(ctx, publish, robot_name)
     return ClientConfig(
         server_url=server_url,
         robot_name=robot_name,
         bind_address=_bind_address(ctx, top),
         token=_token(ctx, top, base_dir or Path.cwd()),
-        publish=_publish_list(ctx, top.get("publish"), robot_name),
+        publish=publish,
         subscribe=_subscribe_list(ctx, top.get("subscribe")),
         status=_status(ctx, top.get("status")),
         limits=_limits(ctx, top.get("limits")),
+        tf=tf,
     )
-
-
-def _mapping(
-    ctx: _Ctx, value: object, where: str, name: str, allowed: frozenset[str]
-) -> Mapping[str, Any]:
-    if not isinstance(value, Mapping):
-        raise ctx.error(where, name, f"must be a mapping, got {type(value).__name__}")
-    unknown = sorted(str(k) for k in value if k not in allowed)
-    if unknown:
-        raise ctx.error(where, unknown[0], f"unknown field (allowed: {', '.join(sorted(allowed))})")
-    return value
-
-
-def _str(
-    ctx: _Ctx, entry: Mapping[str, Any], where: str, key: str, *, required: bool = False
-) -> str | None:
-    value = entry.get(key)
-    if value is None:
-        if required:
-            raise ctx.error(where, key, "is required")
-        return None
-    if not isinstance(value, str) or not value:
-        raise ctx.error(where, key, f"must be a non-empty string, got {value!r}")
-    return value
 
 
 def _topic(
@@ -255,37 +257,6 @@ def _topic(
     value = _str(ctx, entry, where, key, required=required)
     if value is not None and not _TOPIC_RE.match(value):
         raise ctx.error(where, key, f"not a ROS topic name (/a/b_c), got {value!r}")
-    return value
-
-
-def _number(
-    ctx: _Ctx, entry: Mapping[str, Any], where: str, key: str, default: float | None,
-    check: Callable[[float], bool], rule: str,
-) -> float | None:
-    value = entry.get(key, default)
-    if value is None:
-        return None
-    if isinstance(value, bool) or not isinstance(value, int | float):
-        raise ctx.error(where, key, f"must be a number, got {value!r}")
-    if not math.isfinite(value) or not check(float(value)):
-        raise ctx.error(where, key, f"must be {rule}, got {value!r}")
-    return float(value)
-
-
-def _int(ctx: _Ctx, entry: Mapping[str, Any], where: str, key: str, default: int,
-         lo: int, hi: int) -> int:
-    value: object = entry.get(key, default)
-    if isinstance(value, bool) or not isinstance(value, int):
-        raise ctx.error(where, key, f"must be an integer, got {value!r}")
-    if not lo <= value <= hi:
-        raise ctx.error(where, key, f"must be between {lo} and {hi}, got {value}")
-    return value
-
-
-def _bool(ctx: _Ctx, entry: Mapping[str, Any], where: str, key: str, default: bool) -> bool:
-    value = entry.get(key, default)
-    if not isinstance(value, bool):
-        raise ctx.error(where, key, f"must be true or false, got {value!r}")
     return value
 
 
@@ -332,12 +303,20 @@ def _publish_list(ctx: _Ctx, value: object, robot_name: str) -> tuple[PublishSpe
         label = raw.get("topic") if isinstance(raw, Mapping) else None
         where = f"publish[{i}]" + (f" ({label})" if isinstance(label, str) else "")
         spec = _publish(ctx, raw, where, robot_name)
-        if spec.remote_topic in seen:
-            reason = f"{spec.remote_topic} is already sent by publish[{seen[spec.remote_topic]}]"
-            raise ctx.error(where, "remote_topic", reason)
-        seen[spec.remote_topic] = i
+        for remote in _remote_topics(spec):
+            if remote in seen:
+                reason = f"{remote} is already sent by publish[{seen[remote]}]"
+                raise ctx.error(where, "remote_topic", reason)
+            seen[remote] = i
         specs.append(spec)
     return tuple(specs)
+
+
+def _remote_topics(spec: PublishSpec) -> tuple[str, ...]:
+    """Every remote topic an entry sends (the viewer cloud is a second one)."""
+    if spec.viewer_cloud is None:
+        return (spec.remote_topic,)
+    return (spec.remote_topic, f"{spec.remote_topic}/viewer")
 
 
 def _publish(ctx: _Ctx, raw: object, where: str, robot_name: str) -> PublishSpec:
@@ -348,14 +327,17 @@ def _publish(ctx: _Ctx, raw: object, where: str, robot_name: str) -> PublishSpec
     priority = _number(ctx, entry, where, "priority", 1.0, lambda v: v >= 0, ">= 0")
     rate = _number(ctx, entry, where, "rate_limit_hz", None, lambda v: v > 0, "> 0 or null")
     remote = remote or f"/{robot_name}{topic}"
+    type_name = _type(ctx, entry, where)
     return PublishSpec(
         topic=topic,
-        type=_type(ctx, entry, where),
+        type=type_name,
         priority=1.0 if priority is None else priority,
         rate_limit_hz=rate,
         no_drop=_bool(ctx, entry, where, "no_drop", False),
         remote_topic=remote,
         compression=_compression(ctx, entry, where, remote == f"/{robot_name}/status"),
+        video=video_spec(ctx, entry.get("video"), where, type_name),
+        viewer_cloud=viewer_cloud_spec(ctx, entry.get("viewer_cloud"), where, type_name),
     )
 
 
@@ -452,6 +434,16 @@ def _status(ctx: _Ctx, value: object) -> StatusSpec:
         battery_topic=_topic(ctx, entry, "status", "battery_topic", required=False),
         period_s=1.0 if period is None else period,
     )
+
+
+def _check_tf_topics(ctx: _Ctx, publish: tuple[PublishSpec, ...], robot_name: str) -> None:
+    # The republisher owns these two remote topics; a publish entry sending them too would
+    # interleave raw and throttled TF on one topic.
+    owned = set(tf_remote_topics(robot_name))
+    for i, spec in enumerate(publish):
+        if spec.remote_topic in owned:
+            reason = f"{spec.remote_topic} is sent by the tf section; remove this entry or tf"
+            raise ctx.error(f"publish[{i}] ({spec.topic})", "remote_topic", reason)
 
 
 def _limits(ctx: _Ctx, value: object) -> ClientLimits:

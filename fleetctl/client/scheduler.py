@@ -21,6 +21,12 @@ clock. The transport feeds it messages (:meth:`Scheduler.offer`), pulls frames t
   message still being sent. To rule out livelock on a link slower than the topic
   (every message superseded, none delivered), at most ``max_consecutive_supersedes``
   messages of a topic are superseded in a row; the next one runs to completion.
+- Keyframes (video, :mod:`fleetctl.client.ros.videotopic`): a message offered with
+  ``keyframe=True`` is what later frames of its topic depend on. A keyframe replaces or
+  supersedes any older message of its topic, but a delta frame never replaces a queued
+  keyframe nor supersedes one being sent: the delta is dropped instead (counted in
+  ``dropped_behind_keyframe``; the video hook sees the drop and makes its next frame a
+  keyframe).
 - In flight = sent and not yet acknowledged by a pong to a later ping. The window is
   delay-based: it grows while the queueing delay (RTT - min RTT) is under
   ``target_queue_delay_s`` and shrinks above it, floored at one fragment, so a clean
@@ -46,8 +52,8 @@ from typing import Protocol
 from fleetctl.client.estimators import BusyRate, RateLimiter, WindowedExtremum
 
 __all__ = [
-    "BusyRate", "RateLimiter", "Scheduler", "SchedulerConfig", "SplitFn", "TopicStats",
-    "WindowedExtremum",
+    "BusyRate", "RateLimiter", "Scheduler", "SchedulerConfig", "SplitFn", "TopicFeedback",
+    "TopicStats", "WindowedExtremum",
 ]
 
 
@@ -151,16 +157,48 @@ class TopicStats:
     dropped_overflow: int = 0
     dropped_disconnect: int = 0
     dropped_invalid: int = 0
+    dropped_behind_keyframe: int = 0
     requeued: int = 0
+
+    @property
+    def dropped(self) -> int:
+        """Every message of the topic the scheduler dropped, whatever the reason."""
+        return (self.dropped_replaced + self.dropped_superseded + self.dropped_overflow
+                + self.dropped_disconnect + self.dropped_invalid
+                + self.dropped_behind_keyframe)
+
+
+@dataclass(frozen=True)
+class TopicFeedback:
+    """What a producer adapting to the link needs about one topic (video bitrate and
+    keyframes). Counters are cumulative.
+
+    Attributes:
+        link_rate_Bps: The link rate the fragments are sized by (bytes/s; 0 before the
+            first estimate; see :meth:`Scheduler.rate_cap_bytes`).
+        dropped: Messages of the topic dropped so far (:attr:`TopicStats.dropped`).
+        sent_bytes: Bytes of the topic sent so far.
+        busy: A message of the topic waits, or is partly sent.
+        higher_priority_sent_bytes: Bytes sent so far by topics of a higher priority.
+    """
+
+    link_rate_Bps: float
+    dropped: int
+    sent_bytes: int
+    busy: bool
+    higher_priority_sent_bytes: int
 
 
 class _Message:
-    __slots__ = ("fragments", "frame", "message_id", "next_index", "no_drop", "topic")
+    __slots__ = ("fragments", "frame", "keyframe", "message_id", "next_index", "no_drop",
+                 "topic")
 
-    def __init__(self, topic: _Topic, frame: bytes, no_drop: bool) -> None:
+    def __init__(self, topic: _Topic, frame: bytes, no_drop: bool,
+                 keyframe: bool = False) -> None:
         self.topic = topic
         self.frame = frame
         self.no_drop = no_drop
+        self.keyframe = keyframe
         self.fragments: list[bytes] | None = None
         self.message_id = 0
         self.next_index = 0
@@ -231,6 +269,7 @@ class Scheduler:
         self.last_error: str | None = None
         self._delay_window = float(self.config.initial_window_bytes)
         self._fragment = self._whole = self._window = 0
+        self._link_rate_Bps = 0.0
         self._update_limits()
 
     # -- Algorithm 1 ------------------------------------------------------------------
@@ -260,7 +299,7 @@ class Scheduler:
         return False
 
     def offer(self, topic: str, frame: bytes, now_s: float, *, priority: float,
-              no_drop: bool) -> bool:
+              no_drop: bool, keyframe: bool = False) -> bool:
         """Queue an encoded frame (Algorithm 1, 7-15).
 
         Args:
@@ -269,6 +308,8 @@ class Scheduler:
             now_s: Clock in seconds.
             priority: Non-negative Algorithm 2 weight (updates the topic's weight).
             no_drop: True queues in the bounded FIFO Q_n; False keeps latest only.
+            keyframe: A droppable video keyframe: later frames of the topic depend on it,
+                so they never replace it (see the module docstring).
 
         Returns:
             False when a no_drop message was refused because Q_n is full (counted in
@@ -277,7 +318,7 @@ class Scheduler:
         t = self._topic(topic, priority, now_s)
         t.priority = priority
         t.stats.offered += 1
-        msg = _Message(t, frame, no_drop)
+        msg = _Message(t, frame, no_drop, keyframe)
         if no_drop:
             return self._push_no_drop(msg)
         self._update_droppable(t, msg)
@@ -301,7 +342,11 @@ class Scheduler:
         return True
 
     def _update_droppable(self, t: _Topic, msg: _Message) -> None:
-        if t.current is not None and t.supersede_streak < self.config.max_consecutive_supersedes:
+        if not msg.keyframe and t.pending is not None and t.pending.keyframe:
+            t.stats.dropped_behind_keyframe += 1  # the keyframe it would replace stays
+            return
+        if (t.current is not None and t.supersede_streak < self.config.max_consecutive_supersedes
+                and (msg.keyframe or not t.current.keyframe)):
             t.current = None
             t.supersede_streak += 1
             t.stats.dropped_superseded += 1
@@ -526,6 +571,25 @@ class Scheduler:
         value = self._min_rtt.value(now_s, -1.0)
         return None if value < 0 else value
 
+    def topic_feedback(self, topic: str) -> TopicFeedback:
+        """Link rate and the counters of *topic* (all zero for a topic never offered).
+
+        Reads plain attributes and copies the topic table in one step, so another thread
+        may call it while the loop's thread runs the scheduler (CPython's GIL makes each
+        read atomic); the figures may be one frame apart from each other.
+        """
+        t = self._topics.get(topic)
+        priority = t.priority if t is not None else math.inf
+        higher = sum(other.stats.sent_bytes for other in list(self._topics.values())
+                     if other.priority > priority)
+        if t is None:
+            return TopicFeedback(self._link_rate_Bps, 0, 0, False, higher)
+        return TopicFeedback(
+            link_rate_Bps=self._link_rate_Bps, dropped=t.stats.dropped,
+            sent_bytes=t.stats.sent_bytes,
+            busy=t.pending is not None or t.current is not None,
+            higher_priority_sent_bytes=higher)
+
     def delivery_rate_bps(self, now_s: float | None = None) -> float:
         """Maximum delivery rate over the filter window in bytes/s (0 before samples)."""
         return self._max_rate.value(now_s, 0.0)
@@ -539,6 +603,7 @@ class Scheduler:
         """Recompute the cached fragment size and window (they change only on acks)."""
         cfg = self.config
         rate = self._link_rate.value(None, 0.0)
+        self._link_rate_Bps = rate  # a plain float for topic_feedback() on other threads
         self._whole = self._compute_whole_bytes(rate)
         if rate <= 0:
             self._fragment = self._whole  # the configured initial size, as given

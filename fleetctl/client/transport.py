@@ -18,8 +18,9 @@
 - receives frames, reassembles fragments, drops duplicate no_drop frames (a resend after a
   reconnect, see below) and hands complete frames to ``on_frame``.
 
-Threading: everything runs on one asyncio loop, except :meth:`RobotLink.admit` (any thread)
-and :meth:`RobotLink.offer_threadsafe` (any thread; hops onto the loop from others).
+Threading: everything runs on one asyncio loop, except :meth:`RobotLink.admit` (any thread),
+:meth:`RobotLink.offer_threadsafe` (any thread; hops onto the loop from others) and
+:meth:`RobotLink.feedback` (any thread: reads counters).
 
 Duplicates: a no_drop message sent but not acknowledged when the link died is sent again
 (at-least-once). A resend is the same frame, so receivers drop a no_drop frame whose
@@ -53,7 +54,7 @@ from fleetctl.client.config import ClientConfig
 from fleetctl.client.dialer import DialSettings, dial
 from fleetctl.client.memory import tune_malloc
 from fleetctl.client.receiver import Receiver
-from fleetctl.client.scheduler import Scheduler, SchedulerConfig
+from fleetctl.client.scheduler import Scheduler, SchedulerConfig, TopicFeedback
 from fleetctl.client.wakeup import Wakeup
 from fleetctl.wire.control import encode_subscription
 
@@ -109,6 +110,20 @@ class LinkTuning:
 # What to look at when bind_address is on no interface; fleet0 is the interface the bundle
 # of `fleetctl export` sets up (docs/robot.md).
 TUNNEL_HINT = "check `sudo wg show` and `systemctl status wg-quick@fleet0`"
+
+
+@dataclass(frozen=True)
+class LinkFeedback:
+    """What a producer that adapts to the link reads (the video hook: bitrate, keyframes).
+
+    Attributes:
+        connects: Connections established so far; a new one means the server and the
+            viewers may have missed what was in flight.
+        topic: The topic's counters and the link rate (:class:`TopicFeedback`).
+    """
+
+    connects: int
+    topic: TopicFeedback
 
 
 class LinkDead(Exception):
@@ -222,7 +237,8 @@ class RobotLink:
         with self._admit_lock:
             return self._scheduler.admit(remote_topic, rate, self._clock())
 
-    def offer(self, remote_topic: str, frame: bytes, *, priority: float, no_drop: bool) -> None:
+    def offer(self, remote_topic: str, frame: bytes, *, priority: float, no_drop: bool,
+              keyframe: bool = False) -> None:
         """Queue an encoded frame for sending. Call on the loop thread.
 
         Args:
@@ -230,9 +246,10 @@ class RobotLink:
             frame: One complete wire frame.
             priority: Algorithm 2 weight (>= 0).
             no_drop: Reliable in-order (bounded FIFO, kept across reconnects) or latest-only.
+            keyframe: A video keyframe: later frames of the topic never replace it.
         """
         if not self._scheduler.offer(remote_topic, frame, self._clock(),
-                                     priority=priority, no_drop=no_drop):
+                                     priority=priority, no_drop=no_drop, keyframe=keyframe):
             n = self._scheduler.no_drop_overflow
             if n == 1 or n % 1000 == 0:
                 logger.warning("no_drop queue full (%d messages): dropped a message on %s "
@@ -241,7 +258,8 @@ class RobotLink:
         self._wake.set()
 
     def offer_threadsafe(
-        self, remote_topic: str, frame: bytes, *, priority: float, no_drop: bool
+        self, remote_topic: str, frame: bytes, *, priority: float, no_drop: bool,
+        keyframe: bool = False,
     ) -> None:
         """:meth:`offer` from any thread (e.g. an rclpy executor's).
 
@@ -256,11 +274,23 @@ class RobotLink:
         if loop is None:
             raise RuntimeError("RobotLink has no event loop yet: create it inside the loop")
         if threading.get_ident() == self._loop_thread:
-            self.offer(remote_topic, frame, priority=priority, no_drop=no_drop)
+            self.offer(remote_topic, frame, priority=priority, no_drop=no_drop,
+                       keyframe=keyframe)
             return
         loop.call_soon_threadsafe(
             functools.partial(self.offer, remote_topic, frame, priority=priority,
-                              no_drop=no_drop))
+                              no_drop=no_drop, keyframe=keyframe))
+
+    @property
+    def connects(self) -> int:
+        """Connections established so far (any thread)."""
+        return self._counters["connects"]
+
+    def feedback(self, remote_topic: str) -> LinkFeedback:
+        """The link rate, the connection count and *remote_topic*'s counters (any thread:
+        see :meth:`Scheduler.topic_feedback`)."""
+        return LinkFeedback(self._counters["connects"],
+                            self._scheduler.topic_feedback(remote_topic))
 
     async def run(self) -> None:
         """Connect and keep the link up until :meth:`stop`; reconnects on any failure."""

@@ -18,9 +18,10 @@ import yaml
 from fleetctl.tokens import hash_token
 
 # (local topic, type, priority, rate limit in Hz or None, no_drop, compression):
-# design.md section 7. The sim publishes no map, so the point cloud is the demo's compressed
-# topic: deflate, so the web page inflates it in the browser (the 240 kB cloud of wall
-# points shrinks by about 8 %; zstd would save as much but no browser decodes it).
+# design.md section 7. The point cloud is deflated, so the web page inflates it in the
+# browser (the 240 kB cloud of wall points shrinks by about 8 %; zstd would save as much but
+# no browser decodes it). The sim's /map is TRANSIENT_LOCAL: the client sends it latched and
+# deflated (it is over 64 KiB), the server keeps it for viewers who open the page later.
 DEFAULT_PUBLISH: tuple[tuple[str, str, float, float | None, bool, str], ...] = (
     ("/pose", "geometry_msgs/msg/PoseWithCovarianceStamped", 2.0, 10.0, False, "none"),
     ("/odom", "nav_msgs/msg/Odometry", 1.0, 10.0, False, "none"),
@@ -28,6 +29,7 @@ DEFAULT_PUBLISH: tuple[tuple[str, str, float, float | None, bool, str], ...] = (
     ("/camera/image/compressed", "sensor_msgs/msg/CompressedImage", 0.5, 5.0, False, "none"),
     ("/points", "sensor_msgs/msg/PointCloud2", 0.25, 5.0, False, "deflate"),
     ("/events", "std_msgs/msg/String", 4.0, None, True, "none"),
+    ("/map", "nav_msgs/msg/OccupancyGrid", 0.25, 1.0, False, "none"),
 )
 DEFAULT_SUBSCRIBE: tuple[tuple[str, str], ...] = (
     ("goal_pose", "geometry_msgs/msg/PoseStamped"),
@@ -160,6 +162,8 @@ def client_config(robot: DemoRobot, ws_url: str) -> Any:
             for topic, type_name in DEFAULT_SUBSCRIBE
         ],
         "status": {"battery_topic": "/battery", "period_s": 1.0},
+        # /tf throttled per frame pair, /tf_static latched (tf2_web_republisher's defaults).
+        "tf": {},
     }
 
 

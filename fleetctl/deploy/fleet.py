@@ -17,18 +17,22 @@ from pathlib import Path
 import re2
 import yaml
 
+from fleetctl.client.config import TfSpec
 from fleetctl.deploy.topics import (
     DEFAULT_PUBLISH,
     PublishTopic,
     SubscribeTopic,
     build_publish,
     build_subscribe,
+    build_tf,
     check_publish,
     check_subscribe,
+    check_tf,
     check_topic,
     check_type,
     dump_publish,
     dump_subscribe,
+    dump_tf,
 )
 from fleetctl.deploy.yamlnodes import Document, FieldPath, FleetInvalid
 from fleetctl.errors import ConfigError
@@ -114,6 +118,8 @@ class Robot:
             default set :data:`~fleetctl.deploy.topics.DEFAULT_PUBLISH`.
         subscribe: fleet topics it receives and republishes, beyond its command topics.
         battery_topic: its local ``sensor_msgs/msg/BatteryState`` topic, or ``None``.
+        tf: its TF republisher (local ``/tf`` and ``/tf_static`` sent throttled as
+            ``/<name>/tf`` and latched ``/<name>/tf_static``); ``None``: no TF.
         ros_domain_id: the ``ROS_DOMAIN_ID`` its ROS 2 graph uses (0..232).
         rmw_implementation: the ``RMW_IMPLEMENTATION`` it runs (one of
             :data:`RMW_IMPLEMENTATIONS`).
@@ -130,6 +136,7 @@ class Robot:
     publish: tuple[PublishTopic, ...] | None = None
     subscribe: tuple[SubscribeTopic, ...] = ()
     battery_topic: str | None = None
+    tf: TfSpec | None = None
 
     @property
     def publish_topics(self) -> tuple[PublishTopic, ...]:
@@ -328,6 +335,7 @@ def _check_robot_topics(robot: Robot, path: FieldPath) -> None:
             check_regex(pattern, (*path, field_name, j))
     if robot.publish is not None:
         check_publish(robot.publish, (*path, "publish"))
+    check_tf(robot.tf, robot.publish_topics, path)
     check_subscribe(robot.subscribe, taken, (*path, "subscribe"))
     if robot.battery_topic is not None:
         check_topic(robot.battery_topic, (*path, "battery_topic"))
@@ -529,7 +537,7 @@ def _build_robot(doc: Document, node: yaml.Node, path: FieldPath) -> Robot:
     f = doc.mapping(node, path, ["name", "ip"],
                     ["mtu_bytes", "command_topics", "extra_send", "extra_receive",
                      "ros_domain_id", "rmw_implementation", "publish", "subscribe",
-                     "battery_topic"])
+                     "battery_topic", "tf"])
     cmds = DEFAULT_COMMAND_TOPICS
     if "command_topics" in f:
         cpath = (*path, "command_topics")
@@ -554,6 +562,7 @@ def _build_robot(doc: Document, node: yaml.Node, path: FieldPath) -> Robot:
                    if "subscribe" in f else ()),
         battery_topic=(doc.optional_string(f["battery_topic"], (*path, "battery_topic"))
                        if "battery_topic" in f else None),
+        tf=build_tf(doc, f, path),
     )
 
 
@@ -626,4 +635,6 @@ def _dump_robot(robot: Robot) -> dict[str, object]:
         out["publish"] = dump_publish(robot.publish)
     out["subscribe"] = dump_subscribe(robot.subscribe)
     out["battery_topic"] = robot.battery_topic
+    if robot.tf is not None:  # absent: no TF, and older fleets keep their bytes
+        out["tf"] = dump_tf(robot.tf)
     return out

@@ -341,6 +341,7 @@ def client_config(fleet: Fleet, robot: Robot) -> str:
         publish=robot.publish_topics,
         subscribe=subscribe,
         battery_topic=robot.battery_topic,
+        tf=robot.tf,
     )
 
 

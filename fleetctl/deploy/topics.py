@@ -4,18 +4,30 @@ default set (docs/design.md section 7), and their checks.
 The rules match what the robot client accepts in ``client.yaml``
 (:mod:`fleetctl.client.config`), so every fleet that validates renders a client config the
 client loads: absolute topic names of ``[A-Za-z0-9_]`` tokens, ``priority >= 0``,
-``rate_limit_hz > 0`` or ``null``, compression ``none | zstd | deflate``, and a message
-type the wire registry knows (the rosbags ROS 2 Jazzy store plus fleetctl's shipped types).
+``rate_limit_hz > 0`` or ``null``, compression ``none | zstd | deflate``, a message
+type the wire registry knows (the rosbags ROS 2 Jazzy store plus fleetctl's shipped types),
+``video`` only on image topics and ``viewer_cloud`` only on point clouds (the client's own
+spec classes and limits are reused, so the two cannot drift apart).
 """
 
 from __future__ import annotations
 
+import dataclasses
 import functools
+import math
 import re
 from dataclasses import dataclass
 
 import yaml
 
+from fleetctl.client.config import (
+    VIDEO_CODECS,
+    VIDEO_TYPES,
+    VIEWER_CLOUD_TYPES,
+    TfSpec,
+    VideoSpec,
+    ViewerCloudSpec,
+)
 from fleetctl.deploy.yamlnodes import Document, FieldPath, FleetInvalid
 
 # As fleetctl.client.config: absolute, tokens of [A-Za-z0-9_] separated by single slashes.
@@ -24,6 +36,11 @@ TOPIC = re.compile(r"(/[A-Za-z_][A-Za-z0-9_]*)+")
 COMPRESSIONS = ("none", "zstd", "deflate")
 # The client publishes its own RobofleetStatus on /<robot>/status.
 STATUS_TOPIC = "/status"
+# With a robot's ``tf:`` section the client sends /<robot>/tf and /<robot>/tf_static itself.
+TF_TOPICS = ("/tf", "/tf_static")
+# A viewer cloud goes out as <remote_topic>/viewer beside the full cloud.
+VIEWER_SUFFIX = "/viewer"
+MAX_BITRATE_KBPS = 1_000_000  # as the client: 1 Gbit/s is no camera's bitrate
 DEFAULT_PRIORITY = 1.0  # the client's default
 
 
@@ -38,6 +55,10 @@ class PublishTopic:
         rate_limit_hz: at most this many messages per second; ``None``: no limit.
         no_drop: reliable, in-order delivery (never replaced by a newer message).
         compression: ``none``, ``zstd`` or ``deflate`` (deflate if a web page shows it).
+        video: send an image topic as video (``foxglove_msgs/msg/CompressedVideo``);
+            ``None``: as it is.
+        viewer_cloud: also send ``/<robot><topic>/viewer`` (a voxelized ``ViewerCloud``);
+            ``None``: only the full cloud.
     """
 
     topic: str
@@ -46,6 +67,8 @@ class PublishTopic:
     rate_limit_hz: float | None
     no_drop: bool = False
     compression: str = "none"
+    video: VideoSpec | None = None
+    viewer_cloud: ViewerCloudSpec | None = None
 
 
 @dataclass(frozen=True)
@@ -137,6 +160,76 @@ def check_publish(publish: tuple[PublishTopic, ...], path: FieldPath) -> None:
         if p.compression not in COMPRESSIONS:
             raise FleetInvalid((*where, "compression"), f"must be one of "
                                f"{', '.join(COMPRESSIONS)}, got {p.compression!r}")
+        _check_video(p, where)
+        _check_viewer_cloud(p, where)
+    _check_viewer_names(publish, path)
+
+
+def check_tf(tf: TfSpec | None, publish: tuple[PublishTopic, ...], path: FieldPath) -> None:
+    """Check a robot's ``tf`` section against its ``publish`` list (*path*: the robot's)."""
+    if tf is None:
+        return
+    where = (*path, "tf")
+    if not tf.translation_delta_m >= 0:
+        raise FleetInvalid((*where, "translation_delta_m"),
+                           f"must be >= 0, got {tf.translation_delta_m}")
+    if not 0 <= tf.rotation_delta_rad <= math.pi:
+        raise FleetInvalid((*where, "rotation_delta_rad"),
+                           f"must be between 0 and pi, got {tf.rotation_delta_rad}")
+    if not 0 < tf.max_rate_hz <= 1000:
+        raise FleetInvalid((*where, "max_rate_hz"), f"must be > 0 and <= 1000, got "
+                                                    f"{tf.max_rate_hz}")
+    for j, p in enumerate(publish):
+        if p.topic in TF_TOPICS:
+            raise FleetInvalid((*path, "publish", j, "topic"), f"{p.topic} is sent by the "
+                               "robot's tf section (throttled); remove this entry or tf")
+
+
+def _check_video(p: PublishTopic, where: FieldPath) -> None:
+    v = p.video
+    if v is None:
+        return
+    if _normalized(p.type) not in VIDEO_TYPES:
+        raise FleetInvalid((*where, "video"), f"only for {' or '.join(VIDEO_TYPES)}, "
+                                              f"not {p.type}")
+    if v.codec not in VIDEO_CODECS:
+        raise FleetInvalid((*where, "video", "codec"),
+                           f"must be one of {', '.join(VIDEO_CODECS)}, got {v.codec!r}")
+    if v.min_bitrate_kbps > v.max_bitrate_kbps:
+        raise FleetInvalid((*where, "video", "min_bitrate_kbps"), f"must be <= "
+                           f"max_bitrate_kbps ({v.max_bitrate_kbps}), got {v.min_bitrate_kbps}")
+    if not v.keyframe_interval_s > 0:
+        raise FleetInvalid((*where, "video", "keyframe_interval_s"),
+                           f"must be > 0, got {v.keyframe_interval_s}")
+
+
+def _check_viewer_cloud(p: PublishTopic, where: FieldPath) -> None:
+    c = p.viewer_cloud
+    if c is None:
+        return
+    if _normalized(p.type) not in VIEWER_CLOUD_TYPES:
+        raise FleetInvalid((*where, "viewer_cloud"), f"only for {VIEWER_CLOUD_TYPES[0]}, "
+                                                     f"not {p.type}")
+    if not 0.001 <= c.resolution_m <= 1.0:
+        raise FleetInvalid((*where, "viewer_cloud", "resolution_m"),
+                           f"must be between 0.001 and 1, got {c.resolution_m}")
+
+
+def _check_viewer_names(publish: tuple[PublishTopic, ...], path: FieldPath) -> None:
+    # The client refuses a config where /<robot><topic>/viewer is also another entry's topic.
+    topics = {p.topic: j for j, p in enumerate(publish)}
+    for j, p in enumerate(publish):
+        viewer = p.topic + VIEWER_SUFFIX
+        if p.viewer_cloud is not None and viewer in topics:
+            other = format_index(path, topics[viewer])
+            raise FleetInvalid((*path, j, "viewer_cloud"), f"its viewer topic {viewer!r} is "
+                               f"also {other}'s topic")
+
+
+def _normalized(name: str) -> str:
+    from fleetctl.wire.metadata import normalize_type
+
+    return normalize_type(name)  # check_type ran first: the name is well formed
 
 
 def format_index(path: FieldPath, index: int) -> str:
@@ -177,7 +270,10 @@ def check_subscribe(subscribe: tuple[SubscribeTopic, ...], taken: dict[str, str]
 
 # --- fleet.yaml ------------------------------------------------------------------------
 
-_PUBLISH_FIELDS = ["priority", "rate_limit_hz", "no_drop", "compression"]
+_PUBLISH_FIELDS = ["priority", "rate_limit_hz", "no_drop", "compression", "video",
+                   "viewer_cloud"]
+_VIDEO_FIELDS = ["codec", "max_bitrate_kbps", "min_bitrate_kbps", "keyframe_interval_s"]
+_TF_FIELDS = ["translation_delta_m", "rotation_delta_rad", "max_rate_hz"]
 
 
 def build_publish(doc: Document, node: yaml.Node, path: FieldPath) -> tuple[PublishTopic, ...]:
@@ -202,7 +298,58 @@ def _build_one_publish(doc: Document, node: yaml.Node, path: FieldPath) -> Publi
         rate_limit_hz=rate,
         no_drop=doc.boolean(f["no_drop"], (*path, "no_drop")) if "no_drop" in f else False,
         compression=compression,
+        video=_build_video(doc, f, path),
+        viewer_cloud=_build_viewer_cloud(doc, f, path),
     )
+
+
+def _optional_mapping(doc: Document, f: dict[str, yaml.Node], key: str, path: FieldPath,
+                      fields: list[str]) -> dict[str, yaml.Node] | None:
+    """The fields of an optional sub-mapping; ``None`` when absent or ``null``."""
+    if key not in f or doc.is_null(f[key]):
+        return None
+    return doc.mapping(f[key], (*path, key), [], fields)
+
+
+def _build_video(doc: Document, f: dict[str, yaml.Node], path: FieldPath) -> VideoSpec | None:
+    v = _optional_mapping(doc, f, "video", path, _VIDEO_FIELDS)
+    if v is None:
+        return None
+    where = (*path, "video")
+    d = VideoSpec()
+    return VideoSpec(
+        codec=doc.string(v["codec"], (*where, "codec")) if "codec" in v else d.codec,
+        max_bitrate_kbps=(doc.integer(v["max_bitrate_kbps"], (*where, "max_bitrate_kbps"), 1,
+                                      MAX_BITRATE_KBPS)
+                          if "max_bitrate_kbps" in v else d.max_bitrate_kbps),
+        min_bitrate_kbps=(doc.integer(v["min_bitrate_kbps"], (*where, "min_bitrate_kbps"), 1,
+                                      MAX_BITRATE_KBPS)
+                          if "min_bitrate_kbps" in v else d.min_bitrate_kbps),
+        keyframe_interval_s=(doc.number(v["keyframe_interval_s"],
+                                        (*where, "keyframe_interval_s"))
+                             if "keyframe_interval_s" in v else d.keyframe_interval_s),
+    )
+
+
+def _build_viewer_cloud(doc: Document, f: dict[str, yaml.Node],
+                        path: FieldPath) -> ViewerCloudSpec | None:
+    c = _optional_mapping(doc, f, "viewer_cloud", path, ["resolution_m"])
+    if c is None:
+        return None
+    if "resolution_m" not in c:
+        return ViewerCloudSpec()
+    return ViewerCloudSpec(doc.number(c["resolution_m"], (*path, "viewer_cloud", "resolution_m")))
+
+
+def build_tf(doc: Document, f: dict[str, yaml.Node], path: FieldPath) -> TfSpec | None:
+    """Read a robot's optional ``tf`` section (*f*: the robot's fields, *path*: its path)."""
+    t = _optional_mapping(doc, f, "tf", path, _TF_FIELDS)
+    if t is None:
+        return None
+    d = TfSpec()
+    values = {k: doc.number(t[k], (*path, "tf", k)) if k in t else getattr(d, k)
+              for k in _TF_FIELDS}
+    return TfSpec(**values)
 
 
 def build_subscribe(doc: Document, node: yaml.Node,
@@ -220,10 +367,25 @@ def build_subscribe(doc: Document, node: yaml.Node,
 
 
 def dump_publish(publish: tuple[PublishTopic, ...]) -> list[dict[str, object]]:
-    """Return the ``fleet.yaml`` form of a ``publish`` list (every field written out)."""
-    return [{"topic": p.topic, "type": p.type, "priority": p.priority,
-             "rate_limit_hz": p.rate_limit_hz, "no_drop": p.no_drop,
-             "compression": p.compression} for p in publish]
+    """Return the ``fleet.yaml`` form of a ``publish`` list (every field written out;
+    ``video`` and ``viewer_cloud`` only where set, so older fleets keep their bytes)."""
+    out = []
+    for p in publish:
+        item: dict[str, object] = {
+            "topic": p.topic, "type": p.type, "priority": p.priority,
+            "rate_limit_hz": p.rate_limit_hz, "no_drop": p.no_drop,
+            "compression": p.compression}
+        if p.video is not None:
+            item["video"] = dataclasses.asdict(p.video)
+        if p.viewer_cloud is not None:
+            item["viewer_cloud"] = dataclasses.asdict(p.viewer_cloud)
+        out.append(item)
+    return out
+
+
+def dump_tf(tf: TfSpec) -> dict[str, object]:
+    """Return the ``fleet.yaml`` form of a robot's ``tf`` section."""
+    return dict(dataclasses.asdict(tf))
 
 
 def dump_subscribe(subscribe: tuple[SubscribeTopic, ...]) -> list[dict[str, object]]:

@@ -240,8 +240,19 @@ class FleetRun:
     def remove(self, *endpoints: Endpoint) -> None:
         """Stop and remove containers of this run (their files stay in the work dir)."""
         names = [e.name for e in endpoints]
+        self.keep_logs(names)
         self.topo.runner(["docker", "rm", "-f", "-v", *names], None, True)
         self.topo.endpoints[:] = [e for e in self.topo.endpoints if e.name not in names]
+
+    def keep_logs(self, names: Iterable[str]) -> None:
+        """Write each container's output to ``<work>/logs/<role>.log`` before it goes: a
+        failed criterion is explained by the client's reconnects and the server's log."""
+        logs = self.work / "logs"
+        logs.mkdir(exist_ok=True)
+        for name in names:
+            role = name.removeprefix(f"fce2e-{self.topo.run_id}-")
+            res = self.topo.runner(["docker", "logs", "--timestamps", name], None, True)
+            (logs / f"{role}.log").write_text(res.stdout + res.stderr)
 
     def samples(self, prefix: str) -> list[Sample]:
         """Every sample written by consumers whose name starts with *prefix*."""

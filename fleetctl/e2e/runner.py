@@ -94,7 +94,7 @@ class RunConfig:
     duration_s: float = 30.0
     work_dir: Path | None = None
     source_dir: Path | None = None
-    wireguard: str = "off"
+    wireguard: str = "auto"
     run_id: str | None = None
 
 

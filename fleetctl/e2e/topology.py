@@ -236,6 +236,23 @@ class Topology:
         return LinkShaper(lambda argv: self.exec(self.router, argv),
                           self.router_devs[sides[direction]], caps)
 
+    def blackhole(self, side: str, on: bool) -> None:
+        """Silently drop (or stop dropping) what the router forwards towards *side*.
+
+        Two blackhole routes, one per half of the side's subnet, are more specific than the
+        connected route, so the router discards forwarded packets without an ICMP answer,
+        while ARP on that network goes on (see :class:`fleetctl.e2e.scenarios.Link`).
+
+        Raises:
+            FleetError: the route could not be changed.
+        """
+        net = ipaddress.ip_network(self.subnets[side])
+        verb = "replace" if on else "del"
+        for half in net.subnets(prefixlen_diff=1):
+            res = self.exec(self.router, ["ip", "route", verb, "blackhole", str(half)])
+            if on or "No such process" not in res.stderr:
+                check(res, f"blackhole {half} {'on' if on else 'off'}")
+
     def tx_bytes(self, container: str, dev: str = "eth0") -> int:
         """Bytes *container* has sent on *dev* (from the kernel's counters)."""
         res = check(self.exec(container, ["cat", f"/sys/class/net/{dev}/statistics/tx_bytes"]),

@@ -62,6 +62,15 @@ class ServerLimits:
             identity yet, server-wide; more are aborted at accept.
         max_unauthenticated_per_address: The same per TCP source address (trusted
             proxies are exempt: they carry many clients).
+        latched_bytes: Bytes of latched messages the server keeps, all senders and topics
+            (the last message per sender and topic, fragments of one still arriving
+            included); past it the least recently updated are evicted (counted). Also
+            the bound of latched frames queued for one connection at a time.
+        latched_message_bytes: Largest latched message kept (its frames, or its fragment
+            frames, together), bytes; a larger one is relayed but not kept (counted), and
+            the sender's older message on that topic is forgotten.
+        keyframe_request_interval_s: At most one keyframe request per video topic is
+            forwarded to its publisher per this many seconds; more are counted, dropped.
     """
 
     max_frame_bytes: int = 16 * 1024 * 1024
@@ -81,6 +90,9 @@ class ServerLimits:
     max_pattern_bytes_per_identity: int = 1024 * 1024
     max_unauthenticated_connections: int = 256
     max_unauthenticated_per_address: int = 16
+    latched_bytes: int = 64 * 1024 * 1024
+    latched_message_bytes: int = 16 * 1024 * 1024
+    keyframe_request_interval_s: float = 0.25
 
 
 @dataclass(frozen=True)
@@ -168,9 +180,11 @@ _INT_LIMITS = (
     "max_pattern_bytes_per_identity",
     "max_unauthenticated_connections",
     "max_unauthenticated_per_address",
+    "latched_bytes",
+    "latched_message_bytes",
 )
 _FLOAT_LIMITS = ("robot_offline_after_s", "auth_timeout_s", "session_expiry_s",
-                 "max_control_requests_per_s")
+                 "max_control_requests_per_s", "keyframe_request_interval_s")
 
 
 def load_server_config(path: Path) -> ServerConfig:

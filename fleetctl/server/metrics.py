@@ -32,6 +32,13 @@ class Metrics:
     auth_reloads: int = 0
     auth_reload_failures: int = 0
     connections_refused: dict[str, int] = field(default_factory=dict)
+    # The latched store (fleetctl.server.latched): events by name, and two gauges it sets.
+    latched_events: dict[str, int] = field(default_factory=dict)
+    latched_bytes: int = 0
+    latched_messages: int = 0
+    latched_delivered: int = 0  # frames queued to new subscribers
+    # Keyframe requests (fleetctl.server.keyframes) by outcome.
+    keyframe_requests: dict[str, int] = field(default_factory=dict)
 
     def label(self, topic: str) -> str:
         """Return *topic*, or ``<other>`` once the label bound is reached."""
@@ -65,6 +72,10 @@ class Metrics:
         if key not in self.session_drops and len(self.session_drops) >= MAX_TOPIC_LABELS:
             key = (OTHER, OTHER)
         self.session_drops[key] = self.session_drops.get(key, 0) + 1
+
+    def count_keyframe_request(self, outcome: str) -> None:
+        """Count one keyframe request by *outcome* (``forwarded``, ``rate_limited``...)."""
+        self.keyframe_requests[outcome] = self.keyframe_requests.get(outcome, 0) + 1
 
     def count_error(self, code: str) -> None:
         """Count one error frame (or would-be error frame) of *code*."""
@@ -112,6 +123,7 @@ class Metrics:
         _labelled(out, "fleetctl_connections_refused_total", "counter",
                   "Connections aborted at accept: unauthenticated connections at their "
                   "cap (total, per_address).", "cap", self.connections_refused)
+        self._render_latched(out)
         closes = {str(k): v for k, v in self.closes.items()}
         _labelled(out, "fleetctl_closes_total", "counter",
                   "Connections closed by the server per close code.", "code", closes)
@@ -125,6 +137,24 @@ class Metrics:
         for gauge, help_text, label_name, label_values in labelled:
             _labelled(out, gauge, "gauge", help_text, label_name, label_values)
         return "\n".join(out) + "\n"
+
+    def _render_latched(self, out: list[str]) -> None:
+        _scalar(out, "fleetctl_latched_bytes", "gauge",
+                "Bytes of latched messages kept (complete and still arriving).",
+                self.latched_bytes)
+        _scalar(out, "fleetctl_latched_messages", "gauge",
+                "Complete latched messages kept (one per sender and topic).",
+                self.latched_messages)
+        _labelled(out, "fleetctl_latched_events_total", "counter",
+                  "Latched store events: stored, evicted (byte or entry bound), "
+                  "refused_too_big, superseded (incomplete message replaced), malformed, "
+                  "revoked (sender's permission gone).", "event", self.latched_events)
+        _scalar(out, "fleetctl_latched_delivered_frames_total", "counter",
+                "Stored latched frames queued to new subscribers.", self.latched_delivered)
+        _labelled(out, "fleetctl_keyframe_requests_total", "counter",
+                  "Keyframe requests by outcome: forwarded, auto (sent by the server for "
+                  "a new subscriber), rate_limited, refused (may not receive the topic), "
+                  "no_publisher, malformed.", "outcome", self.keyframe_requests)
 
 
 def _scalar(out: list[str], name: str, kind: str, help_text: str, value: float) -> None:

@@ -2,18 +2,25 @@
 the server side). Pure data structure, no I/O: the connection's writer task pops from it
 only as fast as the socket drains.
 
-Three queues, served in this order:
+Four queues, served in this order:
 
 1. control text frames (welcome, errors): a small FIFO;
-2. no_drop frames: a FIFO bounded in messages and bytes; overflow drops the *new* frame
+2. latched frames (:mod:`fleetctl.server.latched`): the stored latched messages a new
+   subscription gets, a FIFO of whole messages on the no_drop side (never superseded).
+   It has its own byte bound (``max_latched_bytes``): a message that does not fit whole
+   is dropped whole and counted (a partial fragmented message would be useless), except
+   that an empty latched queue always takes one message. Its frames are the store's own
+   ``bytes`` objects, so queueing them costs references, not copies; they are outside
+   the byte bound of the other queues (``queued_bytes``), like a session backlog;
+3. no_drop frames: a FIFO bounded in messages and bytes; overflow drops the *new* frame
    (keeps order of what is already queued) and counts it;
-3. droppable topics: one slot per topic holding only the latest message. A newer message
+4. droppable topics: one slot per topic holding only the latest message. A newer message
    replaces a pending one (the old one is counted as dropped). Fragments
    (``fleetctl_msgs/msg/Fragment``) of the latest message are kept together; a superseded
    partial message is dropped whole. Topics are served round-robin one frame at a time,
    so fragments of a big message interleave with small messages of other topics.
 
-The byte bound covers everything queued; a frame that does not fit is dropped and
+The byte bound covers queues 1, 3 and 4; a frame that does not fit is dropped and
 counted, except that an empty queue always takes one frame (else a frame larger than the
 bound could never be delivered; memory stays below bound + one max frame).
 
@@ -26,6 +33,8 @@ Named sessions (:mod:`fleetctl.server.sessions`) add two things, both off unless
 - acknowledgement tracking (:meth:`OutboundScheduler.track_acks`): no_drop frames handed
   to the writer are kept until a pong acknowledges them (:meth:`acked`), so that a
   connection that dies gives back what it may not have delivered (:meth:`take_no_drop`).
+  Latched frames are not given back: a resumed session subscribes again, which queues
+  the store's latched messages again.
 """
 
 from __future__ import annotations
@@ -59,6 +68,7 @@ class OutboundScheduler:
         max_no_drop_messages: Frames the no_drop FIFO may hold.
         wake: Called when the scheduler goes from empty to non-empty (the writer's cue).
         on_drop: Called with ``(topic, frames)`` for every drop (server-wide metrics).
+        max_latched_bytes: Bytes the latched queue may hold; ``None`` means *max_bytes*.
     """
 
     def __init__(
@@ -67,9 +77,13 @@ class OutboundScheduler:
         max_no_drop_messages: int,
         wake: Callable[[], None] | None = None,
         on_drop: Callable[[str, int], None] | None = None,
+        max_latched_bytes: int | None = None,
     ) -> None:
         self.max_bytes = max_bytes
         self.max_no_drop_messages = max_no_drop_messages
+        self.max_latched_bytes = max_bytes if max_latched_bytes is None else max_latched_bytes
+        self._latched: deque[tuple[str, bytes]] = deque()
+        self.latched_bytes = 0
         self._wake = wake
         self._on_drop = on_drop
         self._control: deque[str] = deque()
@@ -114,6 +128,31 @@ class OutboundScheduler:
         self._control.append(text)
         self._added(len(text))
         return True
+
+    def push_latched(self, topic: str, frames: list[bytes]) -> bool:
+        """Queue the frames of one stored latched message (a whole frame, or all the
+        fragments of one message in index order), ahead of no_drop and droppable frames.
+
+        Returns:
+            Whether the message was queued; when it does not fit the latched queue's
+            bound it is dropped whole and each frame counted in :attr:`drops`.
+        """
+        size = sum(len(f) for f in frames)
+        if self._latched and self.latched_bytes + size > self.max_latched_bytes:
+            self._count_drop(topic, len(frames))
+            return False
+        was_empty = self.queued_frames == 0
+        self._latched.extend((topic, f) for f in frames)
+        self.latched_bytes += size
+        self.queued_frames += len(frames)
+        if frames and was_empty and self._wake is not None:
+            self._wake()
+        return True
+
+    @property
+    def latched_frames(self) -> int:
+        """Frames of stored latched messages still queued here."""
+        return len(self._latched)
 
     def push(self, topic: str, frame: bytes, no_drop: bool, message_id: int | None = None) -> bool:
         """Queue one frame for this connection.
@@ -178,6 +217,11 @@ class OutboundScheduler:
             self.queued_bytes -= len(text)
             self.queued_frames -= 1
             return CONTROL_TOPIC, text
+        if self._latched:
+            latched = self._latched.popleft()
+            self.latched_bytes -= len(latched[1])
+            self.queued_frames -= 1
+            return latched
         if self._no_drop:
             item = self._no_drop.popleft()
             if self._backlog_left:

@@ -67,6 +67,7 @@ class Peer:
         self.robots: set[str] = set()
         self.topic_robot: dict[str, str | None] = {}
         self.refused_topics: set[str] = set()
+        self.refused_keyframes: set[str] = set()  # keyframe requests answered with an error
 
     @property
     def label(self) -> str:

@@ -33,6 +33,7 @@ ERROR_CODES = (
     "bad_token",
     "bad_session",
     "rate_limited",
+    "keyframe_refused",
 )
 
 

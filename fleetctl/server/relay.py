@@ -14,15 +14,16 @@ from __future__ import annotations
 import json
 import logging
 import sqlite3
-import struct
 import time
 from collections.abc import Callable
 from typing import Any
 
-from fleetctl.server import protocol, reauth
+from fleetctl.server import firstframes, protocol, reauth
 from fleetctl.server.admission import IdentityConnections, TokenBucket
 from fleetctl.server.authmap import AuthMap, Identity
 from fleetctl.server.config import ServerConfig
+from fleetctl.server.keyframes import VIDEO_TYPE, KeyframeRouter
+from fleetctl.server.latched import LatchedStore
 from fleetctl.server.metrics import Metrics
 from fleetctl.server.outbound import OutboundScheduler
 from fleetctl.server.peer import Peer
@@ -32,8 +33,10 @@ from fleetctl.server.registry import RobotRegistry, robot_name
 from fleetctl.server.sessions import BadSessionName, SessionTable, check_session_name
 from fleetctl.server.sessionstore import SessionStore
 from fleetctl.server.subscriptions import Refusal, SubscriptionMap
+from fleetctl.wire.control import KEYFRAME_REQUESTS_TOPIC
 from fleetctl.wire.errors import WireError
-from fleetctl.wire.metadata import field_pos, read_root, table_fields
+from fleetctl.wire.fragments import read_fragment_id
+from fleetctl.wire.metadata import read_root
 
 log = logging.getLogger("fleetctl.server")
 
@@ -41,7 +44,6 @@ SUBSCRIPTION_TOPIC = "/subscriptions"
 SUBSCRIPTION_TYPE = "amrl_msgs/msg/RobofleetSubscription"
 STATUS_TYPE = "amrl_msgs/msg/RobofleetStatus"
 FRAGMENT_TYPE = "fleetctl_msgs/msg/Fragment"
-_U64 = struct.Struct("<Q").unpack_from
 # Why: per-peer memo tables are keyed by client-chosen topics; keep them small.
 _MAX_MEMO = 1024
 
@@ -94,6 +96,9 @@ class RelayCore:
         self.sessions: SessionTable[Peer] = SessionTable(
             config.limits, _session_store(registry), metrics, clock)
         self.sessions.load(auth, self.pool)
+        self.latched = LatchedStore(limits.latched_bytes, limits.latched_message_bytes, metrics)
+        self.keyframes: KeyframeRouter[Peer] = KeyframeRouter(
+            limits.keyframe_request_interval_s, clock, metrics)
 
     # -- connection life cycle -------------------------------------------------------
 
@@ -111,6 +116,7 @@ class RelayCore:
             self.limits.outbound_no_drop_messages,
             wake,
             self.metrics.count_drop,
+            self.limits.latched_bytes,
         )
         peer = Peer(self._next_id, address, outbound, close, session_name, by_address)
         self.peers[peer.peer_id] = peer
@@ -165,7 +171,9 @@ class RelayCore:
         Returns:
             ``(kept, closed)``: authenticated connections kept and closed.
         """
-        return reauth.reload_auth(self, auth)
+        kept_closed = reauth.reload_auth(self, auth)
+        firstframes.drop_revoked_latched(self)
+        return kept_closed
 
     def current_identities(self, peer: Peer) -> list[Identity]:
         """*peer*'s identities under the current auth map
@@ -177,6 +185,7 @@ class RelayCore:
         if self.peers.pop(peer.peer_id, None) is None:
             return
         self.subs.remove(peer)
+        self.keyframes.forget(peer)
         if peer.session is not None:
             self._detach_session(peer)
         for name in peer.robots:
@@ -206,12 +215,15 @@ class RelayCore:
         try:
             meta, root = read_root(frame)
         except WireError as exc:
-            self._malformed(peer, "malformed_frame", None, str(exc))
+            self.malformed(peer, "malformed_frame", None, str(exc))
             return
         peer.malformed_in_row = 0
         topic = meta.topic
         if topic == SUBSCRIPTION_TOPIC:
             self._on_subscription(peer, frame, meta.type)
+            return
+        if topic == KEYFRAME_REQUESTS_TOPIC:  # a control topic: no send rule needed
+            firstframes.on_keyframe_request(self, peer, frame, meta.type)
             return
         if not perms.may_send(topic):
             self._unauthorized(peer, topic)
@@ -220,16 +232,20 @@ class RelayCore:
         message_id: int | None = None
         if meta.type == FRAGMENT_TYPE:
             try:
-                message_id = _fragment_id(frame, root)
+                message_id = read_fragment_id(frame, root)
             except WireError as exc:
-                self._malformed(peer, "malformed_frame", topic, str(exc))
+                self.malformed(peer, "malformed_frame", topic, str(exc))
                 return
+        elif meta.type == VIDEO_TYPE:
+            self.keyframes.note_publisher(topic, peer)
         self._note_robot(peer, topic, meta.type, frame)
         no_drop = meta.no_drop or self._forced_no_drop(topic)
         for receiver in self.subs.receivers(topic):
             receiver.outbound.push(topic, frame, no_drop, message_id)
         if no_drop and self.sessions.has_offline:
             self.sessions.deliver(topic, frame)
+        if meta.latched:
+            firstframes.keep_latched(self, peer, topic, frame, root, message_id is not None)
 
     def on_text(self, peer: Peer, text: str) -> None:
         """Handle one text frame: a token frame or a ``list_robots`` request."""
@@ -241,7 +257,7 @@ class RelayCore:
         except (ValueError, RecursionError):  # RecursionError: "[[[[...": deep nesting
             data = None
         if not isinstance(data, dict):
-            self._malformed(peer, "malformed_frame", None, "text frame is not a JSON object")
+            self.malformed(peer, "malformed_frame", None, "text frame is not a JSON object")
             return
         if ("token" in data or data.get("type") == "list_robots") and not self._allow(peer):
             return
@@ -254,8 +270,8 @@ class RelayCore:
         elif peer.perms is None:
             self.close_with(peer, protocol.CLOSE_NO_IDENTITY, "connection matches no identity")
         else:
-            self._malformed(peer, "unknown_type", None,
-                            "text frames are {'token': ...} or {'type': 'list_robots'}")
+            self.malformed(peer, "unknown_type", None,
+                           "text frames are {'token': ...} or {'type': 'list_robots'}")
 
     def on_token(self, peer: Peer, token: Any, session: Any = None) -> None:
         """Authenticate *peer* by a token; close with 4401 if it matches no identity.
@@ -370,7 +386,7 @@ class RelayCore:
         self.metrics.count_error(code)
         peer.outbound.push_control(protocol.error(code, topic, message))
 
-    def _malformed(self, peer: Peer, code: str, topic: str | None, message: str) -> None:
+    def malformed(self, peer: Peer, code: str, topic: str | None, message: str) -> None:
         self.send_error(peer, code, topic, message)
         peer.malformed_in_row += 1
         if peer.malformed_in_row >= self.limits.max_malformed_in_row:
@@ -466,13 +482,13 @@ class RelayCore:
         if not self._allow(peer):
             return
         if type_name != SUBSCRIPTION_TYPE:
-            self._malformed(peer, "unknown_type", SUBSCRIPTION_TOPIC,
-                            f"/subscriptions carries RobofleetSubscription, not {type_name}")
+            self.malformed(peer, "unknown_type", SUBSCRIPTION_TOPIC,
+                           f"/subscriptions carries RobofleetSubscription, not {type_name}")
             return
         fields = protocol.decode_subscription_fields(frame)
         if fields is None:
-            self._malformed(peer, "malformed_frame", SUBSCRIPTION_TOPIC,
-                            "RobofleetSubscription does not decode")
+            self.malformed(peer, "malformed_frame", SUBSCRIPTION_TOPIC,
+                           "RobofleetSubscription does not decode")
             return
         pattern, subscribe = fields
         if not subscribe:
@@ -488,12 +504,14 @@ class RelayCore:
     def _subscribe(self, peer: Peer, pattern: str) -> bool:
         assert peer.perms is not None
         try:
-            self.subs.subscribe(peer, peer.perms, pattern, peer.identity_names)
+            added = self.subs.subscribe(peer, peer.perms, pattern, peer.identity_names)
         except Refusal as refusal:
             self.send_error(peer, refusal.code, pattern[:200], refusal.message)
             if refusal.code == "too_many_subscriptions":
                 self._count_refusal(peer)
             return False
+        if added:  # a repeat (a client's resubscribe after its session resumed) gets nothing
+            firstframes.on_new_subscription(self, peer, pattern)
         return True
 
 
@@ -504,15 +522,3 @@ def _session_store(registry: RobotRegistry) -> SessionStore | None:
         log.exception("cannot open the sessions table: sessions will not survive a restart")
         return None
 
-
-def _fragment_id(frame: bytes, root: int) -> int:
-    """Return ``message_id`` (field 1, ulong) of a Fragment root table."""
-    n = len(frame)
-    vt, vt_bytes, t_bytes = table_fields(frame, root, n)
-    pos = field_pos(frame, root, vt, vt_bytes, 1)
-    if not pos:
-        return 0  # FlatBuffers omits default values: message_id 0
-    if pos + 8 > root + t_bytes:
-        raise WireError(f"malformed frame: Fragment.message_id outside its table at byte {pos}")
-    value: int = _U64(frame, pos)[0]
-    return value

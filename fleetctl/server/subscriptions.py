@@ -93,7 +93,7 @@ class SubscriptionMap(Generic[C]):
         return self._key_bytes.get(key, 0)
 
     def subscribe(self, conn: C, perms: Permissions, pattern: str,
-                  keys: Iterable[str] = ()) -> None:
+                  keys: Iterable[str] = ()) -> bool:
         """Add a subscription (idempotent).
 
         A literal topic must be receivable. A pattern is taken if the connection has any
@@ -105,13 +105,16 @@ class SubscriptionMap(Generic[C]):
             pattern: RE2 full-match regex (or a literal topic).
             keys: Identity names the pattern bytes are charged to.
 
+        Returns:
+            ``True`` when the subscription is new, ``False`` when *conn* already held it.
+
         Raises:
             Refusal: Bad regex, nothing receivable, or over a per-connection or per-key
                 bound.
         """
         entry = self._entry(conn, perms, tuple(keys))
         if pattern in entry.subs:
-            return
+            return False
         size = len(pattern.encode("utf-8", "surrogatepass"))
         self._check_quota(entry, size)  # before compiling: an RE2 compile is the dear part
         try:
@@ -126,6 +129,23 @@ class SubscriptionMap(Generic[C]):
         for topic, found in self._cache.items():  # only this connection's place changes
             if conn not in found and compiled.matches(topic) and perms.may_receive(topic):
                 self._cache[topic] = (*found, conn)
+        return True
+
+    def newly_matched(self, conn: C, pattern: str, topics: Iterable[str]) -> list[str]:
+        """The *topics* that *conn* receives through *pattern* and through none of its
+        other subscriptions: what a subscription just added starts delivering (the
+        latched messages and keyframe requests a new subscriber gets).
+
+        Returns:
+            Those topics (empty if *conn* does not hold *pattern*), in *topics*' order.
+        """
+        entry = self._subs.get(conn)
+        compiled = entry.subs.get(pattern) if entry is not None else None
+        if entry is None or compiled is None:
+            return []
+        others = [m for p, m in entry.subs.items() if p != pattern]
+        return [t for t in topics if compiled.matches(t) and entry.perms.may_receive(t)
+                and not any(m.matches(t) for m in others)]
 
     def _entry(self, conn: C, perms: Permissions, keys: tuple[str, ...]) -> _Entry:
         entry = self._subs.get(conn)

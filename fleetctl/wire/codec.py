@@ -71,6 +71,7 @@ class Codec:
         no_drop: bool = False,
         publish_time_ns: int = 0,
         seq: int = 0,
+        latched: bool = False,
     ) -> bytes:
         """Encode one message as a frame (``bytes`` copy of :meth:`encode_view`'s result).
 
@@ -81,6 +82,8 @@ class Codec:
             no_drop: Ask for reliable, in-order delivery.
             publish_time_ns: Wall clock in ns since the epoch when the robot got it.
             seq: Per-topic sequence number of the sender.
+            latched: Mark the message latched (the server keeps the last one per sender
+                and topic for later subscribers).
 
         Returns:
             The frame (one WebSocket binary message).
@@ -89,7 +92,8 @@ class Codec:
             WireError: Unknown type, or *msg* does not fit it (the message names the field).
         """
         return bytes(self.encode_view(msg, type_name, topic, no_drop=no_drop,
-                                      publish_time_ns=publish_time_ns, seq=seq))
+                                      publish_time_ns=publish_time_ns, seq=seq,
+                                      latched=latched))
 
     def encode_view(
         self,
@@ -100,6 +104,7 @@ class Codec:
         no_drop: bool = False,
         publish_time_ns: int = 0,
         seq: int = 0,
+        latched: bool = False,
     ) -> memoryview:
         """Like :meth:`encode`, but the frame is a read-only view of the builder's buffer.
 
@@ -113,7 +118,7 @@ class Codec:
             raise WireError(f"{METADATA_TYPE} is the frame header, not a message type")
         encode_table = self._encoders.table(name)
         builder = new_builder(self._size_hint.get(name, _MIN_BUILDER_BYTES))
-        meta = self._meta_cls(name, topic, bool(no_drop), publish_time_ns, seq)
+        meta = self._meta_cls(name, topic, bool(no_drop), publish_time_ns, seq, bool(latched))
         meta_off = self._encoders.table(METADATA_TYPE)(builder, meta, 0)
         root = encode_table(builder, msg, meta_off)
         builder.Finish(root)

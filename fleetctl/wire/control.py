@@ -4,6 +4,8 @@
   ``/subscriptions``; action 1 subscribes, 0 unsubscribes (Robofleet Section III-B).
 - ``amrl_msgs/msg/RobofleetStatus {string status; bool is_ok; float32 battery_level;
   string location}`` on ``/<robot>/status``.
+- ``fleetctl_msgs/msg/KeyframeRequest {string topic}`` on ``/keyframe_requests``: a viewer
+  (or the server) asks the publisher of a video topic for a keyframe (docs/wire.md).
 """
 
 from __future__ import annotations
@@ -18,6 +20,8 @@ STATUS_TYPE = "amrl_msgs/msg/RobofleetStatus"
 SUBSCRIPTIONS_TOPIC = "/subscriptions"
 ACTION_UNSUBSCRIBE = 0
 ACTION_SUBSCRIBE = 1
+KEYFRAME_REQUEST_TYPE = "fleetctl_msgs/msg/KeyframeRequest"
+KEYFRAME_REQUESTS_TOPIC = "/keyframe_requests"
 
 
 @dataclass(frozen=True, slots=True)
@@ -132,3 +136,30 @@ def decode_status(frame: bytes | memoryview, *, codec: Codec | None = None) -> S
         location=msg.location,
         publish_time_ns=meta.publish_time_ns,
     )
+
+
+def encode_keyframe_request(topic: str, *, publish_time_ns: int = 0, seq: int = 0,
+                            codec: Codec | None = None) -> bytes:
+    """A keyframe request for video *topic* on ``/keyframe_requests`` (no_drop: the
+    server forwards each as is, and a latest-only slot would let one camera's request
+    replace another's).
+
+    Raises:
+        WireError: *topic* is not a string.
+    """
+    codec = codec or default_codec()
+    cls = codec.registry.get(KEYFRAME_REQUEST_TYPE).cls
+    return codec.encode(cls(topic), KEYFRAME_REQUEST_TYPE, KEYFRAME_REQUESTS_TOPIC,
+                        no_drop=True, publish_time_ns=publish_time_ns, seq=seq)
+
+
+def decode_keyframe_request(frame: bytes | memoryview, *, codec: Codec | None = None) -> str:
+    """The video topic a keyframe request names.
+
+    Raises:
+        WireError: Malformed frame, another type, or an empty topic.
+    """
+    _meta, msg = (codec or default_codec()).decode_as(frame, KEYFRAME_REQUEST_TYPE)
+    if not msg.topic:
+        raise WireError("KeyframeRequest.topic is empty")
+    return str(msg.topic)

@@ -3,8 +3,8 @@
 Encoding each fragment through the generic codec costs ~100 us (a FlatBuffers builder per
 fragment): 6.5 ms per 1 MB point cloud, 0.5 ms per 64 KB message, which alone would cap a
 link at ~130 MB/s and eat a 10 Hz cloud's CPU budget. But the fragments of a stream have
-few layouts: for a given *shape* (topic, no_drop, fragment payload size, count, last
-payload size, and which of message_id / seq / publish_time_ns are non-zero, because
+few layouts: for a given *shape* (topic, no_drop, latched, fragment payload size, count,
+last payload size, and which of message_id / seq / publish_time_ns are non-zero, because
 FlatBuffers omits zero scalars) there are three: the first fragment (``index`` 0 is absent),
 the middle ones and the last one. :class:`Fragmenter` encodes those three once per shape
 with the codec and builds every fragment as a template copy with the scalars and payload
@@ -48,7 +48,9 @@ class _Template:
     slots: tuple[tuple[int, int, struct.Struct], ...]
 
 
-_Shape = tuple[str, bool, int, int, int, bool, bool, bool]
+# (topic, no_drop, latched, chunk, count, last_len, has id, has time, has seq); the flags
+# are constant per shape, so the templates carry them and need no patching.
+_Shape = tuple[str, bool, bool, int, int, int, bool, bool, bool]
 
 
 class Fragmenter:
@@ -65,7 +67,7 @@ class Fragmenter:
         self._max_shapes = max_shapes
         self._shapes: OrderedDict[
             _Shape, tuple[_Template, _Template | None, _Template]] = OrderedDict()
-        self._overheads: dict[tuple[str, bool, bool, bool, bool], int] = {}
+        self._overheads: dict[tuple[str, bool, bool, bool, bool, bool], int] = {}
 
     def split(self, frame: bytes, *, topic: str, message_id: int, max_fragment_bytes: int,
               no_drop: bool) -> list[bytes]:
@@ -73,8 +75,8 @@ class Fragmenter:
         if len(frame) <= max_fragment_bytes:
             return [frame]
         meta = read_metadata(frame)
-        chunk = max_fragment_bytes - self._overhead(topic, no_drop, meta.publish_time_ns,
-                                                    meta.seq, message_id)
+        chunk = max_fragment_bytes - self._overhead(topic, no_drop, meta.latched,
+                                                    meta.publish_time_ns, meta.seq, message_id)
         count = math.ceil(len(frame) / chunk) if chunk > 0 else 0
         if count < 2 or len(frame) > _U32_MAX or message_id > 2**64 - 1 or message_id < 0:
             # Short messages, and every error case, are the reference implementation's job.
@@ -82,8 +84,8 @@ class Fragmenter:
                          max_fragment_bytes=max_fragment_bytes, no_drop=no_drop,
                          codec=self._codec)
         last_len = len(frame) - (count - 1) * chunk
-        shape: _Shape = (topic, no_drop, chunk, count, last_len, message_id != 0,
-                         meta.publish_time_ns != 0, meta.seq != 0)
+        shape: _Shape = (topic, no_drop, meta.latched, chunk, count, last_len,
+                         message_id != 0, meta.publish_time_ns != 0, meta.seq != 0)
         first, middle, last = self._templates(shape, frame, message_id, meta)
         view = memoryview(frame)
         out = []
@@ -100,25 +102,26 @@ class Fragmenter:
             out.append(b"".join((parts[0], view[i * chunk:i * chunk + size], parts[1])))
         return out
 
-    def _overhead(self, topic: str, no_drop: bool, time_ns: int, seq: int,
+    def _overhead(self, topic: str, no_drop: bool, latched: bool, time_ns: int, seq: int,
                   message_id: int) -> int:
         # Cached per key: the overhead depends only on which scalars are zero, not on
         # their values (FlatBuffers omits zero scalars).
-        key = (topic, no_drop, time_ns != 0, seq != 0, message_id != 0)
+        key = (topic, no_drop, latched, time_ns != 0, seq != 0, message_id != 0)
         overhead = self._overheads.get(key)
         if overhead is None:
             if len(self._overheads) >= 4 * self._max_shapes:
                 self._overheads.clear()
             overhead = self._overheads[key] = fragment_overhead(
                 self._codec, topic, no_drop=no_drop, message_id=message_id,
-                publish_time_ns=time_ns, seq=seq)
+                publish_time_ns=time_ns, seq=seq, latched=latched)
         return overhead
 
-    def _encode(self, topic: str, no_drop: bool, time_ns: int, seq: int, index: int,
+    def _encode(self, topic: str, flags: tuple[bool, bool], time_ns: int, seq: int, index: int,
                 count: int, total: int, payload: np.ndarray[Any, Any], message_id: int) -> bytes:
+        no_drop, latched = flags
         return self._codec.encode(self._cls(message_id, index, count, total, payload),
                                   FRAGMENT_TYPE, topic, no_drop=no_drop,
-                                  publish_time_ns=time_ns, seq=seq)
+                                  publish_time_ns=time_ns, seq=seq, latched=latched)
 
     def _templates(self, shape: _Shape, frame: bytes, message_id: int,
                    meta: Any) -> tuple[_Template, _Template | None, _Template]:
@@ -126,13 +129,13 @@ class Fragmenter:
         if cached is not None:
             self._shapes.move_to_end(shape)
             return cached
-        topic, no_drop, chunk, count, last_len = shape[:5]
+        topic, no_drop, latched, chunk, count, last_len = shape[:6]
         data = np.frombuffer(frame, dtype=np.uint8)
 
         def make(index: int, size: int) -> _Template:
             start = index * chunk
-            encoded = self._encode(topic, no_drop, meta.publish_time_ns, meta.seq, index,
-                                   count, len(frame), data[start:start + size], message_id)
+            encoded = self._encode(topic, (no_drop, latched), meta.publish_time_ns, meta.seq,
+                                   index, count, len(frame), data[start:start + size], message_id)
             return _locate(encoded, size)
 
         made = (make(0, chunk), make(1, chunk) if count > 2 else None,

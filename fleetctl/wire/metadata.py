@@ -47,6 +47,9 @@ class Metadata(NamedTuple):
         publish_time_ns: Wall clock in ns since the epoch when the robot took the message
             from ROS; 0 when the sender did not say.
         seq: Per-topic sequence number of the sender; 0 when the sender did not say.
+        latched: The message is latched (its ROS publisher is ``TRANSIENT_LOCAL``): the
+            server keeps the last one per (sender, topic) for later subscribers. Frames
+            written before this field existed read as False.
     """
 
     type: str
@@ -54,6 +57,7 @@ class Metadata(NamedTuple):
     no_drop: bool = False
     publish_time_ns: int = 0
     seq: int = 0
+    latched: bool = False
 
 
 @lru_cache(maxsize=4096)
@@ -127,7 +131,9 @@ def read_string(frame: bytes | memoryview, fpos: int, n: int, what: str) -> str:
         raise _fail(f"{what} is not UTF-8", spos, n) from exc
 
 
-_VTABLE_ENTRIES = [struct.Struct(f"<{k}H").unpack_from for k in range(6)]
+# MsgMetadata's fields: type, topic, no_drop, publish_time_ns, seq, latched (vtable slots).
+_META_FIELDS = 6
+_VTABLE_ENTRIES = [struct.Struct(f"<{k}H").unpack_from for k in range(_META_FIELDS + 1)]
 _TYPE_CACHE: dict[bytes, str] = {}
 _TYPE_CACHE_MAX = 1024
 
@@ -157,14 +163,18 @@ def read_root(frame: bytes | memoryview) -> tuple[Metadata, int]:
     mtab = mpos + _U32(frame, mpos)[0]
     vt, vt_bytes, t_bytes = table_fields(frame, mtab, n)
     k = (vt_bytes - 4) >> 1
-    if k >= 5:
-        o_type, o_topic, o_drop, o_time, o_seq = _VTABLE_ENTRIES[5](frame, vt + 4)
+    # A shorter vtable (an older or Robofleet writer) leaves the later fields absent; a
+    # longer one (a newer writer) has fields this reader ignores.
+    if k >= _META_FIELDS:
+        o_type, o_topic, o_drop, o_time, o_seq, o_latched = _VTABLE_ENTRIES[_META_FIELDS](
+            frame, vt + 4)
     else:
-        o_type, o_topic, o_drop, o_time, o_seq = _VTABLE_ENTRIES[k](frame, vt + 4) + (0,) * (5 - k)
+        o_type, o_topic, o_drop, o_time, o_seq, o_latched = (
+            _VTABLE_ENTRIES[k](frame, vt + 4) + (0,) * (_META_FIELDS - k))
     if not o_type or not o_topic:
         raise WireError("malformed frame: __metadata has no type or no topic")
     if (o_type + 4 > t_bytes or o_topic + 4 > t_bytes or o_drop + 1 > t_bytes
-            or o_time + 8 > t_bytes or o_seq + 8 > t_bytes):
+            or o_time + 8 > t_bytes or o_seq + 8 > t_bytes or o_latched + 1 > t_bytes):
         raise _fail("__metadata field outside its table", mtab, n)
     # The topic string, inline (read_string is the reference for these checks).
     fpos = mtab + o_topic
@@ -186,6 +196,7 @@ def read_root(frame: bytes | memoryview) -> tuple[Metadata, int]:
         bool(o_drop and frame[mtab + o_drop]),
         _U64(frame, mtab + o_time)[0] if o_time else 0,
         _U64(frame, mtab + o_seq)[0] if o_seq else 0,
+        bool(o_latched and frame[mtab + o_latched]),
     ), root
 
 

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import importlib.util
 from pathlib import Path
 
 import pytest
@@ -34,9 +35,13 @@ def test_uninstalled_message_type_is_a_config_error(tmp_path: Path,
     pytest.importorskip("rclpy")
     monkeypatch.setenv("ROS_DOMAIN_ID", "38")
     config = tmp_path / "client.yaml"
-    # tf2_msgs is in the wire registry (rosbags) but has no rclpy wheel installed here.
+    # diagnostic_msgs is in the wire registry (rosbags) but has no rclpy package here
+    # (tf2_msgs was the example until scripts/ros_msgs.sh built it).
+    pytest.importorskip("rclpy")
+    if importlib.util.find_spec("diagnostic_msgs") is not None:
+        pytest.skip("diagnostic_msgs is installed")
     config.write_text("server_url: ws://127.0.0.1:1/\nrobot_name: r\n"
-                      "publish:\n  - {topic: /tf, type: tf2_msgs/msg/TFMessage}\n")
+                      "publish:\n  - {topic: /diag, type: diagnostic_msgs/msg/DiagnosticArray}\n")
     assert main(["client", "--config", str(config)]) == ExitCode.CONFIG
     err = capsys.readouterr().err
-    assert "publish[0] (/tf): type:" in err and "tf2_msgs" in err
+    assert "publish[0] (/diag): type:" in err and "diagnostic_msgs" in err

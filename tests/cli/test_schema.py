@@ -36,7 +36,7 @@ def test_export_chosen_types_compiles_with_flatc(
 
 def test_export_all_by_default(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     assert main(["schema", "export", str(tmp_path)]) == 0
-    assert "wrote 167 .fbs files" in capsys.readouterr().out
+    assert "wrote 170 .fbs files" in capsys.readouterr().out
     assert (tmp_path / "tf2_msgs/msg/TFMessage.fbs").is_file()
 
 

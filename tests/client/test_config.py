@@ -189,3 +189,71 @@ def test_file_errors(tmp_path: Path) -> None:
     (tmp_path / "d.yaml").write_text("server_url: ws://h/\nrobot_name: r\ntoken_file: empty\n")
     with pytest.raises(ConfigError, match=r"token_file: .* must hold one token"):
         load_client_config(tmp_path / "d.yaml")
+
+
+def _cam(**video: Any) -> dict[str, Any]:
+    return {"topic": "/cam", "type": "sensor_msgs/msg/Image", "video": video}
+
+
+def _cloud(**viewer: Any) -> dict[str, Any]:
+    return {"topic": "/pts", "type": "sensor_msgs/msg/PointCloud2", "viewer_cloud": viewer}
+
+
+def test_video_viewer_cloud_and_tf_defaults() -> None:
+    from fleetctl.client.config import TfSpec, VideoSpec, ViewerCloudSpec
+
+    cfg = parse_client_config(minimal(
+        publish=[_cam(), _cloud(), {"topic": "/c", "type": "sensor_msgs/CompressedImage",
+                                    "video": {"codec": "av1", "keyframe_interval_s": 1}}],
+        tf={}), source="c.yaml")
+    assert cfg.publish[0].video == VideoSpec("h264", 1000, 100, 2.0)
+    assert cfg.publish[0].viewer_cloud is None and cfg.publish[1].video is None
+    assert cfg.publish[1].viewer_cloud == ViewerCloudSpec(resolution_m=0.01)
+    assert cfg.publish[2].video == VideoSpec(codec="av1", keyframe_interval_s=1.0)
+    assert cfg.tf == TfSpec(0.01, 0.01, 10.0)
+    plain = parse_client_config(minimal(tf=None), source="c.yaml")
+    assert plain.tf is None
+
+
+@pytest.mark.parametrize(("data", "expected"), [
+    (minimal(publish=[_cam(codec="mjpeg")]),
+     "publish[0] (/cam): video: codec: must be one of h264, vp8, vp9, av1, got 'mjpeg'"),
+    (minimal(publish=[_cam(max_bitrate_kbps=0)]),
+     "publish[0] (/cam): video: max_bitrate_kbps: must be between 1"),
+    (minimal(publish=[_cam(max_bitrate_kbps=500.5)]),
+     "video: max_bitrate_kbps: must be an integer"),
+    (minimal(publish=[_cam(min_bitrate_kbps=-5)]), "video: min_bitrate_kbps: must be between 1"),
+    (minimal(publish=[_cam(max_bitrate_kbps=200, min_bitrate_kbps=300)]),
+     "publish[0] (/cam): video: min_bitrate_kbps: must be <= max_bitrate_kbps (200), got 300"),
+    (minimal(publish=[_cam(keyframe_interval_s=0)]), "video: keyframe_interval_s: must be > 0"),
+    (minimal(publish=[_cam(fps=30)]), "publish[0] (/cam): video: fps: unknown field"),
+    (minimal(publish=[{"topic": "/cam", "type": "sensor_msgs/msg/Image", "video": "h264"}]),
+     "publish[0] (/cam): video: must be a mapping"),
+    (minimal(publish=[{"topic": "/d", "type": "stereo_msgs/msg/DisparityImage",
+                       "video": {}}]),
+     "publish[0] (/d): video: only for sensor_msgs/msg/Image or "
+     "sensor_msgs/msg/CompressedImage, not stereo_msgs/msg/DisparityImage"),
+    (minimal(publish=[_cloud(resolution_m=0)]),
+     "publish[0] (/pts): viewer_cloud: resolution_m: must be between 0.001 and 1, got 0"),
+    (minimal(publish=[_cloud(resolution_m=2)]), "resolution_m: must be between 0.001 and 1"),
+    (minimal(publish=[_cloud(voxel=1)]), "publish[0] (/pts): viewer_cloud: voxel: unknown"),
+    (minimal(publish=[{"topic": "/s", "type": "sensor_msgs/msg/LaserScan",
+                       "viewer_cloud": {}}]),
+     "publish[0] (/s): viewer_cloud: only for sensor_msgs/msg/PointCloud2"),
+    (minimal(publish=[_cloud(), {"topic": "/pts/viewer", "type": "std_msgs/msg/String"}]),
+     "publish[1] (/pts/viewer): remote_topic: /r1/pts/viewer is already sent by publish[0]"),
+    (minimal(tf={"translation_delta_m": -1}), "tf: translation_delta_m: must be >= 0"),
+    (minimal(tf={"rotation_delta_rad": 4}), "tf: rotation_delta_rad: must be between 0 and pi"),
+    (minimal(tf={"max_rate_hz": 0}), "tf: max_rate_hz: must be > 0 and <= 1000, got 0"),
+    (minimal(tf={"rate": 1}), "tf: rate: unknown field"),
+    (minimal(tf=[1]), "tf: entry: must be a mapping"),
+    (minimal(tf={}, publish=[{"topic": "/tf", "type": "tf2_msgs/msg/TFMessage"}]),
+     "publish[0] (/tf): remote_topic: /r1/tf is sent by the tf section"),
+    (minimal(tf={}, publish=[{"topic": "/x", "type": "tf2_msgs/msg/TFMessage",
+                              "remote_topic": "/r1/tf_static"}]),
+     "publish[0] (/x): remote_topic: /r1/tf_static is sent by the tf section"),
+])
+def test_media_fields_name_entry_and_field(data: Any, expected: str) -> None:
+    with pytest.raises(ConfigError) as info:
+        parse_client_config(data, source="client.yaml")
+    assert expected in str(info.value)

@@ -227,3 +227,73 @@ def test_require_endpoint(tmp_path: Path) -> None:
 def test_topic_errors_name_file_line_field(old: str, new: str, expected: str) -> None:
     assert old in TOPICS
     assert _error(TOPICS.replace(old, new, 1)).startswith(expected)
+
+
+MEDIA = GOOD.replace("    extra_receive: [\"/husky1/scan\"]\n", """\
+    publish:
+      - {topic: /cam, type: sensor_msgs/msg/Image, video: {codec: vp8, max_bitrate_kbps: 500}}
+      - {topic: /points, type: sensor_msgs/msg/PointCloud2, viewer_cloud: {}}
+    tf: {rotation_delta_rad: 0.02}
+""")
+
+
+def test_video_viewer_cloud_and_tf_round_trip() -> None:
+    from fleetctl.client.config import TfSpec, VideoSpec, ViewerCloudSpec
+
+    fleet = parse_fleet(Path("fleet.yaml"), MEDIA)
+    jackal = fleet.robots[1]
+    assert jackal.publish is not None
+    assert jackal.publish[0].video == VideoSpec(codec="vp8", max_bitrate_kbps=500)
+    assert jackal.publish[1].viewer_cloud == ViewerCloudSpec()
+    assert jackal.tf == TfSpec(rotation_delta_rad=0.02)
+    assert fleet.robots[0].tf is None
+    text = dump_fleet(fleet)
+    assert parse_fleet(Path("fleet.yaml"), text) == fleet
+    # Absent keys stay absent: a fleet without them keeps its bytes.
+    assert "tf:" not in text.split("- name: jackal2")[0] and "video:" not in dump_fleet(
+        parse_fleet(Path("fleet.yaml"), GOOD))
+
+
+@pytest.mark.parametrize(
+    ("old", "new", "expected"),
+    [
+        ("codec: vp8", "codec: mjpeg",
+         "/f/fleet.yaml:12: robots[1].publish[0].video.codec: must be one of h264, vp8, vp9, "
+         "av1, got 'mjpeg'"),
+        ("max_bitrate_kbps: 500", "max_bitrate_kbps: 50",
+         "/f/fleet.yaml:12: robots[1].publish[0].video.min_bitrate_kbps: must be <= "
+         "max_bitrate_kbps (50), got 100"),
+        ("max_bitrate_kbps: 500", "max_bitrate_kbps: 0",
+         "/f/fleet.yaml:12: robots[1].publish[0].video.max_bitrate_kbps: must be between 1"),
+        ("max_bitrate_kbps: 500", "keyframe_interval_s: 0",
+         "/f/fleet.yaml:12: robots[1].publish[0].video.keyframe_interval_s: must be > 0"),
+        ("max_bitrate_kbps: 500", "bframes: 2",
+         "/f/fleet.yaml:12: robots[1].publish[0].video.bframes: unknown field"),
+        ("type: sensor_msgs/msg/Image", "type: sensor_msgs/msg/LaserScan",
+         "/f/fleet.yaml:12: robots[1].publish[0].video: only for sensor_msgs/msg/Image or "
+         "sensor_msgs/msg/CompressedImage, not sensor_msgs/msg/LaserScan"),
+        ("type: sensor_msgs/msg/PointCloud2", "type: sensor_msgs/msg/LaserScan",
+         "/f/fleet.yaml:13: robots[1].publish[1].viewer_cloud: only for "
+         "sensor_msgs/msg/PointCloud2"),
+        ("viewer_cloud: {}", "viewer_cloud: {resolution_m: 0.0001}",
+         "/f/fleet.yaml:13: robots[1].publish[1].viewer_cloud.resolution_m: must be between "
+         "0.001 and 1, got 0.0001"),
+        ("{topic: /cam,", "{topic: /points/viewer,",
+         "/f/fleet.yaml:13: robots[1].publish[1].viewer_cloud: its viewer topic "
+         "'/points/viewer' is also publish[0]'s topic"),
+        ("{topic: /cam, type: sensor_msgs/msg/Image, video: {codec: vp8, max_bitrate_kbps: 500}}",
+         "{topic: /tf, type: tf2_msgs/msg/TFMessage}",
+         "/f/fleet.yaml:12: robots[1].publish[0].topic: /tf is sent by the robot's tf section"),
+        ("tf: {rotation_delta_rad: 0.02}", "tf: {rotation_delta_rad: 4}",
+         "/f/fleet.yaml:14: robots[1].tf.rotation_delta_rad: must be between 0 and pi, got 4.0"),
+        ("tf: {rotation_delta_rad: 0.02}", "tf: {max_rate_hz: 0}",
+         "/f/fleet.yaml:14: robots[1].tf.max_rate_hz: must be > 0 and <= 1000, got 0.0"),
+        ("tf: {rotation_delta_rad: 0.02}", "tf: {rate: 3}",
+         "/f/fleet.yaml:14: robots[1].tf.rate: unknown field"),
+        ("tf: {rotation_delta_rad: 0.02}", "tf: 10",
+         "/f/fleet.yaml:14: robots[1].tf: expected a mapping"),
+    ],
+)
+def test_media_errors_name_file_line_field(old: str, new: str, expected: str) -> None:
+    assert old in MEDIA
+    assert _error(MEDIA.replace(old, new, 1)).startswith(expected)

@@ -275,6 +275,51 @@ def test_custom_topics_render_and_load_in_the_client(fleet_dir: Path) -> None:
     assert {"topic": "/husky1/map", "op": "receive"} in mapper["rules"]
 
 
+MEDIA = """\
+- name: sensorbot
+  ip: 10.8.0.31
+  publish:
+    - {topic: /camera/image_raw, type: sensor_msgs/msg/Image, priority: 1,
+       video: {codec: vp9, max_bitrate_kbps: 800}}
+    - {topic: /camera/compressed, type: sensor_msgs/msg/CompressedImage, video: {}}
+    - {topic: /points, type: sensor_msgs/msg/PointCloud2, viewer_cloud: {resolution_m: 0.02}}
+    - {topic: /map, type: nav_msgs/msg/OccupancyGrid, video: null, viewer_cloud: null}
+  tf: {translation_delta_m: 0.05, max_rate_hz: 5}
+"""
+
+
+def test_media_keys_render_and_load_in_the_client(fleet_dir: Path) -> None:
+    from fleetctl.client.config import TfSpec, VideoSpec, ViewerCloudSpec, load_client_config
+
+    path = fleet_dir / "fleet.yaml"
+    path.write_text(path.read_text().replace("users:\n", MEDIA + "users:\n", 1))
+    ops.render_fleet(fleet_dir)
+    actual = (fleet_dir / "robots/sensorbot/client.yaml").read_text()
+    golden = GOLDEN / "robots__sensorbot__client.yaml"
+    if os.environ.get("UPDATE_GOLDEN"):
+        golden.write_text(actual)
+    assert actual == golden.read_text()
+    cfg = load_client_config(fleet_dir / "robots/sensorbot/client.yaml")
+    assert [(p.video, p.viewer_cloud) for p in cfg.publish] == [
+        (VideoSpec(codec="vp9", max_bitrate_kbps=800), None),
+        (VideoSpec(), None),
+        (None, ViewerCloudSpec(resolution_m=0.02)),
+        (None, None)]
+    assert cfg.tf == TfSpec(translation_delta_m=0.05, max_rate_hz=5.0)
+    # The robot sends its viewer cloud and TF under its own namespace: no new auth rule.
+    auth = yaml.safe_load((fleet_dir / "server/auth.yaml").read_text())
+    bot = next(i for i in auth["identities"] if i["name"] == "sensorbot")
+    assert {"topic": "/sensorbot/.*", "op": "send"} in bot["rules"]
+
+
+def test_robot_without_tf_renders_no_tf_section(fleet_dir: Path) -> None:
+    from fleetctl.client.config import load_client_config
+
+    text = (fleet_dir / "robots/husky1/client.yaml").read_text()
+    assert "tf:" not in text and "video:" not in text
+    assert load_client_config(fleet_dir / "robots/husky1/client.yaml").tf is None
+
+
 def test_default_topics_client_config_loads(fleet_dir: Path) -> None:
     from fleetctl.client.config import COMPRESSIONS, load_client_config
     from fleetctl.deploy.topics import COMPRESSIONS as FLEET_COMPRESSIONS

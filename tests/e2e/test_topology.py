@@ -72,3 +72,49 @@ def test_no_container_has_a_route_out(topo: Topology) -> None:
     for name in [topo.router, *(e.name for e in topo.endpoints)]:
         routes = topo.exec(name, ["ip", "route", "show", "default"])
         assert routes.returncode == 0 and routes.stdout.strip() == "", (name, routes.stdout)
+
+
+def test_blackhole_cut_drops_ip_both_ways_but_not_arp(topo: Topology) -> None:
+    server = topo.start("bh-server", SERVER_SIDE, BASE_IMAGE, ["python3", "-c", SINK_SCRIPT])
+    robot = topo.start("bh-robot", ROBOT_SIDE, BASE_IMAGE, IDLE_COMMAND)
+    deadline = time.monotonic() + 15.0
+    while topo.exec(robot.name, ["python3", "-c", PROBE_SCRIPT, server.ip, "1"]).stdout.strip() != (
+        "open"
+    ):
+        assert time.monotonic() < deadline, topo.logs(server.name)
+    for side in (SERVER_SIDE, ROBOT_SIDE):
+        topo.blackhole(side, True)
+        topo.blackhole(side, True)  # idempotent: a second cut is not an error
+    try:
+        probe = topo.exec(robot.name, ["python3", "-c", PROBE_SCRIPT, server.ip, "0.5"])
+        assert probe.stdout.strip() == "dropped"
+        # The server's neighbour entry for the router still resolves during the cut.
+        neigh = topo.exec(server.name, ["ip", "neigh", "flush", "all"])
+        assert neigh.returncode == 0, neigh.stderr
+        gateway = topo.router_ips[SERVER_SIDE]
+        ping_arp = topo.exec(server.name, ["python3", "-c", _ARP_SCRIPT, gateway])
+        assert ping_arp.stdout.strip() in ("REACHABLE", "STALE", "DELAY"), ping_arp.stdout
+    finally:
+        for side in (SERVER_SIDE, ROBOT_SIDE):
+            topo.blackhole(side, False)
+    topo.blackhole(SERVER_SIDE, False)  # removing what is gone is not an error
+    probe = topo.exec(robot.name, ["python3", "-c", PROBE_SCRIPT, server.ip, "5"])
+    assert probe.stdout.strip() == "open"
+
+
+# Sends one UDP datagram to the gateway's discard port (which makes the kernel resolve its
+# address), then waits up to 3 s for the neighbour entry to leave INCOMPLETE; prints its state.
+_ARP_SCRIPT = """
+import socket, subprocess, sys, time
+gw = sys.argv[1]
+socket.socket(socket.AF_INET, socket.SOCK_DGRAM).sendto(b"x", (gw, 9))
+deadline = time.monotonic() + 3.0
+state = ""
+while time.monotonic() < deadline:
+    out = subprocess.run(["ip", "neigh", "show", gw], capture_output=True, text=True).stdout
+    state = out.split()[-1] if out.split() else ""
+    if state not in ("", "INCOMPLETE"):
+        break
+    time.sleep(0.05)
+print(state)
+"""

@@ -58,9 +58,21 @@ CONTEXTS: dict[str, dict[str, Any]] = {
         "fleet_name": "campus", "robot_name": "husky1", "server_url": "ws://10.8.0.1:8080/",
         "bind_address": "10.8.0.2", "battery_topic": "/battery",
         "publish": [{"topic": "/odom", "type": "nav_msgs/msg/Odometry", "priority": 4.0,
-                     "rate_limit_hz": 10.0, "no_drop": False, "compression": "none"}],
+                     "rate_limit_hz": 10.0, "no_drop": False, "compression": "none",
+                     "video": None, "viewer_cloud": None},
+                    {"topic": "/camera/image_raw", "type": "sensor_msgs/msg/Image",
+                     "priority": 1.0, "rate_limit_hz": None, "no_drop": False,
+                     "compression": "none",
+                     "video": {"codec": "h264", "max_bitrate_kbps": 1000,
+                               "min_bitrate_kbps": 100, "keyframe_interval_s": 2.0},
+                     "viewer_cloud": None},
+                    {"topic": "/points", "type": "sensor_msgs/msg/PointCloud2",
+                     "priority": 1.0, "rate_limit_hz": 5.0, "no_drop": False,
+                     "compression": "deflate", "video": None,
+                     "viewer_cloud": {"resolution_m": 0.01}}],
         "subscribe": [{"remote_topic": "/husky1/goal_pose", "type": "geometry_msgs/msg/Pose",
                        "local_topic": "/goal_pose"}],
+        "tf": {"translation_delta_m": 0.01, "rotation_delta_rad": 0.01, "max_rate_hz": 10.0},
     },
     "server/server.yaml.j2": {
         "fleet_name": "campus", "listen_port": 8080, "https_port": 8443,
@@ -100,8 +112,8 @@ Path_ = tuple[str | int, ...]
 
 
 def _leaves(value: Any, path: Path_ = ()) -> Iterator[Path_]:
-    """Paths of every value a template prints (bools only steer ``if``s)."""
-    if isinstance(value, Escaped | bool):
+    """Paths of every value a template prints (bools and None only steer ``if``s)."""
+    if value is None or isinstance(value, Escaped | bool):
         return
     if isinstance(value, dict):
         for key, item in value.items():

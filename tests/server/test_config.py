@@ -5,7 +5,7 @@ from pathlib import Path
 import pytest
 
 from fleetctl.errors import ConfigError
-from fleetctl.server.config import load_server_config
+from fleetctl.server.config import ServerLimits, load_server_config
 
 
 def write(tmp_path: Path, text: str) -> Path:
@@ -35,6 +35,18 @@ limits: {max_frame_bytes: 1024, robot_offline_after_s: 2}
     assert cfg.limits.session_mailbox_messages == 10000
 
 
+def test_latched_and_keyframe_limits(tmp_path: Path) -> None:
+    path = tmp_path / "server.yaml"
+    path.write_text("auth_map: auth.yaml\nlimits: {latched_bytes: 4096, "
+                    "latched_message_bytes: 1024, keyframe_request_interval_s: 0.5}\n")
+    limits = load_server_config(path).limits
+    assert (limits.latched_bytes, limits.latched_message_bytes) == (4096, 1024)
+    assert limits.keyframe_request_interval_s == 0.5
+    defaults = ServerLimits()
+    assert defaults.latched_bytes == 64 * 1024 * 1024
+    assert defaults.keyframe_request_interval_s == 0.25
+
+
 def test_session_limits(tmp_path: Path) -> None:
     cfg = load_server_config(write(tmp_path, """
 auth_map: auth.yaml
@@ -59,6 +71,9 @@ limits: {session_expiry_s: 60, session_mailbox_messages: 5, session_mailbox_byte
         ("auth_map: a.yaml\nlimits: {session_expiry_s: 0}", "limits.session_expiry_s"),
         ("auth_map: a.yaml\nlimits: {session_mailbox_bytes: 1.5}",
          "limits.session_mailbox_bytes"),
+        ("auth_map: a.yaml\nlimits: {latched_bytes: 0}", "limits.latched_bytes"),
+        ("auth_map: a.yaml\nlimits: {keyframe_request_interval_s: -1}",
+         "limits.keyframe_request_interval_s"),
         ("auth_map: a.yaml\nlisten_prot: 1", "listen_prot"),
         ("- just a list", "top level"),
         ("a: [", "not valid YAML"),

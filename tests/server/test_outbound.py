@@ -141,3 +141,27 @@ def test_take_no_drop_includes_an_unsent_backlog() -> None:
     assert s.pop() == ("/e", b"b0")
     assert [f for _, f in s.take_no_drop()] == [b"b0", b"b1", b"l0"]
     assert len(s) == 0 and s.queued_bytes == 0 and s.backlog_bytes == 0
+
+
+def test_latched_messages_go_after_control_and_before_everything_else() -> None:
+    woken: list[int] = []
+    s = OutboundScheduler(10_000, 10, wake=lambda: woken.append(1))
+    s.push_latched("/m", [b"m0", b"m1", b"m2"])  # the fragments of one message
+    assert woken == [1] and len(s) == 3 and s.latched_frames == 3
+    s.push("/x", b"x", no_drop=False)
+    s.push("/e", b"e", no_drop=True)
+    s.push_control("subscribed")
+    s.push_latched("/t", [b"t"])
+    assert drain(s) == [(CONTROL_TOPIC, "subscribed"), ("/m", b"m0"), ("/m", b"m1"),
+                        ("/m", b"m2"), ("/t", b"t"), ("/e", b"e"), ("/x", b"x")]
+    assert s.latched_bytes == 0 and s.queued_bytes == 0 and len(s) == 0
+
+
+def test_latched_bound_drops_whole_messages_but_an_empty_queue_takes_one() -> None:
+    s = OutboundScheduler(10, 10, max_latched_bytes=100)
+    assert s.push_latched("/big", [b"a" * 80, b"b" * 80])  # alone: taken, over the bound
+    assert not s.push_latched("/small", [b"c" * 10])  # dropped whole, counted
+    assert s.push("/live", b"l", no_drop=False)  # the other queues' bound is separate
+    assert [t for t, _ in drain(s)] == ["/big", "/big", "/live"]
+    assert s.drops == {"/small": 1}
+    assert s.push_latched("/small", [b"c" * 10, b"d" * 10]) and s.dropped_total == 1

@@ -19,3 +19,10 @@ def drawn_fraction(png: bytes, background: tuple[int, int, int], tolerance: int 
     """Like :func:`drawn_pixels`, as a fraction of the image area (independent of scale)."""
     size = Image.open(io.BytesIO(png)).size
     return drawn_pixels(png, background, tolerance) / (size[0] * size[1])
+
+
+def colored_pixels(png: bytes, color: tuple[int, int, int], tolerance: int = 60) -> int:
+    """Pixels within *tolerance* (sum of |d|) of *color*: what one kind of object drew."""
+    rgb = np.asarray(Image.open(io.BytesIO(png)).convert("RGB"), dtype=np.int16)
+    diff = np.abs(rgb - np.array(color, dtype=np.int16)).sum(axis=2)
+    return int((diff <= tolerance).sum())

@@ -21,6 +21,7 @@ from fleetctl.wire.samples import occupancy_grid
 from fleetctl.wire.schema import describe
 from tests.webviz.msgs import to_json, to_plain
 from tests.webviz.samples import samples
+from tests.webviz.video import encode, h264_codec_string
 
 HERE = Path(__file__).resolve().parent
 GOLDEN = HERE.parent / "wire" / "fixtures"
@@ -78,6 +79,7 @@ def _write_cases(out: Path, registry: TypeRegistry, codec: Codec) -> list[dict[s
                 "fragments": {"count": len(frags), "original": "sample1.bin",
                               "smuggled": len(smuggled)},
                 "compressed": _write_compressed(out, codec),
+                "video": _write_video(out),
             }
         )
     )
@@ -109,6 +111,20 @@ def _write_compressed(out: Path, codec: Codec) -> dict[str, object]:
         path.write_text(json.dumps(describe(codec.registry, t)))
     return {"fragments": len(frags), "width": int(grid.info.width),
             "cells": {str(int(v)): int(c) for v, c in zip(values, counts, strict=True)}}
+
+
+def _write_video(out: Path) -> list[dict[str, object]]:
+    """A few units of each codec a robot may send, with the encoder's keyframe flags."""
+    (out / "video").mkdir()
+    units: list[dict[str, object]] = []
+    for fmt in ("h264", "h265", "vp8", "vp9", "av1"):
+        for i, unit in enumerate(encode(fmt, 12, width=160, height=120, keyframe_every=6)):
+            name = f"{fmt}_{i}.bin"
+            (out / "video" / name).write_bytes(unit.data)
+            codec = h264_codec_string(unit.data) if fmt == "h264" and unit.key else None
+            units.append({"format": fmt, "name": name, "key": unit.key, "codec": codec})
+    assert sum(1 for u in units if u["key"]) >= 10  # each codec: a keyframe at 0 and 6
+    return units
 
 
 @pytest.mark.skipif(shutil.which("node") is None, reason="node is not installed")

@@ -27,7 +27,7 @@ def golden_cases(codec: Codec) -> dict[str, tuple[str, str, Any, dict[str, Any]]
     cls = {name: registry.get(name).cls for name in (
         "amrl_msgs/msg/RobofleetStatus", "amrl_msgs/msg/RobofleetSubscription",
         "sensor_msgs/msg/LaserScan", "geometry_msgs/msg/PoseStamped", "geometry_msgs/msg/Pose",
-        "geometry_msgs/msg/Point", "geometry_msgs/msg/Quaternion")}
+        "geometry_msgs/msg/Point", "geometry_msgs/msg/Quaternion", "std_msgs/msg/String")}
     hdr = header(registry, "map", stamp_ns=1_700_000_000_500_000_000)
     pose = cls["geometry_msgs/msg/Pose"](cls["geometry_msgs/msg/Point"](1.5, -2.25, 0.0),
                                          cls["geometry_msgs/msg/Quaternion"](0.0, 0.0, 0.5, 1.0))
@@ -46,6 +46,11 @@ def golden_cases(codec: Codec) -> dict[str, tuple[str, str, Any, dict[str, Any]]
         "pose_stamped": ("geometry_msgs/msg/PoseStamped", "/husky1/goal_pose",
                          cls["geometry_msgs/msg/PoseStamped"](hdr, pose),
                          {"no_drop": True, "seq": 1}),
+        # MsgMetadata's trailing latched field (vtable slot 5), issue 18.
+        "robot_description_latched": ("std_msgs/msg/String", "/husky1/robot_description",
+                                      cls["std_msgs/msg/String"]("<robot name='husky'/>"),
+                                      {"seq": 2, "publish_time_ns": 1_700_000_000_000_000_000,
+                                       "latched": True}),
     }
 
 

@@ -114,7 +114,7 @@ def test_nested_absent_tables_decode_as_defaults(codec: Codec) -> None:
     builder = flatbuffers.Builder(64)
     meta_cls = codec.registry.get(METADATA_TYPE).cls
     meta = enc.table(METADATA_TYPE)(builder, meta_cls("geometry_msgs/msg/PoseStamped", "/p",
-                                                      False, 0, 0), 0)
+                                                      False, 0, 0, False), 0)
     builder.StartObject(3)
     builder.PrependUOffsetTRelativeSlot(0, meta, 0)
     builder.Finish(builder.EndObject())

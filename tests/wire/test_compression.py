@@ -59,6 +59,22 @@ def test_round_trip_copies_metadata(codec: Codec, type_name: str,
     assert codec.decode(decompress(packed, 64 * MiB))[0].type == type_name
 
 
+@pytest.mark.parametrize("method", CODECS, ids=lambda c: c.name)
+def test_compressed_frame_copies_the_latched_flag(codec: Codec, method: CompressionCodec) -> None:
+    original = _frame(codec, "nav_msgs/msg/OccupancyGrid", latched=True)
+    packed = compress(original, codec=method, topic="/r1/x", no_drop=False)
+    meta = read_metadata(packed)
+    assert (meta.type, meta.latched, meta.no_drop) == (COMPRESSED_TYPE, True, False)
+    assert read_metadata(decompress(packed, 64 * MiB)).latched is True
+    plain = compress(_frame(codec, "nav_msgs/msg/OccupancyGrid"), codec=method, topic="/r1/x",
+                     no_drop=False)
+    assert read_metadata(plain).latched is False
+    # Compressed, then fragmented: every fragment still says latched.
+    fragments = split(packed, topic="/r1/x", message_id=1, max_fragment_bytes=600,
+                      no_drop=False)
+    assert len(fragments) > 1 and all(read_metadata(f).latched for f in fragments)
+
+
 def test_a_map_compresses_by_more_than_an_order_of_magnitude(codec: Codec) -> None:
     original = _frame(codec, "nav_msgs/msg/OccupancyGrid")
     for method in CODECS:
@@ -229,3 +245,19 @@ def test_compressed_is_a_registered_protocol_type(codec: Codec) -> None:
         "codec", "original_bytes", "payload"]
     empty = cls(1, 0, np.zeros(0, dtype=np.uint8))
     assert codec.decode(codec.encode(empty, COMPRESSED_TYPE, "/t"))[1].codec == 1
+
+
+def test_a_higher_level_is_smaller_and_decodes_the_same(codec: Codec) -> None:
+    from fleetctl.wire.compression import LATCHED_DEFLATE_LEVEL
+
+    grid = occupancy_grid(codec.registry, 384)
+    frame = codec.encode(grid, "nav_msgs/msg/OccupancyGrid", "/r1/map", latched=True)
+    fast = compress(frame, codec=CompressionCodec.DEFLATE, topic="/r1/map", no_drop=False)
+    best = compress(frame, codec=CompressionCodec.DEFLATE, topic="/r1/map", no_drop=False,
+                    level=LATCHED_DEFLATE_LEVEL)
+    assert len(best) < len(fast) < len(frame)
+    assert decompress(best, len(frame)) == frame
+    assert read_metadata(best).latched
+    packed = compress(frame, codec=CompressionCodec.ZSTD, topic="/r1/map", no_drop=False,
+                      level=9)
+    assert decompress(packed, len(frame)) == frame

@@ -50,3 +50,22 @@ def test_status_on_a_non_status_topic_is_rejected(codec: Codec) -> None:
     frame = codec.encode(cls("ok", True, 1.0, ""), "RobofleetStatus", "/a/b/status")
     with pytest.raises(WireError, match="expected /<robot>/status"):
         decode_status(frame)
+
+
+def test_keyframe_request_round_trip() -> None:
+    from fleetctl.wire.control import (
+        KEYFRAME_REQUEST_TYPE,
+        KEYFRAME_REQUESTS_TOPIC,
+        decode_keyframe_request,
+        encode_keyframe_request,
+    )
+
+    frame = encode_keyframe_request("/husky1/camera", seq=4)
+    meta = read_metadata(frame)
+    assert (meta.type, meta.topic, meta.no_drop, meta.seq) == (
+        KEYFRAME_REQUEST_TYPE, KEYFRAME_REQUESTS_TOPIC, True, 4)
+    assert decode_keyframe_request(frame) == "/husky1/camera"
+    with pytest.raises(WireError, match="empty"):
+        decode_keyframe_request(encode_keyframe_request(""))
+    with pytest.raises(WireError):
+        decode_keyframe_request(encode_subscription("/x"))

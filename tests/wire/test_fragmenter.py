@@ -8,23 +8,35 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
+from fleetctl.wire.codec import default_codec
 from fleetctl.wire.errors import WireError
 from fleetctl.wire.fragmenter import fast_split
 from fleetctl.wire.fragments import Reassembler, split
+from fleetctl.wire.metadata import read_metadata
 from tests.support import string_frame
 
 
-@settings(max_examples=40, deadline=None)
+def _frame(topic: str, text: str, *, no_drop: bool = False, seq: int = 0,
+           latched: bool = False) -> bytes:
+    codec = default_codec()
+    return codec.encode(codec.registry.get("std_msgs/msg/String").cls(text),
+                        "std_msgs/msg/String", topic, no_drop=no_drop, seq=seq,
+                        publish_time_ns=1_700_000_000_000_000_000, latched=latched)
+
+
+@settings(max_examples=60, deadline=None)
 @given(size=st.integers(0, 60_000), max_bytes=st.integers(600, 5000),
-       message_id=st.integers(0, 2**64 - 1), no_drop=st.booleans(), seq=st.integers(0, 2**40))
+       message_id=st.integers(0, 2**64 - 1), no_drop=st.booleans(), seq=st.integers(0, 2**40),
+       latched=st.booleans())
 def test_fast_split_is_byte_identical_to_split(size: int, max_bytes: int, message_id: int,
-                                               no_drop: bool, seq: int) -> None:
-    frame = string_frame("/r1/points", "p" * size, no_drop=no_drop, seq=seq)
+                                               no_drop: bool, seq: int, latched: bool) -> None:
+    frame = _frame("/r1/points", "p" * size, no_drop=no_drop, seq=seq, latched=latched)
     kw = {"topic": "/r1/points", "message_id": message_id, "max_fragment_bytes": max_bytes,
           "no_drop": no_drop}
     fast = fast_split(frame, **kw)  # type: ignore[arg-type]
     assert fast == split(frame, **kw)  # type: ignore[arg-type]
     assert all(len(f) <= max_bytes for f in fast)
+    assert all(read_metadata(f).latched == latched for f in fast)
     reassembler = Reassembler(10**7, 10.0)
     results = [reassembler.feed(f, 0.0) for f in fast]
     assert results[-1] == frame
@@ -67,3 +79,16 @@ def test_two_three_and_four_fragments_match_split(count: int, message_id: int, s
     reference = split(frame, **kw)  # type: ignore[arg-type]
     for _ in range(2):  # second round: from the template cache
         assert fast_split(frame, **kw) == reference  # type: ignore[arg-type]
+
+
+def test_latched_and_plain_frames_of_one_shape_do_not_share_templates() -> None:
+    """The flag is part of the template key: a cached plain template must not be reused."""
+    kw = {"topic": "/r1/map", "message_id": 5, "max_fragment_bytes": 1500, "no_drop": True}
+    plain = _frame("/r1/map", "m" * 8000, no_drop=True, seq=4)
+    latched = _frame("/r1/map", "m" * 8000, no_drop=True, seq=4, latched=True)
+    for frame, flag in ((plain, False), (latched, True), (plain, False)):
+        fast = fast_split(frame, **kw)  # type: ignore[arg-type]
+        assert fast == split(frame, **kw)  # type: ignore[arg-type]
+        assert {read_metadata(f).latched for f in fast} == {flag}
+        reassembler = Reassembler(10**7, 10.0)
+        assert [reassembler.feed(f, 0.0) for f in fast][-1] == frame

@@ -2,16 +2,26 @@
 
 from __future__ import annotations
 
+import contextlib
 import random
 
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
-from fleetctl.wire.codec import Codec
+from fleetctl.wire.codec import Codec, default_codec
 from fleetctl.wire.control import encode_status
 from fleetctl.wire.errors import WireError
-from fleetctl.wire.fragments import FRAGMENT_TYPE, Reassembler, split
-from fleetctl.wire.metadata import read_metadata
+from fleetctl.wire.fragments import (
+    FRAGMENT_TYPE,
+    FragmentHeader,
+    Reassembler,
+    read_fragment_header,
+    read_fragment_id,
+    split,
+)
+from fleetctl.wire.metadata import read_metadata, read_root
 
 TOPIC = "/husky1/points"
 
@@ -171,3 +181,28 @@ def test_fragments_of_fragments_are_refused(codec: Codec) -> None:
     reasm = Reassembler(max_bytes=1 << 20, timeout_s=5.0)
     assert [r for r in (reasm.feed(p, 0.0) for p in parts) if r is not None] == []
     assert reasm.stats.malformed == 1
+
+
+@pytest.mark.parametrize("message_id", [0, 1, 2**64 - 1])
+def test_fragment_header_readers_agree_with_the_decoder(codec: Codec, message_id: int) -> None:
+    for part in split(_frame(codec, 3000), topic=TOPIC, message_id=message_id,
+                      max_fragment_bytes=1000, no_drop=False):
+        _meta, root = read_root(part)
+        msg = codec.decode_as(part, FRAGMENT_TYPE)[1]
+        assert read_fragment_header(part, root) == FragmentHeader(
+            msg.message_id, msg.index, msg.count, msg.total_bytes)
+        assert read_fragment_id(part, root) == message_id
+
+
+@settings(max_examples=400, deadline=None)
+@given(st.data())
+def test_fragment_header_readers_raise_only_wire_error(data: st.DataObject) -> None:
+    base = split(_frame(default_codec(), 3000), topic=TOPIC, message_id=9,
+                 max_fragment_bytes=1000, no_drop=False)
+    frame = bytearray(data.draw(st.sampled_from(base)))
+    for _ in range(data.draw(st.integers(1, 6))):
+        frame[data.draw(st.integers(0, len(frame) - 1))] = data.draw(st.integers(0, 255))
+    root = data.draw(st.integers(-4, len(frame) + 4))
+    for reader in (read_fragment_header, read_fragment_id):
+        with contextlib.suppress(WireError):
+            reader(bytes(frame), root)

@@ -26,9 +26,10 @@ SAMPLE_TYPES = [
     "trajectory_msgs/msg/MultiDOFJointTrajectory", "sensor_msgs/msg/JointState",
 ]
 _FRAMES = {
+    # Every other type latched, so mutations also hit MsgMetadata's trailing flag.
     name: default_codec().encode(message(default_codec().registry, name, random.Random(3), 3),
-                                 name, "/robot/t", seq=1)
-    for name in SAMPLE_TYPES
+                                 name, "/robot/t", seq=1, latched=i % 2 == 0)
+    for i, name in enumerate(SAMPLE_TYPES)
 }
 
 

@@ -10,6 +10,13 @@ hands the frame to the link. For every ``subscribe`` entry it holds a publisher;
 the link (reassembled and decompressed by the link) are decoded, serialized to CDR and
 published as bytes.
 
+Latched topics (docs/client.md): a subscription whose publishers all offer TRANSIENT_LOCAL
+marks its frames ``latched``; one over :data:`LATCHED_COMPRESS_BYTES` is deflate-compressed
+when the entry's compression is ``none`` (the page decodes deflate), and the last one of
+each topic is kept and re-sent by :meth:`Bridge.resend_latched` on a new connection. A
+received latched frame switches its local topic's publisher to TRANSIENT_LOCAL for good,
+so nodes started later on this robot still get the map.
+
 The node knows nothing about WebSockets: it talks to the link through two callables
 (:class:`LinkPort`) so it is tested without a server, and the link is tested without ROS.
 Callbacks run on the rclpy executor thread, except those of uncompressed ``publish`` topics
@@ -25,7 +32,7 @@ import threading
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
-from typing import Any
+from typing import Any, cast
 
 import re2
 from rclpy.node import Node
@@ -38,12 +45,18 @@ from rclpy.qos import (
 )
 
 from fleetctl.client.config import ClientConfig, PublishSpec, SubscribeSpec
+from fleetctl.client.latched import LatchedFrames
 from fleetctl.client.ros import qos
 from fleetctl.client.ros.intake import LoopIntake
 from fleetctl.client.ros.msgtypes import message_class
 from fleetctl.client.ros.qos import AdaptiveSubscription
+from fleetctl.client.ros.tfsource import TfRepublisher, start_tf
+from fleetctl.client.ros.videotopic import VideoTopic, video_topics
+from fleetctl.client.transport import LinkFeedback
+from fleetctl.client.video import KEYFRAME_REQUEST_TYPE
+from fleetctl.client.viewercloud import VIEWER_CLOUD_TYPE, ViewerClouds
 from fleetctl.errors import ConfigError
-from fleetctl.wire.compression import CompressionCodec, compress
+from fleetctl.wire.compression import LATCHED_DEFLATE_LEVEL, CompressionCodec, compress
 
 log = logging.getLogger(__name__)
 
@@ -54,6 +67,18 @@ COMMAND_QOS = QoSProfile(
     reliability=ReliabilityPolicy.RELIABLE,
     durability=DurabilityPolicy.VOLATILE,
 )
+# A received latched topic republished locally: late joiners get the last message, like
+# from map_server itself (depth 1, as map_server and robot_state_publisher keep).
+LATCHED_QOS = QoSProfile(
+    history=HistoryPolicy.KEEP_LAST,
+    depth=1,
+    reliability=ReliabilityPolicy.RELIABLE,
+    durability=DurabilityPolicy.TRANSIENT_LOCAL,
+)
+# Latched messages above this go deflate-compressed when the entry says none: maps (an
+# occupancy grid compresses ~50x) are what is big and latched; deflate because the page
+# decodes it natively (DecompressionStream), unlike zstd.
+LATCHED_COMPRESS_BYTES = 64 * 1024
 QOS_REFRESH_PERIOD_S = 1.0  # how often local subscriptions re-check their publishers' QoS
 MAX_DYNAMIC_PUBLISHERS = 64  # regex subscriptions without local_topic: one publisher per topic
 
@@ -68,11 +93,21 @@ class LinkPort:
         send: ``send(spec, frame)``: queue an encoded frame of publish entry *spec*
             (thread-safe; called from the rclpy executor's thread or the loop's).
         send_status: ``send_status(frame)``: queue an encoded RobofleetStatus frame.
+        connects: ``connects() -> int``: connections the link has established so far
+            (read from any thread); when it grows, the kept latched frames are offered
+            again (:meth:`Bridge.resend_latched`). None: never re-sent.
+        send_video: ``send_video(spec, frame, keyframe)``: like *send*, for a video frame
+            (a keyframe is never dropped for the frames after it); None: *send*.
+        feedback: ``feedback(remote_topic)``: the link's rate and the topic's drops, for
+            the video bitrate and keyframes (any thread); None: video does not adapt.
     """
 
     admit: Callable[[str], bool]
     send: Callable[[PublishSpec, bytes], None]
     send_status: Callable[[bytes], None]
+    connects: Callable[[], int] | None = None
+    send_video: Callable[[PublishSpec, bytes, bool], None] | None = None
+    feedback: Callable[[str], LinkFeedback] | None = None
 
 
 @dataclass
@@ -95,6 +130,10 @@ class BridgeStats:
         publishers_over_limit: frames dropped because a regex entry already has
             :data:`MAX_DYNAMIC_PUBLISHERS` local topics.
         status_sent: RobofleetStatus frames sent.
+        latched_sent: of ``sent``, frames marked latched (TRANSIENT_LOCAL publishers).
+        latched_compressed: of those, deflate-compressed because they were large.
+        latched_resent: kept latched frames offered again on a new connection.
+        latched_republished: of ``published_local``, latched frames (TRANSIENT_LOCAL).
     """
 
     local_in: int = 0
@@ -110,6 +149,10 @@ class BridgeStats:
     unmatched: int = 0
     publishers_over_limit: int = 0
     status_sent: int = 0
+    latched_sent: int = 0
+    latched_compressed: int = 0
+    latched_resent: int = 0
+    latched_republished: int = 0
     per_topic_sent: dict[str, int] = field(default_factory=dict)
 
 
@@ -134,6 +177,7 @@ class _Route:
         self._cls = message_class(spec.type)
         self._regex = re2.compile(spec.remote_topic) if spec.is_regex else None
         self._publishers: dict[str, Any] = {}
+        self._latched: set[str] = set()  # local topics whose publisher is TRANSIENT_LOCAL
         if spec.local_topic is not None:
             self._publishers[spec.local_topic] = node.create_publisher(
                 self._cls, spec.local_topic, COMMAND_QOS
@@ -144,14 +188,31 @@ class _Route:
             return topic == self.spec.remote_topic
         return self._regex.fullmatch(topic) is not None
 
-    def publisher_for(self, topic: str) -> Any | None:
-        """The publisher for remote *topic*; None when the dynamic bound is reached."""
+    def publisher_for(self, topic: str, latched: bool = False) -> Any | None:
+        """The publisher for remote *topic*; None when the dynamic bound is reached.
+
+        The first *latched* frame of a local topic replaces its volatile publisher with a
+        TRANSIENT_LOCAL one for good (it also serves volatile subscribers). One publisher
+        per topic rather than a second, latched one beside it: subscribers that follow
+        their publishers' QoS (rosbag2, a fleetctl client) see a single durability, and a
+        late joiner never gets an older latched message than the last one. A volatile
+        subscriber that had matched the old publisher may miss this first latched
+        message while it discovers the new one; latched topics' readers (RViz's map
+        display, Nav2's static layer, tf2) are TRANSIENT_LOCAL and do not.
+        """
         local = self.spec.local_topic or topic
         publisher = self._publishers.get(local)
+        if publisher is not None and latched and local not in self._latched:
+            self._node.destroy_publisher(publisher)
+            del self._publishers[local]
+            publisher = None
         if publisher is None:
             if len(self._publishers) >= MAX_DYNAMIC_PUBLISHERS:
                 return None
-            publisher = self._node.create_publisher(self._cls, local, COMMAND_QOS)
+            if latched:
+                self._latched.add(local)
+            qos_profile = LATCHED_QOS if local in self._latched else COMMAND_QOS
+            publisher = self._node.create_publisher(self._cls, local, qos_profile)
             self._publishers[local] = publisher
         return publisher
 
@@ -164,12 +225,14 @@ def _check_no_echo(config: ClientConfig) -> None:
     Raises:
         ConfigError: naming both entries.
     """
-    sent = {spec.topic: i for i, spec in enumerate(config.publish)}
+    sent = {spec.topic: f"publish[{i}]" for i, spec in enumerate(config.publish)}
+    if config.tf is not None:
+        sent.update({"/tf": "the tf section", "/tf_static": "the tf section"})
     for j, sub in enumerate(config.subscribe):
         if sub.local_topic is not None and sub.local_topic in sent:
             raise ConfigError(
                 f"subscribe[{j}] ({sub.remote_topic}): local_topic: {sub.local_topic} is also "
-                f"sent by publish[{sent[sub.local_topic]}]: the client would echo it forever"
+                f"sent by {sent[sub.local_topic]}: the client would echo it forever"
             )
 
 
@@ -218,6 +281,11 @@ class Bridge(Node):
         self._seq_lock = threading.Lock()  # callbacks run on the executor's and the loop's thread
         self._battery: float | None = None
         self.inputs: list[AdaptiveSubscription] = []
+        self.latched = LatchedFrames[PublishSpec]()
+        # <remote_topic>/viewer beside clouds with viewer_cloud: (fleetctl.client.viewercloud)
+        self.viewer_clouds = ViewerClouds(
+            self.send_message, codec.registry.get(VIEWER_CLOUD_TYPE).cls)
+        self._connects_seen = 0
         for i, spec in enumerate(config.publish):
             cls = _entry_class(f"publish[{i}] ({spec.topic})", spec.type)
             self.inputs.append(AdaptiveSubscription(
@@ -226,6 +294,9 @@ class Bridge(Node):
                 # the GIL released) stays off the loop, which other topics' frames wait on.
                 intake=intake if spec.compression == "none" else None))
         self.create_timer(QOS_REFRESH_PERIOD_S, self._refresh_qos)
+        self.tf: TfRepublisher | None = None
+        if config.tf is not None:
+            self.tf = start_tf(self, config.tf, config.robot_name, typestore, self.send_message)
         self._routes: list[_Route] = []
         for i, sub in enumerate(config.subscribe):
             _entry_class(f"subscribe[{i}] ({sub.remote_topic})", sub.type)
@@ -238,29 +309,70 @@ class Bridge(Node):
                 qos.profile(reliable=False, no_drop=False),
             )
         self.create_timer(config.status.period_s, self.send_status)
+        # Camera entries with video: (fleetctl.client.ros.videotopic), by remote topic.
+        self.videos: dict[str, VideoTopic] = video_topics(
+            config.publish, typestore=typestore, codec=codec, send=self._send_video,
+            relay=self.send_message, next_seq=self._next_seq, feedback=port.feedback)
 
     # --- local -> fleet -----------------------------------------------------------------
 
     def _refresh_qos(self) -> None:
         for subscription in self.inputs:
             subscription.refresh()
+        self._check_reconnect()
+
+    def _check_reconnect(self) -> None:
+        """Re-send the kept latched frames once per new connection (checked every
+        :data:`QOS_REFRESH_PERIOD_S`). The first connection sends what was queued anyway."""
+        if self._port.connects is None:
+            return
+        connects = self._port.connects()
+        if connects > self._connects_seen:
+            if self._connects_seen > 0:
+                self.resend_latched()
+            self._connects_seen = connects
 
     def _make_callback(self, spec: PublishSpec) -> Callable[[bytes], None]:
+        index = len(self.inputs)  # the AdaptiveSubscription this callback is given to
+
         def callback(cdr: bytes) -> None:
-            self.on_local_message(spec, cdr)
+            self.on_local_message(spec, cdr, latched=self.inputs[index].latched)
 
         return callback
 
-    def on_local_message(self, spec: PublishSpec, cdr: bytes) -> None:
-        """Encode one local CDR message of *spec* and hand it to the link (unless rate limited)."""
+    def on_local_message(self, spec: PublishSpec, cdr: bytes, *, latched: bool = False) -> None:
+        """Encode one local CDR message of *spec* and hand it to the link (unless rate limited).
+
+        *latched*: the topic's publishers are TRANSIENT_LOCAL (the frame is marked so).
+        """
         self.stats.local_in += 1
         if not self._port.admit(spec.remote_topic):
             self.stats.rate_limited += 1
             return
+        if spec.video is not None and self.videos[spec.remote_topic].offer(cdr):
+            return  # encoded on the topic's own thread, sent by _send_video
         try:
             # A view: rosbags slices off the CDR header, which copies a bytes object
             # (1 MB per cloud) but not a view; arrays then reference rclpy's buffer.
             msg = self._typestore.deserialize_cdr(memoryview(cdr), spec.type)
+        except Exception as exc:  # a bad local message must never stop the node
+            self.stats.encode_errors += 1
+            log.warning("cannot decode %s from %s: %s", spec.type, spec.topic, exc)
+            return
+        self.send_message(spec, msg, latched=latched)
+        if spec.viewer_cloud is not None:  # after the full cloud, which is sent regardless
+            self.viewer_clouds.on_cloud(spec, msg, latched=latched)
+
+    def send_message(self, spec: PublishSpec, msg: Any, *, latched: bool = False) -> bool:
+        """Encode a message object (rosbags, of ``spec.type``) and hand it to the link.
+
+        Compression as the entry says, or deflate for a large latched message; a latched
+        frame is also kept for :meth:`resend_latched`. Thread-safe.
+
+        Returns:
+            False when it could not be encoded (counted in ``encode_errors`` and logged).
+        """
+        try:
             # A view, not a copy: the link only reads it (fragments are new buffers).
             frame = self._codec.encode_view(
                 msg,
@@ -269,18 +381,23 @@ class Bridge(Node):
                 no_drop=spec.no_drop,
                 publish_time_ns=self._clock_ns(),
                 seq=self._next_seq(spec.remote_topic),
+                latched=latched,
             )
             if spec.compression != "none":
                 frame = self._compress(spec, frame)
+            elif latched and len(frame) > LATCHED_COMPRESS_BYTES:
+                frame = self._compress_latched(spec, frame)
         except Exception as exc:  # a bad local message must never stop the node
             self.stats.encode_errors += 1
             log.warning("cannot encode %s from %s: %s", spec.type, spec.topic, exc)
-            return
+            return False
+        self._keep_latched(spec, frame, latched)
         self._port.send(spec, frame)
         self.stats.sent += 1
         self.stats.per_topic_sent[spec.remote_topic] = (
             self.stats.per_topic_sent.get(spec.remote_topic, 0) + 1
         )
+        return True
 
     def _compress(self, spec: PublishSpec, frame: bytes) -> bytes:
         """Before the link fragments it: receivers reassemble, then decompress."""
@@ -291,6 +408,59 @@ class Bridge(Node):
         else:
             self.stats.compressed += 1
         return out
+
+    def _compress_latched(self, spec: PublishSpec, frame: bytes) -> bytes:
+        out = compress(frame, codec=CompressionCodec.DEFLATE, topic=spec.remote_topic,
+                       no_drop=spec.no_drop, frame_codec=self._codec,
+                       level=LATCHED_DEFLATE_LEVEL)
+        if out is not frame:
+            self.stats.latched_compressed += 1
+        return out
+
+    def _keep_latched(self, spec: PublishSpec, frame: bytes, latched: bool) -> None:
+        if latched:
+            self.stats.latched_sent += 1
+            self.latched.put(spec.remote_topic, spec, frame)
+        elif spec.remote_topic in self.latched:
+            # The topic's last message is no longer latched: re-sending the old one would
+            # bring back stale data after a reconnect.
+            self.latched.forget(spec.remote_topic)
+
+    def resend_latched(self) -> int:
+        """Offer the kept latched frames again (call on a new connection to the server).
+
+        Returns:
+            How many frames were offered.
+        """
+        frames = self.latched.snapshot()
+        for _, spec, frame in frames:
+            # A kept frame may be the encoder's read-only view; the link only reads it.
+            self._port.send(spec, cast(bytes, frame))
+        self.stats.latched_resent += len(frames)
+        return len(frames)
+
+    def _send_video(self, spec: PublishSpec, frame: bytes, keyframe: bool) -> None:
+        if self._port.send_video is None:
+            self._port.send(spec, frame)
+        else:
+            self._port.send_video(spec, frame, keyframe)
+        self.stats.sent += 1
+        self.stats.per_topic_sent[spec.remote_topic] = (
+            self.stats.per_topic_sent.get(spec.remote_topic, 0) + 1)
+
+    def _on_keyframe_request(self, topic: str) -> None:
+        video = self.videos.get(topic)
+        if video is None:
+            self.stats.unmatched += 1
+            log.info("keyframe request for %s, which this robot does not send as video", topic)
+            return
+        video.request_keyframe()
+
+    def destroy_node(self) -> None:
+        """Stop the video workers (each finishes its frame), then destroy the node."""
+        for video in getattr(self, "videos", {}).values():
+            video.close()
+        super().destroy_node()
 
     def _next_seq(self, topic: str) -> int:
         # Sequence numbers start at the wall clock in microseconds, so a restarted client's
@@ -335,6 +505,9 @@ class Bridge(Node):
             self.stats.decode_errors += 1
             log.warning("dropping undecodable frame from the server: %s", exc)
             return
+        if meta.type == KEYFRAME_REQUEST_TYPE:  # a viewer of one of our video topics
+            self._on_keyframe_request(str(msg.topic))
+            return
         route = next((r for r in self._routes if r.matches(meta.topic)), None)
         if route is None:
             self.stats.unmatched += 1
@@ -348,7 +521,7 @@ class Bridge(Node):
                 route.spec.type,
             )
             return
-        publisher = route.publisher_for(meta.topic)
+        publisher = route.publisher_for(meta.topic, latched=meta.latched)
         if publisher is None:
             self.stats.publishers_over_limit += 1
             return
@@ -360,4 +533,6 @@ class Bridge(Node):
             return
         publisher.publish(bytes(cdr))
         self.stats.published_local += 1
+        if meta.latched:
+            self.stats.latched_republished += 1
 

@@ -7,6 +7,15 @@ every sample but does not match a best-effort writer at all. So, like rosbag2, e
 subscription follows its publishers: reliable when every discovered publisher is reliable,
 best-effort as soon as one is not. Both use KEEP_LAST, so a slow client never blocks a
 publisher.
+
+Durability follows the same way (docs/client.md, "Latched topics"): a latched topic (Nav2's
+``/map``, ``/tf_static``, ``/robot_description``) is published ``TRANSIENT_LOCAL``, usually
+once and often before the client starts, and only a ``TRANSIENT_LOCAL`` reader is sent the
+samples a writer published before the reader matched. But such a reader does not match a
+``VOLATILE`` writer at all, so the subscription is ``TRANSIENT_LOCAL`` when every discovered
+publisher offers it and ``VOLATILE`` otherwise. The switch recreates the reader, and the
+publishers then send their stored samples to the new one: a map published before the
+client, or before the client saw its publisher, is still received.
 """
 
 from __future__ import annotations
@@ -25,15 +34,27 @@ log = logging.getLogger(__name__)
 
 SENSOR_DEPTH = 5  # droppable topics: the link keeps only the latest anyway
 NO_DROP_DEPTH = 1000  # no_drop topics: absorb a burst until the link's FIFO takes it
+# A latched writer usually keeps depth 1 (map_server, robot_state_publisher); DDS does not
+# tell readers a writer's depth (rclpy reports it as 0), so the reader keeps the sensor
+# depth: enough for the stored samples of a few publishers arriving at once on a match.
+LATCHED_DEPTH = SENSOR_DEPTH
 
 
-def profile(reliable: bool, no_drop: bool) -> QoSProfile:
-    """The subscription QoS for a topic (volatile, keep last)."""
+def profile(reliable: bool, no_drop: bool, latched: bool = False) -> QoSProfile:
+    """The subscription QoS for a topic (keep last).
+
+    Args:
+        reliable: RELIABLE, else BEST_EFFORT.
+        no_drop: The topic is no_drop (deeper history).
+        latched: TRANSIENT_LOCAL (receives what publishers stored before the match), else
+            VOLATILE.
+    """
+    depth = NO_DROP_DEPTH if no_drop else (LATCHED_DEPTH if latched else SENSOR_DEPTH)
     return QoSProfile(
         history=HistoryPolicy.KEEP_LAST,
-        depth=NO_DROP_DEPTH if no_drop else SENSOR_DEPTH,
+        depth=depth,
         reliability=ReliabilityPolicy.RELIABLE if reliable else ReliabilityPolicy.BEST_EFFORT,
-        durability=DurabilityPolicy.VOLATILE,
+        durability=DurabilityPolicy.TRANSIENT_LOCAL if latched else DurabilityPolicy.VOLATILE,
     )
 
 
@@ -45,19 +66,31 @@ def publishers_reliable(infos: list[Any]) -> bool | None:
     return all(info.qos_profile.reliability == ReliabilityPolicy.RELIABLE for info in infos)
 
 
+def publishers_latched(infos: list[Any]) -> bool | None:
+    """True if every publisher in *infos* offers TRANSIENT_LOCAL durability (a volatile
+    one would not match a transient-local reader); None if there are none."""
+    if not infos:
+        return None
+    return all(info.qos_profile.durability == DurabilityPolicy.TRANSIENT_LOCAL
+               for info in infos)
+
+
 def type_name(msg_type: Any) -> str:
     """``pkg/msg/Name`` of an rclpy message class (as publisher infos spell topic types)."""
     return f"{msg_type.__module__.split('.')[0]}/msg/{msg_type.__name__}"
 
 
 class AdaptiveSubscription:
-    """A raw subscription whose reliability follows the topic's publishers.
+    """A raw subscription whose reliability and durability follow the topic's publishers.
 
     Starts reliable for no_drop topics (event publishers usually are) and best-effort for
-    the others (matches any sensor driver at once); :meth:`refresh`, called periodically,
-    switches when the discovered publishers say otherwise. A switch recreates the
-    subscription, which may lose a message in flight: it happens only when the set of
-    publishers changes.
+    the others (matches any sensor driver at once), volatile for all; :meth:`refresh`,
+    called periodically, switches when the discovered publishers say otherwise. A switch
+    recreates the subscription, which may lose a message in flight: it happens only when
+    the set of publishers changes. A switch to TRANSIENT_LOCAL makes the publishers send
+    their stored samples again; one the volatile reader already got live (published
+    between the publisher's discovery and the switch, within one refresh period) is then
+    received twice, which a latched topic's receivers tolerate (they keep the last one).
 
     Args:
         node: the owning node.
@@ -81,6 +114,7 @@ class AdaptiveSubscription:
         self._callback = callback
         self._no_drop = no_drop
         self.reliable = no_drop
+        self.latched = False  # TRANSIENT_LOCAL: every publisher offers it
         self.switches = 0
         self._subscription = self._create()
 
@@ -110,7 +144,7 @@ class AdaptiveSubscription:
     def _subscribe(self, callback: Callable[[bytes], None], **options: Any) -> Any:
         return self._node.create_subscription(
             self._msg_type, self._topic, callback,
-            profile(self.reliable, self._no_drop), raw=True, **options,
+            profile(self.reliable, self._no_drop, self.latched), raw=True, **options,
         )
 
     def _warn_other_types(self, infos: list[Any]) -> None:
@@ -127,20 +161,26 @@ class AdaptiveSubscription:
         return self._intake is not None
 
     def refresh(self) -> None:
-        """Match the reliability of the publishers discovered so far (none: keep as is)."""
+        """Match the reliability and durability of the publishers discovered so far (none:
+        keep as is)."""
         infos = self._node.get_publishers_info_by_topic(self._topic)
         self._warn_other_types(infos)
-        wanted = publishers_reliable(infos)
-        if wanted is None or wanted == self.reliable:
+        reliable = publishers_reliable(infos)
+        latched = publishers_latched(infos)
+        if reliable is None or latched is None:
             return
-        if self._no_drop and not wanted:
+        if (reliable, latched) == (self.reliable, self.latched):
+            return
+        if self._no_drop and not reliable and self.reliable:
             log.warning("no_drop topic %s has a best-effort publisher: messages can be lost "
                         "before the client sees them", self._topic)
         if self._intake is not None:
             self._intake.detach(self._subscription)
         self._node.destroy_subscription(self._subscription)
-        self.reliable = wanted
+        self.reliable = reliable
+        self.latched = latched
         self.switches += 1
         self._subscription = self._create()
-        log.info("%s: subscribed %s to match its publishers", self._topic,
-                 "reliable" if wanted else "best-effort")
+        log.info("%s: subscribed %s, %s to match its publishers", self._topic,
+                 "reliable" if reliable else "best-effort",
+                 "transient-local (latched)" if latched else "volatile")

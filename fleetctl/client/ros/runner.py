@@ -74,9 +74,11 @@ def status_encoder(codec: Codec, robot_name: str) -> Callable[[float | None], by
 
 
 def _port(link: RobotLink, status_topic: str) -> LinkPort:
-    def offer(topic: str, frame: bytes, priority: float, no_drop: bool) -> None:
+    def offer(topic: str, frame: bytes, priority: float, no_drop: bool,
+              keyframe: bool = False) -> None:
         try:
-            link.offer_threadsafe(topic, frame, priority=priority, no_drop=no_drop)
+            link.offer_threadsafe(topic, frame, priority=priority, no_drop=no_drop,
+                                  keyframe=keyframe)
         except RuntimeError:
             # The loop is gone (shutting down): a callback raced the executor's shutdown.
             log.debug("dropped a frame on %s: the link is stopping", topic)
@@ -87,7 +89,12 @@ def _port(link: RobotLink, status_topic: str) -> LinkPort:
     def send_status(frame: bytes) -> None:
         offer(status_topic, frame, STATUS_PRIORITY, False)
 
-    return LinkPort(admit=link.admit, send=send, send_status=send_status)
+    def send_video(spec: PublishSpec, frame: bytes, keyframe: bool) -> None:
+        offer(spec.remote_topic, frame, spec.priority, spec.no_drop, keyframe)
+
+    return LinkPort(admit=link.admit, send=send, send_status=send_status,
+                    connects=lambda: link.connects, send_video=send_video,
+                    feedback=link.feedback)
 
 
 def _spin(executor: NodeExecutor, loop: asyncio.AbstractEventLoop,
@@ -144,6 +151,7 @@ async def _serve(config: ClientConfig, context: Context) -> dict[str, Any]:
         raise failure
     stats = link.stats()
     stats["bridge"] = vars(bridge.stats)
+    stats["video"] = {topic: vars(video.stats) for topic, video in bridge.videos.items()}
     if intake is not None:
         stats["intake"] = {"taken": intake.taken, "failed_callbacks": intake.failed_callbacks}
     return stats

@@ -11,7 +11,14 @@ rates, and obeys ``/goal_pose`` / ``/initialpose`` so a browser operator sees it
 | ``/camera/image/compressed`` | sensor_msgs/msg/CompressedImage, JPEG 640x480 | 2 Hz |
 | ``/points`` | sensor_msgs/msg/PointCloud2, xyz float32, 20k points | 5 Hz |
 | ``/battery`` | sensor_msgs/msg/BatteryState | 1 Hz |
+| ``/camera/image_raw`` | sensor_msgs/msg/Image, rgb8 640x480 (``raw_camera_hz``) | off |
 | ``/events`` | std_msgs/msg/String (no_drop in the client config) | on change, and every 5 s |
+| ``/map`` | nav_msgs/msg/OccupancyGrid of the room, 5 cm cells, TRANSIENT_LOCAL | once, at start |
+| ``/tf`` | tf2_msgs/msg/TFMessage: ``map -> odom`` (identity), ``odom -> base_link`` | 20 Hz |
+| ``/tf_static`` | tf2_msgs/msg/TFMessage: ``camera``, ``imu`` on ``base_link``, latched | once |
+
+``/tf`` and ``/tf_static`` need the ``tf2_msgs`` Python package (apt's ROS, or
+scripts/ros_msgs.sh in a venv); without it the sim says so once and publishes no TF.
 
 Each robot runs in its own process with its own ``ROS_DOMAIN_ID``, so two simulated robots on
 one machine never see each other's local topics: everything between them goes through the
@@ -30,18 +37,27 @@ import numpy as np
 import rclpy
 from builtin_interfaces.msg import Time
 from geometry_msgs.msg import PoseStamped, PoseWithCovarianceStamped, Quaternion
-from nav_msgs.msg import Odometry
+from nav_msgs.msg import OccupancyGrid, Odometry
 from rclpy._rclpy_pybind11 import RCLError
 from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
 from rclpy.node import Node
+from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
 from rclpy.utilities import ok as rclpy_ok
 from rclpy.utilities import try_shutdown
 from sensor_msgs.msg import BatteryState, CompressedImage, LaserScan, PointCloud2, PointField
 from std_msgs.msg import String
 
 from fleetctl.client.ros import simworld
+from fleetctl.client.ros.msgtypes import message_class
+from fleetctl.errors import ConfigError
 
 _QOS_DEPTH = 10
+# As Nav2's map_server and tf2's static broadcaster: the last message kept for late joiners.
+_LATCHED = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE,
+                      durability=DurabilityPolicy.TRANSIENT_LOCAL)
+_MAP_MARGIN_M = 1.0
+# Where the sim's sensors sit on the robot (m): fixed, so they go to /tf_static.
+_STATIC_FRAMES = (("camera", 0.2, 0.0, 0.3), ("imu", 0.0, 0.0, 0.1))
 _PHYSICS_HZ = 20.0  # pose integration rate, independent of what is published
 
 
@@ -55,6 +71,11 @@ class SimConfig:
         scan_hz, odom_hz, pose_hz, image_hz, points_hz, battery_hz: publish rates (Hz);
             0 disables that topic.
         events_period_s: period (s) of the heartbeat ``/events`` message; 0 disables it.
+        map_resolution_m: cell size (m) of the latched ``/map``; 0 disables it.
+        tf_hz: ``/tf`` rate (Hz); 0 disables ``/tf`` and ``/tf_static``.
+        raw_camera_hz: rate (Hz) of ``/camera/image_raw``, a raw rgb8 Image with motion,
+            texture and noise (:mod:`fleetctl.client.ros.simcamera`, for video topics);
+            0 (the default: it costs ~9 ms of CPU per frame) disables it.
         scan_beams: LaserScan beams over 360 degrees.
         cloud_points: PointCloud2 points.
         image_width_px, image_height_px: camera resolution (pixels).
@@ -70,6 +91,9 @@ class SimConfig:
     points_hz: float = 5.0
     battery_hz: float = 1.0
     events_period_s: float = 5.0
+    map_resolution_m: float = 0.05
+    tf_hz: float = 20.0
+    raw_camera_hz: float = 0.0
     scan_beams: int = 720
     cloud_points: int = 20_000
     image_width_px: int = 640
@@ -128,6 +152,22 @@ class SimRobot(Node):
         self._every(config.battery_hz, self._publish_battery)
         if config.events_period_s > 0:
             self.create_timer(config.events_period_s, self._heartbeat)
+        if config.map_resolution_m > 0:
+            self._pub_map = self.create_publisher(OccupancyGrid, "/map", _LATCHED)
+            self._pub_map.publish(self._room_map())
+        self._tf_class = self._tf_message_class() if config.tf_hz > 0 else None
+        if self._tf_class is not None:
+            self._pub_tf = self.create_publisher(self._tf_class, "/tf", 100)
+            self._pub_tf_static = self.create_publisher(self._tf_class, "/tf_static", _LATCHED)
+            self._pub_tf_static.publish(self._tf_class(transforms=[
+                self._transform("base_link", child, x, y, z, 0.0)
+                for child, x, y, z in _STATIC_FRAMES]))
+            self._every(config.tf_hz, self._publish_tf)
+        if config.raw_camera_hz > 0:
+            from fleetctl.client.ros.simcamera import SimCamera
+
+            SimCamera(self, "/camera/image_raw", config.raw_camera_hz,
+                      config.image_width_px, config.image_height_px)
         # Announce the start once someone listens: /events is volatile, so an event
         # published before the client's subscription matched would reach nobody.
         self._announce = self.create_timer(0.1, self._announce_start)
@@ -166,6 +206,51 @@ class SimRobot(Node):
 
     def _heartbeat(self) -> None:
         self.publish_event(f"{self._config.name} alive")
+
+    # --- map and TF ---------------------------------------------------------------------------
+
+    def _room_map(self) -> OccupancyGrid:
+        room, res = self._config.room, self._config.map_resolution_m
+        cells = simworld.room_grid(room, res, _MAP_MARGIN_M)
+        msg = OccupancyGrid()
+        msg.header.stamp = _stamp_now()
+        msg.header.frame_id = "map"
+        msg.info.map_load_time = msg.header.stamp
+        msg.info.resolution = res
+        msg.info.height, msg.info.width = cells.shape
+        # Room coordinates minus the origin offset: map frame has the room's centre at 0.
+        msg.info.origin.position.x = -_MAP_MARGIN_M - self._origin_m[0]
+        msg.info.origin.position.y = -_MAP_MARGIN_M - self._origin_m[1]
+        msg.info.origin.orientation.w = 1.0
+        msg.data = cells.reshape(-1).tolist()
+        return msg
+
+    def _tf_message_class(self) -> Any:
+        try:
+            return message_class("tf2_msgs/msg/TFMessage")
+        except ConfigError as exc:
+            self.get_logger().warning(f"no /tf and /tf_static: {exc}")
+            return None
+
+    def _transform(self, parent: str, child: str, x: float, y: float, z: float,
+                   yaw: float) -> Any:
+        from geometry_msgs.msg import TransformStamped
+
+        t = TransformStamped()
+        t.header.stamp = _stamp_now()
+        t.header.frame_id, t.child_frame_id = parent, child
+        t.transform.translation.x, t.transform.translation.y = x, y
+        t.transform.translation.z = z
+        t.transform.rotation = _yaw_quaternion(yaw)
+        return t
+
+    def _publish_tf(self) -> None:
+        assert self._tf_class is not None
+        self._pub_tf.publish(self._tf_class(transforms=[
+            self._transform("map", "odom", 0.0, 0.0, 0.0, 0.0),
+            self._transform("odom", "base_link", self._state.x_m - self._origin_m[0],
+                            self._state.y_m - self._origin_m[1], 0.0, self._state.yaw_rad),
+        ]))
 
     # --- sensors ----------------------------------------------------------------------------
 

@@ -183,6 +183,28 @@ def camera_jpeg(state: RobotState, width_px: int, height_px: int, quality: int =
     return buffer.getvalue()
 
 
+# ROS OccupancyGrid cell values.
+UNKNOWN, FREE, OCCUPIED = -1, 0, 100
+
+
+def room_grid(room: RoomConfig, resolution_m: float, margin_m: float = 1.0) -> npt.NDArray[np.int8]:
+    """The room as an occupancy grid (rows along y, columns along x; int8 ROS values).
+
+    The grid covers the room plus *margin_m* on every side: unknown outside, occupied on
+    the walls (one cell thick, where the laser hits), free inside. Cell (row 0, col 0) is
+    at room coordinates ``(-margin_m, -margin_m)``.
+    """
+    cols = math.ceil((room.width_m + 2 * margin_m) / resolution_m)
+    rows = math.ceil((room.depth_m + 2 * margin_m) / resolution_m)
+    cells = np.full((rows, cols), UNKNOWN, dtype=np.int8)
+    x0, y0 = (round(margin_m / resolution_m) for _ in range(2))
+    x1 = x0 + round(room.width_m / resolution_m)
+    y1 = y0 + round(room.depth_m / resolution_m)
+    cells[y0:y1 + 1, x0:x1 + 1] = OCCUPIED
+    cells[y0 + 1:y1, x0 + 1:x1] = FREE
+    return cells
+
+
 def battery_fraction(elapsed_s: float, full_runtime_s: float = 3600.0) -> float:
     """Charge in [0.05, 1]: drains linearly over *full_runtime_s*, then recharges (a sawtooth)."""
     return 1.0 - 0.95 * ((elapsed_s / full_runtime_s) % 1.0)

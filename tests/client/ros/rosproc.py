@@ -11,6 +11,12 @@ JSON lines on stdout that the test reads with deadlines:
 - ``events TOPIC COUNT RATE_HZ``: waits for a subscriber, then publishes std_msgs/String
   ``event-1`` ... ``event-COUNT`` at RATE_HZ (reliable), printing ``{"sent": N}`` every
   message, then ``{"done": true}`` and keeps running (so late discovery loses nothing).
+- ``latch TOPIC TYPE CDR``: publishes CDR once, TRANSIENT_LOCAL depth 1 (as map_server
+  does), without waiting for anyone; prints ``{"published": true}`` and keeps running
+  (the publisher holds the sample for late subscribers).
+- ``listen-latched TOPIC TYPE``: waits until a TRANSIENT_LOCAL publisher of TOPIC is
+  discovered, prints ``{"ready": true}``, and only then subscribes TRANSIENT_LOCAL: every
+  ``{"cdr": HEX}`` it prints was published before it subscribed, or after.
 """
 
 from __future__ import annotations
@@ -24,12 +30,16 @@ from typing import Any
 import rclpy
 from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
 from rclpy.node import Node
-from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
+from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 
 from fleetctl.client.ros.msgtypes import message_class
 
 RELIABLE = QoSProfile(
     history=HistoryPolicy.KEEP_LAST, depth=1000, reliability=ReliabilityPolicy.RELIABLE
+)
+LATCHED = QoSProfile(
+    history=HistoryPolicy.KEEP_LAST, depth=1, reliability=ReliabilityPolicy.RELIABLE,
+    durability=DurabilityPolicy.TRANSIENT_LOCAL,
 )
 _DISCOVERY_TIMEOUT_S = 30.0
 
@@ -71,6 +81,31 @@ def _publish(node: Node, executor: SingleThreadedExecutor, args: list[str]) -> N
     executor.spin()
 
 
+def _latch(node: Node, executor: SingleThreadedExecutor, args: list[str]) -> None:
+    topic, type_name, cdr_hex = args
+    publisher = node.create_publisher(message_class(type_name), topic, LATCHED)
+    cdr = Path(cdr_hex[1:]).read_bytes() if cdr_hex.startswith("@") else bytes.fromhex(cdr_hex)
+    publisher.publish(cdr)
+    _emit({"published": True})
+    executor.spin()
+
+
+def _listen_latched(node: Node, executor: SingleThreadedExecutor, topic: str,
+                    type_name: str) -> None:
+    deadline = time.monotonic() + _DISCOVERY_TIMEOUT_S
+    while not any(info.qos_profile.durability == DurabilityPolicy.TRANSIENT_LOCAL
+                  for info in node.get_publishers_info_by_topic(topic)):
+        if time.monotonic() > deadline:
+            raise SystemExit(f"no transient-local publisher of {topic} discovered")
+        executor.spin_once(timeout_sec=0.05)
+    _emit({"ready": True})
+    node.create_subscription(
+        message_class(type_name), topic, lambda cdr: _emit({"cdr": bytes(cdr).hex()}),
+        LATCHED, raw=True,
+    )
+    executor.spin()
+
+
 def _events(node: Node, executor: SingleThreadedExecutor, args: list[str]) -> None:
     from std_msgs.msg import String
 
@@ -105,6 +140,10 @@ def main(argv: list[str]) -> None:
             _publish(node, executor, args)
         elif mode == "events":
             _events(node, executor, args)
+        elif mode == "latch":
+            _latch(node, executor, args)
+        elif mode == "listen-latched":
+            _listen_latched(node, executor, args[0], args[1])
         else:
             raise SystemExit(f"unknown mode {mode!r}")
     except (KeyboardInterrupt, ExternalShutdownException):

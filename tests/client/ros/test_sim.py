@@ -114,3 +114,42 @@ def test_goal_pose_is_acknowledged_and_approached(
     wait_for(lambda: got["/odom"])
     start = distance()
     wait_for(lambda: distance() < start - 0.3)  # it drives toward the goal
+
+
+def test_the_room_map_is_latched_for_a_late_subscriber(
+    sim: tuple[SimRobot, Node, dict[str, list[Any]]]
+) -> None:
+    from nav_msgs.msg import OccupancyGrid
+    from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
+
+    _, peer, _ = sim
+    maps: list[Any] = []
+    # Subscribed after the robot published its only /map: only TRANSIENT_LOCAL gets it.
+    peer.create_subscription(OccupancyGrid, "/map", maps.append, QoSProfile(
+        depth=1, reliability=ReliabilityPolicy.RELIABLE,
+        durability=DurabilityPolicy.TRANSIENT_LOCAL))
+    grid = wait_for(lambda: maps and maps[0])
+    assert grid.header.frame_id == "map" and grid.info.resolution == pytest.approx(0.05)
+    assert (grid.info.width, grid.info.height) == (240, 200)
+    # The map frame has the room's centre at 0: walls 5 m and 4 m away.
+    assert grid.info.origin.position.x == pytest.approx(-6.0)
+    assert grid.info.origin.position.y == pytest.approx(-5.0)
+    assert sorted(set(grid.data)) == [-1, 0, 100]
+
+
+def test_tf_is_published_or_said_missing(
+    sim: tuple[SimRobot, Node, dict[str, list[Any]]]
+) -> None:
+    import importlib.util
+
+    robot, peer, _ = sim
+    if importlib.util.find_spec("tf2_msgs") is None:
+        assert robot._tf_class is None  # logged "no /tf and /tf_static: ..."
+        return
+    from tf2_msgs.msg import TFMessage
+
+    got: list[Any] = []
+    peer.create_subscription(TFMessage, "/tf", got.append, 10)
+    message = wait_for(lambda: got and got[-1])
+    assert [(t.header.frame_id, t.child_frame_id) for t in message.transforms] == [
+        ("map", "odom"), ("odom", "base_link")]

@@ -99,3 +99,16 @@ def test_battery_is_a_bounded_sawtooth() -> None:
     assert simworld.battery_fraction(1800.0) == pytest.approx(0.525)
     assert 0.05 <= simworld.battery_fraction(3599.0) < 0.06
     assert simworld.battery_fraction(3600.0) == pytest.approx(1.0)
+
+
+def test_room_grid_has_walls_free_inside_unknown_outside() -> None:
+    from fleetctl.client.ros.simworld import FREE, OCCUPIED, UNKNOWN, room_grid
+
+    cells = room_grid(simworld.RoomConfig(width_m=2.0, depth_m=1.0), 0.5, margin_m=0.5)
+    assert cells.shape == (4, 6)
+    assert cells.tolist() == [
+        [UNKNOWN] * 6,
+        [UNKNOWN] + [OCCUPIED] * 5,
+        [UNKNOWN, OCCUPIED, FREE, FREE, FREE, OCCUPIED],
+        [UNKNOWN] + [OCCUPIED] * 5,
+    ]

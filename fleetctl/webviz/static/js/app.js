@@ -11,10 +11,15 @@ import { MapView } from "./views/map.js";
 import { OdomView } from "./views/odom.js";
 import { renderOverview, robotRow } from "./views/overview.js";
 import { ScanView } from "./views/scan.js";
+import { SceneView } from "./views/scene.js";
+import { VideoView } from "./views/video.js";
 
 const $ = (sel) => document.querySelector(sel);
 const ROBOTS_POLL_MS = 2000;
 const STATUS_TYPE = "amrl_msgs/msg/RobofleetStatus";
+const VIDEO_TYPE = "foxglove_msgs/msg/CompressedVideo";
+// The control topic a viewer asks a video's publisher for a keyframe on (docs/server.md).
+export const KEYFRAME_REQUEST = { type: "fleetctl_msgs/msg/KeyframeRequest", topic: "/keyframe_requests" };
 
 class App {
   constructor(config) {
@@ -26,6 +31,7 @@ class App {
     this.paused = false;
     this.poseSeenMs = 0;
     this.frameId = "map";
+    this.keyframeRequests = { sent: 0, failed: 0, last: null };
   }
 
   signIn(token) {
@@ -105,7 +111,9 @@ class App {
     }
     if (!this.robot || !meta.topic.startsWith(`/${this.robot}/`)) return;
     const v = this.views;
+    v.scene.update(meta, msg); // the 3D scene draws what it can place through TF
     switch (meta.type) {
+      case VIDEO_TYPE: return v.video.update(meta, msg);
       case "sensor_msgs/msg/CompressedImage": return v.camera.update(msg);
       case "sensor_msgs/msg/LaserScan": return v.scan.update(msg);
       case "sensor_msgs/msg/PointCloud2": return v.cloud.update(msg);
@@ -156,6 +164,14 @@ class App {
     $("#robot-name").textContent = name;
     // Views are made once: each owns its canvas (a WebGL context cannot be made twice).
     this.views ??= {
+      scene: new SceneView({
+        canvas: $("#scene-canvas"), tree: $("#tf-tree"), problems: $("#scene-problems"),
+        fixedLabel: $("#scene-fixed"), frameSelect: $("#scene-frame"), axes: $("#scene-axes"),
+      }),
+      video: new VideoView(
+        { canvas: $("#video-canvas"), status: $("#video-status"), select: $("#video-topic") },
+        (topic) => this.requestKeyframe(topic),
+      ),
       camera: new CameraView($("#camera-canvas")),
       scan: new ScanView($("#scan-canvas")),
       cloud: new CloudView($("#cloud-canvas")),
@@ -164,6 +180,12 @@ class App {
       gps: new GpsView($("#gps-map"), $("#gps-text")),
     };
     this.views.map.reset();
+    if (this.shownRobot !== name) {
+      // Another robot: its TF tree and video streams are not this one's.
+      this.views.scene.reset();
+      this.views.video.reset();
+      this.shownRobot = name;
+    }
     this.commandStatus("");
     this.applyVisibility();
     this.updateCommands();
@@ -230,6 +252,18 @@ class App {
     }
   }
 
+  /** Ask a video topic's publisher for a keyframe (the server forwards it, rate-limited). */
+  async requestKeyframe(topic) {
+    try {
+      await this.conn.sendMessage(KEYFRAME_REQUEST.type, KEYFRAME_REQUEST.topic, { topic }, { noDrop: true });
+      this.keyframeRequests.sent++;
+      this.keyframeRequests.last = topic;
+    } catch (err) {
+      this.keyframeRequests.failed++;
+      this.onServerError({ code: "keyframe_request", topic, message: String(err.message ?? err) });
+    }
+  }
+
   commandStatus(text, bad = false) {
     const el = $("#command-status");
     el.textContent = text;
@@ -259,6 +293,8 @@ class App {
     if (!this.conn) return;
     if (!this.robot) return this.renderOverview();
     this.renderNotes();
+    this.views?.scene.renderLists();
+    this.views?.video.renderStatus();
     const rows = this.conn.health.rows(`/${this.robot}/`);
     $("#health tbody").innerHTML = rows.map((r) =>
       `<tr><td>${r.topic}</td><td>${r.rateHz.toFixed(1)}</td><td>${Number.isFinite(r.latencyMs) ? r.latencyMs.toFixed(0) : "–"}</td><td>${r.drops}</td><td>${r.received}</td></tr>`).join("");

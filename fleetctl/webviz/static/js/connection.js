@@ -57,6 +57,9 @@ export class Connection extends EventTarget {
 
   start() {
     this.stopped = false;
+    // Wrapper layouts are needed before the first fragment or compressed frame can even be
+    // read: fetch them now, so a latched map sent once in fragments is not lost to a load.
+    for (const t of [FRAGMENT_TYPE, COMPRESSED_TYPE]) this.loader.ensure(t).catch((err) => this.decodeFailed(err));
     this.open();
   }
 
@@ -162,7 +165,10 @@ export class Connection extends EventTarget {
     } catch (err) {
       return this.decodeFailed(err);
     }
-    if (meta.type === COMPRESSED_TYPE || this.inflating.has(meta.topic)) return this.inOrder(meta, bytes);
+    // A latched message may be the only one the topic ever gets (a map sent once, replayed
+    // by the server to this late subscriber): it waits for its layout instead of being
+    // dropped, on the same ordered path as compressed frames.
+    if (meta.type === COMPRESSED_TYPE || meta.latched || this.inflating.has(meta.topic)) return this.inOrder(meta, bytes);
     this.deliver(meta, bytes);
   }
 

@@ -29,7 +29,8 @@ export class TopicHealth {
     if (this.lastSeq !== null && seq > this.lastSeq + 1n) this.gaps += Number(seq - this.lastSeq - 1n);
     if (seq !== 0n) this.lastSeq = seq;
     const pub = Number(meta.publish_time_ns) / 1e6;
-    this.samples.push({ t: nowMs, latencyMs: pub > 0 ? nowMs - pub : NaN });
+    // A latched message the server kept (a map sent minutes ago) is no latency sample.
+    this.samples.push({ t: nowMs, latencyMs: pub > 0 && !meta.latched ? nowMs - pub : NaN });
     if (this.samples.length > MAX_SAMPLES) this.samples.splice(0, this.samples.length - MAX_SAMPLES);
   }
 

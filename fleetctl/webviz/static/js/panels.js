@@ -2,6 +2,12 @@
 // visible, and which message types it draws. Topic names follow docs/design.md section 7.
 
 export const PANELS = [
+  // The scene asks for the viewer form of the cloud only; the full cloud arrives (and is
+  // drawn in the scene too) while the Cloud panel is shown.
+  { id: "scene", title: "3D scene (TF)", topics: ["/tf", "/tf_static", "/scan", "/points/viewer", "/odom", "/pose", "/plan", "/markers", "/marker", "/map"] },
+  // CompressedVideo on any subscribed topic goes to the video panel (a CompressedImage topic
+  // configured as video keeps its name, and the Camera panel subscribes it).
+  { id: "video", title: "Video", topics: ["/camera/image_raw", "/camera/image", "/camera/video"] },
   { id: "camera", title: "Camera", topics: ["/camera/image/compressed"] },
   { id: "scan", title: "Laser scan", topics: ["/scan"] },
   { id: "cloud", title: "Point cloud", topics: ["/points"] },

@@ -209,7 +209,8 @@ export class Reader {
 /**
  * Read only the metadata (field 0) of a frame, without knowing its type's layout.
  * The metadata layout is fixed by the contract, so this needs no schema.
- * @returns {{type: string, topic: string, no_drop: boolean, publish_time_ns: bigint, seq: bigint}}
+ * @returns {{type: string, topic: string, no_drop: boolean, publish_time_ns: bigint, seq: bigint,
+ *     latched: boolean}} (`latched`: slot 5, absent in older frames = false)
  */
 export function readMetadata(bytes) {
   const frame = bytes instanceof Frame ? bytes : new Frame(bytes);
@@ -228,5 +229,6 @@ export function readMetadata(bytes) {
     no_drop: field(2, "bool", false),
     publish_time_ns: field(3, "uint64", 0n),
     seq: field(4, "uint64", 0n),
+    latched: field(5, "bool", false),
   };
 }

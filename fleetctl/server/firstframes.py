@@ -1,0 +1,144 @@
+"""What makes a topic show at once for a new subscriber, wired to the relay core.
+
+- Latched messages (:mod:`fleetctl.server.latched`): a latched frame the relay accepted is
+  kept; a new subscription gets the stored messages of the topics it starts receiving,
+  ahead of live data (:meth:`OutboundScheduler.push_latched`), with the same receive check
+  as live data. An auth reload forgets what a sender may no longer send.
+- Keyframe requests (:mod:`fleetctl.server.keyframes`): ``/keyframe_requests`` frames are
+  checked (the asker may receive the topic) and forwarded to the video topic's publisher;
+  a new subscription to a known video topic makes the server ask its publisher itself.
+
+Functions over a :class:`~fleetctl.server.relay.RelayCore`, like :mod:`.reauth`, so the
+relay's hot path stays in one short module.
+"""
+
+from __future__ import annotations
+
+import logging
+from typing import TYPE_CHECKING
+
+from fleetctl.server.latched import SenderKey
+from fleetctl.server.permissions import Permissions
+from fleetctl.wire.control import (
+    KEYFRAME_REQUEST_TYPE,
+    KEYFRAME_REQUESTS_TOPIC,
+    decode_keyframe_request,
+    encode_keyframe_request,
+)
+from fleetctl.wire.errors import WireError
+from fleetctl.wire.fragments import FragmentHeader, read_fragment_header
+
+if TYPE_CHECKING:
+    from fleetctl.server.peer import Peer
+    from fleetctl.server.relay import RelayCore
+
+log = logging.getLogger("fleetctl.server")
+
+# Why: the refusal memo is keyed by asker-chosen topics; keep it small per connection.
+_MAX_REFUSED_MEMO = 256
+
+
+def sender_key(peer: Peer) -> SenderKey:
+    """Who a latched message is kept for: the sender's identity names, sorted."""
+    return tuple(sorted(peer.identity_names))
+
+
+def keep_latched(core: RelayCore, peer: Peer, topic: str, frame: bytes, root: int,
+                 is_fragment: bool) -> None:
+    """Hand a latched frame *peer* was allowed to send (already relayed) to the store.
+
+    A fragment whose header does not read is not kept (counted as ``malformed``; its
+    receivers drop it too).
+    """
+    fragment: FragmentHeader | None = None
+    if is_fragment:
+        try:
+            fragment = read_fragment_header(frame, root)
+        except WireError:
+            events = core.metrics.latched_events
+            events["malformed"] = events.get("malformed", 0) + 1
+            return
+    core.latched.put(sender_key(peer), topic, frame, fragment)
+
+
+def on_new_subscription(core: RelayCore, peer: Peer, pattern: str) -> None:
+    """*peer* just added *pattern*: queue the stored latched messages of the topics it
+    starts receiving through it, and ask the publishers of its new video topics for a
+    keyframe."""
+    store = core.latched
+    if len(store):
+        for topic in core.subs.newly_matched(peer, pattern, store.topics()):
+            for frames in store.messages(topic):
+                if peer.outbound.push_latched(topic, frames):
+                    core.metrics.latched_delivered += len(frames)
+    router = core.keyframes
+    for topic in core.subs.newly_matched(peer, pattern, router.video_topics()):
+        publisher = router.publisher(topic)
+        if publisher is None or publisher is peer:
+            continue
+        if router.route(topic) is not None:
+            publisher.outbound.push(KEYFRAME_REQUESTS_TOPIC, encode_keyframe_request(topic),
+                                    True)
+            core.metrics.count_keyframe_request("auto")
+
+
+def on_keyframe_request(core: RelayCore, peer: Peer, frame: bytes, type_name: str) -> None:
+    """A frame on ``/keyframe_requests``: forward it to the video topic's publisher if
+    *peer* may receive that topic (no send rule is needed: it is a control topic)."""
+    assert peer.perms is not None
+    if type_name != KEYFRAME_REQUEST_TYPE:
+        core.metrics.count_keyframe_request("malformed")
+        core.malformed(peer, "unknown_type", KEYFRAME_REQUESTS_TOPIC,
+                       f"{KEYFRAME_REQUESTS_TOPIC} carries KeyframeRequest, not {type_name}")
+        return
+    try:
+        topic = decode_keyframe_request(frame)
+    except WireError as exc:
+        core.metrics.count_keyframe_request("malformed")
+        core.malformed(peer, "malformed_frame", KEYFRAME_REQUESTS_TOPIC, str(exc))
+        return
+    core.metrics.count_in(KEYFRAME_REQUESTS_TOPIC, len(frame))
+    if not peer.perms.may_receive(topic):
+        core.metrics.count_keyframe_request("refused")
+        _refuse_once(core, peer, topic)
+        return
+    publisher = core.keyframes.route(topic)
+    if publisher is not None:
+        publisher.outbound.push(KEYFRAME_REQUESTS_TOPIC, frame, True)
+        core.metrics.count_keyframe_request("forwarded")
+
+
+def _refuse_once(core: RelayCore, peer: Peer, topic: str) -> None:
+    # A page asks again on every undecodable frame: answer once per topic per connection.
+    memo = peer.refused_keyframes
+    if topic in memo or len(memo) >= _MAX_REFUSED_MEMO:
+        core.metrics.count_error("keyframe_refused")
+        return
+    memo.add(topic)
+    log.warning("%s may not ask for keyframes of %r", peer.label, topic)
+    core.send_error(peer, "keyframe_refused", topic[:200],
+                    f"no receive permission on {topic[:200]!r}: keyframe request not sent")
+
+
+def drop_revoked_latched(core: RelayCore) -> int:
+    """After an auth reload: forget latched messages whose sender's identities are gone
+    from the map, or whose identities may no longer send on the topic.
+
+    Returns:
+        Entries dropped.
+    """
+    by_name = {i.name: i for i in core.auth.identities}
+    perms: dict[SenderKey, Permissions | None] = {}
+
+    def revoked(sender: SenderKey, topic: str) -> bool:
+        if sender not in perms:
+            found = [by_name[n] for n in sender if n in by_name]
+            perms[sender] = core.pool.get(found) if len(found) == len(sender) else None
+        allowed = perms[sender]
+        return allowed is None or not allowed.may_send(topic)
+
+    dropped = core.latched.drop_where(revoked)
+    if dropped:
+        log.info("auth map reloaded: %d latched messages of revoked senders forgotten",
+                 dropped)
+    return dropped

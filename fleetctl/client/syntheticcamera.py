@@ -12,6 +12,11 @@ photographs from scikit-image's packaged data set (``astronaut``, ``rocket``, ``
 - Texture: the photographs at their native resolution (no upscaling at zoom 1.0):
   the fine detail of fur, wood grain and a launch tower's lattice, with sharp edges where
   the photographs meet.
+- Without scikit-image (it is a development dependency, not in the robot image), the
+  mosaic is procedural instead, of the same size: value noise at five octaves per
+  channel (texture at every scale) under a few hundred seeded rectangles and discs with
+  sharp edges (what a block-based encoder finds hardest). Same motion, same noise; the
+  e2e load publisher's camera uses it.
 - Noise: independent Gaussian noise per pixel and channel, sigma 2 (8-bit levels), as a
   well-lit CMOS sensor; a fresh draw per frame (``noise_bank=0``), or, where generating it
   would cost too much CPU at 30 Hz (the simulated robot), one of a bank of pre-drawn
@@ -29,15 +34,19 @@ import numpy.typing as npt
 
 from fleetctl.client.video import Image
 
-__all__ = ["CameraSequence", "mosaic"]
+__all__ = ["CameraSequence", "mosaic", "procedural_mosaic"]
 
 _ROW_PX = 512
 
 
 @functools.lru_cache(maxsize=1)
 def mosaic() -> Image:
-    """The 1279 x 1024 px RGB mosaic the camera looks at (cached; read-only)."""
-    import skimage.data
+    """The 1279 x 1024 px RGB mosaic the camera looks at (cached; read-only): the
+    photographs when scikit-image is installed, else :func:`procedural_mosaic`."""
+    try:
+        import skimage.data
+    except ImportError:
+        return procedural_mosaic()
     from PIL import Image as PilImage
 
     def scaled(img: Image) -> Image:
@@ -52,6 +61,39 @@ def mosaic() -> Image:
     world = np.ascontiguousarray(np.concatenate([top[:, :width], bottom[:, :width]], axis=0))
     world.setflags(write=False)
     return world
+
+
+_MOSAIC_W, _MOSAIC_H = 1279, 1024
+
+
+@functools.lru_cache(maxsize=1)
+def procedural_mosaic(seed: int = 7) -> Image:
+    """A 1279 x 1024 px RGB world of value noise and sharp shapes (cached; read-only)."""
+    from PIL import Image as PilImage
+    from PIL import ImageDraw
+
+    rng = np.random.default_rng(seed)
+    field = np.zeros((_MOSAIC_H, _MOSAIC_W, 3), dtype=np.float32)
+    for octave in range(5):
+        cells = 4 * 2**octave  # 4 .. 64 cells across: features of ~320 px down to ~20 px
+        grid = rng.random((cells * _MOSAIC_H // _MOSAIC_W + 2, cells + 2, 3))
+        smooth = PilImage.fromarray((grid * 255).astype(np.uint8)).resize(
+            (_MOSAIC_W, _MOSAIC_H), PilImage.Resampling.BICUBIC)
+        field += np.asarray(smooth, dtype=np.float32) / 2**octave
+    field *= 255 / field.max()
+    world = PilImage.fromarray(field.astype(np.uint8))
+    draw = ImageDraw.Draw(world)
+    for _ in range(300):
+        x, y = int(rng.integers(_MOSAIC_W)), int(rng.integers(_MOSAIC_H))
+        w, h = (int(v) for v in rng.integers(6, 90, size=2))
+        colour = tuple(int(c) for c in rng.integers(0, 256, size=3))
+        if rng.random() < 0.5:
+            draw.rectangle((x, y, x + w, y + h), fill=colour)
+        else:
+            draw.ellipse((x, y, x + w, y + w), fill=colour)
+    out = np.ascontiguousarray(np.asarray(world))
+    out.setflags(write=False)
+    return out
 
 
 class CameraSequence:

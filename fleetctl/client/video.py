@@ -452,6 +452,11 @@ class VideoDecoder:
         self._last_seq: int | None = None
         self._need_keyframe = True
 
+    @property
+    def waiting_for_keyframe(self) -> bool:
+        """Frames are refused until the next keyframe (the start, a gap, an error)."""
+        return self._need_keyframe
+
     def decode(self, data: bytes, seq: int | None = None) -> Image | None:
         """Decode one frame to ``H x W x 3`` RGB, or refuse it.
 

@@ -14,7 +14,10 @@ the server's ``subscribed`` answer, then writes ``NAME-I.ready``. Every binary f
 reassembled (:class:`~fleetctl.wire.fragments.Reassembler`), decoded
 (:class:`~fleetctl.wire.codec.Codec`) and recorded as a :class:`~fleetctl.e2e.samples.Sample`
 line in ``NAME-I.jsonl``; the receipt time is taken when the last fragment arrived, before
-decoding. SIGTERM closes the connections and flushes the files; the exit code is 1 when a
+decoding. Video frames (``foxglove_msgs/msg/CompressedVideo``) are also decoded, as the
+web page decodes them (:mod:`fleetctl.e2e.videoview`: refused after a lost reference,
+keyframe requests while waiting); their samples say whether and when each was shown.
+SIGTERM closes the connections and flushes the files; the exit code is 1 when a
 connection failed.
 """
 
@@ -22,10 +25,12 @@ from __future__ import annotations
 
 import argparse
 import asyncio
+import itertools
 import json
 import signal
 import ssl
 import sys
+import threading
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -33,11 +38,13 @@ from typing import Any, TextIO
 
 from websockets.asyncio.client import ClientConnection, connect
 
+from fleetctl.client.videobits import is_keyframe
 from fleetctl.e2e.payloads import read_stamp
 from fleetctl.e2e.samples import Sample, dump
+from fleetctl.e2e.videoview import VideoViewer
 from fleetctl.errors import FleetError
 from fleetctl.wire.codec import default_codec
-from fleetctl.wire.control import encode_subscription
+from fleetctl.wire.control import encode_keyframe_request, encode_subscription
 from fleetctl.wire.errors import WireError
 from fleetctl.wire.fragments import FRAGMENT_TYPE, Reassembler
 from fleetctl.wire.metadata import read_metadata
@@ -54,11 +61,17 @@ class Recorder:
     Args:
         name: Consumer name written into each sample.
         out: Where sample lines go.
+        viewer: Decodes video frames and writes their samples; None: video frames are
+            recorded undecoded.
     """
 
-    def __init__(self, name: str, out: TextIO) -> None:
+    VIDEO_TYPE = "foxglove_msgs/msg/CompressedVideo"
+
+    def __init__(self, name: str, out: TextIO, viewer: VideoViewer | None = None) -> None:
         self.name = name
         self.out = out
+        self.viewer = viewer
+        self._lock = threading.Lock()  # the viewer writes from its own thread
         self.codec = default_codec()
         self.reassembler = Reassembler(REASSEMBLY_MAX_BYTES, REASSEMBLY_TIMEOUT_S)
         self.errors = 0  # frames that could not be decoded or carried no stamp (logged)
@@ -83,8 +96,21 @@ class Recorder:
             return None
         sample = Sample(meta.topic, stamp.seq, stamp.publish_time_ns, recv_time_ns,
                         len(frame), self.name)
-        self.out.write(dump([sample]))
+        if meta.type == self.VIDEO_TYPE:
+            data = bytes(msg.data)
+            sample = Sample(sample.topic, sample.seq, sample.publish_time_ns,
+                            sample.recv_time_ns, sample.size_bytes, sample.consumer,
+                            wire_seq=meta.seq, keyframe=is_keyframe(str(msg.format), data))
+            if self.viewer is not None:
+                self.viewer.offer(sample, str(msg.format), data)
+                return sample
+        self.write(sample)
         return sample
+
+    def write(self, sample: Sample) -> None:
+        """Append *sample* to the output (thread-safe)."""
+        with self._lock:
+            self.out.write(dump([sample]))
 
 
     def _fresh(self, topic: str, seq: int) -> bool:
@@ -139,17 +165,30 @@ async def consume(url: str, token: str, regex: str, name: str, out_dir: Path,
         FleetError: the server refused the subscription or did not answer in time.
         OSError, ConnectionClosed: the connection failed.
     """
+    loop = asyncio.get_running_loop()
     with (out_dir / f"{name}.jsonl").open("a", buffering=1) as out:
-        recorder = Recorder(name, out)
         async with connect(url, additional_headers={"Authorization": f"Bearer {token}"},
                            max_size=MAX_FRAME_BYTES, max_queue=None, **tls.kwargs(url)) as ws:
             # max_queue=None: frames are read as fast as they come; this process must not
             # be the bottleneck that delays receipt (the socket buffer is the only bound).
-            await asyncio.wait_for(_subscribe(ws, regex), SUBSCRIBE_TIMEOUT_S)
-            (out_dir / f"{name}.ready").write_text("ok")
-            async for frame in ws:
-                if isinstance(frame, bytes):
-                    recorder.feed(frame, time.time_ns())
+
+            requests = itertools.count(1)
+
+            def request(topic: str) -> None:  # from the viewer's thread
+                frame = encode_keyframe_request(topic, publish_time_ns=time.time_ns(),
+                                                seq=next(requests))
+                loop.call_soon_threadsafe(lambda: asyncio.ensure_future(ws.send(frame)))
+
+            recorder = Recorder(name, out)
+            recorder.viewer = VideoViewer(recorder.write, request)
+            try:
+                await asyncio.wait_for(_subscribe(ws, regex), SUBSCRIBE_TIMEOUT_S)
+                (out_dir / f"{name}.ready").write_text("ok")
+                async for frame in ws:
+                    if isinstance(frame, bytes):
+                        recorder.feed(frame, time.time_ns())
+            finally:
+                await asyncio.to_thread(recorder.viewer.close)
 
 
 async def run(url: str, token: str, regex: str, name: str, count: int, out_dir: Path,

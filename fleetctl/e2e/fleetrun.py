@@ -220,10 +220,15 @@ class FleetRun:
         data: dict[str, dict[str, int]] = json.loads(path.read_text())
         return data
 
-    def start_consumers(self, role: str, count: int, regex: str = ".*") -> Endpoint:
-        """Start *count* WebSocket consumers in one container; wait until all subscribed."""
+    def start_consumers(self, role: str, count: int, regex: str = ".*",
+                        image: str = "server") -> Endpoint:
+        """Start *count* WebSocket consumers in one container; wait until all subscribed.
+
+        *image* is the component image they run in: ``client`` where they must decode
+        video (PyAV is in the client image only).
+        """
         ep = self.topo.start(
-            role, SERVER_SIDE, self.image("server"),
+            role, SERVER_SIDE, self.image(image),
             ["python3", "-m", "fleetctl.e2e.consumer", "--url", self.server_url,
              "--ca-file", f"{CONTAINER_DIR}/tls-cert.pem", "--tls-name", SERVER_ALIAS,
              "--token-file", f"{CONTAINER_DIR}/token", "--subscribe", regex,

@@ -6,6 +6,11 @@ clock: containers share the kernel's CLOCK_REALTIME).
 
 - Stamped types (``header``): ``header.stamp`` is the publish time, ``header.frame_id`` the
   publisher's per-topic sequence number (decimal).
+- ``sensor_msgs/msg/Image`` (rgb8, 4:3, sized to the request): frames of the synthetic
+  camera (:class:`fleetctl.client.syntheticcamera.CameraSequence`: motion, texture, noise),
+  frame *seq* of a 15 Hz sequence. The client sends it as video:
+  ``foxglove_msgs/msg/CompressedVideo`` carries the source's stamp in ``timestamp`` and
+  its ``frame_id``, so the stamp survives encoding.
 - ``std_msgs/msg/String``: ``data`` is JSON ``{"seq": N, "t_ns": T, "pad": "..."}``.
 
 Messages are rosbags objects (the codec's and the CDR serializer's currency), built per type
@@ -14,7 +19,9 @@ by a small builder that pads the payload to the requested size.
 
 from __future__ import annotations
 
+import functools
 import json
+import math
 from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
@@ -78,6 +85,31 @@ def _point_cloud(ts: Any, size_bytes: int, seq: int, t_ns: int) -> Any:
     )
 
 
+CAMERA_FPS = 15.0  # the motion's time base: frame seq shows time seq / 15 s
+
+
+@functools.lru_cache(maxsize=2)
+def _camera(width: int, height: int) -> Any:
+    from fleetctl.client.syntheticcamera import CameraSequence
+
+    # A bank of noise fields: fresh noise per frame would cost ~10 ms of the robot's CPU.
+    return CameraSequence(width, height, CAMERA_FPS, noise_bank=8)
+
+
+def camera_size(size_bytes: int) -> tuple[int, int]:
+    """The 4:3 rgb8 frame (even width and height) closest to *size_bytes*."""
+    width = max(16, 2 * round(math.sqrt(size_bytes / 3 * 4 / 3) / 2))
+    return width, max(12, 2 * round(width * 3 / 4 / 2))
+
+
+def _image(ts: Any, size_bytes: int, seq: int, t_ns: int) -> Any:
+    width, height = camera_size(size_bytes)
+    pixels = _camera(width, height).frame(seq)
+    return ts.types["sensor_msgs/msg/Image"](
+        header=_header(ts, seq, t_ns), height=height, width=width, encoding="rgb8",
+        is_bigendian=0, step=3 * width, data=pixels.reshape(-1))
+
+
 def _string(ts: Any, size_bytes: int, seq: int, t_ns: int) -> Any:
     body = {"seq": seq, "t_ns": t_ns, "pad": ""}
     pad = max(0, size_bytes - len(json.dumps(body)))
@@ -89,6 +121,7 @@ BUILDERS: dict[str, Builder] = {
     "sensor_msgs/msg/LaserScan": _laser_scan,
     "geometry_msgs/msg/PoseStamped": _pose,
     "sensor_msgs/msg/CompressedImage": _compressed_image,
+    "sensor_msgs/msg/Image": _image,
     "sensor_msgs/msg/PointCloud2": _point_cloud,
     "std_msgs/msg/String": _string,
 }
@@ -107,6 +140,12 @@ def build(ts: Any, type_name: str, size_bytes: int, seq: int, t_ns: int) -> Any:
     return builder(ts, size_bytes, seq, t_ns)
 
 
+@dataclass(frozen=True)
+class _VideoHeader:
+    stamp: Any
+    frame_id: str
+
+
 def read_stamp(msg: Any) -> Stamp:
     """The (seq, publish time) a test message carries.
 
@@ -115,6 +154,8 @@ def read_stamp(msg: Any) -> Stamp:
     """
     try:
         header = getattr(msg, "header", None)
+        if header is None and hasattr(msg, "timestamp"):  # CompressedVideo: the source's
+            header = _VideoHeader(msg.timestamp, msg.frame_id)
         if header is not None:
             ns = int(header.stamp.sec) * 1_000_000_000 + int(header.stamp.nanosec)
             return Stamp(int(header.frame_id), ns)

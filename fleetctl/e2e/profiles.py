@@ -26,6 +26,8 @@ class TopicLoad:
         size_bytes: Payload size (bytes, approximate for fixed-size types).
         priority: Client priority (Algorithm 2 weight).
         no_drop: Sent reliably by the client.
+        video_max_kbps: When above 0, the client sends this camera as h264 video
+            (``video: {codec: h264, max_bitrate_kbps: ...}``) instead of raw images.
     """
 
     topic: str
@@ -34,6 +36,12 @@ class TopicLoad:
     size_bytes: int
     priority: float = 1.0
     no_drop: bool = False
+    video_max_kbps: int = 0
+
+    @property
+    def is_video(self) -> bool:
+        """The client sends this topic as video."""
+        return self.video_max_kbps > 0
 
     @property
     def remote_topic(self) -> str:
@@ -74,9 +82,15 @@ _POSE = TopicLoad("/pose", "geometry_msgs/msg/PoseStamped", 10.0, 0, priority=4.
 _IMAGE = TopicLoad("/camera/image/compressed", "sensor_msgs/msg/CompressedImage", 2.0, 75_000)
 _EVENTS = TopicLoad("/events", "std_msgs/msg/String", 10.0, 200, priority=1.0, no_drop=True)
 _POINTS = TopicLoad("/points", "sensor_msgs/msg/PointCloud2", 5.0, 150_000, priority=0.5)
+# A raw 640x480 rgb8 camera at 15 Hz (13.8 MB/s on the robot) sent as h264 video. Its
+# priority is the compressed image's; the bitrate ceilings are chosen so that the video
+# fits the dropout's 4 Mbit/s beside the other topics, and in the ramp so that at 100 Mbit/s
+# it runs at 3 Mbit/s, more than 4 Mbit/s leaves it: it has to follow the link down.
+_CAMERA = TopicLoad("/camera/image_raw", "sensor_msgs/msg/Image", 15.0, 640 * 480 * 3,
+                    video_max_kbps=600)
 
 PROFILES: dict[str, Profile] = {
-    "dropout": Profile("dropout", (_SCAN, _POSE, _IMAGE, _EVENTS)),
+    "dropout": Profile("dropout", (_SCAN, _POSE, _IMAGE, _EVENTS, _CAMERA)),
     # Pound: small fragments bound how long an urgent message waits behind a large one
     # (4 KB at 6 Mbit/s is 5.5 ms on the wire; the default 16 KB would be 22 ms).
     "priority": Profile("priority", (
@@ -84,7 +98,8 @@ PROFILES: dict[str, Profile] = {
         TopicLoad("/low", "sensor_msgs/msg/CompressedImage", 1000 / 150, 65_536, priority=1.0),
     ), max_fragment_bytes=4096),
     "multi-consumer": Profile("multi-consumer", (replace(_POINTS, priority=1.0),)),
-    "ramp": Profile("ramp", (replace(_POSE, priority=10.0), _SCAN, _IMAGE, _POINTS)),
+    "ramp": Profile("ramp", (replace(_POSE, priority=10.0), _SCAN, _IMAGE, _POINTS,
+                             replace(_CAMERA, video_max_kbps=3000))),
 }
 
 
@@ -120,7 +135,9 @@ def client_config(p: Profile, server_url: str) -> dict[str, Any]:
         "robot_name": ROBOT,
         "publish": [
             {"topic": t.topic, "type": t.type, "priority": t.priority, "rate_limit_hz": None,
-             "no_drop": t.no_drop}
+             "no_drop": t.no_drop,
+             **({"video": {"codec": "h264", "max_bitrate_kbps": t.video_max_kbps}}
+                if t.is_video else {})}
             for t in p.topics
         ],
         "status": {"period_s": 1.0},

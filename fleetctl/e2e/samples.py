@@ -20,6 +20,11 @@ class Sample:
         recv_time_ns: When the consumer had it whole (same host clock, ns since epoch).
         size_bytes: Frame size as received (bytes, after reassembly).
         consumer: Which consumer recorded it.
+        wire_seq: Video only: the frame's metadata ``seq`` (the client numbers each topic's
+            frames; a gap is a lost frame). ``seq`` is the source image's number.
+        keyframe: Video only: the frame is a keyframe.
+        shown_ns: Video only: when the consumer's decoder output the frame as a picture
+            (wall clock, ns since epoch); None when it refused it (reference missing).
     """
 
     topic: str
@@ -28,6 +33,14 @@ class Sample:
     recv_time_ns: int
     size_bytes: int
     consumer: str = "c0"
+    wire_seq: int | None = None
+    keyframe: bool | None = None
+    shown_ns: int | None = None
+
+    @property
+    def is_video(self) -> bool:
+        """A video frame (the video fields are set)."""
+        return self.keyframe is not None
 
     @property
     def latency_ms(self) -> float:
@@ -37,7 +50,8 @@ class Sample:
 
 def dump(samples: Iterable[Sample]) -> str:
     """JSON lines, one sample per line."""
-    return "".join(json.dumps(asdict(s), separators=(",", ":")) + "\n" for s in samples)
+    return "".join(json.dumps({k: v for k, v in asdict(s).items() if v is not None},
+                              separators=(",", ":")) + "\n" for s in samples)
 
 
 def load(text: str, source: str = "<samples>") -> Iterator[Sample]:

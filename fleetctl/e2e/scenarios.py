@@ -13,19 +13,23 @@ Parameters where the issue is silent (docs/e2e.md repeats them):
 - multi-consumer: 12 Mbit/s, 150 KB PointCloud2 at 5 Hz (6 Mbit/s); ``max(2, D/5)`` s per
   consumer count; DDS baseline with ``ROS_STATIC_PEERS`` unicast discovery.
 - ramp: 2 s at 100 Mbit/s, then linear steps every 0.5 s to 4 Mbit/s over ``min(15, D)`` s,
-  then 2 s at 4 Mbit/s; high-priority bound 100 ms.
+  then 2 s at 4 Mbit/s; high-priority bound 100 ms; the camera as h264 (max 3 Mbit/s) must
+  keep to half the link at 4 Mbit/s and have sent 1.5x more at 100 Mbit/s.
+- dropout and ramp carry a raw 640x480 15 Hz camera sent as h264 video; their consumers
+  decode it as the page does (in the client image, which has PyAV).
 """
 
 from __future__ import annotations
 
 import contextlib
+import math
 import re
 import time
 from collections.abc import Callable
 from typing import Any
 
 from fleetctl.deploy.shaping import Capabilities, LinkShaper, RateSpec, mbit
-from fleetctl.e2e import analysis, profiles
+from fleetctl.e2e import analysis, profiles, videoanalysis
 from fleetctl.e2e.fleetrun import FleetRun, hold, wait_for
 from fleetctl.e2e.samples import Sample
 from fleetctl.e2e.topology import ROBOT_SIDE, SERVER_SIDE, Endpoint
@@ -36,6 +40,10 @@ CUT_S = 5.0
 CONSUMER_COUNTS = (1, 2, 4, 8, 16)
 RAMP_FROM_MBIT, RAMP_TO_MBIT, RAMP_STEP_S = 100.0, 4.0, 0.5
 RAMP_BOUND_MS = 100.0
+RAMP_HOLD_S = 2.0  # at 100 Mbit/s before the ramp, and at 4 Mbit/s after it
+# The video keeps to at most half the link when it is slow (the bitrate controller's
+# share), and must have sent at least 1.5x more when the link was fast.
+RAMP_VIDEO_SHARE, RAMP_VIDEO_FOLLOW = 0.5, 1.5
 DDS_DOMAIN_ID = "42"
 
 
@@ -86,7 +94,9 @@ class _Variant:
         self.published: dict[str, dict[str, int]] = {}
 
     def __enter__(self) -> _Variant:
-        self.consumer = self.fr.start_consumers(self.tag, 1, _regex(self.client))
+        video = any(t.is_video for t in self.client.topics)
+        self.consumer = self.fr.start_consumers(self.tag, 1, _regex(self.client),
+                                                "client" if video else "server")
         self.robot = self.fr.start_robot(f"{self.tag}-robot", self.client, self.load)
         topics = [t.remote_topic for t in self.client.topics]
         self.fr.wait_flowing(self.tag, topics, [f"{self.tag}-0"])
@@ -139,8 +149,18 @@ def run_dropout(fr: FleetRun, caps: Capabilities, duration_s: float,
             if handshake is not None:
                 handshakes[v] = (handshake - restore) / 1e9
     link.clear()
-    droppable = [t.remote_topic for t in base.topics if not t.no_drop]
+    # Video has its own criteria (a frame shown within 1 s, none from a broken reference):
+    # its latency steps with every keyframe, so "back under 2x the median" does not fit it.
+    droppable = [t.remote_topic for t in base.topics if not t.no_drop and not t.is_video]
     result = analysis.dropout(variants, published, droppable, no_drop[0], marks)
+    for t in base.topics:
+        if t.is_video:
+            frames = [s for s in variants["fleetctl"] if s.topic == t.remote_topic]
+            rows, notes = videoanalysis.dropout_criteria(t.remote_topic, frames,
+                                                         marks["fleetctl"]["restore"])
+            result["criteria"] += rows
+            result["notes"] += notes
+    result["status"] = analysis.status_of(result["criteria"])
     result["notes"].insert(0, "link 4 Mbit/s both ways; cut: every IP packet crossing the "
                            "router dropped silently, both ways (blackhole routes; ARP not cut)"
                            + ("; robots over WireGuard (the tunnel's UDP is what is cut)"
@@ -292,22 +312,54 @@ def run_ramp(fr: FleetRun, caps: Capabilities, duration_s: float,
     link = Link(fr, caps)
     ramp_s = min(15.0, duration_s)
     variants, t0, schedule = {}, {}, {}
+    video = next((t for t in base.topics if t.is_video), None)
+    frames: list[Sample] = []
+    ends: dict[str, int] = {}
     for v, client in (("fleetctl", base), ("baseline", profiles.all_no_drop(base))):
         link.rate(RAMP_FROM_MBIT)
         with _Variant(fr, f"ramp-{v}", client, "ramp") as run:
             progress(f"ramp/{v}: 100 -> 4 Mbit/s over {ramp_s:.0f} s")
-            hold(2.0)
+            hold(RAMP_HOLD_S)
             t0[v] = start = time.time_ns()
             schedule[v] = _ramp(link, ramp_s, start)
-            hold(2.0)
-            end = time.time_ns()
+            hold(RAMP_HOLD_S)
+            ends[v] = end = time.time_ns()
             samples = run.stop([])
         variants[v] = [s for s in samples if t0[v] <= s.publish_time_ns <= end]
+        if v == "fleetctl" and video is not None:
+            frames = [s for s in samples if s.topic == video.remote_topic]
     link.clear()
     result = analysis.ramp(variants, base.topics[0].remote_topic, t0, schedule, RAMP_BOUND_MS)
     result["notes"].insert(0, f"ramp over {ramp_s:.0f} s in {RAMP_STEP_S} s steps; "
                            "baseline: every topic no_drop")
+    if video is not None:
+        _ramp_video(result, video, frames, t0["fleetctl"], ends["fleetctl"])
     return result
+
+
+def _ramp_video(result: dict[str, Any], video: profiles.TopicLoad, frames: list[Sample],
+                t0_ns: int, end_ns: int) -> None:
+    """The video follows the link: at 4 Mbit/s it keeps to its share of it, and it had
+    used more when the link had more to give (the 100 Mbit/s seconds before the ramp)."""
+    hold_ns = int(RAMP_HOLD_S * 1e9)
+    before = videoanalysis.mean_mbit_s(frames, t0_ns - hold_ns, t0_ns)
+    after = videoanalysis.mean_mbit_s(frames, end_ns - hold_ns, end_ns)
+    share = RAMP_VIDEO_SHARE * RAMP_TO_MBIT
+    ratio = before / after if after > 0 else math.inf
+    result["criteria"] += [
+        analysis.crit(f"video Mbit/s at {RAMP_TO_MBIT:g} Mbit/s (last {RAMP_HOLD_S:g} s)",
+                      after, share, 0 < after <= share),
+        analysis.crit(f"video Mbit/s at {RAMP_FROM_MBIT:g} / at {RAMP_TO_MBIT:g} Mbit/s",
+                      ratio, RAMP_VIDEO_FOLLOW, ratio >= RAMP_VIDEO_FOLLOW),
+    ]
+    result["status"] = analysis.status_of(result["criteria"])
+    result["notes"].append(
+        f"video {video.remote_topic} (h264, max {video.video_max_kbps} kbit/s): "
+        f"{before:.2f} Mbit/s at {RAMP_FROM_MBIT:g} Mbit/s, {after:.2f} Mbit/s at "
+        f"{RAMP_TO_MBIT:g} Mbit/s; {videoanalysis.chain(frames)}")
+    line = videoanalysis.bitrate_line(frames, t0_ns - hold_ns, end_ns)
+    line[0] = [round(x - RAMP_HOLD_S, 3) for x in line[0]]
+    result["plots"][0]["lines"]["video (Mbit/s)"] = line
 
 
 def _ramp(link: Link, ramp_s: float, start_ns: int) -> list[tuple[float, float]]:

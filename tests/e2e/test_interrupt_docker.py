@@ -55,7 +55,10 @@ def test_a_signal_removes_every_container_and_network_of_the_run(
     proc = subprocess.Popen(
         [sys.executable, "-m", "fleetctl.cli.main", "e2e", "--scenario", "link",
          "--duration", "120", "--out", str(tmp_path), "--run-id", run_id],
-        stdout=subprocess.PIPE, stderr=subprocess.PIPE, env=env)
+        stdout=subprocess.PIPE, stderr=subprocess.PIPE, env=env,
+        # Its own process group: if it must be killed, its docker children go with it and
+        # release the pipes (else communicate() would wait for them).
+        start_new_session=True)
     try:
         # The router and both probe containers: the run is in the middle of its work.
         _wait(lambda: sum(r.kind == "container" for r in _resources(run_id)) >= 3
@@ -66,8 +69,8 @@ def test_a_signal_removes_every_container_and_network_of_the_run(
         _, err = proc.communicate(timeout=CLEANUP_DEADLINE_S)
     finally:
         if proc.poll() is None:
-            proc.kill()
-            proc.communicate()
+            os.killpg(proc.pid, signal.SIGKILL)
+            proc.communicate(timeout=CLEANUP_DEADLINE_S)
         left = _resources(run_id)
         cleanup.remove(subprocess_runner, left)  # never leave them behind for the next test
     stderr = err.decode()

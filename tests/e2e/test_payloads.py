@@ -5,6 +5,7 @@ from __future__ import annotations
 import io
 import json
 
+import numpy as np
 import pytest
 
 from fleetctl.e2e import payloads, profiles
@@ -33,6 +34,26 @@ def test_size_is_close_to_requested() -> None:
                       "std_msgs/msg/String", "sensor_msgs/msg/LaserScan"):
         cdr = ts.serialize_cdr(payloads.build(ts, type_name, 65_536, 1, T_NS), type_name)
         assert 65_536 <= len(cdr) <= 65_536 + 200, type_name
+
+
+def test_camera_frames_are_4_3_rgb8_and_move() -> None:
+    ts = default_codec().registry.typestore
+    assert payloads.camera_size(640 * 480 * 3) == (640, 480)
+    assert payloads.camera_size(5000) == (48, 36)
+    a, b = (payloads.build(ts, "sensor_msgs/msg/Image", 640 * 480 * 3, i, T_NS)
+            for i in (1, 2))
+    assert (a.width, a.height, a.encoding, a.step) == (640, 480, "rgb8", 1920)
+    assert len(a.data) == 640 * 480 * 3
+    assert (a.data != b.data).mean() > 0.5  # motion and noise: most pixels change
+
+
+def test_video_frames_carry_the_source_stamp() -> None:
+    codec = default_codec()
+    video = codec.registry.typestore.types["foxglove_msgs/msg/CompressedVideo"]
+    image = payloads.build(codec.registry.typestore, "sensor_msgs/msg/Image", 5000, 9, T_NS)
+    msg = video(timestamp=image.header.stamp, frame_id=image.header.frame_id,
+                data=np.zeros(4, np.uint8), format="h264")
+    assert payloads.read_stamp(msg) == payloads.Stamp(9, T_NS)
 
 
 def test_unknown_type_and_unstamped_message_are_clear_errors() -> None:
@@ -69,7 +90,10 @@ def test_recorder_reassembles_fragments_and_drops_resent_no_drop() -> None:
 def test_client_configs_of_profiles_and_baselines() -> None:
     p = profiles.profile("dropout")
     cfg = profiles.client_config(p, "ws://1.2.3.4:8080/")
-    assert [e["no_drop"] for e in cfg["publish"]] == [False, False, False, True]
+    assert [e["no_drop"] for e in cfg["publish"]] == [False, False, False, True, False]
+    camera = cfg["publish"][-1]
+    assert camera["video"] == {"codec": "h264", "max_bitrate_kbps": 600}
+    assert "video" not in cfg["publish"][0]
     base = profiles.client_config(profiles.all_no_drop(p), "ws://x:1/")
     assert all(e["no_drop"] for e in base["publish"])
     rf = profiles.robofleet_like(profiles.profile("priority"))

@@ -89,7 +89,22 @@ def test_ramp_and_priority_measure_the_high_priority_topic(
     # machine (docs/e2e.md has the figures): the run reports them as failures and exits 1;
     # here we check that they were measured on enough messages.
     for name in ("ramp", "priority"):
-        (crit,) = run[2][name]["criteria"]
+        crit = run[2][name]["criteria"][0]
+        assert crit["name"].startswith("high-priority p99_ms"), crit
         assert crit["value"] == crit["value"], name  # not NaN: the topic was received
         stats = run[2][name]["stats"]["fleetctl"]
         assert min(st["count"] for st in stats.values()) > 5, (name, stats)
+
+
+def test_video_is_decoded_never_from_a_broken_reference_and_follows_the_link(
+        run: tuple[int, Path, dict[str, Any]]) -> None:
+    camera = "/robot1/camera/image_raw"
+    crits = _criteria(run[2]["dropout"])
+    # Correctness, not timing: every frame the consumer's decoder showed had its whole
+    # reference chain (and at least one frame was shown).
+    assert crits[f"video {camera}: frames shown from a broken reference"]["ok"], crits
+    back = crits[f"video {camera}: first frame shown after the restore (s)"]["value"]
+    assert 0 <= back < 10, crits  # measured: frames were shown again after the cut
+    ramp = _criteria(run[2]["ramp"])
+    slow = ramp["video Mbit/s at 4 Mbit/s (last 2 s)"]["value"]
+    assert slow > 0, ramp  # frames arrived at the end of the ramp: measured

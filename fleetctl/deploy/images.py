@@ -350,6 +350,7 @@ def prepare_context(
         if name == "ros":
             _remove_duplicates(house, ctx / "wheels" / "base")
         _stamp(house, "\n".join(reqs))
+    ros_msg_wheels(cfg, ctx / "wheels" / "rosmsgs", runner, progress)
     app = ctx / "wheels" / "app"
     digest = source_digest(cfg.source_dir) if cfg.source_dir else installed_digest()
     if _fresh(app, digest):
@@ -365,6 +366,42 @@ def prepare_context(
         if dockerfile.is_file():
             shutil.copy2(dockerfile, ctx / dockerfile.name)
     return ctx
+
+
+def ros_msg_wheels(cfg: BuildConfig, dest: Path, runner: Runner = subprocess_runner,
+                   progress: Progress = print) -> bool:
+    """Build the message packages PyPI's ROS wheels lack (tf2_msgs, foxglove_msgs) into
+    *dest* for the client image, with ``scripts/ros_msgs/build.py`` of the source checkout.
+
+    The robot's TF republisher and the simulated robot's ``/tf`` need ``tf2_msgs``. Building
+    needs the checkout's script and this Python with the ``ros`` extra, gcc and Python's
+    headers (``scripts/setup.sh`` has them); without them *dest* stays empty and the image
+    is built without (its robots then say, once, that TF is not sent). The script keeps a
+    wheel whose inputs did not change byte for byte, so docker's layer cache still hits.
+
+    Returns:
+        True when the wheels are in *dest*.
+
+    Raises:
+        FleetError: the build itself failed (its output is in the message).
+    """
+    import importlib.util
+
+    dest.mkdir(parents=True, exist_ok=True)
+    script = cfg.source_dir / "scripts" / "ros_msgs" / "build.py" if cfg.source_dir else None
+    if script is None or not script.is_file():
+        progress("ros message wheels: skipped (no source checkout): the client image has no "
+                 "tf2_msgs, its robots send no TF")
+        return False
+    if importlib.util.find_spec("rosidl_adapter") is None:
+        progress("ros message wheels: skipped (this Python lacks the ros extra: run "
+                 "scripts/setup.sh): the client image has no tf2_msgs, its robots send no TF")
+        return False
+    progress("ros message wheels: tf2_msgs, foxglove_msgs")
+    check(runner([sys.executable, str(script), "--no-install", "--wheel-dir", str(dest),
+                  "--build-dir", str(dest.parent.parent / "rosmsgs-build")], None, True),
+          "ros message wheels (scripts/ros_msgs/build.py)")
+    return True
 
 
 _STAMP = ".inputs"

@@ -12,6 +12,7 @@ from dataclasses import dataclass, replace
 from ipaddress import IPv4Address
 from pathlib import Path
 
+from fleetctl.client.mediaconfig import TfSpec
 from fleetctl.deploy import keystore, tls
 from fleetctl.deploy.files import Change, Plan
 from fleetctl.deploy.fleet import (
@@ -347,7 +348,10 @@ def add_robot(
         address = parse_ip(ip, ("ip",)) if ip else next_free_ip(fleet)
     except FleetInvalid as exc:
         raise (ConflictError(str(exc)) if exc.conflict else ConfigError(str(exc))) from None
-    robot = Robot(name, address, mtu_bytes=mtu_bytes, command_topics=DEFAULT_COMMAND_TOPICS)
+    # A new robot sends TF (throttled, tf2_web_republisher's defaults): what the page needs
+    # to draw its sensors in one scene. fleet.yaml's `tf:` says so and can be removed.
+    robot = Robot(name, address, mtu_bytes=mtu_bytes, command_topics=DEFAULT_COMMAND_TOPICS,
+                  tf=TfSpec())
     new = _checked(replace(fleet, robots=(*fleet.robots, robot)))
     plan = Plan()
     fleet_keys = _load_keys(fleet_dir, new, keys, plan)

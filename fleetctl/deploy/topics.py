@@ -94,7 +94,8 @@ class SubscribeTopic:
 
 # Why these numbers: localization and odometry are small and what an operator watches most,
 # so they go first and fast; scans next; camera and point clouds are big and only useful
-# fresh, so they are rate-limited hardest and yield to everything else. /events is the
+# fresh, so they are rate-limited hardest and yield to everything else. /map is the
+# latched occupancy grid. /events is the
 # robot's log of discrete happenings, which must all arrive (no_drop). /status is sent by
 # the client itself and is not listed here.
 DEFAULT_PUBLISH: tuple[PublishTopic, ...] = (
@@ -103,6 +104,9 @@ DEFAULT_PUBLISH: tuple[PublishTopic, ...] = (
     PublishTopic("/scan", "sensor_msgs/msg/LaserScan", 3.0, 10.0),
     PublishTopic("/camera/image/compressed", "sensor_msgs/msg/CompressedImage", 1.0, 5.0),
     PublishTopic("/points", "sensor_msgs/msg/PointCloud2", 0.5, 2.0),
+    # Nav2's map_server and SLAM publish it latched: the client follows that QoS, the server
+    # keeps the last one for viewers who open the page later (deflated when large).
+    PublishTopic("/map", "nav_msgs/msg/OccupancyGrid", 0.5, 1.0),
     PublishTopic("/events", "std_msgs/msg/String", 10.0, None, no_drop=True),
 )
 

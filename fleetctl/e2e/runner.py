@@ -221,13 +221,17 @@ def run(cfg: RunConfig, progress: Progress = print,
         fleet = FleetRun(topo, work.resolve(), deployment)
         fleet.pin_images("server", "client")
         caps = topo.capabilities()
-        env = {"tc": caps.describe(), "router": topo.router, "duration_s": cfg.duration_s,
+        # The shaper's own cut (bfifo limit 0) would also stop ARP: the scenarios cut with
+        # blackhole routes in the router instead (scenarios.Link says why).
+        shaping = caps.describe().replace(f"cut: {caps.cut_method}",
+                                          "cut: blackhole routes in the router")
+        env = {"tc": shaping, "router": topo.router, "duration_s": cfg.duration_s,
                "clock": "one host clock (containers share the kernel's CLOCK_REALTIME)",
                "wireguard": _describe_wireguard(mode, deployment, link_mtu),
                "server": "the `server` service `fleetctl up` renders (compose.server_service), "
                          "as `docker run` arguments, without ports, restart policy or static "
                          "address; consumers on its HTTPS port"}
-        progress(f"topology up; {caps.describe()}")
+        progress(f"topology up; {shaping}")
         progress(f"wireguard: {env['wireguard']}")
         for i, name in enumerate(cfg.scenarios, 1):
             progress(f"[{i}/{len(cfg.scenarios)}] scenario {name}")

@@ -8,8 +8,8 @@ independently of that decoder:
   chain, a delta frame keeps it intact only when its wire ``seq`` follows the previous
   frame's. A frame shown while its chain is broken is a frame drawn from a broken
   reference (the bar: none).
-- **back after the restore**: the first frame shown at or after the link's restore, in
-  seconds after it (the bar: 1 s).
+- **back after the restore**: the first frame the camera took after the link's restore
+  that was shown, in seconds after the restore (the bar: 1 s).
 - **bitrate**: the video's bytes per second over time, to compare with the link's rate.
 """
 
@@ -64,9 +64,15 @@ def chain(samples: Sequence[Sample]) -> Chain:
     return Chain(len(frames), keyframes, shown, gaps, broken)
 
 
-def first_shown_after_s(samples: Sequence[Sample], restore_ns: int) -> float:
-    """Seconds from *restore_ns* to the first frame shown at or after it (inf: none)."""
-    shown = [s.shown_ns for s in samples if s.shown_ns is not None and s.shown_ns >= restore_ns]
+def first_shown_after_s(samples: Sequence[Sample], restore_ns: int,
+                        fresh: bool = False) -> float:
+    """Seconds from *restore_ns* to the first frame shown at or after it (inf: none).
+
+    With *fresh*, only frames the camera took at or after the restore count: the live
+    picture is back (a frame from before the cut, still in flight, can be shown first).
+    """
+    shown = [s.shown_ns for s in samples if s.shown_ns is not None and s.shown_ns >= restore_ns
+             and (not fresh or s.publish_time_ns >= restore_ns)]
     return (min(shown) - restore_ns) / 1e9 if shown else math.inf
 
 
@@ -96,13 +102,15 @@ def dropout_criteria(topic: str, samples: Sequence[Sample],
     from fleetctl.e2e.analysis import crit
 
     c = chain(samples)
-    back = first_shown_after_s(samples, restore_ns)
+    back = first_shown_after_s(samples, restore_ns, fresh=True)
     criteria = [
-        crit(f"video {topic}: first frame shown after the restore (s)", back, 1.0,
+        crit(f"video {topic}: first live frame shown after the restore (s)", back, 1.0,
              back <= 1.0),
         crit(f"video {topic}: frames shown from a broken reference", c.broken_shown, 0,
              c.broken_shown == 0 and c.shown > 0),
     ]
     notes = [f"video {topic}: {c.frames} frames received ({c.keyframes} keyframes), "
-             f"{c.shown} shown, {c.frames - c.shown} refused, {c.gaps} seq gaps"]
+             f"{c.shown} shown, {c.frames - c.shown} refused, {c.gaps} seq gaps; first "
+             f"frame of any age shown {first_shown_after_s(samples, restore_ns):.3f} s "
+             "after the restore"]
     return criteria, notes

@@ -7,6 +7,7 @@ from pathlib import Path
 import pytest
 
 from fleetctl.deploy.fleet import dump_fleet, load_fleet, parse_fleet, require_endpoint
+from fleetctl.deploy.topics import DEFAULT_PUBLISH
 from fleetctl.errors import ConfigError
 
 GOOD = """\
@@ -120,7 +121,7 @@ def test_topics_and_ros_fields_round_trip() -> None:
     assert jackal.battery_topic == "/battery_state"
     assert (jackal.ros_domain_id, jackal.rmw_implementation) == (7, "rmw_cyclonedds_cpp")
     assert fleet.robots[0].publish is None  # the default set, kept as "absent"
-    assert len(fleet.robots[0].publish_topics) == 6
+    assert len(fleet.robots[0].publish_topics) == len(DEFAULT_PUBLISH)
     again = parse_fleet(Path("fleet.yaml"), dump_fleet(fleet))
     assert again == fleet
     assert "  publish:" not in dump_fleet(fleet).split("- name: jackal2")[0]

@@ -137,3 +137,30 @@ def test_without_a_checkout_the_packaged_images_and_metadata_are_used() -> None:
     assert any(r.startswith("websockets") for r in core)
     assert with_ros[: len(core)] == core
     assert any(r.startswith("ros-jazzy-rclpy") for r in with_ros[len(core):])
+
+
+def test_ros_message_wheels_come_from_the_checkouts_script(tmp_path: Path) -> None:
+    rec = Recorder(present=True)
+    dest = tmp_path / "ctx" / "wheels" / "rosmsgs"
+    said: list[str] = []
+    cfg = images.BuildConfig(source_dir=REPO)
+    assert images.ros_msg_wheels(cfg, dest, rec, said.append)
+    (argv,) = rec.calls
+    assert argv[1] == str(REPO / "scripts" / "ros_msgs" / "build.py")
+    assert argv[2:5] == ["--no-install", "--wheel-dir", str(dest)]
+
+
+def test_without_a_checkout_the_image_has_no_ros_message_wheels(tmp_path: Path) -> None:
+    rec = Recorder(present=True)
+    said: list[str] = []
+    dest = tmp_path / "rosmsgs"
+    assert not images.ros_msg_wheels(images.BuildConfig(source_dir=None), dest, rec,
+                                     said.append)
+    assert rec.calls == [] and dest.is_dir()  # the Dockerfile's COPY needs the directory
+    assert "robots send no TF" in said[0]
+
+
+def test_the_client_image_installs_the_ros_message_wheels_when_there_are_some() -> None:
+    text = (REPO / "images" / "client.Dockerfile").read_text()
+    assert "COPY wheels/rosmsgs /wheels/rosmsgs" in text
+    assert "if ls /wheels/rosmsgs/*.whl" in text

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import hashlib
 import os
+import re
 import shutil
 import stat
 from pathlib import Path
@@ -16,6 +17,7 @@ from fleetctl.deploy import operations as ops
 from fleetctl.deploy.export import export_robot
 from fleetctl.deploy.files import ChangeKind, FileWrite, edit_state, stamp, write_file
 from fleetctl.deploy.render import render_template
+from fleetctl.deploy.topics import DEFAULT_PUBLISH
 from fleetctl.errors import ConfigError
 from tests.deploy.conftest import make_fleet
 
@@ -213,7 +215,7 @@ def test_server_and_client_config_schema(fleet_dir: Path) -> None:
     assert client["server_url"] == "ws://10.8.0.1:8080/"
     assert client["robot_name"] == "jackal2" and client["bind_address"] == "10.8.0.20"
     topics = {p["topic"] for p in client["publish"]}
-    assert topics == {"/pose", "/odom", "/scan", "/camera/image/compressed", "/points", "/events"}
+    assert topics == {t.topic for t in DEFAULT_PUBLISH}
     assert [s["local_topic"] for s in client["subscribe"]] == ["/goal_pose", "/initialpose"]
 
 
@@ -312,12 +314,21 @@ def test_media_keys_render_and_load_in_the_client(fleet_dir: Path) -> None:
     assert {"topic": "/sensorbot/.*", "op": "send"} in bot["rules"]
 
 
-def test_robot_without_tf_renders_no_tf_section(fleet_dir: Path) -> None:
-    from fleetctl.client.config import load_client_config
+def test_new_robots_send_tf_and_without_tf_in_fleet_yaml_none_is_rendered(
+        fleet_dir: Path) -> None:
+    from fleetctl.client.config import TfSpec, load_client_config
 
-    text = (fleet_dir / "robots/husky1/client.yaml").read_text()
-    assert "tf:" not in text and "video:" not in text
-    assert load_client_config(fleet_dir / "robots/husky1/client.yaml").tf is None
+    client = fleet_dir / "robots/husky1/client.yaml"
+    assert "video:" not in client.read_text()
+    assert load_client_config(client).tf == TfSpec()  # add-robot's default
+    fleet_yaml = fleet_dir / "fleet.yaml"
+    text = fleet_yaml.read_text()
+    without = re.sub(r"\n  tf:\n(?:    .*\n)+", "\n", text)
+    assert without != text
+    fleet_yaml.write_text(without)
+    ops.render_fleet(fleet_dir)
+    assert "tf:" not in client.read_text()
+    assert load_client_config(client).tf is None
 
 
 def test_default_topics_client_config_loads(fleet_dir: Path) -> None:
@@ -326,7 +337,7 @@ def test_default_topics_client_config_loads(fleet_dir: Path) -> None:
 
     assert FLEET_COMPRESSIONS == COMPRESSIONS
     cfg = load_client_config(fleet_dir / "robots/husky1/client.yaml")
-    assert len(cfg.publish) == 6 and cfg.status.battery_topic is None
+    assert len(cfg.publish) == len(DEFAULT_PUBLISH) and cfg.status.battery_topic is None
 
 
 def test_no_endpoint_robot_config_has_no_endpoint_line(tmp_path: Path) -> None:

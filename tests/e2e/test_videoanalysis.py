@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+from dataclasses import replace
 
 from fleetctl.e2e import videoanalysis
 from fleetctl.e2e.samples import Sample, dump, load
@@ -41,6 +42,10 @@ def test_first_shown_after_the_restore() -> None:
     frames = [frame(1, 1.0, key=True), frame(2, 7.0, shown=False), frame(3, 7.4, key=True)]
     assert videoanalysis.first_shown_after_s(frames, 7 * S) == 0.401
     assert math.isinf(videoanalysis.first_shown_after_s(frames[:2], 7 * S))
+    # A frame taken before the cut and shown after it is not the live picture.
+    old = replace(frame(9, 7.05), publish_time_ns=2 * S)
+    assert videoanalysis.first_shown_after_s([old, *frames], 7 * S) == 0.051
+    assert videoanalysis.first_shown_after_s([old, *frames], 7 * S, fresh=True) == 0.401
 
 
 def test_bitrate_line_and_mean() -> None:

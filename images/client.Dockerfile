@@ -9,6 +9,11 @@ RUN python3 -m venv /opt/fleetctl \
  && /opt/fleetctl/bin/pip install --no-index --no-cache-dir -q /wheels/base/*.whl
 COPY wheels/ros /wheels/ros
 RUN /opt/fleetctl/bin/pip install --no-index --no-cache-dir -q --find-links /wheels/base /wheels/ros/*.whl
+# Eclipse Zenoh: the e2e `peer` scenario's baseline (not used by fleetctl itself).
+COPY wheels/peers /wheels/peers
+RUN if ls /wheels/peers/*.whl >/dev/null 2>&1; then \
+      /opt/fleetctl/bin/pip install --no-index --no-deps --no-cache-dir -q /wheels/peers/*.whl; \
+    fi
 # tf2_msgs and foxglove_msgs, built by `fleetctl build` (none on PyPI); may be empty.
 COPY wheels/rosmsgs /wheels/rosmsgs
 RUN if ls /wheels/rosmsgs/*.whl >/dev/null 2>&1; then \

@@ -39,6 +39,12 @@ clock. The transport feeds it messages (:meth:`Scheduler.offer`), pulls frames t
 - Disconnect: no_drop messages sent but not acknowledged, or partly sent, go back to the
   head of Q_n in their order (at-least-once; receivers dedupe by (topic, seq)); partly
   sent droppable messages are dropped (counted): the topic resumes with fresh data.
+- Stale after an outage (issue 19): when a new connection opens, a held latest-only
+  message offered before the outage began, or older than ``stale_periods`` x its topic's
+  measured publish period, is dropped (:meth:`Scheduler.drop_stale`, counted in
+  ``dropped_stale``): its latency would be the outage, and a fresh one is due within a
+  period. Topics without a measured period (one offer so far: a latched map) and no_drop
+  messages are never dropped this way.
 """
 
 from __future__ import annotations
@@ -116,6 +122,9 @@ class SchedulerConfig:
             the rate limit (ROS timers jitter).
         first_message_id: First fragment message id; pass a time-based value so ids of
             a restarted client are newer than the previous run's.
+        stale_periods: A held latest-only message older than this many publish periods
+            of its topic is dropped when a new connection opens (:meth:`drop_stale`).
+        period_gain: Gain of the moving average of a topic's offer intervals.
     """
 
     max_fragment_bytes: int = 4194304
@@ -140,6 +149,8 @@ class SchedulerConfig:
     max_consecutive_supersedes: int = 1
     rate_tolerance: float = 0.05
     first_message_id: int = 0
+    stale_periods: float = 1.5
+    period_gain: float = 0.125
 
 
 @dataclass
@@ -158,6 +169,7 @@ class TopicStats:
     dropped_disconnect: int = 0
     dropped_invalid: int = 0
     dropped_behind_keyframe: int = 0
+    dropped_stale: int = 0
     requeued: int = 0
 
     @property
@@ -165,7 +177,7 @@ class TopicStats:
         """Every message of the topic the scheduler dropped, whatever the reason."""
         return (self.dropped_replaced + self.dropped_superseded + self.dropped_overflow
                 + self.dropped_disconnect + self.dropped_invalid
-                + self.dropped_behind_keyframe)
+                + self.dropped_behind_keyframe + self.dropped_stale)
 
 
 @dataclass(frozen=True)
@@ -191,11 +203,12 @@ class TopicFeedback:
 
 class _Message:
     __slots__ = ("fragments", "frame", "keyframe", "message_id", "next_index", "no_drop",
-                 "topic")
+                 "offered_s", "topic")
 
     def __init__(self, topic: _Topic, frame: bytes, no_drop: bool,
-                 keyframe: bool = False) -> None:
+                 keyframe: bool = False, offered_s: float = 0.0) -> None:
         self.topic = topic
+        self.offered_s = offered_s
         self.frame = frame
         self.no_drop = no_drop
         self.keyframe = keyframe
@@ -216,6 +229,8 @@ class _Topic:
     pending: _Message | None = None  # droppable: latest not yet started
     current: _Message | None = None  # droppable: partly sent
     supersede_streak: int = 0
+    last_offer_s: float | None = None
+    period_s: float | None = None  # moving average of offer intervals
     stats: TopicStats = field(default_factory=TopicStats)
 
 
@@ -318,7 +333,8 @@ class Scheduler:
         t = self._topic(topic, priority, now_s)
         t.priority = priority
         t.stats.offered += 1
-        msg = _Message(t, frame, no_drop, keyframe)
+        self._measure_period(t, now_s)
+        msg = _Message(t, frame, no_drop, keyframe, now_s)
         if no_drop:
             return self._push_no_drop(msg)
         self._update_droppable(t, msg)
@@ -329,6 +345,37 @@ class Scheduler:
         if t is None:
             t = self._topics[name] = _Topic(name, priority, last_sent_s=now_s)
         return t
+
+    def _measure_period(self, t: _Topic, now_s: float) -> None:
+        """Moving average of the topic's offer intervals (an srtt-like filter)."""
+        if t.last_offer_s is not None:
+            dt = max(0.0, now_s - t.last_offer_s)
+            gain = self.config.period_gain
+            t.period_s = dt if t.period_s is None else t.period_s + gain * (dt - t.period_s)
+        t.last_offer_s = now_s
+
+    def drop_stale(self, now_s: float, outage_since_s: float | None = None) -> int:
+        """Drop held latest-only messages that would arrive stale on a new connection.
+
+        Call when a connection opens. A held (not started) latest-only message is stale
+        when it was offered before *outage_since_s* (the outage began then; None: no
+        outage known) or is older than ``stale_periods`` x its topic's publish period.
+        Topics without a measured period keep theirs: nothing newer is known to come.
+
+        Returns:
+            How many were dropped (each counted in its topic's ``dropped_stale``).
+        """
+        dropped = 0
+        for t in self._topics.values():
+            msg = t.pending
+            if msg is None or t.period_s is None:
+                continue
+            before = outage_since_s is not None and msg.offered_s < outage_since_s
+            if before or now_s - msg.offered_s > self.config.stale_periods * t.period_s:
+                t.pending = None
+                t.stats.dropped_stale += 1
+                dropped += 1
+        return dropped
 
     def _push_no_drop(self, msg: _Message) -> bool:
         count = len(self._qn) + self._unacked_no_drop

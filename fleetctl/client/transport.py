@@ -13,8 +13,19 @@
 - sends what the scheduler picks, and marks ack points with WebSocket pings: the server
   answers a ping only after reading every earlier frame, so its pong acknowledges them
   (Robofleet III-B, ``UPDATEBPCOUNTER``);
+- watches the kernel's ACKs (Linux ``TCP_INFO``): data unacknowledged and no ACK for
+  ``max(dead_ack_gap_s, dead_ack_rtts x srtt)`` means the path is dead (a congested but
+  live link keeps ACKing); it then dials a new connection at once (racing SYNs, fast
+  early in the outage) and keeps the old one until the new one connects: if the old one
+  got an ACK meanwhile it was a false alarm and the new socket is closed unused, else the
+  old connection is reset and the upgrade runs on the new socket (issue 19,
+  docs/recovery.md);
 - declares the link dead when a ping stays unanswered for ``link_timeout_s`` (TCP alone can
-  take minutes to notice a radio that went silent) and reconnects;
+  take minutes to notice a radio that went silent; the backstop where ``TCP_INFO`` is
+  missing or the server's application hangs) and reconnects;
+- on a new connection after an outage, drops latest-only messages held since before the
+  outage or older than ``SchedulerConfig.stale_periods`` of their topic's publish period
+  (:meth:`Scheduler.drop_stale`): their latency would be the outage;
 - receives frames, reassembles fragments, drops duplicate no_drop frames (a resend after a
   reconnect, see below) and hands complete frames to ``on_frame``.
 
@@ -37,7 +48,10 @@ import errno
 import functools
 import json
 import logging
+import math
 import random
+import socket
+import struct
 import threading
 import time
 from collections import Counter
@@ -51,7 +65,7 @@ from websockets.uri import parse_uri
 
 from fleetctl.batched_connection import BatchedWritesConnection
 from fleetctl.client.config import ClientConfig
-from fleetctl.client.dialer import DialSettings, dial
+from fleetctl.client.dialer import DialSettings, DialTimeout, dial
 from fleetctl.client.memory import tune_malloc
 from fleetctl.client.receiver import Receiver
 from fleetctl.client.scheduler import Scheduler, SchedulerConfig, TopicFeedback
@@ -90,6 +104,10 @@ class LinkTuning:
         bind_reminder_interval_s: While ``bind_address`` is on no interface (the tunnel is
             down), the failed attempts are logged at DEBUG, with a WARNING reminder at most
             this often, seconds (the first one explains).
+        path_poll_s: How often the kernel's TCP state is read for a dead path, seconds.
+        dead_ack_gap_s: With data unacknowledged, no ACK for at least this long (and for
+            ``dead_ack_rtts`` smoothed RTTs) means the path is dead, seconds.
+        dead_ack_rtts: The same gap in smoothed RTTs (``tcpi_rtt``).
     """
 
     open_timeout_s: float = 5.0
@@ -105,6 +123,91 @@ class LinkTuning:
     write_limit_bytes: int = 1024 * 1024
     tune_malloc: bool = True
     bind_reminder_interval_s: float = 30.0
+    path_poll_s: float = 0.05
+    dead_ack_gap_s: float = 0.15
+    dead_ack_rtts: float = 8.0
+
+
+@dataclass(frozen=True)
+class TcpInfo:
+    """What :class:`AckStall` reads from Linux's ``struct tcp_info``.
+
+    Attributes:
+        unacked: Segments sent and not acknowledged (``tcpi_unacked``).
+        last_ack_s: Time since the last ACK arrived, seconds (``tcpi_last_ack_recv``).
+        srtt_s: Smoothed RTT, seconds (``tcpi_rtt``); not updated while no ACK comes.
+    """
+
+    unacked: int
+    last_ack_s: float
+    srtt_s: float
+
+
+# struct tcp_info up to tcpi_total_retrans: 8 one-byte fields, then 24 __u32.
+_TCP_INFO = struct.Struct("=8B24I")
+_UNACKED, _LAST_ACK_RECV, _RTT = 4, 12, 15  # indices among the __u32 fields
+
+
+def read_tcp_info(sock: Any) -> TcpInfo | None:
+    """The kernel's view of *sock* (a socket or asyncio's ``TransportSocket``); None where
+    ``TCP_INFO`` does not exist (not Linux) or the socket is gone."""
+    option = getattr(socket, "TCP_INFO", None)
+    if option is None or sock is None:
+        return None
+    try:
+        raw = sock.getsockopt(socket.IPPROTO_TCP, option, _TCP_INFO.size)
+    except OSError:
+        return None
+    if len(raw) < _TCP_INFO.size:
+        return None
+    words = _TCP_INFO.unpack(raw)[8:]
+    return TcpInfo(words[_UNACKED], words[_LAST_ACK_RECV] / 1e3, words[_RTT] / 1e6)
+
+
+class AckStall:
+    """Decides from polled :class:`TcpInfo` whether the path is dead (pure, no I/O).
+
+    Dead: data is unacknowledged, no ACK came for ``max(min_gap_s, rtts x srtt)``, and the
+    unacknowledged data has been seen for that long too. The last condition matters after
+    an idle spell: ``tcpi_last_ack_recv`` is then large although the data was just sent.
+    A live link, however congested, ACKs what arrives; only a silent path stops the ACKs
+    with data outstanding (a receiver that stops reading still ACKs, window probes too).
+
+    Args:
+        min_gap_s: Shortest ACK gap taken as dead, seconds (above delayed ACKs: 40 ms).
+        rtts: The gap in smoothed RTTs.
+    """
+
+    def __init__(self, min_gap_s: float, rtts: float) -> None:
+        self.min_gap_s = min_gap_s
+        self.rtts = rtts
+        self._busy_since_s: float | None = None  # first poll that saw unacked data
+
+    def gap_s(self, info: TcpInfo) -> float:
+        """How long without an ACK means dead, for this connection's RTT."""
+        return max(self.min_gap_s, self.rtts * info.srtt_s)
+
+    def dead(self, now_s: float, info: TcpInfo) -> bool:
+        """Update with a poll at *now_s*; True while the path looks dead."""
+        if info.unacked == 0:
+            self._busy_since_s = None
+            return False
+        if self._busy_since_s is None:
+            self._busy_since_s = now_s
+        gap = self.gap_s(info)
+        return info.last_ack_s > gap and now_s - self._busy_since_s > gap
+
+
+class PathDead(Exception):
+    """The old connection's path is dead and a new TCP connection is ready.
+
+    Attributes:
+        sock: The connected socket the next WebSocket upgrade runs on.
+    """
+
+    def __init__(self, message: str, sock: socket.socket) -> None:
+        super().__init__(message)
+        self.sock = sock
 
 
 # What to look at when bind_address is on no interface; fleet0 is the interface the bundle
@@ -128,6 +231,22 @@ class LinkFeedback:
 
 class LinkDead(Exception):
     """No pong within ``link_timeout_s``: the connection is abandoned."""
+
+
+@dataclass(frozen=True)
+class _Ended:
+    """How a connection's session ended.
+
+    Attributes:
+        acked: A pong came back on it (the link worked: backoff starts over).
+        path_dead: It ended because its path went silent (:class:`PathDead`,
+            :class:`LinkDead`): reconnect without a backoff, the dialer paces itself.
+        ready: A connected socket for the next upgrade (from :class:`PathDead`).
+    """
+
+    acked: bool
+    path_dead: bool = False
+    ready: socket.socket | None = None
 
 
 class LinkConnection(BatchedWritesConnection, ClientConnection):
@@ -216,6 +335,9 @@ class RobotLink:
         self._identities: list[str] = []
         self._subscribed: set[str] = set()  # confirmed by the server on this connection
         self._acked_any = False  # a pong came back on the current connection
+        # When the current outage began (clock seconds): the last ACK of a dead path or
+        # the oldest unanswered ping; None while the link is up.
+        self._outage_since_s: float | None = None
         # While bind_address is on no interface: since when, the last WARNING, attempts.
         self._unbound_since_s: float | None = None
         self._unbound_warned_s = 0.0
@@ -300,20 +422,23 @@ class RobotLink:
         self._loop_thread = threading.get_ident()
         self._running = True
         attempt = 0
+        ready: socket.socket | None = None  # connected early by the watchdog
         try:
             while not self._stop.is_set():
-                ws = await self._connect(attempt)
+                ws = await self._connect(attempt, ready)
+                ready = None
                 if ws is None:
                     attempt += 1
                     continue
                 if self._counters["connects"] > 0:
                     self._counters["reconnects"] += 1
                 self._counters["connects"] += 1
-                if await self._session(ws):
-                    attempt = 0  # the link worked (a pong came back): start backoff over
-                else:
-                    attempt += 1
-                if not self._stop.is_set():
+                ended = await self._session(ws)
+                attempt = 0 if ended.acked else attempt + 1  # a pong: start backoff over
+                ready = ended.ready
+                # After a dead path the dialer paces itself (and a socket may be ready):
+                # a backoff would only delay the first SYN after the link returns.
+                if not self._stop.is_set() and not ended.path_dead:
                     await self._wait_stop(self._backoff(attempt))
         finally:
             self._running = False
@@ -334,6 +459,7 @@ class RobotLink:
         snap["connects"] = self._counters["connects"]
         snap["reconnects"] = self._counters["reconnects"]
         snap["link_timeouts"] = self._counters["link_timeouts"]
+        snap["dead_paths"] = self._counters["dead_paths"]
         snap["connect_failures"] = self._counters["connect_failures"]
         snap["session_resumes"] = self._counters["session_resumes"]
         snap["session_mailbox_frames"] = self._counters["session_mailbox_frames"]
@@ -360,19 +486,26 @@ class RobotLink:
         with contextlib.suppress(TimeoutError):
             await asyncio.wait_for(self._stop.wait(), timeout_s)
 
-    async def _open(self) -> LinkConnection:
-        """One connection attempt: raced TCP connect, then TLS and the upgrade, all
-        within ``open_timeout_s``."""
-        headers = {SESSION_HEADER: self.config.robot_name}
-        if self.config.token is not None:
-            headers["Authorization"] = f"Bearer {self.config.token}"
+    async def _dial(self) -> socket.socket:
+        """The raced TCP connect, at the stagger for the current outage's age."""
         uri = parse_uri(self.config.server_url)
         local = (None if self.config.bind_address is None
                  else (self.config.bind_address, 0))
-        async with asyncio.timeout(self.tuning.open_timeout_s):
-            sock = await dial(uri.host, uri.port, self.tuning.open_timeout_s,
-                              self.tuning.dial, local_addr=local)
-            try:
+        since = self._outage_since_s
+        age = math.inf if since is None else max(0.0, self._clock() - since)
+        return await dial(uri.host, uri.port, self.tuning.open_timeout_s, self.tuning.dial,
+                          local_addr=local, outage_age_s=age)
+
+    async def _open(self, ready: socket.socket | None = None) -> LinkConnection:
+        """One connection attempt: raced TCP connect within ``open_timeout_s`` (or the
+        *ready* socket the watchdog connected), then TLS and the upgrade within another
+        ``open_timeout_s``."""
+        headers = {SESSION_HEADER: self.config.robot_name}
+        if self.config.token is not None:
+            headers["Authorization"] = f"Bearer {self.config.token}"
+        sock = ready if ready is not None else await self._dial()
+        try:
+            async with asyncio.timeout(self.tuning.open_timeout_s):
                 ws = await connect(
                     self.config.server_url, sock=sock, additional_headers=headers,
                     compression=None, proxy=None, open_timeout=None, ping_interval=None,
@@ -380,14 +513,15 @@ class RobotLink:
                     max_size=self.tuning.max_receive_frame_bytes,
                     write_limit=self.tuning.write_limit_bytes,
                     create_connection=LinkConnection)
-            except BaseException:
-                sock.close()  # the handshake failed or timed out: the socket is ours
-                raise
+        except BaseException:
+            sock.close()  # the handshake failed or timed out: the socket is ours
+            raise
         assert isinstance(ws, LinkConnection)
         return ws
 
-    async def _connect(self, attempt: int) -> LinkConnection | None:
-        connecting = asyncio.ensure_future(self._open())
+    async def _connect(self, attempt: int,
+                       ready: socket.socket | None = None) -> LinkConnection | None:
+        connecting = asyncio.ensure_future(self._open(ready))
         stopper = asyncio.ensure_future(self._stop.wait())
         # stop() must not wait for a connection attempt to time out.
         await asyncio.wait({connecting, stopper}, return_when=asyncio.FIRST_COMPLETED)
@@ -395,13 +529,16 @@ class RobotLink:
         if not connecting.done():
             connecting.cancel()
             await asyncio.gather(connecting, return_exceptions=True)
+            if ready is not None:
+                ready.close()  # cancelled before _open took it over
             return None
         try:
             ws = connecting.result()
             assert isinstance(ws, LinkConnection)
         except (OSError, TimeoutError, InvalidHandshake, InvalidURI) as exc:
             self._counters["connect_failures"] += 1
-            delay = self._backoff(attempt + 1)
+            # Silence (no SYN-ACK, no refusal): the dialer paced its SYNs; go on at once.
+            delay = 0.0 if isinstance(exc, DialTimeout) else self._backoff(attempt + 1)
             if isinstance(exc, OSError) and exc.errno == errno.EADDRNOTAVAIL:
                 self._log_unbound(delay)
             else:
@@ -445,15 +582,17 @@ class RobotLink:
         self._unbound_since_s = None
         self._unbound_attempts = 0
 
-    async def _session(self, ws: LinkConnection) -> bool:
-        """Run one connection until it fails or stop(); True if a pong ever came back."""
+    async def _session(self, ws: LinkConnection) -> _Ended:
+        """Run one connection until it fails or stop()."""
         self._ws = ws
         self._pings.clear()
         self._subscribed.clear()
         self._identities = []
         self._acked_any = False
+        self._drop_stale()
         logger.info("connected to %s", self.config.server_url)
         tasks: list[asyncio.Task[None]] = []
+        ended = _Ended(acked=False)
         try:
             await self._subscribe_all(ws, subscribe=True)
             tasks = [asyncio.create_task(self._send_loop(ws)),
@@ -467,7 +606,10 @@ class RobotLink:
                     continue
                 # A clean close (1000/1001, e.g. a server restart) ends the receive loop
                 # without an exception: report it like the others.
-                self._log_session_end(task.exception() or _close_exc(ws))
+                exc = task.exception()
+                self._log_session_end(exc or _close_exc(ws))
+                if isinstance(exc, (LinkDead, PathDead)):
+                    ended = _Ended(False, True, exc.sock if isinstance(exc, PathDead) else None)
             if self._stop.is_set():
                 await self._goodbye(ws)
         except ConnectionClosed as exc:
@@ -479,8 +621,17 @@ class RobotLink:
             self._ws = None
             self._scheduler.on_disconnect(self._clock())
             self._receiver.on_disconnect()
-            ws.transport.abort()
-        return self._acked_any
+            ws.transport.abort()  # a reset: the old path must not deliver stale data later
+        return _Ended(self._acked_any, ended.path_dead, ended.ready)
+
+    def _drop_stale(self) -> None:
+        """A connection opened: drop held latest-only messages that are stale by now
+        (:meth:`Scheduler.drop_stale`); the outage, if one ran, is over."""
+        since, self._outage_since_s = self._outage_since_s, None
+        dropped = self._scheduler.drop_stale(self._clock(), since)
+        if dropped:
+            logger.info("dropped %d held latest-only messages: stale after the outage",
+                        dropped)
 
     def _log_session_end(self, exc: BaseException | None) -> None:
         if isinstance(exc, ConnectionClosed):
@@ -494,6 +645,10 @@ class RobotLink:
         elif isinstance(exc, LinkDead):
             self._counters["link_timeouts"] += 1
             self._last_close = "link timeout"
+            logger.warning("%s", exc)
+        elif isinstance(exc, PathDead):
+            self._counters["dead_paths"] += 1
+            self._last_close = "dead path"
             logger.warning("%s", exc)
         elif exc is not None:
             self._last_close = f"error: {exc!r}"
@@ -566,13 +721,79 @@ class RobotLink:
             self._wake.set()
 
     async def _watchdog(self, ws: ClientConnection) -> None:
-        period = self.tuning.link_timeout_s / 4
-        while True:
-            await asyncio.sleep(period)  # a periodic check, not a synchronization
-            oldest = min(self._pings.values(), default=None)
-            if oldest is not None and self._clock() - oldest > self.tuning.link_timeout_s:
-                raise LinkDead(f"no pong from {self.config.server_url} for "
-                               f"{self.tuning.link_timeout_s:.1f} s: reconnecting")
+        """Poll the connection's health; raise :class:`PathDead` or :class:`LinkDead`.
+
+        Every ``path_poll_s`` the kernel's ACK state is read (:class:`AckStall`). When the
+        path looks dead, a new TCP connection is dialled at once while this one carries
+        on; once it connects, this one is abandoned unless an ACK came meanwhile (a false
+        alarm: the new socket is closed before the upgrade, so the server's session is
+        not taken over). The pong timeout stays as the backstop.
+        """
+        tune = self.tuning
+        sock = ws.transport.get_extra_info("socket")
+        stall = AckStall(tune.dead_ack_gap_s, tune.dead_ack_rtts)
+        redial: asyncio.Task[socket.socket] | None = None
+        try:
+            while True:
+                await asyncio.sleep(tune.path_poll_s)  # a periodic check, not a sync
+                now = self._clock()
+                info = read_tcp_info(sock)
+                dead = info is not None and stall.dead(now, info)
+                if dead and redial is None and info is not None:
+                    redial = self._start_redial(now, info, stall)
+                if redial is not None and redial.done():
+                    done, redial = redial, None  # PathDead hands its socket on
+                    redial = self._redial_done(done, dead)
+                self._check_pongs(now)
+        finally:
+            if redial is not None:
+                await _discard(redial)
+
+    def _start_redial(self, now_s: float, info: TcpInfo,
+                      stall: AckStall) -> asyncio.Task[socket.socket]:
+        """The path looks dead: note when the outage began and dial a new connection."""
+        if self._outage_since_s is None:
+            self._outage_since_s = now_s - info.last_ack_s
+        logger.warning("no ACK from %s for %.2f s with %d segments unacknowledged (dead "
+                       "after %.2f s): dialing a new connection, keeping this one until it "
+                       "connects", self.config.server_url, info.last_ack_s, info.unacked,
+                       stall.gap_s(info))
+        return asyncio.create_task(self._dial())
+
+    def _redial_done(self, redial: asyncio.Task[socket.socket],
+                     dead: bool) -> asyncio.Task[socket.socket] | None:
+        """The early dial ended: switch to its socket, or drop it (false alarm, failure).
+
+        Raises:
+            PathDead: The new socket connected and the old path is still silent.
+        """
+        if redial.cancelled():
+            return None
+        exc = redial.exception()
+        if isinstance(exc, DialTimeout):
+            return None  # still silent: the next poll dials again (at the outage's pace)
+        if exc is not None:
+            # Refused or unreachable: the server is reachable and said no; the pong
+            # timeout and the normal reconnect with backoff take it from here.
+            logger.info("early dial failed: %r", exc)
+            return redial  # kept done: no new early dial on this connection
+        new = redial.result()
+        if dead:
+            raise PathDead(f"path to {self.config.server_url} dead: switching to the new "
+                           "connection", new)
+        new.close()
+        self._outage_since_s = None
+        logger.info("the old connection got an ACK again: false alarm, new socket closed")
+        return None
+
+    def _check_pongs(self, now_s: float) -> None:
+        """The backstop: a ping unanswered for ``link_timeout_s``."""
+        oldest = min(self._pings.values(), default=None)
+        if oldest is not None and now_s - oldest > self.tuning.link_timeout_s:
+            if self._outage_since_s is None:
+                self._outage_since_s = oldest
+            raise LinkDead(f"no pong from {self.config.server_url} for "
+                           f"{self.tuning.link_timeout_s:.1f} s: reconnecting")
 
     # -- receiving ------------------------------------------------------------------------
 
@@ -623,6 +844,15 @@ class RobotLink:
         patterns = event.get("subscriptions")
         return [p for p in patterns if isinstance(p, str) and p not in wanted] if isinstance(
             patterns, list) else []
+
+
+async def _discard(task: asyncio.Task[socket.socket]) -> None:
+    """Cancel an early dial; close its socket if it connected and was not used."""
+    if not task.done():
+        task.cancel()
+    with contextlib.suppress(asyncio.CancelledError, Exception):
+        sock = await task
+        sock.close()
 
 
 def _close_exc(ws: LinkConnection) -> ConnectionClosed | None:

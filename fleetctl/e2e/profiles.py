@@ -98,6 +98,10 @@ PROFILES: dict[str, Profile] = {
         TopicLoad("/low", "sensor_msgs/msg/CompressedImage", 1000 / 150, 65_536, priority=1.0),
     ), max_fragment_bytes=4096),
     "multi-consumer": Profile("multi-consumer", (replace(_POINTS, priority=1.0),)),
+    # Issue 19's side-by-side load against zenoh: a 720-beam scan (ranges + intensities,
+    # 5,760 bytes) at 10 Hz and a pose at 20 Hz, nothing else.
+    "peer": Profile("peer", (replace(_SCAN, size_bytes=5760),
+                             replace(_POSE, rate_hz=20.0))),
     "ramp": Profile("ramp", (replace(_POSE, priority=10.0), _SCAN, _IMAGE, _POINTS,
                              replace(_CAMERA, video_max_kbps=3000))),
 }

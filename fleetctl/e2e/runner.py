@@ -34,13 +34,14 @@ from fleetctl.e2e.topology import IDLE_COMMAND, ROBOT_SIDE, SERVER_SIDE, Topolog
 from fleetctl.errors import EnvironmentMissing, FleetError
 
 Progress = Callable[[str], None]
-SCENARIOS = ("link", "dropout", "multi-consumer", "ramp", "priority")
+SCENARIOS = ("link", "dropout", "multi-consumer", "ramp", "priority", "peer")
 # Components each fleet scenario runs: (image, command that must exist in it).
 _NEEDS = {
     "dropout": (("server", "server"), ("client", "client")),
     "multi-consumer": (("server", "server"), ("client", "client")),
     "ramp": (("server", "server"), ("client", "client")),
     "priority": (("server", "server"), ("client", "client")),
+    "peer": (("server", "server"), ("client", "client")),
 }
 # The link calibration probe: a TCP sink on the server side, a timed sender on the robot side.
 SINK_SCRIPT = (

@@ -1,4 +1,5 @@
-"""The four fleet scenarios (issue 5), each with its baseline in the same invocation.
+"""The fleet scenarios (issue 5), each with its baseline in the same invocation; ``peer``
+(issue 19, :mod:`fleetctl.e2e.peerscenario`) runs the same load through zenoh.
 
 Every scenario runs the real parts: ``fleetctl server``, ``fleetctl client`` with the load
 publisher in the robot container, WebSocket consumers on the server side, tc on the router.
@@ -31,6 +32,7 @@ from typing import Any
 from fleetctl.deploy.shaping import Capabilities, LinkShaper, RateSpec, mbit
 from fleetctl.e2e import analysis, profiles, videoanalysis
 from fleetctl.e2e.fleetrun import FleetRun, hold, wait_for
+from fleetctl.e2e.peerscenario import run_peer
 from fleetctl.e2e.samples import Sample
 from fleetctl.e2e.topology import ROBOT_SIDE, SERVER_SIDE, Endpoint
 from fleetctl.errors import FleetError
@@ -380,4 +382,5 @@ SCENARIO_FUNCS: dict[str, Callable[[FleetRun, Capabilities, float, Progress], di
     "priority": run_priority,
     "multi-consumer": run_multi_consumer,
     "ramp": run_ramp,
+    "peer": run_peer,
 }

@@ -178,6 +178,21 @@ class Topology:
         self._docker(*argv, image, *command, what=f"start {role}")
         return self._attach(name, role, side)
 
+    def start_beside(self, role: str, beside: Endpoint, image: str,
+                     command: Sequence[str], *, mounts: Sequence[str] = ()) -> Endpoint:
+        """Start a container in *beside*'s network namespace (its addresses, routes and
+        tunnel): a process that must be reachable where *beside* is, from another image.
+        """
+        name = self.container_name(role)
+        argv = ["run", "-d", "--name", name, *self.labels, "--network",
+                f"container:{beside.name}"]
+        for mount in mounts:
+            argv += ["-v", mount]
+        self._docker(*argv, image, *command, what=f"start {role}")
+        endpoint = Endpoint(name, beside.side, beside.ip)
+        self.endpoints.append(endpoint)
+        return endpoint
+
     def start_service(self, role: str, side: str, service: Mapping[str, Any],
                       volumes: Mapping[str, str | None]) -> Endpoint:
         """Start a compose *service* (:mod:`fleetctl.deploy.dockerrun`) on *side*.

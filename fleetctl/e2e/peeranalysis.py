@@ -1,0 +1,132 @@
+"""Pure analysis of the ``peer`` scenario: fleetctl against zenoh, trial by trial."""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
+from typing import Any
+
+from fleetctl.e2e.analysis import crit, latency_line, status_of
+from fleetctl.e2e.metrics import LatencyStats, by_topic, recovery_s
+from fleetctl.e2e.samples import Sample
+
+RECOVERY_BAR_S = 0.1  # issue 19: every trial back within 0.1 s
+ZENOH_FACTOR = 4.0  # ... and at least 4x sooner than zenoh at its best, trial by trial
+UPLINK_BAR_BIT_S = 0.50e6
+
+
+@dataclass(frozen=True)
+class VariantRun:
+    """What one variant's run gave.
+
+    Attributes:
+        samples: Every sample its consumer recorded.
+        t0_ns: When its steady phase started.
+        trials: ``(cut, restore, end)`` of each trial (ns since the epoch).
+        uplink_bit_s: Router tx towards the server network in the steady window.
+        published: What the load publisher published per wire topic.
+    """
+
+    samples: Sequence[Sample]
+    t0_ns: int
+    trials: Sequence[tuple[int, int, int]]
+    uplink_bit_s: float
+    published: Mapping[str, Mapping[str, int]]
+
+
+@dataclass(frozen=True)
+class Trial:
+    """One cut of one variant.
+
+    Attributes:
+        recovery_s: Per topic, seconds from the restore until latency is back.
+        first_s: Seconds from the restore to the first message received after it.
+        stale: Messages received after the restore that were published before it.
+    """
+
+    recovery_s: Mapping[str, float]
+    first_s: float
+    stale: int
+
+    @property
+    def worst_s(self) -> float:
+        """The slowest topic's recovery."""
+        return max(self.recovery_s.values()) if self.recovery_s else math.inf
+
+
+def trials_of(run: VariantRun, topics: Sequence[str]) -> list[Trial]:
+    """Each trial measured on the samples between the previous trial's end and its own,
+    against the latency of the steady phase before the first cut (the trials follow each
+    other without a steady phase in between)."""
+    out = []
+    first_cut = run.trials[0][0] if run.trials else run.t0_ns
+    steady = [s for s in run.samples if run.t0_ns <= s.recv_time_ns < first_cut]
+    start = run.t0_ns
+    for cut, restore, end in run.trials:
+        window = [s for s in run.samples if start <= s.recv_time_ns < end]
+        grouped = by_topic([*steady, *(s for s in window if s.recv_time_ns >= cut)])
+        rec = {t: recovery_s(grouped.get(t, []), cut, restore) for t in topics}
+        after = [s for s in window if s.recv_time_ns >= restore]
+        first = (min(s.recv_time_ns for s in after) - restore) / 1e9 if after else math.inf
+        stale = sum(1 for s in after if s.publish_time_ns < restore)
+        out.append(Trial(rec, first, stale))
+        start = end
+    return out
+
+
+def floor_p50_ms(run: VariantRun) -> float:
+    """p50 latency of every message received before the first cut (the latency floor)."""
+    first_cut = run.trials[0][0] if run.trials else math.inf
+    return LatencyStats.of([s for s in run.samples if s.recv_time_ns < first_cut]).p50_ms
+
+
+def peer(runs: Mapping[str, VariantRun], topics: Sequence[str]) -> dict[str, Any]:
+    """The scenario's result: criteria, notes, plots (``fleetctl``, ``zenoh-*`` variants)."""
+    trials = {v: trials_of(r, topics) for v, r in runs.items()}
+    fleet = trials["fleetctl"]
+    worst = max((t.worst_s for t in fleet), default=math.inf)
+    stale = sum(t.stale for t in fleet)
+    best = trials.get("zenoh-best", [])
+    factors = [b.worst_s / f.worst_s if f.worst_s > 0 else math.inf
+               for f, b in zip(fleet, best, strict=False)]
+    factor = min(factors, default=math.nan)
+    floors = {v: floor_p50_ms(r) for v, r in runs.items()}
+    zenoh_floor = min((f for v, f in floors.items() if v != "fleetctl"), default=math.nan)
+    uplink = runs["fleetctl"].uplink_bit_s
+    criteria = [
+        crit("fleetctl recovery, worst topic of the worst trial (s)", worst, RECOVERY_BAR_S,
+             worst <= RECOVERY_BAR_S),
+        crit("fleetctl stale messages after the restores", stale, 0, stale == 0),
+        crit("zenoh-best / fleetctl recovery, worst trial", factor, ZENOH_FACTOR,
+             factor >= ZENOH_FACTOR),
+        crit("fleetctl steady uplink (Mbit/s)", uplink / 1e6, UPLINK_BAR_BIT_S / 1e6,
+             uplink <= UPLINK_BAR_BIT_S),
+        crit("fleetctl latency floor p50 / zenoh's best p50", floors["fleetctl"] / zenoh_floor
+             if zenoh_floor > 0 else math.inf, 1.0, floors["fleetctl"] <= zenoh_floor),
+    ]
+    notes = []
+    for v, ts in trials.items():
+        per = "; ".join(
+            f"trial {i + 1}: " + ", ".join(f"{t.rsplit('/', 1)[-1]} {x:.3f}"
+                                           for t, x in tr.recovery_s.items())
+            + f" s, first message {tr.first_s:.3f} s, stale {tr.stale}"
+            for i, tr in enumerate(ts))
+        notes.append(f"{v}: uplink {runs[v].uplink_bit_s / 1e6:.3f} Mbit/s, latency floor "
+                     f"p50 {floors[v]:.2f} ms; {per}")
+    plots = []
+    for v, r in runs.items():
+        spans = [[(c - r.t0_ns) / 1e9, (rs - r.t0_ns) / 1e9, "link cut"]
+                 for c, rs, _ in r.trials]
+        plots.append({
+            "title": f"peer: latency over time ({v})", "xlabel": "publish time (s)",
+            "ylabel": "latency (ms)", "logy": True, "marker": ".", "style": "",
+            "spans": spans,
+            "lines": {t: latency_line(ss, r.t0_ns) for t, ss in by_topic(r.samples).items()},
+        })
+    return {"name": "peer", "status": status_of(criteria), "criteria": criteria,
+            "notes": notes, "plots": plots,
+            "trials": {v: [{"recovery_s": dict(t.recovery_s), "first_s": t.first_s,
+                            "stale": t.stale} for t in ts] for v, ts in trials.items()},
+            "floor_p50_ms": floors,
+            "uplink_bit_s": {v: r.uplink_bit_s for v, r in runs.items()}}

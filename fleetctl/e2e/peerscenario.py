@@ -1,0 +1,155 @@
+"""The ``peer`` scenario (issue 19): fleetctl against Eclipse Zenoh on the same load and link.
+
+Load (profile ``peer``): a 720-beam LaserScan at 10 Hz and a PoseStamped at 20 Hz, on a
+4 Mbit/s link cut :data:`TRIALS` times for :data:`CUT_S` s each. Three variants, one after
+the other, each with its own robot container and consumer:
+
+- ``fleetctl``: ``fleetctl client`` to ``up``'s server, a WebSocket consumer (as ``dropout``);
+- ``zenoh-default`` and ``zenoh-best``: the same load publisher, a bridge routing each ROS 2
+  topic to zenoh the way zenoh-bridge-ros2dds does, a zenoh router in the server's network
+  namespace and a zenoh consumer on the server network
+  (:mod:`fleetctl.e2e.zenohpeer` says what each settings name means).
+
+Robots of every variant take the same path (through WireGuard when the run has it).
+Per variant: the steady uplink (router tx bytes towards the server network over
+:data:`UPLINK_WINDOW_S` s before the first cut), the latency floor (p50 before the first
+cut), and per trial: recovery per topic (:func:`fleetctl.e2e.metrics.recovery_s`), the
+first message after the restore and the stale messages (received after the restore but
+published before it).
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable
+from typing import Any
+from urllib.parse import urlsplit
+
+from fleetctl.deploy.shaping import Capabilities
+from fleetctl.e2e import peeranalysis, profiles
+from fleetctl.e2e.fleetrun import CONTAINER_DIR, FleetRun, hold, wait_for
+from fleetctl.e2e.samples import Sample
+from fleetctl.e2e.topology import ROBOT_SIDE, SERVER_SIDE, Endpoint
+from fleetctl.e2e.zenohpeer import PORT
+
+Progress = Callable[[str], None]
+CUT_S = 5.0
+TRIALS = 3
+LINK_MBIT = 4.0
+UPLINK_WINDOW_S = 3.0
+ZENOH_VARIANTS = ("zenoh-default", "zenoh-best")
+
+
+def _zenoh_robot(fr: FleetRun, role: str, settings: str, p: profiles.Profile) -> Endpoint:
+    """The load publisher and the zenoh bridge in one robot container (the fleetctl
+    robot's path: through the tunnel when there is one)."""
+    host = urlsplit(fr.robot_server_url).hostname
+    script = (f"python3 -m fleetctl.e2e.load --profile {p.name} "
+              f"--out {CONTAINER_DIR}/out/{role}-published.json & "
+              "echo $! > /tmp/load.pid; "
+              f"exec python3 -m fleetctl.e2e.zenohpeer bridge --profile {p.name} "
+              f"--settings {settings} --connect tcp/{host}:{PORT}")
+    wg = fr.deployment.robot_options(fr.server_ip)
+    env = {"ROS_AUTOMATIC_DISCOVERY_RANGE": "LOCALHOST", **wg.pop("env", {})}
+    mounts = [*fr.mounts(), *wg.pop("mounts", [])]
+    return fr.topo.start(role, ROBOT_SIDE, fr.image("client"), ["bash", "-c", script],
+                         env=env, mounts=mounts, **wg)
+
+
+def _zenoh_consumers(fr: FleetRun, role: str, settings: str, p: profiles.Profile,
+                     count: int) -> Endpoint:
+    ep = fr.topo.start(
+        role, SERVER_SIDE, fr.image("client"),
+        ["python3", "-m", "fleetctl.e2e.zenohpeer", "consumer", "--profile", p.name,
+         "--settings", settings, "--connect", f"tcp/{fr.server_ip}:{PORT}",
+         "--count", str(count), "--name", role, "--out", f"{CONTAINER_DIR}/out"],
+        mounts=fr.mounts())
+    ready = [fr.out / f"{role}-{i}.ready" for i in range(count)]
+    wait_for(f"{count} zenoh consumer(s) {role}", lambda: all(r.exists() for r in ready),
+             30.0)
+    return ep
+
+
+class _Run:
+    """One variant's containers (removed on exit; their sample files stay)."""
+
+    def __init__(self, fr: FleetRun, variant: str, p: profiles.Profile) -> None:
+        self.fr, self.variant, self.p = fr, variant, p
+        self.tag = f"peer-{variant}"
+        self.endpoints: list[Endpoint] = []
+        self.published: dict[str, dict[str, int]] = {}
+
+    def __enter__(self) -> _Run:
+        fr, tag, p = self.fr, self.tag, self.p
+        regex = "(" + "|".join(t.remote_topic for t in p.topics) + ")"
+        if self.variant == "fleetctl":
+            self.endpoints.append(fr.start_consumers(tag, 1, regex))
+            self.robot = fr.start_robot(f"{tag}-robot", p, p.name)
+        else:
+            settings = self.variant.removeprefix("zenoh-")
+            assert fr.server is not None
+            router = fr.topo.start_beside(
+                f"{tag}-router", fr.server, fr.image("client"),
+                ["python3", "-m", "fleetctl.e2e.zenohpeer", "router", "--settings",
+                 settings])
+            self.endpoints.append(router)
+            # zenoh clients give up at once when the router is not listening yet.
+            fr.wait_healthy(router.name, "the zenoh router", lambda: "listening on" in
+                            fr.topo.logs(router.name), 30.0)
+            self.endpoints.append(_zenoh_consumers(fr, tag, settings, p, 1))
+            self.robot = _zenoh_robot(fr, f"{tag}-robot", settings, p)
+        self.endpoints.append(self.robot)
+        fr.wait_flowing(tag, [t.remote_topic for t in p.topics], [f"{tag}-0"])
+        return self
+
+    def stop(self) -> list[Sample]:
+        self.published = self.fr.stop_load(self.robot, f"{self.tag}-robot")
+        return self.fr.samples(self.tag)
+
+    def __exit__(self, *exc: object) -> None:
+        self.fr.remove(*reversed(self.endpoints))
+
+
+def run_peer(fr: FleetRun, caps: Capabilities, duration_s: float,
+             progress: Progress) -> dict[str, Any]:
+    """fleetctl, zenoh with the bridge's defaults, zenoh at its best: same load, same cuts."""
+    from fleetctl.e2e.scenarios import Link
+
+    p = profiles.profile("peer")
+    link = Link(fr, caps)
+    steady_s = max(UPLINK_WINDOW_S + 1.0, duration_s / 3)
+    after_s = max(5.0, duration_s / 3)
+    runs: dict[str, peeranalysis.VariantRun] = {}
+    for variant in ("fleetctl", *ZENOH_VARIANTS):
+        link.rate(LINK_MBIT)
+        with _Run(fr, variant, p) as run:
+            progress(f"peer/{variant}: steady at {LINK_MBIT:g} Mbit/s")
+            t0 = time.time_ns()
+            window = fr.topo.count_tx(fr.topo.router, fr.topo.router_devs[SERVER_SIDE],
+                                      UPLINK_WINDOW_S)
+            hold(max(0.0, steady_s - UPLINK_WINDOW_S))
+            trials = []
+            for i in range(TRIALS):
+                cut = time.time_ns()
+                link.cut()
+                progress(f"peer/{variant}: cut {i + 1}/{TRIALS} for {CUT_S:g} s")
+                hold(CUT_S)
+                link.restore()
+                restore = time.time_ns()
+                hold(after_s)
+                trials.append((cut, restore, time.time_ns()))
+            samples = run.stop()
+        runs[variant] = peeranalysis.VariantRun(samples, t0, trials, window.tx_bytes * 8 /
+                                                window.seconds, run.published)
+    link.clear()
+    result = peeranalysis.peer(runs, [t.remote_topic for t in p.topics])
+    result["notes"].insert(0, (
+        f"load: {', '.join(f'{t.remote_topic} {t.rate_hz:g} Hz' for t in p.topics)}; "
+        f"{LINK_MBIT:g} Mbit/s both ways; {TRIALS} cuts of {CUT_S:g} s per variant "
+        "(blackhole routes); robots of every variant "
+        + ("through WireGuard" if fr.wireguard else "on the routed network")
+        + "; zenoh 1.x Python bindings, router in the server's network namespace "
+        "(fleetctl/e2e/zenohpeer.py: default = zenoh-bridge-ros2dds's defaults, best = "
+        "congestion control Drop, express, pose at a higher priority, one-batch TX queues, "
+        "8 KiB socket buffers, 3 s lease)"))
+    return result

@@ -1,0 +1,52 @@
+"""The peer scenario's analysis on hand-made samples."""
+
+from __future__ import annotations
+
+import math
+
+from fleetctl.e2e import peeranalysis
+from fleetctl.e2e.samples import Sample
+
+S = 1_000_000_000
+MS = 1_000_000
+
+
+def _stream(topic: str, start_s: float, end_s: float, period_s: float, latency_ms: float,
+            gaps: list[tuple[float, float]], stale_at: list[float] = ()) -> list[Sample]:
+    out, t, seq = [], start_s, 0
+    while t < end_s:
+        seq += 1
+        if not any(a <= t < b for a, b in gaps):
+            pub = int(t * S)
+            out.append(Sample(topic, seq, pub, pub + int(latency_ms * MS), 100))
+        t += period_s
+    for r in stale_at:  # published before the restore at r, received just after it
+        out.append(Sample(topic, 0, int((r - 0.5) * S), int((r + 0.01) * S), 100))
+    return out
+
+
+def _run(recover_after_s: float, stale: bool = False) -> peeranalysis.VariantRun:
+    trials = [(10 * S, 15 * S, 21 * S), (21 * S, 26 * S, 32 * S)]
+    gaps = [(10.0, 15.0 + recover_after_s), (21.0, 26.0 + recover_after_s)]
+    samples = _stream("/r/pose", 0.0, 32.0, 0.05, 2.0, gaps, [15.0] if stale else [])
+    return peeranalysis.VariantRun(samples, 0, trials, 0.45e6, {})
+
+
+def test_every_trial_is_measured_against_the_steady_phase() -> None:
+    (t1, t2) = peeranalysis.trials_of(_run(0.08), ["/r/pose"])
+    assert 0.08 <= t1.recovery_s["/r/pose"] < 0.14
+    assert 0.08 <= t2.recovery_s["/r/pose"] < 0.14  # no steady phase before the second cut
+    assert t1.stale == 0 and t1.first_s == t1.recovery_s["/r/pose"]
+
+
+def test_stale_messages_and_the_criteria() -> None:
+    runs = {"fleetctl": _run(0.05, stale=True), "zenoh-best": _run(0.4)}
+    result = peeranalysis.peer(runs, ["/r/pose"])
+    crits = {c["name"]: c for c in result["criteria"]}
+    assert crits["fleetctl stale messages after the restores"]["value"] == 1
+    assert crits["fleetctl recovery, worst topic of the worst trial (s)"]["ok"]
+    factor = crits["zenoh-best / fleetctl recovery, worst trial"]["value"]
+    assert 4 <= factor < 10
+    assert crits["fleetctl steady uplink (Mbit/s)"]["ok"]
+    assert result["status"] == "fail"  # the stale message
+    assert math.isclose(result["floor_p50_ms"]["fleetctl"], 2.0, abs_tol=0.01)

@@ -114,6 +114,7 @@ def peer(runs: Mapping[str, VariantRun], topics: Sequence[str]) -> dict[str, Any
             for i, tr in enumerate(ts))
         notes.append(f"{v}: uplink {runs[v].uplink_bit_s / 1e6:.3f} Mbit/s, latency floor "
                      f"p50 {floors[v]:.2f} ms; {per}")
+    notes.append(bytes_note(runs))
     plots = []
     for v, r in runs.items():
         spans = [[(c - r.t0_ns) / 1e9, (rs - r.t0_ns) / 1e9, "link cut"]
@@ -130,3 +131,58 @@ def peer(runs: Mapping[str, VariantRun], topics: Sequence[str]) -> dict[str, Any
                             "stale": t.stale} for t in ts] for v, ts in trials.items()},
             "floor_p50_ms": floors,
             "uplink_bit_s": {v: r.uplink_bit_s for v, r in runs.items()}}
+
+
+def mean_bytes(samples: Sequence[Sample]) -> dict[str, float]:
+    """Mean message size per topic as the consumer received it (a fleetctl frame with its
+    metadata; a zenoh sample's payload, which is the CDR)."""
+    return {t: sum(s.size_bytes for s in ss) / len(ss) for t, ss in by_topic(samples).items()}
+
+
+def bytes_note(runs: Mapping[str, VariantRun]) -> str:
+    """Bytes per message per topic: fleetctl's frame against the CDR zenoh carries."""
+    fleet = mean_bytes(runs["fleetctl"].samples)
+    cdr = next((mean_bytes(r.samples) for v, r in runs.items() if v != "fleetctl"), {})
+    parts = [f"{t} fleetctl {b:.0f}" + (f" (CDR {cdr[t]:.0f}, +{b - cdr[t]:.0f})"
+                                        if t in cdr else "")
+             for t, b in sorted(fleet.items())]
+    return "bytes per message: " + "; ".join(parts)
+
+
+def fanout_step(samples: Sequence[Sample], consumers: int, seconds: float) -> dict[str, Any]:
+    """One consumer count: p50/p99 per topic and messages per consumer per second."""
+    per_topic = {t: {"p50_ms": LatencyStats.of(ss).p50_ms, "p99_ms": LatencyStats.of(ss).p99_ms}
+                 for t, ss in by_topic(samples).items()}
+    return {"consumers": consumers, "topics": per_topic,
+            "received_per_consumer_hz": len(samples) / consumers / seconds}
+
+
+def fanout(steps: Mapping[str, Sequence[Mapping[str, Any]]]) -> dict[str, Any]:
+    """fleetctl's p50 at the fewest and the most consumers, against zenoh's best."""
+    def p50(variant: str, index: int) -> float:
+        step = steps[variant][index]
+        return max((x["p50_ms"] for x in step["topics"].values()), default=math.nan)
+
+    zenohs = [v for v in steps if v != "fleetctl"]
+    criteria = []
+    for index, label in ((0, "fewest"), (-1, "most")):
+        n = steps["fleetctl"][index]["consumers"]
+        ours = p50("fleetctl", index)
+        theirs = min((p50(v, index) for v in zenohs), default=math.nan)
+        ratio = ours / theirs if theirs > 0 else math.inf
+        criteria.append(crit(f"fleetctl / zenoh's best p50 at {n} consumer(s) ({label})",
+                             ratio, 1.0, ratio <= 1.0))
+    notes = [f"{v}: " + "; ".join(
+        f"{s['consumers']}: " + ", ".join(
+            f"{t.rsplit('/', 1)[-1]} p50 {x['p50_ms']:.2f} p99 {x['p99_ms']:.2f} ms"
+            for t, x in sorted(s["topics"].items()))
+        + f", {s['received_per_consumer_hz']:.1f} msg/s each" for s in vs)
+        for v, vs in steps.items()]
+    lines = {f"{v} {t.rsplit('/', 1)[-1]}": [[s["consumers"] for s in vs],
+                                              [s["topics"].get(t, {}).get("p50_ms", math.nan)
+                                               for s in vs]]
+             for v, vs in steps.items() for t in sorted(vs[0]["topics"])}
+    plots = [{"title": "peer-fanout: p50 latency vs consumers", "xlabel": "consumers",
+              "ylabel": "latency (ms)", "marker": "o", "logy": False, "lines": lines}]
+    return {"name": "peer-fanout", "status": status_of(criteria), "criteria": criteria,
+            "notes": notes, "plots": plots, "steps": {k: list(v) for k, v in steps.items()}}

@@ -38,6 +38,8 @@ TRIALS = 3
 LINK_MBIT = 4.0
 UPLINK_WINDOW_S = 3.0
 ZENOH_VARIANTS = ("zenoh-default", "zenoh-best")
+FANOUT_MBIT = 12.0
+FANOUT_COUNTS = (1, 4, 16)
 
 
 def _zenoh_robot(fr: FleetRun, role: str, settings: str, p: profiles.Profile) -> Endpoint:
@@ -71,36 +73,52 @@ def _zenoh_consumers(fr: FleetRun, role: str, settings: str, p: profiles.Profile
 
 
 class _Run:
-    """One variant's containers (removed on exit; their sample files stay)."""
+    """One variant's router (zenoh), robot and consumers; removed on exit (their sample
+    files stay)."""
 
-    def __init__(self, fr: FleetRun, variant: str, p: profiles.Profile) -> None:
-        self.fr, self.variant, self.p = fr, variant, p
+    def __init__(self, fr: FleetRun, variant: str, p: profiles.Profile,
+                 consumers: int = 1) -> None:
+        # consumers=0: none of its own (the fan-out starts its own per consumer count).
+        self.fr, self.variant, self.p, self.count = fr, variant, p, consumers
         self.tag = f"peer-{variant}"
+        self.settings = variant.removeprefix("zenoh-")
         self.endpoints: list[Endpoint] = []
         self.published: dict[str, dict[str, int]] = {}
 
     def __enter__(self) -> _Run:
-        fr, tag, p = self.fr, self.tag, self.p
-        regex = "(" + "|".join(t.remote_topic for t in p.topics) + ")"
-        if self.variant == "fleetctl":
-            self.endpoints.append(fr.start_consumers(tag, 1, regex))
-            self.robot = fr.start_robot(f"{tag}-robot", p, p.name)
-        else:
-            settings = self.variant.removeprefix("zenoh-")
+        fr, p = self.fr, self.p
+        if self.variant != "fleetctl":
             assert fr.server is not None
             router = fr.topo.start_beside(
-                f"{tag}-router", fr.server, fr.image("client"),
+                f"{self.tag}-router", fr.server, fr.image("client"),
                 ["python3", "-m", "fleetctl.e2e.zenohpeer", "router", "--settings",
-                 settings])
+                 self.settings])
             self.endpoints.append(router)
             # zenoh clients give up at once when the router is not listening yet.
             fr.wait_healthy(router.name, "the zenoh router", lambda: "listening on" in
                             fr.topo.logs(router.name), 30.0)
-            self.endpoints.append(_zenoh_consumers(fr, tag, settings, p, 1))
-            self.robot = _zenoh_robot(fr, f"{tag}-robot", settings, p)
+        if self.count:
+            self.endpoints.append(self.start_consumers(self.tag, self.count))
+        if self.variant == "fleetctl":
+            self.robot = fr.start_robot(f"{self.tag}-robot", p, p.name)
+        else:
+            self.robot = _zenoh_robot(fr, f"{self.tag}-robot", self.settings, p)
         self.endpoints.append(self.robot)
-        fr.wait_flowing(tag, [t.remote_topic for t in p.topics], [f"{tag}-0"])
+        if self.count:
+            fr.wait_flowing(self.tag, self.topics,
+                            [f"{self.tag}-{i}" for i in range(self.count)])
         return self
+
+    @property
+    def topics(self) -> list[str]:
+        return [t.remote_topic for t in self.p.topics]
+
+    def start_consumers(self, role: str, count: int) -> Endpoint:
+        """*count* consumers of this variant's kind in one container named *role*."""
+        if self.variant == "fleetctl":
+            regex = "(" + "|".join(self.topics) + ")"
+            return self.fr.start_consumers(role, count, regex)
+        return _zenoh_consumers(self.fr, role, self.settings, self.p, count)
 
     def stop(self) -> list[Sample]:
         self.published = self.fr.stop_load(self.robot, f"{self.tag}-robot")
@@ -152,4 +170,38 @@ def run_peer(fr: FleetRun, caps: Capabilities, duration_s: float,
         "(fleetctl/e2e/zenohpeer.py: default = zenoh-bridge-ros2dds's defaults, best = "
         "congestion control Drop, express, pose at a higher priority, one-batch TX queues, "
         "8 KiB socket buffers, 3 s lease)"))
+    return result
+
+
+def run_peer_fanout(fr: FleetRun, caps: Capabilities, duration_s: float,
+                    progress: Progress) -> dict[str, Any]:
+    """1, 4 and 16 consumers of the peer load on 12 Mbit/s: fleetctl against zenoh."""
+    from fleetctl.e2e.scenarios import Link
+
+    p = profiles.profile("peer")
+    link = Link(fr, caps)
+    link.rate(FANOUT_MBIT)
+    seconds = max(3.0, duration_s / 3)
+    steps: dict[str, list[dict[str, Any]]] = {}
+    for variant in ("fleetctl", *ZENOH_VARIANTS):
+        steps[variant] = []
+        with _Run(fr, variant, p, consumers=0) as run:
+            for n in FANOUT_COUNTS:
+                tag = f"fan{n}-{variant}"  # not under run.tag: its samples stay apart
+                consumers = run.start_consumers(tag, n)
+                try:
+                    fr.wait_flowing(tag, run.topics, [f"{tag}-{i}" for i in range(n)])
+                    start = time.time_ns()
+                    hold(seconds)
+                    end = time.time_ns()
+                finally:
+                    fr.remove(consumers)
+                window = [s for s in fr.samples(tag) if start <= s.recv_time_ns <= end]
+                steps[variant].append(peeranalysis.fanout_step(window, n, seconds))
+                progress(f"peer-fanout/{variant}: {n} consumer(s): {steps[variant][-1]}")
+            run.stop()
+    link.clear()
+    result = peeranalysis.fanout(steps)
+    result["notes"].insert(0, f"load as peer; {FANOUT_MBIT:g} Mbit/s; {seconds:g} s per "
+                           "consumer count, after every consumer received both topics")
     return result

@@ -32,7 +32,7 @@ from typing import Any
 from fleetctl.deploy.shaping import Capabilities, LinkShaper, RateSpec, mbit
 from fleetctl.e2e import analysis, profiles, videoanalysis
 from fleetctl.e2e.fleetrun import FleetRun, hold, wait_for
-from fleetctl.e2e.peerscenario import run_peer
+from fleetctl.e2e.peerscenario import run_peer, run_peer_fanout
 from fleetctl.e2e.samples import Sample
 from fleetctl.e2e.topology import ROBOT_SIDE, SERVER_SIDE, Endpoint
 from fleetctl.errors import FleetError
@@ -383,4 +383,5 @@ SCENARIO_FUNCS: dict[str, Callable[[FleetRun, Capabilities, float, Progress], di
     "multi-consumer": run_multi_consumer,
     "ramp": run_ramp,
     "peer": run_peer,
+    "peer-fanout": run_peer_fanout,
 }

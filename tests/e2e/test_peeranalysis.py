@@ -50,3 +50,12 @@ def test_stale_messages_and_the_criteria() -> None:
     assert crits["fleetctl steady uplink (Mbit/s)"]["ok"]
     assert result["status"] == "fail"  # the stale message
     assert math.isclose(result["floor_p50_ms"]["fleetctl"], 2.0, abs_tol=0.01)
+
+
+def test_bytes_per_message_against_the_cdr() -> None:
+    fleet = [Sample("/r/scan", 1, 0, 1, 5984)]
+    zen = [Sample("/r/scan", 1, 0, 1, 5816)]
+    runs = {"fleetctl": peeranalysis.VariantRun(fleet, 0, [], 0, {}),
+            "zenoh-best": peeranalysis.VariantRun(zen, 0, [], 0, {})}
+    assert peeranalysis.bytes_note(runs) == (
+        "bytes per message: /r/scan fleetctl 5984 (CDR 5816, +168)")

@@ -1,4 +1,5 @@
-"""The four fleet scenarios, short, through the real router, server, client and consumers.
+"""The fleet scenarios and the zenoh comparison, short, through the real router, server,
+client and consumers.
 
 ``fleetctl build`` runs first (cached: a no-op when nothing changed), then one ``fleetctl e2e``
 invocation runs every scenario with its baseline. The report must exist and every scenario
@@ -26,7 +27,7 @@ pytestmark = [
     pytest.mark.skipif(shutil.which("docker") is None, reason="needs docker"),
 ]
 
-SCENARIOS = ("dropout", "priority", "multi-consumer", "ramp")
+SCENARIOS = ("dropout", "priority", "multi-consumer", "ramp", "peer", "peer-fanout")
 
 
 @pytest.fixture(scope="module")
@@ -108,3 +109,23 @@ def test_video_is_decoded_never_from_a_broken_reference_and_follows_the_link(
     ramp = _criteria(run[2]["ramp"])
     slow = ramp["video Mbit/s at 4 Mbit/s (last 2 s)"]["value"]
     assert slow > 0, ramp  # frames arrived at the end of the ramp: measured
+
+
+def test_peer_measures_every_variant_after_every_cut(
+        run: tuple[int, Path, dict[str, Any]]) -> None:
+    result = run[2]["peer"]
+    assert set(result["trials"]) == {"fleetctl", "zenoh-default", "zenoh-best"}, result["notes"]
+    for variant, trials in result["trials"].items():
+        assert len(trials) == 3, variant
+        # Messages flowed again after every restore, through fleetctl and through zenoh.
+        assert all(t["first_s"] < 10 for t in trials), (variant, trials)
+    assert all(0 < b < 4e6 for b in result["uplink_bit_s"].values()), result["uplink_bit_s"]
+
+
+def test_peer_fanout_reaches_every_consumer(run: tuple[int, Path, dict[str, Any]]) -> None:
+    steps = run[2]["peer-fanout"]["steps"]
+    assert set(steps) == {"fleetctl", "zenoh-default", "zenoh-best"}
+    for variant, counts in steps.items():
+        assert [s["consumers"] for s in counts] == [1, 4, 16], variant
+        # 30 msg/s published (scan 10 Hz + pose 20 Hz) and the link has room for all.
+        assert all(s["received_per_consumer_hz"] > 25 for s in counts), (variant, counts)

@@ -1,0 +1,247 @@
+"""The software latency floor, fleetctl against zenoh, on loopback (issue 19: where does the
+time go?).
+
+Usage::
+
+    .venv/bin/python benchmarks/peer_latency.py [--seconds 15] [--json FILE]
+
+No network between the parts (everything on 127.0.0.1, no tc, no tunnel): what is left is
+each stack's own per-message path. The e2e ``peer`` load (``python -m fleetctl.e2e.load
+--profile peer``: 720-beam scan at 10 Hz, pose at 20 Hz, each message stamped with its ROS
+publish time) goes, one stack after the other:
+
+- **fleetctl**: ``fleetctl client`` (a real process: rclpy raw subscription, encode, link)
+  -> ``fleetctl server`` (:class:`fleetctl.server.app.RelayServer`, real process) -> a
+  WebSocket consumer in this process, which also reads each frame's metadata
+  ``publish_time_ns`` (when the client took the message from ROS) to split the path into
+  *ROS -> client* (DDS, rclpy, the hop onto the client's loop) and *client -> consumer*
+  (encode, schedule, send, relay, receive);
+- **zenoh-default** and **zenoh-best**: the e2e zenoh bridge -> zenoh router -> zenoh
+  consumer (:mod:`fleetctl.e2e.zenohpeer`, same settings as the e2e ``peer`` scenario).
+
+Printed: p50 and p99 per topic and stack over ``--seconds`` (after a 3 s warm-up), and
+fleetctl's split. Latency is consumer receipt minus the ROS publish stamp (one host
+clock).
+"""
+
+from __future__ import annotations
+
+import argparse
+import asyncio
+import hashlib
+import json
+import os
+import signal
+import socket
+import statistics
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+from typing import Any
+
+HERE = Path(__file__).resolve().parent
+PY = sys.executable
+ROBOT_TOKEN = "peer-latency-robot"
+VIEWER_TOKEN = "peer-latency-viewer"
+WARMUP_S = 3.0
+TOPICS = ("/robot1/scan", "/robot1/pose")
+
+
+def _free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        port: int = s.getsockname()[1]
+        return port
+
+
+def _start(argv: list[str], env: dict[str, str], log: Path) -> subprocess.Popen[bytes]:
+    return subprocess.Popen(argv, env=env, stdout=log.open("w"), stderr=subprocess.STDOUT,
+                            start_new_session=True)
+
+
+def _stop(procs: list[subprocess.Popen[bytes]]) -> None:
+    for p in procs:
+        if p.poll() is None:
+            os.killpg(p.pid, signal.SIGTERM)
+    for p in procs:
+        try:
+            p.wait(10)
+        except subprocess.TimeoutExpired:
+            os.killpg(p.pid, signal.SIGKILL)
+
+
+def _stats(values: list[float]) -> dict[str, float]:
+    if not values:
+        return {"n": 0, "p50_ms": float("nan"), "p99_ms": float("nan")}
+    ordered = sorted(values)
+    return {"n": len(ordered), "p50_ms": statistics.median(ordered),
+            "p99_ms": ordered[min(len(ordered) - 1, int(0.99 * len(ordered)))]}
+
+
+def _fleetctl_files(work: Path, port: int) -> tuple[Path, Path]:
+    import yaml
+
+    from fleetctl.e2e import profiles
+
+    def sha(token: str) -> str:
+        return hashlib.sha256(token.encode()).hexdigest()
+
+    (work / "auth.yaml").write_text(json.dumps({"version": 1, "identities": [
+        {"name": "robot1", "token_sha256": sha(ROBOT_TOKEN),
+         "rules": [{"topic": "/robot1/.*", "op": "send"}]},
+        {"name": "viewer", "token_sha256": sha(VIEWER_TOKEN),
+         "rules": [{"topic": ".*", "op": "receive"}]},
+    ]}))
+    server = work / "server.yaml"
+    server.write_text(yaml.safe_dump({"listen_host": "127.0.0.1", "listen_port": port,
+                                      "auth_map": str(work / "auth.yaml"),
+                                      "database": str(work / "fleet.db")}))
+    (work / "token").write_text(ROBOT_TOKEN)
+    cfg = profiles.client_config(profiles.profile("peer"), f"ws://127.0.0.1:{port}/")
+    cfg["token_file"] = str(work / "token")
+    client = work / "client.yaml"
+    client.write_text(yaml.safe_dump(cfg))
+    return server, client
+
+
+async def _fleetctl_consumer(port: int, seconds: float) -> dict[str, list[tuple[float, ...]]]:
+    from websockets.asyncio.client import connect
+
+    from fleetctl.e2e.payloads import read_stamp
+    from fleetctl.wire.codec import default_codec
+    from fleetctl.wire.control import encode_subscription
+
+    codec = default_codec()
+    out: dict[str, list[tuple[float, ...]]] = {}
+    deadline = time.monotonic() + 60
+    while True:
+        try:
+            ws = await connect(f"ws://127.0.0.1:{port}/", max_size=None,
+                               additional_headers={"Authorization": f"Bearer {VIEWER_TOKEN}"})
+            break
+        except OSError:
+            if time.monotonic() > deadline:
+                raise
+            await asyncio.sleep(0.1)  # polling the server's start, bounded by the deadline
+    async with ws:
+        await ws.send(encode_subscription("/robot1/.*"))
+        start = time.monotonic()
+        measure_from = start + WARMUP_S
+        while time.monotonic() < measure_from + seconds:
+            try:
+                frame = await asyncio.wait_for(ws.recv(), 1.0)
+            except TimeoutError:
+                continue
+            now = time.time_ns()
+            if not isinstance(frame, bytes) or time.monotonic() < measure_from:
+                continue
+            meta, msg = codec.decode(frame)
+            if meta.topic not in TOPICS:  # the client's own /status
+                continue
+            stamp = read_stamp(msg)
+            out.setdefault(meta.topic, []).append((
+                (now - stamp.publish_time_ns) / 1e6,
+                (meta.publish_time_ns - stamp.publish_time_ns) / 1e6,
+                (now - meta.publish_time_ns) / 1e6))
+    return out
+
+
+def run_fleetctl(work: Path, env: dict[str, str], seconds: float) -> dict[str, Any]:
+    port = _free_port()
+    server_cfg, client_cfg = _fleetctl_files(work, port)
+    fleetctl = str(Path(PY).parent / "fleetctl")
+    procs = [
+        _start([fleetctl, "server", "--config", str(server_cfg)], env, work / "server.log"),
+        _start([fleetctl, "client", "--config", str(client_cfg)], env, work / "client.log"),
+        _start([PY, "-m", "fleetctl.e2e.load", "--profile", "peer"], env, work / "load.log"),
+    ]
+    try:
+        got = asyncio.run(_fleetctl_consumer(port, seconds))
+    finally:
+        _stop(procs)
+    return {topic: {"total": _stats([r[0] for r in rows]),
+                    "ros_to_client": _stats([r[1] for r in rows]),
+                    "client_to_consumer": _stats([r[2] for r in rows])}
+            for topic, rows in sorted(got.items())}
+
+
+def run_zenoh(work: Path, env: dict[str, str], seconds: float, settings: str) -> dict[str, Any]:
+    from fleetctl.e2e.samples import load
+
+    endpoint = f"tcp/127.0.0.1:{_free_port()}"
+    zp = [PY, "-m", "fleetctl.e2e.zenohpeer"]
+    out = work / f"zenoh-{settings}"
+    out.mkdir()
+    router = _start([*zp, "router", "--settings", settings, "--listen", endpoint], env,
+                    work / f"router-{settings}.log")
+    procs = [router]
+    try:
+        _wait(lambda: "listening" in (work / f"router-{settings}.log").read_text(), 30,
+              "the zenoh router")
+        procs.append(_start([*zp, "consumer", "--settings", settings, "--connect", endpoint,
+                             "--name", "z", "--out", str(out)], env,
+                            work / f"consumer-{settings}.log"))
+        _wait(lambda: (out / "z-0.ready").exists(), 30, "the zenoh consumer")
+        procs.append(_start([*zp, "bridge", "--settings", settings, "--connect", endpoint],
+                            env, work / f"bridge-{settings}.log"))
+        procs.append(_start([PY, "-m", "fleetctl.e2e.load", "--profile", "peer"], env,
+                            work / f"load-{settings}.log"))
+        _wait(lambda: (out / "z-0.jsonl").exists() and (out / "z-0.jsonl").stat().st_size > 0,
+              60, "zenoh samples")
+        start_ns = time.time_ns() + int(WARMUP_S * 1e9)
+        _wait(lambda: time.time_ns() > start_ns + int(seconds * 1e9), seconds + 30,
+              "the measuring window")
+    finally:
+        _stop(procs)
+    text = (out / "z-0.jsonl").read_text()
+    samples = [s for s in load(text[: text.rfind("\n") + 1])
+               if s.recv_time_ns >= start_ns]
+    by: dict[str, list[float]] = {}
+    for s in samples:
+        by.setdefault(s.topic, []).append(s.latency_ms)
+    return {topic: {"total": _stats(v)} for topic, v in sorted(by.items())}
+
+
+def _wait(cond: Any, timeout_s: float, what: str) -> None:
+    deadline = time.monotonic() + timeout_s
+    while not cond():
+        if time.monotonic() > deadline:
+            raise SystemExit(f"timed out waiting for {what}")
+        time.sleep(0.05)  # polling interval of a deadline-bounded wait
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    parser.add_argument("--seconds", type=float, default=15.0)
+    parser.add_argument("--json", type=Path)
+    args = parser.parse_args()
+    signal.signal(signal.SIGTERM, lambda *_: sys.exit(128 + signal.SIGTERM))
+    env = {**os.environ, "PYTHONPATH": str(HERE.parent),
+           "ROS_DOMAIN_ID": str(100 + os.getpid() % 100),
+           "ROS_AUTOMATIC_DISCOVERY_RANGE": "LOCALHOST", "PYTHONUNBUFFERED": "1"}
+    results: dict[str, Any] = {}
+    with tempfile.TemporaryDirectory() as tmp:
+        work = Path(tmp)
+        results["fleetctl"] = run_fleetctl(work, env, args.seconds)
+        for settings in ("default", "best"):
+            results[f"zenoh-{settings}"] = run_zenoh(work, env, args.seconds, settings)
+    print(f"loopback, {args.seconds:g} s after {WARMUP_S:g} s warm-up; latency = consumer "
+          "receipt - ROS publish stamp")
+    print(f"  {'stack':14s} {'topic':16s} {'n':>5s} {'p50 ms':>8s} {'p99 ms':>8s}")
+    for stack, topics in results.items():
+        for topic, parts in topics.items():
+            st = parts["total"]
+            print(f"  {stack:14s} {topic:16s} {st['n']:5d} {st['p50_ms']:8.3f} "
+                  f"{st['p99_ms']:8.3f}")
+    print("  fleetctl split (p50 ms): ROS -> client intake | client intake -> consumer")
+    for topic, parts in results["fleetctl"].items():
+        print(f"    {topic:16s} {parts['ros_to_client']['p50_ms']:8.3f} | "
+              f"{parts['client_to_consumer']['p50_ms']:8.3f}")
+    if args.json:
+        args.json.write_text(json.dumps(results, indent=2))
+
+
+if __name__ == "__main__":
+    main()

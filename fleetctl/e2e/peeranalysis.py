@@ -107,11 +107,12 @@ def peer(runs: Mapping[str, VariantRun], topics: Sequence[str]) -> dict[str, Any
     ]
     notes = []
     for v, ts in trials.items():
+        cuts = [(rs - c) / 1e9 for c, rs, _ in runs[v].trials]
         per = "; ".join(
-            f"trial {i + 1}: " + ", ".join(f"{t.rsplit('/', 1)[-1]} {x:.3f}"
-                                           for t, x in tr.recovery_s.items())
+            f"trial {i + 1} (cut {cut:.1f} s): " + ", ".join(
+                f"{t.rsplit('/', 1)[-1]} {x:.3f}" for t, x in tr.recovery_s.items())
             + f" s, first message {tr.first_s:.3f} s, stale {tr.stale}"
-            for i, tr in enumerate(ts))
+            for i, (tr, cut) in enumerate(zip(ts, cuts, strict=False)))
         notes.append(f"{v}: uplink {runs[v].uplink_bit_s / 1e6:.3f} Mbit/s, latency floor "
                      f"p50 {floors[v]:.2f} ms; {per}")
     notes.append(bytes_note(runs))

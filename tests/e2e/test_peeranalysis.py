@@ -59,3 +59,11 @@ def test_bytes_per_message_against_the_cdr() -> None:
             "zenoh-best": peeranalysis.VariantRun(zen, 0, [], 0, {})}
     assert peeranalysis.bytes_note(runs) == (
         "bytes per message: /r/scan fleetctl 5984 (CDR 5816, +168)")
+
+
+def test_trial_cuts_short_and_full_length() -> None:
+    from fleetctl.e2e.peerscenario import trial_cuts
+
+    assert trial_cuts(6) == (5.0, 0.5, 5.0)
+    full = trial_cuts(30)
+    assert full.count(5.0) >= 10 and 0.5 in full and 30.0 in full

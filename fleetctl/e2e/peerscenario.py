@@ -161,12 +161,10 @@ def run_peer(fr: FleetRun, caps: Capabilities, duration_s: float,
             hold(max(0.0, steady_s - UPLINK_WINDOW_S))
             trials = []
             for i, cut_s in enumerate(cuts):
-                cut = time.time_ns()
-                link.cut()
+                cut = link.cut()
                 progress(f"peer/{variant}: cut {i + 1}/{len(cuts)} for {cut_s:g} s")
                 hold(cut_s)
-                link.restore()
-                restore = time.time_ns()
+                restore = link.restore()
                 hold(after_s)
                 trials.append((cut, restore, time.time_ns()))
             samples = run.stop()

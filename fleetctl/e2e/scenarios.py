@@ -70,13 +70,13 @@ class Link:
         for shaper in (self.up, self.down):
             shaper.set_rate(RateSpec(mbit(mbit_s)))
 
-    def cut(self) -> None:
-        for side in (SERVER_SIDE, ROBOT_SIDE):
-            self.topo.blackhole(side, True)
+    def cut(self) -> int:
+        """Cut both directions; returns when the cut took effect (router clock, ns)."""
+        return self.topo.blackhole_all(True)
 
-    def restore(self) -> None:
-        for side in (SERVER_SIDE, ROBOT_SIDE):
-            self.topo.blackhole(side, False)
+    def restore(self) -> int:
+        """Restore both directions; returns when packets flow again (router clock, ns)."""
+        return self.topo.blackhole_all(False)
 
     def clear(self) -> None:
         self.restore()
@@ -136,12 +136,10 @@ def run_dropout(fr: FleetRun, caps: Capabilities, duration_s: float,
             t0 = time.time_ns()
             progress(f"dropout/{v}: steady at 4 Mbit/s")
             hold(max(3.0, duration_s / 3))
-            cut = time.time_ns()
-            link.cut()
+            cut = link.cut()
             progress(f"dropout/{v}: link cut for {CUT_S:.0f} s")
             hold(CUT_S)
-            link.restore()
-            restore = time.time_ns()
+            restore = link.restore()
             progress(f"dropout/{v}: restored")
             hold(max(10.0, duration_s / 2))
             handshake = fr.latest_handshake_ns(run.robot)

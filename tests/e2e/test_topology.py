@@ -118,3 +118,26 @@ while time.monotonic() < deadline:
     time.sleep(0.05)
 print(state)
 """
+
+
+def test_both_sides_cut_and_restored_in_one_command_timed_by_the_router(
+        topo: Topology) -> None:
+    server = topo.start("bh2-server", SERVER_SIDE, BASE_IMAGE, ["python3", "-c", SINK_SCRIPT])
+    robot = topo.start("bh2-robot", ROBOT_SIDE, BASE_IMAGE, IDLE_COMMAND)
+    deadline = time.monotonic() + 15.0
+    while topo.exec(robot.name, ["python3", "-c", PROBE_SCRIPT, server.ip, "1"]).stdout.strip() != (
+        "open"
+    ):
+        assert time.monotonic() < deadline, topo.logs(server.name)
+    before = time.time_ns()
+    cut = topo.blackhole_all(True)
+    try:
+        assert before <= cut <= time.time_ns()
+        probe = topo.exec(robot.name, ["python3", "-c", PROBE_SCRIPT, server.ip, "0.5"])
+        assert probe.stdout.strip() == "dropped"
+    finally:
+        restore = topo.blackhole_all(False)
+    assert cut < restore <= time.time_ns()
+    assert topo.blackhole_all(False) > restore  # nothing left to remove is not an error
+    probe = topo.exec(robot.name, ["python3", "-c", PROBE_SCRIPT, server.ip, "5"])
+    assert probe.stdout.strip() == "open"

@@ -3,8 +3,8 @@
 Why: Linux retransmits a lost SYN only after 1 s, then 3 s, 7 s. A connection attempt
 started just before a dropout ends therefore sits idle for up to a second after the link is
 back (measured in the e2e ``dropout`` scenario: ~0.9 s of nothing after the restore). A
-fresh attempt is started every ``stagger_s`` while the earlier ones are still waiting, so a
-SYN leaves at most ``stagger_s`` after the link returns. The first attempt to connect wins;
+fresh attempt is started every stagger while the earlier ones are still waiting, so a
+SYN leaves at most one stagger after the link returns. The first attempt to connect wins;
 the others are closed before anything is sent on them, so the server sees at most a bare
 TCP connection close, never a second WebSocket handshake (which would take over the
 robot's session).
@@ -22,7 +22,7 @@ up to ~2 s still connects) and sends two SYNs; the extra attempts of the faster 
 ``short_life_s`` (0.9 s) and send one. Every SYN is ~60 bytes (74 on Ethernet). So at most
 ``1/stagger_at(age) + 1/stagger_s`` SYNs a second: with the defaults 54/s (~4 KB/s) when
 the outage begins, 25/s (~1.9 KB/s) at 5 s, 8/s (~600 B/s, as before the fast pace) from
-~15 s on; ~20 KB over a whole long outage's first 15 s. At most ``max_in_flight`` sockets
+~15 s on; ~24 KB over a long outage's first 15 s. At most ``max_in_flight`` sockets
 are half open at once (the oldest is dropped for a new one); a dropped attempt in SYN-SENT
 sends nothing when closed.
 """

@@ -23,9 +23,9 @@
 - declares the link dead when a ping stays unanswered for ``link_timeout_s`` (TCP alone can
   take minutes to notice a radio that went silent; the backstop where ``TCP_INFO`` is
   missing or the server's application hangs) and reconnects;
-- on a new connection after an outage, drops latest-only messages held since before the
-  outage or older than ``SchedulerConfig.stale_periods`` of their topic's publish period
-  (:meth:`Scheduler.drop_stale`): their latency would be the outage;
+- on a new connection after an outage, drops the latest-only messages held through it
+  (:meth:`Scheduler.drop_stale`): they were published while the path was dead, fresh
+  ones are due within a period and would wait behind them;
 - receives frames, reassembles fragments, drops duplicate no_drop frames (a resend after a
   reconnect, see below) and hands complete frames to ``on_frame``.
 
@@ -125,7 +125,7 @@ class LinkTuning:
     bind_reminder_interval_s: float = 30.0
     path_poll_s: float = 0.05
     dead_ack_gap_s: float = 0.15
-    dead_ack_rtts: float = 8.0
+    dead_ack_rtts: float = 4.0
 
 
 @dataclass(frozen=True)
@@ -172,6 +172,13 @@ class AckStall:
     an idle spell: ``tcpi_last_ack_recv`` is then large although the data was just sent.
     A live link, however congested, ACKs what arrives; only a silent path stops the ACKs
     with data outstanding (a receiver that stops reading still ACKs, window probes too).
+
+    A false alarm is cheap and self-correcting, which is why the gap can be short (4
+    smoothed RTTs, not the kernel's RTO with its backoff): it only starts an early dial,
+    and on a path that is alive but slow the old connection's ACK comes back before the
+    new connection's SYN-ACK (the SYN queues behind the data), so the switch is called
+    off. On a bloated link the smoothed RTT includes the queue (measured srtt: 0.32 s with
+    a 400 ms tbf queue at 1 Mbit/s, so dead after ~1.3 s instead of 0.15 s).
 
     Args:
         min_gap_s: Shortest ACK gap taken as dead, seconds (above delayed ACKs: 40 ms).
@@ -441,6 +448,8 @@ class RobotLink:
                 if not self._stop.is_set() and not ended.path_dead:
                     await self._wait_stop(self._backoff(attempt))
         finally:
+            if ready is not None:
+                ready.close()  # stopped before the upgrade ran on it
             self._running = False
             self._stopped.set()
 
@@ -627,8 +636,9 @@ class RobotLink:
     def _drop_stale(self) -> None:
         """A connection opened: drop held latest-only messages that are stale by now
         (:meth:`Scheduler.drop_stale`); the outage, if one ran, is over."""
-        since, self._outage_since_s = self._outage_since_s, None
-        dropped = self._scheduler.drop_stale(self._clock(), since)
+        outage = self._outage_since_s is not None
+        self._outage_since_s = None
+        dropped = self._scheduler.drop_stale(self._clock(), after_outage=outage)
         if dropped:
             logger.info("dropped %d held latest-only messages: stale after the outage",
                         dropped)
@@ -735,7 +745,10 @@ class RobotLink:
         redial: asyncio.Task[socket.socket] | None = None
         try:
             while True:
-                await asyncio.sleep(tune.path_poll_s)  # a periodic check, not a sync
+                if redial is None or redial.done():
+                    await asyncio.sleep(tune.path_poll_s)  # a periodic check, not a sync
+                else:  # the new connection is used the moment it connects, not a poll later
+                    await asyncio.wait({redial}, timeout=tune.path_poll_s)
                 now = self._clock()
                 info = read_tcp_info(sock)
                 dead = info is not None and stall.dead(now, info)

@@ -1,0 +1,113 @@
+"""The dialer's pace in an outage (issue 19): fast when it begins, bounded while it lasts."""
+
+from __future__ import annotations
+
+import asyncio
+import math
+import socket
+from typing import Any
+
+import pytest
+
+from fleetctl.client.dialer import DialSettings, DialTimeout, dial
+from fleetctl.deploy.shaping import LinkShaper, detect
+from tests.netns import NEEDS_ROOT, SINK_TCP_PORT, Link, host_run
+
+
+def test_stagger_starts_fast_and_doubles_up_to_the_slow_pace() -> None:
+    s = DialSettings()
+    assert s.stagger_at(0.0) == pytest.approx(0.02)
+    assert s.stagger_at(4.0) == pytest.approx(0.04)
+    assert s.stagger_at(5.0) < 0.05  # the e2e dropout's 5 s cut: a SYN every < 50 ms
+    assert s.stagger_at(20.0) == s.stagger_s == 0.25
+    assert s.stagger_at(math.inf) == s.stagger_s  # not in an outage: the slow pace
+
+
+def syns_per_second(s: DialSettings, age_s: float) -> float:
+    """The cost bound of the module docstring: extra short attempts (one SYN each) at
+    the outage's pace, long ones (two SYNs: Linux resends at 1 s) at the slow pace."""
+    fast = 1 / s.stagger_at(age_s)
+    return fast - 1 / s.stagger_s + 2 / s.stagger_s
+
+
+def test_documented_cost_bound() -> None:
+    s = DialSettings()
+    assert syns_per_second(s, 0.0) == pytest.approx(54.0)
+    assert syns_per_second(s, 60.0) == pytest.approx(8.0)
+
+
+class HangingConnects:
+    """``sock_connect`` that never completes (a silent path); counts attempts and their
+    cancellations, and closes nothing itself (the dialer does)."""
+
+    def __init__(self) -> None:
+        self.started = 0
+        self.cancelled = 0
+        self.most_at_once = 0
+
+    async def __call__(self, sock: socket.socket, address: Any) -> None:
+        self.started += 1
+        self.most_at_once = max(self.most_at_once, self.started - self.cancelled)
+        try:
+            await asyncio.Event().wait()
+        except asyncio.CancelledError:
+            self.cancelled += 1
+            raise
+
+
+@pytest.mark.parametrize(("age_s", "low", "high"), [(0.0, 8, 30), (math.inf, 1, 4)])
+async def test_attempts_follow_the_outage_pace_and_a_timeout_is_a_dial_timeout(
+    monkeypatch: pytest.MonkeyPatch, age_s: float, low: int, high: int,
+) -> None:
+    hanging = HangingConnects()
+    monkeypatch.setattr(asyncio.get_running_loop(), "sock_connect", hanging)
+    with pytest.raises(DialTimeout):
+        await dial("127.0.0.1", 9, timeout_s=0.5, outage_age_s=age_s)
+    # 0.5 s at 20 ms is 25 attempts, at 250 ms 2 or 3 (loose: a loaded machine is late).
+    assert low <= hanging.started <= high, hanging.started
+    assert hanging.cancelled == hanging.started  # every attempt closed at the end
+    assert isinstance(DialTimeout("x"), TimeoutError)  # callers catching TimeoutError
+
+
+async def test_short_attempts_expire_before_the_kernel_resends_their_syn(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """With the fast pace, at most the attempts of ``short_life_s`` plus the long ones of
+    ``attempt_life_s`` are open at once: old short ones were abandoned."""
+    hanging = HangingConnects()
+    monkeypatch.setattr(asyncio.get_running_loop(), "sock_connect", hanging)
+    settings = DialSettings(fast_stagger_s=0.01, short_life_s=0.1, attempt_life_s=0.4,
+                            stagger_s=0.2)
+    with pytest.raises(DialTimeout):
+        await dial("127.0.0.1", 9, timeout_s=0.6, settings=settings, outage_age_s=0.0)
+    assert hanging.started > 20
+    # ~10 short ones (0.1 s / 10 ms) and 2 long ones (0.4 s / 0.2 s); without expiry
+    # all ~60 would have been open at the end.
+    assert hanging.most_at_once <= 20, hanging.most_at_once
+    assert hanging.cancelled == hanging.started
+
+
+@pytest.mark.netns
+@NEEDS_ROOT
+async def test_fast_pace_connects_within_tens_of_ms_of_the_restore(link: Link) -> None:
+    """Cut, dial as at the start of an outage, restore after 0.3 s: the next 20 ms SYN
+    connects (the slow pace took up to 0.25 s, the kernel's own resend 1 s)."""
+    shaper = LinkShaper(host_run, link.dev, detect(host_run, link.dev))
+    loop = asyncio.get_running_loop()
+    address = (link.peer_ip, SINK_TCP_PORT)
+    socket.create_connection(address, timeout=5.0).close()  # neighbour entry resolved
+    shaper.cut()
+    try:
+        restored: list[float] = []
+
+        def restore() -> None:
+            shaper.restore()
+            restored.append(loop.time())
+
+        loop.call_later(0.3, restore)  # the cut's length is the scenario
+        sock = await dial(*address, timeout_s=5.0, outage_age_s=0.0)
+        sock.close()
+        after_s = loop.time() - restored[0]
+    finally:
+        shaper.clear()
+    assert after_s < 0.1, after_s

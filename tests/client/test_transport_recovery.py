@@ -1,0 +1,216 @@
+"""Dead-path detection from the kernel's ACKs and the early switch (issue 19)."""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import socket
+import time
+from collections.abc import AsyncIterator
+from pathlib import Path
+from typing import Any
+
+import pytest
+
+from fleetctl.client import transport
+from fleetctl.client.transport import AckStall, LinkTuning, RobotLink, TcpInfo, read_tcp_info
+from fleetctl.deploy.shaping import LinkShaper, RateSpec, detect, mbit
+from fleetctl.server.app import RelayServer
+from tests.client.conftest import OPERATOR_TOKEN, robot_config, wait_until
+from tests.netns import NEEDS_ROOT, SINK_TCP_PORT, Link, host_run
+from tests.support import decode_text, string_frame
+
+# -- AckStall (pure) -------------------------------------------------------------------
+
+
+def info(unacked: int, last_ack_s: float, srtt_s: float = 0.002) -> TcpInfo:
+    return TcpInfo(unacked=unacked, last_ack_s=last_ack_s, srtt_s=srtt_s)
+
+
+def test_a_busy_path_without_acks_is_dead_after_the_gap() -> None:
+    stall = AckStall(0.15, 8.0)
+    assert not stall.dead(0.00, info(4, 0.01))  # ACKs coming
+    assert not stall.dead(0.05, info(6, 0.06))
+    assert not stall.dead(0.15, info(6, 0.16))  # busy for 0.15 s: not over the gap yet
+    assert stall.dead(0.20, info(6, 0.21))
+
+
+def test_data_sent_after_an_idle_spell_is_not_a_false_alarm() -> None:
+    """After idling, the last ACK is long ago although the data was just sent."""
+    stall = AckStall(0.15, 8.0)
+    assert not stall.dead(0.0, info(0, 5.0))  # idle
+    assert not stall.dead(0.05, info(2, 5.05))  # sent just now: watched from here
+    assert not stall.dead(0.10, info(0, 0.01))  # ACKed within the RTT
+    assert not stall.dead(0.15, info(3, 0.06))
+    assert not stall.dead(0.25, info(3, 0.16))  # busy for only 0.10 s
+    assert stall.dead(0.35, info(3, 0.26))
+
+
+def test_the_gap_scales_with_the_smoothed_rtt() -> None:
+    stall = AckStall(0.15, 8.0)
+    slow = info(5, 0.5, srtt_s=0.1)  # a satellite-like 100 ms RTT: dead after 0.8 s
+    assert stall.gap_s(slow) == pytest.approx(0.8)
+    stall.dead(0.0, slow)
+    assert not stall.dead(0.6, info(5, 0.6, srtt_s=0.1))
+    assert stall.dead(0.9, info(5, 0.9, srtt_s=0.1))
+
+
+# -- TCP_INFO on real sockets ------------------------------------------------------------
+
+
+@pytest.mark.skipif(not hasattr(socket, "TCP_INFO"), reason="Linux only")
+def test_tcp_info_of_a_loopback_connection() -> None:
+    with socket.create_server(("127.0.0.1", 0)) as server:
+        client = socket.create_connection(server.getsockname())
+        peer, _ = server.accept()
+        with client, peer:
+            client.sendall(b"x" * 1000)
+            assert peer.recv(1000)
+            deadline = time.monotonic() + 2.0
+            got = read_tcp_info(client)
+            while got is not None and got.unacked and time.monotonic() < deadline:
+                got = read_tcp_info(client)  # the ACK is on its way (loopback: at once)
+            assert got is not None
+            assert got.unacked == 0
+            assert 0 < got.srtt_s < 0.1
+            assert got.last_ack_s < 1.0
+    assert read_tcp_info(None) is None
+
+
+@pytest.mark.netns
+@NEEDS_ROOT
+def test_a_cut_is_detected_and_a_slow_live_link_is_not(link: Link) -> None:
+    """Stream into the sink over a 1 Mbit/s link with a 400 ms queue (congested, alive):
+    no false alarm in 1.5 s; then cut it: dead once the ACK gap passes 4 smoothed RTTs
+    (the queue is in the RTT: ~1.3 s here)."""
+    shaper = LinkShaper(host_run, link.dev, detect(host_run, link.dev))
+    shaper.set_rate(RateSpec(mbit(1), queue_latency_ms=400))
+    stall = AckStall(0.15, 4.0)
+    sock = socket.create_connection((link.peer_ip, SINK_TCP_PORT), timeout=5.0)
+    try:
+        sock.setblocking(False)
+        sock.send(f"{1 << 30:16d}".encode())
+        chunk = bytes(16384)
+
+        def pump_and_poll(until: float) -> float | None:
+            """Keep the send buffer full until *until*; when the path looks dead."""
+            while time.monotonic() < until:
+                with contextlib.suppress(BlockingIOError):
+                    sock.send(chunk)
+                got = read_tcp_info(sock)
+                assert got is not None
+                if stall.dead(time.monotonic(), got):
+                    return time.monotonic()
+                time.sleep(0.05)  # the poll period of the link, not a synchronization
+            return None
+
+        assert pump_and_poll(time.monotonic() + 1.5) is None  # congested, not dead
+        got = read_tcp_info(sock)
+        assert got is not None
+        gap = stall.gap_s(got)
+        cut = time.monotonic()
+        shaper.cut()
+        dead_at = pump_and_poll(cut + 5.0)
+        assert dead_at is not None
+        assert dead_at - cut < gap + 0.3, (dead_at - cut, gap)
+    finally:
+        sock.close()
+        shaper.clear()
+
+
+# -- RobotLink: the early switch and the false alarm ----------------------------------------
+
+
+class FakeKernel:
+    """Stands in for ``read_tcp_info``: the real one until told the path is dead."""
+
+    def __init__(self) -> None:
+        self.dead = False
+        self.polls = 0
+
+    def __call__(self, sock: Any) -> TcpInfo | None:
+        self.polls += 1
+        if self.dead:
+            return TcpInfo(unacked=5, last_ack_s=30.0, srtt_s=0.001)
+        return read_tcp_info(sock)
+
+
+@contextlib.asynccontextmanager
+async def running(link: RobotLink) -> AsyncIterator[RobotLink]:
+    task = asyncio.create_task(link.run())
+    try:
+        yield link
+    finally:
+        await asyncio.wait_for(link.stop(), 5.0)
+        await asyncio.wait_for(task, 5.0)
+
+
+TUNING = LinkTuning(keepalive_interval_s=0.1, link_timeout_s=30.0, open_timeout_s=2.0)
+
+
+async def test_a_dead_path_switches_to_a_new_connection_exactly_once_in_order(
+    server: RelayServer, tmp_path: Path, monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """The kernel says the path is dead: the link dials, switches without waiting for the
+    pong timeout, resends what was unacknowledged; the application receiving the events
+    (through its own RobotLink, which drops resends) sees each once, in order."""
+    kernel = FakeKernel()
+    monkeypatch.setattr(transport, "read_tcp_info", kernel)
+    got: list[str] = []
+    (tmp_path / "op.token").write_text(OPERATOR_TOKEN + "\n")
+    viewer_cfg = robot_config(server.url, tmp_path, robot_name="viewer", subscribe=[
+        {"remote_topic": "/r1/events", "type": "std_msgs/msg/String"}],
+        token_file="op.token")
+    robot = RobotLink(robot_config(server.url, tmp_path), on_frame=lambda f: None,
+                      tuning=TUNING)
+    viewer = RobotLink(viewer_cfg, on_frame=lambda f: got.append(decode_text(f)),
+                       tuning=LinkTuning(open_timeout_s=2.0))
+    async with running(viewer), running(robot):
+        await wait_until(lambda: robot.stats()["connected"]
+                         and viewer.stats()["subscribed"] == ["/r1/events"])
+
+        def offer(first: int, last: int) -> None:
+            for i in range(first, last + 1):
+                robot.offer("/r1/events", string_frame("/r1/events", f"e{i}", no_drop=True,
+                                                       seq=i), priority=1.0, no_drop=True)
+
+        offer(1, 10)
+        kernel.dead = True
+        offer(11, 20)  # some of these go out unacknowledged on the old connection
+        await wait_until(lambda: robot.stats()["dead_paths"] == 1)
+        kernel.dead = False
+        offer(21, 30)
+        await wait_until(lambda: "e30" in got)
+        stats = robot.stats()
+    assert got == [f"e{i}" for i in range(1, 31)]
+    assert stats["connects"] == 2 and stats["link_timeouts"] == 0
+    assert stats["last_close"] == "dead path"
+
+
+async def test_a_false_alarm_keeps_the_connection_and_closes_the_new_socket(
+    server: RelayServer, tmp_path: Path, monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """The path looks dead, the early dial connects, but by then ACKs came again: the
+    old connection stays (the server's session is not taken over)."""
+    kernel = FakeKernel()
+    monkeypatch.setattr(transport, "read_tcp_info", kernel)
+    opened: list[socket.socket] = []
+    real_dial = transport.dial
+
+    async def slow_dial(*args: Any, **kw: Any) -> socket.socket:
+        sock = await real_dial(*args, **kw)
+        kernel.dead = False  # the old path ACKs again before the new one is used
+        opened.append(sock)
+        return sock
+
+    robot = RobotLink(robot_config(server.url, tmp_path), on_frame=lambda f: None,
+                      tuning=TUNING)
+    async with running(robot):
+        await wait_until(lambda: robot.stats()["connected"])
+        monkeypatch.setattr(transport, "dial", slow_dial)
+        robot.offer("/r1/events", string_frame("/r1/events", "x", no_drop=True, seq=1),
+                    priority=1.0, no_drop=True)
+        kernel.dead = True
+        await wait_until(lambda: bool(opened) and opened[0].fileno() == -1)
+        stats = robot.stats()
+    assert stats["connects"] == 1 and stats["dead_paths"] == 0

@@ -177,20 +177,23 @@ class FleetRun:
             raise FleetError(f"{exc}; log of {name}: {self.topo.logs(name)[-800:]}") from exc
 
     def start_robot(self, role: str, client_profile: profiles.Profile,
-                    load_profile: str) -> Endpoint:
+                    load_profile: str, relay_command: str | None = None) -> Endpoint:
         """Start a robot: the load publisher and ``fleetctl client`` in one container.
 
         Args:
             role: Container role (also names its config and published file).
             client_profile: What the client config says (the baseline's differs).
             load_profile: Profile name the load publisher publishes.
+            relay_command: What carries the load instead of ``fleetctl client`` (a peer's
+                bridge, shell words); None: the client with *client_profile*'s config.
         """
-        cfg = profiles.client_config(client_profile, self.robot_server_url)
-        (self.work / f"{role}.yaml").write_text(yaml.safe_dump(cfg, sort_keys=False))
+        if relay_command is None:
+            cfg = profiles.client_config(client_profile, self.robot_server_url)
+            (self.work / f"{role}.yaml").write_text(yaml.safe_dump(cfg, sort_keys=False))
+            relay_command = f"fleetctl client --config {CONTAINER_DIR}/{role}.yaml"
         script = (f"python3 -m fleetctl.e2e.load --profile {load_profile} "
                   f"--out {CONTAINER_DIR}/out/{role}-published.json & "
-                  "echo $! > /tmp/load.pid; "
-                  f"exec fleetctl client --config {CONTAINER_DIR}/{role}.yaml")
+                  f"echo $! > /tmp/load.pid; exec {relay_command}")
         wg = self.deployment.robot_options(self.server_ip)
         env = {"ROS_AUTOMATIC_DISCOVERY_RANGE": "LOCALHOST", **wg.pop("env", {})}
         mounts = [*self.mounts(), *wg.pop("mounts", [])]

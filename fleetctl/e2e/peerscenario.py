@@ -30,7 +30,7 @@ from fleetctl.deploy.shaping import Capabilities
 from fleetctl.e2e import peeranalysis, profiles
 from fleetctl.e2e.fleetrun import CONTAINER_DIR, FleetRun, hold, wait_for
 from fleetctl.e2e.samples import Sample
-from fleetctl.e2e.topology import ROBOT_SIDE, SERVER_SIDE, Endpoint
+from fleetctl.e2e.topology import SERVER_SIDE, Endpoint
 from fleetctl.e2e.zenohpeer import PORT
 
 Progress = Callable[[str], None]
@@ -50,16 +50,9 @@ def _zenoh_robot(fr: FleetRun, role: str, settings: str, p: profiles.Profile) ->
     """The load publisher and the zenoh bridge in one robot container (the fleetctl
     robot's path: through the tunnel when there is one)."""
     host = urlsplit(fr.robot_server_url).hostname
-    script = (f"python3 -m fleetctl.e2e.load --profile {p.name} "
-              f"--out {CONTAINER_DIR}/out/{role}-published.json & "
-              "echo $! > /tmp/load.pid; "
-              f"exec python3 -m fleetctl.e2e.zenohpeer bridge --profile {p.name} "
+    bridge = (f"python3 -m fleetctl.e2e.zenohpeer bridge --profile {p.name} "
               f"--settings {settings} --connect tcp/{host}:{PORT}")
-    wg = fr.deployment.robot_options(fr.server_ip)
-    env = {"ROS_AUTOMATIC_DISCOVERY_RANGE": "LOCALHOST", **wg.pop("env", {})}
-    mounts = [*fr.mounts(), *wg.pop("mounts", [])]
-    return fr.topo.start(role, ROBOT_SIDE, fr.image("client"), ["bash", "-c", script],
-                         env=env, mounts=mounts, **wg)
+    return fr.start_robot(role, p, p.name, relay_command=bridge)
 
 
 def _zenoh_consumers(fr: FleetRun, role: str, settings: str, p: profiles.Profile,

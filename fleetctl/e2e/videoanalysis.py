@@ -20,6 +20,7 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Any
 
+from fleetctl.e2e.analysis import crit
 from fleetctl.e2e.samples import Sample
 
 
@@ -99,8 +100,6 @@ def mean_mbit_s(samples: Sequence[Sample], start_ns: int, end_ns: int) -> float:
 def dropout_criteria(topic: str, samples: Sequence[Sample],
                      restore_ns: int) -> tuple[list[dict[str, Any]], list[str]]:
     """The dropout scenario's video rows: back within 1 s, never from a broken reference."""
-    from fleetctl.e2e.analysis import crit
-
     c = chain(samples)
     back = first_shown_after_s(samples, restore_ns, fresh=True)
     criteria = [

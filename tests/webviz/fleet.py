@@ -95,8 +95,9 @@ def jpeg_bytes(width: int = 160, height: int = 120) -> bytes:
 
 
 @dataclass
-class WsRobot:
-    """One simulated robot as a WebSocket client of the relay."""
+class RobotConnection:
+    """A robot's WebSocket connection to the relay: connects (from its own address), keeps
+    what it receives in a bounded queue (overflow counted), closes."""
 
     name: str
     ip: str
@@ -107,14 +108,13 @@ class WsRobot:
     ws: ClientConnection | None = None
     tasks: list[asyncio.Task[None]] = field(default_factory=list)
 
-    async def start(self) -> None:
+    async def connect(self) -> ClientConnection:
+        """Connect, wait for the server's welcome, start keeping what arrives."""
         self.ws = await connect(self.url, local_addr=(self.ip, 0), max_size=None)
         welcome = json.loads(await asyncio.wait_for(self.ws.recv(), 10))
         assert welcome["type"] == "welcome", welcome
-        await self.ws.send(
-            encode_subscription(f"/{self.name}/(goal_pose|initialpose)", codec=self.codec)
-        )
-        self.tasks = [asyncio.create_task(self._read()), asyncio.create_task(self._publish())]
+        self.tasks.append(asyncio.create_task(self._read()))
+        return self.ws
 
     async def stop(self) -> None:
         for t in self.tasks:
@@ -132,6 +132,18 @@ class WsRobot:
                     self.received.put_nowait(frame)
                 except asyncio.QueueFull:
                     self.dropped += 1
+
+
+@dataclass
+class WsRobot(RobotConnection):
+    """One simulated robot as a WebSocket client of the relay."""
+
+    async def start(self) -> None:
+        ws = await self.connect()
+        await ws.send(
+            encode_subscription(f"/{self.name}/(goal_pose|initialpose)", codec=self.codec)
+        )
+        self.tasks.append(asyncio.create_task(self._publish()))
 
     def _frames(self, i: int, t: float) -> list[bytes]:
         c, n, now = self.codec, self.name, time.time_ns()

@@ -7,7 +7,6 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
-import json
 import math
 import time
 from collections.abc import AsyncIterator, Callable, Sequence
@@ -16,7 +15,6 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-from websockets.asyncio.client import ClientConnection, connect
 
 from fleetctl.server.app import RelayServer
 from fleetctl.server.authmap import load_auth_map
@@ -24,7 +22,7 @@ from fleetctl.server.config import ServerConfig
 from fleetctl.wire.codec import Codec
 from fleetctl.wire.metadata import read_metadata
 from fleetctl.wire.registry import TypeRegistry
-from tests.webviz.fleet import RECEIVED_QUEUE, write_auth_map
+from tests.webviz.fleet import RobotConnection, write_auth_map
 from tests.webviz.msgs import make
 from tests.webviz.samples import header, pose_values, scan_values
 from tests.webviz.video import EncodedUnit
@@ -38,42 +36,14 @@ Transform = tuple[str, str, tuple[float, float, float], float]
 
 
 @dataclass
-class ScriptedRobot:
+class ScriptedRobot(RobotConnection):
     """A robot connection that sends only what the test gives it, and keeps what it gets."""
 
-    name: str
-    ip: str
-    url: str
-    codec: Codec
-    received: asyncio.Queue[bytes] = field(default_factory=lambda: asyncio.Queue(RECEIVED_QUEUE))
-    dropped: int = 0
     seqs: dict[str, int] = field(default_factory=dict)
-    ws: ClientConnection | None = None
-    tasks: list[asyncio.Task[None]] = field(default_factory=list)
 
     async def start(self) -> ScriptedRobot:
-        self.ws = await connect(self.url, local_addr=(self.ip, 0), max_size=None)
-        welcome = json.loads(await asyncio.wait_for(self.ws.recv(), 10))
-        assert welcome["type"] == "welcome", welcome
-        self.tasks.append(asyncio.create_task(self._read()))
+        await self.connect()
         return self
-
-    async def stop(self) -> None:
-        for t in self.tasks:
-            t.cancel()
-            with contextlib.suppress(asyncio.CancelledError):
-                await t
-        if self.ws is not None:
-            await self.ws.close()
-
-    async def _read(self) -> None:
-        assert self.ws is not None
-        async for frame in self.ws:
-            if isinstance(frame, bytes):
-                try:
-                    self.received.put_nowait(frame)
-                except asyncio.QueueFull:
-                    self.dropped += 1
 
     def encode(self, type_name: str, topic: str, values: dict[str, Any], **kw: Any) -> bytes:
         """A frame on ``/<name><topic>``, numbered per topic as a robot numbers them."""

@@ -10,7 +10,8 @@ buffer is above ``write_limit``.
 On the client side, large binary frames are serialized by
 :func:`fleetctl.masked_frame.masked_binary_frame` (one pass over the payload instead of
 websockets' three), and large chunks are written on their own instead of being joined
-with their neighbours (one more pass saved). Small frames take websockets' own path.
+with their neighbours (one more pass saved). Small frames take websockets' own path (and
+the uplink deflate of :mod:`fleetctl.linkdeflate`, which leaves large frames alone).
 
 The robot client (:class:`fleetctl.client.transport.LinkConnection`) and the relay
 (:class:`fleetctl.server.connection.RelayConnection`) both derive from this class.
@@ -27,6 +28,7 @@ from websockets.asyncio.connection import Connection
 from websockets.exceptions import ConcurrencyError
 from websockets.protocol import Side
 
+from fleetctl.linkdeflate import passes_through
 from fleetctl.masked_frame import masked_binary_frame
 
 # Frames from this size on are masked in one pass and written without joining: below it
@@ -53,14 +55,17 @@ class BatchedWritesConnection(Connection):
         async with self.send_context():
             protocol = self.protocol
             # send_context checked the state is OPEN; nothing below awaits, so it stays
-            # open. Without extensions (compression is off on fleet links) a frame is
-            # exactly what serialize() would produce, so it can be queued directly.
-            one_pass = (protocol.side is Side.CLIENT and not protocol.extensions
+            # open. A frame no extension touches (the uplink deflate leaves large ones
+            # alone) is exactly what serialize() would produce, so it can be queued
+            # directly.
+            one_pass = (protocol.side is Side.CLIENT
                         and not protocol.expect_continuation_frame)
+            extensions = protocol.extensions
             for frame in frames:
                 if isinstance(frame, str):
                     protocol.send_text(frame.encode())
-                elif one_pass and len(frame) >= ONE_PASS_MIN_BYTES:
+                elif (one_pass and len(frame) >= ONE_PASS_MIN_BYTES
+                      and passes_through(extensions, len(frame))):
                     protocol.writes.append(cast(bytes, masked_binary_frame(frame)))
                 else:
                     protocol.send_binary(frame)

@@ -11,4 +11,7 @@ if docker info >/dev/null 2>&1; then
   # cached, so only changed code is rebuilt; a fresh machine needs ~15 minutes once).
   echo "== fleetctl build"; fleetctl build
 fi
-echo "== pytest"; pytest -q -ra "$@"
+# A whole-run deadline (default 45 min; the run takes ~17): a hang ends red, with the stacks
+# faulthandler printed and pytest's summary after the SIGINT, not silent at the CI's limit.
+echo "== pytest"
+timeout --signal=INT --kill-after=60 "${FLEETCTL_TEST_DEADLINE_S:-2700}" pytest -q -ra "$@"

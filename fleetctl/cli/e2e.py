@@ -9,7 +9,6 @@ from typing import NoReturn
 
 import typer
 
-from fleetctl.deploy.dockercli import subprocess_runner
 from fleetctl.e2e import cleanup, report, runner
 from fleetctl.e2e.interrupt import Interrupted, SignalGuard
 from fleetctl.errors import ExitCode, FleetError
@@ -75,7 +74,7 @@ def e2e(
 
 def _interrupted(exc: Interrupted, run_id: str) -> NoReturn:
     """Say what the signal stopped and what is left; exit 128 + the signal's number."""
-    left = cleanup.find(subprocess_runner, f"{cleanup.RUN_LABEL}={run_id}")
+    left = cleanup.find(cleanup.CLEANUP_RUNNER, f"{cleanup.RUN_LABEL}={run_id}")
     if left:
         names = ", ".join(r.name for r in left)
         tail = f"{len(left)} container(s)/network(s) remain ({names}): run `fleetctl e2e --cleanup`"
@@ -86,8 +85,8 @@ def _interrupted(exc: Interrupted, run_id: str) -> NoReturn:
 
 
 def _cleanup(everything: bool) -> None:
-    gone, kept = cleanup.leftovers(subprocess_runner, everything=everything)
-    removed = cleanup.remove(subprocess_runner, gone)
+    gone, kept = cleanup.leftovers(cleanup.CLEANUP_RUNNER, everything=everything)
+    removed = cleanup.remove(cleanup.CLEANUP_RUNNER, gone)
     for r in removed:
         typer.echo(f"removed {r.kind} {r.name} (run {r.run_id or '?'})")
     for r in kept:

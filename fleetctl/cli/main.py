@@ -22,7 +22,10 @@ _COMMAND_MODULES = (
     "fleetctl.cli.client",  # client
     "fleetctl.cli.webviz",  # webviz
     "fleetctl.cli.demo",  # demo
+    "fleetctl.cli.foxglove",  # foxglove-url
     "fleetctl.cli.schema",  # schema export
+    "fleetctl.cli.recordings",  # recordings list, recordings fetch
+    "fleetctl.cli.replay",  # replay
     "fleetctl.cli.deploy",  # build, up, down, status, logs
     "fleetctl.cli.e2e",  # e2e
 )
@@ -30,12 +33,14 @@ _COMMAND_MODULES = (
 
 # `fleetctl --help` groups commands by what an operator is doing.
 _SETUP, _RUN, _DEPLOY, _TEST = "Set up a fleet", "Run one component", "Deploy", "Test"
+_DATA = "Recordings"
 _PANELS = {
     **dict.fromkeys(("init", "set-endpoint", "add-robot", "remove-robot", "add-user",
                      "remove-user", "list", "list-fleet", "render", "export", "schema"), _SETUP),
-    **dict.fromkeys(("server", "client", "webviz", "demo"), _RUN),
+    **dict.fromkeys(("server", "client", "webviz", "demo", "foxglove-url"), _RUN),
     **dict.fromkeys(("build", "up", "down", "status", "logs"), _DEPLOY),
     "e2e": _TEST,
+    **dict.fromkeys(("recordings", "replay"), _DATA),
 }
 
 

@@ -45,10 +45,19 @@ server.yaml (relative paths are relative to the file):
     tls_cert: tls/cert.pem      required, PEM certificate (chain)
     tls_key: tls/key.pem        required, its unencrypted PEM private key
     vendor_dir: /usr/share/javascript   Debian libjs-three / libjs-leaflet
+  recording:                    optional: MCAP files of matching frames
+    directory: recordings       created at start
+    rules: [{topic: RE2, identities: [NAME, ...]}]   identities omitted: any
+    max_file_bytes: 268435456   rotate before a file passes it
+    max_total_bytes: 10737418240   oldest closed files deleted past it
+    max_age_s: null             delete closed files older than this
+    queue_bytes: 67108864       frames waiting; past it: dropped, counted
 
 \b
-HTTP: GET /healthz, GET /metrics (Prometheus), GET /robots (JSON); on the
-web port: the page (/, /config.json, /types/..., /vendor/...) and /healthz.
+HTTP: GET /healthz, GET /metrics (Prometheus), GET /robots (JSON),
+GET /recordings and /recordings/NAME (MCAP files whose every topic the
+caller may receive); on the web port: the page (/, /config.json,
+/types/..., /vendor/...) and /healthz.
 auth.yaml: a changed file (checked every 0.25 s) or SIGHUP reloads it; an
 invalid file is logged and the previous map stays. Connections whose
 identities are gone are closed with 4403; the others keep their connection.
@@ -65,6 +74,7 @@ def register(app: typer.Typer) -> None:
         log_level: str = typer.Option("info", "--log-level", help="debug, info, warning."),
     ) -> None:
         from fleetctl.server.app import ListenError, RelayServer, run_server
+        from fleetctl.server.cluster.config import ClusterStartError
         from fleetctl.server.config import load_server_config
 
         level = getattr(logging, log_level.upper(), None)
@@ -80,5 +90,5 @@ def register(app: typer.Typer) -> None:
 
         try:
             asyncio.run(run_server(cfg, ready=ready))
-        except ListenError as exc:
+        except (ListenError, ClusterStartError) as exc:
             raise ConfigError(f"{config}: {exc}") from None

@@ -29,6 +29,7 @@ decode error it waits for the next keyframe, :func:`fleetctl.client.videobits.is
 
 from __future__ import annotations
 
+import contextlib
 import fractions
 import logging
 import os
@@ -40,6 +41,7 @@ from typing import Any
 import numpy as np
 import numpy.typing as npt
 
+from fleetctl.client.threadsched import no_realtime_promotion
 from fleetctl.client.videobits import is_keyframe
 
 log = logging.getLogger(__name__)
@@ -270,7 +272,8 @@ class VideoEncoder:
             # SVT-AV1 takes its threads as "lp" (logical processors), not thread_count.
             options["svtav1-params"] += f":lp={self._threads}"
         ctx.options = options
-        ctx.open()
+        with no_realtime_promotion(self._info.encoder):
+            ctx.open()
         return ctx
 
     def set_bitrate(self, bps: int) -> None:
@@ -340,8 +343,12 @@ class VideoEncoder:
         if self._keyframe_due(pts_s) or force_keyframe:
             frame.pict_type = PictureType.I
             self._last_key_s = pts_s
+        # An encoder may start more threads at its first frame: guard that one too.
+        guard = (no_realtime_promotion(self._info.encoder) if self._frames_since_open == 0
+                 else contextlib.nullcontext())
         try:
-            packets = self._ctx.encode(frame)
+            with guard:
+                packets = self._ctx.encode(frame)
         except Exception as exc:
             raise VideoError(f"{self._info.encoder} failed on a frame: {exc}") from exc
         self.frames_in += 1

@@ -37,8 +37,9 @@ class Completed:
 Runner = Callable[[Sequence[str], bytes | None, bool], Completed]
 
 
-def subprocess_runner(argv: Sequence[str], stdin: bytes | None, capture: bool) -> Completed:
-    """Run *argv* for real; output is inherited (shown to the user) unless *capture*."""
+def _run(argv: Sequence[str], stdin: bytes | None, capture: bool,
+         timeout_s: float | None) -> Completed:
+    """Run *argv* once; raises ``subprocess.TimeoutExpired`` (child killed) past *timeout_s*."""
     try:
         proc = subprocess.run(
             list(argv),
@@ -46,12 +47,46 @@ def subprocess_runner(argv: Sequence[str], stdin: bytes | None, capture: bool) -
             stdout=subprocess.PIPE if capture else None,
             stderr=subprocess.PIPE if capture else None,
             check=False,
+            timeout=timeout_s,
         )
     except FileNotFoundError as exc:
         raise EnvironmentMissing(f"{argv[0]}: command not found") from exc
     out = proc.stdout.decode(errors="replace") if capture and proc.stdout else ""
     err = proc.stderr.decode(errors="replace") if capture and proc.stderr else ""
     return Completed(tuple(argv), proc.returncode, out, err)
+
+
+def subprocess_runner(argv: Sequence[str], stdin: bytes | None, capture: bool) -> Completed:
+    """Run *argv* for real; output is inherited (shown to the user) unless *capture*."""
+    return _run(argv, stdin, capture, None)
+
+
+# The exit status a command killed at its deadline reports (as coreutils `timeout` does).
+DEADLINE_EXIT = 124
+
+
+def deadline_runner(deadline_s: float, *, tries: int = 1) -> Runner:
+    """A runner that kills a command still running after *deadline_s* and tries it again.
+
+    Why: on Docker 20.10 a ``docker ps`` or ``docker exec`` started while the engine was
+    removing containers has been seen to spin for over 30 minutes without returning, and
+    whoever waited for it (``fleetctl e2e``'s cleanup, a test's ``finally``) waited forever;
+    a second try of the same command answered at once. Use ``tries > 1`` only for commands
+    that are safe to repeat (queries, ``rm -f``). After the last try the result has exit
+    status :data:`DEADLINE_EXIT` and a stderr naming the command and the deadline, so
+    :func:`check` reports it.
+    """
+    def run(argv: Sequence[str], stdin: bytes | None, capture: bool) -> Completed:
+        for _ in range(tries):
+            try:
+                return _run(argv, stdin, capture, deadline_s)
+            except subprocess.TimeoutExpired:
+                continue  # subprocess.run has killed and reaped it
+        what = " ".join(argv[:3])
+        return Completed(tuple(argv), DEADLINE_EXIT, "",
+                         f"`{what}` did not return within {deadline_s:g} s "
+                         f"({tries} {'try' if tries == 1 else 'tries'}); killed")
+    return run
 
 
 def require_docker(which: Callable[[str], str | None] = shutil.which) -> str:

@@ -23,11 +23,25 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
-from fleetctl.deploy.dockercli import Runner, check
+from fleetctl.deploy.dockercli import Runner, check, deadline_runner
 
 LABEL = "io.fleetctl.e2e"
 RUN_LABEL = "fleetctl.e2e.run"
 OWNER_LABEL = "fleetctl.e2e.owner"
+
+# Listing and removing are quick and safe to repeat: each try gets 30 s, three tries, so an
+# interrupted run's cleanup ends within minutes whatever the engine does
+# (dockercli.deadline_runner says what was seen).
+CLEANUP_RUNNER = deadline_runner(30.0, tries=3)
+
+
+def run_runner(duration_s: float) -> Runner:
+    """The runner of an e2e run's docker commands: each gets a deadline, tried once.
+
+    The longest command is a measurement inside a container, a fraction of *duration_s*;
+    a command past the deadline fails the scenario with its name instead of hanging the run.
+    """
+    return deadline_runner(max(120.0, 2 * duration_s + 60.0))
 
 
 def _start_ticks(pid: int, proc: Path = Path("/proc")) -> str | None:

@@ -11,6 +11,7 @@ clock: containers share the kernel's CLOCK_REALTIME).
   frame *seq* of a 15 Hz sequence. The client sends it as video:
   ``foxglove_msgs/msg/CompressedVideo`` carries the source's stamp in ``timestamp`` and
   its ``frame_id``, so the stamp survives encoding.
+- ``sensor_msgs/msg/LaserScan``: a realistic scan (:func:`scan_readings`).
 - ``std_msgs/msg/String``: ``data`` is JSON ``{"seq": N, "t_ns": T, "pad": "..."}``.
 
 Messages are rosbags objects (the codec's and the CDR serializer's currency), built per type
@@ -28,6 +29,7 @@ from typing import Any
 
 import numpy as np
 
+from fleetctl.client.ros import simworld
 from fleetctl.errors import FleetError
 
 Builder = Callable[[Any, int, int, int], Any]  # (typestore, size_bytes, seq, t_ns) -> msg
@@ -50,12 +52,43 @@ def _header(ts: Any, seq: int, t_ns: int) -> Any:
 
 def _laser_scan(ts: Any, size_bytes: int, seq: int, t_ns: int) -> Any:
     n = max(1, size_bytes // 8)  # float32 ranges + intensities
+    ranges, intensities = scan_readings(n, seq)
+    increment = SCAN_FIELD_RAD / n
     return ts.types["sensor_msgs/msg/LaserScan"](
-        header=_header(ts, seq, t_ns), angle_min=-2.35, angle_max=2.35,
-        angle_increment=4.7 / n, time_increment=0.0, scan_time=0.1, range_min=0.1,
-        range_max=30.0, ranges=np.full(n, 5.0, dtype=np.float32),
-        intensities=np.zeros(n, dtype=np.float32),
+        header=_header(ts, seq, t_ns), angle_min=SCAN_ANGLE_MIN_RAD,
+        angle_max=SCAN_ANGLE_MIN_RAD + increment * (n - 1),
+        angle_increment=increment, time_increment=0.0, scan_time=0.1,
+        range_min=0.1, range_max=30.0, ranges=ranges, intensities=intensities,
     )
+
+
+# A 270-degree 2D lidar (Hokuyo UTM-30LX-like).
+SCAN_FIELD_RAD = 1.5 * math.pi
+SCAN_ANGLE_MIN_RAD = -SCAN_FIELD_RAD / 2
+_SCAN_RATE_HZ = 10.0
+_RANGE_NOISE_M = 0.01  # the UTM-30LX's repeatability (1 sigma)
+_NO_RETURN_FRACTION = 0.01  # beams with no echo: +inf (REP 117)
+
+
+def scan_readings(beams: int, seq: int) -> tuple[np.ndarray, np.ndarray]:
+    """Ranges and intensities (float32) of scan *seq* of a robot driving through a room.
+
+    What a real 2D lidar sends, so that byte counts and compression measured with it mean
+    something (a constant scan compresses to nothing; uniform random floats not at all):
+    the demo's room and circling robot (:mod:`fleetctl.client.ros.simworld`), range noise
+    of 1 cm, ranges in whole millimetres and intensities in whole counts (as the sensor
+    reports them), 1 % of beams without a return. Deterministic in *seq*.
+    """
+    room, motion = simworld.RoomConfig(), simworld.MotionConfig()
+    phase = seq / _SCAN_RATE_HZ * motion.speed_m_s / motion.circle_radius_m
+    state = simworld.start_state(room, motion, phase_rad=phase)
+    true = simworld.laser_ranges(state, room, beams, SCAN_ANGLE_MIN_RAD,
+                                 SCAN_FIELD_RAD / beams)
+    rng = np.random.default_rng(seq)
+    ranges = np.round((true + rng.normal(0.0, _RANGE_NOISE_M, beams)) * 1000.0) / 1000.0
+    ranges[rng.random(beams) < _NO_RETURN_FRACTION] = np.inf
+    counts = np.round(6000.0 / (1.0 + true) + rng.normal(0.0, 40.0, beams))
+    return ranges.astype(np.float32), np.clip(counts, 0.0, 65535.0).astype(np.float32)
 
 
 def _pose(ts: Any, size_bytes: int, seq: int, t_ns: int) -> Any:

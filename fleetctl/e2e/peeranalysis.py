@@ -26,6 +26,8 @@ class VariantRun:
         trials: ``(cut, restore, end)`` of each trial (ns since the epoch).
         uplink_bit_s: Router tx towards the server network in the steady window.
         published: What the load publisher published per wire topic.
+        messages_per_s: The load's message rate (all topics), for the uplink bytes per
+            message; 0 when unknown.
     """
 
     samples: Sequence[Sample]
@@ -33,6 +35,7 @@ class VariantRun:
     trials: Sequence[tuple[int, int, int]]
     uplink_bit_s: float
     published: Mapping[str, Mapping[str, int]]
+    messages_per_s: float = 0.0
 
 
 @dataclass(frozen=True)
@@ -141,13 +144,20 @@ def mean_bytes(samples: Sequence[Sample]) -> dict[str, float]:
 
 
 def bytes_note(runs: Mapping[str, VariantRun]) -> str:
-    """Bytes per message per topic: fleetctl's frame against the CDR zenoh carries."""
+    """Bytes per message per topic: fleetctl's frame against the CDR zenoh carries; then
+    what each variant's uplink cost per message, every overhead included (the uplink
+    deflate, framing, TCP, WireGuard, IP, Ethernet)."""
     fleet = mean_bytes(runs["fleetctl"].samples)
     cdr = next((mean_bytes(r.samples) for v, r in runs.items() if v != "fleetctl"), {})
     parts = [f"{t} fleetctl {b:.0f}" + (f" (CDR {cdr[t]:.0f}, +{b - cdr[t]:.0f})"
                                         if t in cdr else "")
              for t, b in sorted(fleet.items())]
-    return "bytes per message: " + "; ".join(parts)
+    note = "bytes per message (frame as relayed): " + "; ".join(parts)
+    wire = [f"{v} {r.uplink_bit_s / 8 / r.messages_per_s:.0f}" for v, r in runs.items()
+            if r.messages_per_s > 0]
+    if wire:
+        note += "; on the uplink, all overheads included: " + ", ".join(wire)
+    return note
 
 
 def fanout_step(samples: Sequence[Sample], consumers: int, seconds: float) -> dict[str, Any]:

@@ -161,8 +161,9 @@ def run_peer(fr: FleetRun, caps: Capabilities, duration_s: float,
                 hold(after_s)
                 trials.append((cut, restore, time.time_ns()))
             samples = run.stop()
-        runs[variant] = peeranalysis.VariantRun(samples, t0, trials, window.tx_bytes * 8 /
-                                                window.seconds, run.published)
+        runs[variant] = peeranalysis.VariantRun(
+            samples, t0, trials, window.tx_bytes * 8 / window.seconds, run.published,
+            messages_per_s=sum(t.rate_hz for t in p.topics))
     link.clear()
     result = peeranalysis.peer(runs, [t.remote_topic for t in p.topics])
     result["notes"].insert(0, (

@@ -200,8 +200,12 @@ def run_link(topo: Topology, caps: Capabilities, cfg: RunConfig,
 
 
 def run(cfg: RunConfig, progress: Progress = print,
-        runner: Runner = subprocess_runner) -> tuple[dict[str, Any], list[dict[str, Any]]]:
+        runner: Runner | None = None) -> tuple[dict[str, Any], list[dict[str, Any]]]:
     """Run *cfg*'s scenarios; returns the environment description and one result each.
+
+    Args:
+        runner: Runs the docker commands (default: :func:`cleanup.run_runner`, each command
+            with a deadline).
 
     Raises:
         EnvironmentMissing: images are missing, or ``--wireguard on`` without a TUN device.
@@ -209,12 +213,17 @@ def run(cfg: RunConfig, progress: Progress = print,
             container and network of the run was removed first.
     """
     mode = wireguard.decide(cfg.wireguard)
+    # A runner of the caller's (a unit test's) also does the cleanup; ours retries it.
+    cleanup_runner = None if runner else cleanup.CLEANUP_RUNNER
+    runner = runner or cleanup.run_runner(cfg.duration_s)
     preflight(runner)
     results: list[dict[str, Any]] = []
     work = cfg.work_dir or Path(tempfile.mkdtemp(prefix="fleetctl-e2e-"))
     shutil.rmtree(work / "out", ignore_errors=True)
     work.mkdir(parents=True, exist_ok=True)
-    topology = Topology(runner=runner) if cfg.run_id is None else Topology(cfg.run_id, runner)
+    topology = Topology(runner=runner, cleanup_runner=cleanup_runner)
+    if cfg.run_id is not None:
+        topology.run_id = cfg.run_id
     with topology as topo:
         progress(f"run {topo.run_id} (label {cleanup.RUN_LABEL}={topo.run_id})")
         link_mtu = topo.mtu(topo.router, topo.router_devs[ROBOT_SIDE])

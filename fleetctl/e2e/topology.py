@@ -88,6 +88,8 @@ class Topology:
         runner: Runs docker commands (replaceable in unit tests).
         router_image: Image of the router (iproute2 + python3).
         owner: Owner label value (default: this process, :func:`cleanup.owner`).
+        cleanup_runner: Runs the removal in :meth:`close` (default: *runner*); the e2e run
+            gives it :data:`cleanup.CLEANUP_RUNNER`, which retries a hung command.
     """
 
     run_id: str = field(default_factory=lambda: secrets.token_hex(3))
@@ -100,6 +102,7 @@ class Topology:
     router_devs: dict[str, str] = field(default_factory=dict)  # side -> router interface
     endpoints: list[Endpoint] = field(default_factory=list)
     router: str = ""
+    cleanup_runner: Runner | None = None
 
     @property
     def labels(self) -> list[str]:
@@ -341,14 +344,15 @@ class Topology:
         """
         with deferred():
             names = [e.name for e in self.endpoints] + ([self.router] if self.router else [])
+            runner = self.cleanup_runner or self.runner
             if names:
                 # -v: anonymous volumes (the server's data) go with their containers.
-                self.runner(["docker", "rm", "-f", "-v", *names], None, True)
+                runner(["docker", "rm", "-f", "-v", *names], None, True)
             for net in self.networks.values():
-                self.runner(["docker", "network", "rm", net], None, True)
+                runner(["docker", "network", "rm", net], None, True)
             # What was made but not yet recorded (a `docker run` cut short by a signal).
             with contextlib.suppress(FleetError):
-                cleanup.remove_run(self.runner, self.run_id)
+                cleanup.remove_run(runner, self.run_id)
             self.endpoints.clear()
             self.networks.clear()
             self.router = ""

@@ -17,19 +17,22 @@ import http
 import logging
 import signal
 import ssl
-from collections.abc import Callable
+from collections.abc import Awaitable, Callable
 from typing import Any, NamedTuple, cast
 
 from websockets.asyncio.server import Server, ServerConnection, serve
 from websockets.exceptions import ConnectionClosed
 from websockets.http11 import Request, Response
 
+from fleetctl.errors import ConfigError
+from fleetctl.linkdeflate import RelayDeflateFactory
 from fleetctl.server import endpoints, protocol
 from fleetctl.server.admission import UnauthenticatedGate
 from fleetctl.server.authmap import AuthMap, Identity, load_auth_map
 from fleetctl.server.authreload import AuthReloader
 from fleetctl.server.config import Hosts, ServerConfig, host_list, hosts_text
 from fleetctl.server.connection import RelayConnection
+from fleetctl.server.foxglove.adapter import TICKET_PATH, FoxgloveAdapter, TicketScrub
 from fleetctl.server.handshake import (
     BadRequest,
     HandshakeLog,
@@ -40,6 +43,8 @@ from fleetctl.server.handshake import (
 from fleetctl.server.identity import PROXY_HEADERS, parse_address, within
 from fleetctl.server.metrics import Metrics
 from fleetctl.server.outbound import OutboundScheduler
+from fleetctl.server.recording.http import RECORDINGS_PATH, RecordingsEndpoint
+from fleetctl.server.recording.recorder import Recorder
 from fleetctl.server.registry import RobotRegistry
 from fleetctl.server.relay import Peer, RelayCore
 from fleetctl.server.tls import server_context
@@ -53,6 +58,7 @@ ws_log = logging.getLogger("fleetctl.server.websockets")
 ws_log.setLevel(logging.INFO)
 ws_log.addFilter(QuietSuccess())  # a health check every 5 s is not a "rejection"
 ws_log.addFilter(HandshakeLog())  # a port scan or a POST is one line, not a traceback
+ws_log.addFilter(TicketScrub())  # a Foxglove ticket in a quoted request line never reaches a log
 
 # Why small: the kernel socket buffer already holds plenty; bytes parked in asyncio's
 # buffer cannot be dropped or superseded, bytes in our scheduler can (Pound, Robofleet n_T).
@@ -75,6 +81,7 @@ class _Handshake(NamedTuple):
     bad_token: bool
     wake: asyncio.Event
     auth: AuthMap  # the map *identities* were matched against
+    refusal: str | None = None  # why a Foxglove ticket was refused
 
 
 class _Request(NamedTuple):
@@ -84,6 +91,7 @@ class _Request(NamedTuple):
     identities: list[Identity]
     bad_token: bool
     auth: AuthMap
+    refusal: str | None = None  # why a Foxglove ticket was refused
 
 
 class RelayServer:
@@ -100,8 +108,20 @@ class RelayServer:
         auth = auth if auth is not None else load_auth_map(config.auth_map)
         self.metrics = Metrics()
         self.registry = RobotRegistry(config.database, config.limits.robot_offline_after_s)
-        self.core = RelayCore(config, auth, self.registry, self.metrics)
+        self.recorder = (None if config.recording is None else
+                         Recorder(config.recording,
+                                  max_message_bytes=config.limits.max_frame_bytes))
+        self.core = RelayCore(config, auth, self.registry, self.metrics,
+                              recorder=self.recorder)
+        if config.cluster is not None:  # the only place that knows about replicas
+            from fleetctl.server.cluster.natsfanout import NatsFanout
+
+            self.core.use_fanout(NatsFanout(self.core.local, self.core.on_remote,
+                                            config.cluster))
+        self.recordings = (RecordingsEndpoint(self.recorder) if self.recorder is not None
+                           else None)
         self.reloader = AuthReloader(config.auth_map, self.core.reload_auth, self.metrics)
+        self.foxglove = FoxgloveAdapter(self.core, WRITE_BATCH_BYTES)
         self._server: Server | None = None
         self._web_server: Server | None = None
         self._page: WebPage | None = None
@@ -159,14 +179,19 @@ class RelayServer:
         """Bind and start serving; start watching the auth map.
 
         Raises:
-            ConfigError: A certificate or key cannot be loaded.
+            ConfigError: A certificate or key cannot be loaded, or the recording
+                directory cannot be created.
             ListenError: An address cannot be bound.
+            ClusterStartError: With ``cluster:``, NATS cannot be joined.
         """
         config, web = self.config, self.config.web
         main_ssl = (server_context(config.tls_cert, config.tls_key)
                     if config.tls_cert is not None and config.tls_key is not None else None)
         web_ssl = server_context(web.tls_cert, web.tls_key) if web is not None else None
+        if self.recorder is not None:
+            _start_recorder(self.recorder)
         try:
+            await self.core.fanout.start()  # NATS first: no connection before it is up
             self._server = await self._listen(config.listen_host, config.listen_port, main_ssl,
                                               web=False, field="listen_port")
             if web is not None:
@@ -201,8 +226,12 @@ class RelayServer:
                 await server.wait_closed()
         for task in list(self._tasks):
             task.cancel()
+        await self.core.fanout.stop()
         self.core.sessions.flush()
         self.registry.close()
+        if self.recorder is not None:  # after the listeners: the last frames are written
+            self.recorder.detach()
+            await asyncio.get_running_loop().run_in_executor(None, self.recorder.stop)
 
     def reload_auth(self, reason: str = "reload requested") -> bool:
         """Reload the auth map file now (SIGHUP does this); see :class:`AuthReloader`.
@@ -230,12 +259,16 @@ class RelayServer:
                                                               gate=self.gate)),
                 process_request=self._web_request if web else self._process_request,
                 process_response=respond,
+                select_subprotocol=self.foxglove.select_subprotocol,
                 max_size=self.config.limits.max_frame_bytes,
                 max_queue=16,
                 write_limit=WRITE_LIMIT_BYTES,
                 ssl=ssl_context,
                 logger=ws_log,
-                compression=None,  # per-message deflate costs CPU per frame; payloads binary
+                # Inbound permessage-deflate only: robots deflate their small messages;
+                # the relay never compresses what it sends (fleetctl.linkdeflate).
+                compression=None,
+                extensions=[RelayDeflateFactory()],
             )
         except OSError as exc:
             raise ListenError(f"field {field!r}: cannot listen on {hosts_text(hosts)}:{port}: "
@@ -284,17 +317,23 @@ class RelayServer:
                         "this host, list 127.0.0.1 in trusted_proxies",
                         "/".join(PROXY_HEADERS))
         auth = self.core.auth
-        identities = auth.match_address(upgrade.address) if by_address else []
+        foxglove = self.foxglove.wanted(request)  # people: address identities do not apply
+        identities = auth.match_address(upgrade.address) if by_address and not foxglove else []
         bad = False
         if upgrade.token is not None:
             found = auth.match_token(upgrade.token)  # None for anything not a token
             bad = found is None
             identities = identities if found is None else [*identities, found]
-        parsed = _Request(upgrade, identities, bad, auth)
+        refusal = None
+        if foxglove and wants_websocket(request):
+            ticket, refusal = self.foxglove.redeem(request, self._secure(by_address), auth)
+            identities = identities if ticket is None else [*identities, ticket]
+        parsed = _Request(upgrade, identities, bad, auth, refusal)
         cast(RelayConnection, connection).relay_request = parsed
         return parsed
 
-    def _process_request(self, connection: ServerConnection, request: Request) -> Response | None:
+    def _process_request(self, connection: ServerConnection, request: Request,
+                         ) -> Response | Awaitable[Response] | None:
         try:
             parsed = self._read(connection, request, by_address=True)
         except BadRequest as exc:
@@ -304,24 +343,40 @@ class RelayServer:
             return endpoints.text(http.HTTPStatus.OK, "ok\n")
         if wants_websocket(request):
             return None
+        if path == TICKET_PATH:
+            return self._ticket(parsed, request, by_address=True)
         if path == "/metrics":
             return self._metrics(parsed)
         if path == "/robots":
             return self._robots(parsed)
+        if path == RECORDINGS_PATH or path.startswith(RECORDINGS_PATH + "/"):
+            return self._recordings(parsed, path, request)
         return endpoints.text(http.HTTPStatus.NOT_FOUND, "not found: this port serves "
-                              "WebSocket upgrades, /healthz, /metrics and /robots\n")
+                              "WebSocket upgrades, /healthz, /metrics, /robots and "
+                              "/recordings\n")
 
     def _web_request(self, connection: ServerConnection, request: Request) -> Response | None:
         # The web listener: the page and /healthz; /metrics and /robots stay on the relay
         # port (often not exposed to the internet).
         try:
-            self._read(connection, request, by_address=False)
+            parsed = self._read(connection, request, by_address=False)
         except BadRequest as exc:
             return endpoints.text(http.HTTPStatus.BAD_REQUEST, f"{exc}\n")
         if wants_websocket(request):
             return None
+        if request.path.split("?", 1)[0] == TICKET_PATH:
+            return self._ticket(parsed, request, by_address=False)
         assert self._page is not None
         return page_response(self._page, request)
+
+    def _secure(self, by_address: bool) -> bool:
+        """Whether a listener speaks TLS (the web listener always does)."""
+        return not by_address or self.config.tls_cert is not None
+
+    def _ticket(self, parsed: _Request, request: Request, by_address: bool) -> Response:
+        return self.foxglove.ticket_response(parsed.auth, parsed.upgrade.token,
+                                             self._secure(by_address),
+                                             request.headers.get("Host"))
 
     def _caller(self, parsed: _Request) -> tuple[bool, Any]:
         """``(allowed, perms)`` of a /robots or /metrics caller (``perms`` ``None``: a
@@ -338,12 +393,27 @@ class RelayServer:
             return endpoints.json_response({"robots": self.registry.as_json()})
         return endpoints.json_response({"robots": self.core.robots_for(perms)})
 
+    async def _recordings(self, parsed: _Request, path: str, request: Request) -> Response:
+        # Who may list and fetch: the callers of /metrics, each file filtered by the
+        # receive rules (fleetctl.server.recording.http).
+        allowed, perms = self._caller(parsed)
+        if not allowed:
+            return endpoints.text(http.HTTPStatus.UNAUTHORIZED,
+                                  "GET /recordings needs loopback or a valid Bearer token\n")
+        if self.recordings is None:
+            return endpoints.text(http.HTTPStatus.NOT_FOUND, "this server records nothing "
+                                  "(no recording: section in its config)\n")
+        return await self.recordings.respond(path, request.headers, perms)
+
     def _metrics(self, parsed: _Request) -> Response:
         allowed, _ = self._caller(parsed)
         if not allowed:
             return endpoints.text(http.HTTPStatus.UNAUTHORIZED,
                                   "GET /metrics needs loopback or a valid Bearer token\n")
-        text = self.metrics.render(self._gauges(), self.core.session_gauges())
+        families = [*(self.recorder.metric_families() if self.recorder is not None else ()),
+                    *self.foxglove.metric_families(),
+                    *self.core.fanout.metric_families()]
+        text = self.metrics.render(self._gauges(), self.core.session_gauges(), families)
         return endpoints.response(http.HTTPStatus.OK, text.encode("utf-8", "backslashreplace"),
                                   endpoints.PROMETHEUS_CONTENT_TYPE)
 
@@ -359,7 +429,8 @@ class RelayServer:
         wake = asyncio.Event()
         peer = self.core.new_peer(
             str(upgrade.address) if upgrade.address else None, close=self._closer(connection),
-            wake=wake.set, session_name=upgrade.session_name, by_address=by_address,
+            wake=wake.set, session_name=upgrade.session_name,
+            by_address=by_address and not self.foxglove.speaks(connection),
         )
         try:
             self._wire(connection, peer, parsed, wake)
@@ -373,7 +444,7 @@ class RelayServer:
         # Only the hash of a token is kept (a reload re-checks the connection by it).
         peer.token_digests.update(i.token_sha256 for i in parsed.identities if i.token_sha256)
         connection.relay_state = _Handshake(peer, parsed.identities, parsed.bad_token, wake,
-                                            parsed.auth)
+                                            parsed.auth, parsed.refusal)
         connection.relay_request = None
         max_frame_bytes = self.config.limits.max_frame_bytes
         peer.on_authenticated = lambda: connection.authenticated(max_frame_bytes)
@@ -389,6 +460,8 @@ class RelayServer:
 
         connection.frame_sink = sink
         connection.on_lost = lambda: core.close_peer(peer)
+        if self.foxglove.speaks(connection):
+            self.foxglove.wire(connection, peer)  # its own sink: Foxglove binary messages
 
     def _closer(self, connection: RelayConnection) -> Callable[[int, str], None]:
         def close(code: int, reason: str) -> None:
@@ -404,11 +477,12 @@ class RelayServer:
         if state is not None:
             # Let queued control frames (the error that explains the close) go first.
             peer: Peer = state.peer
-            with contextlib.suppress(ConnectionClosed):
-                await connection.send_frames(
-                    [f for _, f in peer.outbound.pop_batch(WRITE_BATCH_BYTES)
+            texts = [f for _, f in peer.outbound.pop_batch(WRITE_BATCH_BYTES)
                      if isinstance(f, str)]
-                )
+            if self.foxglove.speaks(connection):  # as Foxglove Status messages
+                texts = self.foxglove.translate(texts)
+            with contextlib.suppress(ConnectionClosed):
+                await connection.send_frames(texts)
         await connection.close(code, reason)
 
     # -- connection ---------------------------------------------------------------------
@@ -419,6 +493,9 @@ class RelayServer:
         peer, identities, bad_token = state.peer, state.identities, state.bad_token
         if state.auth is not self.core.auth:  # reloaded since the upgrade: match again
             identities = self.core.current_identities(peer)
+        if self.foxglove.speaks(connection):
+            await self.foxglove.serve(connection, peer, identities, state.refusal, state.wake)
+            return
         writer = asyncio.create_task(self._write_loop(connection, peer, state.wake))
         try:
             if bad_token:
@@ -512,6 +589,14 @@ def _on_pong(outbound: OutboundScheduler, mark: int, waiter: asyncio.Future[floa
     # A closed connection fails its waiters: then take_no_drop() keeps the frames.
     if not waiter.cancelled() and waiter.exception() is None:
         outbound.acked(mark)
+
+
+def _start_recorder(recorder: Recorder) -> None:
+    try:
+        recorder.start()
+    except OSError as exc:
+        raise ConfigError(f"field 'recording.directory': cannot create "
+                          f"{recorder.config.directory}: {exc.strerror or exc}") from None
 
 
 def _run_jobs(jobs: list[Callable[[], object]]) -> None:

@@ -16,6 +16,9 @@ from typing import Any
 import re2
 
 from fleetctl.errors import ConfigError
+from fleetctl.server.cluster.config import ClusterConfig, parse_cluster
+from fleetctl.server.configsection import section
+from fleetctl.server.recording.config import RecordingConfig, parse_recording
 from fleetctl.server.tls import server_context
 from fleetctl.webviz.config import DEBIAN_JS_DIR
 from fleetctl.yamlfile import read_yaml
@@ -129,6 +132,8 @@ class ServerConfig:
         no_drop_topics: RE2 full-match patterns of topics always treated as no_drop.
         limits: Resource bounds.
         web: The HTTPS web listener (page + WebSocket), or ``None`` for none.
+        recording: MCAP recording (docs/server.md, "Recording"), or ``None`` for none.
+        cluster: Relay replicas on NATS (docs/scaling.md), or ``None``: one process.
     """
 
     listen_host: Hosts = "0.0.0.0"
@@ -141,6 +146,8 @@ class ServerConfig:
     no_drop_topics: tuple[str, ...] = ()
     limits: ServerLimits = field(default_factory=ServerLimits)
     web: WebConfig | None = None
+    recording: RecordingConfig | None = None
+    cluster: ClusterConfig | None = None
 
 
 def host_list(hosts: Hosts) -> list[str]:
@@ -164,6 +171,8 @@ _TOP_KEYS = {
     "no_drop_topics",
     "limits",
     "web",
+    "recording",
+    "cluster",
 }
 _WEB_KEYS = {"listen_host", "listen_port", "tls_cert", "tls_key", "vendor_dir"}
 _INT_LIMITS = (
@@ -231,6 +240,8 @@ def parse_server_config(raw: dict[str, Any], path: Path) -> ServerConfig:
         no_drop_topics=_regexes(raw.get("no_drop_topics") or [], path),
         limits=_limits(raw.get("limits") or {}, path),
         web=_web(raw.get("web"), base, path),
+        recording=parse_recording(raw.get("recording"), base, path),
+        cluster=parse_cluster(raw.get("cluster"), base, path),
     )
 
 
@@ -253,13 +264,9 @@ def _port(raw: dict[str, Any], name: str, default: int, path: Path) -> int:
 
 
 def _web(value: Any, base: Path, path: Path) -> WebConfig | None:
+    value = section(value, _WEB_KEYS, "web", path)
     if value is None:
         return None
-    if not isinstance(value, dict):
-        raise ConfigError(f"{path}: field 'web' must be a mapping")
-    unknown = sorted(set(value) - _WEB_KEYS)
-    if unknown:
-        raise ConfigError(f"{path}: unknown field 'web.{unknown[0]}'")
     cert = _readable(value, "tls_cert", base, path)
     key = _readable(value, "tls_key", base, path)
     _check_tls(cert, key, "web.", path)

@@ -89,6 +89,7 @@ class Metrics:
         self,
         gauges: Iterable[tuple[str, str, dict[str, float]]] = (),
         labelled: Iterable[tuple[str, str, str, dict[str, float]]] = (),
+        families: Iterable[tuple[str, str, str, str, dict[str, float]]] = (),
     ) -> str:
         """Return the exposition text.
 
@@ -97,6 +98,9 @@ class Metrics:
                 (queue depths), computed by the caller at scrape time.
             labelled: Extra ``(name, help, label_name, {label_value: value})`` gauges
                 (sessions), computed by the caller at scrape time.
+            families: Extra ``(name, type, help, label_name, {label_value: value})``
+                counters or gauges (the recorder's); label_name ``""`` renders the one
+                value unlabelled.
         """
         out: list[str] = []
         _scalar(out, "fleetctl_connections_total", "counter", "Connections accepted.",
@@ -136,6 +140,11 @@ class Metrics:
             _labelled(out, gauge, "gauge", help_text, "connection", per_conn)
         for gauge, help_text, label_name, label_values in labelled:
             _labelled(out, gauge, "gauge", help_text, label_name, label_values)
+        for name, kind, help_text, label_name, label_values in families:
+            if label_name:
+                _labelled(out, name, kind, help_text, label_name, label_values)
+            else:
+                _scalar(out, name, kind, help_text, sum(label_values.values()))
         return "\n".join(out) + "\n"
 
     def _render_latched(self, out: list[str]) -> None:

@@ -16,12 +16,13 @@ import logging
 import sqlite3
 import time
 from collections.abc import Callable
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from fleetctl.server import firstframes, protocol, reauth
 from fleetctl.server.admission import IdentityConnections, TokenBucket
 from fleetctl.server.authmap import AuthMap, Identity
 from fleetctl.server.config import ServerConfig
+from fleetctl.server.fanout import Fanout, LocalFanout
 from fleetctl.server.keyframes import VIDEO_TYPE, KeyframeRouter
 from fleetctl.server.latched import LatchedStore
 from fleetctl.server.metrics import Metrics
@@ -37,6 +38,10 @@ from fleetctl.wire.control import KEYFRAME_REQUESTS_TOPIC
 from fleetctl.wire.errors import WireError
 from fleetctl.wire.fragments import read_fragment_id
 from fleetctl.wire.metadata import read_root
+
+if TYPE_CHECKING:
+    from fleetctl.server.foxglove.catalog import TopicCatalog
+    from fleetctl.server.recording.recorder import Recorder
 
 log = logging.getLogger("fleetctl.server")
 
@@ -63,6 +68,8 @@ class RelayCore:
         registry: The robot registry.
         metrics: Counters to update.
         clock: Monotonic clock in seconds (session expiry).
+        recorder: Takes every accepted frame its rules match (MCAP recording), or
+            ``None``.
     """
 
     def __init__(
@@ -72,8 +79,10 @@ class RelayCore:
         registry: RobotRegistry,
         metrics: Metrics,
         clock: Callable[[], float] = time.monotonic,
+        recorder: Recorder | None = None,
     ) -> None:
         self.config = config
+        self.recorder = recorder
         self.limits = limits = config.limits
         self.auth = auth
         self.registry = registry
@@ -83,6 +92,7 @@ class RelayCore:
             limits.max_subscriptions_per_connection,
             limits.max_pattern_bytes_per_connection,
             limits.max_pattern_bytes_per_identity,
+            watch=self._follow,
         )
         self.connections = IdentityConnections(limits.max_connections_per_identity)
         # Control requests, per identity set (a reconnect gets no fresh bucket). Bounded
@@ -96,9 +106,14 @@ class RelayCore:
         self.sessions: SessionTable[Peer] = SessionTable(
             config.limits, _session_store(registry), metrics, clock)
         self.sessions.load(auth, self.pool)
+        # The default fan-out; RelayServer swaps in a NATS one for a cluster (use_fanout).
+        self.local = LocalFanout(self.subs, self.sessions)
+        self.fanout: Fanout = self.local
         self.latched = LatchedStore(limits.latched_bytes, limits.latched_message_bytes, metrics)
         self.keyframes: KeyframeRouter[Peer] = KeyframeRouter(
             limits.keyframe_request_interval_s, clock, metrics)
+        # Which topics exist (Foxglove's channels); set by the Foxglove adapter.
+        self.catalog: TopicCatalog | None = None
 
     # -- connection life cycle -------------------------------------------------------
 
@@ -186,6 +201,8 @@ class RelayCore:
             return
         self.subs.remove(peer)
         self.keyframes.forget(peer)
+        if self.catalog is not None:
+            self.catalog.forget(peer)
         if peer.session is not None:
             self._detach_session(peer)
         for name in peer.robots:
@@ -239,13 +256,36 @@ class RelayCore:
         elif meta.type == VIDEO_TYPE:
             self.keyframes.note_publisher(topic, peer)
         self._note_robot(peer, topic, meta.type, frame)
+        if self.recorder is not None:
+            self.recorder.offer(peer.peer_id, perms, topic, frame)
+        if self.catalog is not None:
+            self.catalog.note(peer, topic, meta.type, frame)
         no_drop = meta.no_drop or self._forced_no_drop(topic)
-        for receiver in self.subs.receivers(topic):
-            receiver.outbound.push(topic, frame, no_drop, message_id)
-        if no_drop and self.sessions.has_offline:
-            self.sessions.deliver(topic, frame)
+        self.fanout.publish(topic, frame, no_drop, message_id)
         if meta.latched:
             firstframes.keep_latched(self, peer, topic, frame, root, message_id is not None)
+
+    def on_remote(self, frame: bytes) -> None:
+        """Deliver a frame another replica accepted to local subscribers only (it was
+        authorized at its sender's edge; receive rules apply here as for any frame).
+        Never published again, so frames do not loop between replicas.
+
+        Raises:
+            WireError: The frame does not parse.
+        """
+        meta, root = read_root(frame)
+        topic = meta.topic
+        message_id = read_fragment_id(frame, root) if meta.type == FRAGMENT_TYPE else None
+        no_drop = meta.no_drop or self._forced_no_drop(topic)
+        self.local.publish(topic, frame, no_drop, message_id)
+
+    def use_fanout(self, fanout: Fanout) -> None:
+        """Carry accepted frames with *fanout* (before any connection subscribes)."""
+        assert not len(self.subs), "set the fan-out before serving"
+        self.fanout = fanout
+
+    def _follow(self, pattern: str, delta: int) -> None:
+        self.fanout.follow(pattern, delta)
 
     def on_text(self, peer: Peer, text: str) -> None:
         """Handle one text frame: a token frame or a ``list_robots`` request."""
@@ -296,6 +336,20 @@ class RelayCore:
         if identity.token_sha256 is not None:  # the hash of *token*: matched by it
             peer.token_digests.add(identity.token_sha256)
         self.authenticate(peer, [identity])
+
+    def subscribe(self, peer: Peer, pattern: str) -> bool:
+        """Subscribe an authenticated *peer* to *pattern* as a ``/subscriptions`` frame
+        would (control rate, limits, receive rules, latched messages), for adapters of
+        other protocols (Foxglove). A refusal is answered with an error frame.
+
+        Returns:
+            Whether the subscription is in place.
+        """
+        return self._allow(peer) and self._subscribe(peer, pattern)
+
+    def unsubscribe(self, peer: Peer, pattern: str) -> None:
+        """Drop *peer*'s subscription *pattern* (no answer; unknown patterns are ignored)."""
+        self.subs.unsubscribe(peer, pattern)
 
     def robots_for(self, perms: Permissions) -> list[dict[str, Any]]:
         """Robots whose ``/<name>/status`` *perms* may receive, as JSON-ready dicts."""

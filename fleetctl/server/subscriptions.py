@@ -14,7 +14,7 @@ connection (docs/security.md). Only a permission change (auth map reload) clears
 
 from __future__ import annotations
 
-from collections.abc import Hashable, Iterable
+from collections.abc import Callable, Hashable, Iterable
 from dataclasses import dataclass, field
 from typing import Generic, TypeVar
 
@@ -64,10 +64,14 @@ class SubscriptionMap(Generic[C]):
             for no bound.
         max_bytes_per_key: Pattern bytes all connections charged to one key (an identity
             name) may hold together; ``None`` for no bound.
+        watch: Called with ``(pattern, +1)`` when a connection starts holding a pattern
+            and ``(pattern, -1)`` when it stops (the fan-out's interest), or ``None``.
     """
 
     def __init__(self, max_per_connection: int, max_bytes_per_connection: int | None = None,
-                 max_bytes_per_key: int | None = None) -> None:
+                 max_bytes_per_key: int | None = None,
+                 watch: Callable[[str, int], None] | None = None) -> None:
+        self._watch = watch or _ignore
         self.max_per_connection = max_per_connection
         self.max_bytes_per_connection = max_bytes_per_connection
         self.max_bytes_per_key = max_bytes_per_key
@@ -126,6 +130,7 @@ class SubscriptionMap(Generic[C]):
             raise refusal
         entry.subs[pattern] = compiled
         self._charge(entry, size)
+        self._watch(pattern, 1)
         for topic, found in self._cache.items():  # only this connection's place changes
             if conn not in found and compiled.matches(topic) and perms.may_receive(topic):
                 self._cache[topic] = (*found, conn)
@@ -199,6 +204,7 @@ class SubscriptionMap(Generic[C]):
         if compiled is None:
             return False
         self._charge(entry, -len(pattern.encode("utf-8", "surrogatepass")))
+        self._watch(pattern, -1)
         rest = entry.subs.values()
         for topic, found in self._cache.items():
             if (conn in found and compiled.matches(topic)
@@ -226,6 +232,7 @@ class SubscriptionMap(Generic[C]):
                 refused.append((pattern, reason))
                 del entry.subs[pattern]
                 self._charge(entry, -len(pattern.encode("utf-8", "surrogatepass")))
+                self._watch(pattern, -1)
         entry.perms = perms
         self._cache.clear()
         return refused
@@ -236,6 +243,8 @@ class SubscriptionMap(Generic[C]):
         if entry is None:
             return
         self._charge(entry, -entry.nbytes)
+        for pattern in entry.subs:
+            self._watch(pattern, -1)
         for topic, found in self._cache.items():
             if conn in found:
                 self._cache[topic] = tuple(c for c in found if c != conn)
@@ -254,6 +263,10 @@ class SubscriptionMap(Generic[C]):
                 self._cache.clear()
             self._cache[topic] = found
         return found
+
+
+def _ignore(pattern: str, delta: int) -> None:
+    pass
 
 
 def _refusal(perms: Permissions, pattern: str, compiled: FullMatch) -> Refusal | None:

@@ -17,7 +17,8 @@ def test_help_documents_the_config(capsys: object) -> None:
     assert main(["server", "--help"]) == 0
     out = capsys.readouterr().out  # type: ignore[attr-defined]
     for key in ("listen_port", "auth_map", "trusted_proxies", "outbound_queue_bytes",
-                "max_frame_bytes", "no_drop_topics", "tls_cert"):
+                "max_frame_bytes", "no_drop_topics", "tls_cert", "recording:",
+                "max_total_bytes", "/recordings/NAME"):
         assert key in out
 
 

@@ -55,6 +55,23 @@ def test_the_gap_scales_with_the_smoothed_rtt() -> None:
     assert stall.dead(0.9, info(5, 0.9, srtt_s=0.1))
 
 
+def test_the_next_look_is_when_the_data_in_flight_could_be_dead() -> None:
+    """The watchdog sleeps until then instead of polling (no wake-ups while idle)."""
+    stall = AckStall(0.15, 8.0)
+    idle = info(0, 5.0)
+    stall.dead(0.0, idle)
+    assert stall.next_check_s(0.0, idle) is None
+    sent = info(2, 5.0)  # just sent after idling: the busy time decides
+    stall.dead(1.0, sent)
+    assert stall.next_check_s(1.0, sent) == pytest.approx(0.151)
+    acking = info(2, 0.05)  # busy for 0.2 s, last ACK 50 ms ago: the ACK gap decides
+    stall.dead(1.2, acking)
+    assert stall.next_check_s(1.2, acking) == pytest.approx(0.101)
+    silent = info(2, 0.3)
+    assert stall.dead(1.45, silent)
+    assert stall.next_check_s(1.45, silent) == 0.0  # dead now: at the outage's pace
+
+
 # -- TCP_INFO on real sockets ------------------------------------------------------------
 
 

@@ -9,6 +9,7 @@ import pytest
 from skimage.metrics import structural_similarity
 
 from fleetctl.client.syntheticcamera import CameraSequence, mosaic
+from fleetctl.client.threadsched import realtime_threads
 from fleetctl.client.video import (
     CODECS,
     CodecUnavailable,
@@ -71,6 +72,19 @@ def test_round_trip_keeps_the_picture_at_the_default_bitrate(codec: str) -> None
     kbps = total * 8 / (len(frames()) / FPS) / 1000
     assert 500 < kbps < 1500, f"{codec}: {kbps:.0f} kbit/s for a 1000 kbit/s target"
     assert decoder.stats.refused == decoder.stats.errors == 0
+
+
+@pytest.mark.parametrize("codec", AVAILABLE)
+def test_no_encoder_leaves_a_thread_at_real_time_priority(codec: str) -> None:
+    # SVT-AV1 sets the thread opening it (and its own) to SCHED_FIFO 99 when it may; the
+    # encoder must put them back (fleetctl/client/threadsched.py says why).
+    assert realtime_threads() == []
+    encoder = VideoEncoder(codec, 320, 240, FPS, 500_000, 2.0, threads=2)
+    encode_all(encoder, [image[:240, :320] for image in frames()[:3]])
+    encoder.set_bitrate(250_000)  # reopens vp8/vp9/av1
+    encode_all(encoder, [image[:240, :320] for image in frames()[3:5]], start=3)
+    assert realtime_threads() == []
+    encoder.close()
 
 
 @pytest.mark.parametrize("codec", AVAILABLE)

@@ -19,7 +19,7 @@ from pathlib import Path
 
 import pytest
 
-from fleetctl.deploy.dockercli import image_exists, subprocess_runner
+from fleetctl.deploy.dockercli import image_exists
 from fleetctl.deploy.images import BASE_IMAGE, image_tag
 from fleetctl.e2e import cleanup
 
@@ -40,7 +40,7 @@ def _wait(condition: Callable[[], bool], timeout_s: float, what: str) -> None:
 
 
 def _resources(run_id: str) -> list[cleanup.Resource]:
-    return cleanup.find(subprocess_runner, f"{cleanup.RUN_LABEL}={run_id}")
+    return cleanup.find(cleanup.CLEANUP_RUNNER, f"{cleanup.RUN_LABEL}={run_id}")
 
 
 @pytest.mark.parametrize("signum", [signal.SIGTERM, signal.SIGINT, signal.SIGHUP],
@@ -48,7 +48,7 @@ def _resources(run_id: str) -> list[cleanup.Resource]:
 def test_a_signal_removes_every_container_and_network_of_the_run(
         tmp_path: Path, signum: int) -> None:
     for image in (BASE_IMAGE, image_tag("router")):
-        if not image_exists(subprocess_runner, image):
+        if not image_exists(cleanup.CLEANUP_RUNNER, image):
             pytest.fail(f"{image} missing: run `fleetctl build` first")
     run_id = "t" + secrets.token_hex(3)
     env = {**os.environ, "PYTHONUNBUFFERED": "1"}
@@ -72,7 +72,7 @@ def test_a_signal_removes_every_container_and_network_of_the_run(
             os.killpg(proc.pid, signal.SIGKILL)
             proc.communicate(timeout=CLEANUP_DEADLINE_S)
         left = _resources(run_id)
-        cleanup.remove(subprocess_runner, left)  # never leave them behind for the next test
+        cleanup.remove(cleanup.CLEANUP_RUNNER, left)  # never leave them behind for the next test
     stderr = err.decode()
     assert left == [], (left, stderr)
     assert proc.returncode == 128 + signum, stderr

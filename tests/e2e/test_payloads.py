@@ -36,6 +36,29 @@ def test_size_is_close_to_requested() -> None:
         assert 65_536 <= len(cdr) <= 65_536 + 200, type_name
 
 
+def test_scans_look_like_a_lidar_and_differ_from_scan_to_scan() -> None:
+    """Byte counts and compression measured with these scans must mean something: whole
+    millimetres and counts, noise, a few beams without a return, and no two alike."""
+    import zlib
+
+    import numpy as np
+
+    ranges, counts = payloads.scan_readings(720, 7)
+    again, _ = payloads.scan_readings(720, 7)
+    other, _ = payloads.scan_readings(720, 8)
+    assert ranges.dtype == counts.dtype == np.float32 and len(ranges) == len(counts) == 720
+    assert np.array_equal(ranges, again, equal_nan=True)  # deterministic in seq
+    finite = np.isfinite(ranges)
+    assert 0.95 < finite.mean() < 1.0  # about 1 % without a return (+inf)
+    assert np.allclose(ranges[finite] * 1000, np.round(ranges[finite] * 1000), atol=1e-2)
+    assert np.array_equal(counts, np.round(counts)) and counts.min() >= 0
+    assert (ranges != other).mean() > 0.9  # noise: a new scan, not the same bytes
+    assert ranges[finite].min() > 0.1 and ranges[finite].max() < 30.0
+    raw = ranges.tobytes() + counts.tobytes()
+    ratio = len(zlib.compress(raw, 9)) / len(raw)
+    assert 0.45 < ratio < 0.8  # compressible as real scans are, not to nothing
+
+
 def test_camera_frames_are_4_3_rgb8_and_move() -> None:
     ts = default_codec().registry.typestore
     assert payloads.camera_size(640 * 480 * 3) == (640, 480)

@@ -55,10 +55,13 @@ def test_stale_messages_and_the_criteria() -> None:
 def test_bytes_per_message_against_the_cdr() -> None:
     fleet = [Sample("/r/scan", 1, 0, 1, 5984)]
     zen = [Sample("/r/scan", 1, 0, 1, 5816)]
-    runs = {"fleetctl": peeranalysis.VariantRun(fleet, 0, [], 0, {}),
-            "zenoh-best": peeranalysis.VariantRun(zen, 0, [], 0, {})}
+    runs = {"fleetctl": peeranalysis.VariantRun(fleet, 0, [], 0.36e6, {}, messages_per_s=30),
+            "zenoh-best": peeranalysis.VariantRun(zen, 0, [], 0.54e6, {}, messages_per_s=30)}
     assert peeranalysis.bytes_note(runs) == (
-        "bytes per message: /r/scan fleetctl 5984 (CDR 5816, +168)")
+        "bytes per message (frame as relayed): /r/scan fleetctl 5984 (CDR 5816, +168); "
+        "on the uplink, all overheads included: fleetctl 1500, zenoh-best 2250")
+    runs["fleetctl"] = peeranalysis.VariantRun(fleet, 0, [], 0.36e6, {})  # rate unknown
+    assert "fleetctl 1500" not in peeranalysis.bytes_note(runs)
 
 
 def test_trial_cuts_short_and_full_length() -> None:

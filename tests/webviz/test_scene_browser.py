@@ -222,8 +222,12 @@ async def test_scene_with_tf_map_scan_cloud_markers_and_video(
         keys = ["/r1/scan", "/r1/map", "/r1/points/viewer", "/r1/odom", "/r1/odom trail",
                 "/r1/markers room/1", "/r1/markers room/3"]
         await wait_js(page, " && ".join(f"{placement_js(k)}?.visible === true" for k in keys))
+        # Shown frames prove the camera plays inside the scene; how many depends on the
+        # host: with the 3D scene rendering in software, Chromium on 2 cores decoded 10 of
+        # 171 submitted frames in 18 s (the rest skipped as "behind", keyframes asked for).
+        # The decode rate itself is test_video_browser's.
         await wait_js(page, "(fleetviz.views.video.stats['/r1/camera/image_raw']?.shown ?? 0)"
-                            " >= 20")
+                            " >= 5")
         cloud = await page.evaluate(placement_js("/r1/points/viewer"))
         assert cloud["points"] > 1000 and cloud["frame"] == "lidar"
         await page.check("#scene-axes")

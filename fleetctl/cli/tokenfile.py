@@ -1,0 +1,32 @@
+"""``--token-file``: the one way a command reads a Bearer token.
+
+A token on the command line would land in shell history and ``ps``; commands take the path of
+a file holding it instead (what ``fleetctl add-user`` writes, 0600).
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+from fleetctl.errors import ConfigError
+
+
+def read_token_file(token_file: Path | None) -> str | None:
+    """The token in *token_file* without surrounding whitespace; ``None`` when no file is given.
+
+    Raises:
+        ConfigError: the file cannot be read or holds nothing (the message names the option
+            and the file, never the token).
+    """
+    if token_file is None:
+        return None
+    try:
+        token = token_file.read_text(encoding="utf-8").strip()
+    except OSError as exc:
+        raise ConfigError(f"--token-file {token_file}: cannot read: "
+                          f"{exc.strerror or exc}") from None
+    except UnicodeDecodeError:
+        raise ConfigError(f"--token-file {token_file}: not UTF-8 text") from None
+    if not token:
+        raise ConfigError(f"--token-file {token_file}: the file is empty")
+    return token

@@ -1,0 +1,159 @@
+"""permessage-deflate (RFC 7692) on the robot's uplink only.
+
+Why: a fleet frame is self-describing (Robofleet convention): every message repeats its
+type and topic strings, its metadata table and its vtables. For a 20 Hz pose that is 256
+bytes on the wire for 76 bytes of CDR, and a fragment repeats it again. permessage-deflate
+with context takeover turns each repetition into a back-reference into the previous
+messages (a pose frame becomes about 50 bytes) and compresses the payload where it pays,
+while the frames themselves stay exactly what they were: a server or client that does not
+offer the extension gets today's bytes, byte for byte, and the relay forwards the
+decompressed frame, so viewers and Robofleet-convention clients see no difference.
+
+Why only one direction: the server relays one frame to many receivers; compressing per
+receiver (context takeover is per connection) would cost the relay a deflate per delivery.
+RFC 7692 section 6 lets a sender leave any message uncompressed (RSV1 clear), so the server
+negotiates the extension and never compresses (:class:`InboundDeflate`). The robot
+compresses only messages up to ``max_message_bytes`` (:class:`SmallMessageDeflate`): large
+ones (clouds, images, video) are already compressed or barely compressible, and deflating
+them would cost the client CPU (its bar: a 1 MB cloud at 10 Hz under 3 % of a core) for a
+few percent; the per-topic ``compression:`` setting is the tool for those.
+
+Sizes and CPU: docs/wire.md, "Uplink deflate".
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from typing import Any
+
+from websockets import frames
+from websockets.extensions.permessage_deflate import (
+    ClientPerMessageDeflateFactory,
+    PerMessageDeflate,
+    ServerPerMessageDeflateFactory,
+)
+from websockets.typing import ExtensionParameter
+
+from fleetctl.wire.errors import WireError
+from fleetctl.wire.fragments import FRAGMENT_TYPE, read_fragment_header
+from fleetctl.wire.metadata import read_root
+
+# Messages up to this size are deflated by the robot. It is the size from which
+# fleetctl.batched_connection masks and writes a frame in one pass: larger frames take
+# that path untouched.
+DEFAULT_MAX_MESSAGE_BYTES = 16 * 1024
+# zlib level 1: on the e2e peer load it compresses within 2 % of level 6 at half the
+# CPU (the redundancy that matters is back-references to earlier frames, which every
+# level finds). memLevel 8 is zlib's default; websockets uses 5 to save 96 KiB per
+# connection, which matters to a server with thousands of clients, not to one robot.
+COMPRESS_SETTINGS: dict[str, int] = {"level": 1, "memLevel": 8}
+# The history a robot's messages may refer to (2**15 = 32 KiB: a few scans' worth). It is
+# also the inflate window the server keeps per connection that negotiated the extension.
+WINDOW_BITS = 15
+
+
+class SmallMessageDeflate(PerMessageDeflate):
+    """permessage-deflate that deflates fleet messages up to *max_message_bytes* only.
+
+    Larger messages are sent as they are (RSV1 clear), which RFC 7692 allows per message;
+    they do not enter the compression history, on either side. The size that decides is
+    the fleet message's, not the WebSocket message's: a fragment (``Fragment`` frame) of
+    a large message is not deflated however small the fragment. Why: the scheduler sizes
+    fragments from the delivery rate it measures in frame bytes; if the fragments of a
+    compressible cloud were deflated while small and sent raw once the measured rate made
+    them large, the rate would swing with the compression and the fragments with it, and
+    an urgent message would wait behind a raw 64 KB frame (measured: priority p99 37 ms
+    instead of 6 ms in benchmarks/client_link.py (b)).
+    """
+
+    def __init__(self, *args: Any, max_message_bytes: int, **kwargs: Any) -> None:
+        super().__init__(*args, **kwargs)
+        self.max_message_bytes = max_message_bytes
+        self._compressing_message = False  # the message being continued was deflated
+
+    def passes_through(self, size: int) -> bool:
+        """True when a whole data message of *size* bytes is sent untouched."""
+        return size > self.max_message_bytes
+
+    def encode(self, frame: frames.Frame) -> frames.Frame:
+        if frame.opcode in frames.CTRL_OPCODES:
+            return frame
+        if frame.opcode is frames.OP_CONT:
+            compress = self._compressing_message
+        else:
+            compress = (not self.passes_through(len(frame.data))
+                        and _message_bytes(frame.data) <= self.max_message_bytes)
+        self._compressing_message = compress and not frame.fin
+        return super().encode(frame) if compress else frame
+
+
+def _message_bytes(data: bytes | bytearray | memoryview) -> int:
+    """The size of the fleet message *data* carries: a Fragment's whole message, else
+    *data*'s own size (also for anything that is not a fleet frame)."""
+    view = memoryview(data)
+    try:
+        meta, root = read_root(view)
+        if meta.type == FRAGMENT_TYPE:
+            return read_fragment_header(view, root).total_bytes
+    except WireError:
+        pass
+    return len(data)
+
+
+class InboundDeflate(PerMessageDeflate):
+    """permessage-deflate that decompresses what it receives and never compresses."""
+
+    def passes_through(self, size: int) -> bool:
+        """Always True: nothing this side sends is compressed."""
+        del size
+        return True
+
+    def encode(self, frame: frames.Frame) -> frames.Frame:
+        return frame
+
+
+class RobotDeflateFactory(ClientPerMessageDeflateFactory):
+    """The robot's offer: deflate from robot to server, nothing the other way.
+
+    It asks for ``server_no_context_takeover`` (the server compresses nothing, so neither
+    end keeps a context for that direction) and a 32 KiB window for its own messages.
+    """
+
+    def __init__(self, max_message_bytes: int = DEFAULT_MAX_MESSAGE_BYTES) -> None:
+        super().__init__(server_no_context_takeover=True, client_max_window_bits=WINDOW_BITS,
+                         compress_settings=dict(COMPRESS_SETTINGS))
+        self.max_message_bytes = max_message_bytes
+
+    def process_response_params(self, params: Sequence[ExtensionParameter],
+                                accepted_extensions: Sequence[Any]) -> PerMessageDeflate:
+        agreed = super().process_response_params(params, accepted_extensions)
+        return SmallMessageDeflate(
+            agreed.remote_no_context_takeover, agreed.local_no_context_takeover,
+            agreed.remote_max_window_bits, agreed.local_max_window_bits,
+            agreed.compress_settings, max_message_bytes=self.max_message_bytes)
+
+
+class RelayDeflateFactory(ServerPerMessageDeflateFactory):
+    """The server's answer to a permessage-deflate offer: inflate what comes in.
+
+    It always answers ``server_no_context_takeover`` (it never compresses, so it keeps no
+    compressor) and caps the client's window at 32 KiB, the inflate state it holds per
+    connection. Browsers offer the extension too; what they send is small.
+    """
+
+    def __init__(self) -> None:
+        super().__init__(server_no_context_takeover=True, client_max_window_bits=WINDOW_BITS)
+
+    def process_request_params(self, params: Sequence[ExtensionParameter],
+                               accepted_extensions: Sequence[Any],
+                               ) -> tuple[list[ExtensionParameter], PerMessageDeflate]:
+        answer, agreed = super().process_request_params(params, accepted_extensions)
+        return answer, InboundDeflate(
+            agreed.remote_no_context_takeover, agreed.local_no_context_takeover,
+            agreed.remote_max_window_bits, agreed.local_max_window_bits)
+
+
+def passes_through(extensions: Sequence[Any], size: int) -> bool:
+    """True when no negotiated extension changes a data message of *size* bytes, so a
+    frame can be serialized without them (:mod:`fleetctl.batched_connection`)."""
+    return all(getattr(ext, "passes_through", lambda _: False)(size) for ext in extensions)

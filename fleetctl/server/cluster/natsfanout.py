@@ -1,0 +1,345 @@
+"""The NATS fan-out: relay replicas share accepted frames through a NATS cluster.
+
+Per accepted frame (:meth:`NatsFanout.publish`): local delivery exactly as in one process,
+then the frame (its FlatBuffers bytes, unchanged: no per-frame JSON) joins a bounded
+queue that one task hands to the NATS client; the client batches writes in its own
+flusher, so nothing here flushes per frame.
+
+Per remote frame: NATS delivers it on the subscription of the subject that covers it, and
+the core delivers it to local subscribers only (:meth:`RelayCore.on_remote`), never
+publishing it again. Together with ``no_echo`` (NATS does not send a connection its own
+publishes) and subscriptions that never overlap (:func:`subjects.cover`), each subscriber
+gets a frame once: from its own replica's local delivery or from NATS, not both.
+
+Interest follows subscriptions (:class:`Interest`): a replica subscribes to the subjects
+its local consumers' patterns need and unsubscribes when nobody holds them.
+
+Faults: NATS lost while running: local delivery goes on; frames for other replicas are
+dropped (counted ``disconnected``), not buffered into a burst of stale telemetry; the
+client reconnects by itself and re-subscribes. Every drop is counted in
+``fleetctl_cluster_dropped_total{reason}``.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import logging
+from collections import deque
+from collections.abc import Callable, Iterable
+from typing import Any
+
+import nats
+from nats.aio.client import Client
+from nats.aio.msg import Msg
+from nats.aio.subscription import Subscription
+from nats.errors import Error as NatsError
+
+from fleetctl.errors import ConfigError
+from fleetctl.server.cluster.config import ClusterConfig, ClusterStartError
+from fleetctl.server.cluster.interest import Interest
+from fleetctl.server.cluster.subjects import topic_subject
+from fleetctl.server.fanout import LocalFanout, MetricFamily
+from fleetctl.wire.errors import WireError
+
+log = logging.getLogger("fleetctl.server.cluster")
+
+# Why bounded: a subject per client-chosen topic; the memo must not grow without end.
+_MAX_SUBJECTS = 16384
+# NATS refuses a control line (PUB <subject> <size>) past 4 KiB by default.
+MAX_SUBJECT_BYTES = 3072
+# Frames (and bytes) NATS may hold for one slow subscription before it drops (counted
+# slow_consumer): the relay's own schedulers bound what each connection gets after that.
+SUB_PENDING_MESSAGES = 65536
+SUB_PENDING_BYTES = 64 * 1024 * 1024
+RECONNECT_WAIT_S = 0.25
+FLUSH_TIMEOUT_S = 2.0
+
+
+class NatsFanout:
+    """Local delivery plus publish/subscribe on NATS.
+
+    Args:
+        local: The in-process fan-out (local delivery).
+        on_remote: Delivers a frame from another replica locally (``RelayCore.on_remote``).
+        config: The ``cluster:`` section.
+    """
+
+    def __init__(self, local: LocalFanout, on_remote: Callable[[bytes], None],
+                 config: ClusterConfig) -> None:
+        self._local = local.publish
+        self._on_remote = on_remote
+        self.config = config
+        self.interest = Interest(config.subject_prefix)
+        self._subjects: dict[str, str] = {}
+        self._queue: deque[tuple[str, bytes]] = deque()
+        self._queued_bytes = 0
+        self._wake = asyncio.Event()
+        self._interest_changed = asyncio.Event()
+        self._nc: Client | None = None
+        self._subs: dict[str, Subscription] = {}
+        self._tasks: list[asyncio.Task[None]] = []
+        self._connecting: asyncio.Task[None] | None = None
+        self._last_error: BaseException | None = None
+        self._stopping = False
+        self.published = 0
+        self.received = 0
+        self.dropped: dict[str, int] = {}
+        self.reconnects = 0
+
+    # -- the Fanout interface ---------------------------------------------------------
+
+    def publish(self, topic: str, frame: bytes, no_drop: bool, message_id: int | None) -> None:
+        self._local(topic, frame, no_drop, message_id)
+        subject = self._subjects.get(topic)
+        if subject is None:
+            subject = self._subject(topic)
+        queue = self._queue
+        if (len(queue) >= self.config.publish_queue_frames
+                or self._queued_bytes + len(frame) > self.config.publish_queue_bytes):
+            self._drop("queue_full")
+            return
+        queue.append((subject, frame))
+        self._queued_bytes += len(frame)
+        if len(queue) == 1:
+            self._wake.set()
+
+    def follow(self, pattern: str, delta: int) -> None:
+        if self.interest.follow(pattern, delta):
+            self._interest_changed.set()
+
+    async def start(self) -> None:
+        """Connect to NATS and start publishing and following interest.
+
+        Raises:
+            ClusterStartError: No NATS server answers (names ``cluster.nats_urls``) or
+                NATS refuses the credentials (names ``cluster.credentials``).
+            ConfigError: The password file cannot be read.
+        """
+        self._nc = await self._connect()
+        self._tasks = [asyncio.create_task(self._publish_loop()),
+                       asyncio.create_task(self._interest_loop())]
+        self._interest_changed.set()  # subscriptions made before start
+        log.info("replica %s joined NATS at %s", self.config.name, self._nc.connected_url
+                 and self._nc.connected_url.netloc)
+
+    async def stop(self) -> None:
+        self._stopping = True  # our own close is not a lost connection
+        for task in self._tasks:
+            task.cancel()
+            with contextlib.suppress(asyncio.CancelledError):
+                await task
+        self._tasks = []
+        if self._nc is not None:
+            with contextlib.suppress(Exception):
+                await self._nc.close()
+        self._nc = None
+
+    def metric_families(self) -> Iterable[MetricFamily]:
+        return [
+            ("fleetctl_cluster_published_total", "counter",
+             "Frames published to other replicas through NATS.", "", {"": self.published}),
+            ("fleetctl_cluster_received_total", "counter",
+             "Frames received from other replicas through NATS.", "", {"": self.received}),
+            ("fleetctl_cluster_dropped_total", "counter",
+             "Frames not carried between replicas, by reason.", "reason",
+             {k: float(v) for k, v in self.dropped.items()}),
+            ("fleetctl_cluster_subscriptions", "gauge",
+             "NATS subscriptions this replica holds (interest of its consumers).", "",
+             {"": float(len(self._subs))}),
+            ("fleetctl_cluster_connected", "gauge", "1 while connected to NATS.", "",
+             {"": float(self.connected)}),
+            ("fleetctl_cluster_reconnects_total", "counter", "Reconnections to NATS.", "",
+             {"": float(self.reconnects)}),
+        ]
+
+    # -- state -------------------------------------------------------------------------
+
+    @property
+    def connected(self) -> bool:
+        return self._nc is not None and self._nc.is_connected
+
+    @property
+    def subscribed(self) -> frozenset[str]:
+        """Subjects this replica holds a NATS subscription on (may run ahead of the
+        server by one round trip)."""
+        return frozenset(self._subs)
+
+    def _subject(self, topic: str) -> str:
+        subject = topic_subject(self.config.subject_prefix, topic)
+        if len(self._subjects) >= _MAX_SUBJECTS:
+            self._subjects.clear()
+        self._subjects[topic] = subject
+        return subject
+
+    def _drop(self, reason: str, n: int = 1) -> None:
+        self.dropped[reason] = self.dropped.get(reason, 0) + n
+
+    # -- connection ---------------------------------------------------------------------
+
+    async def _connect(self) -> Client:
+        """Connect within ``connect_timeout_s``; refused credentials fail at once.
+
+        The client retries forever once it has connected (``max_reconnect_attempts=-1``);
+        at start it would too, so the attempt runs as a task this bounds.
+        """
+        config = self.config
+        nc = Client()
+        attempt = asyncio.create_task(nc.connect(
+            servers=list(config.nats_urls), name=config.name, no_echo=True,
+            connect_timeout=config.connect_timeout_s,  # type: ignore[arg-type]
+            allow_reconnect=True, max_reconnect_attempts=-1, dont_randomize=True,
+            reconnect_time_wait=RECONNECT_WAIT_S,  # type: ignore[arg-type]
+            skip_subject_validation=True,
+            error_cb=self._on_error, disconnected_cb=self._on_disconnected,
+            reconnected_cb=self._on_reconnected, **self._credentials()))
+        self._connecting = attempt
+        try:
+            await asyncio.wait({attempt}, timeout=config.connect_timeout_s)
+        finally:
+            self._connecting = None
+        if attempt.done() and not attempt.cancelled() and attempt.exception() is None:
+            return nc
+        attempt.cancel()
+        with contextlib.suppress(BaseException):
+            await attempt
+        self._stopping = True  # the close below is not a lost connection
+        with contextlib.suppress(Exception):
+            await nc.close()
+        failure = self._last_error or (attempt.exception() if attempt.done()
+                                       and not attempt.cancelled() else None)
+        raise _start_error(config, failure)
+
+    def _credentials(self) -> dict[str, Any]:
+        creds = self.config.credentials
+        if creds is None:
+            return {}
+        if creds.creds_file is not None:
+            return {"user_credentials": str(creds.creds_file)}
+        if creds.nkey_seed_file is not None:
+            return {"nkeys_seed": str(creds.nkey_seed_file)}
+        try:
+            return {"user": creds.user, "password": creds.read_password()}
+        except (OSError, IndexError, UnicodeError) as exc:
+            raise ConfigError(f"field 'cluster.credentials.password_file': cannot read "
+                              f"{creds.password_file}: {type(exc).__name__}") from None
+
+    async def _on_error(self, exc: Exception) -> None:
+        if isinstance(exc, nats.errors.SlowConsumerError):
+            self._drop("slow_consumer")
+            return
+        if self._connecting is not None:  # at start: the reason the start error gives
+            self._last_error = exc
+            if _refused(exc):
+                self._connecting.cancel()
+            return
+        log.warning("replica %s: NATS: %s", self.config.name, _reason(exc))
+
+    async def _on_disconnected(self) -> None:
+        if self._stopping or self._connecting is not None:
+            return
+        log.warning("replica %s: NATS connection lost: local delivery goes on, frames for "
+                    "other replicas are dropped until it is back", self.config.name)
+
+    async def _on_reconnected(self) -> None:
+        self.reconnects += 1
+        nc = self._nc
+        url = nc.connected_url.netloc if nc is not None and nc.connected_url else "?"
+        log.info("replica %s: NATS reconnected to %s", self.config.name, url)
+        self._interest_changed.set()  # in case a change failed while it was away
+
+    # -- tasks --------------------------------------------------------------------------
+
+    async def _publish_loop(self) -> None:
+        queue, wake = self._queue, self._wake
+        while True:
+            if not queue:
+                wake.clear()
+                await wake.wait()
+            nc = self._nc
+            assert nc is not None
+            if not nc.is_connected:  # stale telemetry is dropped, never replayed late
+                self._drop("disconnected", len(queue))
+                queue.clear()
+                self._queued_bytes = 0
+                continue
+            await self._publish_some(nc, queue)
+
+    async def _publish_some(self, nc: Client, queue: deque[tuple[str, bytes]]) -> None:
+        # The client appends to its pending buffer; its flusher writes in batches.
+        for _ in range(min(len(queue), 1024)):
+            subject, frame = queue.popleft()
+            self._queued_bytes -= len(frame)
+            if len(subject) > MAX_SUBJECT_BYTES:
+                self._drop("subject_too_long")
+                continue
+            try:
+                await nc.publish(subject, frame)
+            except NatsError:  # lost between the check and now, or a too-large payload
+                self._drop("publish_failed")
+                continue
+            self.published += 1
+        await asyncio.sleep(0)  # let the relay read its sockets between batches
+
+    async def _interest_loop(self) -> None:
+        while True:
+            await self._interest_changed.wait()
+            self._interest_changed.clear()
+            try:
+                await self._follow_interest()
+            except NatsError as exc:  # closed under us: the next change or reconnect retries
+                log.warning("replica %s: NATS subscriptions not updated: %s",
+                            self.config.name, _reason(exc))
+
+    async def _follow_interest(self) -> None:
+        nc = self._nc
+        assert nc is not None
+        wanted = self.interest.wanted
+        for subject in [s for s in wanted if s not in self._subs]:
+            self._subs[subject] = await nc.subscribe(
+                subject, cb=self._receiver(subject), pending_msgs_limit=SUB_PENDING_MESSAGES,
+                pending_bytes_limit=SUB_PENDING_BYTES)
+        for subject in [s for s in self._subs if s not in wanted]:
+            sub = self._subs.pop(subject)
+            with contextlib.suppress(NatsError):
+                await sub.unsubscribe()
+        # A round trip, so the server holds the new interest once this returns (other
+        # servers of the cluster learn it over their routes a moment later).
+        with contextlib.suppress(NatsError, asyncio.TimeoutError):
+            await nc.flush(timeout=FLUSH_TIMEOUT_S)  # type: ignore[arg-type]
+
+    def _receiver(self, subject: str) -> Callable[[Msg], Any]:
+        async def receive(msg: Msg) -> None:
+            # Only the subscription of a subject still wanted delivers: while a wider one
+            # replaces narrower ones, the old ones' messages would be duplicates.
+            if subject not in self.interest.wanted:
+                return
+            self.received += 1
+            try:
+                self._on_remote(msg.data)
+            except WireError:
+                self._drop("malformed")
+
+        return receive
+
+
+def _reason(exc: BaseException) -> str:
+    return str(exc) or type(exc).__name__
+
+
+def _refused(exc: BaseException) -> bool:
+    reason = _reason(exc).lower()
+    return isinstance(exc, nats.errors.AuthorizationError) or "authorization" in reason \
+        or "authentication" in reason
+
+
+def _start_error(config: ClusterConfig, exc: BaseException | None) -> ClusterStartError:
+    urls = ", ".join(config.nats_urls)
+    reason = "no answer" if exc is None else _reason(exc)
+    if exc is not None and _refused(exc):
+        log.error("replica %s: NATS at %s refused its credentials: %s", config.name, urls,
+                  reason)
+        return ClusterStartError(f"field 'cluster.credentials': NATS at {urls} refused replica "
+                           f"{config.name!r}: {reason}")
+    return ClusterStartError(f"field 'cluster.nats_urls': cannot reach NATS at {urls} within "
+                       f"{config.connect_timeout_s:g} s: {reason}")

@@ -1,0 +1,71 @@
+"""Fan-out of accepted frames: the relay core's one seam for replicas (docs/scaling.md).
+
+The core decides who may send and receive and what is dropped; a :class:`Fanout` only
+carries an accepted frame to the subscribers that want it. :class:`LocalFanout` (the
+default) delivers to this process's connections; the NATS fan-out
+(:mod:`fleetctl.server.cluster.natsfanout`) does the same and also publishes to the other
+replicas, and subscribes to the subjects :meth:`Fanout.follow` says local consumers want.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterable
+from typing import TYPE_CHECKING, Protocol
+
+from fleetctl.server.peer import Peer
+
+if TYPE_CHECKING:
+    from fleetctl.server.sessions import SessionTable
+    from fleetctl.server.subscriptions import SubscriptionMap
+
+MetricFamily = tuple[str, str, str, str, dict[str, float]]
+
+
+class Fanout(Protocol):
+    """Where accepted frames go."""
+
+    def publish(self, topic: str, frame: bytes, no_drop: bool, message_id: int | None) -> None:
+        """Deliver a frame accepted from a local sender to everyone who wants it."""
+
+    def follow(self, pattern: str, delta: int) -> None:
+        """One more (``+1``) or one fewer (``-1``) local connection holds *pattern*."""
+
+    async def start(self) -> None:
+        """Connect whatever carries frames between replicas (before the relay listens)."""
+
+    async def stop(self) -> None:
+        """Disconnect; frames not yet carried are dropped."""
+
+    def metric_families(self) -> Iterable[MetricFamily]:
+        """Counters and gauges for ``/metrics`` (see :meth:`Metrics.render`)."""
+
+
+class LocalFanout:
+    """Today's single-process delivery: each receiver's scheduler, then offline sessions.
+
+    Args:
+        subs: The subscription map (receivers with the receive rules applied).
+        sessions: Named sessions (offline ones keep no_drop frames in their mailbox).
+    """
+
+    def __init__(self, subs: SubscriptionMap[Peer], sessions: SessionTable[Peer]) -> None:
+        self.receivers = subs.receivers
+        self.sessions = sessions
+
+    def publish(self, topic: str, frame: bytes, no_drop: bool, message_id: int | None) -> None:
+        for receiver in self.receivers(topic):
+            receiver.outbound.push(topic, frame, no_drop, message_id)
+        if no_drop and self.sessions.has_offline:
+            self.sessions.deliver(topic, frame)
+
+    def follow(self, pattern: str, delta: int) -> None:
+        pass  # every frame is already here
+
+    async def start(self) -> None:
+        pass
+
+    async def stop(self) -> None:
+        pass
+
+    def metric_families(self) -> Iterable[MetricFamily]:
+        return ()

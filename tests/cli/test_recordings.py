@@ -1,0 +1,191 @@
+"""``fleetctl recordings`` (list, fetch) and ``fleetctl replay`` against a real relay."""
+
+from __future__ import annotations
+
+import asyncio
+import json
+import threading
+import time
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+import pytest
+from mcap.reader import make_reader
+
+from fleetctl.cli.main import main
+from fleetctl.cli.replay import ReplayOptions, replay
+from fleetctl.errors import ExitCode
+from fleetctl.server.app import RelayServer
+from fleetctl.server.config import ServerConfig
+from fleetctl.server.recording import files
+from fleetctl.server.recording.mcapfile import McapFile
+from fleetctl.wire.codec import default_codec
+from tests.server.conftest import (  # noqa: F401
+    ALICE_TOKEN,
+    auth_map,
+    client,
+    make_server,
+    subscribe,
+)
+from tests.support import decode_text
+
+STRING = "std_msgs/msg/String"
+T0 = 1_700_000_000_000_000_000
+
+
+def write_recording(path: Path, n: int, *, step_ns: int = 20_000_000, close: bool = True,
+                    topic: str = "/husky1/chat") -> McapFile:
+    """A recording of *n* String messages, *step_ns* apart, as the server writes it."""
+    registry = default_codec().registry
+    cls = registry.get(STRING).cls
+    out = McapFile(path, registry, 1024)
+    for i in range(n):
+        msg = cls(f"message {i}")
+        out.write(topic, STRING, bytes(registry.typestore.serialize_cdr(msg, STRING)),
+                  T0 + i * step_ns, i + 1)
+    if close:
+        out.close()
+    else:
+        out.flush()
+    return out
+
+
+def test_list_shows_complete_and_open_files(tmp_path: Path,
+                                            capsys: pytest.CaptureFixture[str]) -> None:
+    write_recording(tmp_path / "fleet_a.mcap", 5)
+    still_open = write_recording(tmp_path / "fleet_b.mcap", 3, close=False)
+    assert main(["recordings", "list", "--dir", str(tmp_path), "-o", "json"]) == 0
+    found = json.loads(capsys.readouterr().out)
+    assert [(r["name"], r["complete"], r["messages"], r["topics"]) for r in found] == [
+        ("fleet_a.mcap", True, 5, ["/husky1/chat"]),
+        ("fleet_b.mcap", False, 3, ["/husky1/chat"])]
+    assert found[0]["start_ns"] == T0 and found[0]["end_ns"] == T0 + 4 * 20_000_000
+    assert main(["recordings", "list", "--dir", str(tmp_path)]) == 0
+    text = capsys.readouterr().out
+    assert "fleet_b.mcap" in text and "writing" in text
+    still_open.close()
+
+
+def test_list_reads_the_directory_from_server_yaml(tmp_path: Path,
+                                                   capsys: pytest.CaptureFixture[str]) -> None:
+    (tmp_path / "rec").mkdir()
+    write_recording(tmp_path / "rec" / "fleet_a.mcap", 2)
+    config = tmp_path / "server.yaml"
+    config.write_text("auth_map: auth.yaml\nrecording:\n  directory: rec\n"
+                      "  rules: [{topic: '.*'}]\n")
+    assert main(["recordings", "list", "-c", str(config), "-o", "json"]) == 0
+    assert [r["name"] for r in json.loads(capsys.readouterr().out)] == ["fleet_a.mcap"]
+    config.write_text("auth_map: auth.yaml\n")
+    assert main(["recordings", "list", "-c", str(config)]) == ExitCode.CONFIG
+    assert "field 'recording' is not set" in capsys.readouterr().err
+    assert main(["recordings", "list"]) == ExitCode.CONFIG
+
+
+def test_fetch_writes_a_complete_copy_of_an_open_file(
+        tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    rec, out = tmp_path / "rec", tmp_path / "out"
+    rec.mkdir()
+    out.mkdir()
+    still_open = write_recording(rec / "fleet_a.mcap", 7, close=False)
+    assert main(["recordings", "fetch", "fleet_a.mcap", "--dir", str(rec), "--to", str(out),
+                 "-o", "json"]) == 0
+    result = json.loads(capsys.readouterr().out)
+    assert result["messages"] == 7 and result["target"] == str(out / "fleet_a.mcap")
+    assert files.is_complete(out / "fleet_a.mcap")
+    with (out / "fleet_a.mcap").open("rb") as stream:
+        summary = make_reader(stream).get_summary()
+    assert summary is not None and summary.statistics is not None
+    assert summary.statistics.message_count == 7
+    # A second fetch to the same place and unknown names are clear errors.
+    assert main(["recordings", "fetch", "fleet_a.mcap", "-d", str(rec), "--to",
+                 str(out)]) == ExitCode.CONFLICT
+    assert "already exists" in capsys.readouterr().err
+    assert main(["recordings", "fetch", "nope.mcap", "-d", str(rec)]) != 0
+    assert "no such recording" in capsys.readouterr().err
+    assert main(["recordings", "fetch", "../x.mcap", "-d", str(rec)]) != 0
+    still_open.close()
+
+
+async def test_replay_plays_a_recording_live_in_real_time(
+        make_server: Callable[..., RelayServer], tmp_path: Path) -> None:  # noqa: F811
+    n, step_ns = 10, 30_000_000
+    write_recording(tmp_path / "rec.mcap", n, step_ns=step_ns)
+    async with make_server() as srv, client(srv, token=ALICE_TOKEN) as viewer:
+        assert (await subscribe(viewer, "/ghost1/.*"))["type"] == "subscribed"
+        options = ReplayOptions(srv.url, rate=1.0, token=ALICE_TOKEN, robot_name="ghost1",
+                                remap=(("/husky1", "/ghost1"),))
+        result = await replay(tmp_path / "rec.mcap", options)
+        got = []
+        while len(got) < n:
+            frame = await asyncio.wait_for(viewer.recv(), 5.0)
+            if isinstance(frame, bytes):
+                meta, _ = default_codec().decode(frame)
+                got.append((meta.topic, decode_text(frame), meta.seq, meta.publish_time_ns))
+    assert result.messages == n and result.topics == {"/ghost1/chat": n}
+    assert [g[:3] for g in got] == [("/ghost1/chat", f"message {i}", i + 1) for i in range(n)]
+    # Real time: the frames left as far apart as the recording's log times (minus jitter),
+    # stamped with the wall clock at sending.
+    spread_s = (got[-1][3] - got[0][3]) / 1e9
+    assert spread_s >= (n - 1) * step_ns / 1e9 * 0.9
+    assert abs(got[-1][3] - time.time_ns()) < 60e9
+
+
+async def test_replay_faster_than_real_time(
+        make_server: Callable[..., RelayServer], tmp_path: Path) -> None:  # noqa: F811
+    write_recording(tmp_path / "rec.mcap", 20, step_ns=100_000_000)  # 1.9 s recorded
+    async with make_server() as srv:
+        options = ReplayOptions(srv.url, rate=None, token=ALICE_TOKEN)
+        result = await replay(tmp_path / "rec.mcap", options)
+        received = srv.metrics.messages_in.get("/husky1/chat", 0)
+    assert result.messages == 20 and received == 20
+    assert result.duration_s < 1.9
+
+
+def test_replay_errors_name_the_file_and_option(tmp_path: Path,
+                                                capsys: pytest.CaptureFixture[str]) -> None:
+    missing = tmp_path / "none.mcap"
+    assert main(["replay", str(missing), "--server", "ws://127.0.0.1:9/"]) != 0
+    assert f"{missing}: no such recording file" in capsys.readouterr().err
+    assert main(["replay", str(missing), "--server", "ws://x/", "--remap",
+                 "husky1=ghost"]) == ExitCode.CONFIG
+    assert "--remap 'husky1=ghost'" in capsys.readouterr().err
+    assert main(["replay", str(missing), "--server", "ws://x/", "--rate",
+                 "-1"]) == ExitCode.CONFIG
+    assert main(["replay", str(missing), "--server", "ws://x/", "--robot",
+                 "no spaces"]) == ExitCode.CONFIG
+    assert main(["replay", str(missing), "--server", "http://x/"]) == ExitCode.CONFIG
+    assert "expected a ws:// or wss:// URL" in capsys.readouterr().err
+
+
+def test_replay_command_line_with_a_token_file(
+        tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    write_recording(tmp_path / "rec.mcap", 5, step_ns=1_000_000)
+    (tmp_path / "token").write_text(ALICE_TOKEN + "\n")
+    started: dict[str, Any] = {}
+    ready = threading.Event()
+
+    async def serve() -> None:
+        config = ServerConfig(listen_host="127.0.0.1", listen_port=0,
+                              auth_map=tmp_path / "auth.yaml", database=None)
+        stop = asyncio.Event()
+        async with RelayServer(config, auth_map()) as srv:
+            started.update(srv=srv, stop=stop, loop=asyncio.get_running_loop())
+            ready.set()
+            await stop.wait()
+
+    thread = threading.Thread(target=asyncio.run, args=(serve(),), daemon=True)
+    thread.start()
+    assert ready.wait(10)
+    srv = started["srv"]
+    try:
+        code = main(["replay", str(tmp_path / "rec.mcap"), "--server", srv.url,
+                     "--token-file", str(tmp_path / "token"), "--rate", "0", "-o", "json"])
+    finally:
+        started["loop"].call_soon_threadsafe(started["stop"].set)
+        thread.join(10)
+    assert code == 0
+    result = json.loads(capsys.readouterr().out)
+    assert result["messages"] == 5 and result["topics"] == {"/husky1/chat": 5}
+    assert srv.metrics.messages_in["/husky1/chat"] == 5
+    assert ALICE_TOKEN not in json.dumps(result)

@@ -1,0 +1,33 @@
+"""--token-file: read, stripped, and every bad file named without showing a token."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+
+from fleetctl.cli.tokenfile import read_token_file
+from fleetctl.errors import ConfigError
+
+
+def test_no_file_is_no_token() -> None:
+    assert read_token_file(None) is None
+
+
+def test_the_token_is_stripped(tmp_path: Path) -> None:
+    f = tmp_path / "t"
+    f.write_text("  abc-123\n")
+    assert read_token_file(f) == "abc-123"
+
+
+@pytest.mark.parametrize(("content", "why"), [
+    (None, "cannot read: No such file or directory"),
+    (b"\n \n", "the file is empty"),
+    (b"\xff\xfe", "not UTF-8 text"),
+])
+def test_a_bad_file_is_named(tmp_path: Path, content: bytes | None, why: str) -> None:
+    f = tmp_path / "token"
+    if content is not None:
+        f.write_bytes(content)
+    with pytest.raises(ConfigError, match=f"--token-file {f}: {why}"):
+        read_token_file(f)

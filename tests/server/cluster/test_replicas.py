@@ -1,0 +1,247 @@
+"""Two real relay replicas on real nats-server processes, real WebSocket clients."""
+
+from __future__ import annotations
+
+import asyncio
+import os
+import subprocess
+import sys
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+import pytest
+
+from fleetctl.server.app import RelayServer
+from fleetctl.server.cluster.config import ClusterStartError
+from tests.server.cluster.conftest import fanout
+from tests.server.cluster.natsproc import NatsServer
+from tests.server.conftest import (
+    ALICE_TOKEN,
+    BOB_TOKEN,
+    client,
+    next_binary,
+    next_json,
+    subscribe,
+    wait_for,
+)
+from tests.support import decode_text, string_frame
+
+pytestmark = pytest.mark.slow
+
+
+async def no_binary(ws: object, within_s: float = 0.3) -> bool:
+    """True if no binary frame arrives within *within_s* (checks an absence)."""
+    try:
+        await next_binary(ws, within_s)  # type: ignore[arg-type]
+    except TimeoutError:
+        return True
+    return False
+
+
+async def until_crossing(sender: Any, receiver: Any, topic: str) -> None:
+    """Send probes on *topic* until one reaches *receiver*: the subscription has reached
+    the sender's NATS server (interest crosses cluster routes asynchronously)."""
+    for _ in range(400):  # 20 s at most
+        await sender.send(string_frame(topic, "probe"))
+        try:
+            await next_binary(receiver, 0.05)
+            return
+        except TimeoutError:
+            continue
+    raise AssertionError(f"no frame on {topic} crossed the replicas")
+
+
+async def drain(ws: Any) -> None:
+    """Read binary frames until none arrives for a moment (late probes)."""
+    while not await no_binary(ws, 0.2):
+        pass
+
+
+async def chat_texts(ws: Any, n: int) -> list[str]:
+    """The texts of the next *n* frames on /husky1/chat (probes skipped)."""
+    from fleetctl.wire.metadata import read_root
+
+    texts: list[str] = []
+    while len(texts) < n:
+        frame = await next_binary(ws, 15.0)
+        if read_root(frame)[0].topic == "/husky1/chat":
+            texts.append(decode_text(frame))
+    return texts
+
+
+async def test_frame_crosses_replicas_once(replicas: tuple[RelayServer, ...]) -> None:
+    a, b = replicas
+    async with client(a, source="127.0.0.2") as robot, \
+            client(b, token=ALICE_TOKEN) as remote, client(a, token=ALICE_TOKEN) as local:
+        await next_json(robot, "welcome")
+        # Two overlapping patterns on B's side: one NATS subscription, one delivery.
+        assert (await subscribe(remote, "/husky1/.*"))["type"] == "subscribed"
+        assert (await subscribe(remote, "/husky1/chat"))["type"] == "subscribed"
+        assert (await subscribe(local, "/husky1/chat"))["type"] == "subscribed"
+        await wait_for(lambda: fanout(b).subscribed == {"fleetctl.husky1.>"})
+        await until_crossing(robot, remote, "/husky1/probe")
+        await drain(remote)
+        for i in range(20):  # no_drop: a slow reader would otherwise get only the latest
+            await robot.send(string_frame("/husky1/chat", f"m{i}", no_drop=True))
+        assert await chat_texts(remote, 20) == [f"m{i}" for i in range(20)]
+        assert await chat_texts(local, 20) == [f"m{i}" for i in range(20)]
+        await wait_for(lambda: fanout(b).received == fanout(a).published, 15.0)
+        # Once each: B wrote 20 chat frames (to its one subscriber), A 20 (to its local one).
+        assert b.metrics.messages_out["/husky1/chat"] == 20
+        assert a.metrics.messages_out["/husky1/chat"] == 20
+        assert fanout(a).received == 0  # A never gets its own frames back (no_echo)
+        assert a.metrics.messages_in["/husky1/chat"] == 20
+
+
+async def test_acl_applies_on_the_receiving_replica(replicas: tuple[RelayServer, ...]) -> None:
+    a, b = replicas
+    async with client(a, token=ALICE_TOKEN) as alice, client(b, token=BOB_TOKEN) as bob:
+        assert (await subscribe(bob, ".*"))["type"] == "subscribed"  # filtered per delivery
+        await wait_for(lambda: fanout(b).subscribed == {"fleetctl.>"})
+        await until_crossing(alice, bob, "/husky1/probe")
+        await drain(bob)
+        before = fanout(b).received
+        await alice.send(string_frame("/elsewhere/x", "not for bob"))
+        await alice.send(string_frame("/husky1/marker", "for bob"))
+        assert decode_text(await next_binary(bob)) == "for bob"
+        assert await no_binary(bob)
+        await wait_for(lambda: fanout(b).received == before + 2)  # both came; one refused
+
+
+async def test_no_interest_no_frames(replicas: tuple[RelayServer, ...],
+                                     nats_cluster: list[NatsServer]) -> None:
+    a, b = replicas
+    async with client(a, source="127.0.0.2") as robot, client(b, token=ALICE_TOKEN) as viewer:
+        await next_json(robot, "welcome")
+        await next_json(viewer, "welcome")
+        assert fanout(b).subscribed == frozenset()
+        for i in range(50):
+            await robot.send(string_frame("/husky1/chat", f"m{i}"))
+        await wait_for(lambda: fanout(a).published == 50)
+        assert (await subscribe(viewer, "/husky2/.*"))["type"] == "subscribed"
+        await wait_for(lambda: fanout(b).subscribed == {"fleetctl.husky2.>"})
+        # What NATS itself holds for B: only that subject.
+        await wait_for(lambda: nats_cluster[1].client_subjects("relay-b")
+                       == ["fleetctl.husky2.>"])
+        await robot.send(string_frame("/husky1/chat", "still not wanted"))
+        await wait_for(lambda: fanout(a).published == 51)
+        assert fanout(b).received == 0
+        # Interest leaves with the subscriber.
+        await viewer.send(_unsubscribe("/husky2/.*"))
+        await next_json(viewer, "unsubscribed")
+        await wait_for(lambda: fanout(b).subscribed == frozenset())
+        await wait_for(lambda: nats_cluster[1].client_subjects("relay-b") == [])
+
+
+async def test_nats_lost_and_back(tmp_path: object, make_replica: Callable[..., RelayServer],
+                                  nats_server: NatsServer) -> None:
+    a = make_replica("relay-a", [nats_server.url])
+    b = make_replica("relay-b", [nats_server.url])
+    async with a, b, client(a, source="127.0.0.2") as robot, \
+            client(a, token=ALICE_TOKEN) as local, client(b, token=ALICE_TOKEN) as remote:
+        await next_json(robot, "welcome")
+        for ws in (local, remote):
+            assert (await subscribe(ws, "/husky1/chat"))["type"] == "subscribed"
+        await until_crossing(robot, remote, "/husky1/chat")
+        await drain(local)
+        await drain(remote)
+
+        nats_server.stop()
+        await wait_for(lambda: not fanout(a).connected and not fanout(b).connected)
+        await robot.send(string_frame("/husky1/chat", "during"))
+        assert decode_text(await next_binary(local)) == "during"  # local delivery goes on
+        await wait_for(lambda: fanout(a).dropped.get("disconnected", 0) >= 1)
+
+        nats_server.start()
+        await wait_for(lambda: fanout(a).connected and fanout(b).connected, 15.0)
+        assert await no_binary(remote, 0.1)  # the frame sent while NATS was away is gone
+        # B re-subscribed on reconnect: publish until one arrives (its SUB may trail A's).
+        for i in range(100):
+            await robot.send(string_frame("/husky1/chat", f"after{i}"))
+            try:
+                text = decode_text(await next_binary(remote, 0.1))
+                break
+            except TimeoutError:
+                continue
+        else:
+            raise AssertionError("cross-replica delivery did not resume")
+        assert text.startswith("after")
+        assert fanout(a).reconnects >= 1
+    text_metrics = a.metrics.render((), (), list(fanout(a).metric_families()))
+    assert 'fleetctl_cluster_dropped_total{reason="disconnected"}' in text_metrics
+
+
+async def test_nats_unreachable_at_start(make_replica: Callable[..., RelayServer]) -> None:
+    from tests.server.cluster.natsproc import free_port
+
+    replica = make_replica("relay-a", [f"nats://127.0.0.1:{free_port()}"],
+                           connect_timeout_s=0.5)
+    with pytest.raises(ClusterStartError, match=r"cluster\.nats_urls.*cannot reach NATS"):
+        await asyncio.wait_for(replica.start(), 10)
+
+
+async def test_wrong_credentials_refused(tmp_path: object, make_replica: Callable[..., RelayServer],
+                                         caplog: pytest.LogCaptureFixture) -> None:
+    from fleetctl.server.cluster.config import NatsCredentials
+
+    work = Path(str(tmp_path))
+    server = NatsServer("auth", work, authorization={"user": "relay", "password": "right-pw"})
+    server.start()
+    try:
+        (work / "wrong").write_text("wrong-pw\n")
+        (work / "right").write_text("right-pw\n")
+        bad = make_replica("relay-a", [server.url], connect_timeout_s=5.0,
+                           credentials=NatsCredentials(user="relay",
+                                                       password_file=work / "wrong"))
+        with pytest.raises(ClusterStartError, match=r"cluster\.credentials.*refused"):
+            await asyncio.wait_for(bad.start(), 10)
+        assert "refused its credentials" in caplog.text
+        assert "wrong-pw" not in caplog.text
+        good = make_replica("relay-b", [server.url],
+                            credentials=NatsCredentials(user="relay", password_file=work / "right"))
+        async with good:
+            assert fanout(good).connected
+    finally:
+        server.stop()
+
+
+def _unsubscribe(pattern: str) -> bytes:
+    from fleetctl.wire.control import encode_subscription
+
+    return encode_subscription(pattern, subscribe=False)
+
+
+def test_cli_exits_naming_the_field(tmp_path: Path) -> None:
+    """`fleetctl server` with NATS down: one line naming file and field, non-zero exit."""
+    from tests.server.cluster.natsproc import free_port
+
+    (tmp_path / "auth.yaml").write_text("version: 1\nidentities: []\n")
+    config = tmp_path / "server.yaml"
+    config.write_text("auth_map: auth.yaml\nlisten_host: 127.0.0.1\nlisten_port: 0\n"
+                      "database: null\ncluster:\n  name: relay-a\n"
+                      f"  nats_urls: [nats://127.0.0.1:{free_port()}]\n"
+                      "  connect_timeout_s: 0.5\n")
+    done = subprocess.run(
+        [sys.executable, "-c", "from fleetctl.cli.main import main; raise SystemExit(main())",
+         "server", "-c", str(config)], capture_output=True, text=True, timeout=60,
+        env={**os.environ, "PYTHONPATH": os.pathsep.join(sys.path)})
+    assert done.returncode != 0
+    assert f"{config}: field 'cluster.nats_urls': cannot reach NATS" in done.stderr
+    assert "Traceback" not in done.stderr
+
+
+async def test_one_nats_node_lost_replicas_keep_relaying(
+        make_replica: Callable[..., RelayServer], nats_cluster: list[NatsServer]) -> None:
+    """Replicas list every node; killing B's node moves B to another, and frames flow."""
+    urls = [n.url for n in nats_cluster]
+    a = make_replica("relay-a", [urls[0], urls[2]])
+    b = make_replica("relay-b", [urls[1], urls[2]])
+    async with a, b, client(a, source="127.0.0.2") as robot, \
+            client(b, token=ALICE_TOKEN) as remote:
+        await next_json(robot, "welcome")
+        assert (await subscribe(remote, "/husky1/chat"))["type"] == "subscribed"
+        await until_crossing(robot, remote, "/husky1/chat")
+        nats_cluster[1].stop()
+        await wait_for(lambda: fanout(b).reconnects >= 1, 15.0)
+        await until_crossing(robot, remote, "/husky1/chat")

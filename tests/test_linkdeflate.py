@@ -1,0 +1,133 @@
+"""The uplink permessage-deflate: the extension objects alone, and against websockets
+servers (the relay: tests/server/test_app_deflate.py)."""
+
+from __future__ import annotations
+
+import asyncio
+import os
+
+from websockets import frames
+from websockets.asyncio.client import ClientConnection, connect
+from websockets.asyncio.server import ServerConnection, serve
+
+from fleetctl.batched_connection import BatchedWritesConnection
+from fleetctl.linkdeflate import (
+    InboundDeflate,
+    RelayDeflateFactory,
+    RobotDeflateFactory,
+    SmallMessageDeflate,
+    passes_through,
+)
+
+
+class BatchedClient(BatchedWritesConnection, ClientConnection):
+    """The client side, as the robot link composes it."""
+
+
+def _pair(limit: int = 64) -> tuple[SmallMessageDeflate, InboundDeflate]:
+    """A robot-side encoder and relay-side decoder as negotiated (context takeover on the
+    robot's direction, none on the relay's)."""
+    robot = SmallMessageDeflate(True, False, 15, 15, {"level": 1}, max_message_bytes=limit)
+    relay = InboundDeflate(False, True, 15, 15)
+    return robot, relay
+
+
+def _binary(data: bytes, *, fin: bool = True, cont: bool = False) -> frames.Frame:
+    return frames.Frame(frames.OP_CONT if cont else frames.OP_BINARY, data, fin)
+
+
+def test_small_messages_deflated_large_ones_untouched_and_both_decode_in_order() -> None:
+    robot, relay = _pair(limit=64)
+    small = b"/robot1/pose geometry_msgs/msg/PoseStamped " * 1  # 43 bytes, compressible
+    large = os.urandom(200)
+    sent = [small, large, small, small, large, small]
+    decoded = []
+    for data in sent:
+        wire = robot.encode(_binary(data))
+        if len(data) > 64:
+            assert wire.data == data and not wire.rsv1  # as it was, outside the history
+        else:
+            assert wire.rsv1
+        decoded.append(bytes(relay.decode(wire).data))
+    assert decoded == sent
+    # Back-references to the first copy: later copies cost a few bytes.
+    assert len(robot.encode(_binary(small)).data) < len(small) // 4
+
+
+def test_fragments_follow_the_size_of_their_whole_message() -> None:
+    """A fragment of a large message goes raw however small it is; fragments of a small
+    message are deflated like the message would be (see SmallMessageDeflate)."""
+    from fleetctl.wire.fragments import split
+    from tests.support import string_frame
+
+    robot, relay = _pair(limit=4096)
+    big = string_frame("/robot1/cloud", "0" * 20_000)
+    small = string_frame("/robot1/scan", "1" * 3_000)
+    for frame, topic, deflated in ((big, "/robot1/cloud", False),
+                                   (small, "/robot1/scan", True)):
+        for piece in split(frame, topic=topic, message_id=1, max_fragment_bytes=1024,
+                           no_drop=False):
+            wire = robot.encode(_binary(piece))
+            assert wire.rsv1 == deflated
+            assert bytes(relay.decode(wire).data) == piece
+    not_a_frame = b"x" * 100  # anything else: its own size decides
+    assert robot.encode(_binary(not_a_frame)).rsv1
+
+
+def test_continuation_follows_the_first_frame_of_its_message() -> None:
+    robot, relay = _pair(limit=64)
+    for first, rest in ((b"a" * 10, b"b" * 300), (b"c" * 300, b"d" * 10)):
+        head = robot.encode(_binary(first, fin=False))
+        tail = robot.encode(_binary(rest, cont=True))
+        assert head.rsv1 == (len(first) <= 64) and not tail.rsv1
+        assert bytes(relay.decode(head).data) + bytes(relay.decode(tail).data) == first + rest
+
+
+def test_control_frames_and_relay_output_are_never_compressed() -> None:
+    robot, relay = _pair()
+    ping = frames.Frame(frames.OP_PING, b"12345678")
+    assert robot.encode(ping) is ping
+    out = _binary(b"x" * 1000)
+    assert relay.encode(out) is out
+    assert passes_through([relay], 1) and passes_through([], 1)
+    assert passes_through([robot], 65) and not passes_through([robot], 64)
+    assert not passes_through([object()], 10**6)  # an unknown extension: never bypassed
+
+
+async def test_robot_against_a_server_without_the_extension() -> None:
+    # An older relay (or any websockets server with compression off) answers without the
+    # extension: the robot sends plain frames.
+    got: list[bytes | str] = []
+    done = asyncio.Event()
+
+    async def handler(ws: ServerConnection) -> None:
+        async for message in ws:
+            got.append(message)
+            done.set()
+
+    async with serve(handler, "127.0.0.1", 0, compression=None) as srv:
+        port = srv.sockets[0].getsockname()[1]
+        async with connect(f"ws://127.0.0.1:{port}", compression=None,
+                           extensions=[RobotDeflateFactory()],
+                           create_connection=BatchedClient) as ws:
+            assert ws.protocol.extensions == []
+            await ws.send(b"plain")
+            await asyncio.wait_for(done.wait(), 5)
+    assert got == [b"plain"]
+
+
+async def test_browser_style_offer_is_accepted_and_answered_uncompressed() -> None:
+    # websockets' default client offer is what browsers send (permessage-deflate with
+    # client_max_window_bits): accepted, and the relay's side never compresses.
+    sides: list[object] = []
+
+    async def handler(ws: ServerConnection) -> None:
+        sides.extend(ws.protocol.extensions)
+        await ws.send(b"y" * 1000)
+
+    async with serve(handler, "127.0.0.1", 0, compression=None,
+                     extensions=[RelayDeflateFactory()]) as srv:
+        port = srv.sockets[0].getsockname()[1]
+        async with connect(f"ws://127.0.0.1:{port}") as ws:
+            assert await ws.recv() == b"y" * 1000
+    assert [type(s) for s in sides] == [InboundDeflate]

@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 import io
+import time
+from typing import Any
 
 import numpy as np
 from PIL import Image
@@ -26,3 +28,22 @@ def colored_pixels(png: bytes, color: tuple[int, int, int], tolerance: int = 60)
     rgb = np.asarray(Image.open(io.BytesIO(png)).convert("RGB"), dtype=np.int16)
     diff = np.abs(rgb - np.array(color, dtype=np.int16)).sum(axis=2)
     return int((diff <= tolerance).sum())
+
+
+async def drawn_fraction_within(locator: Any, background: tuple[int, int, int],
+                                at_least: float, timeout_s: float = 10.0) -> float:
+    """The drawn fraction of *locator*'s screenshot, retaken until it exceeds *at_least* or
+    *timeout_s* passes; returns the best seen (the caller asserts on it).
+
+    Why retake: an element screenshot is the element's box at capture time, and other panels
+    still filling in (the TF tree growing, a status line appearing) can move the canvas
+    between Playwright measuring the box and capturing it; the shot then holds part of the
+    panel around the canvas. Waiting for the picture, with a deadline, is not the same as
+    accepting less of it.
+    """
+    deadline = time.monotonic() + timeout_s
+    best = 0.0
+    while True:
+        best = max(best, drawn_fraction(await locator.screenshot(), background))
+        if best > at_least or time.monotonic() >= deadline:
+            return best

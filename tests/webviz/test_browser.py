@@ -26,7 +26,7 @@ from tests.webviz.fleet import (
     running_fleet,
     write_auth_map,
 )
-from tests.webviz.pixels import drawn_fraction, drawn_pixels
+from tests.webviz.pixels import drawn_fraction_within, drawn_pixels
 
 pytestmark = pytest.mark.browser
 
@@ -100,8 +100,9 @@ async def check_sensor_panels(page: Any, robot: str, *, beams: int,
         " && Number(document.querySelector('#cloud-canvas').dataset.points || 0) > 1000",
     )
     assert await page.get_attribute("#cloud-canvas", "data-mode") == "webgl"
-    camera = await page.locator("#camera-canvas").screenshot()
-    assert drawn_fraction(camera, PANEL_BG) > camera_min_fraction
+    camera = page.locator("#camera-canvas")
+    drawn = await drawn_fraction_within(camera, PANEL_BG, camera_min_fraction)
+    assert drawn > camera_min_fraction
     assert await pixels(page, "#scan-canvas") > 300
     assert await pixels(page, "#cloud-canvas") > 300
 
@@ -114,8 +115,7 @@ async def check_robot_views(page: Any) -> None:
     # The occupancy grid (8 m square = 320x320 of the 640x480 canvas at 40 px/m) is drawn;
     # r1 sends it deflate-compressed, so Chromium's DecompressionStream inflated it.
     await wait_js(page, "fleetviz.views.map.grid !== null && fleetviz.conn.stats.decompressed >= 1")
-    shot = await page.locator("#map-canvas").screenshot()
-    assert drawn_fraction(shot, MAP_BG) > 0.25
+    assert await drawn_fraction_within(page.locator("#map-canvas"), MAP_BG, 0.25) > 0.25
     await page.locator("#health tbody tr", has_text="/r1/scan").wait_for(timeout=TIMEOUT_MS)
     assert not await page.is_visible("#command-denied")
 

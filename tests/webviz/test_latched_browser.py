@@ -16,7 +16,7 @@ from fleetctl.wire.metadata import read_metadata
 from tests.support import wait_until
 from tests.webviz.conftest import webviz_server
 from tests.webviz.fleet import OPERATOR_TOKEN
-from tests.webviz.pixels import drawn_fraction
+from tests.webviz.pixels import drawn_fraction_within
 from tests.webviz.scripted import TF_TYPE, grid_values, scripted_fleet, tf_values
 from tests.webviz.test_browser import MAP_BG, TIMEOUT_MS, sign_in, wait_js, watch_errors
 
@@ -58,8 +58,7 @@ async def test_a_late_page_shows_the_latched_map(
 
         await wait_js(page, "fleetviz.views.map.grid !== null")
         assert time.monotonic() - published >= LATE_S
-        shot = await page.locator("#map-canvas").screenshot()
-        assert drawn_fraction(shot, MAP_BG) > 0.25
+        assert await drawn_fraction_within(page.locator("#map-canvas"), MAP_BG, 0.25) > 0.25
         grid = await page.evaluate("[fleetviz.views.map.grid.width, "
                                    "fleetviz.views.map.grid.height]")
         assert grid == [200, 200]

@@ -32,6 +32,7 @@ from fleetctl.client.mediaconfig import (
     video_spec,
     viewer_cloud_spec,
 )
+from fleetctl.client.serverurls import parse_server_urls
 from fleetctl.yamlfile import read_yaml
 
 # The media keys live in fleetctl.client.mediaconfig; they are imported from here.
@@ -45,7 +46,6 @@ __all__ = [
 # ROS 2 topic names: absolute, tokens of [A-Za-z0-9_] separated by single slashes.
 _TOPIC_RE = re.compile(r"^(/[A-Za-z_][A-Za-z0-9_]*)+$")
 _ROBOT_NAME_RE = re.compile(r"^[A-Za-z][A-Za-z0-9_]{0,62}$")
-_URL_RE = re.compile(r"^wss?://[^\s/]+(/\S*)?$")
 
 _TOP_KEYS = frozenset(
     {"server_url", "robot_name", "bind_address", "token_file", "publish", "subscribe",
@@ -160,7 +160,9 @@ class ClientConfig:
     """The whole robot client configuration.
 
     Attributes:
-        server_url: ``ws://`` or ``wss://`` URL of the fleet server.
+        server_url: ``ws://`` or ``wss://`` URL of the fleet server (the first replica).
+        failover_urls: The other replicas' URLs, in the order ``server_url`` lists them
+            (:mod:`fleetctl.client.serverurls`).
         robot_name: Namespace prefix of this robot's topics.
         bind_address: Local source address for the connection, or None for any.
         token: Bearer token read from ``token_file``, or None (identified by source IP).
@@ -181,6 +183,12 @@ class ClientConfig:
     status: StatusSpec = StatusSpec()
     limits: ClientLimits = ClientLimits()
     tf: TfSpec | None = None
+    failover_urls: tuple[str, ...] = ()
+
+    @property
+    def server_urls(self) -> tuple[str, ...]:
+        """Every replica's URL, ``server_url`` first."""
+        return (self.server_url, *self.failover_urls)
 
     @property
     def status_topic(self) -> str:
@@ -225,11 +233,7 @@ def parse_client_config(
     """
     ctx = _Ctx(source)
     top = _mapping(ctx, data, "", "document", _TOP_KEYS)
-    server_url = _str(ctx, top, "", "server_url", required=True)
-    assert server_url is not None
-    if not _URL_RE.match(server_url):
-        reason = f"must be ws://HOST[:PORT]/ or wss://..., got {server_url!r}"
-        raise ctx.error("", "server_url", reason)
+    server_url, *failover_urls = parse_server_urls(ctx, top)
     robot_name = _str(ctx, top, "", "robot_name", required=True)
     assert robot_name is not None
     if not _ROBOT_NAME_RE.match(robot_name):
@@ -240,6 +244,7 @@ def parse_client_config(
         _check_tf_topics(ctx, publish, robot_name)
     return ClientConfig(
         server_url=server_url,
+        failover_urls=tuple(failover_urls),
         robot_name=robot_name,
         bind_address=_bind_address(ctx, top),
         token=_token(ctx, top, base_dir or Path.cwd()),

@@ -33,10 +33,10 @@ import asyncio
 import contextlib
 import math
 import socket
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 
-__all__ = ["DialSettings", "DialTimeout", "dial"]
+__all__ = ["DialSettings", "DialTimeout", "dial", "dial_first"]
 
 
 class DialTimeout(TimeoutError):
@@ -112,6 +112,67 @@ async def dial(host: str, port: int, timeout_s: float, settings: DialSettings = 
             raise error or OSError(f"{host} resolved to no address")
     except TimeoutError as exc:
         raise DialTimeout(f"no answer from {host}:{port} within {timeout_s:.1f} s") from exc
+
+
+async def dial_first(targets: Sequence[tuple[str, int]], timeout_s: float,
+                     settings: DialSettings = DialSettings(), *, head_start_s: float,
+                     local_addr: tuple[str, int] | None = None,
+                     outage_age_s: float = math.inf) -> tuple[int, socket.socket]:
+    """Dial ``targets[0]`` first; the others join after *head_start_s* (or at once when
+    every running dial failed); the first to connect wins. Returns ``(index, socket)``.
+
+    Why a head start rather than a plain race (issue 15, replicas): the caller lists its
+    current replica first. On a link blip every replica is silent alike, and a plain race
+    would hand the robot to whichever SYN-ACK happened to return first, moving its session
+    for nothing; a replica that died is silent too, and after the head start the others
+    take over. A replica that refuses (its process stopped, the port closed) is left at
+    once. Each target is one :func:`dial` (its own staggered attempts, its own
+    *timeout_s*); the losers are cancelled and a socket that connected late is closed.
+
+    Raises:
+        DialTimeout: No target connected and at least one was silent.
+        OSError: Every target refused or was unreachable (the first target's error).
+    """
+    if len(targets) == 1:
+        host, port = targets[0]
+        return 0, await dial(host, port, timeout_s, settings, local_addr, outage_age_s)
+    running: dict[asyncio.Task[socket.socket], int] = {}
+    waiting = list(range(len(targets)))
+    errors: dict[int, BaseException] = {}
+
+    def start(indexes: list[int]) -> None:
+        for i in indexes:
+            host, port = targets[i]
+            running[asyncio.create_task(
+                dial(host, port, timeout_s, settings, local_addr, outage_age_s))] = i
+        del waiting[:len(indexes)]
+
+    start(waiting[:1])
+    try:
+        while running:
+            done, _ = await asyncio.wait(running, timeout=head_start_s if waiting else None,
+                                         return_when=asyncio.FIRST_COMPLETED)
+            if not done:  # the head start is over
+                start(list(waiting))
+                continue
+            for task in done:
+                index = running.pop(task)
+                exc = task.exception()
+                if exc is None:
+                    return index, task.result()
+                if not isinstance(exc, OSError):  # TimeoutError is an OSError too
+                    raise exc
+                errors[index] = exc
+            if not running and waiting:  # the first ones failed before the head start ended
+                start(list(waiting))
+    finally:
+        for task in running:
+            task.cancel()
+        for task in running:
+            with contextlib.suppress(asyncio.CancelledError, OSError):
+                (await task).close()  # one that connected while being cancelled
+    timeouts = [e for e in errors.values() if isinstance(e, DialTimeout)]
+    raise timeouts[0] if timeouts else errors[min(errors)]
 
 
 async def _race(family: int, proto: int, address: tuple[str, int] | tuple[str, int, int, int],

@@ -57,7 +57,7 @@ import time
 from collections import Counter
 from collections.abc import Callable
 from dataclasses import dataclass, field
-from typing import Any
+from typing import Any, NamedTuple
 
 from websockets.asyncio.client import ClientConnection, connect
 from websockets.exceptions import ConnectionClosed, InvalidHandshake, InvalidURI
@@ -65,7 +65,7 @@ from websockets.uri import parse_uri
 
 from fleetctl.batched_connection import BatchedWritesConnection
 from fleetctl.client.config import ClientConfig
-from fleetctl.client.dialer import DialSettings, DialTimeout, dial
+from fleetctl.client.dialer import DialSettings, DialTimeout, dial_first
 from fleetctl.client.memory import tune_malloc
 from fleetctl.client.receiver import Receiver
 from fleetctl.client.scheduler import Scheduler, SchedulerConfig, TopicFeedback
@@ -87,6 +87,10 @@ class LinkTuning:
     Attributes:
         open_timeout_s: Limit of one connection attempt (TCP + TLS + upgrade), seconds.
         dial: How the TCP connection is raced (see :mod:`fleetctl.client.dialer`).
+        failover_after_s: With several replicas (``server_url`` a list), the current one
+            has this head start in a dial before the others join the race, seconds
+            (:func:`~fleetctl.client.dialer.dial_first`); a replica that refuses is left
+            at once.
         keepalive_interval_s: A ping is sent when the link was idle this long, seconds.
         link_timeout_s: A ping unanswered this long means the link is dead, seconds.
         close_timeout_s: Time allowed for the closing handshake on stop, seconds.
@@ -122,6 +126,7 @@ class LinkTuning:
 
     open_timeout_s: float = 5.0
     dial: DialSettings = field(default_factory=DialSettings)
+    failover_after_s: float = 0.5
     keepalive_interval_s: float = 0.5
     link_timeout_s: float = 3.0
     close_timeout_s: float = 1.0
@@ -227,16 +232,28 @@ class AckStall:
         return info.last_ack_s > gap and now_s - self._busy_since_s > gap
 
 
+class Dialed(NamedTuple):
+    """A connected TCP socket and the replica it reaches.
+
+    Attributes:
+        sock: The socket the WebSocket upgrade runs on.
+        replica: The replica's position in ``ClientConfig.server_urls``.
+    """
+
+    sock: socket.socket
+    replica: int
+
+
 class PathDead(Exception):
     """The old connection's path is dead and a new TCP connection is ready.
 
     Attributes:
-        sock: The connected socket the next WebSocket upgrade runs on.
+        dialed: The connected socket the next WebSocket upgrade runs on.
     """
 
-    def __init__(self, message: str, sock: socket.socket) -> None:
+    def __init__(self, message: str, dialed: Dialed) -> None:
         super().__init__(message)
-        self.sock = sock
+        self.dialed = dialed
 
 
 # What to look at when bind_address is on no interface; fleet0 is the interface the bundle
@@ -275,7 +292,7 @@ class _Ended:
 
     acked: bool
     path_dead: bool = False
-    ready: socket.socket | None = None
+    ready: Dialed | None = None
 
 
 class LinkConnection(BatchedWritesConnection, ClientConnection):
@@ -361,6 +378,9 @@ class RobotLink:
             clock, on_frame, reassembly_max_bytes=tune.reassembly_max_bytes,
             reassembly_timeout_s=tune.reassembly_timeout_s, dedupe_window=tune.dedupe_window)
         self._counters: Counter[str] = Counter()
+        self._urls = config.server_urls
+        self._url_index = 0  # the current replica: the next dial tries it first
+        self._connected_index: int | None = None  # the replica of the last connection
         self._server_errors: Counter[str] = Counter()
         self._last_close: str | None = None
         self._identities: list[str] = []
@@ -453,7 +473,7 @@ class RobotLink:
         self._loop_thread = threading.get_ident()
         self._running = True
         attempt = 0
-        ready: socket.socket | None = None  # connected early by the watchdog
+        ready: Dialed | None = None  # connected early by the watchdog
         try:
             while not self._stop.is_set():
                 ws = await self._connect(attempt, ready)
@@ -473,7 +493,7 @@ class RobotLink:
                     await self._wait_stop(self._backoff(attempt))
         finally:
             if ready is not None:
-                ready.close()  # stopped before the upgrade ran on it
+                ready.sock.close()  # stopped before the upgrade ran on it
             self._running = False
             self._stopped.set()
 
@@ -494,6 +514,8 @@ class RobotLink:
         snap["link_timeouts"] = self._counters["link_timeouts"]
         snap["dead_paths"] = self._counters["dead_paths"]
         snap["connect_failures"] = self._counters["connect_failures"]
+        snap["failovers"] = self._counters["failovers"]
+        snap["server_url"] = self.url
         snap["session_resumes"] = self._counters["session_resumes"]
         snap["session_mailbox_frames"] = self._counters["session_mailbox_frames"]
         snap["last_close"] = self._last_close
@@ -519,46 +541,76 @@ class RobotLink:
         with contextlib.suppress(TimeoutError):
             await asyncio.wait_for(self._stop.wait(), timeout_s)
 
-    async def _dial(self) -> socket.socket:
-        """The raced TCP connect, at the stagger for the current outage's age."""
-        uri = parse_uri(self.config.server_url)
+    @property
+    def url(self) -> str:
+        """The replica in use, or the one the next connection tries first."""
+        return self._urls[self._url_index]
+
+    async def _dial(self) -> Dialed:
+        """The raced TCP connect, at the stagger for the current outage's age; the
+        current replica first, the others after ``failover_after_s``."""
+        order = [(self._url_index + k) % len(self._urls) for k in range(len(self._urls))]
+        targets = []
+        for i in order:
+            uri = parse_uri(self._urls[i])
+            targets.append((uri.host, uri.port))
         local = (None if self.config.bind_address is None
                  else (self.config.bind_address, 0))
         since = self._outage_since_s
         age = math.inf if since is None else max(0.0, self._clock() - since)
-        return await dial(uri.host, uri.port, self.tuning.open_timeout_s, self.tuning.dial,
-                          local_addr=local, outage_age_s=age)
+        won, sock = await dial_first(targets, self.tuning.open_timeout_s, self.tuning.dial,
+                                     head_start_s=self.tuning.failover_after_s,
+                                     local_addr=local, outage_age_s=age)
+        return Dialed(sock, order[won])
+
+    def _use_replica(self, index: int) -> None:
+        """Replica *index* connected: it is the current one from now on. A connection to
+        another replica than the last one is a failover (logged, counted)."""
+        last = self._connected_index
+        if last is not None and index != last:
+            logger.warning("failed over from %s to %s", self._urls[last], self._urls[index])
+            self._counters["failovers"] += 1
+        self._url_index = self._connected_index = index
+
+    def _skip_replica(self, index: int) -> None:
+        """Replica *index* answered TCP but its handshake failed: the next dial starts
+        with the next one (a list of one stays put)."""
+        if index == self._url_index and len(self._urls) > 1:
+            self._url_index = (index + 1) % len(self._urls)
 
     def _extensions(self) -> list[RobotDeflateFactory] | None:
         limit = self.tuning.deflate_max_message_bytes
         return [RobotDeflateFactory(limit)] if limit > 0 else None
 
-    async def _open(self, ready: socket.socket | None = None) -> LinkConnection:
+    async def _open(self, ready: Dialed | None = None) -> LinkConnection:
         """One connection attempt: raced TCP connect within ``open_timeout_s`` (or the
         *ready* socket the watchdog connected), then TLS and the upgrade within another
         ``open_timeout_s``."""
         headers = {SESSION_HEADER: self.config.robot_name}
         if self.config.token is not None:
             headers["Authorization"] = f"Bearer {self.config.token}"
-        sock = ready if ready is not None else await self._dial()
+        sock, index = ready if ready is not None else await self._dial()
         try:
             async with asyncio.timeout(self.tuning.open_timeout_s):
                 ws = await connect(
-                    self.config.server_url, sock=sock, additional_headers=headers,
+                    self._urls[index], sock=sock, additional_headers=headers,
                     compression=None, extensions=self._extensions(), proxy=None,
                     open_timeout=None, ping_interval=None,
                     ping_timeout=None, close_timeout=self.tuning.close_timeout_s,
                     max_size=self.tuning.max_receive_frame_bytes,
                     write_limit=self.tuning.write_limit_bytes,
                     create_connection=LinkConnection)
-        except BaseException:
+        except BaseException as exc:
             sock.close()  # the handshake failed or timed out: the socket is ours
+            if not isinstance(exc, asyncio.CancelledError):
+                self._skip_replica(index)
             raise
         assert isinstance(ws, LinkConnection)
+        self._use_replica(index)
         return ws
 
     async def _connect(self, attempt: int,
-                       ready: socket.socket | None = None) -> LinkConnection | None:
+                       ready: Dialed | None = None) -> LinkConnection | None:
         connecting = asyncio.ensure_future(self._open(ready))
         stopper = asyncio.ensure_future(self._stop.wait())
         # stop() must not wait for a connection attempt to time out.
@@ -568,7 +620,7 @@ class RobotLink:
             connecting.cancel()
             await asyncio.gather(connecting, return_exceptions=True)
             if ready is not None:
-                ready.close()  # cancelled before _open took it over
+                ready.sock.close()  # cancelled before _open took it over
             return None
         try:
             ws = connecting.result()
@@ -583,7 +635,7 @@ class RobotLink:
                 self._log_bound_again()
                 # The token is never logged: only the URL and the reason.
                 logger.warning("cannot connect to %s: %s; retrying in %.2f s",
-                               self.config.server_url, exc or type(exc).__name__, delay)
+                               self.url, exc or type(exc).__name__, delay)
             await self._wait_stop(delay)
             return None
         self._log_bound_again()
@@ -628,7 +680,7 @@ class RobotLink:
         self._identities = []
         self._acked_any = False
         self._drop_stale()
-        logger.info("connected to %s", self.config.server_url)
+        logger.info("connected to %s", self.url)
         tasks: list[asyncio.Task[None]] = []
         ended = _Ended(acked=False)
         try:
@@ -647,7 +699,7 @@ class RobotLink:
                 exc = task.exception()
                 self._log_session_end(exc or _close_exc(ws))
                 if isinstance(exc, (LinkDead, PathDead)):
-                    ended = _Ended(False, True, exc.sock if isinstance(exc, PathDead) else None)
+                    ended = _Ended(False, True, exc.dialed if isinstance(exc, PathDead) else None)
             if self._stop.is_set():
                 await self._goodbye(ws)
         except ConnectionClosed as exc:
@@ -679,7 +731,7 @@ class RobotLink:
                                 else "no close frame")
             level = logging.ERROR if rcvd is not None and rcvd.code in (4401, 4403) else (
                 logging.WARNING)
-            logger.log(level, "connection to %s closed: %s", self.config.server_url,
+            logger.log(level, "connection to %s closed: %s", self.url,
                        self._last_close)
         elif isinstance(exc, LinkDead):
             self._counters["link_timeouts"] += 1
@@ -691,7 +743,7 @@ class RobotLink:
             logger.warning("%s", exc)
         elif exc is not None:
             self._last_close = f"error: {exc!r}"
-            logger.error("link to %s failed: %r", self.config.server_url, exc)
+            logger.error("link to %s failed: %r", self.url, exc)
 
     async def _subscribe_all(self, ws: ClientConnection, *, subscribe: bool) -> None:
         for spec in self.config.subscribe:
@@ -775,7 +827,7 @@ class RobotLink:
         tune = self.tuning
         sock = ws.transport.get_extra_info("socket")
         stall = AckStall(tune.dead_ack_gap_s, tune.dead_ack_rtts)
-        redial: asyncio.Task[socket.socket] | None = None
+        redial: asyncio.Task[Dialed] | None = None
         wrote = self._wrote = asyncio.Event()
         try:
             while True:
@@ -807,18 +859,18 @@ class RobotLink:
                 await _discard(redial)
 
     def _start_redial(self, now_s: float, info: TcpInfo,
-                      stall: AckStall) -> asyncio.Task[socket.socket]:
+                      stall: AckStall) -> asyncio.Task[Dialed]:
         """The path looks dead: note when the outage began and dial a new connection."""
         if self._outage_since_s is None:
             self._outage_since_s = now_s - info.last_ack_s
         logger.warning("no ACK from %s for %.2f s with %d segments unacknowledged (dead "
                        "after %.2f s): dialing a new connection, keeping this one until it "
-                       "connects", self.config.server_url, info.last_ack_s, info.unacked,
+                       "connects", self.url, info.last_ack_s, info.unacked,
                        stall.gap_s(info))
         return asyncio.create_task(self._dial())
 
-    def _redial_done(self, redial: asyncio.Task[socket.socket],
-                     dead: bool) -> asyncio.Task[socket.socket] | None:
+    def _redial_done(self, redial: asyncio.Task[Dialed],
+                     dead: bool) -> asyncio.Task[Dialed] | None:
         """The early dial ended: switch to its socket, or drop it (false alarm, failure).
 
         Raises:
@@ -836,9 +888,9 @@ class RobotLink:
             return redial  # kept done: no new early dial on this connection
         new = redial.result()
         if dead:
-            raise PathDead(f"path to {self.config.server_url} dead: switching to the new "
-                           "connection", new)
-        new.close()
+            raise PathDead(f"path to {self.url} dead: switching to the new connection to "
+                           f"{self._urls[new.replica]}", new)
+        new.sock.close()
         self._outage_since_s = None
         logger.info("the old connection got an ACK again: false alarm, new socket closed")
         return None
@@ -849,7 +901,7 @@ class RobotLink:
         if oldest is not None and now_s - oldest > self.tuning.link_timeout_s:
             if self._outage_since_s is None:
                 self._outage_since_s = oldest
-            raise LinkDead(f"no pong from {self.config.server_url} for "
+            raise LinkDead(f"no pong from {self.url} for "
                            f"{self.tuning.link_timeout_s:.1f} s: reconnecting")
 
     # -- receiving ------------------------------------------------------------------------
@@ -903,13 +955,13 @@ class RobotLink:
             patterns, list) else []
 
 
-async def _discard(task: asyncio.Task[socket.socket]) -> None:
+async def _discard(task: asyncio.Task[Dialed]) -> None:
     """Cancel an early dial; close its socket if it connected and was not used."""
     if not task.done():
         task.cancel()
     with contextlib.suppress(asyncio.CancelledError, Exception):
-        sock = await task
-        sock.close()
+        dialed = await task
+        dialed.sock.close()
 
 
 def _close_exc(ws: LinkConnection) -> ConnectionClosed | None:

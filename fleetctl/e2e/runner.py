@@ -34,7 +34,8 @@ from fleetctl.e2e.topology import IDLE_COMMAND, ROBOT_SIDE, SERVER_SIDE, Topolog
 from fleetctl.errors import EnvironmentMissing, FleetError
 
 Progress = Callable[[str], None]
-SCENARIOS = ("link", "dropout", "multi-consumer", "ramp", "priority", "peer", "peer-fanout")
+SCENARIOS = ("link", "dropout", "multi-consumer", "ramp", "priority", "peer", "peer-fanout",
+             "replica-failure")
 # Components each fleet scenario runs: (image, command that must exist in it).
 _NEEDS = {
     "dropout": (("server", "server"), ("client", "client")),
@@ -43,6 +44,7 @@ _NEEDS = {
     "priority": (("server", "server"), ("client", "client")),
     "peer": (("server", "server"), ("client", "client")),
     "peer-fanout": (("server", "server"), ("client", "client")),
+    "replica-failure": (("server", "server"), ("client", "client")),
 }
 # The link calibration probe: a TCP sink on the server side, a timed sender on the robot side.
 SINK_SCRIPT = (

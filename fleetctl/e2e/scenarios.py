@@ -33,6 +33,7 @@ from fleetctl.deploy.shaping import Capabilities, LinkShaper, RateSpec, mbit
 from fleetctl.e2e import analysis, profiles, videoanalysis
 from fleetctl.e2e.fleetrun import FleetRun, hold, wait_for
 from fleetctl.e2e.peerscenario import run_peer, run_peer_fanout
+from fleetctl.e2e.replicascenario import run_replica_failure
 from fleetctl.e2e.samples import Sample
 from fleetctl.e2e.topology import ROBOT_SIDE, SERVER_SIDE, Endpoint
 from fleetctl.errors import FleetError
@@ -382,4 +383,5 @@ SCENARIO_FUNCS: dict[str, Callable[[FleetRun, Capabilities, float, Progress], di
     "ramp": run_ramp,
     "peer": run_peer,
     "peer-fanout": run_peer_fanout,
+    "replica-failure": run_replica_failure,
 }

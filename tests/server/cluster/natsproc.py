@@ -134,8 +134,13 @@ def start_cluster(workdir: Path, size: int, timeout_s: float = 30.0) -> list[Nat
     for server in servers:
         server.routes = [f"nats://127.0.0.1:{o.cluster_port}" for o in servers
                          if o is not server]
-    for server in servers:
-        server.start(timeout_s, wait=False)
-    for server in servers:
-        server.wait_ready(timeout_s, routes=size - 1)
+    try:
+        for server in servers:
+            server.start(timeout_s, wait=False)
+        for server in servers:
+            server.wait_ready(timeout_s, routes=size - 1)
+    except BaseException:
+        for server in servers:  # the fixture's teardown does not run when setup fails
+            server.stop()
+        raise
     return servers

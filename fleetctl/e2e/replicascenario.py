@@ -91,10 +91,13 @@ def _start_relay(fr: FleetRun, name: str, nats: list[str]) -> Endpoint:
 
 
 def _kill(fr: FleetRun, endpoint: Endpoint) -> int:
-    """``docker kill`` (SIGKILL): the process dies without a goodbye. Returns when."""
+    """``docker kill`` (SIGKILL): the process dies without a goodbye. Returns when
+    ``docker kill`` returned, the signal delivered: the process is dead from then on
+    (until then it may still relay, so an earlier mark would credit its last frames to
+    the failover)."""
     fr.keep_logs([endpoint.name])
-    at = time.time_ns()
     res = fr.topo.runner(["docker", "kill", endpoint.name], None, True)
+    at = time.time_ns()
     if res.returncode != 0:
         raise FleetError(f"docker kill {endpoint.name} failed: {res.stderr.strip()[-300:]}")
     return at
@@ -124,7 +127,7 @@ def run_replica_failure(fr: FleetRun, caps: Capabilities, duration_s: float,
         robot = fr.start_robot("rf-robot", p, p.name,
                                server_urls=[f"ws://{a.ip}:{port}/", f"ws://{b.ip}:{port}/"])
         started.append(robot)
-        fr.wait_flowing("rf-", [pose, events], ["rf-a-0", "rf-b-0"])
+        fr.wait_flowing("rf", [pose, events], ["rf-a-0", "rf-b-0"])
         t0 = time.time_ns()
         progress(f"replica-failure: quiet for {phase_s:.0f} s")
         hold(phase_s)

@@ -14,9 +14,11 @@ gets a frame once: from its own replica's local delivery or from NATS, not both.
 Interest follows subscriptions (:class:`Interest`): a replica subscribes to the subjects
 its local consumers' patterns need and unsubscribes when nobody holds them.
 
-Faults: NATS lost while running: local delivery goes on; frames for other replicas are
-dropped (counted ``disconnected``), not buffered into a burst of stale telemetry; the
-client reconnects by itself and re-subscribes. Every drop is counted in
+Faults: NATS lost while running: local delivery goes on; latest-only frames for other
+replicas are dropped (counted ``disconnected``), not buffered into a burst of stale
+telemetry; no_drop frames stay queued, in order, within the queue's bounds, and go out
+when the client is back (it reconnects by itself and re-subscribes): a NATS node's death
+must not lose an event the robot was told was delivered. Every drop is counted in
 ``fleetctl_cluster_dropped_total{reason}``.
 """
 
@@ -53,6 +55,9 @@ MAX_SUBJECT_BYTES = 3072
 # slow_consumer): the relay's own schedulers bound what each connection gets after that.
 SUB_PENDING_MESSAGES = 65536
 SUB_PENDING_BYTES = 64 * 1024 * 1024
+# While NATS is away, how often newly queued latest-only frames are shed (bounds how old
+# a latest-only frame can be when it goes out after the reconnect).
+DISCONNECTED_LOOK_S = 0.1
 RECONNECT_WAIT_S = 0.25
 # A NATS node whose host died or was cut off sends no FIN: nats-py notices only when its
 # pings go unanswered. Its default (2 min x 2 pings) left a replica publishing into a dead
@@ -82,7 +87,8 @@ class NatsFanout:
         self.config = config
         self.interest = Interest(config.subject_prefix)
         self._subjects: dict[str, str] = {}
-        self._queue: deque[tuple[str, bytes]] = deque()
+        self._queue: deque[tuple[str, bytes, bool]] = deque()  # subject, frame, no_drop
+        self._back = asyncio.Event()  # set while NATS is connected
         self._queued_bytes = 0
         self._wake = asyncio.Event()
         self._interest_changed = asyncio.Event()
@@ -109,7 +115,7 @@ class NatsFanout:
                 or self._queued_bytes + len(frame) > self.config.publish_queue_bytes):
             self._drop("queue_full")
             return
-        queue.append((subject, frame))
+        queue.append((subject, frame, no_drop))
         self._queued_bytes += len(frame)
         if len(queue) == 1:
             self._wake.set()
@@ -127,6 +133,7 @@ class NatsFanout:
             ConfigError: The password file cannot be read.
         """
         self._nc = await self._connect()
+        self._back.set()
         self._tasks = [asyncio.create_task(self._publish_loop()),
                        asyncio.create_task(self._interest_loop())]
         self._interest_changed.set()  # subscriptions made before start
@@ -258,13 +265,16 @@ class NatsFanout:
     async def _on_disconnected(self) -> None:
         if self._stopping or self._connecting is not None:
             return
-        log.warning("replica %s: NATS connection lost: local delivery goes on, frames for "
-                    "other replicas are dropped until it is back", self.config.name)
+        self._back.clear()
+        log.warning("replica %s: NATS connection lost: local delivery goes on; latest-only "
+                    "frames for other replicas are dropped, no_drop ones held (bounded) "
+                    "until it is back", self.config.name)
 
     async def _on_reconnected(self) -> None:
         self.reconnects += 1
         nc = self._nc
         url = nc.connected_url.netloc if nc is not None and nc.connected_url else "?"
+        self._back.set()
         log.info("replica %s: NATS reconnected to %s", self.config.name, url)
         self._interest_changed.set()  # in case a change failed while it was away
 
@@ -278,17 +288,31 @@ class NatsFanout:
                 await wake.wait()
             nc = self._nc
             assert nc is not None
-            if not nc.is_connected:  # stale telemetry is dropped, never replayed late
-                self._drop("disconnected", len(queue))
-                queue.clear()
-                self._queued_bytes = 0
+            if not nc.is_connected:
+                self._shed_latest_only()
+                # Until it is back; new frames meanwhile are shed at the next look.
+                with contextlib.suppress(TimeoutError):
+                    async with asyncio.timeout(DISCONNECTED_LOOK_S):
+                        await self._back.wait()
                 continue
             await self._publish_some(nc, queue)
 
-    async def _publish_some(self, nc: Client, queue: deque[tuple[str, bytes]]) -> None:
+    def _shed_latest_only(self) -> None:
+        """NATS is away: drop the latest-only frames (stale telemetry is never replayed
+        late), keep the no_drop ones in order for when it is back."""
+        queue = self._queue
+        kept = [entry for entry in queue if entry[2]]
+        shed = len(queue) - len(kept)
+        if shed:
+            self._drop("disconnected", shed)
+            queue.clear()
+            queue.extend(kept)
+            self._queued_bytes = sum(len(frame) for _, frame, _ in kept)
+
+    async def _publish_some(self, nc: Client, queue: deque[tuple[str, bytes, bool]]) -> None:
         # The client appends to its pending buffer; its flusher writes in batches.
         for _ in range(min(len(queue), 1024)):
-            subject, frame = queue.popleft()
+            subject, frame, _ = queue.popleft()
             self._queued_bytes -= len(frame)
             if len(subject) > MAX_SUBJECT_BYTES:
                 self._drop("subject_too_long")

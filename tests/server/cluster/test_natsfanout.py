@@ -29,3 +29,41 @@ def test_queue_bounded_and_drops_counted_local_delivery_unaffected() -> None:
     families = {name: values for name, _, _, _, values in fan.metric_families()}
     assert families["fleetctl_cluster_dropped_total"] == {"queue_full": 4.0}
     assert families["fleetctl_cluster_connected"] == {"": 0.0}
+
+
+class FakeNats:
+    """The two things the publish loop uses of nats-py's client (a unit test's stand-in:
+    the real client is tested in test_replicas.py)."""
+
+    def __init__(self) -> None:
+        self.is_connected = False
+        self.sent: list[tuple[str, bytes]] = []
+
+    async def publish(self, subject: str, payload: bytes) -> None:
+        self.sent.append((subject, payload))
+
+
+async def test_nats_away_sheds_latest_only_and_keeps_no_drop_in_order() -> None:
+    import asyncio
+
+    from tests.support import wait_until
+
+    config = ClusterConfig(name="a", nats_urls=("nats://127.0.0.1:4222",))
+    fan = NatsFanout(Recorder(), lambda frame: None, config)  # type: ignore[arg-type]
+    nats = FakeNats()
+    fan._nc = nats  # type: ignore[assignment]
+    task = asyncio.create_task(fan._publish_loop())
+    try:
+        fan.publish("/r/pose", b"p1", False, None)
+        fan.publish("/r/events", b"e1", True, None)
+        fan.publish("/r/pose", b"p2", False, None)
+        fan.publish("/r/events", b"e2", True, None)
+        await wait_until(lambda: fan.dropped.get("disconnected") == 2, 5.0)
+        assert [frame for _, frame, _ in fan._queue] == [b"e1", b"e2"]
+        nats.is_connected = True
+        fan._back.set()  # what the reconnect callback does
+        await wait_until(lambda: len(nats.sent) == 2, 5.0)
+        assert nats.sent == [("fleetctl.r.events", b"e1"), ("fleetctl.r.events", b"e2")]
+        assert fan.published == 2 and fan._queued_bytes == 0
+    finally:
+        task.cancel()

@@ -33,7 +33,7 @@ import asyncio
 import contextlib
 import math
 import socket
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass
 
 __all__ = ["DialSettings", "DialTimeout", "dial", "dial_first"]
@@ -166,11 +166,7 @@ async def dial_first(targets: Sequence[tuple[str, int]], timeout_s: float,
             if not running and waiting:  # the first ones failed before the head start ended
                 start(list(waiting))
     finally:
-        for task in running:
-            task.cancel()
-        for task in running:
-            with contextlib.suppress(asyncio.CancelledError, OSError):
-                (await task).close()  # one that connected while being cancelled
+        await _cancel_and_close(running)
     timeouts = [e for e in errors.values() if isinstance(e, DialTimeout)]
     raise timeouts[0] if timeouts else errors[min(errors)]
 
@@ -203,11 +199,17 @@ async def _race(family: int, proto: int, address: tuple[str, int] | tuple[str, i
                 attempts.remove(task)
                 return task.result()  # a refusal or unreachable network raises here
     finally:
-        for task in attempts:
-            task.cancel()
-        for task in attempts:
-            with contextlib.suppress(asyncio.CancelledError, OSError):
-                (await task).close()  # one that connected while being cancelled
+        await _cancel_and_close(attempts)
+
+
+async def _cancel_and_close(tasks: Iterable[asyncio.Task[socket.socket]]) -> None:
+    """Cancel the losers of a race; close a socket that connected while being cancelled."""
+    tasks = list(tasks)
+    for task in tasks:
+        task.cancel()
+    for task in tasks:
+        with contextlib.suppress(asyncio.CancelledError, OSError):
+            (await task).close()
 
 
 async def _attempt(family: int, proto: int, address: tuple[str, int] | tuple[str, int, int, int],

@@ -15,6 +15,7 @@ import pytest
 from websockets.asyncio.client import ClientConnection, connect
 
 from fleetctl.client.config import ClientConfig, parse_client_config
+from fleetctl.client.transport import RobotLink
 from fleetctl.server.app import RelayServer
 from fleetctl.server.authmap import AuthMap, parse_auth_map
 from fleetctl.server.config import ServerConfig
@@ -75,6 +76,17 @@ def robot_config(url: str, tmp_path: Path, **extra: Any) -> ClientConfig:
     }
     return parse_client_config(data, source="test-client.yaml", base_dir=tmp_path)
 
+
+
+@contextlib.asynccontextmanager
+async def running(link: RobotLink) -> AsyncIterator[RobotLink]:
+    """*link* running in a task for the block; stopped (bounded) after it."""
+    task = asyncio.create_task(link.run())
+    try:
+        yield link
+    finally:
+        await asyncio.wait_for(link.stop(), 5.0)
+        await asyncio.wait_for(task, 5.0)
 
 
 async def wait_until(predicate: Callable[[], bool], timeout_s: float = 10.0) -> None:

@@ -9,28 +9,16 @@ its messages flow through the new one.
 from __future__ import annotations
 
 import asyncio
-import contextlib
-from collections.abc import AsyncIterator
 from pathlib import Path
 
 from fleetctl.client.transport import LinkTuning, RobotLink
 from fleetctl.server.app import RelayServer
-from tests.client.conftest import Consumer, make_server, robot_config, wait_until
+from tests.client.conftest import Consumer, make_server, robot_config, running, wait_until
 from tests.client.test_dialer import silent_port
 from tests.support import string_frame
 
 TUNING = LinkTuning(keepalive_interval_s=0.1, link_timeout_s=1.0, open_timeout_s=2.0,
                     failover_after_s=0.3)
-
-
-@contextlib.asynccontextmanager
-async def running(robot: RobotLink) -> AsyncIterator[RobotLink]:
-    task = asyncio.create_task(robot.run())
-    try:
-        yield robot
-    finally:
-        await robot.stop()
-        await task
 
 
 def send(robot: RobotLink, text: str) -> None:

@@ -3,9 +3,7 @@
 from __future__ import annotations
 
 import asyncio
-import contextlib
 import logging
-from collections.abc import AsyncIterator
 from pathlib import Path
 
 import pytest
@@ -20,21 +18,12 @@ from tests.client.conftest import (
     TcpForwarder,
     make_server,
     robot_config,
+    running,
     wait_until,
 )
 from tests.support import decode_text, string_frame
 
 FAST = LinkTuning(keepalive_interval_s=0.1, link_timeout_s=0.6, open_timeout_s=1.0)
-
-
-@contextlib.asynccontextmanager
-async def running(link: RobotLink) -> AsyncIterator[RobotLink]:
-    task = asyncio.create_task(link.run())
-    try:
-        yield link
-    finally:
-        await asyncio.wait_for(link.stop(), 5.0)
-        await asyncio.wait_for(task, 5.0)
 
 
 def url_of(port: int) -> str:

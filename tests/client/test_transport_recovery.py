@@ -2,11 +2,9 @@
 
 from __future__ import annotations
 
-import asyncio
 import contextlib
 import socket
 import time
-from collections.abc import AsyncIterator
 from pathlib import Path
 from typing import Any
 
@@ -16,7 +14,7 @@ from fleetctl.client import transport
 from fleetctl.client.transport import AckStall, LinkTuning, RobotLink, TcpInfo, read_tcp_info
 from fleetctl.deploy.shaping import LinkShaper, RateSpec, detect, mbit
 from fleetctl.server.app import RelayServer
-from tests.client.conftest import OPERATOR_TOKEN, robot_config, wait_until
+from tests.client.conftest import OPERATOR_TOKEN, robot_config, running, wait_until
 from tests.netns import NEEDS_ROOT, SINK_TCP_PORT, Link, host_run
 from tests.support import decode_text, string_frame
 
@@ -150,16 +148,6 @@ class FakeKernel:
         if self.dead:
             return TcpInfo(unacked=5, last_ack_s=30.0, srtt_s=0.001)
         return read_tcp_info(sock)
-
-
-@contextlib.asynccontextmanager
-async def running(link: RobotLink) -> AsyncIterator[RobotLink]:
-    task = asyncio.create_task(link.run())
-    try:
-        yield link
-    finally:
-        await asyncio.wait_for(link.stop(), 5.0)
-        await asyncio.wait_for(task, 5.0)
 
 
 TUNING = LinkTuning(keepalive_interval_s=0.1, link_timeout_s=30.0, open_timeout_s=2.0)

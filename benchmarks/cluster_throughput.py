@@ -34,7 +34,6 @@ from __future__ import annotations
 
 import argparse
 import asyncio
-import contextlib
 import json
 import multiprocessing as mp
 import os
@@ -49,13 +48,14 @@ from typing import Any
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))  # tests.server.cluster.natsproc starts nats-server
 
-STAMP_DIGITS = 19
+import relay_throughput as rt  # noqa: E402 - the harness (benchmarks/ is the script's directory)
+
+STAMP_DIGITS = rt.STAMP_DIGITS
 
 
 def _pin(cpu: int | None) -> None:
-    if cpu is not None:
-        with contextlib.suppress(OSError, AttributeError):
-            os.sched_setaffinity(0, {cpu % (os.cpu_count() or 1)})
+    if cpu is not None:  # more replicas than cores: wrap around
+        rt._pin(cpu % (os.cpu_count() or 1))
 
 
 def run_replica(cpu: int | None, ports: Any, name: str, nats_url: str | None) -> None:
@@ -104,23 +104,7 @@ def run_publisher(cpu: int | None, port: int, topic: str, rate_hz: float | None,
     stamp_at = len(head) - n + offset
     with connect(f"ws://127.0.0.1:{port}/", compression=None, max_size=None) as ws:
         ws.recv(timeout=5)  # welcome
-        buf, sent = bytearray(head), 0
-        start = time.perf_counter()
-        while time.perf_counter() < start + seconds:
-            due = 64 if rate_hz is None else min(
-                64, int((time.perf_counter() - start) * rate_hz) - sent)
-            if due <= 0:
-                time.sleep(0.0002)  # pacing, not synchronization
-                continue
-            sent += due
-            chunks = []
-            for _ in range(due):
-                buf[stamp_at:stamp_at + STAMP_DIGITS] = b"%019d" % time.time_ns()
-                chunks.append(bytes(buf))
-            try:
-                ws.socket.sendall(b"".join(chunks))
-            except OSError:
-                return
+        rt.send_stamped(ws.socket, head, stamp_at, seconds, rate_hz)
 
 
 def run_subscriber(cpu: int | None, port: int, topic: str, seconds: float, out: Any,

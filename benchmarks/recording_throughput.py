@@ -142,13 +142,7 @@ def measure(variant: str, args: argparse.Namespace, rate_hz: float | None) -> di
 
 
 def main() -> int:
-    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("--seconds", type=float, default=3.0)
-    parser.add_argument("--server-cpu", type=int, default=0)
-    parser.add_argument("--client-cpu", type=int, default=1)
-    parser.add_argument("--rounds", type=int, default=3,
-                        help="rounds of both servers; the medians are reported")
-    parser.add_argument("--json", action="store_true", help="print JSON instead of a table")
+    parser = rt.base_parser(__doc__.split("\n\n")[0])
     parser.add_argument("--variants", default="off,on,on-worker-cpu",
                         help="comma-separated subset of off,on,on-worker-cpu (off first)")
     args = parser.parse_args()

@@ -139,30 +139,51 @@ def run_publisher(cpu: int, port: int, rate_hz: float | None, seconds: float,
     with connect(f"ws://127.0.0.1:{port}/pub", compression=None, max_size=None) as ws:
         if fleetctl:
             ws.recv(timeout=5)  # welcome
-        sock = ws.socket
-        buf = bytearray(head)
-        start = time.perf_counter()
-        end = start + seconds
-        sent = 0
-        while time.perf_counter() < end:
-            if rate_hz is None:
-                due = 64
-            else:
-                # Pacing: send what is due, then yield the core to the subscriber (it
-                # shares this core) instead of busy-waiting.
-                due = min(64, int((time.perf_counter() - start) * rate_hz) - sent)
-                if due <= 0:
-                    time.sleep(0.0002)
-                    continue
-            sent += due
-            chunks = []
-            for _ in range(due):
-                buf[stamp_at:stamp_at + STAMP_DIGITS] = b"%019d" % time.time_ns()
-                chunks.append(bytes(buf))
-            try:
-                sock.sendall(b"".join(chunks))
-            except OSError:
-                return  # the measurement is over and the server went away
+        send_stamped(ws.socket, head, stamp_at, seconds, rate_hz)
+
+
+def send_stamped(sock: Any, head: bytes, stamp_at: int, seconds: float,
+                 rate_hz: float | None) -> None:
+    """Send the masked frame *head* for *seconds*, flat out or at *rate_hz*, each copy
+    stamped (19 digits of ``time.time_ns()`` at *stamp_at*) just before it leaves.
+
+    Shared with cluster_throughput.py and recording_throughput.py.
+    """
+    buf = bytearray(head)
+    start = time.perf_counter()
+    end = start + seconds
+    sent = 0
+    while time.perf_counter() < end:
+        if rate_hz is None:
+            due = 64
+        else:
+            # Pacing: send what is due, then yield the core to the subscriber (it
+            # shares this core) instead of busy-waiting.
+            due = min(64, int((time.perf_counter() - start) * rate_hz) - sent)
+            if due <= 0:
+                time.sleep(0.0002)
+                continue
+        sent += due
+        chunks = []
+        for _ in range(due):
+            buf[stamp_at:stamp_at + STAMP_DIGITS] = b"%019d" % time.time_ns()
+            chunks.append(bytes(buf))
+        try:
+            sock.sendall(b"".join(chunks))
+        except OSError:
+            return  # the measurement is over and the server went away
+
+
+def base_parser(description: str) -> argparse.ArgumentParser:
+    """The options every relay benchmark takes (seconds, cores, rounds, JSON)."""
+    parser = argparse.ArgumentParser(description=description)
+    parser.add_argument("--seconds", type=float, default=3.0)
+    parser.add_argument("--server-cpu", type=int, default=0)
+    parser.add_argument("--client-cpu", type=int, default=1)
+    parser.add_argument("--rounds", type=int, default=3,
+                        help="rounds of both servers; the medians are reported")
+    parser.add_argument("--json", action="store_true", help="print JSON instead of a table")
+    return parser
 
 
 def run_subscriber(cpu: int, port: int, seconds: float, fleetctl: bool, out: Any,
@@ -249,14 +270,7 @@ def _row(name: str, throughput: float, lat: dict[str, Any]) -> dict[str, Any]:
 
 
 def main() -> int:
-    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("--seconds", type=float, default=3.0)
-    parser.add_argument("--server-cpu", type=int, default=0)
-    parser.add_argument("--client-cpu", type=int, default=1)
-    parser.add_argument("--rounds", type=int, default=3,
-                        help="rounds of both servers; the medians are reported")
-    parser.add_argument("--json", action="store_true", help="print JSON instead of a table")
-    args = parser.parse_args()
+    args = base_parser(__doc__.split("\n\n")[0]).parse_args()
 
     servers = (("baseline", run_baseline), ("fleetctl", run_fleetctl))
     rounds: list[list[dict[str, Any]]] = []

@@ -4,8 +4,10 @@ sending real frames, CDR checked with rosbags' own deserializer."""
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import logging
-from collections.abc import Callable
+from collections.abc import AsyncIterator, Callable
+from typing import Any
 
 import numpy as np
 import pytest
@@ -76,7 +78,11 @@ async def test_transcoded_once_per_frame_for_many_viewers(fx_server: RelayServer
             assert 'fleetctl_foxglove_transcoded_total{result="hit"} 2' in text
 
 
-async def test_viewer_is_offered_only_what_it_may_receive(fx_server: RelayServer) -> None:
+@contextlib.asynccontextmanager
+async def bob_sees_husky1_of_two(
+        fx_server: RelayServer) -> AsyncIterator[tuple[Any, Any, Viewer]]:
+    """husky1 and husky2 each send a scan; bob (receives /husky1/.* only) is offered
+    husky1's channel and not husky2's. Yields the two robots' connections and bob."""
     port = fx_server.web_port
     async with client(fx_server, source="127.0.0.2") as husky1, \
             client(fx_server, source="127.0.0.3") as husky2:
@@ -84,24 +90,29 @@ async def test_viewer_is_offered_only_what_it_may_receive(fx_server: RelayServer
         await husky2.send(scan_frame("/husky2/scan", 0))
         await wait_for(lambda: len(fx_server.foxglove.catalog.channels()) == 2)
         async with open_viewer(port, await ticket(port, BOB_TOKEN)) as ws:
-            viewer = Viewer(ws)  # bob receives /husky1/.* only
+            viewer = Viewer(ws)
             await viewer.until(lambda: viewer.channel("/husky1/scan") is not None)
             assert viewer.channel("/husky2/scan") is None
-            assert viewer.server_info is not None
-            assert viewer.server_info["capabilities"] == []  # bob may send nothing
-            # A channel it was not offered cannot be subscribed by guessing its id.
-            hidden = next(c.id for c in fx_server.foxglove.catalog.channels()
-                          if c.topic == "/husky2/scan")
-            await viewer.subscribe(1, hidden)
-            await viewer.until(lambda: bool(viewer.statuses))
-            assert viewer.statuses[0]["level"] == 2
-            # Topics come and go: a new one is advertised live, a gone robot unadvertised.
-            await husky1.send(scan_frame("/husky1/scan2", 0))
-            await viewer.until(lambda: viewer.channel("/husky1/scan2") is not None)
-            await husky2.send(scan_frame("/husky2/other", 0))
-            await husky1.close()
-            await viewer.until(lambda: viewer.channel("/husky1/scan") is None)
-            assert viewer.channel("/husky2/other") is None
+            yield husky1, husky2, viewer
+
+
+async def test_viewer_is_offered_only_what_it_may_receive(fx_server: RelayServer) -> None:
+    async with bob_sees_husky1_of_two(fx_server) as (husky1, husky2, viewer):
+        assert viewer.server_info is not None
+        assert viewer.server_info["capabilities"] == []  # bob may send nothing
+        # A channel it was not offered cannot be subscribed by guessing its id.
+        hidden = next(c.id for c in fx_server.foxglove.catalog.channels()
+                      if c.topic == "/husky2/scan")
+        await viewer.subscribe(1, hidden)
+        await viewer.until(lambda: bool(viewer.statuses))
+        assert viewer.statuses[0]["level"] == 2
+        # Topics come and go: a new one is advertised live, a gone robot unadvertised.
+        await husky1.send(scan_frame("/husky1/scan2", 0))
+        await viewer.until(lambda: viewer.channel("/husky1/scan2") is not None)
+        await husky2.send(scan_frame("/husky2/other", 0))
+        await husky1.close()
+        await viewer.until(lambda: viewer.channel("/husky1/scan") is None)
+        assert viewer.channel("/husky2/other") is None
 
 
 def pose_cdr(x: float) -> bytes:
@@ -267,19 +278,10 @@ async def test_too_many_bad_messages_close_with_status_not_fleet_frames(
 async def test_auth_reload_rechooses_the_channels(fx_server: RelayServer) -> None:
     from tests.server.conftest import AUTH, auth_map
 
-    port = fx_server.web_port
-    async with client(fx_server, source="127.0.0.2") as husky1, \
-            client(fx_server, source="127.0.0.3") as husky2:
-        await husky1.send(scan_frame("/husky1/scan", 0))
-        await husky2.send(scan_frame("/husky2/scan", 0))
-        await wait_for(lambda: len(fx_server.foxglove.catalog.channels()) == 2)
-        async with open_viewer(port, await ticket(port, BOB_TOKEN)) as ws:
-            viewer = Viewer(ws)
-            await viewer.until(lambda: viewer.channel("/husky1/scan") is not None)
-            assert viewer.channel("/husky2/scan") is None
-            raw = {**AUTH, "identities": [
-                {**i, "rules": [{"topic": "/husky2/.*", "op": "receive"}]}
-                if i["name"] == "bob" else i for i in AUTH["identities"]]}
-            fx_server.core.reload_auth(auth_map(raw))
-            await viewer.until(lambda: viewer.channel("/husky2/scan") is not None)
-            assert viewer.channel("/husky1/scan") is None
+    async with bob_sees_husky1_of_two(fx_server) as (_, _, viewer):
+        raw = {**AUTH, "identities": [
+            {**i, "rules": [{"topic": "/husky2/.*", "op": "receive"}]}
+            if i["name"] == "bob" else i for i in AUTH["identities"]]}
+        fx_server.core.reload_auth(auth_map(raw))
+        await viewer.until(lambda: viewer.channel("/husky2/scan") is not None)
+        assert viewer.channel("/husky1/scan") is None

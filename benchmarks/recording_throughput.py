@@ -33,7 +33,6 @@ import multiprocessing as mp
 import os
 import re
 import shutil
-import statistics
 import sys
 import tempfile
 import time
@@ -165,15 +164,11 @@ def main() -> int:
                 row["dropped_at_half_load"] = lat[name]["dropped_queue_full"]
             rows.append(row)
         rounds.append(rows)
-    medians = [{key: (row[key] if key == "server" else
-                      round(statistics.median(r[i][key] for r in rounds), 3))
-                for key in row} for i, row in enumerate(rounds[0])]
+    medians = rt.median_rows(rounds)
     if args.json:
         print(json.dumps({"rounds": rounds, "median": medians}, indent=2))
         return 0
-    print(f"small messages ({len(rt._template()[0])} B frames), server pinned to cpu "
-          f"{args.server_cpu}, clients on cpu {args.client_cpu}, {args.seconds:.0f} s/phase, "
-          f"{args.rounds} rounds")
+    rt.print_setup(args)
     print(f"{'server':<26} {'msgs/s':>9} {'@load':>8} {'p50 ms':>8} {'p99 ms':>8} "
           f"{'recorded/dropped (max load)':>28} {'recorded/dropped (half)':>24}")
     for label, rows in [*((f"round {i + 1}", r) for i, r in enumerate(rounds)),

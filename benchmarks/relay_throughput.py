@@ -174,6 +174,20 @@ def send_stamped(sock: Any, head: bytes, stamp_at: int, seconds: float,
             return  # the measurement is over and the server went away
 
 
+def median_rows(rounds: list[list[dict[str, Any]]]) -> list[dict[str, Any]]:
+    """Per row position, the median of every figure over the rounds (``server`` kept)."""
+    return [{key: (row[key] if key == "server" else
+                   round(statistics.median(r[i][key] for r in rounds), 3))
+             for key in row} for i, row in enumerate(rounds[0])]
+
+
+def print_setup(args: argparse.Namespace) -> None:
+    """The table's first line: frame size, pinning, phase length, rounds."""
+    print(f"small messages ({len(_template()[0])} B frames), server pinned to cpu "
+          f"{args.server_cpu}, clients on cpu {args.client_cpu}, {args.seconds:.0f} s/phase, "
+          f"{args.rounds} rounds")
+
+
 def base_parser(description: str) -> argparse.ArgumentParser:
     """The options every relay benchmark takes (seconds, cores, rounds, JSON)."""
     parser = argparse.ArgumentParser(description=description)
@@ -283,17 +297,11 @@ def main() -> int:
         lat = {name: measure(target, name == "fleetctl", args, half)
                for name, target in servers}
         rounds.append([_row(name, thr[name], lat[name]) for name, _ in servers])
-    medians = [{
-        key: (row["server"] if key == "server" else
-              round(statistics.median(r[i][key] for r in rounds), 3))
-        for key, _ in row.items()
-    } for i, row in enumerate(rounds[0])]
+    medians = median_rows(rounds)
     if args.json:
         print(json.dumps({"rounds": rounds, "median": medians}, indent=2))
         return 0
-    print(f"small messages ({len(_template()[0])} B frames), server pinned to cpu "
-          f"{args.server_cpu}, clients on cpu {args.client_cpu}, {args.seconds:.0f} s/phase, "
-          f"{args.rounds} rounds")
+    print_setup(args)
     print(f"{'server':<16} {'msgs/s':>10} {'@load msgs/s':>13} {'p50 ms':>8} {'p99 ms':>8}")
     for label, rows in [*((f"round {i + 1}", r) for i, r in enumerate(rounds)),
                         ("median", medians)]:

@@ -96,6 +96,7 @@ class Recorder:
         self._chunks: deque[memoryview] = deque()  # joined, not yet taken by the pipe
         self._queued_bytes = 0
         self._flush_handle: asyncio.TimerHandle | None = None
+        self._flush_now = False  # the armed flush runs without the delay
         self._parts_bytes = 0
         self._writer_added = False
         self._loop: asyncio.AbstractEventLoop | None = None
@@ -133,14 +134,22 @@ class Recorder:
         self._queued_bytes += n
         self._queued_frames += 1
         self._parts_bytes += n
-        if self._loop is None:
-            return
-        if self._parts_bytes >= FLUSH_BYTES and self._flush_handle is not None:
-            self._flush_handle.cancel()  # enough for one write: now
-            self._flush_handle = None
-        if self._flush_handle is None:
-            delay = 0.0 if self._parts_bytes >= FLUSH_BYTES else FLUSH_DELAY_S
-            self._flush_handle = self._loop.call_at(self._loop.time() + delay, self._flush)
+        # At most two timer operations per batch: a socket read can hand the relay
+        # thousands of frames before the loop runs a timer, and re-arming the flush for
+        # each of them once the batch was full cost a quarter of the relay's time.
+        handle = self._flush_handle
+        if handle is None:
+            if self._loop is not None:
+                self._arm_flush(self._parts_bytes >= FLUSH_BYTES)
+        elif self._parts_bytes >= FLUSH_BYTES and not self._flush_now:
+            handle.cancel()  # enough for one write: now, not after the delay
+            self._arm_flush(True)
+
+    def _arm_flush(self, now: bool) -> None:
+        assert self._loop is not None
+        self._flush_now = now
+        self._flush_handle = self._loop.call_at(
+            self._loop.time() + (0.0 if now else FLUSH_DELAY_S), self._flush)
 
     @property
     def queued_bytes(self) -> int:

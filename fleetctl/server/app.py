@@ -26,7 +26,7 @@ from websockets.http11 import Request, Response
 
 from fleetctl.errors import ConfigError
 from fleetctl.linkdeflate import RelayDeflateFactory
-from fleetctl.server import endpoints, protocol
+from fleetctl.server import endpoints, firstframes, protocol
 from fleetctl.server.admission import UnauthenticatedGate
 from fleetctl.server.authmap import AuthMap, Identity, load_auth_map
 from fleetctl.server.authreload import AuthReloader
@@ -115,11 +115,14 @@ class RelayServer:
                               recorder=self.recorder)
         if config.cluster is not None:  # the only place that knows about replicas
             from fleetctl.server.cluster.natsfanout import NatsFanout
+            from fleetctl.server.cluster.sharedlatched import SharedLatched
             from fleetctl.server.cluster.sharedregistry import SharedRegistry
 
             assert isinstance(self.registry, SharedRegistry)
+            latched = SharedLatched(config.cluster, self.core.latched,
+                                    functools.partial(firstframes.sender_may_send, self.core))
             self.core.use_fanout(NatsFanout(self.core.local, self.core.on_remote,
-                                            config.cluster, self.registry))
+                                            config.cluster, self.registry, latched))
         self.recordings = (RecordingsEndpoint(self.recorder) if self.recorder is not None
                            else None)
         self.reloader = AuthReloader(config.auth_map, self.core.reload_auth, self.metrics)

@@ -120,6 +120,14 @@ def _refuse_once(core: RelayCore, peer: Peer, topic: str) -> None:
                     f"no receive permission on {topic[:200]!r}: keyframe request not sent")
 
 
+def sender_may_send(core: RelayCore, sender: SenderKey, topic: str) -> bool:
+    """Whether the identities *sender* names all exist in the current auth map and may
+    together send on *topic* (a latched message kept for them may be served)."""
+    by_name = {i.name: i for i in core.auth.identities}
+    found = [by_name[n] for n in sender if n in by_name]
+    return len(found) == len(sender) and core.pool.get(found).may_send(topic)
+
+
 def drop_revoked_latched(core: RelayCore) -> int:
     """After an auth reload: forget latched messages whose sender's identities are gone
     from the map, or whose identities may no longer send on the topic.
@@ -131,7 +139,7 @@ def drop_revoked_latched(core: RelayCore) -> int:
     perms: dict[SenderKey, Permissions | None] = {}
 
     def revoked(sender: SenderKey, topic: str) -> bool:
-        if sender not in perms:
+        if sender not in perms:  # one Permissions per sender, not per entry
             found = [by_name[n] for n in sender if n in by_name]
             perms[sender] = core.pool.get(found) if len(found) == len(sender) else None
         allowed = perms[sender]

@@ -23,9 +23,12 @@ is forgotten with it, so the store never serves a message older than the sender'
 Past ``max_bytes`` (or ``max_entries`` keys), the least recently updated entries are
 evicted. Each of these is counted in :attr:`Metrics.latched_events`.
 
-The store lives in memory only: a restarted server has none until the senders publish
-again (a fleetctl robot client republishes what its ``TRANSIENT_LOCAL`` subscriptions hold
-when it reconnects, as any late-joining ROS subscriber would get it).
+The store lives in memory: a restarted single-process server has none until the senders
+publish again (a fleetctl robot client republishes what its ``TRANSIENT_LOCAL``
+subscriptions hold when it reconnects, as any late-joining ROS subscriber would get it).
+Relay replicas share it (:mod:`fleetctl.server.cluster.sharedlatched`): the store tells its
+:attr:`LatchedStore.listener` what local senders stored or lost, and takes the other
+replicas' messages with :meth:`LatchedStore.put_remote` / :meth:`LatchedStore.forget_remote`.
 """
 
 from __future__ import annotations
@@ -33,6 +36,7 @@ from __future__ import annotations
 from collections import OrderedDict
 from collections.abc import Callable
 from dataclasses import dataclass, field
+from typing import Protocol
 
 from fleetctl.server.metrics import Metrics
 from fleetctl.wire.fragments import FragmentHeader
@@ -46,13 +50,25 @@ token identity): who the message is kept for, and what an auth reload re-checks.
 MAX_ENTRIES = 4096
 
 
+class LatchedListener(Protocol):
+    """Hears what local senders' messages did in the store (replicas share them)."""
+
+    def stored(self, sender: SenderKey, topic: str, frames: list[bytes]) -> None:
+        """A local sender's complete message is now the one kept for (sender, topic)."""
+
+    def forgotten(self, sender: SenderKey, topic: str) -> None:
+        """Nothing may be served for (sender, topic) any more: its newest message was too
+        big to keep, or an auth reload revoked the sender."""
+
+
 @dataclass
 class _Message:
     """Frames of one latched message, in order (one whole frame, or fragments by index)."""
 
-    message_id: int | None  # None: a whole frame
+    message_id: int | None  # None: a whole frame, or a message from another replica
     frames: list[bytes]
     nbytes: int
+    remote: bool = False  # came from another replica (put_remote)
 
 
 @dataclass
@@ -101,6 +117,7 @@ class LatchedStore:
         # against, and the index of messages()).
         self._topics: dict[str, dict[SenderKey, None]] = {}
         self._stored = 0
+        self.listener: LatchedListener | None = None
 
     @property
     def nbytes(self) -> int:
@@ -200,12 +217,19 @@ class LatchedStore:
             self._topics.setdefault(topic, {})[sender] = None
             self._stored += 1
         entry.stored = message
-        self._count("stored")
+        if message.remote:
+            self._count("remote_stored")
+        else:
+            self._count("stored")
+            if self.listener is not None:
+                self.listener.stored(key[0], key[1], message.frames)
 
     def _refuse(self, entry: _Entry, key: tuple[SenderKey, str]) -> None:
         """A message too big to keep: forget the older one too (never serve stale)."""
         self._count("refused_too_big")
         self._unstore(entry, key)
+        if self.listener is not None:
+            self.listener.forgotten(*key)
 
     def _unstore(self, entry: _Entry, key: tuple[SenderKey, str]) -> None:
         if entry.stored is None:
@@ -238,6 +262,49 @@ class LatchedStore:
         self._nbytes -= entry.nbytes
         self._unstore(entry, key)
 
+    def put_remote(self, sender: SenderKey, topic: str, frames: list[bytes]) -> bool:
+        """Keep another replica's complete message for (*sender*, *topic*) as if it had
+        been sent here (the listener is not told: it came from the shared store).
+
+        Returns:
+            Whether it is kept (not when over ``max_message_bytes``).
+        """
+        nbytes = sum(len(f) for f in frames)
+        if not frames or nbytes > self.max_message_bytes:
+            self._count("refused_too_big")
+            return False
+        key = (sender, topic)
+        entry = self._entries.get(key)
+        if entry is None:
+            entry = self._entries[key] = _Entry()
+        else:
+            self._entries.move_to_end(key)
+        before = entry.nbytes
+        self._store(entry, key, _Message(None, list(frames), nbytes, remote=True))
+        self._nbytes += entry.nbytes - before
+        self._enforce_bounds(key)
+        return key in self._entries and entry.stored is not None
+
+    def forget_remote(self, sender: SenderKey, topic: str) -> bool:
+        """Another replica forgot (*sender*, *topic*): drop the message it had shared (a
+        message a local sender stored since stays).
+
+        Returns:
+            Whether a message was dropped.
+        """
+        key = (sender, topic)
+        entry = self._entries.get(key)
+        if entry is None or entry.stored is None or not entry.stored.remote:
+            return False
+        before = entry.nbytes
+        self._unstore(entry, key)
+        self._nbytes += entry.nbytes - before
+        if entry.pending is None and entry.refused_id is None:
+            del self._entries[key]
+        self._count("remote_forgotten")
+        self._gauges()
+        return True
+
     def drop_where(self, revoked: Callable[[SenderKey, str], bool]) -> int:
         """Drop every entry whose (sender, topic) *revoked* answers true for (an auth
         reload removed the sender's identity or its send permission on the topic).
@@ -249,6 +316,8 @@ class LatchedStore:
         for key in keys:
             self._drop(key)
             self._count("revoked")
+            if self.listener is not None:
+                self.listener.forgotten(*key)
         self._gauges()
         return len(keys)
 

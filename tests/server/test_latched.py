@@ -175,3 +175,60 @@ def test_drop_where_forgets_revoked_senders() -> None:
     assert store.drop_where(lambda sender, topic: sender == ROBOT) == 1
     assert store.topics() == ["/husky2/map"]
     assert metrics.latched_events["revoked"] == 1 and metrics.latched_messages == 1
+
+
+class Heard:
+    """A LatchedListener that writes down what it is told."""
+
+    def __init__(self) -> None:
+        self.events: list[tuple[str, tuple[str, ...], str, int]] = []
+
+    def stored(self, sender: tuple[str, ...], topic: str, frames: list[bytes]) -> None:
+        self.events.append(("stored", sender, topic, len(frames)))
+
+    def forgotten(self, sender: tuple[str, ...], topic: str) -> None:
+        self.events.append(("forgotten", sender, topic, 0))
+
+
+def test_the_listener_hears_local_messages_stored_refused_and_revoked() -> None:
+    store = LatchedStore(1 << 20, 3000, Metrics())
+    heard = Heard()
+    store.listener = heard
+    whole = frame("/husky1/map", "m" * 2000)
+    parts = fragments_of(whole, 7)
+    for f in parts:
+        put(store, ROBOT, f)
+    put(store, ROBOT, frame("/husky1/map", "x" * 4000))  # too big: the older one goes too
+    put(store, OTHER, frame("/husky2/map", "y"))
+    store.drop_where(lambda sender, _topic: sender == OTHER)
+    assert heard.events == [("stored", ROBOT, "/husky1/map", len(parts)),
+                            ("forgotten", ROBOT, "/husky1/map", 0),
+                            ("stored", OTHER, "/husky2/map", 1),
+                            ("forgotten", OTHER, "/husky2/map", 0)]
+
+
+def test_remote_messages_are_served_replaced_and_forgotten_without_the_listener() -> None:
+    metrics = Metrics()
+    store = LatchedStore(1 << 20, 1 << 16, metrics)
+    heard = Heard()
+    store.listener = heard
+    remote = fragments_of(frame("/husky1/map", "r" * 2000), 3)
+    assert store.put_remote(ROBOT, "/husky1/map", remote)
+    assert store.messages("/husky1/map") == [remote] and len(store) == 1
+    assert store.nbytes == sum(map(len, remote))
+    assert store.forget_remote(ROBOT, "/husky1/map")
+    assert store.messages("/husky1/map") == [] and store.nbytes == 0 and len(store) == 0
+    # A local message stays when another replica forgets the key.
+    local = frame("/husky1/map", "local")
+    put(store, ROBOT, local)
+    assert not store.forget_remote(ROBOT, "/husky1/map")
+    assert store.messages("/husky1/map") == [[local]]
+    # A newer remote message replaces the local one (the sender moved replicas).
+    newer = [frame("/husky1/map", "newer")]
+    assert store.put_remote(ROBOT, "/husky1/map", newer)
+    assert store.messages("/husky1/map") == [newer] and store.nbytes == len(newer[0])
+    assert not store.put_remote(OTHER, "/husky2/map", [bytes(1 << 17)])  # over the bound
+    assert heard.events == [("stored", ROBOT, "/husky1/map", 1)]  # the local put only
+    assert metrics.latched_events["remote_stored"] == 2
+    assert metrics.latched_events["remote_forgotten"] == 1
+    assert metrics.latched_events["refused_too_big"] == 1

@@ -40,6 +40,7 @@ from nats.errors import Error as NatsError
 from fleetctl.errors import ConfigError
 from fleetctl.server.cluster.config import ClusterConfig, ClusterStartError
 from fleetctl.server.cluster.interest import Interest
+from fleetctl.server.cluster.sharedlatched import SharedLatched
 from fleetctl.server.cluster.sharedregistry import SharedRegistry
 from fleetctl.server.cluster.subjects import topic_subject
 from fleetctl.server.fanout import LocalFanout, MetricFamily
@@ -77,11 +78,14 @@ class NatsFanout:
         config: The ``cluster:`` section.
         registry: The shared robot registry, started on this NATS connection once it is
             up and stopped before it closes; ``None`` in tests of the fan-out alone.
+        latched: The shared latched messages, likewise.
     """
 
     def __init__(self, local: LocalFanout, on_remote: Callable[[bytes], None],
-                 config: ClusterConfig, registry: SharedRegistry | None = None) -> None:
+                 config: ClusterConfig, registry: SharedRegistry | None = None,
+                 latched: SharedLatched | None = None) -> None:
         self.registry = registry
+        self.latched = latched
         self._local = local.publish
         self._on_remote = on_remote
         self.config = config
@@ -137,19 +141,19 @@ class NatsFanout:
         self._tasks = [asyncio.create_task(self._publish_loop()),
                        asyncio.create_task(self._interest_loop())]
         self._interest_changed.set()  # subscriptions made before start
-        if self.registry is not None:
-            try:
-                await self.registry.start(self._nc)
-            except BaseException:
-                await self.stop()
-                raise
+        try:
+            for state in self._shared():
+                await state.start(self._nc)
+        except BaseException:
+            await self.stop()
+            raise
         log.info("replica %s joined NATS at %s", self.config.name, self._nc.connected_url
                  and self._nc.connected_url.netloc)
 
     async def stop(self) -> None:
         self._stopping = True  # our own close is not a lost connection
-        if self.registry is not None:
-            await self.registry.stop()
+        for state in reversed(self._shared()):
+            await state.stop()
         for task in self._tasks:
             task.cancel()
             with contextlib.suppress(asyncio.CancelledError):
@@ -161,8 +165,7 @@ class NatsFanout:
         self._nc = None
 
     def metric_families(self) -> Iterable[MetricFamily]:
-        registry = () if self.registry is None else self.registry.metric_families()
-        return [*registry,
+        return [*(f for state in self._shared() for f in state.metric_families()),
             ("fleetctl_cluster_published_total", "counter",
              "Frames published to other replicas through NATS.", "", {"": self.published}),
             ("fleetctl_cluster_received_total", "counter",
@@ -180,6 +183,10 @@ class NatsFanout:
         ]
 
     # -- state -------------------------------------------------------------------------
+
+    def _shared(self) -> list[SharedRegistry | SharedLatched]:
+        """The state kept in JetStream, in start order."""
+        return [s for s in (self.registry, self.latched) if s is not None]
 
     @property
     def connected(self) -> bool:

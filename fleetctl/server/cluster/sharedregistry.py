@@ -37,12 +37,12 @@ from nats.js.errors import Error as JetStreamError
 from nats.js.kv import KeyValue
 
 from fleetctl.server.cluster.config import ClusterConfig, ClusterStartError
+from fleetctl.server.cluster.kvkeys import from_key_token, key_token
 from fleetctl.server.fanout import MetricFamily
 from fleetctl.server.registry import MAX_ROBOTS, RobotRecord, RobotRegistry
 
 log = logging.getLogger("fleetctl.server.cluster")
 
-_SAFE = frozenset("ABCDEFGHIJKLMNOPQRSTUVWXYZabcdefghijklmnopqrstuvwxyz0123456789_-")
 # Concurrent KV puts per tick: enough to hide the round trip, few enough for a small NATS.
 _PUTS_IN_FLIGHT = 64
 
@@ -50,34 +50,6 @@ _PUTS_IN_FLIGHT = 64
 def bucket_name(config: ClusterConfig) -> str:
     """The KV bucket of the robot registry: one per fleet (subject prefix)."""
     return f"{config.subject_prefix}_robots"
-
-
-def robot_key(name: str) -> str:
-    """*name* as one KV key token: ``A-Z a-z 0-9 _ -`` stay, every other UTF-8 byte is
-    ``=HH`` (``=`` is allowed in KV keys and is not in the safe set, so this is
-    one-to-one)."""
-    return "".join(c if c in _SAFE else "".join(f"={b:02X}" for b in c.encode())
-                   for c in name)
-
-
-def robot_from_key(token: str) -> str:
-    """The inverse of :func:`robot_key`.
-
-    Raises:
-        ValueError: Not a key :func:`robot_key` makes.
-    """
-    out = bytearray()
-    i = 0
-    while i < len(token):
-        if token[i] == "=":
-            out.append(int(token[i + 1:i + 3], 16))
-            i += 3
-        elif token[i] in _SAFE:
-            out += token[i].encode()
-            i += 1
-        else:
-            raise ValueError(f"bad key token {token!r}")
-    return out.decode()
 
 
 @dataclass(frozen=True)
@@ -197,7 +169,7 @@ class SharedRegistry(RobotRegistry):
         for start in range(0, len(due), _PUTS_IN_FLIGHT):
             chunk = due[start:start + _PUTS_IN_FLIGHT]
             results = await asyncio.gather(
-                *(kv.put(f"{robot_key(n)}.{self.config.name}", v) for n, v, _ in chunk),
+                *(kv.put(f"{key_token(n)}.{self.config.name}", v) for n, v, _ in chunk),
                 return_exceptions=True)
             for (name, _, said), result in zip(chunk, results, strict=True):
                 if isinstance(result, BaseException):
@@ -242,7 +214,7 @@ class SharedRegistry(RobotRegistry):
         if replica == self.config.name:
             return  # our own write, already known locally
         try:
-            name = robot_from_key(robot_token)
+            name = from_key_token(robot_token)
         except (ValueError, UnicodeDecodeError):
             self.counters["malformed"] += 1
             return

@@ -99,7 +99,7 @@ async def consume(url: str, sink: Sink, ready: asyncio.Event, light: bool) -> No
                        max_size=None, compression=None, proxy=None, ping_interval=None) as ws:
         # Not /bench/bulk: the throughput figure is robot -> relay (acknowledged by
         # pongs), so no consumer can be its bottleneck.
-        await ws.send(encode_subscription("/bench/(urgent|cloud|points|events)"))
+        await ws.send(encode_subscription("/bench/(urgent|cloud|points|events|pose|scan)"))
         ready.set()
         async for message in ws:
             if isinstance(message, str):

@@ -162,6 +162,59 @@ async def priority(args: argparse.Namespace) -> dict[str, Any]:
             "reconnects": stats["reconnects"], "link_timeouts": stats["link_timeouts"]}
 
 
+async def peer_load(args: argparse.Namespace) -> dict[str, Any]:
+    """Issue 19's load shape: a 256 B frame at 20 Hz (the pose) and a 5,984 B frame at 10 Hz
+    (the 720-beam scan), droppable, each stamped when offered; through RobotLink, or
+    (``--mode raw``) written on a plain websockets connection as soon as it is made."""
+    topics = (("/bench/pose", 0.05, 256 - 170, 2.0), ("/bench/scan", 0.1, 5984 - 170, 1.0))
+    seqs = dict.fromkeys((t for t, *_ in topics), 0)
+    if args.mode == "raw":
+        async with connect(args.url, additional_headers={"Authorization": f"Bearer {ROBOT_TOKEN}"},
+                           compression=None, proxy=None, max_size=None) as ws:
+            pending: set[asyncio.Task[None]] = set()
+
+            def send(topic: str, size: int, _prio: float) -> None:
+                seqs[topic] = seqs.get(topic, 0) + 1
+                task = asyncio.ensure_future(
+                    ws.send(string_frame(topic, size, seqs[topic], no_drop=False)))
+                pending.add(task)
+                task.add_done_callback(pending.discard)
+
+            await _run_topics(topics, args, send)
+            await asyncio.gather(*pending)
+            await (await ws.ping())
+            return {"sent": seqs}
+    link = make_link(args.url, args.mode, args.fragment_bytes)
+    task = asyncio.create_task(link.run())
+    await wait_connected(link)
+
+    def offer(topic: str, size: int, prio: float) -> None:
+        seqs[topic] = seqs.get(topic, 0) + 1
+        link.offer(topic, string_frame(topic, size, seqs[topic], no_drop=False),
+                   priority=prio, no_drop=False)
+
+    await _run_topics(topics, args, offer)
+    await drained(link)
+    stats = link.stats()
+    await link.stop()
+    await task
+    return {"sent": seqs, "window_bytes": stats["window_bytes"],
+            "fragment_bytes": stats["fragment_bytes"], "min_rtt_ms": stats["min_rtt_ms"],
+            "delivery_rate_Bps": stats["delivery_rate_Bps"]}
+
+
+async def _run_topics(topics: tuple[tuple[str, float, int, float], ...],
+                      args: argparse.Namespace, action: Any) -> None:
+    """Run every topic's timer for ``--warmup`` seconds on unmeasured ``_warm`` topics,
+    then for ``--seconds``."""
+    for suffix, seconds in (("_warm", args.warmup), ("", args.seconds)):
+        stop_at = time.monotonic() + seconds
+        await asyncio.gather(*(
+            periodic(period, stop_at,
+                     lambda t=topic + suffix, n=size, p=prio: action(t, n, p))
+            for topic, period, size, prio in topics))
+
+
 def pointcloud_cdr(size_bytes: int) -> tuple[bytes, Any]:
     codec = default_codec()
     store = codec.registry.typestore
@@ -213,7 +266,7 @@ async def cpu(args: argparse.Namespace) -> dict[str, Any]:
 
 def main() -> None:
     parser = argparse.ArgumentParser()
-    parser.add_argument("scenario", choices=["throughput", "priority", "cpu"])
+    parser.add_argument("scenario", choices=["throughput", "priority", "cpu", "peer"])
     parser.add_argument("--url", required=True)
     parser.add_argument("--mode", choices=["link", "baseline", "raw"], default="link")
     parser.add_argument("--frames", type=int, default=1000)
@@ -227,7 +280,8 @@ def main() -> None:
                         help="seconds of the same flows on unmeasured topics first")
     parser.add_argument("--fragment-bytes", type=int, default=SchedulerConfig().max_fragment_bytes)
     args = parser.parse_args()
-    run = {"throughput": throughput, "priority": priority, "cpu": cpu}[args.scenario]
+    run = {"throughput": throughput, "priority": priority, "cpu": cpu,
+           "peer": peer_load}[args.scenario]
     print(json.dumps(asyncio.run(run(args))), flush=True)
 
 

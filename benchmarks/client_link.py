@@ -3,7 +3,7 @@
 Usage (root, for the network namespaces of part b)::
 
     .venv/bin/python benchmarks/client_link.py [--seconds 10] [--json out.json]
-        [--skip throughput,priority,cpu,dropout]
+        [--skip throughput,priority,cpu,dropout,peer] [--peer-rate 12mbit]
 
 (a) throughput: unshaped loopback, N x 64 KB no_drop frames from the robot into the
     fleetctl relay, from the first send until the pong that acknowledges the last frame;
@@ -20,6 +20,10 @@ Usage (root, for the network namespaces of part b)::
 (d) dropout: the robot's egress between the namespaces is cut silently for 5 s (bfifo
     limit 0: no netem here); time from restore until latency is back under 2x its
     pre-cut median, and whether every no_drop message arrived in order.
+(e) issue 19's load: a 256 B topic at 20 Hz and a 5,984 B one at 10 Hz (pose and scan)
+    over a 12 Mbit tbf link (16 KB bucket, as the e2e router), RobotLink against the same
+    frames written at once on a plain websockets connection: what the scheduler adds to
+    the latency floor on a link that is far from full.
 
 Each side runs in its own process: relay + consumer (``client_bench_peer.py``) and robot
 (``client_bench_sender.py``).
@@ -228,6 +232,41 @@ def summarize(report: dict[str, Any], sent: dict[str, Any]) -> dict[str, Any]:
     }
 
 
+# -- (e) issue 19's load -----------------------------------------------------------------
+
+
+PEER_TOPICS = ("/bench/pose", "/bench/scan")
+
+
+def bench_peer(auth: Path, seconds: float, rate: str, burst: str) -> dict[str, Any]:
+    """Issue 19's load (256 B at 20 Hz, 5,984 B at 10 Hz) over a *rate* tbf link:
+    RobotLink against the same frames written at once on a plain websockets connection
+    (what the scheduler costs on an idle link), alternating, two rounds each."""
+    out: dict[str, Any] = {"rate": rate, "burst": burst}
+    with Namespaces(rate, burst) as ns:
+        peer = Peer(ns.prefix(ns.server), NS_ADDR_SERVER, auth)
+        try:
+            lat: dict[str, dict[str, list[float]]] = {}
+            extra: dict[str, Any] = {}
+            for _ in range(2):
+                for mode in ("link", "raw"):
+                    peer.cmd("reset")
+                    sent = sender(ns.prefix(ns.robot), "peer", "--url", peer.url, "--mode",
+                                  mode, "--seconds", str(seconds), "--warmup", "2")
+                    report = peer.cmd("report")
+                    for topic in PEER_TOPICS:
+                        lat.setdefault(mode, {}).setdefault(topic, []).extend(
+                            report.get(topic, {}).get("latency_ms", []))
+                    extra[mode] = {k: v for k, v in sent.items() if k != "sent"}
+            for mode, topics in lat.items():
+                out[mode] = {topic: {"n": len(v), "p50_ms": pct(v, 50), "p99_ms": pct(v, 99)}
+                             for topic, v in topics.items()}
+                out[mode]["link_state"] = extra[mode]
+        finally:
+            peer.close()
+    return out
+
+
 # -- (d) dropout ------------------------------------------------------------------------
 
 
@@ -306,6 +345,8 @@ def main() -> None:
     # a deep bucket is what tempts a delay-based window into overshooting after idle.
     parser.add_argument("--burst", default="32kbit")
     parser.add_argument("--skip", default="")
+    parser.add_argument("--peer-rate", default="12mbit",
+                        help="tbf rate of part (e), issue 19's fan-out link")
     parser.add_argument("--json", type=Path)
     args = parser.parse_args()
     # The relay, senders and network namespaces are cleaned up by context managers and
@@ -362,6 +403,16 @@ def main() -> None:
             print(f"    no_drop: {d['events_received']}/{d['events_sent']} received, "
                   f"gaps {d['events_gaps']}, reorders {d['events_reorders']}, "
                   f"duplicates {d['events_duplicates']}")
+        if "peer" not in skip:
+            results["peer"] = e = bench_peer(auth, args.seconds, args.peer_rate, "16kb")
+            print(f"(e) issue 19's load (256 B @ 20 Hz, 5,984 B @ 10 Hz, droppable) over "
+                  f"{e['rate']} tbf, burst {e['burst']}; p50 / p99 ms, two rounds each")
+            for mode, label in (("link", "RobotLink"), ("raw", "plain websockets, at once")):
+                row = e[mode]
+                print(f"    {label:26s} " + "  ".join(
+                    f"{t.rsplit('/', 1)[1]} {row[t]['p50_ms']:5.2f} / {row[t]['p99_ms']:5.2f}"
+                    f" (n {row[t]['n']})" for t in PEER_TOPICS))
+            print(f"    RobotLink state at the end: {e['link']['link_state']}")
     if args.json:
         args.json.write_text(json.dumps(results, indent=2))
 

@@ -18,6 +18,7 @@ from fleetctl.cli.output import OutputFormat, emit, fleet_option, output_option
 from fleetctl.deploy import composerun, images
 from fleetctl.deploy.compose import DEFAULT_BIND
 from fleetctl.deploy.dockercli import require_docker
+from fleetctl.deploy.replicas import MAX_REPLICAS
 from fleetctl.errors import FleetError
 
 
@@ -72,6 +73,10 @@ def up(
         None, "--https-port", min=1, max=65535,
         help="Host port of the page + WebSocket (default: the fleet's https_port)."),
     project: str | None = typer.Option(None, "--project", help="Compose project name."),
+    replicas: int = typer.Option(
+        1, "--replicas", min=1, max=MAX_REPLICAS,
+        help="Relay replicas on a 3-node NATS cluster (robots fail over between them); "
+        "1: one server, no NATS."),
     output: OutputFormat = output_option(),
 ) -> None:
     """Start the fleet on this server host: server, web page and WireGuard (docker compose).
@@ -80,15 +85,21 @@ def up(
     """
     require_docker()
     options = composerun.default_options(fleet, project=project, wireguard=wireguard,
-                                         sim=sim, bind=bind, https_port=https_port)
+                                         sim=sim, bind=bind, https_port=https_port,
+                                         replicas=replicas)
     result = composerun.up(fleet, options, progress=_progress)
 
     def text() -> str:
         robots = ", ".join(result.robots) or "none yet"
-        return (f"fleet is up: open {result.url} and sign in with a user token "
-                f"(`fleetctl add-user`)\nwireguard: {result.wireguard_note}\n"
-                f"robots: {robots}{' (simulated)' if result.simulated else ''}\n"
-                f"compose file: {result.compose_file}\nnext: fleetctl status")
+        lines = [f"fleet is up: open {result.url} and sign in with a user token "
+                 "(`fleetctl add-user`)", f"wireguard: {result.wireguard_note}",
+                 f"robots: {robots}{' (simulated)' if result.simulated else ''}"]
+        if result.replicas > 1:
+            lines += [f"replicas: {result.replicas} (pages: {' '.join(result.page_urls)})",
+                      "robots on other hosts fail over when their client.yaml lists every "
+                      f"replica: server_url: [{', '.join(result.robot_urls)}]"]
+        lines += [f"compose file: {result.compose_file}", "next: fleetctl status"]
+        return "\n".join(lines)
 
     emit(result, output, text)
 

@@ -31,6 +31,7 @@ from fleetctl.deploy.compose import (
 )
 from fleetctl.deploy.dockercli import Runner, check, image_exists, subprocess_runner
 from fleetctl.deploy.images import image_tag
+from fleetctl.deploy.replicas import check_count
 from fleetctl.errors import ConfigError, ConflictError, EnvironmentMissing, FleetError
 
 Progress = Callable[[str], None]
@@ -45,6 +46,9 @@ class UpResult:
     url: str
     robots: tuple[str, ...]
     simulated: bool
+    replicas: int = 1
+    robot_urls: tuple[str, ...] = ()  # with replicas: every replica, for robots' server_url
+    page_urls: tuple[str, ...] = ()
 
 
 def compose_command(runner: Runner = subprocess_runner) -> list[str]:
@@ -93,7 +97,7 @@ def _check_not_changed(fleet_dir: Path, wanted: Options, runner: Runner) -> None
     running = saved_options(fleet_dir)
     if running is None or container_id(fleet_dir, running.project, "server", runner) is None:
         return
-    for name in ("project", "wireguard", "sim", "bind", "https_port"):
+    for name in ("project", "wireguard", "sim", "bind", "https_port", "replicas"):
         old, new = getattr(running, name), getattr(wanted, name)
         if old != new:
             raise ConflictError(
@@ -128,11 +132,19 @@ def up(fleet_dir: Path, options: Options, progress: Progress = print,
     progress(f"wireguard: {plan.wireguard_note}")
     path = write_files(plan)
     sims = len(plan.robots) if options.sim else 0
-    progress(f"compose file {path}; server + {sims} simulated robot(s)")
+    what = ("server" if options.replicas == 1 else
+            f"{options.replicas} relay replicas on 3 NATS nodes")
+    progress(f"compose file {path}; {what} + {sims} simulated robot(s)")
     check(runner(compose_argv(plan.fleet_dir, plan.project, "up", "-d", "--remove-orphans",
                               runner=runner), None, False), "compose up")
+    urls: tuple[tuple[str, ...], tuple[str, ...]] = ((), ())
+    if options.replicas > 1:
+        from fleetctl.deploy import composereplicas
+
+        urls = (tuple(composereplicas.robot_urls(plan)),
+                tuple(composereplicas.page_urls(plan)))
     return UpResult(path, plan.wireguard_note, plan.url,
-                    tuple(r.name for r in plan.robots), options.sim)
+                    tuple(r.name for r in plan.robots), options.sim, options.replicas, *urls)
 
 
 def existing_options(fleet_dir: Path, project: str | None = None) -> Options:
@@ -279,9 +291,16 @@ def _inspect(cid: str, runner: Runner) -> dict[str, Any] | None:
     return data[0] if data else None
 
 
+# FLEETCTL_HEALTH is one URL, or (the replicas' gateway) one per replica: the first that
+# answers gives the list (the registry is shared between replicas).
 _ROBOTS_SNIPPET = (
-    "import os,urllib.request;u=os.environ['FLEETCTL_HEALTH'].rsplit('/',1)[0]+'/robots';"
-    "print(urllib.request.urlopen(u,timeout=3).read().decode())"
+    "import os,sys,urllib.request\n"
+    "for h in os.environ['FLEETCTL_HEALTH'].split():\n"
+    "    try:\n"
+    "        print(urllib.request.urlopen(h.rsplit('/',1)[0]+'/robots',timeout=3).read()"
+    ".decode()); break\n"
+    "    except OSError as e: err=e\n"
+    "else: sys.exit(f'no replica answered: {err}')\n"
 )
 
 
@@ -356,4 +375,5 @@ def default_options(fleet_dir: Path, **chosen: Any) -> Options:
     except ValueError:
         raise ConfigError(f"--bind {bind!r}: expected an IP address of this host, e.g. "
                           "127.0.0.1 or 0.0.0.0") from None
+    check_count(chosen.get("replicas", 1))
     return Options(project=project, **chosen)

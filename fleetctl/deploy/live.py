@@ -32,6 +32,7 @@ from fleetctl.deploy.compose import (
     write_files,
 )
 from fleetctl.deploy.dockercli import Runner, check, subprocess_runner
+from fleetctl.deploy.replicas import replica_names
 from fleetctl.errors import FleetError
 
 
@@ -64,7 +65,12 @@ def sync_running(fleet_dir: Path, progress: Callable[[str], None],
         # The server loads its certificate at start: a new one (set-endpoint regenerates the
         # self-signed one for the new name) needs a restart; robots reconnect on their own.
         write_files(plan)
-        check(runner(["docker", "restart", server], None, True), "restart of the server")
+        # With replicas the server container is the tunnel and network they live in:
+        # restart the replicas, which load the certificate, not it.
+        for name in replica_names(options.replicas) if options.replicas > 1 else ["server"]:
+            cid = composerun.container_id(fleet_dir, options.project, name, runner)
+            if cid is not None:
+                check(runner(["docker", "restart", cid], None, True), f"restart of {name}")
         done.append("server restarted with the new TLS certificate")
     if options.sim:
         try:

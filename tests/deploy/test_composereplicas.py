@@ -120,7 +120,7 @@ def test_a_password_file_planted_as_a_link_is_refused(fleet: Path, tmp_path: Pat
     link = p.compose_dir / "secrets" / "relay-1" / replicas.PASSWORD_FILE
     link.parent.mkdir(parents=True)
     link.symlink_to(target)
-    with pytest.raises(ConfigError, match="relay-1/nats.password"):
+    with pytest.raises(ConfigError, match=r"relay-1/nats\.password"):
         compose.write_files(p)
     assert target.read_text() == "x\n"
 

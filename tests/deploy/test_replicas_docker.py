@@ -1,0 +1,111 @@
+"""``fleetctl up --replicas 2`` on the real images with WireGuard on, as an operator runs it.
+
+`init` -> `add-robot` -> `up --sim --replicas 2` -> the simulated robot is online and a
+viewer signed in on replica 2 receives its topics (they cross NATS: the robot lists
+replica 1 first) -> `docker kill` replica 1 -> the robot fails over to replica 2, the
+viewer keeps receiving without reconnecting, `status` still lists the robot online ->
+`down --delete-data` removes every volume (replicas' databases, NATS stores).
+"""
+
+from __future__ import annotations
+
+import asyncio
+import json
+import socket
+import ssl
+import subprocess
+import time
+from collections.abc import Callable
+from pathlib import Path
+
+import pytest
+from websockets.asyncio.client import connect
+
+from fleetctl.wire.control import encode_subscription
+from fleetctl.wire.metadata import read_metadata
+from tests.deploy.test_lifecycle_docker import (
+    ONLINE_TIMEOUT_S,
+    Operator,
+    _free_port,
+    deployment,  # noqa: F401 (the fixture)
+    online,
+    wait_until,
+)
+
+pytestmark = [pytest.mark.docker, pytest.mark.ros, pytest.mark.slow]
+
+FAILOVER_TIMEOUT_S = 15.0
+
+
+def container(project: str, service: str) -> str:
+    out = subprocess.run(["docker", "ps", "-q", "--filter",
+                          f"label=com.docker.compose.project={project}", "--filter",
+                          f"label=com.docker.compose.service={service}"],
+                         capture_output=True, text=True, check=True).stdout.split()
+    assert out, f"no running {service} container"
+    return out[0]
+
+
+async def watch(url: str, token: str, kill: Callable[[], None]) -> dict[str, float]:
+    """Sign in on *url*, receive husky1's topics, call *kill* once they flow, and measure
+    how long the flow stops; the connection must stay open throughout."""
+    context = ssl.create_default_context()
+    context.check_hostname = False
+    context.verify_mode = ssl.CERT_NONE
+    async with connect(url, ssl=context, open_timeout=10, max_size=None,
+                       additional_headers={"Authorization": f"Bearer {token}"}) as ws:
+        while True:  # the welcome first
+            first = await asyncio.wait_for(ws.recv(), 10)
+            if isinstance(first, str) and json.loads(first).get("type") == "welcome":
+                break
+        await ws.send(encode_subscription("/husky1/.*"))
+
+        async def next_topic_frame(timeout_s: float) -> float:
+            deadline = time.monotonic() + timeout_s
+            while True:
+                left = max(0.01, deadline - time.monotonic())
+                frame = await asyncio.wait_for(ws.recv(), left)
+                if isinstance(frame, bytes) and read_metadata(frame).topic.startswith(
+                        "/husky1/"):
+                    return time.monotonic()
+
+        await next_topic_frame(ONLINE_TIMEOUT_S)
+        killed = time.monotonic()
+        await asyncio.get_running_loop().run_in_executor(None, kill)
+        back = await next_topic_frame(FAILOVER_TIMEOUT_S)
+        # Still flowing afterwards, on the same connection.
+        for _ in range(5):
+            await next_topic_frame(5.0)
+        return {"gap_s": back - killed}
+
+
+def test_a_robot_fails_over_between_replicas_deployed_by_up(
+        deployment: tuple[Operator, Path, str]) -> None:  # noqa: F811
+    op, fleet, project = deployment
+    https, udp = _free_port(), _free_port(socket.SOCK_DGRAM)
+    op.run("init", str(fleet), "--endpoint", f"127.0.0.1:{udp}")
+    op.run("add-robot", "husky1")
+    token = op.json("add-user", "alice@example.com", "--role", "viewer")["token"]
+    out = op.run("up", "--sim", "--wireguard", "on", "--replicas", "2", "--bind", "127.0.0.1",
+                 "--https-port", str(https), "--project", project)
+    assert "server_url: [ws://10.8.0.1:8080/, ws://10.8.0.1:8081/]" in out, out
+    took = wait_until("husky1 online", lambda: online(op, {"husky1"}), ONLINE_TIMEOUT_S * 3)
+    print(f"husky1 online {took:.1f} s after `up --replicas 2` returned")
+    services = {s["service"]: s for s in op.json("status")["services"]}
+    assert {"server", "relay-1", "relay-2", "nats-1", "nats-2", "nats-3",
+            "robot-husky1"} <= set(services)
+    relay1 = container(project, "relay-1")
+
+    def kill() -> None:
+        subprocess.run(["docker", "kill", relay1], capture_output=True, check=True)
+
+    figures = asyncio.run(watch(f"wss://127.0.0.1:{https + 1}/", token, kill))
+    print(f"relay-1 killed: husky1's topics back on relay-2 after {figures['gap_s']:.2f} s")
+    assert figures["gap_s"] < FAILOVER_TIMEOUT_S
+    wait_until("husky1 online through relay-2", lambda: online(op, {"husky1"}),
+               ONLINE_TIMEOUT_S)
+    op.run("down", "--delete-data")
+    volumes = subprocess.run(["docker", "volume", "ls", "-q", "--filter",
+                              f"name={project}_"], capture_output=True, text=True,
+                             check=True).stdout.split()
+    assert volumes == []

@@ -153,11 +153,7 @@ class LatchedStore:
             fragment: Its Fragment header when it is a fragment, else ``None``.
         """
         key = (sender, topic)
-        entry = self._entries.get(key)
-        if entry is None:
-            entry = self._entries[key] = _Entry()
-        else:
-            self._entries.move_to_end(key)
+        entry = self._touch(key)
         before = entry.nbytes
         if fragment is None:
             self._put_whole(entry, key, frame)
@@ -167,6 +163,15 @@ class LatchedStore:
         if entry.stored is None and entry.pending is None and entry.refused_id is None:
             del self._entries[key]  # (a refusal is remembered: the rest of its fragments)
         self._enforce_bounds(key)
+
+    def _touch(self, key: tuple[SenderKey, str]) -> _Entry:
+        """The entry of *key*, made if new, now the most recently updated."""
+        entry = self._entries.get(key)
+        if entry is None:
+            entry = self._entries[key] = _Entry()
+        else:
+            self._entries.move_to_end(key)
+        return entry
 
     def _put_whole(self, entry: _Entry, key: tuple[SenderKey, str], frame: bytes) -> None:
         entry.refused_id = None
@@ -274,11 +279,7 @@ class LatchedStore:
             self._count("refused_too_big")
             return False
         key = (sender, topic)
-        entry = self._entries.get(key)
-        if entry is None:
-            entry = self._entries[key] = _Entry()
-        else:
-            self._entries.move_to_end(key)
+        entry = self._touch(key)
         before = entry.nbytes
         self._store(entry, key, _Message(None, list(frames), nbytes, remote=True))
         self._nbytes += entry.nbytes - before

@@ -40,10 +40,10 @@ import struct
 from collections.abc import Callable, Iterable
 
 from nats.aio.client import Client
-from nats.js.errors import Error as JetStreamError
 from nats.js.kv import KeyValue
 
-from fleetctl.server.cluster.config import ClusterConfig, ClusterStartError
+from fleetctl.server.cluster import kvloops
+from fleetctl.server.cluster.config import ClusterConfig
 from fleetctl.server.cluster.kvkeys import from_key_token, key_token
 from fleetctl.server.fanout import MetricFamily
 from fleetctl.server.latched import LatchedStore, SenderKey
@@ -162,32 +162,18 @@ class SharedLatched:
             ClusterStartError: NATS has no JetStream, or the bucket cannot be made with
                 ``state_replicas`` copies (names ``cluster.state_replicas``).
         """
-        js = nc.jetstream()
-        name = bucket_name(self.config)
         self._max_value = max(0, nc.max_payload - _PAYLOAD_MARGIN)
-        try:
-            self._kv = await js.create_key_value(
-                bucket=name, history=1, replicas=self.config.state_replicas,
-                max_bytes=BUCKET_BYTES_FACTOR * self.store.max_bytes)
-        except (TimeoutError, JetStreamError) as exc:
-            raise ClusterStartError(
-                f"field 'cluster.state_replicas': cannot open the latched messages' "
-                f"JetStream KV bucket {name!r} with {self.config.state_replicas} "
-                f"replica(s): {exc!r} (is JetStream enabled on every NATS node, and are "
-                "there that many?)") from exc
+        self._kv = await kvloops.open_bucket(
+            nc, self.config, bucket_name(self.config), "the latched messages'",
+            max_bytes=BUCKET_BYTES_FACTOR * self.store.max_bytes)
         watcher = await self._kv.watchall()
-        self._tasks = [asyncio.create_task(self._watch(watcher)),
+        self._tasks = [asyncio.create_task(kvloops.watch(watcher, self.on_entry)),
                        asyncio.create_task(self._write_loop())]
         self._wake.set()  # what local senders stored before NATS was up
 
     async def stop(self) -> None:
         """Write what is due (best effort), stop watching."""
-        with contextlib.suppress(Exception):
-            await asyncio.wait_for(self.write_due(), 2.0)
-        for task in self._tasks:
-            task.cancel()
-            with contextlib.suppress(asyncio.CancelledError):
-                await task
+        await kvloops.stop(self.write_due, self._tasks)
         self._tasks = []
 
     # -- LatchedListener (the store, on the event loop) ---------------------------------
@@ -245,32 +231,15 @@ class SharedLatched:
         self.counters["deletes"] += 1
 
     async def _write_loop(self) -> None:
-        failing = False
-        while True:
+        async def tick() -> None:
             with contextlib.suppress(TimeoutError):
-                await asyncio.wait_for(self._wake.wait(), RETRY_S)  # retry tick
+                await asyncio.wait_for(self._wake.wait(), RETRY_S)  # or retry after this
             self._wake.clear()
-            before = self.counters["put_failures"]
-            try:
-                await self.write_due()
-            except Exception as exc:
-                self.counters["put_failures"] += 1
-                log.warning("cannot write the shared latched messages: %r", exc)
-            now_failing = self.counters["put_failures"] > before
-            if now_failing and not failing:
-                log.warning("shared latched messages: writes failing (NATS away?); "
-                            "retrying every %.0f s", RETRY_S)
-            elif failing and not now_failing:
-                log.info("shared latched messages: writing again")
-            failing = now_failing
+
+        await kvloops.write_forever(tick, self.write_due, self.counters,
+                                    "shared latched messages", RETRY_S)
 
     # -- watching -------------------------------------------------------------------------
-
-    async def _watch(self, watcher: KeyValue.KeyWatcher) -> None:
-        async for entry in watcher:
-            if entry is None:  # the end of what the bucket held at start
-                continue
-            self.on_entry(entry.key, entry.value, entry.operation)
 
     def on_entry(self, key: str, value: bytes | None, operation: str | None) -> None:
         """One bucket entry (from the watch): keep or forget another replica's message."""

@@ -22,7 +22,6 @@ import this module.
 from __future__ import annotations
 
 import asyncio
-import contextlib
 import json
 import logging
 import math
@@ -33,10 +32,10 @@ from pathlib import Path
 from typing import Any
 
 from nats.aio.client import Client
-from nats.js.errors import Error as JetStreamError
 from nats.js.kv import KeyValue
 
-from fleetctl.server.cluster.config import ClusterConfig, ClusterStartError
+from fleetctl.server.cluster import kvloops
+from fleetctl.server.cluster.config import ClusterConfig
 from fleetctl.server.cluster.kvkeys import from_key_token, key_token
 from fleetctl.server.fanout import MetricFamily
 from fleetctl.server.registry import MAX_ROBOTS, RobotRecord, RobotRegistry
@@ -93,29 +92,15 @@ class SharedRegistry(RobotRegistry):
             ClusterStartError: NATS has no JetStream, or the bucket cannot be made with
                 ``state_replicas`` copies (names ``cluster.state_replicas``).
         """
-        js = nc.jetstream()
-        name = bucket_name(self.config)
-        try:
-            self._kv = await js.create_key_value(bucket=name, history=1,
-                                                 replicas=self.config.state_replicas)
-        except (TimeoutError, JetStreamError) as exc:
-            raise ClusterStartError(
-                f"field 'cluster.state_replicas': cannot open the robot registry's "
-                f"JetStream KV bucket {name!r} with {self.config.state_replicas} "
-                f"replica(s): {exc!r} (is JetStream enabled on every NATS node, and are "
-                "there that many?)") from exc
+        self._kv = await kvloops.open_bucket(nc, self.config, bucket_name(self.config),
+                                             "the robot registry's")
         watcher = await self._kv.watchall()
-        self._tasks = [asyncio.create_task(self._watch(watcher)),
+        self._tasks = [asyncio.create_task(kvloops.watch(watcher, self.on_entry)),
                        asyncio.create_task(self._write_loop())]
 
     async def stop(self) -> None:
         """Write the last changes (best effort), stop watching."""
-        with contextlib.suppress(Exception):
-            await asyncio.wait_for(self.write_changes(), 2.0)
-        for task in self._tasks:
-            task.cancel()
-            with contextlib.suppress(asyncio.CancelledError):
-                await task
+        await kvloops.stop(self.write_changes, self._tasks)
         self._tasks = []
 
     # -- merged reads ---------------------------------------------------------------------
@@ -182,31 +167,13 @@ class SharedRegistry(RobotRegistry):
         return written
 
     async def _write_loop(self) -> None:
-        failing = False
-        while True:
+        async def tick() -> None:
             await asyncio.sleep(self.refresh_s)  # a tick, not synchronization
-            before = self.counters["put_failures"]
-            try:
-                await self.write_changes()
-            except Exception as exc:
-                self.counters["put_failures"] += 1
-                if not failing:
-                    log.warning("cannot write the shared robot registry: %r", exc)
-            now_failing = self.counters["put_failures"] > before
-            if now_failing and not failing:
-                log.warning("shared robot registry: writes failing (NATS away?); retrying "
-                            "every %.2f s", self.refresh_s)
-            elif failing and not now_failing:
-                log.info("shared robot registry: writing again")
-            failing = now_failing
+
+        await kvloops.write_forever(tick, self.write_changes, self.counters,
+                                    "shared robot registry", self.refresh_s)
 
     # -- watching -------------------------------------------------------------------------
-
-    async def _watch(self, watcher: KeyValue.KeyWatcher) -> None:
-        async for entry in watcher:
-            if entry is None:  # the end of what the bucket held at start
-                continue
-            self.on_entry(entry.key, entry.value, entry.operation)
 
     def on_entry(self, key: str, value: bytes | None, operation: str | None) -> None:
         """One bucket entry (from the watch): note another replica's view of a robot."""

@@ -1,0 +1,85 @@
+"""What every piece of replica state kept in JetStream KV does (the shared robot
+registry, the shared latched messages): open its bucket, watch it, write this replica's
+changes with failures counted and logged once per outage, and stop.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import logging
+from collections.abc import Awaitable, Callable
+from typing import Any
+
+from nats.aio.client import Client
+from nats.js.errors import Error as JetStreamError
+from nats.js.kv import KeyValue
+
+from fleetctl.server.cluster.config import ClusterConfig, ClusterStartError
+
+log = logging.getLogger("fleetctl.server.cluster")
+
+OnEntry = Callable[[str, bytes | None, str | None], None]
+"""``(key, value, operation)`` of one bucket entry."""
+
+
+async def open_bucket(nc: Client, config: ClusterConfig, name: str, what: str,
+                      **options: Any) -> KeyValue:
+    """Open (or create) KV bucket *name* with ``state_replicas`` copies, history 1.
+
+    Raises:
+        ClusterStartError: NATS has no JetStream, or the bucket cannot be made with that
+            many copies (names ``cluster.state_replicas``; *what* says whose bucket).
+    """
+    try:
+        return await nc.jetstream().create_key_value(
+            bucket=name, history=1, replicas=config.state_replicas, **options)
+    except (TimeoutError, JetStreamError) as exc:
+        raise ClusterStartError(
+            f"field 'cluster.state_replicas': cannot open {what} JetStream KV bucket "
+            f"{name!r} with {config.state_replicas} replica(s): {exc!r} (is JetStream "
+            "enabled on every NATS node, and are there that many?)") from exc
+
+
+async def stop(last_write: Callable[[], Awaitable[int]],
+               tasks: list[asyncio.Task[None]]) -> None:
+    """Write the last changes (best effort, 2 s at most), then cancel *tasks*."""
+    with contextlib.suppress(Exception):
+        await asyncio.wait_for(last_write(), 2.0)
+    for task in tasks:
+        task.cancel()
+        with contextlib.suppress(asyncio.CancelledError):
+            await task
+
+
+async def watch(watcher: KeyValue.KeyWatcher, on_entry: OnEntry) -> None:
+    """Hand every entry the watch yields to *on_entry* (the bucket's latest values at
+    start, then every change), until cancelled."""
+    async for entry in watcher:
+        if entry is None:  # the end of what the bucket held at start
+            continue
+        on_entry(entry.key, entry.value, entry.operation)
+
+
+async def write_forever(tick: Callable[[], Awaitable[None]], write: Callable[[], Awaitable[int]],
+                        counters: dict[str, int], what: str, retry_s: float) -> None:
+    """Wait for *tick*, call *write*, forever. Failures count in ``put_failures`` (an
+    exception from *write* too); one WARNING when writes start failing, one INFO when
+    they work again, naming *what*."""
+    failing = False
+    while True:
+        await tick()
+        before = counters["put_failures"]
+        try:
+            await write()
+        except Exception as exc:
+            counters["put_failures"] += 1
+            if not failing:
+                log.warning("cannot write the %s: %r", what, exc)
+        now_failing = counters["put_failures"] > before
+        if now_failing and not failing:
+            log.warning("%s: writes failing (NATS away?); retrying every %.2f s", what,
+                        retry_s)
+        elif failing and not now_failing:
+            log.info("%s: writing again", what)
+        failing = now_failing

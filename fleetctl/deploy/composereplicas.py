@@ -148,7 +148,9 @@ def relay_config(plan: ComposePlan, index: int, name: str) -> dict[str, Any]:
     cfg = container_server_config(plan)
     port, https = relay_ports(plan, index)
     cfg["listen_port"] = port
-    cfg["web"] = {**cfg["web"], "listen_port": https}
+    # The page fails over to the other replicas' ports on the host name it was opened by.
+    cfg["web"] = {**cfg["web"], "listen_port": https, "replica_ports": [
+        plan.published_https_port + i for i in range(plan.options.replicas)]}
     cfg["cluster"] = {
         "name": name,
         "nats_urls": replicas.nats_urls(index),

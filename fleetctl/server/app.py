@@ -371,8 +371,8 @@ class RelayServer:
             return None
         if request.path.split("?", 1)[0] == TICKET_PATH:
             return self._ticket(parsed, request, by_address=False)
-        assert self._page is not None
-        return page_response(self._page, request)
+        assert self._page is not None and self.config.web is not None
+        return page_response(self._page, request, self.config.web.replica_ports)
 
     def _secure(self, by_address: bool) -> bool:
         """Whether a listener speaks TLS (the web listener always does)."""

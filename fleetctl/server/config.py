@@ -108,6 +108,9 @@ class WebConfig:
         listen_host: Address or addresses to bind.
         listen_port: TCP port; 0 picks a free port.
         vendor_dir: Directory holding Debian's ``three/`` and ``leaflet/``.
+        replica_ports: HTTPS ports of every relay replica on the page's host, as the
+            browser reaches them (``fleetctl up --replicas`` writes them): the page
+            fails over to the same host name on the next port when its replica goes.
     """
 
     tls_cert: Path
@@ -115,6 +118,7 @@ class WebConfig:
     listen_host: Hosts = "0.0.0.0"
     listen_port: int = DEFAULT_WEB_PORT
     vendor_dir: Path = DEBIAN_JS_DIR
+    replica_ports: tuple[int, ...] = ()
 
 
 @dataclass(frozen=True)
@@ -174,7 +178,9 @@ _TOP_KEYS = {
     "recording",
     "cluster",
 }
-_WEB_KEYS = {"listen_host", "listen_port", "tls_cert", "tls_key", "vendor_dir"}
+_WEB_KEYS = {"listen_host", "listen_port", "tls_cert", "tls_key", "vendor_dir",
+             "replica_ports"}
+MAX_REPLICA_PORTS = 16
 _INT_LIMITS = (
     "max_frame_bytes",
     "max_subscriptions_per_connection",
@@ -278,7 +284,23 @@ def _web(value: Any, base: Path, path: Path) -> WebConfig | None:
         listen_host=_hosts(value, "listen_host", path, prefix="web."),
         listen_port=_port(value, "web.listen_port", DEFAULT_WEB_PORT, path),
         vendor_dir=vendor,
+        replica_ports=_replica_ports(value.get("replica_ports"), path),
     )
+
+
+def _replica_ports(value: Any, path: Path) -> tuple[int, ...]:
+    if value is None:
+        return ()
+    if not isinstance(value, list) or len(value) > MAX_REPLICA_PORTS:
+        raise ConfigError(f"{path}: field 'web.replica_ports' must be a list of at most "
+                          f"{MAX_REPLICA_PORTS} ports")
+    for i, port in enumerate(value):
+        if isinstance(port, bool) or not isinstance(port, int) or not 0 < port < 65536:
+            raise ConfigError(f"{path}: field 'web.replica_ports[{i}]': {port!r} is not a "
+                              "port 1..65535")
+    if len(set(value)) != len(value):
+        raise ConfigError(f"{path}: field 'web.replica_ports' lists a port twice")
+    return tuple(value)
 
 
 def _readable(raw: dict[str, Any], name: str, base: Path, path: Path) -> Path:

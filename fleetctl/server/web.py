@@ -37,11 +37,13 @@ def web_page(config: WebConfig) -> WebPage:
     return WebPage(STATIC_DIR, config.vendor_dir, layouts)
 
 
-def page_response(page: WebPage, request: Request) -> Response:
-    """Answer a plain GET on the web listener: ``/healthz`` or one of the page's routes."""
+def page_response(page: WebPage, request: Request,
+                  replica_ports: tuple[int, ...] = ()) -> Response:
+    """Answer a plain GET on the web listener: ``/healthz`` or one of the page's routes
+    (``/config.json`` lists *replica_ports*, the page's failover targets)."""
     if request.path.split("?", 1)[0] == "/healthz":
         return endpoints.text(http.HTTPStatus.OK, "ok\n")
-    reply = page.lookup(request.path, None)
+    reply = page.lookup(request.path, None, replica_ports)
     return endpoints.response(reply.status, reply.body, reply.content_type,
                               cache_control="no-cache")
 

@@ -95,13 +95,16 @@ class WebPage:
         self.vendor_dir = vendor_dir
         self.layouts = layouts
 
-    def lookup(self, target: str, server_url: str | None) -> PageReply:
+    def lookup(self, target: str, server_url: str | None,
+               replica_ports: tuple[int, ...] = ()) -> PageReply:
         """Answer ``GET target``.
 
         Args:
             target: The request target (path, maybe with a query), percent-encoded.
             server_url: What ``/config.json`` tells the page; ``None`` means the page's
                 own origin (``wss://`` under https).
+            replica_ports: The relay replicas' HTTPS ports on the page's host, for the
+                page's failover (``/config.json``; empty: no replicas).
 
         Returns:
             The reply: 200 with the file, or 404 with a JSON ``{"error": ...}`` body.
@@ -110,7 +113,10 @@ class WebPage:
         if path in ("/", "/index.html"):
             return self._file(self.static_dir / "index.html")
         if path == "/config.json":
-            return _reply(json.dumps({"server_url": server_url}).encode(), ".json")
+            config: dict[str, object] = {"server_url": server_url}
+            if replica_ports:
+                config["replica_ports"] = list(replica_ports)
+            return _reply(json.dumps(config).encode(), ".json")
         if path.startswith("/types/") and path.endswith(".json"):
             return self._layout(path[len("/types/") : -len(".json")])
         if path.startswith("/vendor/"):

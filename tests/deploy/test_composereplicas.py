@@ -85,6 +85,7 @@ def test_files_carry_each_replicas_own_nats_user_and_only_hashes(fleet: Path) ->
         assert len(passwords[name]) >= 40
         cfg = yaml.safe_load((out / "server" / f"{name}.yaml").read_text())
         assert (cfg["listen_port"], cfg["web"]["listen_port"]) == (8080 + i, 8443 + i)
+        assert cfg["web"]["replica_ports"] == [8443, 8444, 8445]  # the page's failover
         assert cfg["cluster"]["credentials"] == {
             "user": name, "password_file": f"{SECRETS_RUN}/{replicas.PASSWORD_FILE}"}
         assert cfg["cluster"]["nats_urls"][0] == f"nats://{replicas.NATS_NODES[i]}:4222"

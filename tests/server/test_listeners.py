@@ -156,7 +156,12 @@ web:
     assert cfg.web.tls_cert == tmp_path / "tls" / "cert.pem"
     assert cfg.web.listen_host == "127.0.0.1"
     assert cfg.web.vendor_dir == Path("/usr/share/javascript")
+    assert cfg.web.replica_ports == ()
     assert load_server_config(write(tmp_path, "auth_map: a.yaml\n")).web is None
+    replicas = load_server_config(write(tmp_path, "auth_map: a.yaml\nweb: {tls_cert: "
+                                        "tls/cert.pem, tls_key: tls/key.pem, "
+                                        "replica_ports: [8443, 8444]}\n"))
+    assert replicas.web is not None and replicas.web.replica_ports == (8443, 8444)
 
 
 @pytest.mark.parametrize(
@@ -169,6 +174,14 @@ web:
          "web.listen_port"),
         ("{tls_cert: tls/cert.pem, tls_key: tls/key.pem, listen_host: []}", "web.listen_host"),
         ("{tls_cert: tls/cert.pem, tls_key: tls/key.pem, bogus: 1}", "web.bogus"),
+        ("{tls_cert: tls/cert.pem, tls_key: tls/key.pem, replica_ports: 8443}",
+         "web.replica_ports"),
+        ("{tls_cert: tls/cert.pem, tls_key: tls/key.pem, replica_ports: [8443, 0]}",
+         "web.replica_ports[1]"),
+        ("{tls_cert: tls/cert.pem, tls_key: tls/key.pem, replica_ports: [8443, '8444']}",
+         "web.replica_ports[1]"),
+        ("{tls_cert: tls/cert.pem, tls_key: tls/key.pem, replica_ports: [8443, 8443]}",
+         "web.replica_ports"),
         ("[1]", "'web'"),
         ("{tls_cert: tls/key.pem, tls_key: tls/cert.pem}", "web.tls_cert"),  # swapped
         ("{tls_cert: tls/junk.pem, tls_key: tls/key.pem}", "web.tls_cert"),

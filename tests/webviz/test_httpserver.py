@@ -117,6 +117,8 @@ def test_one_lookup_for_every_server(tmp_path: Path) -> None:
     page = WebPage(STATIC_DIR, tmp_path, LayoutCache(TypeRegistry.default()))
     reply = page.lookup("/config.json?x=1", None)
     assert (reply.status, json.loads(reply.body)) == (200, {"server_url": None})
+    reply = page.lookup("/config.json", None, (8443, 8444))  # relay replicas: failover
+    assert json.loads(reply.body) == {"server_url": None, "replica_ports": [8443, 8444]}
     reply = page.lookup("/js/%61pp.js", None)
     assert reply.status == 200 and reply.content_type.startswith("text/javascript")
     reply = page.lookup("/vendor/three/three.module.js", None)

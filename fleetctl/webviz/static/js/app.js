@@ -36,7 +36,7 @@ class App {
 
   signIn(token) {
     this.conn?.stop();
-    const conn = new Connection({ url: this.config.server_url, token: token || null, loader: new LayoutLoader("types/") });
+    const conn = new Connection({ url: this.config.server_url, failoverUrls: this.config.failover_urls ?? [], token: token || null, loader: new LayoutLoader("types/") });
     this.conn = conn;
     conn.addEventListener("status", (e) => this.onStatus(e.detail));
     conn.addEventListener("welcome", () => this.onWelcome());
@@ -62,7 +62,7 @@ class App {
     }
     banner.hidden = false;
     banner.textContent = {
-      connecting: `Connecting to ${this.config.server_url} …`,
+      connecting: `Connecting to ${this.conn?.url ?? this.config.server_url} …`,
       disconnected: `Disconnected from the fleet server (${detail}). Reconnecting in about ${(retryMs / 1000).toFixed(1)} s …`,
       refused: `Signed out: ${detail}. Check your token and sign in again.`,
       closed: "Connection closed.",
@@ -321,7 +321,14 @@ async function main() {
   }
   if (!config.server_url) {
     // null: the relay serves this page itself, so its WebSocket is on the page's own origin.
-    config.server_url = `${location.protocol === "https:" ? "wss" : "ws"}://${location.host}/`;
+    const scheme = location.protocol === "https:" ? "wss" : "ws";
+    config.server_url = `${scheme}://${location.host}/`;
+    // Relay replicas (fleetctl up --replicas): the same host name on the other replicas'
+    // ports, tried in turn when this one goes (docs/webviz.md, "Replicas").
+    const host = location.hostname.includes(":") ? `[${location.hostname}]` : location.hostname;
+    config.failover_urls = (config.replica_ports ?? [])
+      .map((port) => `${scheme}://${host}:${port}/`)
+      .filter((url) => url !== config.server_url);
   }
   $("#server-url").textContent = config.server_url;
   const app = new App(config);

@@ -28,11 +28,16 @@ export const FATAL_CLOSE = { 4401: "the server refused the token", 4403: "this c
 
 export class Connection extends EventTarget {
   /**
-   * @param {{url: string, token: string|null, loader: import("./fb/layout.js").LayoutLoader,
+   * @param {{url: string, failoverUrls?: string[], token: string|null,
+   *          loader: import("./fb/layout.js").LayoutLoader,
    *          WebSocketImpl?: typeof WebSocket}} opts
+   * failoverUrls: other relay replicas' WebSocket URLs; after a connection closes (or
+   * fails to open) the next attempt goes to the next URL in [url, ...failoverUrls].
    */
-  constructor({ url, token, loader, WebSocketImpl = globalThis.WebSocket }) {
+  constructor({ url, failoverUrls = [], token, loader, WebSocketImpl = globalThis.WebSocket }) {
     super();
+    this.urls = [url, ...failoverUrls.filter((u) => u !== url)];
+    this.urlIndex = 0;
     this.url = url;
     this.token = token;
     this.loader = loader;
@@ -99,7 +104,12 @@ export class Connection extends EventTarget {
     if (FATAL_CLOSE[ev.code]) return this.setStatus("refused", `${FATAL_CLOSE[ev.code]} (close ${ev.code})`);
     const wait = this.backoffMs * (0.75 + Math.random() * 0.5); // jitter: robots and pages do not reconnect in lockstep
     this.setStatus("disconnected", `close ${ev.code}${ev.reason ? `: ${ev.reason}` : ""}`);
-    this.backoffMs = Math.min(BACKOFF_MAX_MS, this.backoffMs * 2);
+    // Replicas: the next attempt tries the next one (a dead replica refuses at once, so a
+    // live one is reached within one backoff step); the backoff grows only after a full
+    // round of the list.
+    this.urlIndex = (this.urlIndex + 1) % this.urls.length;
+    this.url = this.urls[this.urlIndex];
+    if (this.urlIndex === 0) this.backoffMs = Math.min(BACKOFF_MAX_MS, this.backoffMs * 2);
     this.retryTimer = setTimeout(() => this.open(), wait);
   }
 

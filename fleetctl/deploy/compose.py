@@ -149,8 +149,15 @@ class ComposePlan:
     @property
     def url(self) -> str:
         """The page's URL on the server host."""
+        return self.page_url(self.published_https_port)
+
+    def page_url(self, port: int) -> str:
+        """The page's URL on the server host at *port* (an IPv6 bind address in
+        brackets)."""
         host = "localhost" if self.options.bind in ("0.0.0.0", "::") else self.options.bind
-        return f"https://{host}:{self.published_https_port}/"
+        if ":" in host:
+            host = f"[{host}]"
+        return f"https://{host}:{port}/"
 
     @property
     def compose_dir(self) -> Path:

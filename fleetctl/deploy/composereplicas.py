@@ -61,9 +61,7 @@ def robot_urls(plan: ComposePlan) -> list[str]:
 
 def page_urls(plan: ComposePlan) -> list[str]:
     """Every replica's page on the server host."""
-    host = plan.url.split("://", 1)[1].rsplit(":", 1)[0]
-    return [f"https://{host}:{plan.published_https_port + i}/"
-            for i in range(plan.options.replicas)]
+    return [plan.page_url(plan.published_https_port + i) for i in range(plan.options.replicas)]
 
 
 def volumes(plan: ComposePlan) -> list[str]:

@@ -13,7 +13,7 @@ import pytest
 import yaml
 
 from fleetctl.cli.main import main
-from fleetctl.deploy import compose, composerun, replicas
+from fleetctl.deploy import compose, composereplicas, composerun, replicas
 from fleetctl.deploy.compose import SECRETS_RUN
 from fleetctl.errors import ConfigError
 from fleetctl.server.cluster.config import parse_cluster
@@ -124,6 +124,13 @@ def test_a_password_file_planted_as_a_link_is_refused(fleet: Path, tmp_path: Pat
     with pytest.raises(ConfigError, match=r"relay-1/nats\.password"):
         compose.write_files(p)
     assert target.read_text() == "x\n"
+
+
+def test_page_urls_of_every_replica(fleet: Path) -> None:
+    assert composereplicas.page_urls(plan(fleet, wireguard="off", bind="::1",
+                                          https_port=9443)) == [
+        "https://[::1]:9443/", "https://[::1]:9444/", "https://[::1]:9445/"]
+    assert composereplicas.page_urls(plan(fleet, wireguard="off"))[0] == "https://localhost:8443/"
 
 
 def test_one_replica_is_todays_single_server(fleet: Path) -> None:

@@ -121,8 +121,9 @@ class RelayServer:
             assert isinstance(self.registry, SharedRegistry)
             latched = SharedLatched(config.cluster, self.core.latched,
                                     functools.partial(firstframes.sender_may_send, self.core))
-            self.core.use_fanout(NatsFanout(self.core.local, self.core.on_remote,
-                                            config.cluster, self.registry, latched))
+            self.core.use_fanout(NatsFanout(
+                self.core.local, self.core.on_remote, config.cluster, self.registry, latched,
+                functools.partial(firstframes.on_remote_keyframe_request, self.core)))
         self.recordings = (RecordingsEndpoint(self.recorder) if self.recorder is not None
                            else None)
         self.reloader = AuthReloader(config.auth_map, self.core.reload_auth, self.metrics)

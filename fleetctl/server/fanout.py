@@ -30,6 +30,10 @@ class Fanout(Protocol):
     def follow(self, pattern: str, delta: int) -> None:
         """One more (``+1``) or one fewer (``-1``) local connection holds *pattern*."""
 
+    def forward_keyframe_request(self, frame: bytes) -> bool:
+        """A keyframe request for a video topic whose publisher is not connected here:
+        hand it to the other replicas. ``False``: there are none (one process)."""
+
     async def start(self) -> None:
         """Connect whatever carries frames between replicas (before the relay listens)."""
 
@@ -57,6 +61,9 @@ class LocalFanout:
             receiver.outbound.push(topic, frame, no_drop, message_id)
         if no_drop and self.sessions.has_offline:
             self.sessions.deliver(topic, frame)
+
+    def forward_keyframe_request(self, frame: bytes) -> bool:
+        return False  # one process: a publisher not here is nowhere
 
     def follow(self, pattern: str, delta: int) -> None:
         pass  # every frame is already here

@@ -102,6 +102,27 @@ def on_keyframe_request(core: RelayCore, peer: Peer, frame: bytes, type_name: st
         core.metrics.count_keyframe_request("refused")
         _refuse_once(core, peer, topic)
         return
+    if core.keyframes.publisher(topic) is None and core.fanout.forward_keyframe_request(frame):
+        # Replicas: the publisher may be on another one, which routes it (rate limit
+        # included) if it is there.
+        core.metrics.count_keyframe_request("to_replicas")
+        return
+    _route_keyframe_request(core, topic, frame)
+
+
+def on_remote_keyframe_request(core: RelayCore, frame: bytes) -> None:
+    """Another replica's viewer asked for a keyframe (already checked there): forward it
+    if the video topic's publisher is connected here.
+
+    Raises:
+        WireError: The frame is not a KeyframeRequest.
+    """
+    topic = decode_keyframe_request(frame)
+    if core.keyframes.publisher(topic) is not None:
+        _route_keyframe_request(core, topic, frame)
+
+
+def _route_keyframe_request(core: RelayCore, topic: str, frame: bytes) -> None:
     publisher = core.keyframes.route(topic)
     if publisher is not None:
         publisher.outbound.push(KEYFRAME_REQUESTS_TOPIC, frame, True)

@@ -42,7 +42,11 @@ from fleetctl.server.cluster.config import ClusterConfig, ClusterStartError
 from fleetctl.server.cluster.interest import Interest
 from fleetctl.server.cluster.sharedlatched import SharedLatched
 from fleetctl.server.cluster.sharedregistry import SharedRegistry
-from fleetctl.server.cluster.subjects import topic_subject
+from fleetctl.server.cluster.subjects import (
+    control_subject,
+    is_control_subject,
+    topic_subject,
+)
 from fleetctl.server.fanout import LocalFanout, MetricFamily
 from fleetctl.wire.errors import WireError
 
@@ -79,13 +83,18 @@ class NatsFanout:
         registry: The shared robot registry, started on this NATS connection once it is
             up and stopped before it closes; ``None`` in tests of the fan-out alone.
         latched: The shared latched messages, likewise.
+        on_keyframe_request: Handles another replica's keyframe request (a
+            ``KeyframeRequest`` frame; ``firstframes.on_remote_keyframe_request``).
     """
 
     def __init__(self, local: LocalFanout, on_remote: Callable[[bytes], None],
                  config: ClusterConfig, registry: SharedRegistry | None = None,
-                 latched: SharedLatched | None = None) -> None:
+                 latched: SharedLatched | None = None,
+                 on_keyframe_request: Callable[[bytes], None] | None = None) -> None:
         self.registry = registry
         self.latched = latched
+        self._on_keyframe_request = on_keyframe_request
+        self.keyframe_subject = control_subject(config.subject_prefix, "keyframe")
         self._local = local.publish
         self._on_remote = on_remote
         self.config = config
@@ -98,6 +107,7 @@ class NatsFanout:
         self._interest_changed = asyncio.Event()
         self._nc: Client | None = None
         self._subs: dict[str, Subscription] = {}
+        self._control_sub: Subscription | None = None
         self._tasks: list[asyncio.Task[None]] = []
         self._connecting: asyncio.Task[None] | None = None
         self._last_error: BaseException | None = None
@@ -128,6 +138,20 @@ class NatsFanout:
         if self.interest.follow(pattern, delta):
             self._interest_changed.set()
 
+    def forward_keyframe_request(self, frame: bytes) -> bool:
+        """Publish the request on the control subject every replica listens to (the one
+        with the topic's publisher routes it); through the publish queue and its bounds."""
+        queue = self._queue
+        if (len(queue) >= self.config.publish_queue_frames
+                or self._queued_bytes + len(frame) > self.config.publish_queue_bytes):
+            self._drop("queue_full")
+            return True
+        queue.append((self.keyframe_subject, frame, False))
+        self._queued_bytes += len(frame)
+        if len(queue) == 1:
+            self._wake.set()
+        return True
+
     async def start(self) -> None:
         """Connect to NATS and start publishing and following interest.
 
@@ -141,6 +165,9 @@ class NatsFanout:
         self._tasks = [asyncio.create_task(self._publish_loop()),
                        asyncio.create_task(self._interest_loop())]
         self._interest_changed.set()  # subscriptions made before start
+        if self._on_keyframe_request is not None:
+            self._control_sub = await self._nc.subscribe(
+                self.keyframe_subject, cb=self._keyframe_request_received)
         try:
             for state in self._shared():
                 await state.start(self._nc)
@@ -359,12 +386,21 @@ class NatsFanout:
         with contextlib.suppress(NatsError, asyncio.TimeoutError):
             await nc.flush(timeout=FLUSH_TIMEOUT_S)  # type: ignore[arg-type]
 
+    async def _keyframe_request_received(self, msg: Msg) -> None:
+        assert self._on_keyframe_request is not None
+        try:
+            self._on_keyframe_request(msg.data)
+        except WireError:
+            self._drop("malformed")
+
     def _receiver(self, subject: str) -> Callable[[Msg], Any]:
         async def receive(msg: Msg) -> None:
             # Only the subscription of a subject still wanted delivers: while a wider one
             # replaces narrower ones, the old ones' messages would be duplicates.
             if subject not in self.interest.wanted:
                 return
+            if is_control_subject(self.config.subject_prefix, msg.subject):
+                return  # a wide subscription hears the replicas' control subjects too
             self.received += 1
             try:
                 self._on_remote(msg.data)

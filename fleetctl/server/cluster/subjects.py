@@ -41,6 +41,22 @@ def _hex(char: str) -> str:
     return "".join(f"~{b:02X}" for b in char.encode("utf-8", "surrogatepass"))
 
 
+CONTROL_TOKEN = "~ctl"
+"""Second token of the replicas' own control subjects. Escaping never makes it from a
+topic segment (``~`` becomes ``~7E``), so control messages and frames never share a
+subject; a wide topic subscription (``<prefix>.>``) still receives them, and the receiver
+skips them (:func:`is_control_subject`)."""
+
+
+def control_subject(prefix: str, name: str) -> str:
+    """The subject of control message *name* between replicas (``keyframe``)."""
+    return f"{prefix}.{CONTROL_TOKEN}.{name}"
+
+
+def is_control_subject(prefix: str, subject: str) -> bool:
+    return subject.startswith(f"{prefix}.{CONTROL_TOKEN}.")
+
+
 def topic_subject(prefix: str, topic: str) -> str:
     """The subject frames on *topic* are published to."""
     if topic.startswith("/"):

@@ -114,7 +114,11 @@ async def test_acl_applies_on_the_receiving_replica(replicas: tuple[RelayServer,
 
 
 def fleet_subjects(node: NatsServer) -> list[str]:
-    return [s for s in node.client_subjects("relay-b") if s.startswith("fleetctl.")]
+    """B's topic subscriptions on *node* (not its control subject, always held)."""
+    subjects = node.client_subjects("relay-b")
+    assert "fleetctl.~ctl.keyframe" in subjects
+    return [s for s in subjects
+            if s.startswith("fleetctl.") and not s.startswith("fleetctl.~ctl.")]
 
 
 async def test_no_interest_no_frames(replicas: tuple[RelayServer, ...],
@@ -130,7 +134,8 @@ async def test_no_interest_no_frames(replicas: tuple[RelayServer, ...],
         assert (await subscribe(viewer, "/husky2/.*"))["type"] == "subscribed"
         await wait_for(lambda: fanout(b).subscribed == {"fleetctl.husky2.>"})
         # What NATS itself holds for B: only that fleet subject (besides the inboxes of
-        # the shared registry's KV watch and JetStream API replies).
+        # the shared state's KV watches and JetStream API replies, and the replicas'
+        # control subject).
         await wait_for(lambda: fleet_subjects(nats_cluster[1]) == ["fleetctl.husky2.>"])
         await robot.send(string_frame("/husky1/chat", "still not wanted"))
         await wait_for(lambda: fanout(a).published == 51)
@@ -253,3 +258,65 @@ async def test_one_nats_node_lost_replicas_keep_relaying(
         nats_cluster[1].stop()
         await wait_for(lambda: fanout(b).reconnects >= 1, 15.0)
         await until_crossing(robot, remote, "/husky1/chat")
+
+
+def _video_frame(topic: str) -> bytes:
+    import numpy as np
+
+    from fleetctl.wire.codec import default_codec
+    from fleetctl.wire.samples import header
+
+    codec = default_codec()
+    name = "foxglove_msgs/msg/CompressedVideo"
+    msg = codec.registry.get(name).cls(header(codec.registry, "cam").stamp, "cam",
+                                       np.zeros(64, dtype=np.uint8), "h264")
+    return codec.encode(msg, name, topic, seq=1)
+
+
+async def test_a_keyframe_request_reaches_the_publisher_on_another_replica(
+        replicas: tuple[RelayServer, ...]) -> None:
+    from fleetctl.wire.control import (
+        KEYFRAME_REQUESTS_TOPIC,
+        decode_keyframe_request,
+        encode_keyframe_request,
+    )
+    from fleetctl.wire.metadata import read_metadata
+
+    a, b = replicas
+    async with client(a, source="127.0.0.2") as robot, \
+            client(b, token=ALICE_TOKEN) as viewer, client(a, token=ALICE_TOKEN) as wide:
+        await next_json(robot, "welcome")
+        await next_json(viewer, "welcome")
+        # A consumer of everything on A: its replica subscribes to the whole fleet
+        # subject, which the replicas' control subject is under. (Before the video
+        # topic is known: a subscription to a known one makes A ask by itself.)
+        assert (await subscribe(wide, ".*"))["type"] == "subscribed"
+        await wait_for(lambda: fanout(a).subscribed == {"fleetctl.>"})
+        await robot.send(_video_frame("/husky1/camera"))  # A learns its video publisher
+        await wait_for(lambda: a.core.keyframes.publisher("/husky1/camera") is not None)
+        request = encode_keyframe_request("/husky1/camera")
+        for _ in range(100):  # B's viewer asks; A may only hear it once B's NATS link is up
+            await viewer.send(request)
+            try:
+                frame = await next_binary(robot, 0.2)
+            except TimeoutError:
+                continue
+            break
+        else:
+            raise AssertionError("no keyframe request crossed the replicas")
+        assert read_metadata(frame).topic == KEYFRAME_REQUESTS_TOPIC
+        assert decode_keyframe_request(frame) == "/husky1/camera"
+        assert b.metrics.keyframe_requests.get("to_replicas", 0) >= 1
+        assert a.metrics.keyframe_requests.get("forwarded", 0) >= 1
+        # A request for a topic nobody publishes goes to the replicas and ends there.
+        await viewer.send(encode_keyframe_request("/husky1/nobody"))
+        assert await no_binary(robot, 0.5)
+        # The consumer of everything on A never got the control messages as frames.
+        seen: list[str] = []
+        while True:
+            try:
+                seen.append(read_metadata(await next_binary(wide, 0.3)).topic)
+            except TimeoutError:
+                break
+        assert KEYFRAME_REQUESTS_TOPIC not in seen, seen
+        assert fanout(a).received == 0

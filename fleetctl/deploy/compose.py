@@ -147,6 +147,12 @@ class ComposePlan:
         return self.options.https_port or self.https_port
 
     @property
+    def published_bind(self) -> str:
+        """The bind address as Compose's port syntax wants it (IPv6 in brackets)."""
+        bind = self.options.bind
+        return f"[{bind}]" if ":" in bind else bind
+
+    @property
     def url(self) -> str:
         """The page's URL on the server host."""
         return self.page_url(self.published_https_port)
@@ -344,9 +350,7 @@ def _merge(svc: dict[str, Any], extra: dict[str, Any]) -> dict[str, Any]:
 
 
 def _server_service(plan: ComposePlan) -> dict[str, Any]:
-    bind, https = plan.options.bind, plan.published_https_port
-    if ":" in bind:  # IPv6: Compose's port syntax wants it in brackets
-        bind = f"[{bind}]"
+    bind, https = plan.published_bind, plan.published_https_port
     ports = [f"{bind}:{https}:{plan.https_port}/tcp"]
     if plan.wireguard:
         ports.append(f"{bind}:{plan.wireguard_port}:{plan.wireguard_port}/udp")

@@ -42,10 +42,6 @@ Write = Callable[..., None]
 """``compose._write(path, text, secret=...)``."""
 
 _HEALTH_INTERVAL = {"interval": "2s", "timeout": "3s", "retries": 30}
-_NATS_HEALTHY = ["CMD", "python3", "-c",
-                 "import sys, urllib.request; sys.exit(0 if urllib.request.urlopen("
-                 f"'http://127.0.0.1:{replicas.NATS_MONITOR_PORT}/healthz', timeout=2)"
-                 ".status == 200 else 1)"]
 
 
 def relay_ports(plan: ComposePlan, index: int) -> tuple[int, int]:
@@ -82,7 +78,7 @@ def services(plan: ComposePlan) -> dict[str, Any]:
 
 
 def _gateway(plan: ComposePlan) -> dict[str, Any]:
-    bind = f"[{plan.options.bind}]" if ":" in plan.options.bind else plan.options.bind
+    bind = plan.published_bind
     ports = [f"{bind}:{plan.published_https_port + i}:{relay_ports(plan, i)[1]}/tcp"
              for i in range(plan.options.replicas)]
     if plan.wireguard:
@@ -135,7 +131,7 @@ def _nats(plan: ComposePlan, node: str, static_ip: str) -> dict[str, Any]:
         "volumes": [f"{plan.compose_dir / 'nats' / node}:{SECRETS_ETC}:ro",
                     f"{node}-data:{replicas.NATS_DATA}"],
         "environment": {"FLEETCTL_SECRETS": SECRETS_ETC},
-        "healthcheck": {"test": _NATS_HEALTHY, **_HEALTH_INTERVAL},
+        "healthcheck": {"test": ["CMD", *replicas.NATS_HEALTH_COMMAND], **_HEALTH_INTERVAL},
         "restart": "unless-stopped",
         "networks": _static(plan, static_ip),
     }

@@ -42,6 +42,12 @@ from fleetctl.errors import ConfigError
 
 NATS_NODES = ("nats-1", "nats-2", "nats-3")
 NATS_CLIENT_PORT, NATS_ROUTE_PORT, NATS_MONITOR_PORT = 4222, 6222, 8222
+NATS_HEALTH_COMMAND = [
+    "python3", "-c",
+    "import sys, urllib.request; sys.exit(0 if urllib.request.urlopen("
+    f"'http://127.0.0.1:{NATS_MONITOR_PORT}/healthz', timeout=2).status == 200 else 1)"]
+"""Exit 0 when the NATS node in this container is healthy (its monitoring endpoint; with
+JetStream, once the cluster elected its meta leader): `up`'s and e2e's health check."""
 MAX_REPLICAS = 8
 SUBJECT_PREFIX = "fleetctl"
 BUCKETS = ("robots", "latched")  # <prefix>_<name>: sharedregistry.py, sharedlatched.py

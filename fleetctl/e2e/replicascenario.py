@@ -28,6 +28,12 @@ import time
 from collections.abc import Callable
 from typing import Any
 
+from fleetctl.deploy.replicas import (
+    NATS_CLIENT_PORT,
+    NATS_HEALTH_COMMAND,
+    NATS_MONITOR_PORT,
+    NATS_ROUTE_PORT,
+)
 from fleetctl.deploy.shaping import Capabilities
 from fleetctl.e2e import analysis, profiles, replicaanalysis
 from fleetctl.e2e.fleetrun import CONTAINER_DIR, FleetRun, hold, wait_for
@@ -36,14 +42,9 @@ from fleetctl.errors import FleetError
 
 Progress = Callable[[str], None]
 NATS_NODES = ("nats1", "nats2", "nats3")
-NATS_CLIENT_PORT, NATS_ROUTE_PORT, NATS_MONITOR_PORT = 4222, 6222, 8222
 # Every NATS node is its own container; a cluster needs all three up before JetStream
 # elects its meta leader, and a replica's start waits for the KV bucket.
 READY_TIMEOUT_S = 90.0
-_NATS_HEALTHY = ["python3", "-c",
-                 "import sys, urllib.request; sys.exit(0 if urllib.request.urlopen("
-                 f"'http://127.0.0.1:{NATS_MONITOR_PORT}/healthz', timeout=2).status == 200 "
-                 "else 1)"]
 
 
 def nats_config(name: str) -> str:
@@ -75,7 +76,7 @@ def _start_nats(fr: FleetRun) -> list[Endpoint]:
 
 def _wait_nats(fr: FleetRun, node: Endpoint) -> None:
     fr.wait_healthy(node.name, f"{node.name}'s JetStream", lambda: fr.topo.exec(
-        node.name, _NATS_HEALTHY).returncode == 0, READY_TIMEOUT_S)
+        node.name, NATS_HEALTH_COMMAND).returncode == 0, READY_TIMEOUT_S)
 
 
 def _start_relay(fr: FleetRun, name: str, nats: list[str]) -> Endpoint:

@@ -17,6 +17,7 @@ from __future__ import annotations
 import logging
 from typing import TYPE_CHECKING
 
+from fleetctl.server.authmap import Identity
 from fleetctl.server.latched import SenderKey
 from fleetctl.server.permissions import Permissions
 from fleetctl.wire.control import (
@@ -144,9 +145,16 @@ def _refuse_once(core: RelayCore, peer: Peer, topic: str) -> None:
 def sender_may_send(core: RelayCore, sender: SenderKey, topic: str) -> bool:
     """Whether the identities *sender* names all exist in the current auth map and may
     together send on *topic* (a latched message kept for them may be served)."""
-    by_name = {i.name: i for i in core.auth.identities}
+    perms = _sender_permissions(core, {i.name: i for i in core.auth.identities}, sender)
+    return perms is not None and perms.may_send(topic)
+
+
+def _sender_permissions(core: RelayCore, by_name: dict[str, Identity],
+                        sender: SenderKey) -> Permissions | None:
+    """The permissions of *sender*'s identities, or ``None`` when one is gone from the
+    auth map (*by_name*: its identities by name)."""
     found = [by_name[n] for n in sender if n in by_name]
-    return len(found) == len(sender) and core.pool.get(found).may_send(topic)
+    return core.pool.get(found) if len(found) == len(sender) else None
 
 
 def drop_revoked_latched(core: RelayCore) -> int:
@@ -161,8 +169,7 @@ def drop_revoked_latched(core: RelayCore) -> int:
 
     def revoked(sender: SenderKey, topic: str) -> bool:
         if sender not in perms:  # one Permissions per sender, not per entry
-            found = [by_name[n] for n in sender if n in by_name]
-            perms[sender] = core.pool.get(found) if len(found) == len(sender) else None
+            perms[sender] = _sender_permissions(core, by_name, sender)
         allowed = perms[sender]
         return allowed is None or not allowed.may_send(topic)
 

@@ -124,6 +124,21 @@ class NatsFanout:
         subject = self._subjects.get(topic)
         if subject is None:
             subject = self._subject(topic)
+        self._enqueue(subject, frame, no_drop)
+
+    def follow(self, pattern: str, delta: int) -> None:
+        if self.interest.follow(pattern, delta):
+            self._interest_changed.set()
+
+    def forward_keyframe_request(self, frame: bytes) -> bool:
+        """Publish the request on the control subject every replica listens to (the one
+        with the topic's publisher routes it); through the publish queue and its bounds."""
+        self._enqueue(self.keyframe_subject, frame, False)
+        return True
+
+    def _enqueue(self, subject: str, frame: bytes, no_drop: bool) -> None:
+        """Queue *frame* for the publish task, within the queue's bounds (else counted
+        ``queue_full``)."""
         queue = self._queue
         if (len(queue) >= self.config.publish_queue_frames
                 or self._queued_bytes + len(frame) > self.config.publish_queue_bytes):
@@ -133,24 +148,6 @@ class NatsFanout:
         self._queued_bytes += len(frame)
         if len(queue) == 1:
             self._wake.set()
-
-    def follow(self, pattern: str, delta: int) -> None:
-        if self.interest.follow(pattern, delta):
-            self._interest_changed.set()
-
-    def forward_keyframe_request(self, frame: bytes) -> bool:
-        """Publish the request on the control subject every replica listens to (the one
-        with the topic's publisher routes it); through the publish queue and its bounds."""
-        queue = self._queue
-        if (len(queue) >= self.config.publish_queue_frames
-                or self._queued_bytes + len(frame) > self.config.publish_queue_bytes):
-            self._drop("queue_full")
-            return True
-        queue.append((self.keyframe_subject, frame, False))
-        self._queued_bytes += len(frame)
-        if len(queue) == 1:
-            self._wake.set()
-        return True
 
     async def start(self) -> None:
         """Connect to NATS and start publishing and following interest.

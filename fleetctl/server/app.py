@@ -117,13 +117,17 @@ class RelayServer:
             from fleetctl.server.cluster.natsfanout import NatsFanout
             from fleetctl.server.cluster.sharedlatched import SharedLatched
             from fleetctl.server.cluster.sharedregistry import SharedRegistry
+            from fleetctl.server.cluster.sharedsessions import SharedSessions
 
             assert isinstance(self.registry, SharedRegistry)
             latched = SharedLatched(config.cluster, self.core.latched,
                                     functools.partial(firstframes.sender_may_send, self.core))
+            sessions = SharedSessions(config.cluster, config.limits.session_expiry_s)
+            self.core.use_shared_sessions(sessions)
             self.core.use_fanout(NatsFanout(
                 self.core.local, self.core.on_remote, config.cluster, self.registry, latched,
-                functools.partial(firstframes.on_remote_keyframe_request, self.core)))
+                functools.partial(firstframes.on_remote_keyframe_request, self.core),
+                sessions))
         self.recordings = (RecordingsEndpoint(self.recorder) if self.recorder is not None
                            else None)
         self.reloader = AuthReloader(config.auth_map, self.core.reload_auth, self.metrics)

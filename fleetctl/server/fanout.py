@@ -57,9 +57,14 @@ class LocalFanout:
         self.sessions = sessions
 
     def publish(self, topic: str, frame: bytes, no_drop: bool, message_id: int | None) -> None:
+        if not no_drop:
+            for receiver in self.receivers(topic):
+                receiver.outbound.push(topic, frame, False, message_id)
+            return
         for receiver in self.receivers(topic):
-            receiver.outbound.push(topic, frame, no_drop, message_id)
-        if no_drop and self.sessions.has_offline:
+            if not receiver.stream_fed:  # a cluster's session: fed from its stream
+                receiver.outbound.push(topic, frame, True, message_id)
+        if self.sessions.has_offline:
             self.sessions.deliver(topic, frame)
 
     def forward_keyframe_request(self, frame: bytes) -> bool:

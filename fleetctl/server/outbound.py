@@ -307,6 +307,17 @@ class OutboundScheduler:
             self._retired += 1
 
     @property
+    def acked_total(self) -> int:
+        """no_drop frames acknowledged since tracking began (a session's stream cursor
+        follows this count)."""
+        return self._retired
+
+    @property
+    def no_drop_queued(self) -> int:
+        """Live no_drop frames queued (the FIFO's bound counts these)."""
+        return len(self._no_drop) - self._backlog_left
+
+    @property
     def unacked_frames(self) -> int:
         """no_drop frames popped but not yet acknowledged (0 when not tracking)."""
         return len(self._unacked) if self._unacked is not None else 0

@@ -62,6 +62,8 @@ class Peer:
         self.throttled = False
         self.is_robot = False
         self.closing = False
+        # Its no_drop frames come from the cluster's session stream, not the fan-out.
+        self.stream_fed = False
         self.malformed_in_row = 0
         self.over_limit_subscriptions = 0
         self.robots: set[str] = set()

@@ -31,7 +31,12 @@ from fleetctl.server.peer import Peer
 from fleetctl.server.permissions import Permissions, PermissionsPool
 from fleetctl.server.regex import compile_full
 from fleetctl.server.registry import RobotRegistry, robot_name
-from fleetctl.server.sessions import BadSessionName, SessionTable, check_session_name
+from fleetctl.server.sessions import (
+    BadSessionName,
+    Session,
+    SessionTable,
+    check_session_name,
+)
 from fleetctl.server.sessionstore import SessionStore
 from fleetctl.server.subscriptions import Refusal, SubscriptionMap
 from fleetctl.wire.control import KEYFRAME_REQUESTS_TOPIC
@@ -40,6 +45,7 @@ from fleetctl.wire.fragments import read_fragment_id
 from fleetctl.wire.metadata import read_root
 
 if TYPE_CHECKING:
+    from fleetctl.server.cluster.sharedsessions import SharedSessions
     from fleetctl.server.foxglove.catalog import TopicCatalog
     from fleetctl.server.recording.recorder import Recorder
 
@@ -103,8 +109,10 @@ class RelayCore:
         self._no_drop_res = tuple(compile_full(p) for p in config.no_drop_topics)
         self._no_drop_memo: dict[str, bool] = {}
         self._next_id = 0
+        # A cluster keeps sessions in NATS (use_shared_sessions), not in SQLite.
         self.sessions: SessionTable[Peer] = SessionTable(
-            config.limits, _session_store(registry), metrics, clock)
+            config.limits, _session_store(registry) if config.cluster is None else None,
+            metrics, clock)
         self.sessions.load(auth, self.pool)
         # The default fan-out; RelayServer swaps in a NATS one for a cluster (use_fanout).
         self.local = LocalFanout(self.subs, self.sessions)
@@ -284,6 +292,11 @@ class RelayCore:
         assert not len(self.subs), "set the fan-out before serving"
         self.fanout = fanout
 
+    def use_shared_sessions(self, shared: SharedSessions) -> None:
+        """Keep named sessions in the cluster's shared records and stream."""
+        assert not len(self.sessions), "set the shared sessions before serving"
+        self.sessions.shared = shared
+
     def _follow(self, pattern: str, delta: int) -> None:
         self.fanout.follow(pattern, delta)
 
@@ -404,11 +417,13 @@ class RelayCore:
             self._bad_session(peer, f"identity holds {self.limits.max_sessions_per_identity}"
                                     " sessions already")
             return
-        resumed = session is existing
+        resumed = session.resumed
         peer.session = session
         backlog = session.mailbox.take()
         patterns = list(session.patterns)
         peer.outbound.track_acks()
+        if self.sessions.shared is not None:
+            self._feed_from_stream(peer, session)
         peer.outbound.push_control(protocol.session(name, resumed, len(backlog), patterns))
         peer.outbound.push_backlog(backlog)
         for pattern in patterns:  # the client's own resubscribe is then a no-op
@@ -425,10 +440,40 @@ class RelayCore:
                      session.metric_id)
 
     def _detach_session(self, peer: Peer) -> None:
-        """*peer* leaves its session: what it may not have delivered goes to the mailbox."""
+        """*peer* leaves its session: what it may not have delivered goes to the mailbox
+        (in a cluster: stays in the stream, after the session's cursor)."""
         session, peer.session = peer.session, None
         assert session is not None
-        self.sessions.detach(session, peer.outbound.take_no_drop())
+        shared = self.sessions.shared
+        if shared is None:
+            self.sessions.detach(session, peer.outbound.take_no_drop())
+            return
+        peer.stream_fed = False
+        shared.detach(session.key, ended=not session.patterns)  # reads the acks first
+        peer.outbound.take_no_drop()
+        self.sessions.detach(session, ())
+
+    def _feed_from_stream(self, peer: Peer, session: Session[Peer]) -> None:
+        """In a cluster the session's no_drop frames come from the shared stream."""
+        assert self.sessions.shared is not None
+        peer.stream_fed = True
+
+        def wants(topic: str) -> bool:
+            return peer in self.subs.receivers(topic)
+
+        def is_open() -> bool:
+            return peer.session is session and not peer.closing
+
+        def taken() -> None:  # another replica's connection attached to it: newer
+            if peer.session is not session:
+                return
+            self.subs.remove(peer)
+            self._detach_session(peer)
+            self.close_with(peer, protocol.CLOSE_SESSION_TAKEN_OVER,
+                            "session taken over by a newer connection (another replica)")
+
+        self.sessions.shared.attach(session.key, session.patterns, peer.outbound, wants,
+                                    is_open, taken)
 
     def _bad_session(self, peer: Peer, message: str) -> None:
         self.send_error(peer, "bad_session", None, message)

@@ -31,7 +31,7 @@ import sqlite3
 import time
 from collections import deque
 from collections.abc import Callable, Iterable, Iterator
-from typing import Generic, TypeVar
+from typing import TYPE_CHECKING, Generic, TypeVar
 
 from fleetctl.server.authmap import AuthMap
 from fleetctl.server.config import ServerLimits
@@ -39,6 +39,9 @@ from fleetctl.server.metrics import Metrics
 from fleetctl.server.permissions import Permissions, PermissionsPool
 from fleetctl.server.sessionstore import SessionStore
 from fleetctl.server.subscriptions import Refusal, SubscriptionMap
+
+if TYPE_CHECKING:
+    from fleetctl.server.cluster.sharedsessions import SharedSessions
 
 log = logging.getLogger("fleetctl.server")
 
@@ -143,7 +146,7 @@ class Session(Generic[C]):
     """
 
     __slots__ = ("attached", "dropped", "key", "label", "mailbox", "metric_id",
-                 "offline_since_s", "overflowing", "patterns", "perms")
+                 "offline_since_s", "overflowing", "patterns", "perms", "resumed")
 
     def __init__(self, key: SessionKey, perms: Permissions, mailbox: Mailbox) -> None:
         self.key = key
@@ -156,6 +159,7 @@ class Session(Generic[C]):
         self.offline_since_s: float | None = None
         self.dropped = 0
         self.overflowing = 0
+        self.resumed = False
 
 
 class SessionTable(Generic[C]):
@@ -185,6 +189,9 @@ class SessionTable(Generic[C]):
         self._offline_count = 0
         # Read by the relay's hot path: any offline session to mailbox for?
         self.has_offline = False
+        # In a cluster: the replicas' shared records and stream (set by the relay core);
+        # offline sessions then live there only, with no mailbox here.
+        self.shared: SharedSessions | None = None
 
     def __len__(self) -> int:
         return len(self._sessions)
@@ -274,10 +281,18 @@ class SessionTable(Generic[C]):
         """
         session = self._sessions.get(key)
         if session is None:
-            if self._per_identity.get(key[0], 0) >= self.limits.max_sessions_per_identity:
+            shared = self.shared
+            record = shared.lookup(key) if shared is not None else None
+            held = (shared.count(key[0]) if shared is not None
+                    else self._per_identity.get(key[0], 0))
+            if record is None and held >= self.limits.max_sessions_per_identity:
                 return None
             session = self._new(key, perms)
+            session.resumed = record is not None
+            if record is not None:
+                session.patterns = dict.fromkeys(record.patterns)
         else:
+            session.resumed = True
             self._set_online(session)
         assert session.attached is None, "detach the previous connection first"
         session.attached = conn
@@ -289,7 +304,7 @@ class SessionTable(Generic[C]):
         have delivered, in order) go into the mailbox. A session without patterns ends.
         """
         session.attached = None
-        if not session.patterns:
+        if not session.patterns or self.shared is not None:  # shared: kept by the replicas
             self._forget(session)
             return
         mailbox = session.mailbox
@@ -434,9 +449,13 @@ class SessionTable(Generic[C]):
             job()
 
     def _persist(self, session: Session[C]) -> None:
-        if self._store is not None:
+        if self.shared is not None:
+            self.shared.changed(session.key)
+        elif self._store is not None:
             self._changes[session.key] = tuple(session.patterns)
 
     def _persist_delete(self, key: SessionKey) -> None:
-        if self._store is not None:
+        if self.shared is not None:
+            self.shared.changed(key)  # deleted when its connection leaves without patterns
+        elif self._store is not None:
             self._changes[key] = None

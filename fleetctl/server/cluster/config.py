@@ -15,6 +15,7 @@ Example::
       publish_queue_bytes: 16777216
       connect_timeout_s: 2
       state_replicas: 1                  # copies of the shared robot registry (3 on 3 nodes)
+      session_stream_bytes: 1073741824   # no_drop frames kept for sessions, all replicas
 
 Only paths are kept: the secret is read when connecting, so it is in no repr or log line.
 """
@@ -32,7 +33,8 @@ from fleetctl.errors import ConfigError
 from fleetctl.server.configsection import section
 
 _KEYS = {"name", "nats_urls", "credentials", "subject_prefix", "publish_queue_frames",
-         "publish_queue_bytes", "connect_timeout_s", "state_replicas"}
+         "publish_queue_bytes", "connect_timeout_s", "state_replicas",
+         "session_stream_bytes"}
 _CRED_KEYS = {"creds_file", "nkey_seed_file", "user", "password_file"}
 _SCHEMES = {"nats", "tls"}
 # A subject token of our own (the prefix) and a replica name: no NATS wildcards or dots.
@@ -87,6 +89,9 @@ class ClusterConfig:
         state_replicas: Copies JetStream keeps of the shared state (the robot registry's
             KV bucket): 1 survives a replica's death, 3 on a 3-node NATS cluster also a
             NATS node's (JetStream allows 1 to 5).
+        session_stream_bytes: Bytes of no_drop frames the sessions' JetStream stream
+            keeps for every replica's sessions together (oldest out first; also bounded
+            in age by ``session_expiry_s``).
     """
 
     name: str
@@ -97,6 +102,7 @@ class ClusterConfig:
     publish_queue_bytes: int = 16 * 1024 * 1024
     connect_timeout_s: float = 2.0
     state_replicas: int = 1
+    session_stream_bytes: int = 1024 * 1024 * 1024
 
 
 def parse_cluster(value: Any, base: Path, path: Path) -> ClusterConfig | None:
@@ -117,6 +123,8 @@ def parse_cluster(value: Any, base: Path, path: Path) -> ClusterConfig | None:
         publish_queue_bytes=_positive(value, "publish_queue_bytes", 16 * 1024 * 1024, path),
         connect_timeout_s=float(_positive(value, "connect_timeout_s", 2.0, path)),
         state_replicas=_state_replicas(value, path),
+        session_stream_bytes=_positive(value, "session_stream_bytes", 1024 * 1024 * 1024,
+                                       path),
     )
 
 

@@ -42,6 +42,7 @@ from fleetctl.server.cluster.config import ClusterConfig, ClusterStartError
 from fleetctl.server.cluster.interest import Interest
 from fleetctl.server.cluster.sharedlatched import SharedLatched
 from fleetctl.server.cluster.sharedregistry import SharedRegistry
+from fleetctl.server.cluster.sharedsessions import SharedSessions
 from fleetctl.server.cluster.subjects import (
     control_subject,
     is_control_subject,
@@ -85,14 +86,18 @@ class NatsFanout:
         latched: The shared latched messages, likewise.
         on_keyframe_request: Handles another replica's keyframe request (a
             ``KeyframeRequest`` frame; ``firstframes.on_remote_keyframe_request``).
+        sessions: The shared sessions (every local no_drop frame is also stored in their
+            stream), likewise.
     """
 
     def __init__(self, local: LocalFanout, on_remote: Callable[[bytes], None],
                  config: ClusterConfig, registry: SharedRegistry | None = None,
                  latched: SharedLatched | None = None,
-                 on_keyframe_request: Callable[[bytes], None] | None = None) -> None:
+                 on_keyframe_request: Callable[[bytes], None] | None = None,
+                 sessions: SharedSessions | None = None) -> None:
         self.registry = registry
         self.latched = latched
+        self.sessions = sessions
         self._on_keyframe_request = on_keyframe_request
         self.keyframe_subject = control_subject(config.subject_prefix, "keyframe")
         self._local = local.publish
@@ -121,6 +126,8 @@ class NatsFanout:
 
     def publish(self, topic: str, frame: bytes, no_drop: bool, message_id: int | None) -> None:
         self._local(topic, frame, no_drop, message_id)
+        if no_drop and self.sessions is not None:
+            self.sessions.offer(topic, frame)
         subject = self._subjects.get(topic)
         if subject is None:
             subject = self._subject(topic)
@@ -208,9 +215,9 @@ class NatsFanout:
 
     # -- state -------------------------------------------------------------------------
 
-    def _shared(self) -> list[SharedRegistry | SharedLatched]:
+    def _shared(self) -> list[SharedRegistry | SharedLatched | SharedSessions]:
         """The state kept in JetStream, in start order."""
-        return [s for s in (self.registry, self.latched) if s is not None]
+        return [s for s in (self.registry, self.latched, self.sessions) if s is not None]
 
     @property
     def connected(self) -> bool:

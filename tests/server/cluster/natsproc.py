@@ -104,13 +104,20 @@ class NatsServer:
                 f"nats-server {self.name} exited: {self.log_tail()}"
             try:
                 if (self.monitor("/healthz").get("status") == "ok"
-                        and int(str(self.monitor("/routez").get("num_routes", 0))) >= routes):
+                        and int(str(self.monitor("/routez").get("num_routes", 0))) >= routes
+                        and (not routes or self._meta_leader())):
                     return
             except OSError:
                 pass
             assert time.monotonic() < deadline, \
                 f"nats-server {self.name} not ready in {timeout_s:g} s: {self.log_tail()}"
             time.sleep(0.05)  # polling interval of a deadline-bounded wait
+
+    def _meta_leader(self) -> bool:
+        """JetStream has elected its meta leader (a cluster's streams and buckets can be
+        created; ``/healthz`` says ok before that)."""
+        meta = self.monitor("/jsz").get("meta_cluster")
+        return isinstance(meta, dict) and bool(meta.get("leader"))
 
     def client_subjects(self, client_name: str) -> list[str]:
         """Subjects the connection named *client_name* subscribes to (``/connz``)."""

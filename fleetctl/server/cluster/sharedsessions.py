@@ -1,0 +1,474 @@
+"""Named sessions shared by relay replicas: records in JetStream KV, no_drop frames in a
+JetStream stream (issue 15; docs/scaling.md, "Sessions").
+
+Why: a session's mailbox used to live in the memory of the replica its connection was
+on; when that replica died, so did what the session had missed. In a cluster nothing of a
+session lives only in one replica:
+
+- **Every no_drop frame** a replica accepts from a local sender is also published to the
+  stream ``<prefix>_nodrop`` (subjects ``<prefix>_nd.<topic as subject>``), with a
+  ``Nats-Msg-Id`` of the frame's digest, so a robot's resend of the same frame through
+  another replica is stored once. Retention: ``session_expiry_s``, at most
+  ``cluster.session_stream_bytes``, oldest out first.
+- **Every session** is a record in the KV bucket ``<prefix>_sessions``
+  (:mod:`~fleetctl.server.cluster.sessionrecord`): its patterns, its cursor in the
+  stream, the replica that holds its connection. Records expire ``session_expiry_s`` after
+  their last write; the holding replica rewrites its records at least every
+  :data:`REFRESH_S`.
+- **A session's connection** gets its no_drop frames from the stream
+  (:class:`~fleetctl.server.cluster.sessionfeed.SessionFeed`), after the record's
+  cursor, never from the live fan-out: resumed on any replica, it gets what it missed, in
+  stream order, then the live frames.
+- **Takeover**: attaching writes the record unconditionally (the newest connection wins,
+  as on one server); every later write of the replica is conditional on its own last
+  revision. A replica that sees its session written by another one (the watch, or a
+  refused conditional write) closes its connection with 4409.
+
+Per-frame cost: droppable frames pay nothing; a no_drop frame pays one JetStream publish
+(acknowledged, pipelined) and, per attached session on any replica, one stream delivery.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import datetime
+import hashlib
+import logging
+import time
+from collections import deque
+from collections.abc import Callable, Iterable
+from dataclasses import dataclass, field
+from typing import TYPE_CHECKING
+
+from nats.aio.client import Client
+from nats.errors import Error as NatsError
+from nats.errors import MaxPayloadError
+from nats.js import JetStreamContext, api
+from nats.js.errors import APIError, KeyWrongLastSequenceError
+from nats.js.errors import Error as JetStreamError
+from nats.js.kv import KeyValue
+
+from fleetctl.server.cluster import kvloops
+from fleetctl.server.cluster.config import ClusterConfig, ClusterStartError
+from fleetctl.server.cluster.sessionfeed import SessionFeed
+from fleetctl.server.cluster.sessionrecord import (
+    SessionKey,
+    SessionRecord,
+    decode_record,
+    encode_record,
+    parse_record_key,
+    record_key,
+)
+from fleetctl.server.cluster.subjects import topic_subject
+from fleetctl.server.fanout import MetricFamily
+
+if TYPE_CHECKING:
+    from fleetctl.server.outbound import OutboundScheduler
+
+log = logging.getLogger("fleetctl.server.cluster")
+
+# A held session's record is rewritten at least this often (its bucket's TTL is the
+# session expiry, an hour by default).
+REFRESH_S = 60.0
+# How often cursors and pattern changes are written (a crash replays at most about this
+# much, which the clients drop as duplicates).
+WRITE_S = 0.5
+RETRY_S = 1.0
+# Publishes in flight to the stream at once (pipelined on the one NATS connection).
+_PUBLISH_BATCH = 64
+_MAX_SUBJECT_BYTES = 3072
+DUPLICATE_WINDOW_S = 120.0
+
+
+def stream_name(config: ClusterConfig) -> str:
+    return f"{config.subject_prefix}_nodrop"
+
+
+def stream_root(config: ClusterConfig) -> str:
+    """The first token of the stream's subjects (apart from the live ones, so that a
+    replica subscribed to ``<prefix>.>`` does not hear them)."""
+    return f"{config.subject_prefix}_nd"
+
+
+def bucket_name(config: ClusterConfig) -> str:
+    return f"{config.subject_prefix}_sessions"
+
+
+@dataclass
+class _Held:
+    """A session whose record this replica writes."""
+
+    patterns: dict[str, None]  # the session's own (live) pattern dict
+    since: float
+    cursor: int | None
+    revision: int | None  # of the record this replica's state is based on
+    feed: SessionFeed | None = None
+    task: asyncio.Task[None] | None = None
+    attached: bool = True
+    fresh_attach: bool = True  # the attach itself is not written yet
+    ended: bool = False
+    written_s: float = 0.0
+    written_cursor: int | None = None
+    dirty: bool = True
+    on_taken: Callable[[], None] | None = field(default=None, repr=False)
+
+
+class SharedSessions:
+    """The replica's side of shared sessions.
+
+    Args:
+        config: This replica's cluster section.
+        expiry_s: ``session_expiry_s``: how long a record and a stored frame live.
+        clock: Wall clock in seconds (a new session's start, record age).
+    """
+
+    def __init__(self, config: ClusterConfig, expiry_s: float,
+                 clock: Callable[[], float] = time.time) -> None:
+        self.config = config
+        self.expiry_s = expiry_s
+        self._clock = clock
+        self._stream = stream_name(config)
+        self._root = stream_root(config)
+        self._records: dict[SessionKey, tuple[SessionRecord, int, float]] = {}
+        self._held: dict[SessionKey, _Held] = {}
+        self._queue: deque[tuple[str, bytes]] = deque()
+        self._queued_bytes = 0
+        self._subjects: dict[str, str] = {}
+        self._publish_wake = asyncio.Event()
+        self._write_wake = asyncio.Event()
+        self._js: JetStreamContext | None = None
+        self._kv: KeyValue | None = None
+        self._tasks: list[asyncio.Task[None]] = []
+        self.counters = {"stored": 0, "duplicates": 0, "store_failures": 0, "refused": 0,
+                         "queue_full": 0, "subject_too_long": 0, "puts": 0,
+                         "put_failures": 0, "deletes": 0, "taken_over": 0, "malformed": 0,
+                         "feed_failures": 0, "delivered": 0}
+
+    # -- life cycle -----------------------------------------------------------------------
+
+    async def start(self, nc: Client) -> None:
+        """Create (or update) the stream and the bucket, load the records, start the
+        tasks.
+
+        Raises:
+            ClusterStartError: JetStream refuses the stream or the bucket (names the field).
+        """
+        self._js = js = nc.jetstream()
+        stream = api.StreamConfig(
+            name=self._stream, subjects=[f"{self._root}.>"],
+            retention=api.RetentionPolicy.LIMITS, discard=api.DiscardPolicy.OLD,
+            max_age=self.expiry_s, max_bytes=self.config.session_stream_bytes,
+            storage=api.StorageType.FILE, num_replicas=self.config.state_replicas,
+            duplicate_window=min(DUPLICATE_WINDOW_S, self.expiry_s))
+        try:
+            try:
+                await js.add_stream(stream)
+            except APIError:  # it exists with other limits: take this replica's config
+                await js.update_stream(stream)
+        except (TimeoutError, JetStreamError) as exc:
+            raise ClusterStartError(
+                f"field 'cluster.state_replicas': cannot create the sessions' JetStream "
+                f"stream {self._stream!r} with {self.config.state_replicas} replica(s): "
+                f"{exc!r}") from exc
+        self._kv = await kvloops.open_bucket(nc, self.config, bucket_name(self.config),
+                                             "the sessions'", ttl=self.expiry_s)
+        watcher = await self._kv.watchall()
+        self._tasks = [asyncio.create_task(self._watch(watcher)),
+                       asyncio.create_task(self._write_loop()),
+                       asyncio.create_task(self._publish_loop())]
+        self._publish_wake.set()
+
+    async def stop(self) -> None:
+        """Write the held sessions' cursors (best effort), stop every feed and task."""
+        for held in self._held.values():
+            if held.task is not None:
+                held.task.cancel()
+        await kvloops.stop(self.write_due, self._tasks)
+        for held in list(self._held.values()):
+            if held.feed is not None:
+                await held.feed.stop()
+        self._tasks = []
+
+    # -- what the session table asks --------------------------------------------------------
+
+    def lookup(self, key: SessionKey) -> SessionRecord | None:
+        """The session's record (held here or from the bucket), ``None`` if there is none
+        or it expired."""
+        held = self._held.get(key)
+        if held is not None and not held.ended:
+            return SessionRecord(tuple(held.patterns), held.cursor, held.since, None)
+        entry = self._records.get(key)
+        if entry is None:
+            return None
+        record, _, written_s = entry
+        if self._clock() - written_s > self.expiry_s:
+            del self._records[key]
+            return None
+        return record
+
+    def count(self, identities: tuple[str, ...]) -> int:
+        """Sessions of *identities* the replicas know of."""
+        keys = {k for k in self._records if k[0] == identities}
+        keys.update(k for k, h in self._held.items() if k[0] == identities and not h.ended)
+        return len(keys)
+
+    def attach(self, key: SessionKey, patterns: dict[str, None], outbound: OutboundScheduler,
+               wants: Callable[[str], bool], is_open: Callable[[], bool],
+               on_taken: Callable[[], None]) -> None:
+        """A connection attached to session *key* here: start its feed after the record's
+        cursor (or from now, for a new session) and write the record with this replica as
+        its owner."""
+        previous = self._held.pop(key, None)
+        if previous is not None:
+            self._stop_feed(previous)
+        record = self.lookup(key) if previous is None else SessionRecord(
+            (), previous.cursor, previous.since, None)
+        entry = self._records.get(key)
+        held = _Held(patterns=patterns,
+                     since=record.since if record is not None else self._clock(),
+                     cursor=record.cursor if record is not None else None,
+                     revision=previous.revision if previous is not None
+                     else (entry[1] if entry is not None else None),
+                     on_taken=on_taken)
+        held.feed = SessionFeed(outbound, wants, is_open, held.cursor, held.since,
+                                self._count_malformed)
+        held.task = asyncio.create_task(self._run_feed(held))
+        self._held[key] = held
+        self._write_wake.set()
+
+    def changed(self, key: SessionKey) -> None:
+        """The held session's patterns changed."""
+        held = self._held.get(key)
+        if held is not None:
+            held.dirty = True
+            self._write_wake.set()
+
+    def detach(self, key: SessionKey, ended: bool) -> None:
+        """The held session's connection is gone: stop its feed; write it offline at the
+        last acknowledged frame, or delete it when *ended* (no pattern left)."""
+        held = self._held.get(key)
+        if held is None:
+            return
+        if held.feed is not None:
+            held.cursor = held.feed.settle()
+        self._stop_feed(held)
+        held.attached = False
+        held.ended = ended
+        held.dirty = True
+        self._write_wake.set()
+
+    def offer(self, topic: str, frame: bytes) -> None:
+        """Store a no_drop frame a local sender sent (queued, bounded, counted)."""
+        if (len(self._queue) >= self.config.publish_queue_frames
+                or self._queued_bytes + len(frame) > self.config.publish_queue_bytes):
+            self.counters["queue_full"] += 1
+            return
+        subject = self._subjects.get(topic)
+        if subject is None:
+            subject = topic_subject(self._root, topic)
+            if len(self._subjects) >= 16384:
+                self._subjects.clear()
+            self._subjects[topic] = subject
+        self._queue.append((subject, frame))
+        self._queued_bytes += len(frame)
+        if len(self._queue) == 1:
+            self._publish_wake.set()
+
+    # -- feeds ----------------------------------------------------------------------------
+
+    async def _run_feed(self, held: _Held) -> None:
+        """Start *held*'s consumer; retry while NATS refuses (the connection waits)."""
+        feed = held.feed
+        assert feed is not None
+        while True:
+            js = self._js
+            if js is not None:
+                try:
+                    await feed.start(js, self._stream, f"{self._root}.>")
+                    return
+                except (TimeoutError, NatsError) as exc:
+                    self.counters["feed_failures"] += 1
+                    if self.counters["feed_failures"] == 1:
+                        log.warning("replica %s: cannot read the sessions' stream: %r; "
+                                    "retrying every %.0f s", self.config.name, exc, RETRY_S)
+            await asyncio.sleep(RETRY_S)  # a retry pace, not a synchronization
+
+    def _stop_feed(self, held: _Held) -> None:
+        if held.task is not None:
+            held.task.cancel()
+            held.task = None
+        feed, held.feed = held.feed, None
+        if feed is not None:
+            self.counters["delivered"] += feed.delivered
+            if feed.running:
+                task = asyncio.create_task(feed.stop())
+                task.add_done_callback(lambda _: None)
+                self._tasks.append(task)
+                self._tasks = [t for t in self._tasks if not t.done()]
+
+    def _count_malformed(self) -> None:
+        self.counters["malformed"] += 1
+
+    # -- the bucket ------------------------------------------------------------------------
+
+    async def _watch(self, watcher: KeyValue.KeyWatcher) -> None:
+        async for entry in watcher:
+            if entry is None:
+                continue
+            self.on_entry(entry.key, entry.value, entry.operation, entry.revision or 0,
+                          entry.created)
+
+    def on_entry(self, name: str, value: bytes | None, operation: str | None,
+                 revision: int, created: datetime.datetime | None) -> None:
+        """One bucket entry: mirror it; a held session written by another replica is
+        taken over."""
+        try:
+            key = parse_record_key(name)
+        except ValueError:
+            self.counters["malformed"] += 1
+            return
+        if operation in ("DEL", "PURGE") or not value:
+            self._records.pop(key, None)
+            record = None
+        else:
+            try:
+                record = decode_record(value)
+            except ValueError:
+                self.counters["malformed"] += 1
+                return
+            written_s = created.timestamp() if created is not None else self._clock()
+            self._records[key] = (record, revision, written_s)
+        held = self._held.get(key)
+        if held is None or held.revision == revision:
+            return
+        if held.attached and not held.fresh_attach and (
+                record is None or record.owner != self.config.name):
+            self._taken(key, held)
+
+    def _taken(self, key: SessionKey, held: _Held) -> None:
+        """Another replica wrote the session we hold: its connection there is newer."""
+        self.counters["taken_over"] += 1
+        self._stop_feed(held)
+        self._held.pop(key, None)
+        if held.attached and held.on_taken is not None:
+            held.on_taken()
+
+    async def _write_loop(self) -> None:
+        async def tick() -> None:
+            with contextlib.suppress(TimeoutError):
+                await asyncio.wait_for(self._write_wake.wait(), WRITE_S)
+            self._write_wake.clear()
+
+        await kvloops.write_forever(tick, self.write_due, self.counters, "shared sessions",
+                                    RETRY_S)
+
+    async def write_due(self) -> int:
+        """Write every held session whose record changed (patterns, cursor, owner) or is
+        due for a refresh; return how many writes succeeded."""
+        kv = self._kv
+        if kv is None:
+            return 0
+        now = self._clock()
+        done = 0
+        for key, held in list(self._held.items()):
+            if held.feed is not None:
+                held.cursor = held.feed.settle()
+            if not (held.dirty or held.cursor != held.written_cursor
+                    or now - held.written_s >= REFRESH_S):
+                continue
+            try:
+                await self._write_one(kv, key, held, now)
+                done += 1
+            except KeyWrongLastSequenceError:
+                self._taken(key, held)
+            except (TimeoutError, NatsError):
+                self.counters["put_failures"] += 1
+        return done
+
+    async def _write_one(self, kv: KeyValue, key: SessionKey, held: _Held, now: float) -> None:
+        name = record_key(key)
+        held.dirty = False
+        if held.ended:
+            await kv.delete(name, last=held.revision)
+            self.counters["deletes"] += 1
+            self._forget(key, held)
+            return
+        attached = held.attached  # it may detach while the write is under way
+        record = SessionRecord(tuple(held.patterns), held.cursor, held.since,
+                               self.config.name if attached else None)
+        value = encode_record(record)
+        if attached and held.fresh_attach:
+            revision = await kv.put(name, value)  # the newest connection wins
+            held.fresh_attach = False
+        elif held.revision is None:
+            revision = await kv.create(name, value)
+        else:
+            revision = await kv.update(name, value, last=held.revision)
+        self.counters["puts"] += 1
+        held.revision = revision
+        held.written_s = now
+        held.written_cursor = record.cursor
+        self._records[key] = (record, revision, now)
+        if not attached and not held.dirty:  # written offline, nothing newer: the
+            self._forget(key, held)          # bucket holds it now
+
+    def _forget(self, key: SessionKey, held: _Held) -> None:
+        if self._held.get(key) is held:
+            del self._held[key]
+        if held.ended:
+            self._records.pop(key, None)
+
+    # -- the stream ------------------------------------------------------------------------
+
+    async def _publish_loop(self) -> None:
+        queue, wake = self._queue, self._publish_wake
+        while True:
+            if not queue:
+                wake.clear()
+                await wake.wait()
+            js = self._js
+            assert js is not None
+            batch = [queue[i] for i in range(min(len(queue), _PUBLISH_BATCH))]
+            results = await asyncio.gather(*(self._store(js, s, f) for s, f in batch),
+                                           return_exceptions=True)
+            for result in results:
+                if isinstance(result, (TimeoutError, NatsError)) \
+                        and not isinstance(result, (APIError, MaxPayloadError)):
+                    self.counters["store_failures"] += 1
+                    await asyncio.sleep(RETRY_S)  # NATS away: keep the rest, in order
+                    break
+                subject, frame = queue.popleft()
+                self._queued_bytes -= len(frame)
+                if isinstance(result, BaseException):
+                    self.counters["refused"] += 1
+                    log.warning("replica %s: the sessions' stream refused a frame on %s "
+                                "(%d bytes): %r", self.config.name, subject, len(frame),
+                                result)
+
+    async def _store(self, js: JetStreamContext, subject: str, frame: bytes) -> None:
+        if len(subject) > _MAX_SUBJECT_BYTES:
+            self.counters["subject_too_long"] += 1
+            return
+        digest = hashlib.blake2b(frame, digest_size=16).hexdigest()
+        ack = await js.publish(subject, frame, stream=self._stream,
+                               headers={"Nats-Msg-Id": digest})
+        self.counters["duplicates" if ack.duplicate else "stored"] += 1
+
+    # -- metrics ---------------------------------------------------------------------------
+
+    def metric_families(self) -> Iterable[MetricFamily]:
+        counters = dict(self.counters)
+        counters["delivered"] += sum(h.feed.delivered for h in self._held.values()
+                                     if h.feed is not None)
+        return [
+            ("fleetctl_cluster_sessions_total", "counter",
+             "Shared sessions: no_drop frames stored in the stream (duplicates, failures, "
+             "refusals, not queued), session record writes and failures, deletes, "
+             "sessions taken over by another replica, malformed entries, consumer start "
+             "failures, frames delivered from the stream.", "event",
+             {k: float(v) for k, v in counters.items()}),
+            ("fleetctl_cluster_sessions_held", "gauge",
+             "Sessions whose connection is on this replica.", "",
+             {"": float(sum(1 for h in self._held.values() if h.attached))}),
+        ]

@@ -50,7 +50,9 @@ NATS_HEALTH_COMMAND = [
 JetStream, once the cluster elected its meta leader): `up`'s and e2e's health check."""
 MAX_REPLICAS = 8
 SUBJECT_PREFIX = "fleetctl"
-BUCKETS = ("robots", "latched")  # <prefix>_<name>: sharedregistry.py, sharedlatched.py
+# <prefix>_<name>: sharedregistry.py, sharedlatched.py, sharedsessions.py
+BUCKETS = ("robots", "latched", "sessions")
+NODROP_STREAM = "nodrop"  # <prefix>_nodrop on subjects <prefix>_nd.>: sharedsessions.py
 PASSWORD_FILE = "nats.password"
 NATS_CONF = "nats.conf"
 NATS_DATA = "/var/lib/fleetctl"  # owned by the image's fleetctl user, a volume per node
@@ -79,13 +81,15 @@ def check_count(count: int) -> int:
 
 
 def nats_permissions(prefix: str = SUBJECT_PREFIX) -> dict[str, Any]:
-    """What one replica's NATS user may do: the fleet's subjects, its KV buckets and the
-    JetStream API on them, nothing else."""
-    streams = [f"KV_{prefix}_{b}" for b in BUCKETS]
-    publish = [f"{prefix}.>", "$JS.API.INFO"]
+    """What one replica's NATS user may do: the fleet's subjects, its KV buckets, the
+    sessions' no_drop stream and the JetStream API on them, nothing else (no stream
+    delete or purge)."""
+    streams = [f"KV_{prefix}_{b}" for b in BUCKETS] + [f"{prefix}_{NODROP_STREAM}"]
+    publish = [f"{prefix}.>", f"{prefix}_nd.>", "$JS.API.INFO"]
     for stream in streams:
-        bucket = stream[3:]
-        publish += [f"$KV.{bucket}.>", f"$JS.API.STREAM.INFO.{stream}",
+        if stream.startswith("KV_"):
+            publish.append(f"$KV.{stream[3:]}.>")
+        publish += [f"$JS.API.STREAM.INFO.{stream}",
                     f"$JS.API.STREAM.CREATE.{stream}", f"$JS.API.STREAM.UPDATE.{stream}",
                     f"$JS.API.CONSUMER.CREATE.{stream}", f"$JS.API.CONSUMER.CREATE.{stream}.>",
                     f"$JS.API.CONSUMER.DELETE.{stream}.>", f"$JS.API.CONSUMER.INFO.{stream}.>",

@@ -19,6 +19,12 @@ web page decodes them (:mod:`fleetctl.e2e.videoview`: refused after a lost refer
 keyframe requests while waiting); their samples say whether and when each was shown.
 SIGTERM closes the connections and flushes the files; the exit code is 1 when a
 connection failed.
+
+``--session NAME`` names a session (``X-Fleetctl-Session: NAME-I``), and ``--url`` given
+more than once is a failover list: such a consumer does not fail when its connection
+ends, it reconnects to the next URL (as the robot client does) and resumes its session
+there; its duplicate filter and files carry on across connections. Each reconnection is
+one ``reconnected`` line on stderr.
 """
 
 from __future__ import annotations
@@ -37,7 +43,9 @@ from pathlib import Path
 from typing import Any, TextIO
 
 from websockets.asyncio.client import ClientConnection, connect
+from websockets.exceptions import ConnectionClosed
 
+from fleetctl.client.transport import SESSION_HEADER
 from fleetctl.client.videobits import is_keyframe
 from fleetctl.e2e.payloads import read_stamp
 from fleetctl.e2e.samples import Sample, dump
@@ -53,6 +61,8 @@ MAX_FRAME_BYTES = 32 * 1024 * 1024
 REASSEMBLY_MAX_BYTES = 64 * 1024 * 1024
 REASSEMBLY_TIMEOUT_S = 10.0
 SUBSCRIBE_TIMEOUT_S = 10.0
+# Between the end of a connection and the next attempt (failover consumers).
+RECONNECT_PAUSE_S = 0.1
 
 
 class Recorder:
@@ -157,49 +167,72 @@ class Tls:
         return {"ssl": context, **({"server_hostname": self.name} if self.name else {})}
 
 
-async def consume(url: str, token: str, regex: str, name: str, out_dir: Path,
-                  tls: Tls = Tls()) -> None:
-    """One connection: subscribe to *regex*, record until cancelled.
+async def consume(urls: list[str], token: str, regex: str, name: str, out_dir: Path,
+                  tls: Tls = Tls(), session: str | None = None) -> None:
+    """Subscribe to *regex* and record until cancelled: over one connection, or, with a
+    session or several URLs, over as many as it takes (the next URL after each end).
 
     Raises:
         FleetError: the server refused the subscription or did not answer in time.
-        OSError, ConnectionClosed: the connection failed.
+        OSError, ConnectionClosed: the connection failed (one URL, no session).
     """
     loop = asyncio.get_running_loop()
+    headers = {"Authorization": f"Bearer {token}"}
+    if session is not None:
+        headers[SESSION_HEADER] = session
+    failover = len(urls) > 1 or session is not None
+    requests = itertools.count(1)
+    current: list[ClientConnection] = []
+
+    def request(topic: str) -> None:  # from the viewer's thread
+        frame = encode_keyframe_request(topic, publish_time_ns=time.time_ns(),
+                                        seq=next(requests))
+        if current:
+            ws = current[-1]
+            loop.call_soon_threadsafe(lambda: asyncio.ensure_future(ws.send(frame)))
+
     with (out_dir / f"{name}.jsonl").open("a", buffering=1) as out:
-        async with connect(url, additional_headers={"Authorization": f"Bearer {token}"},
-                           max_size=MAX_FRAME_BYTES, max_queue=None, **tls.kwargs(url)) as ws:
-            # max_queue=None: frames are read as fast as they come; this process must not
-            # be the bottleneck that delays receipt (the socket buffer is the only bound).
+        recorder = Recorder(name, out)
+        recorder.viewer = VideoViewer(recorder.write, request)
+        try:
+            for attempt in itertools.count():
+                url = urls[attempt % len(urls)]
+                try:
+                    # max_queue=None: frames are read as fast as they come; this process
+                    # must not be the bottleneck that delays receipt.
+                    async with connect(url, additional_headers=headers,
+                                       max_size=MAX_FRAME_BYTES, max_queue=None,
+                                       open_timeout=SUBSCRIBE_TIMEOUT_S,
+                                       **tls.kwargs(url)) as ws:
+                        current.append(ws)
+                        await asyncio.wait_for(_subscribe(ws, regex), SUBSCRIBE_TIMEOUT_S)
+                        (out_dir / f"{name}.ready").write_text("ok")
+                        if attempt:
+                            print(f"e2e consumer {name}: reconnected to {url}",
+                                  file=sys.stderr)
+                        async for frame in ws:
+                            if isinstance(frame, bytes):
+                                recorder.feed(frame, time.time_ns())
+                except (OSError, TimeoutError, ConnectionClosed):
+                    if not failover:
+                        raise
+                if not failover:
+                    return
+                await asyncio.sleep(RECONNECT_PAUSE_S)  # a retry pace, as the client's
+        finally:
+            await asyncio.to_thread(recorder.viewer.close)
 
-            requests = itertools.count(1)
 
-            def request(topic: str) -> None:  # from the viewer's thread
-                frame = encode_keyframe_request(topic, publish_time_ns=time.time_ns(),
-                                                seq=next(requests))
-                loop.call_soon_threadsafe(lambda: asyncio.ensure_future(ws.send(frame)))
-
-            recorder = Recorder(name, out)
-            recorder.viewer = VideoViewer(recorder.write, request)
-            try:
-                await asyncio.wait_for(_subscribe(ws, regex), SUBSCRIBE_TIMEOUT_S)
-                (out_dir / f"{name}.ready").write_text("ok")
-                async for frame in ws:
-                    if isinstance(frame, bytes):
-                        recorder.feed(frame, time.time_ns())
-            finally:
-                await asyncio.to_thread(recorder.viewer.close)
-
-
-async def run(url: str, token: str, regex: str, name: str, count: int, out_dir: Path,
-              tls: Tls = Tls()) -> int:
+async def run(urls: list[str], token: str, regex: str, name: str, count: int, out_dir: Path,
+              tls: Tls = Tls(), session: str | None = None) -> int:
     """Run *count* consumers until SIGTERM/SIGINT; returns the number that failed."""
     stop = asyncio.Event()
     loop = asyncio.get_running_loop()
     for signum in (signal.SIGTERM, signal.SIGINT):
         loop.add_signal_handler(signum, stop.set)
-    tasks = [asyncio.create_task(consume(url, token, regex, f"{name}-{i}", out_dir, tls))
-             for i in range(count)]
+    tasks = [asyncio.create_task(consume(
+        urls, token, regex, f"{name}-{i}", out_dir, tls,
+        None if session is None else f"{session}-{i}")) for i in range(count)]
     waiter = asyncio.create_task(stop.wait())
     await asyncio.wait([waiter, *tasks], return_when=asyncio.FIRST_COMPLETED)
     failed = 0
@@ -218,7 +251,9 @@ async def run(url: str, token: str, regex: str, name: str, count: int, out_dir: 
 def main(argv: list[str] | None = None) -> int:
     """Command line entry point (``python -m fleetctl.e2e.consumer``)."""
     parser = argparse.ArgumentParser(prog="python -m fleetctl.e2e.consumer")
-    parser.add_argument("--url", required=True)
+    parser.add_argument("--url", required=True, action="append",
+                        help="relay URL; more than once: a failover list")
+    parser.add_argument("--session", help="session name (each connection adds -I)")
     parser.add_argument("--ca-file", type=Path, help="PEM certificate to trust (wss://)")
     parser.add_argument("--tls-name", help="name the server's certificate must carry")
     parser.add_argument("--token-file", type=Path, required=True)
@@ -236,7 +271,7 @@ def main(argv: list[str] | None = None) -> int:
         print("e2e consumer: --count must be at least 1", file=sys.stderr)
         return 2
     failed = asyncio.run(run(args.url, token, args.subscribe, args.name, args.count, args.out,
-                             Tls(args.ca_file, args.tls_name)))
+                             Tls(args.ca_file, args.tls_name), args.session))
     return 1 if failed else 0
 
 

@@ -229,20 +229,24 @@ class FleetRun:
         return data
 
     def start_consumers(self, role: str, count: int, regex: str = ".*",
-                        image: str = "server", url: str | None = None) -> Endpoint:
+                        image: str = "server", url: str | list[str] | None = None,
+                        session: str | None = None) -> Endpoint:
         """Start *count* WebSocket consumers in one container; wait until all subscribed.
 
         *image* is the component image they run in: ``client`` where they must decode
         video (PyAV is in the client image only). *url*: another relay than the run's
-        server (a replica's ``wss://`` URL).
+        server (a replica's ``wss://`` URL), or a failover list of them. *session*: the
+        consumers name sessions (``<session>-<i>``) and reconnect after a close.
         """
-        ep = self.topo.start(
-            role, SERVER_SIDE, self.image(image),
-            ["python3", "-m", "fleetctl.e2e.consumer", "--url", url or self.server_url,
-             "--ca-file", f"{CONTAINER_DIR}/tls-cert.pem", "--tls-name", SERVER_ALIAS,
-             "--token-file", f"{CONTAINER_DIR}/token", "--subscribe", regex,
-             "--count", str(count), "--name", role, "--out", f"{CONTAINER_DIR}/out"],
-            mounts=self.mounts())
+        urls = [url] if isinstance(url, str) else url or [self.server_url]
+        args = ["python3", "-m", "fleetctl.e2e.consumer",
+                *(a for u in urls for a in ("--url", u)),
+                "--ca-file", f"{CONTAINER_DIR}/tls-cert.pem", "--tls-name", SERVER_ALIAS,
+                "--token-file", f"{CONTAINER_DIR}/token", "--subscribe", regex,
+                "--count", str(count), "--name", role, "--out", f"{CONTAINER_DIR}/out"]
+        if session is not None:
+            args += ["--session", session]
+        ep = self.topo.start(role, SERVER_SIDE, self.image(image), args, mounts=self.mounts())
         ready = [self.out / f"{role}-{i}.ready" for i in range(count)]
         try:
             wait_for(f"{count} consumer(s) {role} subscribed",

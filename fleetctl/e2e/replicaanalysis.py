@@ -41,7 +41,7 @@ def first_after(samples: Sequence[Sample], mark_ns: int) -> float:
 
 def replica_failure(samples: Sequence[Sample], pose: str, events: str,
                     published_events: Mapping[str, int], marks: Mapping[str, int],
-                    viewer_stayed: bool) -> dict[str, Any]:
+                    viewer_stayed: bool, resumed: Sequence[Sample] = ()) -> dict[str, Any]:
     """The result of one run.
 
     Args:
@@ -53,6 +53,9 @@ def replica_failure(samples: Sequence[Sample], pose: str, events: str,
             (``first_seq``, ``last_seq``).
         marks: ``t0``, ``nats_kill``, ``relay_kill``, ``end`` (ns since the epoch).
         viewer_stayed: The viewer on B's connection never closed.
+        resumed: The samples of the session's viewer that started on A and resumed its
+            session on B after A's kill (duplicates dropped likewise); its events must
+            arrive whole, in order, once.
     """
     topics = by_topic(samples)
     poses = topics.get(pose, [])
@@ -66,6 +69,8 @@ def replica_failure(samples: Sequence[Sample], pose: str, events: str,
                               marks["nats_kill"])
     got = topics.get(events, [])
     order = check_order(got, expected_no_drop(got, published_events))
+    session_got = [s for s in resumed if s.topic == events]
+    session = check_order(session_got, expected_no_drop(session_got, published_events))
     criteria = [
         crit("robot relaying through B after relay A's kill (s)", failover,
              FAILOVER_BOUND_S, failover <= FAILOVER_BOUND_S),
@@ -78,6 +83,11 @@ def replica_failure(samples: Sequence[Sample], pose: str, events: str,
              order.out_of_order == 0 and order.duplicates == 0),
         crit("frames cross replicas again after a NATS node's kill (s)", nats_resume,
              NATS_RESUME_BOUND_S, nats_resume <= NATS_RESUME_BOUND_S),
+        crit("session resumed on B: no_drop events missing", session.missing, 0,
+             session.missing == 0 and session.received > 0),
+        crit("session resumed on B: events out of order or duplicated",
+             session.out_of_order + session.duplicates, 0,
+             session.out_of_order == 0 and session.duplicates == 0),
     ]
     t0 = marks["t0"]
     notes = [
@@ -89,6 +99,9 @@ def replica_failure(samples: Sequence[Sample], pose: str, events: str,
         "later",
         f"no_drop events: received {order.received}, missing {order.missing}, out of order "
         f"{order.out_of_order}, duplicates {order.duplicates}",
+        f"session's viewer (A, then B after A's kill): events received {session.received}, "
+        f"missing {session.missing}, out of order {session.out_of_order}, duplicates "
+        f"{session.duplicates}",
     ]
     spans = [[(marks["nats_kill"] - t0) / 1e9, (marks["nats_kill"] - t0) / 1e9 + 0.05,
               "NATS node killed"],

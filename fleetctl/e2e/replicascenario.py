@@ -10,7 +10,9 @@ Containers, all from the fleet's images (the server image carries ``nats-server`
   ``cluster:`` section (:meth:`~fleetctl.e2e.deployment.Deployment.replica_service`);
 - the robot (load publisher + ``fleetctl client``) with ``server_url: [A, B]``, routed
   through the router like the other scenarios' robots;
-- one viewer on A and one on B (the e2e consumer, ``wss://`` with the viewer's token).
+- one viewer on A and one on B (the e2e consumer, ``wss://`` with the viewer's token);
+- a session's viewer (``X-Fleetctl-Session``) on A with ``[A, B]`` as its list: after A's
+  kill it resumes its session on B.
 
 Timeline: both viewers receive the pose and the events; quiet for ``max(3, D/3)`` s; kill
 ``nats1`` (relay A's node: cross-replica frames must find another node); after the same
@@ -125,10 +127,15 @@ def run_replica_failure(fr: FleetRun, caps: Capabilities, duration_s: float,
         viewers = [fr.start_consumers(f"rf-{r}", 1, regex, url=f"wss://{e.ip}:{https}/")
                    for r, e in (("a", a), ("b", b))]
         started += viewers
+        # A session's viewer on A, with B next in its list: after A's kill it resumes its
+        # session on B and must get every event it missed (sessions in JetStream).
+        resumer = fr.start_consumers("rf-s", 1, regex, session="rf-session",
+                                     url=[f"wss://{e.ip}:{https}/" for e in (a, b)])
+        started.append(resumer)
         robot = fr.start_robot("rf-robot", p, p.name,
                                server_urls=[f"ws://{a.ip}:{port}/", f"ws://{b.ip}:{port}/"])
         started.append(robot)
-        fr.wait_flowing("rf", [pose, events], ["rf-a-0", "rf-b-0"])
+        fr.wait_flowing("rf", [pose, events], ["rf-a-0", "rf-b-0", "rf-s-0"])
         t0 = time.time_ns()
         progress(f"replica-failure: quiet for {phase_s:.0f} s")
         hold(phase_s)
@@ -143,19 +150,21 @@ def run_replica_failure(fr: FleetRun, caps: Capabilities, duration_s: float,
         published = fr.stop_load(robot, "rf-robot")
 
         def drained() -> bool:
-            got = {(s.topic, s.seq) for s in fr.samples("rf-b")}
-            return (events, published[events]["last_seq"]) in got
+            last = (events, published[events]["last_seq"])
+            return all(last in {(s.topic, s.seq) for s in fr.samples(role)}
+                       for role in ("rf-b", "rf-s"))
 
         with contextlib.suppress(FleetError):  # what did not arrive: counted by the analysis
-            wait_for("no_drop events to drain at the viewer on B", drained,
+            wait_for("no_drop events to drain at the viewers on B", drained,
                      analysis.NO_DROP_DRAIN_S)
         samples = fr.samples("rf-b")
+        resumed = fr.samples("rf-s")
     finally:
         fr.remove(*reversed(started))
     result = replicaanalysis.replica_failure(
         samples, pose, events, published[events],
         {"t0": t0, "nats_kill": nats_kill, "relay_kill": relay_kill, "end": end},
-        viewer_stayed)
+        viewer_stayed, resumed)
     result["notes"].insert(0, "3 NATS nodes with JetStream (registry bucket: 3 copies); "
                            "relay-a on nats1 (then nats3), relay-b on nats2 (then nats3); the "
                            "robot lists [relay-a, relay-b] and is routed (no tunnel: the "

@@ -62,8 +62,11 @@ class LocalFanout:
                 receiver.outbound.push(topic, frame, False, message_id)
             return
         for receiver in self.receivers(topic):
-            if not receiver.stream_fed:  # a cluster's session: fed from its stream
+            feed = receiver.stream_feed  # a cluster's session: fed from the stream...
+            if feed is None:
                 receiver.outbound.push(topic, frame, True, message_id)
+            elif feed.bypass() and receiver.outbound.push(topic, frame, True, message_id):
+                feed.note_live()  # ...unless the stream is away: then live, as before
         if self.sessions.has_offline:
             self.sessions.deliver(topic, frame)
 

@@ -4,11 +4,15 @@ outbound scheduler and the per-connection bookkeeping of :mod:`fleetctl.server.r
 from __future__ import annotations
 
 from collections.abc import Callable
+from typing import TYPE_CHECKING
 
 from fleetctl.server.authmap import Identity
 from fleetctl.server.outbound import OutboundScheduler
 from fleetctl.server.permissions import Permissions
 from fleetctl.server.sessions import Session
+
+if TYPE_CHECKING:
+    from fleetctl.server.cluster.sessionfeed import SessionFeed
 
 
 class Peer:
@@ -62,8 +66,9 @@ class Peer:
         self.throttled = False
         self.is_robot = False
         self.closing = False
-        # Its no_drop frames come from the cluster's session stream, not the fan-out.
-        self.stream_fed = False
+        # In a cluster, a session's connection: its no_drop frames come from the shared
+        # stream through this feed, not from the fan-out (unless the stream is away).
+        self.stream_feed: SessionFeed | None = None
         self.malformed_in_row = 0
         self.over_limit_subscriptions = 0
         self.robots: set[str] = set()

@@ -448,7 +448,7 @@ class RelayCore:
         if shared is None:
             self.sessions.detach(session, peer.outbound.take_no_drop())
             return
-        peer.stream_fed = False
+        peer.stream_feed = None
         shared.detach(session.key, ended=not session.patterns)  # reads the acks first
         peer.outbound.take_no_drop()
         self.sessions.detach(session, ())
@@ -456,7 +456,6 @@ class RelayCore:
     def _feed_from_stream(self, peer: Peer, session: Session[Peer]) -> None:
         """In a cluster the session's no_drop frames come from the shared stream."""
         assert self.sessions.shared is not None
-        peer.stream_fed = True
 
         def wants(topic: str) -> bool:
             return peer in self.subs.receivers(topic)
@@ -472,8 +471,8 @@ class RelayCore:
             self.close_with(peer, protocol.CLOSE_SESSION_TAKEN_OVER,
                             "session taken over by a newer connection (another replica)")
 
-        self.sessions.shared.attach(session.key, session.patterns, peer.outbound, wants,
-                                    is_open, taken)
+        peer.stream_feed = self.sessions.shared.attach(
+            session.key, session.patterns, peer.outbound, wants, is_open, taken)
 
     def _bad_session(self, peer: Peer, message: str) -> None:
         self.send_error(peer, "bad_session", None, message)

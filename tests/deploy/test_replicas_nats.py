@@ -12,10 +12,19 @@ import pytest
 from fleetctl.deploy.replicas import nats_permissions, password_hash
 from fleetctl.server.app import RelayServer
 from fleetctl.server.cluster.config import NatsCredentials
+from fleetctl.server.sessions import SESSION_HEADER
 from tests.server.cluster.conftest import fanout, replica_config
 from tests.server.cluster.natsproc import NatsServer, nats_binary
-from tests.server.conftest import ALICE_TOKEN, auth_map, client, next_json, subscribe, wait_for
-from tests.support import string_frame
+from tests.server.conftest import (
+    ALICE_TOKEN,
+    auth_map,
+    client,
+    next_binary,
+    next_json,
+    subscribe,
+    wait_for,
+)
+from tests.support import decode_text, string_frame
 
 nats = pytest.importorskip("nats")
 pytestmark = pytest.mark.skipif(nats_binary() is None, reason="no nats-server binary")
@@ -57,9 +66,22 @@ async def test_replicas_relay_and_share_state_with_their_own_users(
             assert b.metrics.messages_out.get("/husky1/chat")
             # The shared registry (KV) works under these permissions too.
             await wait_for(lambda: "husky1" in b.registry.names(), 10.0)
+            # So do shared sessions: records (KV), the no_drop stream and its consumers.
+            async with client(b, token=ALICE_TOKEN,
+                              additional_headers={SESSION_HEADER: "console"}) as console:
+                assert (await subscribe(console, "/husky1/events"))["type"] == "subscribed"
+                held = b.core.sessions.shared
+                assert held is not None
+                await wait_for(lambda: held.counters["puts"] >= 2, 10.0)
+                await robot.send(string_frame("/husky1/events", "e0", no_drop=True, seq=1))
+                assert decode_text(await next_binary(console, 10.0)) == "e0"
         for side in (a, b):
             assert fanout(side).registry is not None
             assert fanout(side).registry.counters["put_failures"] == 0  # type: ignore[union-attr]
+            sessions = side.core.sessions.shared
+            assert sessions is not None
+            assert sessions.counters["put_failures"] == sessions.counters["feed_failures"] \
+                == sessions.counters["store_failures"] == sessions.counters["refused"] == 0
 
 
 async def test_a_replica_user_may_not_publish_outside_the_fleet(
@@ -74,8 +96,9 @@ async def test_a_replica_user_may_not_publish_outside_the_fleet(
     try:
         await nc.publish("other.subject", b"x")
         await nc.publish("$JS.API.STREAM.DELETE.KV_fleetctl_robots", b"")
+        await nc.publish("$JS.API.STREAM.PURGE.fleetctl_nodrop", b"")
         await nc.flush()
-        await wait_for(lambda: len(errors) >= 2, 5.0)
+        await wait_for(lambda: len(errors) >= 3, 5.0)
     finally:
         await nc.close()
     assert all("permissions violation" in str(e).lower() for e in errors), errors

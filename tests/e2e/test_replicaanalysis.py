@@ -27,9 +27,10 @@ def events(seqs: list[int]) -> list[Sample]:
     return [Sample(EVENTS, s, s * S // 10, s * S // 10 + 3_000_000, 50) for s in seqs]
 
 
-def result(samples: list[Sample], stayed: bool = True) -> dict[str, dict[str, object]]:
+def result(samples: list[Sample], stayed: bool = True,
+           resumed: list[Sample] | None = None) -> dict[str, dict[str, object]]:
     out = replica_failure(samples, POSE, EVENTS, {"first_seq": 0, "last_seq": 299}, MARKS,
-                          stayed)
+                          stayed, events(list(range(300))) if resumed is None else resumed)
     return {c["name"]: c for c in out["criteria"]}
 
 
@@ -60,6 +61,20 @@ def test_duplicates_and_latency_spikes_are_caught() -> None:
     assert crits["no_drop events out of order or duplicated"]["value"] == 1
     ratio = crits["pose p99 over the run / quiet p99"]
     assert not ratio["ok"] and float(str(ratio["value"])) > 2.0
+
+
+def test_the_resumed_sessions_gaps_reorders_and_absence_fail() -> None:
+    samples = [*pose_stream(), *events(list(range(300)))]
+    gap = result(samples, resumed=events([*range(200), *range(210, 300)]))
+    assert gap["session resumed on B: no_drop events missing"]["value"] == 10
+    swapped = events(list(range(300)))
+    swapped[100], swapped[101] = swapped[101], swapped[100]
+    late = [Sample(s.topic, s.seq, s.publish_time_ns, r.recv_time_ns, s.size_bytes)
+            for s, r in zip(swapped, events(list(range(300))), strict=True)]
+    order = result(samples, resumed=late)
+    assert not order["session resumed on B: events out of order or duplicated"]["ok"]
+    nothing = result(samples, resumed=[])
+    assert not nothing["session resumed on B: no_drop events missing"]["ok"]
 
 
 def test_nothing_after_a_mark_is_infinite() -> None:

@@ -147,3 +147,6 @@ def test_replica_failure_moves_the_robot_to_b_with_every_event(
     assert crits["no_drop events missing"]["ok"], crits
     assert crits["no_drop events out of order or duplicated"]["ok"], crits
     assert math.isfinite(result["failover_s"]) and math.isfinite(result["nats_resume_s"])
+    # The session's viewer on A resumed its session on B with every event it missed.
+    assert crits["session resumed on B: no_drop events missing"]["ok"], crits
+    assert crits["session resumed on B: events out of order or duplicated"]["ok"], crits

@@ -9,7 +9,7 @@ import asyncio
 import contextlib
 import logging
 from collections.abc import Awaitable, Callable
-from typing import Any
+from typing import Any, TypeVar
 
 from nats.aio.client import Client
 from nats.js.errors import Error as JetStreamError
@@ -18,6 +18,10 @@ from nats.js.kv import KeyValue
 from fleetctl.server.cluster.config import ClusterConfig, ClusterStartError
 
 log = logging.getLogger("fleetctl.server.cluster")
+
+T = TypeVar("T")
+# How long a replica's start waits for JetStream to answer (each try: nats-py's 5 s).
+ELECTION_WAIT_S = 20.0
 
 OnEntry = Callable[[str, bytes | None, str | None], None]
 """``(key, value, operation)`` of one bucket entry."""
@@ -32,8 +36,8 @@ async def open_bucket(nc: Client, config: ClusterConfig, name: str, what: str,
             many copies (names ``cluster.state_replicas``; *what* says whose bucket).
     """
     try:
-        return await nc.jetstream().create_key_value(
-            bucket=name, history=1, replicas=config.state_replicas, **options)
+        return await while_electing(lambda: nc.jetstream().create_key_value(
+            bucket=name, history=1, replicas=config.state_replicas, **options))
     except (TimeoutError, JetStreamError) as exc:
         raise ClusterStartError(
             f"field 'cluster.state_replicas': cannot open {what} JetStream KV bucket "
@@ -41,15 +45,46 @@ async def open_bucket(nc: Client, config: ClusterConfig, name: str, what: str,
             "enabled on every NATS node, and are there that many?)") from exc
 
 
+async def while_electing(call: Callable[[], Awaitable[T]]) -> T:
+    """*call* (a JetStream API request), retried on timeouts for up to
+    :data:`ELECTION_WAIT_S`: a NATS cluster that has just started (``fleetctl up`` starts
+    it with the replicas) answers JetStream requests only once its meta leader is elected
+    and settled, which takes a few seconds."""
+    deadline = asyncio.get_running_loop().time() + ELECTION_WAIT_S
+    while True:
+        try:
+            return await call()
+        except TimeoutError:
+            if asyncio.get_running_loop().time() >= deadline:
+                raise
+            log.info("JetStream does not answer yet (leader election?): retrying")
+
+
+def raise_if_cancelled() -> None:
+    """Re-raise a cancellation a NATS call turned into an error: in Python 3.11
+    ``asyncio.wait_for`` (under every nats-py request) can lose a cancellation that comes
+    as its answer does, and a loop that catches the error would then never stop.
+
+    Raises:
+        asyncio.CancelledError: The current task is being cancelled.
+    """
+    task = asyncio.current_task()
+    if task is not None and task.cancelling():
+        raise asyncio.CancelledError
+
+
 async def stop(last_write: Callable[[], Awaitable[int]],
                tasks: list[asyncio.Task[None]]) -> None:
-    """Write the last changes (best effort, 2 s at most), then cancel *tasks*."""
+    """Write the last changes (best effort, 2 s at most), then cancel *tasks* and wait
+    for them (2 s at most: a task that ignores its cancellation is left behind, logged)."""
     with contextlib.suppress(Exception):
         await asyncio.wait_for(last_write(), 2.0)
     for task in tasks:
         task.cancel()
-        with contextlib.suppress(asyncio.CancelledError):
-            await task
+    if tasks:
+        _, pending = await asyncio.wait(tasks, timeout=2.0)
+        for task in pending:
+            log.warning("task %s did not stop within 2 s of its cancellation", task.get_name())
 
 
 async def watch(watcher: KeyValue.KeyWatcher, on_entry: OnEntry) -> None:
@@ -73,6 +108,7 @@ async def write_forever(tick: Callable[[], Awaitable[None]], write: Callable[[],
         try:
             await write()
         except Exception as exc:
+            raise_if_cancelled()
             counters["put_failures"] += 1
             if not failing:
                 log.warning("cannot write the %s: %r", what, exc)

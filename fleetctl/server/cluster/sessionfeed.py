@@ -55,11 +55,16 @@ class SessionFeed:
         cursor: The session's cursor (start after it), or ``None``.
         since: Wall-clock start of the session (used while *cursor* is ``None``).
         on_malformed: Counts a stream message that is not a frame.
+        bypass: Whether the stream is away (NATS lost, stores failing): the relay then
+            queues local no_drop frames to the connection live (:meth:`note_live`), and
+            the stream's copies come again later as duplicates the clients drop.
     """
 
     def __init__(self, outbound: OutboundScheduler, wants: Callable[[str], bool],
                  is_open: Callable[[], bool], cursor: int | None, since: float,
-                 on_malformed: Callable[[], None]) -> None:
+                 on_malformed: Callable[[], None],
+                 bypass: Callable[[], bool] = lambda: False) -> None:
+        self.bypass = bypass
         self._outbound = outbound
         self._wants = wants
         self._is_open = is_open
@@ -67,6 +72,8 @@ class SessionFeed:
         self._since = since
         self._on_malformed = on_malformed
         self._last_seq = cursor or 0
+        # Without a cursor: messages stored before the session began are not its own.
+        self._floor_s: float | None = since if cursor is None else None
         self._queued: deque[int] = deque()  # sequences queued, not yet acknowledged
         self._acked_seen = outbound.acked_total
         self._sub: JetStreamContext.PushSubscription | None = None
@@ -89,6 +96,11 @@ class SessionFeed:
             subject, stream=stream, cb=self._on_msg, ordered_consumer=True, config=config,
             idle_heartbeat=IDLE_HEARTBEAT_S, pending_msgs_limit=PENDING_MESSAGES,
             pending_bytes_limit=PENDING_BYTES)
+        # nats-py re-creates an ordered consumer (after a gap, or missed heartbeats when
+        # a NATS node goes) from this same config object, switched to "by start
+        # sequence"; JetStream refuses that while a start time is still set. Before the
+        # first message that sequence may be 1, hence the time floor in _on_msg.
+        config.opt_start_time = None
 
     async def stop(self) -> None:
         """Delete the consumer (the connection is gone or taken over)."""
@@ -106,7 +118,9 @@ class SessionFeed:
         acked = self._outbound.acked_total
         queued = self._queued
         while self._acked_seen < acked and queued:
-            self.cursor = queued.popleft()
+            seq = queued.popleft()
+            if seq >= 0:  # not a live frame (note_live)
+                self.cursor = seq
             self._acked_seen += 1
         self._acked_seen = acked
         return self.cursor
@@ -116,6 +130,11 @@ class SessionFeed:
         if seq <= self._last_seq:
             return  # a re-created consumer may start at one we already have
         self._last_seq = seq
+        if self._floor_s is not None:
+            if msg.metadata.timestamp.timestamp() < self._floor_s:
+                self._skip(seq)
+                return
+            self._floor_s = None
         try:
             topic = read_metadata(msg.data).topic
         except WireError:
@@ -134,6 +153,11 @@ class SessionFeed:
         if outbound.push(topic, msg.data, True):
             self._queued.append(seq)
             self.delivered += 1
+
+    def note_live(self) -> None:
+        """The relay queued a no_drop frame to the connection live (the stream is away):
+        it takes a place in the acknowledgement order without moving the cursor."""
+        self._queued.append(-1)
 
     def _skip(self, seq: int) -> None:
         """A frame not for this connection: once everything before it is acknowledged,

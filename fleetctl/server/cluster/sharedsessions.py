@@ -138,8 +138,11 @@ class SharedSessions:
         self._publish_wake = asyncio.Event()
         self._write_wake = asyncio.Event()
         self._js: JetStreamContext | None = None
+        self._nc: Client | None = None
+        self._storing_fails = False
         self._kv: KeyValue | None = None
         self._tasks: list[asyncio.Task[None]] = []
+        self._feed_stops: set[asyncio.Task[None]] = set()
         self.counters = {"stored": 0, "duplicates": 0, "store_failures": 0, "refused": 0,
                          "queue_full": 0, "subject_too_long": 0, "puts": 0,
                          "put_failures": 0, "deletes": 0, "taken_over": 0, "malformed": 0,
@@ -154,6 +157,7 @@ class SharedSessions:
         Raises:
             ClusterStartError: JetStream refuses the stream or the bucket (names the field).
         """
+        self._nc = nc
         self._js = js = nc.jetstream()
         stream = api.StreamConfig(
             name=self._stream, subjects=[f"{self._root}.>"],
@@ -163,9 +167,9 @@ class SharedSessions:
             duplicate_window=min(DUPLICATE_WINDOW_S, self.expiry_s))
         try:
             try:
-                await js.add_stream(stream)
+                await kvloops.while_electing(lambda: js.add_stream(stream))
             except APIError:  # it exists with other limits: take this replica's config
-                await js.update_stream(stream)
+                await kvloops.while_electing(lambda: js.update_stream(stream))
         except (TimeoutError, JetStreamError) as exc:
             raise ClusterStartError(
                 f"field 'cluster.state_replicas': cannot create the sessions' JetStream "
@@ -188,6 +192,8 @@ class SharedSessions:
         for held in list(self._held.values()):
             if held.feed is not None:
                 await held.feed.stop()
+        if self._feed_stops:
+            await asyncio.wait(set(self._feed_stops), timeout=2.0)
         self._tasks = []
 
     # -- what the session table asks --------------------------------------------------------
@@ -197,7 +203,8 @@ class SharedSessions:
         or it expired."""
         held = self._held.get(key)
         if held is not None and not held.ended:
-            return SessionRecord(tuple(held.patterns), held.cursor, held.since, None)
+            return SessionRecord(tuple(held.patterns), held.cursor, held.since,
+                                 self.config.name if held.attached else None)
         entry = self._records.get(key)
         if entry is None:
             return None
@@ -215,10 +222,10 @@ class SharedSessions:
 
     def attach(self, key: SessionKey, patterns: dict[str, None], outbound: OutboundScheduler,
                wants: Callable[[str], bool], is_open: Callable[[], bool],
-               on_taken: Callable[[], None]) -> None:
+               on_taken: Callable[[], None]) -> SessionFeed:
         """A connection attached to session *key* here: start its feed after the record's
         cursor (or from now, for a new session) and write the record with this replica as
-        its owner."""
+        its owner. Returns the feed."""
         previous = self._held.pop(key, None)
         if previous is not None:
             self._stop_feed(previous)
@@ -231,11 +238,18 @@ class SharedSessions:
                      revision=previous.revision if previous is not None
                      else (entry[1] if entry is not None else None),
                      on_taken=on_taken)
-        held.feed = SessionFeed(outbound, wants, is_open, held.cursor, held.since,
-                                self._count_malformed)
+        held.feed = feed = SessionFeed(outbound, wants, is_open, held.cursor, held.since,
+                                       self._count_malformed, self.stream_away)
         held.task = asyncio.create_task(self._run_feed(held))
         self._held[key] = held
         self._write_wake.set()
+        return feed
+
+    def stream_away(self) -> bool:
+        """NATS is lost, or storing in the stream fails: sessions' connections get local
+        no_drop frames live meanwhile (docs/scaling.md, "Sessions")."""
+        nc = self._nc
+        return self._storing_fails or nc is None or not nc.is_connected
 
     def changed(self, key: SessionKey) -> None:
         """The held session's patterns changed."""
@@ -288,6 +302,7 @@ class SharedSessions:
                     await feed.start(js, self._stream, f"{self._root}.>")
                     return
                 except (TimeoutError, NatsError) as exc:
+                    kvloops.raise_if_cancelled()
                     self.counters["feed_failures"] += 1
                     if self.counters["feed_failures"] == 1:
                         log.warning("replica %s: cannot read the sessions' stream: %r; "
@@ -303,9 +318,8 @@ class SharedSessions:
             self.counters["delivered"] += feed.delivered
             if feed.running:
                 task = asyncio.create_task(feed.stop())
-                task.add_done_callback(lambda _: None)
-                self._tasks.append(task)
-                self._tasks = [t for t in self._tasks if not t.done()]
+                self._feed_stops.add(task)  # keeps it referenced until done
+                task.add_done_callback(self._feed_stops.discard)
 
     def _count_malformed(self) -> None:
         self.counters["malformed"] += 1
@@ -348,6 +362,8 @@ class SharedSessions:
 
     def _taken(self, key: SessionKey, held: _Held) -> None:
         """Another replica wrote the session we hold: its connection there is newer."""
+        if self._held.get(key) is not held:
+            return  # already let go (the watch and a refused write both tell)
         self.counters["taken_over"] += 1
         self._stop_feed(held)
         self._held.pop(key, None)
@@ -372,6 +388,8 @@ class SharedSessions:
         now = self._clock()
         done = 0
         for key, held in list(self._held.items()):
+            if self._held.get(key) is not held:
+                continue  # let go while an earlier write was under way
             if held.feed is not None:
                 held.cursor = held.feed.settle()
             if not (held.dirty or held.cursor != held.written_cursor
@@ -383,6 +401,7 @@ class SharedSessions:
             except KeyWrongLastSequenceError:
                 self._taken(key, held)
             except (TimeoutError, NatsError):
+                kvloops.raise_if_cancelled()
                 self.counters["put_failures"] += 1
         return done
 
@@ -432,12 +451,22 @@ class SharedSessions:
             batch = [queue[i] for i in range(min(len(queue), _PUBLISH_BATCH))]
             results = await asyncio.gather(*(self._store(js, s, f) for s, f in batch),
                                            return_exceptions=True)
+            kvloops.raise_if_cancelled()
             for result in results:
                 if isinstance(result, (TimeoutError, NatsError)) \
                         and not isinstance(result, (APIError, MaxPayloadError)):
                     self.counters["store_failures"] += 1
+                    if not self._storing_fails:
+                        log.warning("replica %s: cannot store no_drop frames for sessions "
+                                    "(%r): held in order, sessions here get them live "
+                                    "meanwhile", self.config.name, result)
+                    self._storing_fails = True
                     await asyncio.sleep(RETRY_S)  # NATS away: keep the rest, in order
                     break
+                if self._storing_fails:
+                    log.info("replica %s: storing no_drop frames for sessions again",
+                             self.config.name)
+                self._storing_fails = False
                 subject, frame = queue.popleft()
                 self._queued_bytes -= len(frame)
                 if isinstance(result, BaseException):

@@ -27,11 +27,11 @@ def test_full_section(tmp_path: Path) -> None:
     (tmp_path / "pw").write_text("s3cret\n")
     found = parse(tmp_path, {"name": "relay-a", "nats_urls": ["nats://10.0.0.1:4222"],
                              "credentials": {"user": "relay", "password_file": "pw"},
-                             "publish_queue_frames": 100})
+                             "publish_queue_frames": 100, "session_stream_bytes": 4096})
     assert found == ClusterConfig(
         name="relay-a", nats_urls=("nats://10.0.0.1:4222",),
         credentials=NatsCredentials(user="relay", password_file=tmp_path / "pw"),
-        publish_queue_frames=100)
+        publish_queue_frames=100, session_stream_bytes=4096)
     assert found is not None and found.credentials is not None
     assert "s3cret" not in repr(found)  # only the path is kept
     assert found.credentials.read_password() == "s3cret"
@@ -56,6 +56,10 @@ def test_full_section(tmp_path: Path) -> None:
      "cluster.state_replicas"),
     ({"name": "a", "nats_urls": ["nats://h"], "subject_prefix": "a>"},
      "cluster.subject_prefix"),
+    ({"name": "a", "nats_urls": ["nats://h"], "session_stream_bytes": -1},
+     "cluster.session_stream_bytes"),
+    ({"name": "a", "nats_urls": ["nats://h"], "session_stream_bytes": "1G"},
+     "cluster.session_stream_bytes"),
 ])
 def test_bad_fields_named(tmp_path: Path, cluster: dict[str, Any], field: str) -> None:
     with pytest.raises(ConfigError, match=rf"server.yaml: .*'{field}"):

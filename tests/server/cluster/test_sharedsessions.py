@@ -24,7 +24,7 @@ from fleetctl.server.cluster.sharedsessions import SharedSessions
 from fleetctl.server.sessions import SESSION_HEADER
 from fleetctl.wire.metadata import read_metadata
 from tests.server.cluster.natsproc import NatsServer, free_port
-from tests.server.conftest import AUTH, ALICE_TOKEN, client, next_binary, next_json, subscribe
+from tests.server.conftest import ALICE_TOKEN, AUTH, client, next_binary, next_json, subscribe
 from tests.support import decode_text, string_frame, wait_until
 
 pytestmark = pytest.mark.slow
@@ -99,9 +99,11 @@ async def test_a_newer_connection_on_another_replica_takes_the_session_over(
     a, b = replicas
     async with console(a) as old:
         assert (await subscribe(old, EVENTS))["type"] == "subscribed"
-        await wait_until(lambda: (r := record(b)) is not None and r.owner == "relay-a", 10.0)
+        await wait_until(lambda: (r := record(b)) is not None and r.owner == "relay-a"
+                         and r.patterns == (EVENTS,), 10.0)
         async with console(b) as new:
-            assert (await next_json(new, "session"))["resumed"]
+            session = await next_json(new, "session")
+            assert session["resumed"] and session["subscriptions"] == [EVENTS]
             with pytest.raises(ConnectionClosed) as closed:
                 await asyncio.wait_for(_read_forever(old), 10.0)
             assert closed.value.rcvd is not None and closed.value.rcvd.code == 4409
@@ -181,7 +183,8 @@ async def test_a_replica_killed_outright_loses_none_of_its_sessions_frames(
         await next_json(robot, "welcome")
         viewer = await _connect_when_up(port)
         assert (await subscribe(viewer, EVENTS))["type"] == "subscribed"
-        await wait_until(lambda: (r := record(b)) is not None and r.owner == "relay-a", 15.0)
+        await wait_until(lambda: (r := record(b)) is not None and r.owner == "relay-a"
+                         and r.patterns == (EVENTS,), 15.0)
         await send_events(robot, 0, 20)
         seen = await event_texts(viewer, 20)
         # Killed while the robot keeps sending: no clean close, no last write.
@@ -199,3 +202,31 @@ async def test_a_replica_killed_outright_loses_none_of_its_sessions_frames(
         assert seen == [f"e{i}" for i in range(50)]
         with pytest.raises(ConnectionClosed):
             await viewer.recv()
+
+
+async def test_nats_lost_local_session_frames_go_on_and_the_rest_follows_once_back(
+        make_replica: Callable[..., RelayServer], nats_server: NatsServer) -> None:
+    a = make_replica("relay-a", [nats_server.url])
+    async with a, client(a, source="127.0.0.2") as robot, console(a) as viewer:
+        await next_json(robot, "welcome")
+        assert (await subscribe(viewer, EVENTS))["type"] == "subscribed"
+        await wait_until(lambda: (r := record(a)) is not None and r.owner == "relay-a", 10.0)
+        await send_events(robot, 0, 3)
+        seen = await event_texts(viewer, 3)
+
+        nats_server.stop()
+        await wait_until(shared(a).stream_away, 10.0)
+        await send_events(robot, 3, 3)
+        seen += await event_texts(viewer, 3)  # local delivery goes on, live
+        assert seen == [f"e{i}" for i in range(6)]
+
+        nats_server.start()  # the same store: the stream and the records are back
+        await wait_until(lambda: not shared(a).stream_away(), 20.0)
+        await send_events(robot, 6, 3)
+        # The frames held while NATS was away reach the stream and come once more (the
+        # client drops them as duplicates); the new ones follow, in order, once each.
+        while "e8" not in seen:
+            text = (await event_texts(viewer, 1, 20.0))[0]
+            if text not in seen:
+                seen.append(text)
+        assert seen == [f"e{i}" for i in range(9)]

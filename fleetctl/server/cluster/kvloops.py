@@ -84,7 +84,8 @@ async def stop(last_write: Callable[[], Awaitable[int]],
     if tasks:
         _, pending = await asyncio.wait(tasks, timeout=2.0)
         for task in pending:
-            log.warning("task %s did not stop within 2 s of its cancellation", task.get_name())
+            log.warning("task %s (%s) did not stop within 2 s of its cancellation",
+                        task.get_name(), task.get_coro())
 
 
 async def watch(watcher: KeyValue.KeyWatcher, on_entry: OnEntry) -> None:

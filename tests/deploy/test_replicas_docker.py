@@ -104,6 +104,13 @@ def test_a_robot_fails_over_between_replicas_deployed_by_up(
     assert figures["gap_s"] < FAILOVER_TIMEOUT_S
     wait_until("husky1 online through relay-2", lambda: online(op, {"husky1"}),
                ONLINE_TIMEOUT_S)
+    # The robot's session and the no_drop stream work under up's NATS permissions.
+    logs = subprocess.run(["docker", "logs", container(project, "relay-2")],
+                          capture_output=True, text=True, check=True)
+    text = logs.stdout + logs.stderr
+    for trouble in ("Permissions Violation", "cannot read the sessions' stream",
+                    "cannot store no_drop frames", "cannot write the"):
+        assert trouble not in text, text[-3000:]
     op.run("down", "--delete-data")
     volumes = subprocess.run(["docker", "volume", "ls", "-q", "--filter",
                               f"name={project}_"], capture_output=True, text=True,

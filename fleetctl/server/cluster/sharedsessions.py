@@ -159,6 +159,7 @@ class SharedSessions:
         self._js: JetStreamContext | None = None
         self._nc: Client | None = None
         self._storing_fails = False
+        self._purged_s = 0.0
         self._kv: KeyValue | None = None
         self._tasks: list[asyncio.Task[None]] = []
         self._feed_stops: set[asyncio.Task[None]] = set()
@@ -240,8 +241,9 @@ class SharedSessions:
         return record
 
     def count(self, identities: tuple[str, ...]) -> int:
-        """Sessions of *identities* the replicas know of."""
-        keys = {k for k in self._records if k[0] == identities}
+        """Sessions of *identities* the replicas know of (expired ones not counted)."""
+        keys = {k for k in list(self._records)
+                if k[0] == identities and self.lookup(k) is not None}
         keys.update(k for k, h in self._held.items() if k[0] == identities and not h.ended)
         return len(keys)
 
@@ -411,6 +413,10 @@ class SharedSessions:
         if kv is None:
             return 0
         now = self._clock()
+        if now - self._purged_s >= REFRESH_S:  # the bucket's TTL removes them silently
+            self._purged_s = now
+            for key in [k for k, (_, _, t) in self._records.items() if now - t > self.expiry_s]:
+                del self._records[key]
         done = 0
         for key, held in list(self._held.items()):
             if self._held.get(key) is not held:

@@ -1,0 +1,76 @@
+"""The replica's mirror of the session records, without NATS: what a watch entry does to
+it (hostile ones included), expiry, counting, and a held session written by another
+replica (taken over)."""
+
+from __future__ import annotations
+
+import datetime
+
+from fleetctl.server.cluster.config import ClusterConfig
+from fleetctl.server.cluster.sessionrecord import SessionRecord, encode_record, record_key
+from fleetctl.server.cluster.sharedsessions import SharedSessions
+from fleetctl.server.outbound import OutboundScheduler
+
+KEY = (("alice",), "console")
+OTHER = (("alice",), "laptop")
+
+
+class Clock:
+    def __init__(self) -> None:
+        self.now = 1_000_000.0
+
+    def __call__(self) -> float:
+        return self.now
+
+
+def sessions(clock: Clock) -> SharedSessions:
+    return SharedSessions(ClusterConfig(name="relay-a", nats_urls=("nats://h:4222",)), 3600.0,
+                          clock=clock)
+
+
+def entry(shared: SharedSessions, key: tuple[tuple[str, ...], str], record: SessionRecord,
+          revision: int, at_s: float) -> None:
+    shared.on_entry(record_key(key), encode_record(record), None, revision,
+                    datetime.datetime.fromtimestamp(at_s, datetime.UTC))
+
+
+def test_entries_are_mirrored_counted_and_expire() -> None:
+    clock = Clock()
+    shared = sessions(clock)
+    record = SessionRecord(("/husky1/.*",), 7, clock.now - 10, None)
+    entry(shared, KEY, record, 1, clock.now)
+    entry(shared, OTHER, record, 2, clock.now - 3000)
+    assert shared.lookup(KEY) == record and shared.count(("alice",)) == 2
+    clock.now += 700  # OTHER is past the expiry now, KEY is not
+    assert shared.count(("alice",)) == 1 and shared.lookup(OTHER) is None
+    shared.on_entry(record_key(KEY), None, "DEL", 3, None)
+    assert shared.lookup(KEY) is None and shared.count(("alice",)) == 0
+
+
+def test_hostile_entries_are_counted_not_kept() -> None:
+    clock = Clock()
+    shared = sessions(clock)
+    shared.on_entry("no-dot-key", b"{}", None, 1, None)
+    shared.on_entry(record_key(KEY), b'{"v": 1, "patterns": 5}', None, 2, None)
+    assert shared.counters["malformed"] == 2 and shared.lookup(KEY) is None
+
+
+async def test_a_held_session_written_by_another_replica_is_taken_over() -> None:
+    clock = Clock()
+    shared = sessions(clock)
+    taken: list[bool] = []
+    outbound = OutboundScheduler(1 << 20, 100)
+    outbound.track_acks()
+    shared.attach(KEY, {"/husky1/.*": None}, outbound, lambda _: True, lambda: True,
+                  lambda: taken.append(True))
+    held = shared._held[KEY]
+    assert shared.lookup(KEY) == SessionRecord(("/husky1/.*",), None, clock.now, "relay-a")
+    held.fresh_attach = False  # as once its attach was written (revision 5)
+    held.revision = 5
+    entry(shared, KEY, SessionRecord(("/husky1/.*",), None, clock.now, "relay-a"), 5,
+          clock.now)
+    assert not taken  # our own write coming back
+    entry(shared, KEY, SessionRecord(("/husky1/.*",), 3, clock.now, "relay-b"), 6, clock.now)
+    assert taken == [True] and shared.counters["taken_over"] == 1
+    assert shared.lookup(KEY) == SessionRecord(("/husky1/.*",), 3, clock.now, "relay-b")
+    await shared.stop()

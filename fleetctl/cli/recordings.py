@@ -3,7 +3,12 @@
 Two ways to reach them: ``--server URL`` (``GET /recordings`` on the relay port, with a
 Bearer token from ``--token-file``: the files whose every topic the token may receive;
 the operator on the server host without a token sees all), or the recording directory
-itself on the server host (``--config server.yaml`` or ``--dir``). ``fetch`` writes a
+itself on the server host (``--config server.yaml`` or ``--dir``).
+
+Replicas record what their own senders sent (each file name carries the replica's name),
+so a fleet's recordings are sharded: ``--server`` given once per replica lists them all
+(with a SERVER column; a replica that does not answer is named on stderr while the others
+are listed) and ``fetch`` takes the file from whichever replica has it. ``fetch`` writes a
 complete, indexed copy, also of the file still being written (read up to its last
 flushed chunk), which ``ros2 bag``, rosbags and Foxglove open.
 """
@@ -85,6 +90,7 @@ class RemoteRecording:
     modified_s: float
     complete: bool
     topics: list[str]
+    server: str = ""
 
 
 @dataclass(frozen=True)
@@ -140,11 +146,50 @@ def list_remote(remote: Remote) -> list[RemoteRecording]:
     try:
         data: Any = json.loads(body)
         return [RemoteRecording(r["name"], int(r["bytes"]), float(r["modified_s"]),
-                                bool(r["complete"]), list(r["topics"]))
+                                bool(r["complete"]), list(r["topics"]), remote.url)
                 for r in data["recordings"]]
     except (ValueError, KeyError, TypeError) as exc:
         raise FleetError(f"{remote.url}: GET /recordings: not a recordings list "
                          f"({exc})") from None
+
+
+def list_replicas(remotes: list[Remote]) -> tuple[list[RemoteRecording], list[str]]:
+    """Every replica's recordings, oldest last write first, and the errors of those that
+    did not answer.
+
+    Raises:
+        FleetError: None of them answered (the first one's error).
+    """
+    found: list[RemoteRecording] = []
+    errors: list[FleetError] = []
+    for remote in remotes:
+        try:
+            found += list_remote(remote)
+        except FleetError as exc:
+            errors.append(exc)
+    if errors and len(errors) == len(remotes):
+        raise errors[0]
+    found.sort(key=lambda r: (r.modified_s, r.name))
+    return found, [str(e) for e in errors]
+
+
+def fetch_from_replicas(remotes: list[Remote], name: str, target: Path) -> Fetched:
+    """Fetch *name* from the first replica that has it (a 404 means: not this one).
+
+    Raises:
+        FleetError: No replica has it (or may show it to this token), or a fetch failed.
+        ConflictError: The target file exists.
+    """
+    missing: list[str] = []
+    for remote in remotes:
+        try:
+            return fetch_remote(remote, name, target)
+        except FleetError as exc:
+            if ": 404 " not in str(exc) or len(remotes) == 1:
+                raise
+            missing.append(remote.url)
+    raise FleetError(f"recording {name!r} is on none of {', '.join(missing)} (or this "
+                     "token may not receive all of its topics)")
 
 
 def fetch_remote(remote: Remote, name: str, target: Path) -> Fetched:
@@ -239,13 +284,17 @@ def fetch(directory: Path, name: str, target: Path) -> Fetched:
     return Fetched(str(source), target, files.export(source, target))
 
 
-def _remote_text(found: list[RemoteRecording], url: str) -> str:
+def _remote_text(found: list[RemoteRecording], urls: list[str]) -> str:
     if not found:
-        return f"no recordings on {url} (that this token may receive)"
+        return f"no recordings on {', '.join(urls)} (that this token may receive)"
     rows = [(r.name, r.size_bytes, dt.datetime.fromtimestamp(r.modified_s, dt.UTC).strftime(
         "%Y-%m-%d %H:%M:%S"), "yes" if r.complete else "writing", ",".join(r.topics))
         for r in found]
-    return table(("NAME", "BYTES", "LAST WRITE (UTC)", "COMPLETE", "TOPICS"), rows)
+    head = ("NAME", "BYTES", "LAST WRITE (UTC)", "COMPLETE", "TOPICS")
+    if len(urls) > 1:
+        return table((*head, "SERVER"), [(*row, r.server) for row, r in
+                                         zip(rows, found, strict=True)])
+    return table(head, rows)
 
 
 def _time(ns: int) -> str:
@@ -266,7 +315,8 @@ def _list_text(found: list[Recording], directory: Path) -> str:
 _CONFIG = typer.Option(None, "--config", "-c", help="server.yaml (its recording.directory).")
 _DIR = typer.Option(None, "--dir", "-d", help="The recording directory (instead of --config).")
 _SERVER = typer.Option(None, "--server", "-s", help="ws(s):// or http(s):// URL of the relay "
-                       "port: ask the server (instead of --config/--dir).")
+                       "port: ask the server (instead of --config/--dir); once per replica "
+                       "for a fleet of replicas.")
 _TOKEN = typer.Option(None, "--token-file", help="File holding a Bearer token (--server).")
 _CA = typer.Option(None, "--ca-file", help="CA bundle for a wss:// server (--server).")
 
@@ -278,13 +328,15 @@ def register(app: typer.Typer) -> None:
 
     @rec_app.command("list")
     def list_command(config: Path | None = _CONFIG, directory: Path | None = _DIR,
-                     server: str | None = _SERVER, token_file: Path | None = _TOKEN,
+                     server: list[str] | None = _SERVER, token_file: Path | None = _TOKEN,
                      ca_file: Path | None = _CA, output: OutputFormat = output_option(),
                      ) -> None:
         """List the recordings (oldest first), the one being written included."""
-        if server is not None:
-            remote = Remote(server, read_token_file(token_file), ca_file)
-            listed = list_remote(remote)
+        if server:
+            token = read_token_file(token_file)
+            listed, errors = list_replicas([Remote(u, token, ca_file) for u in server])
+            for error in errors:
+                typer.echo(f"fleetctl: not listed: {error}", err=True)
             emit(listed, output, lambda: _remote_text(listed, server))
             return
         where = recording_dir(config, directory)
@@ -296,12 +348,13 @@ def register(app: typer.Typer) -> None:
         name: str = typer.Argument(..., help="Recording file name (see `recordings list`)."),
         to: Path = typer.Option(Path("."), "--to", help="Target file or directory."),
         config: Path | None = _CONFIG, directory: Path | None = _DIR,
-        server: str | None = _SERVER, token_file: Path | None = _TOKEN,
+        server: list[str] | None = _SERVER, token_file: Path | None = _TOKEN,
         ca_file: Path | None = _CA, output: OutputFormat = output_option(),
     ) -> None:
         """Write a complete, indexed copy of a recording (also of the open one)."""
-        if server is not None:
-            result = fetch_remote(Remote(server, read_token_file(token_file), ca_file), name, to)
+        if server:
+            token = read_token_file(token_file)
+            result = fetch_from_replicas([Remote(u, token, ca_file) for u in server], name, to)
         else:
             result = fetch(recording_dir(config, directory), name, to)
         emit(result, output, lambda: f"wrote {result.target} ({result.messages} messages)")

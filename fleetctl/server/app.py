@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import dataclasses
 import functools
 import http
 import logging
@@ -108,9 +109,11 @@ class RelayServer:
         auth = auth if auth is not None else load_auth_map(config.auth_map)
         self.metrics = Metrics()
         self.registry = _registry(config)
-        self.recorder = (None if config.recording is None else
-                         Recorder(config.recording,
-                                  max_message_bytes=config.limits.max_frame_bytes))
+        recording = config.recording
+        if recording is not None and config.cluster is not None:  # sharded by replica
+            recording = dataclasses.replace(recording, file_label=config.cluster.name)
+        self.recorder = (None if recording is None else
+                         Recorder(recording, max_message_bytes=config.limits.max_frame_bytes))
         self.core = RelayCore(config, auth, self.registry, self.metrics,
                               recorder=self.recorder)
         if config.cluster is not None:  # the only place that knows about replicas

@@ -68,6 +68,9 @@ class RecordingConfig:
             leaves, so when they compete for a core the recorder falls behind and drops
             (``queue_full``) instead of slowing the relay; ``normal``: the worker competes
             as an equal (recording complete at the relay's expense).
+        file_label: Put in every file name (``fleet_<label>_<time>.mcap``); a replica
+            sets its cluster name here (not a YAML field), so the fleet's recordings,
+            sharded by the replica that accepted each frame, never share a name.
     """
 
     directory: Path
@@ -80,6 +83,7 @@ class RecordingConfig:
     chunk_bytes: int = 256 * 1024
     flush_interval_s: float = 1.0
     worker_priority: str = "idle"
+    file_label: str | None = None
 
     @property
     def rotate_after_s(self) -> float:

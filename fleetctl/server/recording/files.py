@@ -47,14 +47,16 @@ class RecordingFile:
     modified_s: float
 
 
-def new_path(directory: Path, now_s: float) -> Path:
-    """A free file name for a recording started at *now_s* (seconds since the epoch)."""
+def new_path(directory: Path, now_s: float, label: str | None = None) -> Path:
+    """A free file name for a recording started at *now_s* (seconds since the epoch);
+    *label* (a replica's name: ``A-Z a-z 0-9 _ -``) goes in front of the time."""
     stamp = dt.datetime.fromtimestamp(now_s, dt.UTC).strftime("%Y%m%dT%H%M%SZ")
-    path = directory / f"{PREFIX}{stamp}{SUFFIX}"
+    base = f"{PREFIX}{label}_{stamp}" if label else f"{PREFIX}{stamp}"
+    path = directory / f"{base}{SUFFIX}"
     n = 0
     while path.exists():
         n += 1
-        path = directory / f"{PREFIX}{stamp}-{n}{SUFFIX}"
+        path = directory / f"{base}-{n}{SUFFIX}"
     return path
 
 

@@ -46,7 +46,8 @@ STATS_INTERVAL_S = 0.05
 READ_BYTES = 1 << 20
 
 _NUMBERS = ("max_file_bytes", "max_file_duration_s", "max_total_bytes", "max_age_s",
-            "queue_bytes", "chunk_bytes", "flush_interval_s", "worker_priority")
+            "queue_bytes", "chunk_bytes", "flush_interval_s", "worker_priority",
+            "file_label")
 
 
 def config_to_json(config: RecordingConfig, max_message_bytes: int) -> str:

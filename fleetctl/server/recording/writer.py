@@ -218,7 +218,8 @@ class RecordingWriter:
             self.close()
             current = None
         if current is None:
-            path = files.new_path(self.config.directory, self._wall_s())
+            path = files.new_path(self.config.directory, self._wall_s(),
+                                  self.config.file_label)
             current = McapFile(path, self.codec.registry, self.config.chunk_bytes)
             self._file = current
             self._file_started_s = self._last_flush_s = self._clock()

@@ -37,6 +37,8 @@ log = logging.getLogger("fleetctl.server")
 
 # Why: the refusal memo is keyed by asker-chosen topics; keep it small per connection.
 _MAX_REFUSED_MEMO = 256
+# Video topics of other replicas' publishers remembered (the oldest is forgotten).
+MAX_REMOTE_VIDEO_TOPICS = 4096
 
 
 def sender_key(peer: Peer) -> SenderKey:
@@ -81,6 +83,23 @@ def on_new_subscription(core: RelayCore, peer: Peer, pattern: str) -> None:
             publisher.outbound.push(KEYFRAME_REQUESTS_TOPIC, encode_keyframe_request(topic),
                                     True)
             core.metrics.count_keyframe_request("auto")
+    if core.remote_video:  # replicas: publishers elsewhere route it (rate limit there)
+        for topic in core.subs.newly_matched(peer, pattern, list(core.remote_video)):
+            if router.publisher(topic) is None and core.fanout.forward_keyframe_request(
+                    encode_keyframe_request(topic)):
+                core.metrics.count_keyframe_request("auto_to_replicas")
+
+
+def on_remote_video_topic(core: RelayCore, topic: str) -> None:
+    """The first video frame of *topic* from another replica: its publisher is there.
+    Remember the topic, and ask for a keyframe now: this replica receives the topic
+    because a local viewer just subscribed (interest follows subscriptions), and that
+    viewer cannot decode before a keyframe."""
+    if len(core.remote_video) >= MAX_REMOTE_VIDEO_TOPICS:
+        del core.remote_video[next(iter(core.remote_video))]
+    core.remote_video[topic] = None
+    if core.fanout.forward_keyframe_request(encode_keyframe_request(topic)):
+        core.metrics.count_keyframe_request("auto_to_replicas")
 
 
 def on_keyframe_request(core: RelayCore, peer: Peer, frame: bytes, type_name: str) -> None:

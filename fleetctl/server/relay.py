@@ -120,6 +120,9 @@ class RelayCore:
         self.latched = LatchedStore(limits.latched_bytes, limits.latched_message_bytes, metrics)
         self.keyframes: KeyframeRouter[Peer] = KeyframeRouter(
             limits.keyframe_request_interval_s, clock, metrics)
+        # Video topics whose publisher is on another replica (their frames came through
+        # NATS): a new subscription asks those replicas for a keyframe. Bounded.
+        self.remote_video: dict[str, None] = {}
         # Which topics exist (Foxglove's channels); set by the Foxglove adapter.
         self.catalog: TopicCatalog | None = None
 
@@ -284,6 +287,8 @@ class RelayCore:
         meta, root = read_root(frame)
         topic = meta.topic
         message_id = read_fragment_id(frame, root) if meta.type == FRAGMENT_TYPE else None
+        if meta.type == VIDEO_TYPE and topic not in self.remote_video:
+            firstframes.on_remote_video_topic(self, topic)
         no_drop = meta.no_drop or self._forced_no_drop(topic)
         self.local.publish(topic, frame, no_drop, message_id)
 

@@ -332,3 +332,40 @@ async def test_a_keyframe_request_reaches_the_publisher_on_another_replica(
                 break
         assert KEYFRAME_REQUESTS_TOPIC not in seen, seen
         assert fanout(a).received == 0
+
+
+async def test_a_viewer_subscribing_on_another_replica_gets_a_keyframe_asked_for(
+        replicas: tuple[RelayServer, ...]) -> None:
+    """The server asks by itself when a viewer subscribes to a camera, also when the
+    camera's robot is on another replica (the viewer does not ask here)."""
+    from fleetctl.wire.control import KEYFRAME_REQUESTS_TOPIC, decode_keyframe_request
+    from fleetctl.wire.metadata import read_metadata
+
+    a, b = replicas
+    async with client(a, source="127.0.0.2") as robot, \
+            client(b, token=ALICE_TOKEN) as viewer, client(b, token=ALICE_TOKEN) as later:
+        await next_json(robot, "welcome")
+        await robot.send(_video_frame("/husky1/camera"))
+        await wait_for(lambda: a.core.keyframes.publisher("/husky1/camera") is not None)
+        assert (await subscribe(viewer, "/husky1/camera"))["type"] == "subscribed"
+
+        async def request_reaches_robot() -> None:
+            for _ in range(200):  # delta frames until B's interest is in place
+                await robot.send(_video_frame("/husky1/camera"))
+                try:
+                    frame = await next_binary(robot, 0.05)
+                except TimeoutError:
+                    continue
+                assert read_metadata(frame).topic == KEYFRAME_REQUESTS_TOPIC
+                assert decode_keyframe_request(frame) == "/husky1/camera"
+                return
+            raise AssertionError("no keyframe request reached the robot on A")
+
+        await request_reaches_robot()  # B saw the camera's first frame: it asked
+        assert b.metrics.keyframe_requests.get("auto_to_replicas") == 1
+        assert "/husky1/camera" in b.core.remote_video
+        # A second viewer on B, the camera already flowing: B asks when it subscribes.
+        await asyncio.sleep(a.config.limits.keyframe_request_interval_s)  # A's rate limit
+        assert (await subscribe(later, "/husky1/camera"))["type"] == "subscribed"
+        await request_reaches_robot()
+        assert b.metrics.keyframe_requests.get("auto_to_replicas") == 2

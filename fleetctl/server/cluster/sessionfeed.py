@@ -77,25 +77,31 @@ class SessionFeed:
         self._queued: deque[int] = deque()  # sequences queued, not yet acknowledged
         self._acked_seen = outbound.acked_total
         self._sub: JetStreamContext.PushSubscription | None = None
+        self.subjects: tuple[str, ...] = ()  # the running consumer's filter
         self.delivered = 0
 
-    async def start(self, js: JetStreamContext, stream: str, subject: str) -> None:
-        """Create the ordered consumer (from the cursor, else from the session's start).
+    async def start(self, js: JetStreamContext, stream: str, subjects: tuple[str, ...]) -> None:
+        """Create the ordered consumer on *subjects* (the session's patterns as stream
+        subjects): after the last frame this feed saw, else after the cursor, else from
+        the session's start.
 
         Raises:
             nats.errors.Error: NATS or JetStream refused (the caller logs and retries).
         """
-        if self.cursor is not None:
+        if self._last_seq:
             config = api.ConsumerConfig(deliver_policy=api.DeliverPolicy.BY_START_SEQUENCE,
-                                        opt_start_seq=self.cursor + 1)
+                                        opt_start_seq=self._last_seq + 1)
         else:
             config = api.ConsumerConfig(
                 deliver_policy=api.DeliverPolicy.BY_START_TIME,
                 opt_start_time=datetime.datetime.fromtimestamp(self._since, datetime.UTC))
+        if len(subjects) > 1:
+            config.filter_subjects = list(subjects)
         self._sub = await js.subscribe(
-            subject, stream=stream, cb=self._on_msg, ordered_consumer=True, config=config,
-            idle_heartbeat=IDLE_HEARTBEAT_S, pending_msgs_limit=PENDING_MESSAGES,
-            pending_bytes_limit=PENDING_BYTES)
+            subjects[0], stream=stream, cb=self._on_msg, ordered_consumer=True,
+            config=config, idle_heartbeat=IDLE_HEARTBEAT_S,
+            pending_msgs_limit=PENDING_MESSAGES, pending_bytes_limit=PENDING_BYTES)
+        self.subjects = subjects
         # nats-py re-creates an ordered consumer (after a gap, or missed heartbeats when
         # a NATS node goes) from this same config object, switched to "by start
         # sequence"; JetStream refuses that while a start time is still set. Before the
@@ -103,8 +109,10 @@ class SessionFeed:
         config.opt_start_time = None
 
     async def stop(self) -> None:
-        """Delete the consumer (the connection is gone or taken over)."""
+        """Delete the consumer (the connection is gone or taken over, or its patterns
+        changed: :meth:`start` then goes on after the last frame seen)."""
         sub, self._sub = self._sub, None
+        self.subjects = ()
         if sub is not None:
             with contextlib.suppress(Exception):
                 await sub.unsubscribe()

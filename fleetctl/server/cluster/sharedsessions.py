@@ -61,8 +61,9 @@ from fleetctl.server.cluster.sessionrecord import (
     parse_record_key,
     record_key,
 )
-from fleetctl.server.cluster.subjects import topic_subject
+from fleetctl.server.cluster.subjects import cover, pattern_subject, topic_subject
 from fleetctl.server.fanout import MetricFamily
+from fleetctl.server.regex import BadRegex, compile_full
 from fleetctl.wire.errors import WireError
 
 if TYPE_CHECKING:
@@ -107,6 +108,19 @@ def bucket_name(config: ClusterConfig) -> str:
     return f"{config.subject_prefix}_sessions"
 
 
+def session_subjects(root: str, patterns: Iterable[str]) -> tuple[str, ...]:
+    """The stream subjects a session's consumer reads: each pattern's subject (as
+    interest maps it, under *root*), none covering another; empty without patterns."""
+    subjects = []
+    for pattern in patterns:
+        try:
+            literal = compile_full(pattern).literal
+        except BadRegex:  # a hostile record's pattern: refused when resubscribed
+            continue
+        subjects.append(pattern_subject(root, pattern, literal))
+    return tuple(sorted(cover(subjects)))
+
+
 @dataclass
 class _Held:
     """A session whose record this replica writes."""
@@ -117,6 +131,7 @@ class _Held:
     revision: int | None  # of the record this replica's state is based on
     feed: SessionFeed | None = None
     task: asyncio.Task[None] | None = None
+    resubscribe: asyncio.Event = field(default_factory=asyncio.Event)
     attached: bool = True
     fresh_attach: bool = True  # the attach itself is not written yet
     ended: bool = False
@@ -267,6 +282,7 @@ class SharedSessions:
                      on_taken=on_taken)
         held.feed = feed = SessionFeed(outbound, wants, is_open, held.cursor, held.since,
                                        self._count_malformed, self.stream_away)
+        held.resubscribe.set()
         held.task = asyncio.create_task(self._run_feed(held))
         self._held[key] = held
         self._write_wake.set()
@@ -283,6 +299,7 @@ class SharedSessions:
         held = self._held.get(key)
         if held is not None:
             held.dirty = True
+            held.resubscribe.set()
             self._write_wake.set()
 
     def detach(self, key: SessionKey, ended: bool) -> None:
@@ -319,15 +336,24 @@ class SharedSessions:
     # -- feeds ----------------------------------------------------------------------------
 
     async def _run_feed(self, held: _Held) -> None:
-        """Start *held*'s consumer; retry while NATS refuses (the connection waits)."""
+        """Keep *held*'s consumer on the subjects of its patterns: (re)create it when they
+        change, none while it has none; retry while NATS refuses (the connection waits)."""
         feed = held.feed
         assert feed is not None
         while True:
+            await held.resubscribe.wait()
+            held.resubscribe.clear()
+            subjects = session_subjects(self._root, held.patterns)
+            if subjects == feed.subjects:
+                continue
+            await feed.stop()
+            if not subjects:
+                continue
             js = self._js
             if js is not None:
                 try:
-                    await feed.start(js, self._stream, f"{self._root}.>")
-                    return
+                    await feed.start(js, self._stream, subjects)
+                    continue
                 except (TimeoutError, NatsError) as exc:
                     kvloops.raise_if_cancelled()
                     self.counters["feed_failures"] += 1
@@ -335,6 +361,7 @@ class SharedSessions:
                         log.warning("replica %s: cannot read the sessions' stream: %r; "
                                     "retrying every %.0f s", self.config.name, exc, RETRY_S)
             await asyncio.sleep(RETRY_S)  # a retry pace, not a synchronization
+            held.resubscribe.set()
 
     def _stop_feed(self, held: _Held) -> None:
         if held.task is not None:

@@ -230,3 +230,28 @@ async def test_nats_lost_local_session_frames_go_on_and_the_rest_follows_once_ba
             if text not in seen:
                 seen.append(text)
         assert seen == [f"e{i}" for i in range(9)]
+
+
+async def test_a_pattern_added_later_widens_the_sessions_consumer(
+        replicas: tuple[RelayServer, ...]) -> None:
+    a, b = replicas
+    other = "/husky1/alerts"
+    async with client(b, source="127.0.0.2") as robot, console(a) as viewer:
+        await next_json(robot, "welcome")
+        assert (await subscribe(viewer, EVENTS))["type"] == "subscribed"
+        await wait_until(lambda: (r := record(b)) is not None and r.patterns == (EVENTS,),
+                         10.0)
+        await robot.send(string_frame(other, "not yet", no_drop=True, seq=1))
+        await send_events(robot, 0, 2)
+        assert await event_texts(viewer, 2) == ["e0", "e1"]  # the alert was not asked for
+        assert (await subscribe(viewer, other))["type"] == "subscribed"
+        feed = shared(a)._held[KEY].feed
+        assert feed is not None
+        await wait_until(lambda: len(feed.subjects) == 2, 10.0)
+        await robot.send(string_frame(other, "now", no_drop=True, seq=2))
+        await send_events(robot, 2, 1)
+        got = []
+        while len(got) < 2:
+            frame = await next_binary(viewer, 15.0)
+            got.append((read_metadata(frame).topic, decode_text(frame)))
+        assert got == [(other, "now"), (EVENTS, "e2")]

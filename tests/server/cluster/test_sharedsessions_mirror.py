@@ -74,3 +74,15 @@ async def test_a_held_session_written_by_another_replica_is_taken_over() -> None
     assert taken == [True] and shared.counters["taken_over"] == 1
     assert shared.lookup(KEY) == SessionRecord(("/husky1/.*",), 3, clock.now, "relay-b")
     await shared.stop()
+
+
+def test_a_sessions_consumer_reads_only_its_patterns_subjects() -> None:
+    from fleetctl.server.cluster.sharedsessions import session_subjects
+
+    assert session_subjects("f_nd", []) == ()
+    assert session_subjects("f_nd", ["/husky1/goal_pose"]) == ("f_nd.husky1.goal_pose",)
+    # A wider pattern covers a narrower one: no overlapping filters (each frame once).
+    assert session_subjects("f_nd", ["/husky1/goal_pose", "/husky1/.*", "/husky2/cmd"]) == (
+        "f_nd.husky1.>", "f_nd.husky2.cmd")
+    assert session_subjects("f_nd", [".*", "/husky1/x"]) == ("f_nd.>",)
+    assert session_subjects("f_nd", ["(unclosed"]) == ()  # a hostile record's pattern

@@ -16,11 +16,12 @@ PROMETHEUS_CONTENT_TYPE = "text/plain; version=0.0.4; charset=utf-8"
 
 
 def response(status: http.HTTPStatus, body: bytes, content_type: str,
-             cache_control: str = "no-store") -> Response:
+             cache_control: str = "no-store", shared: bool = False) -> Response:
     """Build a complete HTTP response (no keep-alive: websockets closes after it).
 
     *cache_control* is ``no-store`` for live data, ``no-cache`` for the page's files
-    (kept, but revalidated: they change with the package).
+    (kept, but revalidated: they change with the package). *shared*: any origin may read
+    it (public data only: the type layouts).
     """
     headers = Headers(
         [
@@ -30,6 +31,8 @@ def response(status: http.HTTPStatus, body: bytes, content_type: str,
             ("Cache-Control", cache_control),
         ]
     )
+    if shared:
+        headers["Access-Control-Allow-Origin"] = "*"
     return Response(status.value, status.phrase, headers, body)
 
 

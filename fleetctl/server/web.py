@@ -45,7 +45,7 @@ def page_response(page: WebPage, request: Request,
         return endpoints.text(http.HTTPStatus.OK, "ok\n")
     reply = page.lookup(request.path, None, replica_ports)
     return endpoints.response(reply.status, reply.body, reply.content_type,
-                              cache_control="no-cache")
+                              cache_control="no-cache", shared=reply.shared)
 
 
 class QuietSuccess(logging.Filter):

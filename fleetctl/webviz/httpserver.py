@@ -13,6 +13,7 @@ Every path is resolved and must stay inside its root directory; anything else is
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import logging
 import re
@@ -69,12 +70,16 @@ class PageReply:
         body: The body bytes.
         content_type: ``Content-Type`` header value.
         error: Why, for a non-200 status (also in the JSON body), else ``None``.
+        shared: Any origin may read it (``Access-Control-Allow-Origin: *``): the type
+            layouts, public schema data that the page of another relay replica loads
+            from the replica it is connected to (docs/webviz.md, "Replicas").
     """
 
     status: HTTPStatus
     body: bytes
     content_type: str
     error: str | None = None
+    shared: bool = False
 
 
 class WebPage:
@@ -128,7 +133,7 @@ class WebPage:
 
     def _layout(self, type_name: str) -> PageReply:
         try:
-            return _reply(self.layouts(type_name), ".json")
+            return dataclasses.replace(_reply(self.layouts(type_name), ".json"), shared=True)
         except LayoutError as exc:
             return _not_found(str(exc))
 
@@ -211,6 +216,8 @@ class _Handler(BaseHTTPRequestHandler):
             log.info("webviz: %s %s: %s", reply.status.value, self.path, reply.error)
         self.send_response(reply.status)
         self.send_header("Content-Type", reply.content_type)
+        if reply.shared:
+            self.send_header("Access-Control-Allow-Origin", "*")
         self.send_header("Content-Length", str(len(reply.body)))
         # The page is small and changes with the package: always revalidate.
         self.send_header("Cache-Control", "no-cache")

@@ -121,8 +121,16 @@ async def check_robot_views(page: Any) -> None:
 
 
 async def drag_goal(page: Any) -> None:
-    """Press at x=+4 m, y=0 (map centred on the origin, 40 px/m, 640 px wide), drag up."""
+    """Press at x=+4 m, y=0 (map centred on the origin, 40 px/m, 640 px wide), drag up.
+
+    First the map must have stayed in place for 0.5 s: a panel or health row appearing
+    above it while the mouse moves would shift the goal (a CI run got y = -1.3 m)."""
     await page.click("#tool-goal")
+    await page.wait_for_function(
+        "() => { const r = document.querySelector('#map-canvas').getBoundingClientRect();"
+        " const k = [r.x, r.y, r.width, r.height].join(); const w = (window.__mapBox ??="
+        " {k: '', n: 0}); if (w.k === k) w.n++; else { w.k = k; w.n = 0; }"
+        " return w.n >= 5; }", polling=100, timeout=15_000)
     box = await page.locator("#map-canvas").bounding_box()
     x0, y0 = box["x"] + box["width"] * 0.75, box["y"] + box["height"] * 0.5
     await page.mouse.move(x0, y0)

@@ -3,12 +3,14 @@ replicas on a real nats-server and a real WebSocket robot.
 
 The page is opened on replica A; the robot is on replica B (its topics cross NATS). A
 stops: the page reconnects to B on its own (same host name, B's port from
-``web.replica_ports``), keeps its sign-in, and shows the robot's live scan again.
+``web.replica_ports``), keeps its sign-in, and shows the robot's live scan again; a type
+layout whose fetch from A failed as A stopped is loaded again, from B.
 """
 
 from __future__ import annotations
 
 import contextlib
+import json
 from collections.abc import AsyncIterator
 from pathlib import Path
 from typing import Any
@@ -66,6 +68,8 @@ async def test_the_page_fails_over_to_another_replica(tmp_path: Path, browser: A
         try:
             page = await context.new_page()
             problems = watch_errors(page)
+            failed: list[str] = []
+            page.on("requestfailed", lambda r: failed.append(r.url))
             assert a.web_url is not None and b.web_port is not None
             await sign_in(page, a.web_url, OPERATOR_TOKEN)
             row = page.locator('#robots tr[data-robot="r1"]')
@@ -73,6 +77,7 @@ async def test_the_page_fails_over_to_another_replica(tmp_path: Path, browser: A
             await page.click('#robots a[href="#/robot/r1"]')
             await wait_js(page, "Number(document.querySelector('#scan-canvas').dataset.beams"
                                 " || 0) === 360")
+            a_origin = a.web_url
             await a.stop()  # replica A goes away under the page
             await wait_js(page, "window.fleetviz.conn.url === "
                                 f"'wss://127.0.0.1:{b.web_port}/' && "
@@ -82,8 +87,17 @@ async def test_the_page_fails_over_to_another_replica(tmp_path: Path, browser: A
             await wait_js(page, "Number(document.querySelector('#scan-canvas').dataset.beams"
                                 " || 0) === 360")
             assert await page.is_hidden("#signin")  # still signed in
+            # A layout fetch in flight to A as it stopped fails (its frame had come from
+            # A): never remembered, it is asked again from the replica the page is on.
+            on_a = [u for u in failed if u.startswith(a_origin)]
+            assert failed == on_a, failed
+            for url in on_a:
+                type_name = url.split("/types/", 1)[1].removesuffix(".json")
+                await wait_js(page, "window.fleetviz.conn.loader.layouts.has("
+                                    f"{json.dumps(type_name)})")
             unexpected = [p for p in problems if "WebSocket" not in p]
-            assert not unexpected, unexpected
+            refused = [p for p in unexpected if "ERR_CONNECTION_REFUSED" in p]
+            assert len(refused) <= len(on_a) and len(refused) == len(unexpected), unexpected
         finally:
             await context.close()
             await robot.stop()

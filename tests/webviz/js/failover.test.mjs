@@ -2,7 +2,8 @@
 // next URL of [url, ...failoverUrls]; the backoff doubles only after a whole round.
 import { test } from "node:test";
 import assert from "node:assert/strict";
-import { Connection } from "../../../fleetctl/webviz/static/js/connection.js";
+import { Connection, layoutsOf } from "../../../fleetctl/webviz/static/js/connection.js";
+import { LayoutLoader } from "../../../fleetctl/webviz/static/js/fb/layout.js";
 
 class FakeSocket {
   static opened = [];
@@ -68,4 +69,31 @@ test("without replicas the one URL is retried as before", () => {
   closeAndRetry(conn);
   closeAndRetry(conn);
   assert.deepEqual(FakeSocket.opened.map((s) => s.url), ["wss://host:8443/", "wss://host:8443/", "wss://host:8443/"]);
+});
+
+test("layouts come from the replica the page is connected to", () => {
+  assert.equal(layoutsOf("wss://fleet.example:8444/"), "https://fleet.example:8444/types/");
+  assert.equal(layoutsOf("ws://[::1]:8080/"), "http://[::1]:8080/types/");
+});
+
+test("a layout fetch nobody answered is asked again; a 404 is remembered", async () => {
+  let base = "https://a:8443/types/";
+  const asked = [];
+  const layout = { root: "Empty", metadata: "Meta",
+    tables: { Empty: { fields: [] }, Meta: { fields: [] } } };
+  const fetchFn = async (url) => {
+    asked.push(url);
+    if (url.startsWith("https://a:")) throw new TypeError("Failed to fetch");
+    if (url.includes("Missing")) return { ok: false, status: 404, text: async () => "no" };
+    return { ok: true, json: async () => layout };
+  };
+  const loader = new LayoutLoader(() => base, fetchFn);
+  await assert.rejects(loader.ensure("std_msgs/msg/Empty"));
+  base = "https://b:8444/types/"; // failed over to replica B
+  await loader.ensure("std_msgs/msg/Empty");
+  assert.deepEqual(asked, ["https://a:8443/types/std_msgs/msg/Empty.json",
+    "https://b:8444/types/std_msgs/msg/Empty.json"]);
+  await assert.rejects(loader.ensure("std_msgs/msg/Missing"));
+  await assert.rejects(loader.ensure("std_msgs/msg/Missing"));
+  assert.equal(asked.filter((u) => u.includes("Missing")).length, 1);
 });

@@ -1,6 +1,6 @@
 // The page: sign-in, fleet overview, robot pages, commands, health and banner.
 
-import { Connection } from "./connection.js";
+import { Connection, layoutsOf } from "./connection.js";
 import { LayoutLoader } from "./fb/layout.js";
 import { GOAL, INITIAL, goalMessage, initialPoseMessage } from "./commands.js";
 import { PANELS, reEscape, wantedRegexes } from "./panels.js";
@@ -36,7 +36,11 @@ class App {
 
   signIn(token) {
     this.conn?.stop();
-    const conn = new Connection({ url: this.config.server_url, failoverUrls: this.config.failover_urls ?? [], token: token || null, loader: new LayoutLoader("types/") });
+    const failoverUrls = this.config.failover_urls ?? [];
+    // With replicas, layouts come from the replica the page is connected to now: the
+    // page's own origin may be the replica that went away.
+    const layoutBase = failoverUrls.length ? () => layoutsOf(conn.url) : "types/";
+    const conn = new Connection({ url: this.config.server_url, failoverUrls, token: token || null, loader: new LayoutLoader(layoutBase) });
     this.conn = conn;
     conn.addEventListener("status", (e) => this.onStatus(e.detail));
     conn.addEventListener("welcome", () => this.onWelcome());

@@ -303,3 +303,15 @@ export class Connection extends EventTarget {
     return frame.byteLength;
   }
 }
+
+/**
+ * Where the relay at WebSocket URL *wsUrl* serves the type layouts: the same host and
+ * port over HTTP(S), `/types/` (a replica's web listener serves the page and layouts).
+ */
+export function layoutsOf(wsUrl) {
+  const url = new URL(wsUrl);
+  url.protocol = url.protocol === "wss:" ? "https:" : "http:";
+  url.pathname = "/types/";
+  url.search = "";
+  return url.href;
+}

@@ -124,6 +124,10 @@ export class Layouts {
  * failures remembered so an unknown type is not fetched again on every frame.
  */
 export class LayoutLoader {
+  /**
+   * @param {string|(() => string)} baseUrl where `<type>.json` files are; a function is
+   *   asked at every fetch (relay replicas: the replica the page is connected to now).
+   */
   constructor(baseUrl = "types/", fetchFn = globalThis.fetch?.bind(globalThis)) {
     this.layouts = new Layouts();
     this.baseUrl = baseUrl;
@@ -143,14 +147,19 @@ export class LayoutLoader {
 
   async fetchOne(name) {
     try {
-      const resp = await this.fetchFn(`${this.baseUrl}${name}.json`);
-      if (!resp.ok) throw new LayoutError(`layout of ${name}: HTTP ${resp.status} ${await resp.text()}`);
+      const base = typeof this.baseUrl === "function" ? this.baseUrl() : this.baseUrl;
+      const resp = await this.fetchFn(`${base}${name}.json`);
+      if (!resp.ok) {
+        // The server answered: it has no such type. Remembered (no fetch per frame).
+        const e = new LayoutError(`layout of ${name}: HTTP ${resp.status} ${await resp.text()}`);
+        this.failed.set(name, e);
+        throw e;
+      }
       this.layouts.add(await resp.json());
       return this.layouts;
     } catch (err) {
-      const e = err instanceof LayoutError ? err : new LayoutError(`layout of ${name}: ${err}`);
-      this.failed.set(name, e);
-      throw e;
+      // Not answered (a replica going away): not remembered, the next frame asks again.
+      throw err instanceof LayoutError ? err : new LayoutError(`layout of ${name}: ${err}`);
     } finally {
       this.pending.delete(name);
     }

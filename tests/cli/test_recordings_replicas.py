@@ -57,10 +57,13 @@ async def test_list_and_fetch_across_replicas(
             client(a, source="127.0.0.2") as husky1, client(b, source="127.0.0.3") as husky2:
         await husky1.send(string_frame("/husky1/chat", "on a", seq=1))
         await husky2.send(string_frame("/husky2/chat", "on b", seq=1))
-        for srv in (a, b):
+        for srv in (a, b):  # each file on disk holds its message (flushed)
             recorder = srv.recorder
             assert recorder is not None
             await wait_for(lambda r=recorder: r.snapshot()["messages"] == 1, DEADLINE_S)
+            directory = recorder.config.directory
+            await wait_for(lambda d=directory: [len(list(files.read_messages(f.path)))
+                                                for f in files.scan(d)] == [1], DEADLINE_S)
         dead = f"http://127.0.0.1:{free_port()}/"
         argv = ["recordings", "list", "--server", a.url, "-s", b.url, "-s", dead, "-o", "json"]
         assert await asyncio.to_thread(main, argv) == 0

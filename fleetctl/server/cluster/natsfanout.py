@@ -42,7 +42,7 @@ from fleetctl.server.cluster.config import ClusterConfig, ClusterStartError
 from fleetctl.server.cluster.interest import Interest
 from fleetctl.server.cluster.sharedlatched import SharedLatched
 from fleetctl.server.cluster.sharedregistry import SharedRegistry
-from fleetctl.server.cluster.sharedsessions import SharedSessions
+from fleetctl.server.cluster.sharedsessions import SharedSessions, live_subject
 from fleetctl.server.cluster.subjects import (
     control_subject,
     is_control_subject,
@@ -98,6 +98,8 @@ class NatsFanout:
         self.registry = registry
         self.latched = latched
         self.sessions = sessions
+        if sessions is not None:
+            sessions.on_away = self._publish_live_copies
         self._on_keyframe_request = on_keyframe_request
         self.keyframe_subject = control_subject(config.subject_prefix, "keyframe")
         self._local = local.publish
@@ -148,6 +150,14 @@ class NatsFanout:
         with the topic's publisher routes it); through the publish queue and its bounds."""
         self._enqueue(self.keyframe_subject, frame, False)
         return True
+
+    def _publish_live_copies(self, stored: list[tuple[str, bytes]]) -> None:
+        """The sessions' stream stopped taking frames: send those still waiting for it
+        over core NATS too, so other replicas' viewers get them now (the stream's copy,
+        once stored, is a duplicate they drop)."""
+        assert self.sessions is not None
+        for subject, frame in stored:
+            self._enqueue(live_subject(self.config, subject), frame, True)
 
     def _enqueue(self, subject: str, frame: bytes, no_drop: bool) -> None:
         """Queue *frame* for the publish task, within the queue's bounds (else counted

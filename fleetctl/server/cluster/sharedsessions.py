@@ -108,6 +108,11 @@ def bucket_name(config: ClusterConfig) -> str:
     return f"{config.subject_prefix}_sessions"
 
 
+def live_subject(config: ClusterConfig, stream_subject: str) -> str:
+    """The core NATS subject of a frame stored on *stream_subject*."""
+    return config.subject_prefix + stream_subject[len(stream_root(config)):]
+
+
 def session_subjects(root: str, patterns: Iterable[str]) -> tuple[str, ...]:
     """The stream subjects a session's consumer reads: each pattern's subject (as
     interest maps it, under *root*), none covering another; empty without patterns."""
@@ -174,6 +179,10 @@ class SharedSessions:
         self._js: JetStreamContext | None = None
         self._nc: Client | None = None
         self._storing_fails = False
+        # Called with the frames still waiting for the stream when storing starts to
+        # fail: the fan-out sends them over core NATS too (other replicas' live viewers
+        # would otherwise wait for the stream, or lose them with this replica).
+        self.on_away: Callable[[list[tuple[str, bytes]]], None] | None = None
         self._purged_s = 0.0
         self._kv: KeyValue | None = None
         self._tasks: list[asyncio.Task[None]] = []
@@ -518,6 +527,8 @@ class SharedSessions:
                         log.warning("replica %s: cannot store no_drop frames for sessions "
                                     "(%r): held in order, sessions here get them live "
                                     "meanwhile", self.config.name, result)
+                        if self.on_away is not None:
+                            self.on_away(list(queue))
                     self._storing_fails = True
                     await asyncio.sleep(STORE_RETRY_S)  # keep the rest, in order
                     break

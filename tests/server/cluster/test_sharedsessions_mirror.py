@@ -86,3 +86,31 @@ def test_a_sessions_consumer_reads_only_its_patterns_subjects() -> None:
         "f_nd.husky1.>", "f_nd.husky2.cmd")
     assert session_subjects("f_nd", [".*", "/husky1/x"]) == ("f_nd.>",)
     assert session_subjects("f_nd", ["(unclosed"]) == ()  # a hostile record's pattern
+
+
+async def test_frames_waiting_for_a_failing_stream_go_out_live_too() -> None:
+    import asyncio
+
+    shared = sessions(Clock())
+    away: list[list[tuple[str, bytes]]] = []
+    shared.on_away = away.append
+
+    class DownJetStream:  # a stream whose leader is being re-elected
+        async def publish(self, *args: object, **kwargs: object) -> None:
+            raise TimeoutError
+
+    shared._js = DownJetStream()  # type: ignore[assignment]
+    shared.offer("/husky1/events", b"e1")
+    shared.offer("/husky1/events", b"e2")
+    task = asyncio.create_task(shared._publish_loop())
+    try:
+        from tests.support import wait_until
+
+        await wait_until(lambda: bool(away), 5.0)
+    finally:
+        task.cancel()
+    assert away == [[("fleetctl_nd.husky1.events", b"e1"), ("fleetctl_nd.husky1.events", b"e2")]]
+    assert shared.stream_away() and shared.counters["store_failures"] >= 1
+    from fleetctl.server.cluster.sharedsessions import live_subject
+
+    assert live_subject(shared.config, "fleetctl_nd.husky1.events") == "fleetctl.husky1.events"

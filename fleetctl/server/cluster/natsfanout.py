@@ -44,6 +44,9 @@ from fleetctl.server.cluster.sharedlatched import SharedLatched
 from fleetctl.server.cluster.sharedregistry import SharedRegistry
 from fleetctl.server.cluster.sharedsessions import SharedSessions, live_subject
 from fleetctl.server.cluster.subjects import (
+    MAX_SUBJECT_BYTES,
+    SUB_PENDING_BYTES,
+    SUB_PENDING_MESSAGES,
     control_subject,
     is_control_subject,
     topic_subject,
@@ -55,12 +58,6 @@ log = logging.getLogger("fleetctl.server.cluster")
 
 # Why bounded: a subject per client-chosen topic; the memo must not grow without end.
 _MAX_SUBJECTS = 16384
-# NATS refuses a control line (PUB <subject> <size>) past 4 KiB by default.
-MAX_SUBJECT_BYTES = 3072
-# Frames (and bytes) NATS may hold for one slow subscription before it drops (counted
-# slow_consumer): the relay's own schedulers bound what each connection gets after that.
-SUB_PENDING_MESSAGES = 65536
-SUB_PENDING_BYTES = 64 * 1024 * 1024
 # While NATS is away, how often newly queued latest-only frames are shed (bounds how old
 # a latest-only frame can be when it goes out after the reconnect).
 DISCONNECTED_LOOK_S = 0.1

@@ -52,7 +52,7 @@ from nats.js.kv import KeyValue
 
 from fleetctl.server.cluster import kvloops
 from fleetctl.server.cluster.config import ClusterConfig, ClusterStartError
-from fleetctl.server.cluster.sessionfeed import SessionFeed
+from fleetctl.server.cluster.sessionfeed import IDLE_HEARTBEAT_S, SessionFeed
 from fleetctl.server.cluster.sessionrecord import (
     SessionKey,
     SessionRecord,
@@ -61,7 +61,14 @@ from fleetctl.server.cluster.sessionrecord import (
     parse_record_key,
     record_key,
 )
-from fleetctl.server.cluster.subjects import cover, pattern_subject, topic_subject
+from fleetctl.server.cluster.subjects import (
+    MAX_SUBJECT_BYTES,
+    SUB_PENDING_BYTES,
+    SUB_PENDING_MESSAGES,
+    cover,
+    pattern_subject,
+    topic_subject,
+)
 from fleetctl.server.fanout import MetricFamily
 from fleetctl.server.regex import BadRegex, compile_full
 from fleetctl.wire.errors import WireError
@@ -80,17 +87,12 @@ WRITE_S = 0.5
 RETRY_S = 1.0
 # Publishes in flight to the stream at once (pipelined on the one NATS connection).
 _PUBLISH_BATCH = 64
-_MAX_SUBJECT_BYTES = 3072
 # An acknowledged store: milliseconds normally; a request lost in a NATS node's dead socket
 # is retried after this (the frames behind it wait, in order).
 STORE_TIMEOUT_S = 1.0
 STORE_RETRY_S = 0.25
 # Which replica stored a frame (each replica skips its own when reading the stream).
 REPLICA_HEADER = "Fleetctl-Replica"
-IDLE_HEARTBEAT_S = 1.0
-# What NATS may hold for the replica's reader of the stream in this process.
-SUB_PENDING_MESSAGES = 65536
-SUB_PENDING_BYTES = 64 * 1024 * 1024
 DUPLICATE_WINDOW_S = 120.0
 
 
@@ -545,7 +547,7 @@ class SharedSessions:
                                 result)
 
     async def _store(self, js: JetStreamContext, subject: str, frame: bytes) -> None:
-        if len(subject) > _MAX_SUBJECT_BYTES:
+        if len(subject) > MAX_SUBJECT_BYTES:
             self.counters["subject_too_long"] += 1
             return
         digest = hashlib.blake2b(frame, digest_size=16).hexdigest()

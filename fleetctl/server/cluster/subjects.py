@@ -27,6 +27,12 @@ RELATIVE_TOKEN = "~~"
 _META = frozenset("\\.[](){}^$|")
 _QUANTIFIERS = frozenset("*+?{")
 
+# NATS refuses a control line (PUB <subject> <size>) past 4 KiB by default.
+MAX_SUBJECT_BYTES = 3072
+# Frames (and bytes) NATS may hold for one slow subscription of a replica before it drops
+# (counted slow_consumer): the relay's own schedulers bound what each connection gets.
+SUB_PENDING_MESSAGES = 65536
+SUB_PENDING_BYTES = 64 * 1024 * 1024
 
 def escape_token(segment: str) -> str:
     """One topic segment as a NATS subject token (never empty, no ``.``, ``*``, ``>``)."""

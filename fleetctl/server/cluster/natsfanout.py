@@ -69,6 +69,9 @@ RECONNECT_WAIT_S = 0.25
 PING_INTERVAL_S = 2
 MAX_OUTSTANDING_PINGS = 2
 FLUSH_TIMEOUT_S = 2.0
+# A refused change of what a replica reads from the sessions' stream is tried again after
+# this (JetStream electing a leader, NATS away).
+INTEREST_RETRY_S = 1.0
 
 
 class NatsFanout:
@@ -385,6 +388,10 @@ class NatsFanout:
             except NatsError as exc:  # closed under us: the next change or reconnect retries
                 log.warning("replica %s: NATS subscriptions not updated: %s",
                             self.config.name, _reason(exc))
+            if (self.sessions is not None
+                    and not await self.sessions.follow_interest(self.interest.wanted)):
+                await asyncio.sleep(INTEREST_RETRY_S)  # a retry pace, not a synchronization
+                self._interest_changed.set()
 
     async def _follow_interest(self) -> None:
         nc = self._nc

@@ -21,23 +21,20 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
-import datetime
 import logging
 from collections import deque
 from collections.abc import Callable
 
 from nats.aio.msg import Msg
-from nats.js import JetStreamContext, api
+from nats.js import JetStreamContext
 
+from fleetctl.server.cluster.orderedconsumer import subscribe_ordered
 from fleetctl.server.outbound import OutboundScheduler
 from fleetctl.wire.errors import WireError
 from fleetctl.wire.metadata import read_metadata
 
 log = logging.getLogger("fleetctl.server.cluster")
 
-# JetStream's idle heartbeat for the ordered consumer: two missed ones (a NATS node gone)
-# make the client re-create the consumer after the last sequence it got.
-IDLE_HEARTBEAT_S = 1.0
 # How often a callback waiting for room in the connection's queue looks again.
 ROOM_LOOK_S = 0.01
 # Frames NATS may hold for the consumer in this process (its flow control keeps it lower).
@@ -88,25 +85,12 @@ class SessionFeed:
         Raises:
             nats.errors.Error: NATS or JetStream refused (the caller logs and retries).
         """
-        if self._last_seq:
-            config = api.ConsumerConfig(deliver_policy=api.DeliverPolicy.BY_START_SEQUENCE,
-                                        opt_start_seq=self._last_seq + 1)
-        else:
-            config = api.ConsumerConfig(
-                deliver_policy=api.DeliverPolicy.BY_START_TIME,
-                opt_start_time=datetime.datetime.fromtimestamp(self._since, datetime.UTC))
-        if len(subjects) > 1:
-            config.filter_subjects = list(subjects)
-        self._sub = await js.subscribe(
-            subjects[0], stream=stream, cb=self._on_msg, ordered_consumer=True,
-            config=config, idle_heartbeat=IDLE_HEARTBEAT_S,
-            pending_msgs_limit=PENDING_MESSAGES, pending_bytes_limit=PENDING_BYTES)
+        # Before the first message, the time floor in _on_msg applies too.
+        self._sub = await subscribe_ordered(
+            js, stream, subjects, self._on_msg,
+            start_seq=self._last_seq + 1 if self._last_seq else None, start_time=self._since,
+            pending_msgs=PENDING_MESSAGES, pending_bytes=PENDING_BYTES)
         self.subjects = subjects
-        # nats-py re-creates an ordered consumer (after a gap, or missed heartbeats when
-        # a NATS node goes) from this same config object, switched to "by start
-        # sequence"; JetStream refuses that while a start time is still set. Before the
-        # first message that sequence may be 1, hence the time floor in _on_msg.
-        config.opt_start_time = None
 
     async def stop(self) -> None:
         """Delete the consumer (the connection is gone or taken over, or its patterns

@@ -42,7 +42,6 @@ from dataclasses import dataclass, field
 from typing import TYPE_CHECKING
 
 from nats.aio.client import Client
-from nats.aio.msg import Msg
 from nats.errors import Error as NatsError
 from nats.errors import MaxPayloadError
 from nats.js import JetStreamContext, api
@@ -52,7 +51,8 @@ from nats.js.kv import KeyValue
 
 from fleetctl.server.cluster import kvloops
 from fleetctl.server.cluster.config import ClusterConfig, ClusterStartError
-from fleetctl.server.cluster.sessionfeed import IDLE_HEARTBEAT_S, SessionFeed
+from fleetctl.server.cluster.remotefeed import RemoteFeed
+from fleetctl.server.cluster.sessionfeed import SessionFeed
 from fleetctl.server.cluster.sessionrecord import (
     SessionKey,
     SessionRecord,
@@ -63,15 +63,12 @@ from fleetctl.server.cluster.sessionrecord import (
 )
 from fleetctl.server.cluster.subjects import (
     MAX_SUBJECT_BYTES,
-    SUB_PENDING_BYTES,
-    SUB_PENDING_MESSAGES,
     cover,
     pattern_subject,
     topic_subject,
 )
 from fleetctl.server.fanout import MetricFamily
 from fleetctl.server.regex import BadRegex, compile_full
-from fleetctl.wire.errors import WireError
 
 if TYPE_CHECKING:
     from fleetctl.server.outbound import OutboundScheduler
@@ -164,9 +161,6 @@ class SharedSessions:
                  on_remote: Callable[[bytes], None] | None = None,
                  clock: Callable[[], float] = time.time) -> None:
         self.config = config
-        self._on_remote = on_remote
-        self._remote_sub: JetStreamContext.PushSubscription | None = None
-        self._remote_last = 0
         self.expiry_s = expiry_s
         self._clock = clock
         self._stream = stream_name(config)
@@ -192,7 +186,12 @@ class SharedSessions:
         self.counters = {"stored": 0, "duplicates": 0, "store_failures": 0, "refused": 0,
                          "queue_full": 0, "subject_too_long": 0, "puts": 0,
                          "put_failures": 0, "deletes": 0, "taken_over": 0, "malformed": 0,
-                         "feed_failures": 0, "delivered": 0, "remote": 0}
+                         "feed_failures": 0, "delivered": 0, "follow_failures": 0}
+        self._remote = RemoteFeed(self._stream, config.subject_prefix, self._root,
+                                  config.name, REPLICA_HEADER, on_remote, self.counters
+                                  ) if on_remote is not None else None
+        self._wanted: frozenset[str] = frozenset()
+        self._following = False
 
     # -- life cycle -----------------------------------------------------------------------
 
@@ -224,8 +223,10 @@ class SharedSessions:
         self._kv = await kvloops.open_bucket(nc, self.config, bucket_name(self.config),
                                              "the sessions'", ttl=self.expiry_s)
         watcher = await self._kv.watchall()
-        if self._on_remote is not None:
-            await self._follow_remote(js)
+        if self._remote is not None:
+            remote = self._remote
+            self._following = True  # interest changes from now on follow too (serialized)
+            await kvloops.while_electing(lambda: remote.follow(js, self._wanted))
         self._tasks = [asyncio.create_task(self._watch(watcher)),
                        asyncio.create_task(self._write_loop()),
                        asyncio.create_task(self._publish_loop())]
@@ -237,10 +238,8 @@ class SharedSessions:
             if held.task is not None:
                 held.task.cancel()
         await kvloops.stop(self.write_due, self._tasks)
-        if self._remote_sub is not None:
-            with contextlib.suppress(Exception):
-                await self._remote_sub.unsubscribe()
-            self._remote_sub = None
+        if self._remote is not None:
+            await self._remote.stop()
         for held in list(self._held.values()):
             if held.feed is not None:
                 await held.feed.stop()
@@ -558,32 +557,33 @@ class SharedSessions:
 
     # -- other replicas' no_drop frames ----------------------------------------------------
 
-    async def _follow_remote(self, js: JetStreamContext) -> None:
-        """Read every no_drop frame the other replicas store, from now on, for this
-        replica's connections without a session (an ordered consumer: in stream order,
-        re-created after the last frame it got when its NATS node goes)."""
-        info = await kvloops.while_electing(lambda: js.stream_info(self._stream))
-        self._remote_last = info.state.last_seq
-        config = api.ConsumerConfig(deliver_policy=api.DeliverPolicy.BY_START_SEQUENCE,
-                                    opt_start_seq=self._remote_last + 1)
-        self._remote_sub = await js.subscribe(
-            f"{self._root}.>", stream=self._stream, cb=self._remote_frame,
-            ordered_consumer=True, config=config, idle_heartbeat=IDLE_HEARTBEAT_S,
-            pending_msgs_limit=SUB_PENDING_MESSAGES, pending_bytes_limit=SUB_PENDING_BYTES)
+    async def follow_interest(self, wanted: frozenset[str]) -> bool:
+        """Read other replicas' no_drop frames on the live subjects *wanted* (this
+        replica's interest), from now on (:class:`~fleetctl.server.cluster.remotefeed.
+        RemoteFeed`); remembered until the stream is set up.
 
-    async def _remote_frame(self, msg: Msg) -> None:
-        seq = msg.metadata.sequence.stream
-        if seq <= self._remote_last:
-            return  # before this replica started, or again after a re-creation
-        self._remote_last = seq
-        if (msg.headers or {}).get(REPLICA_HEADER) == self.config.name:
-            return  # our own: delivered locally when it was accepted
-        assert self._on_remote is not None
+        Returns:
+            ``False`` if NATS or JetStream refused (logged once, counted
+            ``follow_failures``; the caller tries again).
+        """
+        self._wanted = wanted
+        if self._remote is None or self._js is None or not self._following:
+            return True
         try:
-            self._on_remote(msg.data)
-            self.counters["remote"] += 1
-        except WireError:
-            self.counters["malformed"] += 1
+            await self._remote.follow(self._js, wanted)
+        except (TimeoutError, NatsError) as exc:
+            kvloops.raise_if_cancelled()
+            self.counters["follow_failures"] += 1
+            if self.counters["follow_failures"] == 1:
+                log.warning("replica %s: cannot follow other replicas' no_drop frames in "
+                            "the sessions' stream: %r; retrying", self.config.name, exc)
+            return False
+        return True
+
+    @property
+    def remote_subjects(self) -> tuple[str, ...]:
+        """The stream subjects this replica reads other replicas' frames on."""
+        return self._remote.subjects if self._remote is not None else ()
 
     # -- metrics ---------------------------------------------------------------------------
 

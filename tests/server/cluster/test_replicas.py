@@ -87,6 +87,9 @@ async def test_frame_crosses_replicas_once(replicas: tuple[RelayServer, ...]) ->
         assert (await subscribe(remote, "/husky1/chat"))["type"] == "subscribed"
         assert (await subscribe(local, "/husky1/chat"))["type"] == "subscribed"
         await wait_for(lambda: fanout(b).subscribed == {"fleetctl.husky1.>"})
+        # ... and B reads the same subjects of the no_drop stream, A only its chat topic.
+        await wait_for(lambda: shared(b).remote_subjects == ("fleetctl_nd.husky1.>",)
+                       and shared(a).remote_subjects == ("fleetctl_nd.husky1.chat",))
         await until_crossing(robot, remote, "/husky1/probe")
         await drain(remote)
         # Probes sent before B's interest crossed the route were published and never

@@ -50,8 +50,8 @@ NATS_HEALTH_COMMAND = [
 JetStream, once the cluster elected its meta leader): `up`'s and e2e's health check."""
 MAX_REPLICAS = 8
 SUBJECT_PREFIX = "fleetctl"
-# <prefix>_<name>: sharedregistry.py, sharedlatched.py, sharedsessions.py
-BUCKETS = ("robots", "latched", "sessions")
+# <prefix>_<name>: sharedregistry.py, sharedlatched.py, sharedsessions.py, remoteinterest.py
+BUCKETS = ("robots", "latched", "sessions", "interest")
 NODROP_STREAM = "nodrop"  # <prefix>_nodrop on subjects <prefix>_nd.>: sharedsessions.py
 PASSWORD_FILE = "nats.password"
 NATS_CONF = "nats.conf"

@@ -118,6 +118,7 @@ class RelayServer:
                               recorder=self.recorder)
         if config.cluster is not None:  # the only place that knows about replicas
             from fleetctl.server.cluster.natsfanout import NatsFanout
+            from fleetctl.server.cluster.remoteinterest import RemoteInterest
             from fleetctl.server.cluster.sharedlatched import SharedLatched
             from fleetctl.server.cluster.sharedregistry import SharedRegistry
             from fleetctl.server.cluster.sharedsessions import SharedSessions
@@ -131,7 +132,7 @@ class RelayServer:
             self.core.use_fanout(NatsFanout(
                 self.core.local, self.core.on_remote, config.cluster, self.registry, latched,
                 functools.partial(firstframes.on_remote_keyframe_request, self.core),
-                sessions))
+                sessions, RemoteInterest(config.cluster)))
         self.recordings = (RecordingsEndpoint(self.recorder) if self.recorder is not None
                            else None)
         self.reloader = AuthReloader(config.auth_map, self.core.reload_auth, self.metrics)

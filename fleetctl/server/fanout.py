@@ -70,6 +70,15 @@ class LocalFanout:
         if self.sessions.has_offline:
             self.sessions.deliver(topic, frame)
 
+    def deliver_to_stream_fed(self, topic: str, frame: bytes, message_id: int | None) -> None:
+        """A no_drop frame the connections fed from the sessions' stream skipped live
+        will not be stored soon (the stream is away): give it to them live now, as
+        :meth:`publish` does meanwhile."""
+        for receiver in self.receivers(topic):
+            feed = receiver.stream_feed
+            if feed is not None and receiver.outbound.push(topic, frame, True, message_id):
+                feed.note_live()
+
     def forward_keyframe_request(self, frame: bytes) -> bool:
         return False  # one process: a publisher not here is nowhere
 

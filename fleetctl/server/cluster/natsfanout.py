@@ -27,7 +27,6 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import logging
-from collections import deque
 from collections.abc import Callable, Iterable
 from typing import Any
 
@@ -39,7 +38,9 @@ from nats.errors import Error as NatsError
 
 from fleetctl.errors import ConfigError
 from fleetctl.server.cluster.config import ClusterConfig, ClusterStartError
+from fleetctl.server.cluster.framequeue import FrameQueue, Queued, SubjectMemo
 from fleetctl.server.cluster.interest import Interest
+from fleetctl.server.cluster.remoteinterest import RemoteInterest
 from fleetctl.server.cluster.sharedlatched import SharedLatched
 from fleetctl.server.cluster.sharedregistry import SharedRegistry
 from fleetctl.server.cluster.sharedsessions import SharedSessions, live_subject
@@ -56,8 +57,6 @@ from fleetctl.wire.errors import WireError
 
 log = logging.getLogger("fleetctl.server.cluster")
 
-# Why bounded: a subject per client-chosen topic; the memo must not grow without end.
-_MAX_SUBJECTS = 16384
 # While NATS is away, how often newly queued latest-only frames are shed (bounds how old
 # a latest-only frame can be when it goes out after the reconnect).
 DISCONNECTED_LOOK_S = 0.1
@@ -88,29 +87,35 @@ class NatsFanout:
             ``KeyframeRequest`` frame; ``firstframes.on_remote_keyframe_request``).
         sessions: The shared sessions (every local no_drop frame is also stored in their
             stream), likewise.
+        remote_interest: The replicas' interest: a frame is published only if another
+            replica wants it; ``None``: every frame is published.
     """
 
     def __init__(self, local: LocalFanout, on_remote: Callable[[bytes], None],
                  config: ClusterConfig, registry: SharedRegistry | None = None,
                  latched: SharedLatched | None = None,
                  on_keyframe_request: Callable[[bytes], None] | None = None,
-                 sessions: SharedSessions | None = None) -> None:
+                 sessions: SharedSessions | None = None,
+                 remote_interest: RemoteInterest | None = None) -> None:
         self.registry = registry
         self.latched = latched
         self.sessions = sessions
+        self.remote_interest = remote_interest
+        self.unwanted = 0
         if sessions is not None:
             sessions.on_away = self._publish_live_copies
         self._on_keyframe_request = on_keyframe_request
         self.keyframe_subject = control_subject(config.subject_prefix, "keyframe")
         self._local = local.publish
+        self._local_fanout = local
         self._on_remote = on_remote
         self.config = config
         self.interest = Interest(config.subject_prefix)
-        self._subjects: dict[str, str] = {}
-        self._queue: deque[tuple[str, bytes, bool]] = deque()  # subject, frame, no_drop
-        self._back = asyncio.Event()  # set while NATS is connected
-        self._queued_bytes = 0
+        self._subject = SubjectMemo(config.subject_prefix, topic_subject)
         self._wake = asyncio.Event()
+        self._queue = FrameQueue(config.publish_queue_frames, config.publish_queue_bytes,
+                                 self._wake)
+        self._back = asyncio.Event()  # set while NATS is connected
         self._interest_changed = asyncio.Event()
         self._nc: Client | None = None
         self._subs: dict[str, Subscription] = {}
@@ -133,13 +138,14 @@ class NatsFanout:
             # acknowledged, in order, surviving a NATS node's death); over core NATS
             # only while the stream is away (the stream's copy then comes again later, a
             # duplicate receivers drop).
-            self.sessions.offer(topic, frame)
+            self.sessions.offer(topic, frame, message_id)
             if not self.sessions.stream_away():
                 return
-        subject = self._subjects.get(topic)
-        if subject is None:
-            subject = self._subject(topic)
-        self._enqueue(subject, frame, no_drop)
+        subject = self._subject(topic)
+        if self.remote_interest is not None and not self.remote_interest.wants(subject):
+            self.unwanted += 1  # no other replica has a subscriber for it
+            return
+        self._enqueue(Queued(subject, frame, topic, no_drop, message_id))
 
     def follow(self, pattern: str, delta: int) -> None:
         if self.interest.follow(pattern, delta):
@@ -148,29 +154,24 @@ class NatsFanout:
     def forward_keyframe_request(self, frame: bytes) -> bool:
         """Publish the request on the control subject every replica listens to (the one
         with the topic's publisher routes it); through the publish queue and its bounds."""
-        self._enqueue(self.keyframe_subject, frame, False)
+        self._enqueue(Queued(self.keyframe_subject, frame, "", False))
         return True
 
-    def _publish_live_copies(self, stored: list[tuple[str, bytes]]) -> None:
-        """The sessions' stream stopped taking frames: send those still waiting for it
-        over core NATS too, so other replicas' viewers get them now (the stream's copy,
-        once stored, is a duplicate they drop)."""
-        assert self.sessions is not None
-        for subject, frame in stored:
-            self._enqueue(live_subject(self.config, subject), frame, True)
+    def _publish_live_copies(self, waiting: list[Queued]) -> None:
+        """The sessions' stream stopped taking frames: the no_drop frames still waiting
+        for it go out now on core NATS (other replicas' viewers) and to this replica's
+        session connections, which skipped them live to get them from the stream (the
+        stream's copy, once stored, is a duplicate the clients drop)."""
+        for entry in waiting:
+            self._local_fanout.deliver_to_stream_fed(entry.topic, entry.frame,
+                                                     entry.message_id)
+            self._enqueue(entry._replace(subject=live_subject(self.config, entry.subject)))
 
-    def _enqueue(self, subject: str, frame: bytes, no_drop: bool) -> None:
-        """Queue *frame* for the publish task, within the queue's bounds (else counted
+    def _enqueue(self, entry: Queued) -> None:
+        """Queue a frame for the publish task, within the queue's bounds (else counted
         ``queue_full``)."""
-        queue = self._queue
-        if (len(queue) >= self.config.publish_queue_frames
-                or self._queued_bytes + len(frame) > self.config.publish_queue_bytes):
+        if not self._queue.put(entry):
             self._drop("queue_full")
-            return
-        queue.append((subject, frame, no_drop))
-        self._queued_bytes += len(frame)
-        if len(queue) == 1:
-            self._wake.set()
 
     async def start(self) -> None:
         """Connect to NATS and start publishing and following interest.
@@ -215,6 +216,9 @@ class NatsFanout:
         return [*(f for state in self._shared() for f in state.metric_families()),
             ("fleetctl_cluster_published_total", "counter",
              "Frames published to other replicas through NATS.", "", {"": self.published}),
+            ("fleetctl_cluster_unwanted_total", "counter",
+             "Frames not published: no other replica had a subscriber for them.", "",
+             {"": float(self.unwanted)}),
             ("fleetctl_cluster_received_total", "counter",
              "Frames received from other replicas through NATS.", "", {"": self.received}),
             ("fleetctl_cluster_dropped_total", "counter",
@@ -231,9 +235,10 @@ class NatsFanout:
 
     # -- state -------------------------------------------------------------------------
 
-    def _shared(self) -> list[SharedRegistry | SharedLatched | SharedSessions]:
+    def _shared(self) -> list[SharedRegistry | SharedLatched | SharedSessions | RemoteInterest]:
         """The state kept in JetStream, in start order."""
-        return [s for s in (self.registry, self.latched, self.sessions) if s is not None]
+        return [s for s in (self.remote_interest, self.registry, self.latched, self.sessions)
+                if s is not None]
 
     @property
     def connected(self) -> bool:
@@ -244,13 +249,6 @@ class NatsFanout:
         """Subjects this replica holds a NATS subscription on (may run ahead of the
         server by one round trip)."""
         return frozenset(self._subs)
-
-    def _subject(self, topic: str) -> str:
-        subject = topic_subject(self.config.subject_prefix, topic)
-        if len(self._subjects) >= _MAX_SUBJECTS:
-            self._subjects.clear()
-        self._subjects[topic] = subject
-        return subject
 
     def _drop(self, reason: str, n: int = 1) -> None:
         self.dropped[reason] = self.dropped.get(reason, 0) + n
@@ -354,20 +352,14 @@ class NatsFanout:
     def _shed_latest_only(self) -> None:
         """NATS is away: drop the latest-only frames (stale telemetry is never replayed
         late), keep the no_drop ones in order for when it is back."""
-        queue = self._queue
-        kept = [entry for entry in queue if entry[2]]
-        shed = len(queue) - len(kept)
+        shed = self._queue.keep(lambda entry: entry.no_drop)
         if shed:
             self._drop("disconnected", shed)
-            queue.clear()
-            queue.extend(kept)
-            self._queued_bytes = sum(len(frame) for _, frame, _ in kept)
 
-    async def _publish_some(self, nc: Client, queue: deque[tuple[str, bytes, bool]]) -> None:
+    async def _publish_some(self, nc: Client, queue: FrameQueue) -> None:
         # The client appends to its pending buffer; its flusher writes in batches.
         for _ in range(min(len(queue), 1024)):
-            subject, frame, _ = queue.popleft()
-            self._queued_bytes -= len(frame)
+            subject, frame = queue.popleft()[:2]
             if len(subject) > MAX_SUBJECT_BYTES:
                 self._drop("subject_too_long")
                 continue
@@ -388,6 +380,9 @@ class NatsFanout:
             except NatsError as exc:  # closed under us: the next change or reconnect retries
                 log.warning("replica %s: NATS subscriptions not updated: %s",
                             self.config.name, _reason(exc))
+            else:
+                if self.remote_interest is not None:  # subscribed: the others may publish
+                    self.remote_interest.announce(self.interest.wanted)
             if (self.sessions is not None
                     and not await self.sessions.follow_interest(self.interest.wanted)):
                 await asyncio.sleep(INTEREST_RETRY_S)  # a retry pace, not a synchronization

@@ -36,7 +36,6 @@ import datetime
 import hashlib
 import logging
 import time
-from collections import deque
 from collections.abc import Callable, Iterable
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING
@@ -45,12 +44,13 @@ from nats.aio.client import Client
 from nats.errors import Error as NatsError
 from nats.errors import MaxPayloadError
 from nats.js import JetStreamContext, api
-from nats.js.errors import APIError, KeyWrongLastSequenceError
+from nats.js.errors import APIError, KeyWrongLastSequenceError, ServiceUnavailableError
 from nats.js.errors import Error as JetStreamError
 from nats.js.kv import KeyValue
 
 from fleetctl.server.cluster import kvloops
 from fleetctl.server.cluster.config import ClusterConfig, ClusterStartError
+from fleetctl.server.cluster.framequeue import FrameQueue, Queued, SubjectMemo
 from fleetctl.server.cluster.remotefeed import RemoteFeed
 from fleetctl.server.cluster.sessionfeed import SessionFeed
 from fleetctl.server.cluster.sessionrecord import (
@@ -167,18 +167,21 @@ class SharedSessions:
         self._root = stream_root(config)
         self._records: dict[SessionKey, tuple[SessionRecord, int, float]] = {}
         self._held: dict[SessionKey, _Held] = {}
-        self._queue: deque[tuple[str, bytes]] = deque()
-        self._queued_bytes = 0
-        self._subjects: dict[str, str] = {}
         self._publish_wake = asyncio.Event()
+        self._queue = FrameQueue(config.publish_queue_frames, config.publish_queue_bytes,
+                                 self._publish_wake)
+        self._subject = SubjectMemo(self._root, topic_subject)
         self._write_wake = asyncio.Event()
         self._js: JetStreamContext | None = None
         self._nc: Client | None = None
         self._storing_fails = False
-        # Called with the frames still waiting for the stream when storing starts to
-        # fail: the fan-out sends them over core NATS too (other replicas' live viewers
-        # would otherwise wait for the stream, or lose them with this replica).
-        self.on_away: Callable[[list[tuple[str, bytes]]], None] | None = None
+        self._away_noted = False
+        # Called with the frames still waiting for the stream when it goes away (NATS
+        # lost, or storing starts to fail): the fan-out sends them over core NATS too and
+        # to this replica's session connections, which skipped them live (other replicas'
+        # viewers and these would otherwise wait for the stream, or lose them with this
+        # replica).
+        self.on_away: Callable[[list[Queued]], None] | None = None
         self._purged_s = 0.0
         self._kv: KeyValue | None = None
         self._tasks: list[asyncio.Task[None]] = []
@@ -302,7 +305,14 @@ class SharedSessions:
         """NATS is lost, or storing in the stream fails: sessions' connections get local
         no_drop frames live meanwhile (docs/scaling.md, "Sessions")."""
         nc = self._nc
-        return self._storing_fails or nc is None or not nc.is_connected
+        away = self._storing_fails or nc is None or not nc.is_connected
+        if away != self._away_noted:
+            self._away_noted = away
+            if away and self.on_away is not None and self._queue:
+                # Before the frame being delivered now goes out live: the ones still
+                # waiting for the stream go first, in order.
+                self.on_away(list(self._queue))
+        return away
 
     def changed(self, key: SessionKey) -> None:
         """The held session's patterns changed."""
@@ -326,22 +336,10 @@ class SharedSessions:
         held.dirty = True
         self._write_wake.set()
 
-    def offer(self, topic: str, frame: bytes) -> None:
+    def offer(self, topic: str, frame: bytes, message_id: int | None = None) -> None:
         """Store a no_drop frame a local sender sent (queued, bounded, counted)."""
-        if (len(self._queue) >= self.config.publish_queue_frames
-                or self._queued_bytes + len(frame) > self.config.publish_queue_bytes):
+        if not self._queue.put(Queued(self._subject(topic), frame, topic, True, message_id)):
             self.counters["queue_full"] += 1
-            return
-        subject = self._subjects.get(topic)
-        if subject is None:
-            subject = topic_subject(self._root, topic)
-            if len(self._subjects) >= 16384:
-                self._subjects.clear()
-            self._subjects[topic] = subject
-        self._queue.append((subject, frame))
-        self._queued_bytes += len(frame)
-        if len(self._queue) == 1:
-            self._publish_wake.set()
 
     # -- feeds ----------------------------------------------------------------------------
 
@@ -516,29 +514,26 @@ class SharedSessions:
                 await wake.wait()
             js = self._js
             assert js is not None
-            batch = [queue[i] for i in range(min(len(queue), _PUBLISH_BATCH))]
-            results = await asyncio.gather(*(self._store(js, s, f) for s, f in batch),
-                                           return_exceptions=True)
+            batch = queue.head(_PUBLISH_BATCH)
+            results = await asyncio.gather(*(self._store(js, q.subject, q.frame)
+                                             for q in batch), return_exceptions=True)
             kvloops.raise_if_cancelled()
             for result in results:
-                if isinstance(result, (TimeoutError, NatsError)) \
-                        and not isinstance(result, (APIError, MaxPayloadError)):
+                if _transient(result):
                     self.counters["store_failures"] += 1
                     if not self._storing_fails:
                         log.warning("replica %s: cannot store no_drop frames for sessions "
                                     "(%r): held in order, sessions here get them live "
                                     "meanwhile", self.config.name, result)
-                        if self.on_away is not None:
-                            self.on_away(list(queue))
                     self._storing_fails = True
+                    self.stream_away()  # the frames waiting go out live now
                     await asyncio.sleep(STORE_RETRY_S)  # keep the rest, in order
                     break
                 if self._storing_fails:
                     log.info("replica %s: storing no_drop frames for sessions again",
                              self.config.name)
                 self._storing_fails = False
-                subject, frame = queue.popleft()
-                self._queued_bytes -= len(frame)
+                subject, frame = queue.popleft()[:2]
                 if isinstance(result, BaseException):
                     self.counters["refused"] += 1
                     log.warning("replica %s: the sessions' stream refused a frame on %s "
@@ -596,9 +591,21 @@ class SharedSessions:
              "Shared sessions: no_drop frames stored in the stream (duplicates, failures, "
              "refusals, not queued), session record writes and failures, deletes, "
              "sessions taken over by another replica, malformed entries, consumer start "
-             "failures, frames delivered from the stream.", "event",
+             "failures, frames delivered from the stream; other replicas' frames read "
+             "(remote), reader hand-overs on interest changes (handoffs, handoff_late) "
+             "and refused ones (follow_failures).", "event",
              {k: float(v) for k, v in counters.items()}),
             ("fleetctl_cluster_sessions_held", "gauge",
              "Sessions whose connection is on this replica.", "",
              {"": float(sum(1 for h in self._held.values() if h.attached))}),
         ]
+
+
+def _transient(result: BaseException | None) -> bool:
+    """A store failure worth retrying: a timeout, NATS away, no stream leader (no
+    responders, or JetStream's 503 while it elects one). A refusal (a frame past
+    ``max_payload``, any other API error) is not retried."""
+    if isinstance(result, ServiceUnavailableError):
+        return True
+    return (isinstance(result, (TimeoutError, NatsError))
+            and not isinstance(result, (APIError, MaxPayloadError)))

@@ -59,11 +59,11 @@ async def test_nats_away_sheds_latest_only_and_keeps_no_drop_in_order() -> None:
         fan.publish("/r/pose", b"p2", False, None)
         fan.publish("/r/events", b"e2", True, None)
         await wait_until(lambda: fan.dropped.get("disconnected") == 2, 5.0)
-        assert [frame for _, frame, _ in fan._queue] == [b"e1", b"e2"]
+        assert [q.frame for q in fan._queue] == [b"e1", b"e2"]
         nats.is_connected = True
         fan._back.set()  # what the reconnect callback does
         await wait_until(lambda: len(nats.sent) == 2, 5.0)
         assert nats.sent == [("fleetctl.r.events", b"e1"), ("fleetctl.r.events", b"e2")]
-        assert fan.published == 2 and fan._queued_bytes == 0
+        assert fan.published == 2 and fan._queue.bytes == 0
     finally:
         task.cancel()

@@ -139,27 +139,41 @@ def fleet_subjects(node: NatsServer) -> list[str]:
 async def test_no_interest_no_frames(replicas: tuple[RelayServer, ...],
                                      nats_cluster: list[NatsServer]) -> None:
     a, b = replicas
+    board = fanout(a).remote_interest
+    assert board is not None
     async with client(a, source="127.0.0.2") as robot, client(b, token=ALICE_TOKEN) as viewer:
         await next_json(robot, "welcome")
         await next_json(viewer, "welcome")
         assert fanout(b).subscribed == frozenset()
+        # A knows that B wants nothing: it does not even publish.
+        await wait_for(lambda: board.trusted() and board.known() == {"relay-b": frozenset()})
         for i in range(50):
             await robot.send(string_frame("/husky1/chat", f"m{i}"))
-        await wait_for(lambda: fanout(a).published == 50)
-        assert (await subscribe(viewer, "/husky2/.*"))["type"] == "subscribed"
-        await wait_for(lambda: fanout(b).subscribed == {"fleetctl.husky2.>"})
+        await wait_for(lambda: fanout(a).unwanted == 50)
+        assert fanout(a).published == 0
+        assert (await subscribe(viewer, "/husky1/status"))["type"] == "subscribed"
+        await wait_for(lambda: fanout(b).subscribed == {"fleetctl.husky1.status"})
         # What NATS itself holds for B: only that fleet subject (besides the inboxes of
         # the shared state's KV watches and JetStream API replies, and the replicas'
         # control subject).
-        await wait_for(lambda: fleet_subjects(nats_cluster[1]) == ["fleetctl.husky2.>"])
+        await wait_for(lambda: fleet_subjects(nats_cluster[1]) == ["fleetctl.husky1.status"])
+        await wait_for(lambda: board.known() == {"relay-b": {"fleetctl.husky1.status"}})
         await robot.send(string_frame("/husky1/chat", "still not wanted"))
-        await wait_for(lambda: fanout(a).published == 51)
+        await wait_for(lambda: fanout(a).unwanted == 51)
+        assert fanout(a).published == 0
         assert fanout(b).received == 0
+        # What B asked for is published, and crosses.
+        await until_crossing(robot, viewer, "/husky1/status")
+        assert fanout(a).published > 0 and fanout(b).received > 0
         # Interest leaves with the subscriber.
-        await viewer.send(_unsubscribe("/husky2/.*"))
+        await viewer.send(_unsubscribe("/husky1/status"))
         await next_json(viewer, "unsubscribed")
         await wait_for(lambda: fanout(b).subscribed == frozenset())
         await wait_for(lambda: fleet_subjects(nats_cluster[1]) == [])
+        await wait_for(lambda: board.known() == {"relay-b": frozenset()})
+        unwanted = fanout(a).unwanted
+        await robot.send(string_frame("/husky1/status", "nobody asks any more"))
+        await wait_for(lambda: fanout(a).unwanted == unwanted + 1)
 
 
 async def test_nats_lost_and_back(tmp_path: object, make_replica: Callable[..., RelayServer],

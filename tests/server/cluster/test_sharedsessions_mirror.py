@@ -7,6 +7,7 @@ from __future__ import annotations
 import datetime
 
 from fleetctl.server.cluster.config import ClusterConfig
+from fleetctl.server.cluster.framequeue import Queued
 from fleetctl.server.cluster.sessionrecord import SessionRecord, encode_record, record_key
 from fleetctl.server.cluster.sharedsessions import SharedSessions
 from fleetctl.server.outbound import OutboundScheduler
@@ -92,7 +93,7 @@ async def test_frames_waiting_for_a_failing_stream_go_out_live_too() -> None:
     import asyncio
 
     shared = sessions(Clock())
-    away: list[list[tuple[str, bytes]]] = []
+    away: list[list[Queued]] = []
     shared.on_away = away.append
 
     class DownJetStream:  # a stream whose leader is being re-elected
@@ -109,8 +110,34 @@ async def test_frames_waiting_for_a_failing_stream_go_out_live_too() -> None:
         await wait_until(lambda: bool(away), 5.0)
     finally:
         task.cancel()
-    assert away == [[("fleetctl_nd.husky1.events", b"e1"), ("fleetctl_nd.husky1.events", b"e2")]]
+    assert [[(q.subject, q.frame, q.topic) for q in batch] for batch in away] == [
+        [("fleetctl_nd.husky1.events", b"e1", "/husky1/events"),
+         ("fleetctl_nd.husky1.events", b"e2", "/husky1/events")]]
     assert shared.stream_away() and shared.counters["store_failures"] >= 1
     from fleetctl.server.cluster.sharedsessions import live_subject
 
     assert live_subject(shared.config, "fleetctl_nd.husky1.events") == "fleetctl.husky1.events"
+
+
+def test_nats_lost_hands_the_waiting_frames_over_once_per_outage() -> None:
+    shared = sessions(Clock())
+    away: list[list[Queued]] = []
+    shared.on_away = away.append
+
+    class Nats:
+        is_connected = True
+
+    nats = Nats()
+    shared._nc = nats  # type: ignore[assignment]
+    shared.offer("/husky1/events", b"e1")
+    assert not shared.stream_away() and away == []
+    nats.is_connected = False  # the next frame's delivery asks first
+    assert shared.stream_away()
+    assert [[q.frame for q in batch] for batch in away] == [[b"e1"]]
+    shared.offer("/husky1/events", b"e2")  # delivered live as it came: not handed again
+    assert shared.stream_away() and len(away) == 1
+    nats.is_connected = True
+    assert not shared.stream_away()
+    nats.is_connected = False  # a second outage: what still waits goes out again
+    assert shared.stream_away()
+    assert [q.frame for q in away[1]] == [b"e1", b"e2"]

@@ -1,0 +1,101 @@
+"""Frames waiting for NATS: a bounded FIFO, and the topic -> subject memo.
+
+Both of a replica's ways into NATS use them: the core publish queue
+(:class:`~fleetctl.server.cluster.natsfanout.NatsFanout`) and the no_drop stream's store
+queue (:class:`~fleetctl.server.cluster.sharedsessions.SharedSessions`). Every queue is
+bounded in frames and bytes (``cluster.publish_queue_frames``/``_bytes``); the caller
+counts what does not fit.
+"""
+
+from __future__ import annotations
+
+import asyncio
+from collections import deque
+from collections.abc import Callable, Iterator
+from typing import NamedTuple
+
+# Topics remembered with their subject (cleared, not evicted one by one, when full).
+MAX_MEMO_TOPICS = 16384
+
+
+class Queued(NamedTuple):
+    """One frame waiting for NATS."""
+
+    subject: str
+    frame: bytes
+    topic: str
+    no_drop: bool
+    message_id: int | None = None  # a fragment's message (local delivery groups by it)
+
+
+class FrameQueue:
+    """A FIFO of :class:`Queued` frames bounded in frames and bytes.
+
+    Args:
+        max_frames: At most this many frames.
+        max_bytes: At most this many frame bytes.
+        wake: Set when the queue becomes non-empty (its consumer task waits on it).
+    """
+
+    def __init__(self, max_frames: int, max_bytes: int, wake: asyncio.Event) -> None:
+        self.max_frames = max_frames
+        self.max_bytes = max_bytes
+        self.wake = wake
+        self._entries: deque[Queued] = deque()
+        self.bytes = 0
+
+    def put(self, entry: Queued) -> bool:
+        """Append *entry*; ``False`` (not queued) past either bound."""
+        entries = self._entries
+        if (len(entries) >= self.max_frames
+                or self.bytes + len(entry.frame) > self.max_bytes):
+            return False
+        entries.append(entry)
+        self.bytes += len(entry.frame)
+        if len(entries) == 1:
+            self.wake.set()
+        return True
+
+    def popleft(self) -> Queued:
+        entry = self._entries.popleft()
+        self.bytes -= len(entry.frame)
+        return entry
+
+    def head(self, n: int) -> list[Queued]:
+        """The first *n* entries (fewer if there are fewer), left in place."""
+        entries = self._entries
+        return [entries[i] for i in range(min(n, len(entries)))]
+
+    def keep(self, wanted: Callable[[Queued], bool]) -> int:
+        """Remove the entries *wanted* refuses, in place; return how many."""
+        kept = [entry for entry in self._entries if wanted(entry)]
+        removed = len(self._entries) - len(kept)
+        if removed:
+            self._entries = deque(kept)
+            self.bytes = sum(len(entry.frame) for entry in kept)
+        return removed
+
+    def __len__(self) -> int:
+        return len(self._entries)
+
+    def __iter__(self) -> Iterator[Queued]:
+        return iter(self._entries)
+
+
+class SubjectMemo:
+    """``topic -> subject`` for a subject mapping (:func:`~fleetctl.server.cluster.
+    subjects.topic_subject` under some root), computed once per topic."""
+
+    def __init__(self, root: str, mapping: Callable[[str, str], str]) -> None:
+        self._root = root
+        self._mapping = mapping
+        self._memo: dict[str, str] = {}
+
+    def __call__(self, topic: str) -> str:
+        subject = self._memo.get(topic)
+        if subject is None:
+            subject = self._mapping(self._root, topic)
+            if len(self._memo) >= MAX_MEMO_TOPICS:
+                self._memo.clear()
+            self._memo[topic] = subject
+        return subject

@@ -224,7 +224,7 @@ class RemoteInterest:
         now = self._clock()
         if key == self._own_key:
             self._own_seen = None if operation in ("DEL", "PURGE") else now
-            self._memo.clear()  # trust may have changed
+            self._forget_answers()  # trust may have changed
             return
         try:
             replica = from_key_token(key)
@@ -249,11 +249,9 @@ class RemoteInterest:
         key) while this replica's own writes still come back (else the watch, not they,
         is what stopped)."""
         now = self._clock()
-        trusted = self.trusted()
-        if trusted != self._was_trusted:  # the memo's answers assumed the other state
-            self._was_trusted = trusted
-            self._memo.clear()
-        if not trusted:
+        if self.trusted() != self._was_trusted:  # the memo assumed the other state
+            self._forget_answers()
+        if not self._was_trusted:
             return
         gone = [r for r, (_, seen) in self._others.items() if now - seen > TTL_S]
         for replica in gone:
@@ -271,7 +269,12 @@ class RemoteInterest:
                       and ">" not in s[:-2]}
         self._odd = [s for s in every if s not in self._exact
                      and not (s.endswith(".>") and s[:-2] in self._wide)]
+        self._forget_answers()
+
+    def _forget_answers(self) -> None:
+        """Clear the memo; the answers from here on assume today's trust."""
         self._memo.clear()
+        self._was_trusted = self.trusted()
 
     def metric_families(self) -> Iterable[MetricFamily]:
         return [("fleetctl_cluster_interest_total", "counter",

@@ -10,12 +10,40 @@ counts what does not fit.
 from __future__ import annotations
 
 import asyncio
-from collections import deque
+import hashlib
+from collections import OrderedDict, deque
 from collections.abc import Callable, Iterator
 from typing import NamedTuple
 
 # Topics remembered with their subject (cleared, not evicted one by one, when full).
 MAX_MEMO_TOPICS = 16384
+# How many digests of other replicas' no_drop frames a replica remembers to drop a
+# second copy (one came over core NATS, the other from the stream).
+MAX_RECENT_DIGESTS = 16384
+
+
+def frame_digest(frame: bytes) -> str:
+    """A no_drop frame's identity between replicas (the stream's ``Nats-Msg-Id``): equal
+    frames are the same frame (a robot's resend through another replica too)."""
+    return hashlib.blake2b(frame, digest_size=16).hexdigest()
+
+
+class RecentDigests:
+    """The digests of the last :data:`MAX_RECENT_DIGESTS` frames delivered."""
+
+    def __init__(self, size: int = MAX_RECENT_DIGESTS) -> None:
+        self._size = size
+        self._seen: OrderedDict[str, None] = OrderedDict()
+
+    def first(self, digest: str) -> bool:
+        """``True`` the first time *digest* is seen (remembered from then on)."""
+        seen = self._seen
+        if digest in seen:
+            return False
+        seen[digest] = None
+        if len(seen) > self._size:
+            seen.popitem(last=False)
+        return True
 
 
 class Queued(NamedTuple):
@@ -26,6 +54,7 @@ class Queued(NamedTuple):
     topic: str
     no_drop: bool
     message_id: int | None = None  # a fragment's message (local delivery groups by it)
+    digest: str | None = None  # a no_drop frame's: receivers drop a second copy by it
 
 
 class FrameQueue:

@@ -104,6 +104,7 @@ async def write_forever(tick: Callable[[], Awaitable[None]], write: Callable[[],
     they work again, naming *what*."""
     failing = False
     while True:
+        raise_if_cancelled()  # a cancellation a NATS request swallowed
         await tick()
         before = counters["put_failures"]
         try:

@@ -27,6 +27,7 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import logging
+import time
 from collections.abc import Callable, Iterable
 from typing import Any
 
@@ -37,6 +38,7 @@ from nats.aio.subscription import Subscription
 from nats.errors import Error as NatsError
 
 from fleetctl.errors import ConfigError
+from fleetctl.server.cluster import kvloops
 from fleetctl.server.cluster.config import ClusterConfig, ClusterStartError
 from fleetctl.server.cluster.framequeue import FrameQueue, Queued, SubjectMemo
 from fleetctl.server.cluster.interest import Interest
@@ -71,6 +73,10 @@ FLUSH_TIMEOUT_S = 2.0
 # A refused change of what a replica reads from the sessions' stream is tried again after
 # this (JetStream electing a leader, NATS away).
 INTEREST_RETRY_S = 1.0
+# Another replica's "cannot read the stream" holds this long (it repeats it every second).
+READER_AWAY_HOLD_S = 3.0
+# The header of a no_drop frame's core copy: its digest (the stream's Nats-Msg-Id).
+DIGEST_HEADER = "Fleetctl-Digest"
 
 
 class NatsFanout:
@@ -120,6 +126,9 @@ class NatsFanout:
         self._nc: Client | None = None
         self._subs: dict[str, Subscription] = {}
         self._control_sub: Subscription | None = None
+        self._reader_away_sub: Subscription | None = None
+        self._readers_away: dict[str, float] = {}  # replica -> until (monotonic)
+        self.replays = 0
         self._tasks: list[asyncio.Task[None]] = []
         self._connecting: asyncio.Task[None] | None = None
         self._last_error: BaseException | None = None
@@ -136,16 +145,18 @@ class NatsFanout:
         if no_drop and self.sessions is not None:
             # Other replicas read no_drop frames from the sessions' stream (stored,
             # acknowledged, in order, surviving a NATS node's death); over core NATS
-            # only while the stream is away (the stream's copy then comes again later, a
-            # duplicate receivers drop).
-            self.sessions.offer(topic, frame, message_id)
-            if not self.sessions.stream_away():
+            # too only while the stream is away or another replica cannot read it (the
+            # copies carry the frame's digest: a receiver drops the second one).
+            digest = self.sessions.offer(topic, frame, message_id)
+            if not self.sessions.stream_away() and not self._a_reader_away():
                 return
+        else:
+            digest = None
         subject = self._subject(topic)
         if self.remote_interest is not None and not self.remote_interest.wants(subject):
             self.unwanted += 1  # no other replica has a subscriber for it
             return
-        self._enqueue(Queued(subject, frame, topic, no_drop, message_id))
+        self._enqueue(Queued(subject, frame, topic, no_drop, message_id, digest))
 
     def follow(self, pattern: str, delta: int) -> None:
         if self.interest.follow(pattern, delta):
@@ -166,6 +177,45 @@ class NatsFanout:
             self._local_fanout.deliver_to_stream_fed(entry.topic, entry.frame,
                                                      entry.message_id)
             self._enqueue(entry._replace(subject=live_subject(self.config, entry.subject)))
+
+    def _a_reader_away(self) -> bool:
+        """Another replica said it cannot read the stream, within
+        :data:`READER_AWAY_HOLD_S`: no_drop frames go to it over core NATS too."""
+        away = self._readers_away
+        if not away:
+            return False
+        now = time.monotonic()
+        for replica in [r for r, until in away.items() if until < now]:
+            del away[replica]
+            log.info("replica %s: replica %r reads the no_drop stream again (or is gone): "
+                     "no_drop frames through the stream only", self.config.name, replica)
+        return bool(away)
+
+    async def _reader_away_received(self, msg: Msg) -> None:
+        """Another replica cannot read the stream: send it what it may have missed (the
+        last ``HISTORY_S`` of local no_drop frames, which it drops where it has them)
+        and the next no_drop frames over core NATS too, while it keeps saying so."""
+        try:
+            replica = msg.data.decode()
+        except UnicodeDecodeError:
+            self._drop("malformed")
+            return
+        if replica == self.config.name or self.sessions is None:
+            return
+        now = time.monotonic()
+        newly = self._readers_away.get(replica, 0.0) < now
+        self._readers_away[replica] = now + READER_AWAY_HOLD_S
+        if not newly:
+            return
+        waiting = self.sessions.recent()
+        log.warning("replica %s: replica %r cannot read the no_drop stream: sending it the "
+                    "last %d no_drop frames and the next ones over core NATS too",
+                    self.config.name, replica, len(waiting))
+        self.replays += 1
+        for entry in waiting:
+            subject = live_subject(self.config, entry.subject)
+            if self.remote_interest is None or self.remote_interest.wants(subject):
+                self._enqueue(entry._replace(subject=subject))
 
     def _enqueue(self, entry: Queued) -> None:
         """Queue a frame for the publish task, within the queue's bounds (else counted
@@ -189,6 +239,9 @@ class NatsFanout:
         if self._on_keyframe_request is not None:
             self._control_sub = await self._nc.subscribe(
                 self.keyframe_subject, cb=self._keyframe_request_received)
+        if self.sessions is not None:
+            self._reader_away_sub = await self._nc.subscribe(
+                self.sessions.reader_away_subject, cb=self._reader_away_received)
         try:
             for state in self._shared():
                 await state.start(self._nc)
@@ -204,8 +257,11 @@ class NatsFanout:
             await state.stop()
         for task in self._tasks:
             task.cancel()
-            with contextlib.suppress(asyncio.CancelledError):
-                await task
+        if self._tasks:  # bounded: a task that lost its cancellation must not hang a stop
+            _, pending = await asyncio.wait(self._tasks, timeout=2.0)
+            for task in pending:
+                log.warning("replica %s: task %s did not stop within 2 s of its "
+                            "cancellation", self.config.name, task.get_coro())
         self._tasks = []
         if self._nc is not None:
             with contextlib.suppress(Exception):
@@ -216,6 +272,9 @@ class NatsFanout:
         return [*(f for state in self._shared() for f in state.metric_families()),
             ("fleetctl_cluster_published_total", "counter",
              "Frames published to other replicas through NATS.", "", {"": self.published}),
+            ("fleetctl_cluster_replays_total", "counter",
+             "Times another replica could not read the no_drop stream and this one sent "
+             "it its recent no_drop frames over core NATS.", "", {"": float(self.replays)}),
             ("fleetctl_cluster_unwanted_total", "counter",
              "Frames not published: no other replica had a subscriber for them.", "",
              {"": float(self.unwanted)}),
@@ -359,12 +418,16 @@ class NatsFanout:
     async def _publish_some(self, nc: Client, queue: FrameQueue) -> None:
         # The client appends to its pending buffer; its flusher writes in batches.
         for _ in range(min(len(queue), 1024)):
-            subject, frame = queue.popleft()[:2]
+            entry = queue.popleft()
+            subject, frame = entry.subject, entry.frame
             if len(subject) > MAX_SUBJECT_BYTES:
                 self._drop("subject_too_long")
                 continue
             try:
-                await nc.publish(subject, frame)
+                if entry.digest is None:
+                    await nc.publish(subject, frame)
+                else:  # a no_drop frame's core copy: receivers drop a second copy by it
+                    await nc.publish(subject, frame, headers={DIGEST_HEADER: entry.digest})
             except NatsError:  # lost between the check and now, or a too-large payload
                 self._drop("publish_failed")
                 continue
@@ -373,6 +436,7 @@ class NatsFanout:
 
     async def _interest_loop(self) -> None:
         while True:
+            kvloops.raise_if_cancelled()  # a cancellation a NATS request swallowed
             await self._interest_changed.wait()
             self._interest_changed.clear()
             try:
@@ -420,6 +484,9 @@ class NatsFanout:
                 return
             if is_control_subject(self.config.subject_prefix, msg.subject):
                 return  # a wide subscription hears the replicas' control subjects too
+            if (msg.headers and self.sessions is not None
+                    and not self.sessions.first_copy(msg.headers.get(DIGEST_HEADER))):
+                return  # the stream brought it already
             self.received += 1
             try:
                 self._on_remote(msg.data)

@@ -30,8 +30,10 @@ import contextlib
 from collections.abc import Awaitable, Callable, Iterable
 
 from nats.aio.msg import Msg
+from nats.errors import Error as NatsError
 from nats.js import JetStreamContext
 
+from fleetctl.server.cluster import kvloops
 from fleetctl.server.cluster.orderedconsumer import subscribe_ordered
 from fleetctl.server.cluster.subjects import (
     SUB_PENDING_BYTES,
@@ -72,16 +74,21 @@ class RemoteFeed:
         on_frame: Delivers a frame to this replica's connections (``RelayCore.on_remote``).
         counters: Where ``remote``, ``malformed``, ``handoffs`` and ``handoff_late`` are
             counted.
+        first_copy: Whether a frame (by its digest) is new here: it may have come over
+            core NATS already while this reader was away.
     """
 
     def __init__(self, stream: str, prefix: str, root: str, replica: str, replica_header: str,
-                 on_frame: Callable[[bytes], None], counters: dict[str, int]) -> None:
+                 on_frame: Callable[[bytes], None], counters: dict[str, int],
+                 first_copy: Callable[[str | None], bool] = lambda digest: True) -> None:
         self._stream = stream
         self._prefix = prefix
         self._root = root
         self._replica = replica
         self._header = replica_header
         self._on_frame = on_frame
+        self._first_copy = first_copy
+        self._asked: tuple[str, ...] = ()  # what the last follow() asked for
         self.counters = counters
         for name in ("remote", "malformed", "handoffs", "handoff_late"):
             counters.setdefault(name, 0)
@@ -119,7 +126,7 @@ class RemoteFeed:
             nats.errors.Error, TimeoutError: NATS or JetStream refused; the caller retries
                 (the old consumer, if any, still runs).
         """
-        subjects = self.stream_subjects(wanted)
+        subjects = self._asked = self.stream_subjects(wanted)
         async with self._lock:
             old = self._reader
             if subjects == self.subjects:
@@ -156,6 +163,23 @@ class RemoteFeed:
             if old is not None:
                 await _unsubscribe(old)
                 self.counters["handoffs"] += 1
+
+    async def healthy(self, timeout_s: float) -> bool:
+        """Whether this replica reads what it asked for: nothing asked, or its consumer
+        runs on those subjects and JetStream answers for it within *timeout_s* (a consumer
+        whose NATS node died is re-created by nats-py only once JetStream can)."""
+        if not self._asked:
+            return True
+        reader = self._reader
+        sub = reader.sub if reader is not None else None
+        if reader is None or sub is None or reader.subjects != self._asked:
+            return False
+        try:
+            await asyncio.wait_for(sub.consumer_info(), timeout_s)
+        except (TimeoutError, NatsError):
+            kvloops.raise_if_cancelled()
+            return False
+        return True
 
     async def stop(self) -> None:
         reader, self._reader = self._reader, None
@@ -197,8 +221,11 @@ class RemoteFeed:
             if skip is not None and seq <= skip[0] and not any(
                     subject_matches(msg.subject, s) for s in skip[1]):
                 return  # stored before the change, on a subject nobody here followed
-            if (msg.headers or {}).get(self._header) == self._replica:
+            headers = msg.headers or {}
+            if headers.get(self._header) == self._replica:
                 return  # our own: delivered locally when it was accepted
+            if not self._first_copy(headers.get("Nats-Msg-Id")):
+                return  # it came over core NATS while this reader was away
             try:
                 self._on_frame(msg.data)
                 self.counters["remote"] += 1

@@ -33,9 +33,9 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import datetime
-import hashlib
 import logging
 import time
+from collections import deque
 from collections.abc import Callable, Iterable
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING
@@ -50,7 +50,13 @@ from nats.js.kv import KeyValue
 
 from fleetctl.server.cluster import kvloops
 from fleetctl.server.cluster.config import ClusterConfig, ClusterStartError
-from fleetctl.server.cluster.framequeue import FrameQueue, Queued, SubjectMemo
+from fleetctl.server.cluster.framequeue import (
+    FrameQueue,
+    Queued,
+    RecentDigests,
+    SubjectMemo,
+    frame_digest,
+)
 from fleetctl.server.cluster.remotefeed import RemoteFeed
 from fleetctl.server.cluster.sessionfeed import SessionFeed
 from fleetctl.server.cluster.sessionrecord import (
@@ -63,6 +69,7 @@ from fleetctl.server.cluster.sessionrecord import (
 )
 from fleetctl.server.cluster.subjects import (
     MAX_SUBJECT_BYTES,
+    control_subject,
     cover,
     pattern_subject,
     topic_subject,
@@ -91,6 +98,13 @@ STORE_RETRY_S = 0.25
 # Which replica stored a frame (each replica skips its own when reading the stream).
 REPLICA_HEADER = "Fleetctl-Replica"
 DUPLICATE_WINDOW_S = 120.0
+# What a replica keeps of its local senders' no_drop frames to send again over core NATS
+# when another replica says it cannot read the stream (covers that replica's detection,
+# about 1-2 s, many times over).
+HISTORY_S = 10.0
+HISTORY_BYTES = 8 * 1024 * 1024
+# How often a replica checks that its reader of the stream is alive.
+READER_CHECK_S = 1.0
 
 
 def stream_name(config: ClusterConfig) -> str:
@@ -189,10 +203,15 @@ class SharedSessions:
         self.counters = {"stored": 0, "duplicates": 0, "store_failures": 0, "refused": 0,
                          "queue_full": 0, "subject_too_long": 0, "puts": 0,
                          "put_failures": 0, "deletes": 0, "taken_over": 0, "malformed": 0,
-                         "feed_failures": 0, "delivered": 0, "follow_failures": 0}
+                         "feed_failures": 0, "delivered": 0, "follow_failures": 0,
+                         "reader_away": 0, "remote_duplicates": 0}
+        self._history: deque[tuple[float, Queued]] = deque()
+        self._history_bytes = 0
+        self.recent_remote = RecentDigests()
+        self.reader_away_subject = control_subject(config.subject_prefix, "readeraway")
         self._remote = RemoteFeed(self._stream, config.subject_prefix, self._root,
-                                  config.name, REPLICA_HEADER, on_remote, self.counters
-                                  ) if on_remote is not None else None
+                                  config.name, REPLICA_HEADER, on_remote, self.counters,
+                                  self.first_copy) if on_remote is not None else None
         self._wanted: frozenset[str] = frozenset()
         self._following = False
 
@@ -232,7 +251,8 @@ class SharedSessions:
             await kvloops.while_electing(lambda: remote.follow(js, self._wanted))
         self._tasks = [asyncio.create_task(self._watch(watcher)),
                        asyncio.create_task(self._write_loop()),
-                       asyncio.create_task(self._publish_loop())]
+                       asyncio.create_task(self._publish_loop()),
+                       asyncio.create_task(self._check_reader())]
         self._publish_wake.set()
 
     async def stop(self) -> None:
@@ -336,10 +356,36 @@ class SharedSessions:
         held.dirty = True
         self._write_wake.set()
 
-    def offer(self, topic: str, frame: bytes, message_id: int | None = None) -> None:
-        """Store a no_drop frame a local sender sent (queued, bounded, counted)."""
-        if not self._queue.put(Queued(self._subject(topic), frame, topic, True, message_id)):
+    def offer(self, topic: str, frame: bytes, message_id: int | None = None) -> str:
+        """Store a no_drop frame a local sender sent (queued, bounded, counted); return
+        its digest."""
+        digest = frame_digest(frame)
+        entry = Queued(self._subject(topic), frame, topic, True, message_id, digest)
+        if not self._queue.put(entry):
             self.counters["queue_full"] += 1
+            return digest
+        history, now = self._history, time.monotonic()
+        history.append((now, entry))
+        self._history_bytes += len(frame)
+        while history and (now - history[0][0] > HISTORY_S
+                           or self._history_bytes > HISTORY_BYTES):
+            self._history_bytes -= len(history.popleft()[1].frame)
+        return digest
+
+    def recent(self) -> list[Queued]:
+        """The no_drop frames local senders sent in the last :data:`HISTORY_S` (at most
+        :data:`HISTORY_BYTES`), oldest first: what a replica that could not read the
+        stream may have missed."""
+        now = time.monotonic()
+        return [entry for t, entry in self._history if now - t <= HISTORY_S]
+
+    def first_copy(self, digest: str | None) -> bool:
+        """Whether another replica's no_drop frame with *digest* is new here (it may come
+        twice: over core NATS while a stream reader is away, and from the stream)."""
+        if digest is None or self.recent_remote.first(digest):
+            return True
+        self.counters["remote_duplicates"] += 1
+        return False
 
     # -- feeds ----------------------------------------------------------------------------
 
@@ -515,8 +561,8 @@ class SharedSessions:
             js = self._js
             assert js is not None
             batch = queue.head(_PUBLISH_BATCH)
-            results = await asyncio.gather(*(self._store(js, q.subject, q.frame)
-                                             for q in batch), return_exceptions=True)
+            results = await asyncio.gather(*(self._store(js, q) for q in batch),
+                                           return_exceptions=True)
             kvloops.raise_if_cancelled()
             for result in results:
                 if _transient(result):
@@ -540,13 +586,13 @@ class SharedSessions:
                                 "(%d bytes): %r", self.config.name, subject, len(frame),
                                 result)
 
-    async def _store(self, js: JetStreamContext, subject: str, frame: bytes) -> None:
-        if len(subject) > MAX_SUBJECT_BYTES:
+    async def _store(self, js: JetStreamContext, entry: Queued) -> None:
+        if len(entry.subject) > MAX_SUBJECT_BYTES:
             self.counters["subject_too_long"] += 1
             return
-        digest = hashlib.blake2b(frame, digest_size=16).hexdigest()
-        ack = await js.publish(subject, frame, stream=self._stream, timeout=STORE_TIMEOUT_S,
-                               headers={"Nats-Msg-Id": digest,
+        ack = await js.publish(entry.subject, entry.frame, stream=self._stream,
+                               timeout=STORE_TIMEOUT_S,
+                               headers={"Nats-Msg-Id": entry.digest or "",
                                         REPLICA_HEADER: self.config.name})
         self.counters["duplicates" if ack.duplicate else "stored"] += 1
 
@@ -574,6 +620,33 @@ class SharedSessions:
                             "the sessions' stream: %r; retrying", self.config.name, exc)
             return False
         return True
+
+    async def _check_reader(self) -> None:
+        """Every :data:`READER_CHECK_S`: can this replica read other replicas' no_drop
+        frames from the stream? While it cannot (its consumer died with a NATS node and
+        JetStream cannot make a new one yet), say so on the control subject, every check:
+        the other replicas then send their no_drop frames over core NATS too, starting
+        with their last :data:`HISTORY_S` (docs/scaling.md, "A reader away")."""
+        away = False
+        while True:
+            kvloops.raise_if_cancelled()  # a cancellation a NATS request swallowed
+            await asyncio.sleep(READER_CHECK_S)  # a check pace, not a synchronization
+            remote, nc = self._remote, self._nc
+            if remote is None or nc is None:
+                continue
+            healthy = await remote.healthy(READER_CHECK_S)
+            if not healthy:
+                if not away:
+                    self.counters["reader_away"] += 1
+                    log.warning("replica %s: cannot read other replicas' no_drop frames "
+                                "from the stream: asking them for core NATS copies",
+                                self.config.name)
+                with contextlib.suppress(NatsError):
+                    await nc.publish(self.reader_away_subject, self.config.name.encode())
+            elif away:
+                log.info("replica %s: reading other replicas' no_drop frames from the "
+                         "stream again", self.config.name)
+            away = not healthy
 
     @property
     def remote_subjects(self) -> tuple[str, ...]:

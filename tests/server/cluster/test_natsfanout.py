@@ -38,9 +38,12 @@ class FakeNats:
     def __init__(self) -> None:
         self.is_connected = False
         self.sent: list[tuple[str, bytes]] = []
+        self.headers: list[dict[str, str] | None] = []
 
-    async def publish(self, subject: str, payload: bytes) -> None:
+    async def publish(self, subject: str, payload: bytes,
+                      headers: dict[str, str] | None = None) -> None:
         self.sent.append((subject, payload))
+        self.headers.append(headers)
 
 
 async def test_nats_away_sheds_latest_only_and_keeps_no_drop_in_order() -> None:
@@ -65,5 +68,54 @@ async def test_nats_away_sheds_latest_only_and_keeps_no_drop_in_order() -> None:
         await wait_until(lambda: len(nats.sent) == 2, 5.0)
         assert nats.sent == [("fleetctl.r.events", b"e1"), ("fleetctl.r.events", b"e2")]
         assert fan.published == 2 and fan._queue.bytes == 0
+    finally:
+        task.cancel()
+
+
+class Msg:
+    def __init__(self, data: bytes) -> None:
+        self.data = data
+
+
+async def test_a_replica_that_cannot_read_the_stream_gets_recent_and_next_no_drop_frames(
+) -> None:
+    import asyncio
+
+    from fleetctl.server.cluster.framequeue import frame_digest
+    from fleetctl.server.cluster.sharedsessions import SharedSessions
+    from tests.support import wait_until
+
+    config = ClusterConfig(name="relay-a", nats_urls=("nats://127.0.0.1:4222",))
+    sessions = SharedSessions(config, 3600.0)
+    fan = NatsFanout(Recorder(), lambda frame: None, config,  # type: ignore[arg-type]
+                     sessions=sessions)
+    nats = FakeNats()
+    nats.is_connected = True
+    fan._nc = sessions._nc = nats  # type: ignore[assignment]
+    task = asyncio.create_task(fan._publish_loop())
+    try:
+        fan.publish("/r/events", b"e1", True, None)
+        fan.publish("/r/events", b"e2", True, None)
+        fan.publish("/r/pose", b"p1", False, None)
+        await wait_until(lambda: len(nats.sent) == 1, 5.0)
+        assert nats.sent == [("fleetctl.r.pose", b"p1")]  # no_drop: through the stream only
+        # B cannot read the stream: what A's senders sent lately, then the next ones.
+        await fan._reader_away_received(Msg(b"relay-b"))  # type: ignore[arg-type]
+        fan.publish("/r/events", b"e3", True, None)
+        await wait_until(lambda: len(nats.sent) == 4, 5.0)
+        assert nats.sent[1:] == [("fleetctl.r.events", b"e1"), ("fleetctl.r.events", b"e2"),
+                                 ("fleetctl.r.events", b"e3")]
+        assert nats.headers[1:] == [{"Fleetctl-Digest": frame_digest(f)}
+                                    for f in (b"e1", b"e2", b"e3")]
+        assert fan.replays == 1
+        await fan._reader_away_received(Msg(b"relay-b"))  # said again: no second replay
+        assert fan.replays == 1
+        await fan._reader_away_received(Msg(b"relay-a"))  # our own name: ignored
+        # It stops saying so: after the hold, no_drop frames take the stream only again.
+        fan._readers_away["relay-b"] = 0.0  # its last "cannot" older than the hold
+        fan.publish("/r/events", b"e4", True, None)
+        fan.publish("/r/pose", b"p2", False, None)
+        await wait_until(lambda: len(nats.sent) == 5, 5.0)
+        assert nats.sent[-1] == ("fleetctl.r.pose", b"p2")
     finally:
         task.cancel()

@@ -57,6 +57,16 @@ class Queued(NamedTuple):
     digest: str | None = None  # a no_drop frame's: receivers drop a second copy by it
 
 
+_tuple_new = tuple.__new__
+
+
+def queued(subject: str, frame: bytes, topic: str, no_drop: bool,
+           message_id: int | None = None) -> Queued:
+    """A :class:`Queued` without a digest, made at a third of the NamedTuple
+    constructor's cost (0.15 against 0.47 us here): one is made per frame published."""
+    return _tuple_new(Queued, (subject, frame, topic, no_drop, message_id, None))
+
+
 class FrameQueue:
     """A FIFO of :class:`Queued` frames bounded in frames and bytes.
 

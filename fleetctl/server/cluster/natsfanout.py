@@ -40,7 +40,13 @@ from nats.errors import Error as NatsError
 from fleetctl.errors import ConfigError
 from fleetctl.server.cluster import kvloops
 from fleetctl.server.cluster.config import ClusterConfig, ClusterStartError
-from fleetctl.server.cluster.framequeue import FrameQueue, Queued, SubjectMemo
+from fleetctl.server.cluster.framequeue import (
+    FrameQueue,
+    Queued,
+    SubjectMemo,
+    frame_digest,
+    queued,
+)
 from fleetctl.server.cluster.interest import Interest
 from fleetctl.server.cluster.remoteinterest import RemoteInterest
 from fleetctl.server.cluster.sharedlatched import SharedLatched
@@ -147,16 +153,17 @@ class NatsFanout:
             # acknowledged, in order, surviving a NATS node's death); over core NATS
             # too only while the stream is away or another replica cannot read it (the
             # copies carry the frame's digest: a receiver drops the second one).
-            digest = self.sessions.offer(topic, frame, message_id)
+            self.sessions.offer(topic, frame, message_id)
             if not self.sessions.stream_away() and not self._a_reader_away():
                 return
-        else:
-            digest = None
         subject = self._subject(topic)
         if self.remote_interest is not None and not self.remote_interest.wants(subject):
             self.unwanted += 1  # no other replica has a subscriber for it
             return
-        self._enqueue(Queued(subject, frame, topic, no_drop, message_id, digest))
+        entry = queued(subject, frame, topic, no_drop, message_id)
+        if no_drop and self.sessions is not None:  # a core copy: the stream has one too
+            entry = entry._replace(digest=frame_digest(frame))
+        self._enqueue(entry)
 
     def follow(self, pattern: str, delta: int) -> None:
         if self.interest.follow(pattern, delta):
@@ -165,7 +172,7 @@ class NatsFanout:
     def forward_keyframe_request(self, frame: bytes) -> bool:
         """Publish the request on the control subject every replica listens to (the one
         with the topic's publisher routes it); through the publish queue and its bounds."""
-        self._enqueue(Queued(self.keyframe_subject, frame, "", False))
+        self._enqueue(queued(self.keyframe_subject, frame, "", False))
         return True
 
     def _publish_live_copies(self, waiting: list[Queued]) -> None:
@@ -176,7 +183,8 @@ class NatsFanout:
         for entry in waiting:
             self._local_fanout.deliver_to_stream_fed(entry.topic, entry.frame,
                                                      entry.message_id)
-            self._enqueue(entry._replace(subject=live_subject(self.config, entry.subject)))
+            self._enqueue(entry._replace(subject=live_subject(self.config, entry.subject),
+                                         digest=entry.digest or frame_digest(entry.frame)))
 
     def _a_reader_away(self) -> bool:
         """Another replica said it cannot read the stream, within
@@ -215,7 +223,8 @@ class NatsFanout:
         for entry in waiting:
             subject = live_subject(self.config, entry.subject)
             if self.remote_interest is None or self.remote_interest.wants(subject):
-                self._enqueue(entry._replace(subject=subject))
+                self._enqueue(entry._replace(subject=subject,
+                                             digest=entry.digest or frame_digest(entry.frame)))
 
     def _enqueue(self, entry: Queued) -> None:
         """Queue a frame for the publish task, within the queue's bounds (else counted

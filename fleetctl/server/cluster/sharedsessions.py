@@ -56,6 +56,7 @@ from fleetctl.server.cluster.framequeue import (
     RecentDigests,
     SubjectMemo,
     frame_digest,
+    queued,
 )
 from fleetctl.server.cluster.remotefeed import RemoteFeed
 from fleetctl.server.cluster.sessionfeed import SessionFeed
@@ -103,6 +104,7 @@ DUPLICATE_WINDOW_S = 120.0
 # about 1-2 s, many times over).
 HISTORY_S = 10.0
 HISTORY_BYTES = 8 * 1024 * 1024
+HISTORY_FRAMES = 65536
 # How often a replica checks that its reader of the stream is alive.
 READER_CHECK_S = 1.0
 
@@ -356,21 +358,20 @@ class SharedSessions:
         held.dirty = True
         self._write_wake.set()
 
-    def offer(self, topic: str, frame: bytes, message_id: int | None = None) -> str:
-        """Store a no_drop frame a local sender sent (queued, bounded, counted); return
-        its digest."""
-        digest = frame_digest(frame)
-        entry = Queued(self._subject(topic), frame, topic, True, message_id, digest)
+    def offer(self, topic: str, frame: bytes, message_id: int | None = None) -> None:
+        """Store a no_drop frame a local sender sent (queued, bounded, counted), and keep
+        it for :meth:`recent`. Per-frame cost matters here (every no_drop frame of every
+        local sender): no digest yet (the store makes it), the history pruned by size
+        only (by age when read)."""
+        entry = queued(self._subject(topic), frame, topic, True, message_id)
         if not self._queue.put(entry):
             self.counters["queue_full"] += 1
-            return digest
-        history, now = self._history, time.monotonic()
-        history.append((now, entry))
+            return
+        history = self._history
+        history.append((time.monotonic(), entry))
         self._history_bytes += len(frame)
-        while history and (now - history[0][0] > HISTORY_S
-                           or self._history_bytes > HISTORY_BYTES):
+        if self._history_bytes > HISTORY_BYTES or len(history) > HISTORY_FRAMES:
             self._history_bytes -= len(history.popleft()[1].frame)
-        return digest
 
     def recent(self) -> list[Queued]:
         """The no_drop frames local senders sent in the last :data:`HISTORY_S` (at most
@@ -378,6 +379,12 @@ class SharedSessions:
         stream may have missed."""
         now = time.monotonic()
         return [entry for t, entry in self._history if now - t <= HISTORY_S]
+
+    def trim_history(self) -> None:
+        """Drop what is older than :data:`HISTORY_S` (the store loop calls it)."""
+        history, now = self._history, time.monotonic()
+        while history and now - history[0][0] > HISTORY_S:
+            self._history_bytes -= len(history.popleft()[1].frame)
 
     def first_copy(self, digest: str | None) -> bool:
         """Whether another replica's no_drop frame with *digest* is new here (it may come
@@ -556,6 +563,7 @@ class SharedSessions:
         queue, wake = self._queue, self._publish_wake
         while True:
             if not queue:
+                self.trim_history()
                 wake.clear()
                 await wake.wait()
             js = self._js
@@ -592,7 +600,7 @@ class SharedSessions:
             return
         ack = await js.publish(entry.subject, entry.frame, stream=self._stream,
                                timeout=STORE_TIMEOUT_S,
-                               headers={"Nats-Msg-Id": entry.digest or "",
+                               headers={"Nats-Msg-Id": entry.digest or frame_digest(entry.frame),
                                         REPLICA_HEADER: self.config.name})
         self.counters["duplicates" if ack.duplicate else "stored"] += 1
 

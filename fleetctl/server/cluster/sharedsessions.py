@@ -192,11 +192,12 @@ class SharedSessions:
         self._nc: Client | None = None
         self._storing_fails = False
         self._away_noted = False
-        # Called with the frames still waiting for the stream when it goes away (NATS
-        # lost, or storing starts to fail): the fan-out sends them over core NATS too and
-        # to this replica's session connections, which skipped them live (other replicas'
-        # viewers and these would otherwise wait for the stream, or lose them with this
-        # replica).
+        # Called with the recent frames and those still waiting for the stream when it
+        # goes away (NATS lost, or storing starts to fail): the fan-out sends them over
+        # core NATS too and to this replica's session connections, which skipped them
+        # live (other replicas' viewers and these would otherwise wait for the stream,
+        # lose them with this replica, or get a stored one after a later live one when
+        # their reader died with the same NATS node); receivers drop what they had.
         self.on_away: Callable[[list[Queued]], None] | None = None
         self._purged_s = 0.0
         self._kv: KeyValue | None = None
@@ -330,11 +331,23 @@ class SharedSessions:
         away = self._storing_fails or nc is None or not nc.is_connected
         if away != self._away_noted:
             self._away_noted = away
-            if away and self.on_away is not None and self._queue:
-                # Before the frame being delivered now goes out live: the ones still
-                # waiting for the stream go first, in order.
-                self.on_away(list(self._queue))
+            if away and self.on_away is not None:
+                # Before the frame being delivered now goes out live: the recent ones go
+                # first, in order (those not stored yet, and those stored lately, which
+                # a reader on the same dying NATS node may never have handed on).
+                self.on_away(self.recent_and_waiting())
         return away
+
+    def recent_and_waiting(self) -> list[Queued]:
+        """:meth:`recent`, then every frame still waiting for the stream that the
+        history no longer holds; oldest first, each once."""
+        waiting = {id(entry) for entry in self._queue}
+        before = []
+        for entry in self.recent():
+            if id(entry) in waiting:
+                break
+            before.append(entry)
+        return before + list(self._queue)
 
     def changed(self, key: SessionKey) -> None:
         """The held session's patterns changed."""

@@ -141,3 +141,23 @@ def test_nats_lost_hands_the_waiting_frames_over_once_per_outage() -> None:
     nats.is_connected = False  # a second outage: what still waits goes out again
     assert shared.stream_away()
     assert [q.frame for q in away[1]] == [b"e1", b"e2"]
+
+
+def test_frames_stored_lately_are_handed_over_too_in_order() -> None:
+    """A reader on the NATS node that died may never have handed on a frame stored just
+    before: it goes out again with those still waiting, before any later one."""
+    shared = sessions(Clock())
+    away: list[list[Queued]] = []
+    shared.on_away = away.append
+
+    class Nats:
+        is_connected = True
+
+    nats = Nats()
+    shared._nc = nats  # type: ignore[assignment]
+    shared.offer("/husky1/events", b"e1")
+    shared._queue.popleft()  # stored
+    shared.offer("/husky1/events", b"e2")  # waiting
+    nats.is_connected = False
+    assert shared.stream_away()
+    assert [[q.frame for q in batch] for batch in away] == [[b"e1", b"e2"]]

@@ -105,6 +105,11 @@ DUPLICATE_WINDOW_S = 120.0
 HISTORY_S = 10.0
 HISTORY_BYTES = 8 * 1024 * 1024
 HISTORY_FRAMES = 65536
+# When the stream goes away, the frames stored in the last this many seconds go out again
+# with those waiting (a reader on the dying NATS node may not have handed them on; its
+# deliveries lag a store by milliseconds). Short: this replica's own session connections
+# get them too, into their bounded no_drop queues.
+AWAY_RECENT_S = 2.0
 # How often a replica checks that its reader of the stream is alive.
 READER_CHECK_S = 1.0
 
@@ -335,15 +340,15 @@ class SharedSessions:
                 # Before the frame being delivered now goes out live: the recent ones go
                 # first, in order (those not stored yet, and those stored lately, which
                 # a reader on the same dying NATS node may never have handed on).
-                self.on_away(self.recent_and_waiting())
+                self.on_away(self.recent_and_waiting(AWAY_RECENT_S))
         return away
 
-    def recent_and_waiting(self) -> list[Queued]:
-        """:meth:`recent`, then every frame still waiting for the stream that the
-        history no longer holds; oldest first, each once."""
+    def recent_and_waiting(self, seconds: float) -> list[Queued]:
+        """The frames offered in the last *seconds*, then every frame still waiting for
+        the stream that those do not include; oldest first, each once."""
         waiting = {id(entry) for entry in self._queue}
         before = []
-        for entry in self.recent():
+        for entry in self.recent(seconds):
             if id(entry) in waiting:
                 break
             before.append(entry)
@@ -386,12 +391,12 @@ class SharedSessions:
         if self._history_bytes > HISTORY_BYTES or len(history) > HISTORY_FRAMES:
             self._history_bytes -= len(history.popleft()[1].frame)
 
-    def recent(self) -> list[Queued]:
-        """The no_drop frames local senders sent in the last :data:`HISTORY_S` (at most
-        :data:`HISTORY_BYTES`), oldest first: what a replica that could not read the
-        stream may have missed."""
+    def recent(self, seconds: float = HISTORY_S) -> list[Queued]:
+        """The no_drop frames local senders sent in the last *seconds* (at most
+        :data:`HISTORY_S`, :data:`HISTORY_BYTES`), oldest first: what a replica that
+        could not read the stream may have missed."""
         now = time.monotonic()
-        return [entry for t, entry in self._history if now - t <= HISTORY_S]
+        return [entry for t, entry in self._history if now - t <= seconds]
 
     def trim_history(self) -> None:
         """Drop what is older than :data:`HISTORY_S` (the store loop calls it)."""

@@ -176,10 +176,11 @@ class NatsFanout:
         return True
 
     def _publish_live_copies(self, waiting: list[Queued]) -> None:
-        """The sessions' stream stopped taking frames: the no_drop frames still waiting
-        for it go out now on core NATS (other replicas' viewers) and to this replica's
-        session connections, which skipped them live to get them from the stream (the
-        stream's copy, once stored, is a duplicate the clients drop)."""
+        """The sessions' stream went away: the no_drop frames still waiting for it, and
+        those stored in the last ``AWAY_RECENT_S``, go out now on core NATS (other
+        replicas' viewers, which drop by digest what they had) and to this replica's
+        session connections, which skipped them live to get them from the stream (their
+        clients drop what they had)."""
         for entry in waiting:
             self._local_fanout.deliver_to_stream_fed(entry.topic, entry.frame,
                                                      entry.message_id)
@@ -208,8 +209,8 @@ class NatsFanout:
         except UnicodeDecodeError:
             self._drop("malformed")
             return
-        if replica == self.config.name or self.sessions is None:
-            return
+        if replica == self.config.name or self.sessions is None or len(replica) > 64:
+            return  # our own, or not a replica name (config.py: 1-64 characters)
         now = time.monotonic()
         newly = self._readers_away.get(replica, 0.0) < now
         self._readers_away[replica] = now + READER_AWAY_HOLD_S

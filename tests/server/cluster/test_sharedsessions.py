@@ -217,7 +217,13 @@ async def test_nats_lost_local_session_frames_go_on_and_the_rest_follows_once_ba
         nats_server.stop()
         await wait_until(shared(a).stream_away, 10.0)
         await send_events(robot, 3, 3)
-        seen += await event_texts(viewer, 3)  # local delivery goes on, live
+        # Local delivery goes on, live; the frames stored in the last 2 s come once more
+        # first (a reader on a dying NATS node may not have handed them on; the client
+        # drops them as duplicates).
+        while "e5" not in seen:
+            text = (await event_texts(viewer, 1))[0]
+            if text not in seen:
+                seen.append(text)
         assert seen == [f"e{i}" for i in range(6)]
 
         nats_server.start()  # the same store: the stream and the records are back

@@ -160,10 +160,9 @@ class NatsFanout:
         if self.remote_interest is not None and not self.remote_interest.wants(subject):
             self.unwanted += 1  # no other replica has a subscriber for it
             return
-        entry = queued(subject, frame, topic, no_drop, message_id)
-        if no_drop and self.sessions is not None:  # a core copy: the stream has one too
-            entry = entry._replace(digest=frame_digest(frame))
-        self._enqueue(entry)
+        # A no_drop frame's core copy carries its digest: the stream has one too.
+        digest = frame_digest(frame) if no_drop and self.sessions is not None else None
+        self._enqueue(queued(subject, frame, topic, no_drop, message_id, digest))
 
     def follow(self, pattern: str, delta: int) -> None:
         if self.interest.follow(pattern, delta):
@@ -184,8 +183,13 @@ class NatsFanout:
         for entry in waiting:
             self._local_fanout.deliver_to_stream_fed(entry.topic, entry.frame,
                                                      entry.message_id)
-            self._enqueue(entry._replace(subject=live_subject(self.config, entry.subject),
-                                         digest=entry.digest or frame_digest(entry.frame)))
+            self._enqueue(self._core_copy(entry))
+
+    def _core_copy(self, stored: Queued) -> Queued:
+        """A frame of the sessions' stream queue as its core NATS copy: its live subject,
+        and its digest, by which a receiver drops the stream's copy or this one."""
+        return stored._replace(subject=live_subject(self.config, stored.subject),
+                               digest=frame_digest(stored.frame))
 
     def _a_reader_away(self) -> bool:
         """Another replica said it cannot read the stream, within
@@ -222,10 +226,9 @@ class NatsFanout:
                     self.config.name, replica, len(waiting))
         self.replays += 1
         for entry in waiting:
-            subject = live_subject(self.config, entry.subject)
-            if self.remote_interest is None or self.remote_interest.wants(subject):
-                self._enqueue(entry._replace(subject=subject,
-                                             digest=entry.digest or frame_digest(entry.frame)))
+            copy = self._core_copy(entry)
+            if self.remote_interest is None or self.remote_interest.wants(copy.subject):
+                self._enqueue(copy)
 
     def _enqueue(self, entry: Queued) -> None:
         """Queue a frame for the publish task, within the queue's bounds (else counted

@@ -13,8 +13,9 @@ with nothing lost and nothing twice on a subject both follow:
 1. read the stream's last sequence ``L``;
 2. wait until the old consumer has handed over every frame of its subjects up to ``L``
    (JetStream says none is pending, and the last one it sent has been handled here);
-3. stop it and start the new one after ``L``, skipping the frames past ``L`` that the old
-   one handled meanwhile.
+3. start the new one after ``L`` while the old one still runs (the frames past ``L`` they
+   both bring are the same frames: the digest check every remote frame passes drops the
+   second copy), then stop the old one.
 
 A subject just added so starts at ``L``: a new subscriber gets frames stored after its
 subscription, not the stream's history. If the old consumer does not catch up within
@@ -48,8 +49,6 @@ MAX_FILTER_SUBJECTS = 256
 # How long the old consumer may take to hand over what it was sent before a change.
 HANDOFF_S = 2.0
 HANDOFF_LOOK_S = 0.005
-# Frames the old consumer handled past L while handing over (skipped by the new one).
-_MAX_HANDED = 65536
 
 
 class _Reader:
@@ -75,12 +74,13 @@ class RemoteFeed:
         counters: Where ``remote``, ``malformed``, ``handoffs`` and ``handoff_late`` are
             counted.
         first_copy: Whether a frame (by its digest) is new here: it may have come over
-            core NATS already while this reader was away.
+            core NATS already while this reader was away, or from both consumers while
+            one replaces the other.
     """
 
     def __init__(self, stream: str, prefix: str, root: str, replica: str, replica_header: str,
                  on_frame: Callable[[bytes], None], counters: dict[str, int],
-                 first_copy: Callable[[str | None], bool] = lambda digest: True) -> None:
+                 first_copy: Callable[[str | None], bool]) -> None:
         self._stream = stream
         self._prefix = prefix
         self._root = root
@@ -93,12 +93,8 @@ class RemoteFeed:
         for name in ("remote", "malformed", "handoffs", "handoff_late"):
             counters.setdefault(name, 0)
         self._reader: _Reader | None = None
-        # While a consumer replaces another (_collecting), both may deliver the frames
-        # past _dedupe_after: the first to handle one delivers it and notes it in _handed.
+        # The consumer being started while the old one still runs: both deliver.
         self._incoming: _Reader | None = None
-        self._dedupe_after: int | None = None
-        self._handed: set[int] = set()
-        self._collecting = False
         # After a late handover: (L, the old subjects): frames up to L on other subjects
         # were stored before the change and are skipped.
         self._skip_unless: tuple[int, tuple[str, ...]] | None = None
@@ -139,19 +135,14 @@ class RemoteFeed:
             # The stream's answer may lag what a consumer already delivered here.
             last = max((await js.stream_info(self._stream)).state.last_seq,
                        old.last if old is not None else 0)
-            # From here the old consumer notes the frames past L it handles: the new
-            # one starts after L and skips them.
-            self._handed.clear()
-            self._dedupe_after = last
-            self._collecting = True
+            start_after = last
+            self._skip_unless = None
+            if old is not None and not await self._handed_over(old, last):
+                self.counters["handoff_late"] += 1
+                start_after = min(old.last, last)
+                self._skip_unless = (last, old.subjects)  # the old subjects pass it
+            new = self._incoming = _Reader(subjects, start_after)
             try:
-                start_after = last
-                self._skip_unless = None
-                if old is not None and not await self._handed_over(old, last):
-                    self.counters["handoff_late"] += 1
-                    start_after = self._dedupe_after = min(old.last, last)
-                    self._skip_unless = (last, old.subjects)  # the old subjects pass it
-                new = self._incoming = _Reader(subjects, start_after)
                 new.sub = await subscribe_ordered(
                     js, self._stream, subjects, self._receiver(new),
                     start_seq=start_after + 1, pending_msgs=SUB_PENDING_MESSAGES,
@@ -159,7 +150,6 @@ class RemoteFeed:
                 self._reader = new
             finally:
                 self._incoming = None
-                self._collecting = False
             if old is not None:
                 await _unsubscribe(old)
                 self.counters["handoffs"] += 1
@@ -212,11 +202,6 @@ class RemoteFeed:
             reader.last = seq
             if reader is not self._reader and reader is not self._incoming:
                 return  # a replaced consumer's last frames: the new one has them
-            if self._dedupe_after is not None and seq > self._dedupe_after:
-                if seq in self._handed:
-                    return  # the other consumer of a replacement handled it
-                if self._collecting and len(self._handed) < _MAX_HANDED:
-                    self._handed.add(seq)
             skip = self._skip_unless
             if skip is not None and seq <= skip[0] and not any(
                     subject_matches(msg.subject, s) for s in skip[1]):
@@ -225,7 +210,7 @@ class RemoteFeed:
             if headers.get(self._header) == self._replica:
                 return  # our own: delivered locally when it was accepted
             if not self._first_copy(headers.get("Nats-Msg-Id")):
-                return  # it came over core NATS while this reader was away
+                return  # the other consumer of a replacement, or core NATS, brought it
             try:
                 self._on_frame(msg.data)
                 self.counters["remote"] += 1

@@ -39,7 +39,7 @@ from nats.js.kv import KeyValue
 from fleetctl.server.cluster import kvloops
 from fleetctl.server.cluster.config import ClusterConfig
 from fleetctl.server.cluster.kvkeys import from_key_token, key_token
-from fleetctl.server.cluster.subjects import MAX_SUBJECT_BYTES, subject_matches
+from fleetctl.server.cluster.subjects import MAX_SUBJECT_BYTES, covered, subject_matches
 from fleetctl.server.fanout import MetricFamily
 
 log = logging.getLogger("fleetctl.server.cluster")
@@ -157,10 +157,7 @@ class RemoteInterest:
         return self.synced and seen is not None and self._clock() - seen <= TTL_S
 
     def _match(self, subject: str) -> bool:
-        if subject in self._exact:
-            return True
-        tokens = subject.split(".")
-        if any(".".join(tokens[:k]) in self._wide for k in range(1, len(tokens))):
+        if subject in self._exact or covered(subject, self._wide):
             return True
         return any(subject_matches(subject, pattern) for pattern in self._odd)
 
@@ -173,31 +170,29 @@ class RemoteInterest:
 
     async def _write_loop(self) -> None:
         async def tick() -> None:
+            # A write still due (a failed one) is tried again after RETRY_S.
+            wait_s = RETRY_S if self._due() else REFRESH_S / 2
             with contextlib.suppress(TimeoutError):
-                await asyncio.wait_for(self._wake.wait(), REFRESH_S / 2)
+                await asyncio.wait_for(self._wake.wait(), wait_s)
             self._wake.clear()
             self._expire()
 
         await kvloops.write_forever(tick, self.write_due, self.counters,
                                     "replicas' interest", RETRY_S)
 
+    def _due(self) -> bool:
+        """This replica's subjects changed since the last write, or it is due for a
+        refresh."""
+        return (self._wanted or frozenset()) != self._written \
+            or self._clock() - self._written_s >= REFRESH_S
+
     async def write_due(self) -> int:
-        """Write this replica's subjects if they changed or are due for a refresh."""
-        kv, wanted = self._kv, self._wanted
-        if kv is None:
+        """Write this replica's subjects if :meth:`_due` (a failure raises: the write
+        loop counts and logs it)."""
+        kv, wanted = self._kv, self._wanted or frozenset()
+        if kv is None or not self._due():
             return 0
-        if wanted is None:
-            wanted = frozenset()
-        if wanted == self._written and self._clock() - self._written_s < REFRESH_S:
-            return 0
-        try:
-            await kv.put(self._own_key, encode_subjects(self.config.subject_prefix, wanted))
-        except Exception:
-            kvloops.raise_if_cancelled()
-            self.counters["put_failures"] += 1
-            self._wake.set()  # again after RETRY_S
-            await asyncio.sleep(RETRY_S)  # a retry pace, not a synchronization
-            return 0
+        await kv.put(self._own_key, encode_subjects(self.config.subject_prefix, wanted))
         self.counters["puts"] += 1
         self._written, self._written_s = wanted, self._clock()
         return 1

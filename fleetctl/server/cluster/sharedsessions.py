@@ -618,7 +618,7 @@ class SharedSessions:
             return
         ack = await js.publish(entry.subject, entry.frame, stream=self._stream,
                                timeout=STORE_TIMEOUT_S,
-                               headers={"Nats-Msg-Id": entry.digest or frame_digest(entry.frame),
+                               headers={"Nats-Msg-Id": frame_digest(entry.frame),
                                         REPLICA_HEADER: self.config.name})
         self.counters["duplicates" if ack.duplicate else "stored"] += 1
 

@@ -34,6 +34,7 @@ MAX_SUBJECT_BYTES = 3072
 SUB_PENDING_MESSAGES = 65536
 SUB_PENDING_BYTES = 64 * 1024 * 1024
 
+
 def escape_token(segment: str) -> str:
     """One topic segment as a NATS subject token (never empty, no ``.``, ``*``, ``>``)."""
     if not segment:
@@ -131,10 +132,12 @@ def cover(subjects: Iterable[str]) -> frozenset[str]:
     """
     every = set(subjects)
     wild = {s[:-2] for s in every if s.endswith(".>")}
-    return frozenset(s for s in every if not _covered(s, wild))
+    return frozenset(s for s in every if not covered(s, wild))
 
 
-def _covered(subject: str, wild: set[str]) -> bool:
+def covered(subject: str, wild: set[str]) -> bool:
+    """Whether some ``X.>`` with ``X`` in *wild* covers *subject* (literal, or itself
+    ending in ``>``)."""
     tokens = subject.split(".")
     base = tokens[:-1] if tokens[-1] == ">" else tokens
     return any(".".join(base[:k]) in wild for k in range(1, len(base)))

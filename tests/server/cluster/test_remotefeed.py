@@ -9,6 +9,7 @@ import asyncio
 from collections.abc import Callable
 
 import pytest
+from nats.js.api import ConsumerInfo
 from websockets.asyncio.client import ClientConnection
 
 from fleetctl.server.app import RelayServer
@@ -39,19 +40,25 @@ async def texts_on(ws: ClientConnection, topic: str, n: int) -> list[str]:
     return out
 
 
-async def delivered_to(srv: RelayServer) -> int:
-    """Messages the NATS server sent this replica's reader of the stream."""
+async def reader_info(srv: RelayServer) -> ConsumerInfo:
+    """What JetStream says of this replica's consumer of the stream."""
     remote = shared(srv)._remote
     assert remote is not None and remote._reader is not None
     sub = remote._reader.sub
     assert sub is not None
-    info = await sub.consumer_info()
+    return await sub.consumer_info()
+
+
+async def delivered_to(srv: RelayServer) -> int:
+    """Messages the NATS server sent this replica's reader of the stream."""
+    info = await reader_info(srv)
     assert info.delivered is not None
     return info.delivered.consumer_seq or 0
 
 
 def test_stream_subjects_follow_the_live_subjects_under_the_streams_root() -> None:
-    feed = RemoteFeed("s", "fleet", "fleet_nd", "r1", "H", lambda _: None, {})
+    feed = RemoteFeed("s", "fleet", "fleet_nd", "r1", "H", lambda _: None, {},
+                      lambda digest: True)
     assert feed.stream_subjects({"fleet.husky1.>", "fleet.husky2.events"}) == (
         "fleet_nd.husky1.>", "fleet_nd.husky2.events")
     assert feed.stream_subjects({"fleet.>"}) == ("fleet_nd.>",)
@@ -151,11 +158,7 @@ async def test_a_replica_whose_reader_died_with_its_node_misses_no_event(
         assert (await subscribe(viewer, EVENTS))["type"] == "subscribed"
         await wait_until(lambda: shared(b).remote_subjects == ("fleetctl_nd.husky1.events",),
                          10.0)
-        remote = shared(b)._remote
-        assert remote is not None and remote._reader is not None
-        sub = remote._reader.sub
-        assert sub is not None
-        info = await sub.consumer_info()
+        info = await reader_info(b)
         assert info.cluster is not None
         host = next(s for s in nats_cluster if s.name == info.cluster.leader)
         received = asyncio.create_task(texts_on(viewer, EVENTS, n))

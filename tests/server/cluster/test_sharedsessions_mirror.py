@@ -119,16 +119,25 @@ async def test_frames_waiting_for_a_failing_stream_go_out_live_too() -> None:
     assert live_subject(shared.config, "fleetctl_nd.husky1.events") == "fleetctl.husky1.events"
 
 
-def test_nats_lost_hands_the_waiting_frames_over_once_per_outage() -> None:
+class Nats:
+    """The one thing ``stream_away`` asks of nats-py's client."""
+
+    is_connected = True
+
+
+def on_a_connection() -> tuple[SharedSessions, list[list[Queued]], Nats]:
+    """Sessions on a (stand-in) NATS connection, recording what goes out when the
+    stream goes away."""
     shared = sessions(Clock())
     away: list[list[Queued]] = []
     shared.on_away = away.append
-
-    class Nats:
-        is_connected = True
-
     nats = Nats()
     shared._nc = nats  # type: ignore[assignment]
+    return shared, away, nats
+
+
+def test_nats_lost_hands_the_waiting_frames_over_once_per_outage() -> None:
+    shared, away, nats = on_a_connection()
     shared.offer("/husky1/events", b"e1")
     assert not shared.stream_away() and away == []
     nats.is_connected = False  # the next frame's delivery asks first
@@ -146,15 +155,7 @@ def test_nats_lost_hands_the_waiting_frames_over_once_per_outage() -> None:
 def test_frames_stored_lately_are_handed_over_too_in_order() -> None:
     """A reader on the NATS node that died may never have handed on a frame stored just
     before: it goes out again with those still waiting, before any later one."""
-    shared = sessions(Clock())
-    away: list[list[Queued]] = []
-    shared.on_away = away.append
-
-    class Nats:
-        is_connected = True
-
-    nats = Nats()
-    shared._nc = nats  # type: ignore[assignment]
+    shared, away, nats = on_a_connection()
     shared.offer("/husky1/events", b"e1")
     shared._queue.popleft()  # stored
     shared.offer("/husky1/events", b"e2")  # waiting

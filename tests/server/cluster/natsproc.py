@@ -8,6 +8,7 @@ monitoring endpoint answering (and, for a cluster, every route up), within a dea
 from __future__ import annotations
 
 import json
+import random
 import shutil
 import socket
 import subprocess
@@ -27,11 +28,38 @@ def nats_binary() -> str | None:
         "/usr/sbin/nats-server" if Path("/usr/sbin/nats-server").exists() else None)
 
 
+# Ports handed out below the kernel's ephemeral range (32768-60999 by default). Why: a
+# port the kernel picked for bind(0) is free only until the next outgoing connection of
+# any process takes it as its source port, and a NATS cluster makes many (routes, clients)
+# between picking its ports and binding them: "bind: address already in use".
+PORT_RANGE = (20000, 32000)
+
+
+def _ephemeral_range() -> tuple[int, int]:
+    try:
+        low, high = Path("/proc/sys/net/ipv4/ip_local_port_range").read_text().split()
+        return int(low), int(high)
+    except (OSError, ValueError):
+        return 32768, 60999
+
+
 def free_port() -> int:
-    with socket.socket() as sock:
+    """A loopback TCP port free now and outside the ephemeral range where possible."""
+    low, high = _ephemeral_range()
+    for _ in range(200):
+        port = random.randrange(*PORT_RANGE)
+        if low <= port <= high:
+            continue
+        with socket.socket() as sock:
+            try:
+                sock.bind(("127.0.0.1", port))
+            except OSError:
+                continue
+            return port
+    with socket.socket() as sock:  # every pick taken or in range: let the kernel choose
         sock.bind(("127.0.0.1", 0))
-        port: int = sock.getsockname()[1]
-        return port
+        chosen: int = sock.getsockname()[1]
+        return chosen
 
 
 @dataclass
@@ -87,6 +115,10 @@ class NatsServer:
         if wait:
             self.wait_ready(timeout_s)
 
+    def lost_a_port(self) -> bool:
+        """The server's log says a port it was given was taken by someone else."""
+        return "address already in use" in self.log_tail()
+
     def log_tail(self) -> str:
         log = self.workdir / f"{self.name}.log"
         return log.read_text(errors="replace")[-2000:] if log.exists() else "(no log)"
@@ -137,17 +169,25 @@ class NatsServer:
 
 def start_cluster(workdir: Path, size: int, timeout_s: float = 30.0) -> list[NatsServer]:
     """Start *size* servers that route to each other; return when every route is up."""
-    servers = [NatsServer(f"n{i}", workdir, cluster_port=free_port()) for i in range(size)]
-    for server in servers:
-        server.routes = [f"nats://127.0.0.1:{o.cluster_port}" for o in servers
-                         if o is not server]
-    try:
+    for attempt in range(3):
+        servers = [NatsServer(f"n{i}", workdir, cluster_port=free_port())
+                   for i in range(size)]
         for server in servers:
-            server.start(timeout_s, wait=False)
-        for server in servers:
-            server.wait_ready(timeout_s, routes=size - 1)
-    except BaseException:
-        for server in servers:  # the fixture's teardown does not run when setup fails
-            server.stop()
-        raise
-    return servers
+            server.routes = [f"nats://127.0.0.1:{o.cluster_port}" for o in servers
+                             if o is not server]
+        try:
+            for server in servers:
+                server.start(timeout_s, wait=False)
+            for server in servers:
+                server.wait_ready(timeout_s, routes=size - 1)
+            return servers
+        except BaseException:
+            for server in servers:  # the fixture's teardown does not run when setup fails
+                server.stop()
+            # Another process took a picked port between the pick and the bind: pick
+            # again (the only failure worth a second try; anything else is raised).
+            if attempt == 2 or not any(each.lost_a_port() for each in servers):
+                raise
+            for server in servers:  # the next attempt's logs start empty
+                (workdir / f"{server.name}.log").unlink(missing_ok=True)
+    raise AssertionError("unreachable")

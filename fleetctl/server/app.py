@@ -41,6 +41,7 @@ from fleetctl.server.handshake import (
     read_request,
     wants_websocket,
 )
+from fleetctl.server.heldpongs import HeldPongs
 from fleetctl.server.identity import PROXY_HEADERS, parse_address, within
 from fleetctl.server.metrics import Metrics
 from fleetctl.server.outbound import OutboundScheduler
@@ -475,6 +476,9 @@ class RelayServer:
 
         connection.frame_sink = sink
         connection.on_lost = lambda: core.close_peer(peer)
+        if core.store_acks is not None:  # a cluster: a pong means "stored"
+            connection.held_pongs = HeldPongs(connection, core.store_acks,
+                                              lambda: peer.store_mark)
         if self.foxglove.speaks(connection):
             self.foxglove.wire(connection, peer)  # its own sink: Foxglove binary messages
 

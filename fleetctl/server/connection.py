@@ -35,6 +35,7 @@ from websockets.frames import Frame, Opcode
 
 from fleetctl.batched_connection import BatchedWritesConnection
 from fleetctl.server.admission import UnauthenticatedGate
+from fleetctl.server.heldpongs import HeldPongs
 
 _DATA = (Opcode.TEXT, Opcode.BINARY, Opcode.CONT)
 # Why 8 KiB: before authentication a client may send only its token frame (at most 4096
@@ -70,6 +71,8 @@ class RelayConnection(BatchedWritesConnection, ServerConnection):
         # (message_handled). While any is pending, binary frames queue behind them too,
         # so frames are handled in arrival order whichever path they take.
         self.pending_messages = 0
+        # A cluster: pongs wait until the no_drop frames before their ping are stored.
+        self.held_pongs: HeldPongs | None = None
 
     def process_event(self, event: Any) -> None:
         """Route complete binary frames to :attr:`frame_sink`, the rest as usual.
@@ -100,6 +103,15 @@ class RelayConnection(BatchedWritesConnection, ServerConnection):
     def message_handled(self) -> None:
         """Mark one message from ``recv()`` as handled (see :attr:`pending_messages`)."""
         self.pending_messages = max(0, self.pending_messages - 1)
+        if not self.pending_messages and self.held_pongs is not None:
+            self.held_pongs.settle()
+
+    def data_received(self, data: bytes) -> None:
+        super().data_received(data)
+        # Pings read with these bytes are answered once every frame before them was
+        # handled (a cluster: their pongs wait for those frames' store).
+        if self.held_pongs is not None and not self.pending_messages:
+            self.held_pongs.settle()
 
     def connection_made(self, transport: asyncio.BaseTransport) -> None:
         """Take an unauthenticated slot, or abort the connection when there is none."""

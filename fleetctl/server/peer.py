@@ -69,6 +69,10 @@ class Peer:
         # In a cluster, a session's connection: its no_drop frames come from the shared
         # stream through this feed, not from the fan-out (unless the stream is away).
         self.stream_feed: SessionFeed | None = None
+        # In a cluster, the number of the last no_drop frame this connection sent into
+        # the sessions' stream: its next pong waits until that one is stored
+        # (fleetctl.server.heldpongs).
+        self.store_mark = 0
         self.malformed_in_row = 0
         self.over_limit_subscriptions = 0
         self.robots: set[str] = set()

@@ -46,6 +46,7 @@ from fleetctl.wire.metadata import read_root
 
 if TYPE_CHECKING:
     from fleetctl.server.cluster.sharedsessions import SharedSessions
+    from fleetctl.server.cluster.storeacks import StoreAcks
     from fleetctl.server.foxglove.catalog import TopicCatalog
     from fleetctl.server.recording.recorder import Recorder
 
@@ -117,6 +118,9 @@ class RelayCore:
         # The default fan-out; RelayServer swaps in a NATS one for a cluster (use_fanout).
         self.local = LocalFanout(self.subs, self.sessions)
         self.fanout: Fanout = self.local
+        # A cluster's store counters (use_shared_sessions): a sender's pong waits for its
+        # no_drop frames to be stored. None: one process, pongs at once.
+        self.store_acks: StoreAcks | None = None
         self.latched = LatchedStore(limits.latched_bytes, limits.latched_message_bytes, metrics)
         self.keyframes: KeyframeRouter[Peer] = KeyframeRouter(
             limits.keyframe_request_interval_s, clock, metrics)
@@ -273,6 +277,8 @@ class RelayCore:
             self.catalog.note(peer, topic, meta.type, frame)
         no_drop = meta.no_drop or self._forced_no_drop(topic)
         self.fanout.publish(topic, frame, no_drop, message_id)
+        if no_drop and self.store_acks is not None:
+            peer.store_mark = self.store_acks.offered  # this frame's, or an earlier one's
         if meta.latched:
             firstframes.keep_latched(self, peer, topic, frame, root, message_id is not None)
 
@@ -301,6 +307,7 @@ class RelayCore:
         """Keep named sessions in the cluster's shared records and stream."""
         assert not len(self.sessions), "set the shared sessions before serving"
         self.sessions.shared = shared
+        self.store_acks = shared.acks
 
     def _follow(self, pattern: str, delta: int) -> None:
         self.fanout.follow(pattern, delta)

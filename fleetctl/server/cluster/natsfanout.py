@@ -390,6 +390,8 @@ class NatsFanout:
         if self._stopping or self._connecting is not None:
             return
         self._back.clear()
+        if self.sessions is not None:
+            self.sessions.stream_away()  # now, not at the next no_drop frame: pongs go
         log.warning("replica %s: NATS connection lost: local delivery goes on; latest-only "
                     "frames for other replicas are dropped, no_drop ones held (bounded) "
                     "until it is back", self.config.name)

@@ -68,6 +68,7 @@ from fleetctl.server.cluster.sessionrecord import (
     parse_record_key,
     record_key,
 )
+from fleetctl.server.cluster.storeacks import StoreAcks
 from fleetctl.server.cluster.subjects import (
     MAX_SUBJECT_BYTES,
     control_subject,
@@ -197,6 +198,8 @@ class SharedSessions:
         self._nc: Client | None = None
         self._storing_fails = False
         self._away_noted = False
+        # Which no_drop frames are stored: a local sender's pong waits for its frames.
+        self.acks = StoreAcks()
         # Called with the recent frames and those still waiting for the stream when it
         # goes away (NATS lost, or storing starts to fail): the fan-out sends them over
         # core NATS too and to this replica's session connections, which skipped them
@@ -265,6 +268,7 @@ class SharedSessions:
 
     async def stop(self) -> None:
         """Write the held sessions' cursors (best effort), stop every feed and task."""
+        self.acks.release_all()  # nothing will be stored any more: no pong waits
         for held in self._held.values():
             if held.task is not None:
                 held.task.cancel()
@@ -336,6 +340,7 @@ class SharedSessions:
         away = self._storing_fails or nc is None or not nc.is_connected
         if away != self._away_noted:
             self._away_noted = away
+            self.acks.set_bypass(away)  # nothing waits for a store while it is away
             if away and self.on_away is not None:
                 # Before the frame being delivered now goes out live: the recent ones go
                 # first, in order (those not stored yet, and those stored lately, which
@@ -385,6 +390,7 @@ class SharedSessions:
         if not self._queue.put(entry):
             self.counters["queue_full"] += 1
             return
+        self.acks.note_offered()
         history = self._history
         history.append((time.monotonic(), entry))
         self._history_bytes += len(frame)
@@ -606,6 +612,7 @@ class SharedSessions:
                              self.config.name)
                 self._storing_fails = False
                 subject, frame = queue.popleft()[:2]
+                self.acks.note_done()
                 if isinstance(result, BaseException):
                     self.counters["refused"] += 1
                     log.warning("replica %s: the sessions' stream refused a frame on %s "
@@ -685,6 +692,9 @@ class SharedSessions:
         counters = dict(self.counters)
         counters["delivered"] += sum(h.feed.delivered for h in self._held.values()
                                      if h.feed is not None)
+        acks = self.acks
+        counters.update(pongs_held=acks.held, pongs_coalesced=acks.coalesced,
+                        pongs_unstored=acks.unstored)
         return [
             ("fleetctl_cluster_sessions_total", "counter",
              "Shared sessions: no_drop frames stored in the stream (duplicates, failures, "
@@ -692,7 +702,10 @@ class SharedSessions:
              "sessions taken over by another replica, malformed entries, consumer start "
              "failures, frames delivered from the stream; other replicas' frames read "
              "(remote), reader hand-overs on interest changes (handoffs, handoff_late) "
-             "and refused ones (follow_failures).", "event",
+             "and refused ones (follow_failures); local senders' pongs held until their "
+             "no_drop frames were stored (pongs_held), and sent before that, after "
+             "0.25 s (pongs_unstored) or replaced by a later one (pongs_coalesced).",
+             "event",
              {k: float(v) for k, v in counters.items()}),
             ("fleetctl_cluster_sessions_held", "gauge",
              "Sessions whose connection is on this replica.", "",

@@ -1,0 +1,87 @@
+"""A robot's pong means "stored" in a cluster (real nats-server, a real replica, a real
+WebSocket client): the replica answers a ping only once the no_drop frames sent before
+it are in the sessions' stream, within a bound; with the stream away it answers at once.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import os
+import signal
+import time
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
+
+from fleetctl.server.app import RelayServer
+from fleetctl.server.cluster.sharedsessions import SharedSessions
+from fleetctl.server.heldpongs import PONG_HOLD_MAX_S
+from tests.server.cluster.conftest import fanout
+from tests.server.cluster.natsproc import NatsServer
+from tests.server.conftest import client, next_json
+from tests.support import string_frame, wait_until
+
+EVENTS = "/husky1/events"
+
+
+def shared(srv: RelayServer) -> SharedSessions:
+    found = srv.core.sessions.shared
+    assert found is not None
+    return found
+
+
+@contextmanager
+def stopped(server: NatsServer) -> Iterator[None]:
+    """nats-server frozen (SIGSTOP): connected, but nothing is answered."""
+    assert server.proc is not None
+    os.kill(server.proc.pid, signal.SIGSTOP)
+    try:
+        yield
+    finally:
+        os.kill(server.proc.pid, signal.SIGCONT)
+
+
+async def test_each_pong_comes_once_the_frame_before_its_ping_is_stored(
+        nats_server: NatsServer, make_replica: Callable[..., RelayServer]) -> None:
+    async with make_replica("relay-a", [nats_server.url]) as a:
+        counters = shared(a).counters
+        async with client(a, source="127.0.0.2") as robot:
+            await next_json(robot, "welcome")
+            for i in range(30):
+                await robot.send(string_frame(EVENTS, f"e{i}", no_drop=True, seq=i))
+                await asyncio.wait_for(await robot.ping(), 10.0)
+                # The replica runs in this process: its counter is read at the pong.
+                assert counters["stored"] == i + 1, (i, counters)
+            assert shared(a).acks.held >= 1  # at least one pong had to wait
+            assert shared(a).acks.unstored == 0
+
+
+async def test_a_pong_waits_for_a_hung_store_at_most_the_bound(
+        nats_server: NatsServer, make_replica: Callable[..., RelayServer]) -> None:
+    async with make_replica("relay-a", [nats_server.url]) as a:
+        acks, counters = shared(a).acks, shared(a).counters
+        async with client(a, source="127.0.0.2") as robot:
+            await next_json(robot, "welcome")
+            with stopped(nats_server):
+                await robot.send(string_frame(EVENTS, "e0", no_drop=True, seq=0))
+                start = time.monotonic()
+                await asyncio.wait_for(await robot.ping(), 10.0)
+                waited = time.monotonic() - start
+                # Sent by the bound, not by the store's 1 s timeout (no failure yet).
+                assert acks.unstored == 1 and counters["store_failures"] == 0, counters
+                assert waited >= PONG_HOLD_MAX_S * 0.9, waited
+            await wait_until(lambda: counters["stored"] == 1, 15.0)
+
+
+async def test_with_nats_lost_pongs_come_at_once(
+        nats_server: NatsServer, make_replica: Callable[..., RelayServer]) -> None:
+    async with make_replica("relay-a", [nats_server.url]) as a:
+        acks = shared(a).acks
+        async with client(a, source="127.0.0.2") as robot:
+            await next_json(robot, "welcome")
+            nats_server.stop()
+            await wait_until(lambda: not fanout(a).connected, 10.0)
+            for i in range(5):
+                await robot.send(string_frame(EVENTS, f"e{i}", no_drop=True, seq=i))
+                await asyncio.wait_for(await robot.ping(), 10.0)
+            assert acks.held == 0 and acks.unstored == 0
+            assert shared(a).counters["stored"] == 0

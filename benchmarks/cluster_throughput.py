@@ -153,6 +153,60 @@ def run_subscriber(cpu: int | None, port: int, topic: str, seconds: float, out: 
     asyncio.run(main())
 
 
+class _ByteCounter(asyncio.Protocol):
+    """Counts the bytes a connection receives, from the first one on."""
+
+    def __init__(self) -> None:
+        self.bytes = 0
+        self.first = asyncio.get_running_loop().create_future()
+
+    def data_received(self, data: bytes) -> None:
+        if not self.first.done():
+            self.first.set_result(time.perf_counter())
+        self.bytes += len(data)
+
+    def connection_lost(self, exc: Exception | None) -> None:
+        pass
+
+
+def run_counter(cpu: int | None, port: int, topic: str, seconds: float, out: Any,
+                ready: Any, label: str) -> None:
+    """Count deliveries on *topic* over *seconds* by their bytes, without parsing them.
+
+    Why: every frame on the topic has the template's size, so deliveries = bytes / wire
+    size, and reading costs this core next to nothing. The websockets subscriber
+    (:func:`run_subscriber`) parses each frame in Python: ~0.5 core at 40,000 msgs/s,
+    which the 2-replica run takes from the replica sharing that core (its clients run
+    on the other replica's core). After the subscription, the connection's transport is
+    handed to a byte counter (a frame or two buffered in websockets' parser are not
+    counted).
+    """
+    _pin(cpu)
+
+    async def main() -> None:
+        from websockets.asyncio.client import connect
+
+        from fleetctl.wire.control import encode_subscription
+
+        size = len(_template(topic)[0])
+        wire = size + (2 if size < 126 else 4 if size < 65536 else 10)  # server: unmasked
+        async with connect(f"ws://127.0.0.1:{port}/", compression=None, max_size=None,
+                           max_queue=None) as ws:
+            await ws.recv()  # welcome
+            await ws.send(encode_subscription(topic))
+            await ws.recv()  # subscribed
+            counter = _ByteCounter()
+            ws.transport.set_protocol(counter)
+            ready.put(label)
+            t0 = await counter.first
+            await asyncio.sleep(max(0.0, t0 + seconds - time.perf_counter()))
+            counted = counter.bytes
+            ws.transport.abort()
+            out.put((label, {"rate": counted / wire / seconds, "lat_ns": []}))
+
+    asyncio.run(main())
+
+
 class Run:
     """Processes of one measurement, killed at the end."""
 
@@ -178,7 +232,8 @@ class Run:
             proc.join()
 
 
-def throughput(nats_url: str | None, replicas: int, seconds: float) -> float:
+def throughput(nats_url: str | None, replicas: int, seconds: float,
+               subscriber: Any = run_counter) -> float:
     """Aggregate msgs/s delivered with *replicas* replicas, one pair of clients each."""
     run = Run()
     try:
@@ -186,12 +241,13 @@ def throughput(nats_url: str | None, replicas: int, seconds: float) -> float:
         pairs = [(i, run.replica(i, f"relay-{i}", nats_url), f"/bench/r{i}")
                  for i in range(replicas)]
         for i, port, topic in pairs:
-            run.start(run_subscriber, i + 1, port, topic, seconds, run.out, run.ready, topic)
+            run.start(subscriber, i + 1, port, topic, seconds, run.out, run.ready, topic)
         for _ in pairs:
             run.ready.get(timeout=30)
         for i, port, topic in pairs:
             run.start(run_publisher, i + 1, port, topic, None, seconds + 2)
-        return sum(run.out.get(timeout=seconds + 30)[1]["rate"] for _ in pairs)
+        total: float = sum(run.out.get(timeout=seconds + 30)[1]["rate"] for _ in pairs)
+        return total
     finally:
         run.close()
 
@@ -303,8 +359,12 @@ def main() -> int:
                         help="msgs/s of the hop-latency publisher")
     parser.add_argument("--cost-frames", type=int, default=100_000,
                         help="frames of the in-process CPU cost measurement")
+    parser.add_argument("--subscriber", choices=["bytes", "websockets"], default="bytes",
+                        help="throughput subscribers: count bytes (cheap), or parse every "
+                             "frame with a websockets client (as until 2026-11-26)")
     parser.add_argument("--json", action="store_true")
     args = parser.parse_args()
+    subscriber = run_counter if args.subscriber == "bytes" else run_subscriber
 
     from tests.server.cluster.natsproc import NatsServer
 
@@ -316,9 +376,9 @@ def main() -> int:
         for _ in range(args.rounds):
             # All three back to back in each round, so a slow spell of the host hits all.
             rounds.append({
-                "single": throughput(None, 1, args.seconds),
-                "1 replica": throughput(nats.url, 1, args.seconds),
-                "2 replicas": throughput(nats.url, 2, args.seconds),
+                "single": throughput(None, 1, args.seconds, subscriber),
+                "1 replica": throughput(nats.url, 1, args.seconds, subscriber),
+                "2 replicas": throughput(nats.url, 2, args.seconds, subscriber),
             })
         hops = hop_latency(nats.url, args.latency_rate, args.seconds)
         os.environ[_LATEST_ONLY_ENV] = "1"
@@ -346,7 +406,8 @@ def main() -> int:
                           "hop_latency_latest_only": core, "cpu_per_frame": costs}, indent=2))
         return 0
     print(f"small messages ({len(_template('/bench/r0')[0])} B frames), "
-          f"{args.seconds:.0f} s/phase, {args.rounds} rounds, {os.cpu_count()} cores")
+          f"{args.seconds:.0f} s/phase, {args.rounds} rounds, {os.cpu_count()} cores, "
+          f"{args.subscriber} subscribers")
     print(f"{'aggregate msgs/s':<18}" + "".join(f"{k:>14}" for k in med))
     for i, r in enumerate(rounds):
         print(f"{'round ' + str(i + 1):<18}" + "".join(f"{v:>14.0f}" for v in r.values()))

@@ -49,6 +49,7 @@ from fleetctl.server.cluster.framequeue import (
 )
 from fleetctl.server.cluster.interest import Interest
 from fleetctl.server.cluster.remoteinterest import RemoteInterest
+from fleetctl.server.cluster.remoteorder import ORDER_HEADER, order_subject
 from fleetctl.server.cluster.sharedlatched import SharedLatched
 from fleetctl.server.cluster.sharedregistry import SharedRegistry
 from fleetctl.server.cluster.sharedsessions import SharedSessions, live_subject
@@ -148,21 +149,28 @@ class NatsFanout:
 
     def publish(self, topic: str, frame: bytes, no_drop: bool, message_id: int | None) -> None:
         self._local(topic, frame, no_drop, message_id)
-        if no_drop and self.sessions is not None:
-            # Other replicas read no_drop frames from the sessions' stream (stored,
-            # acknowledged, in order, surviving a NATS node's death); over core NATS
-            # too only while the stream is away or another replica cannot read it (the
-            # copies carry the frame's digest: a receiver drops the second one).
-            self.sessions.offer(topic, frame, message_id)
-            if not self.sessions.stream_away() and not self._a_reader_away():
-                return
         subject = self._subject(topic)
-        if self.remote_interest is not None and not self.remote_interest.wants(subject):
+        wanted = self.remote_interest is None or self.remote_interest.wants(subject)
+        sessions = self.sessions
+        if no_drop and sessions is not None:
+            # Stored in the sessions' stream (acknowledged, durable, ordered: sessions
+            # read it, and so does a replica whose core copy was lost) and, where another
+            # replica wants it, sent over core NATS at once too. A receiver delivers the
+            # first copy in its sender's order (remoteorder.py) and drops the other by
+            # its digest.
+            if wanted:
+                digest = frame_digest(frame)
+                order = sessions.offer(topic, frame, message_id, digest)
+                self._enqueue(queued(subject, frame, topic, True, message_id, digest, order))
+            else:
+                sessions.offer(topic, frame, message_id)
+                self.unwanted += 1
+            sessions.stream_away()  # noticed now: what waits for the stream goes live
+            return
+        if not wanted:
             self.unwanted += 1  # no other replica has a subscriber for it
             return
-        # A no_drop frame's core copy carries its digest: the stream has one too.
-        digest = frame_digest(frame) if no_drop and self.sessions is not None else None
-        self._enqueue(queued(subject, frame, topic, no_drop, message_id, digest))
+        self._enqueue(queued(subject, frame, topic, no_drop, message_id))
 
     def follow(self, pattern: str, delta: int) -> None:
         if self.interest.follow(pattern, delta):
@@ -189,20 +197,7 @@ class NatsFanout:
         """A frame of the sessions' stream queue as its core NATS copy: its live subject,
         and its digest, by which a receiver drops the stream's copy or this one."""
         return stored._replace(subject=live_subject(self.config, stored.subject),
-                               digest=frame_digest(stored.frame))
-
-    def _a_reader_away(self) -> bool:
-        """Another replica said it cannot read the stream, within
-        :data:`READER_AWAY_HOLD_S`: no_drop frames go to it over core NATS too."""
-        away = self._readers_away
-        if not away:
-            return False
-        now = time.monotonic()
-        for replica in [r for r, until in away.items() if until < now]:
-            del away[replica]
-            log.info("replica %s: replica %r reads the no_drop stream again (or is gone): "
-                     "no_drop frames through the stream only", self.config.name, replica)
-        return bool(away)
+                               digest=stored.digest or frame_digest(stored.frame))
 
     async def _reader_away_received(self, msg: Msg) -> None:
         """Another replica cannot read the stream: send it what it may have missed (the
@@ -216,8 +211,11 @@ class NatsFanout:
         if replica == self.config.name or self.sessions is None or len(replica) > 64:
             return  # our own, or not a replica name (config.py: 1-64 characters)
         now = time.monotonic()
-        newly = self._readers_away.get(replica, 0.0) < now
-        self._readers_away[replica] = now + READER_AWAY_HOLD_S
+        away = self._readers_away
+        for gone in [r for r, until in away.items() if until < now]:
+            del away[gone]  # it reads the stream again, or is gone
+        newly = replica not in away
+        away[replica] = now + READER_AWAY_HOLD_S
         if not newly:
             return
         waiting = self.sessions.recent()
@@ -442,7 +440,10 @@ class NatsFanout:
                 if entry.digest is None:
                     await nc.publish(subject, frame)
                 else:  # a no_drop frame's core copy: receivers drop a second copy by it
-                    await nc.publish(subject, frame, headers={DIGEST_HEADER: entry.digest})
+                    headers = {DIGEST_HEADER: entry.digest}
+                    if entry.order is not None:
+                        headers[ORDER_HEADER] = entry.order
+                    await nc.publish(subject, frame, headers=headers)
             except NatsError:  # lost between the check and now, or a too-large payload
                 self._drop("publish_failed")
                 continue
@@ -499,9 +500,14 @@ class NatsFanout:
                 return
             if is_control_subject(self.config.subject_prefix, msg.subject):
                 return  # a wide subscription hears the replicas' control subjects too
-            if (msg.headers and self.sessions is not None
-                    and not self.sessions.first_copy(msg.headers.get(DIGEST_HEADER))):
-                return  # the stream brought it already
+            headers, sessions = msg.headers, self.sessions
+            if headers and sessions is not None:  # a no_drop frame: it comes twice
+                if not sessions.first_copy(headers.get(DIGEST_HEADER)):
+                    return  # the stream brought it already
+                self.received += 1
+                sessions.remote_order.offer(headers.get(ORDER_HEADER),
+                                            order_subject(msg.subject), msg.data)
+                return
             self.received += 1
             try:
                 self._on_remote(msg.data)

@@ -36,12 +36,12 @@ from nats.js import JetStreamContext
 
 from fleetctl.server.cluster import kvloops
 from fleetctl.server.cluster.orderedconsumer import subscribe_ordered
+from fleetctl.server.cluster.remoteorder import ORDER_HEADER, order_subject
 from fleetctl.server.cluster.subjects import (
     SUB_PENDING_BYTES,
     SUB_PENDING_MESSAGES,
     subject_matches,
 )
-from fleetctl.wire.errors import WireError
 
 # More subjects than this in the filter: read the stream's whole root instead (JetStream
 # checks every filter subject per stored message).
@@ -70,16 +70,17 @@ class RemoteFeed:
         replica: This replica's name (its own frames are skipped: it delivered them
             locally when it accepted them).
         replica_header: The header naming the replica that stored a frame.
-        on_frame: Delivers a frame to this replica's connections (``RelayCore.on_remote``).
-        counters: Where ``remote``, ``malformed``, ``handoffs`` and ``handoff_late`` are
-            counted.
+        on_frame: Takes a first copy of a frame: its ``Fleetctl-Order`` header, its subject
+            after the root, the frame (``ReceiverOrder.offer``, which delivers it to this
+            replica's connections in its sender's order).
+        counters: Where ``remote``, ``handoffs`` and ``handoff_late`` are counted.
         first_copy: Whether a frame (by its digest) is new here: it may have come over
             core NATS already while this reader was away, or from both consumers while
             one replaces the other.
     """
 
     def __init__(self, stream: str, prefix: str, root: str, replica: str, replica_header: str,
-                 on_frame: Callable[[bytes], None], counters: dict[str, int],
+                 on_frame: Callable[[str | None, str, bytes], None], counters: dict[str, int],
                  first_copy: Callable[[str | None], bool]) -> None:
         self._stream = stream
         self._prefix = prefix
@@ -90,7 +91,7 @@ class RemoteFeed:
         self._first_copy = first_copy
         self._asked: tuple[str, ...] = ()  # what the last follow() asked for
         self.counters = counters
-        for name in ("remote", "malformed", "handoffs", "handoff_late"):
+        for name in ("remote", "handoffs", "handoff_late"):
             counters.setdefault(name, 0)
         self._reader: _Reader | None = None
         # The consumer being started while the old one still runs: both deliver.
@@ -211,11 +212,8 @@ class RemoteFeed:
                 return  # our own: delivered locally when it was accepted
             if not self._first_copy(headers.get("Nats-Msg-Id")):
                 return  # the other consumer of a replacement, or core NATS, brought it
-            try:
-                self._on_frame(msg.data)
-                self.counters["remote"] += 1
-            except WireError:
-                self.counters["malformed"] += 1
+            self.counters["remote"] += 1
+            self._on_frame(headers.get(ORDER_HEADER), order_subject(msg.subject), msg.data)
 
         return receive
 

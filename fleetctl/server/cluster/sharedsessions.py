@@ -59,6 +59,13 @@ from fleetctl.server.cluster.framequeue import (
     queued,
 )
 from fleetctl.server.cluster.remotefeed import RemoteFeed
+from fleetctl.server.cluster.remoteorder import (
+    ORDER_HEADER,
+    ReceiverOrder,
+    SenderOrder,
+    covered_by,
+    order_subject,
+)
 from fleetctl.server.cluster.sessionfeed import SessionFeed
 from fleetctl.server.cluster.sessionrecord import (
     SessionKey,
@@ -78,6 +85,7 @@ from fleetctl.server.cluster.subjects import (
 )
 from fleetctl.server.fanout import MetricFamily
 from fleetctl.server.regex import BadRegex, compile_full
+from fleetctl.wire.errors import WireError
 
 if TYPE_CHECKING:
     from fleetctl.server.outbound import OutboundScheduler
@@ -220,9 +228,14 @@ class SharedSessions:
         self._history_bytes = 0
         self.recent_remote = RecentDigests()
         self.reader_away_subject = control_subject(config.subject_prefix, "readeraway")
+        # This replica's no_drop frames carry their order; others' are delivered in theirs.
+        self.order = SenderOrder()
+        self._on_remote = on_remote
+        self.remote_order = ReceiverOrder(self._deliver_remote, self.counters)
         self._remote = RemoteFeed(self._stream, config.subject_prefix, self._root,
-                                  config.name, REPLICA_HEADER, on_remote, self.counters,
-                                  self.first_copy) if on_remote is not None else None
+                                  config.name, REPLICA_HEADER, self.remote_order.offer,
+                                  self.counters, self.first_copy) \
+            if on_remote is not None else None
         self._wanted: frozenset[str] = frozenset()
         self._following = False
 
@@ -269,6 +282,7 @@ class SharedSessions:
     async def stop(self) -> None:
         """Write the held sessions' cursors (best effort), stop every feed and task."""
         self.acks.release_all()  # nothing will be stored any more: no pong waits
+        self.remote_order.close()  # frames held for a missing one go now
         for held in self._held.values():
             if held.task is not None:
                 held.task.cancel()
@@ -381,21 +395,34 @@ class SharedSessions:
         held.dirty = True
         self._write_wake.set()
 
-    def offer(self, topic: str, frame: bytes, message_id: int | None = None) -> None:
+    def offer(self, topic: str, frame: bytes, message_id: int | None = None,
+              digest: str | None = None) -> str:
         """Store a no_drop frame a local sender sent (queued, bounded, counted), and keep
-        it for :meth:`recent`. Per-frame cost matters here (every no_drop frame of every
-        local sender): no digest yet (the store makes it), the history pruned by size
-        only (by age when read)."""
-        entry = queued(self._subject(topic), frame, topic, True, message_id)
+        it for :meth:`recent`; return its ``Fleetctl-Order`` (its core copy carries it
+        too). Per-frame cost matters here (every no_drop frame of every local sender): no
+        digest unless given (the store makes it), the history pruned by size only (by age
+        when read)."""
+        subject = self._subject(topic)
+        order = self.order.stamp(order_subject(subject))
+        entry = queued(subject, frame, topic, True, message_id, digest, order)
         if not self._queue.put(entry):
             self.counters["queue_full"] += 1
-            return
+            return order
         self.acks.note_offered()
         history = self._history
         history.append((time.monotonic(), entry))
         self._history_bytes += len(frame)
         if self._history_bytes > HISTORY_BYTES or len(history) > HISTORY_FRAMES:
             self._history_bytes -= len(history.popleft()[1].frame)
+        return order
+
+    def _deliver_remote(self, frame: bytes) -> None:
+        """Another replica's no_drop frame, in its order, to this replica's connections."""
+        assert self._on_remote is not None
+        try:
+            self._on_remote(frame)
+        except WireError:
+            self.counters["malformed"] += 1
 
     def recent(self, seconds: float = HISTORY_S) -> list[Queued]:
         """The no_drop frames local senders sent in the last *seconds* (at most
@@ -623,10 +650,12 @@ class SharedSessions:
         if len(entry.subject) > MAX_SUBJECT_BYTES:
             self.counters["subject_too_long"] += 1
             return
+        headers = {"Nats-Msg-Id": entry.digest or frame_digest(entry.frame),
+                   REPLICA_HEADER: self.config.name}
+        if entry.order is not None:
+            headers[ORDER_HEADER] = entry.order
         ack = await js.publish(entry.subject, entry.frame, stream=self._stream,
-                               timeout=STORE_TIMEOUT_S,
-                               headers={"Nats-Msg-Id": frame_digest(entry.frame),
-                                        REPLICA_HEADER: self.config.name})
+                               timeout=STORE_TIMEOUT_S, headers=headers)
         self.counters["duplicates" if ack.duplicate else "stored"] += 1
 
     # -- other replicas' no_drop frames ----------------------------------------------------
@@ -640,6 +669,8 @@ class SharedSessions:
             ``False`` if NATS or JetStream refused (logged once, counted
             ``follow_failures``; the caller tries again).
         """
+        if wanted != self._wanted:  # a subject followed again starts afresh
+            self.remote_order.forget(covered_by(wanted))
         self._wanted = wanted
         if self._remote is None or self._js is None or not self._following:
             return True
@@ -704,7 +735,10 @@ class SharedSessions:
              "(remote), reader hand-overs on interest changes (handoffs, handoff_late) "
              "and refused ones (follow_failures); local senders' pongs held until their "
              "no_drop frames were stored (pongs_held), and sent before that, after "
-             "0.25 s (pongs_unstored) or replaced by a later one (pongs_coalesced).",
+             "0.25 s (pongs_unstored) or replaced by a later one (pongs_coalesced); other "
+             "replicas' no_drop frames held for a missing one (order_held), gaps given "
+             "up after 3 s (order_skipped), frames delivered after their successors "
+             "(order_late), bad Fleetctl-Order values (order_malformed).",
              "event",
              {k: float(v) for k, v in counters.items()}),
             ("fleetctl_cluster_sessions_held", "gauge",

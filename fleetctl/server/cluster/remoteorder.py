@@ -1,0 +1,226 @@
+"""Another replica's no_drop frames, in the order it accepted them, whichever way they came.
+
+A no_drop frame crosses replicas two ways (docs/scaling.md, "No_drop frames cross twice"):
+as a core NATS copy, at once (~0.6 ms p99 added), and through the sessions' stream,
+stored and acknowledged (~4 ms). The receiver delivers the first copy and drops the
+second by digest. Core NATS is at-most-once: a copy lost in a dying NATS node's socket
+comes later from the stream (or from the sender's replay when this replica's reader of
+the stream died too), after copies that followed it. To keep the order, each no_drop frame
+carries ``Fleetctl-Order: <epoch>:<seq>:<prev>``, set by its replica: a number counting
+its no_drop frames (``seq``), and the number of its previous frame on the same subject
+(``prev``, 0: unknown); ``epoch`` is random per replica process, so a restarted replica
+starts afresh.
+
+:class:`ReceiverOrder` keeps, per (epoch, subject), the number of the last frame it
+delivered. A frame whose ``prev`` is that number (or unknown) goes at once, and so do the
+held frames it unblocks; a frame after a gap waits until the missing one comes, or at most
+:data:`HOLD_S` (then the gap is skipped, counted ``order_skipped``). A frame that comes
+after its successors (a skipped gap filled late) is delivered anyway, counted
+``order_late``: completeness before order. Duplicates never reach this stage (the digest
+check before it drops them).
+"""
+
+from __future__ import annotations
+
+import asyncio
+import logging
+import secrets
+from collections import OrderedDict
+from collections.abc import Callable, Iterable
+from dataclasses import dataclass, field
+
+log = logging.getLogger("fleetctl.server.cluster")
+
+ORDER_HEADER = "Fleetctl-Order"
+# How long frames after a gap wait for the missing one. It covers the slow way back: the
+# receiver's reader of the stream died with a NATS node, it says so within ~1 s, and the
+# sender replays its recent frames (natsfanout.READER_AWAY_HOLD_S and the reader check).
+HOLD_S = 3.0
+# Bounds: subjects followed (least recently used forgotten), frames held in all.
+MAX_ORDER_KEYS = 16384
+MAX_HELD_FRAMES = 4096
+MAX_HELD_BYTES = 16 * 1024 * 1024
+
+
+class SenderOrder:
+    """The ``Fleetctl-Order`` values of this replica's no_drop frames."""
+
+    def __init__(self, epoch: str | None = None) -> None:
+        self.epoch = epoch or secrets.token_hex(4)
+        self.seq = 0
+        self._last: dict[str, int] = {}
+
+    def stamp(self, subject: str) -> str:
+        """The next frame's value, on *subject*."""
+        self.seq = seq = self.seq + 1
+        last = self._last
+        prev = last.get(subject, 0)
+        if not prev and len(last) >= MAX_ORDER_KEYS:
+            last.clear()  # the next frame of each subject says "unknown" (0): no wait
+        last[subject] = seq
+        return f"{self.epoch}:{seq}:{prev}"
+
+
+@dataclass
+class _Subject:
+    """One sender's frames on one subject, as received here."""
+
+    last: int
+    held: dict[int, tuple[int, bytes, float]] = field(default_factory=dict)  # prev ->
+    timer: asyncio.TimerHandle | None = None
+
+
+class ReceiverOrder:
+    """Delivers other replicas' no_drop frames in their senders' order.
+
+    Args:
+        deliver: Hands one frame to this replica's connections (it counts its own
+            failures).
+        counters: Where ``order_held``, ``order_skipped``, ``order_late`` and
+            ``order_malformed`` are counted.
+        clock: Monotonic seconds.
+    """
+
+    def __init__(self, deliver: Callable[[bytes], None], counters: dict[str, int],
+                 clock: Callable[[], float] | None = None) -> None:
+        self._deliver = deliver
+        self.counters = counters
+        for name in ("order_held", "order_skipped", "order_late", "order_malformed"):
+            counters.setdefault(name, 0)
+        self._clock = clock
+        self._subjects: OrderedDict[tuple[str, str], _Subject] = OrderedDict()
+        self._held_frames = 0
+        self._held_bytes = 0
+
+    @property
+    def held(self) -> int:
+        """Frames waiting for a missing predecessor now."""
+        return self._held_frames
+
+    def offer(self, order: str | None, subject: str, frame: bytes) -> None:
+        """A first copy of another replica's frame on *subject* (the part after the
+        subject root, the same for its core and stream copies)."""
+        if order is None:
+            self._deliver(frame)  # latest-only, or from a replica that does not stamp
+            return
+        try:
+            epoch, seq_text, prev_text = order.split(":")
+            seq, prev = int(seq_text), int(prev_text)
+        except ValueError:
+            self.counters["order_malformed"] += 1
+            self._deliver(frame)
+            return
+        key = (epoch, subject)
+        state = self._subjects.get(key)
+        if state is None:
+            self._remember(key, _Subject(seq))
+            self._deliver(frame)
+            return
+        self._subjects.move_to_end(key)
+        if seq <= state.last:
+            self.counters["order_late"] += 1  # its successors went on without it
+            self._deliver(frame)
+            return
+        if prev == 0 or prev <= state.last:
+            state.last = seq
+            self._deliver(frame)
+            self._drain(state)
+            return
+        self._hold(key, state, prev, seq, frame)
+
+    def forget(self, keep: Callable[[str], bool]) -> None:
+        """Forget the subjects *keep* says no to (no longer followed here): when they
+        are followed again, their first frame goes at once. Held frames go now."""
+        for key in [k for k in self._subjects if not keep(k[1])]:
+            state = self._subjects.pop(key)
+            self._flush(state)
+
+    def close(self) -> None:
+        """Deliver every held frame now (the replica stops)."""
+        for state in self._subjects.values():
+            self._flush(state)
+
+    # -- holding --------------------------------------------------------------------------
+
+    def _now(self) -> float:
+        return self._clock() if self._clock is not None else asyncio.get_running_loop().time()
+
+    def _remember(self, key: tuple[str, str], state: _Subject) -> None:
+        subjects = self._subjects
+        subjects[key] = state
+        if len(subjects) > MAX_ORDER_KEYS:
+            self._flush(subjects.popitem(last=False)[1])
+
+    def _hold(self, key: tuple[str, str], state: _Subject, prev: int, seq: int,
+              frame: bytes) -> None:
+        self.counters["order_held"] += 1
+        if prev in state.held:  # two frames claim the same predecessor: not a chain
+            self.counters["order_malformed"] += 1
+            self._deliver(frame)
+            return
+        state.held[prev] = (seq, frame, self._now())
+        self._held_frames += 1
+        self._held_bytes += len(frame)
+        if self._held_frames > MAX_HELD_FRAMES or self._held_bytes > MAX_HELD_BYTES:
+            self._skip(state)  # over the bounds: this subject's gap is not waited for
+        elif state.timer is None:
+            self._arm(state)
+
+    def _arm(self, state: _Subject) -> None:
+        if not state.held:
+            return
+        oldest = min(at for _, _, at in state.held.values())
+        delay = max(0.0, oldest + HOLD_S - self._now())
+        state.timer = asyncio.get_running_loop().call_later(delay, self._expire, state)
+
+    def _expire(self, state: _Subject) -> None:
+        state.timer = None
+        now = self._now()
+        while state.held and min(at for _, _, at in state.held.values()) + HOLD_S <= now:
+            self._skip(state)
+        self._arm(state)
+
+    def _skip(self, state: _Subject, *, quiet: bool = False) -> None:
+        """Give up on the oldest gap: deliver the first held frame after it, and what
+        follows it."""
+        prev = min(state.held, key=lambda p: state.held[p][0])
+        state.last = prev  # as if the missing frame had come
+        skipped = self.counters["order_skipped"] = self.counters["order_skipped"] + 1
+        if not quiet and skipped % 100 == 1:  # the first, then every 100th
+            log.warning("no_drop frames from another replica: a frame did not come within "
+                        "%g s (core NATS and the stream both lost it, or it is late): the "
+                        "ones after it go on (%d such gaps so far)", HOLD_S, skipped)
+        self._drain(state)
+
+    def _drain(self, state: _Subject) -> None:
+        held = state.held
+        while held and state.last in held:
+            seq, frame, _ = held.pop(state.last)
+            self._held_frames -= 1
+            self._held_bytes -= len(frame)
+            state.last = seq
+            self._deliver(frame)
+        if not held and state.timer is not None:
+            state.timer.cancel()
+            state.timer = None
+
+    def _flush(self, state: _Subject) -> None:
+        while state.held:
+            self._skip(state, quiet=True)
+        if state.timer is not None:
+            state.timer.cancel()
+            state.timer = None
+
+
+def order_subject(subject: str) -> str:
+    """The part of a live or stream subject after its root: the same for both copies."""
+    return subject.partition(".")[2]
+
+
+def covered_by(wanted: Iterable[str]) -> Callable[[str], bool]:
+    """Whether a subject (after its root) is still followed, given the live subjects
+    *wanted* (``fleetctl.husky1.>``...)."""
+    from fleetctl.server.cluster.subjects import subject_matches
+
+    tails = [order_subject(w) for w in wanted]
+    return lambda tail: any(subject_matches("x." + tail, "x." + t) for t in tails)

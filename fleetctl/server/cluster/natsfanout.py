@@ -460,11 +460,18 @@ class NatsFanout:
             except NatsError as exc:  # closed under us: the next change or reconnect retries
                 log.warning("replica %s: NATS subscriptions not updated: %s",
                             self.config.name, _reason(exc))
+                subscribed = False
             else:
-                if self.remote_interest is not None:  # subscribed: the others may publish
-                    self.remote_interest.announce(self.interest.wanted)
-            if (self.sessions is not None
-                    and not await self.sessions.follow_interest(self.interest.wanted)):
+                subscribed = True
+            followed = (self.sessions is None
+                        or await self.sessions.follow_interest(self.interest.wanted))
+            if subscribed and self.remote_interest is not None:
+                # Subscribed, and reading the stream's subjects too (or failing to, then
+                # announced anyway: live data first): the others may publish. After the
+                # reader, so that the stream copy of every core copy of a no_drop frame
+                # comes here too, and the order stage is told when to let it go.
+                self.remote_interest.announce(self.interest.wanted)
+            if not followed:
                 await asyncio.sleep(INTEREST_RETRY_S)  # a retry pace, not a synchronization
                 self._interest_changed.set()
 

@@ -70,9 +70,11 @@ class RemoteFeed:
         replica: This replica's name (its own frames are skipped: it delivered them
             locally when it accepted them).
         replica_header: The header naming the replica that stored a frame.
-        on_frame: Takes a first copy of a frame: its ``Fleetctl-Order`` header, its subject
-            after the root, the frame (``ReceiverOrder.offer``, which delivers it to this
-            replica's connections in its sender's order).
+        on_frame: Takes every frame read: its ``Fleetctl-Order`` header, its subject after
+            the root, the frame, whether it is the first copy here
+            (``ReceiverOrder.offer_stream``: delivers a first copy to this replica's
+            connections in its sender's order, and a second one vouches for the frames
+            held before it).
         counters: Where ``remote``, ``handoffs`` and ``handoff_late`` are counted.
         first_copy: Whether a frame (by its digest) is new here: it may have come over
             core NATS already while this reader was away, or from both consumers while
@@ -80,7 +82,8 @@ class RemoteFeed:
     """
 
     def __init__(self, stream: str, prefix: str, root: str, replica: str, replica_header: str,
-                 on_frame: Callable[[str | None, str, bytes], None], counters: dict[str, int],
+                 on_frame: Callable[[str | None, str, bytes, bool], None],
+                 counters: dict[str, int],
                  first_copy: Callable[[str | None], bool]) -> None:
         self._stream = stream
         self._prefix = prefix
@@ -210,10 +213,13 @@ class RemoteFeed:
             headers = msg.headers or {}
             if headers.get(self._header) == self._replica:
                 return  # our own: delivered locally when it was accepted
-            if not self._first_copy(headers.get("Nats-Msg-Id")):
-                return  # the other consumer of a replacement, or core NATS, brought it
-            self.counters["remote"] += 1
-            self._on_frame(headers.get(ORDER_HEADER), order_subject(msg.subject), msg.data)
+            # A second copy (core NATS, or the other consumer of a replacement, brought
+            # it) is not delivered, but still tells the order stage how far the stream is.
+            first = self._first_copy(headers.get("Nats-Msg-Id"))
+            if first:
+                self.counters["remote"] += 1
+            self._on_frame(headers.get(ORDER_HEADER), order_subject(msg.subject), msg.data,
+                           first)
 
         return receive
 

@@ -65,13 +65,21 @@ class SenderOrder:
 class _Subject:
     """One sender's frames on one subject, as received here."""
 
-    last: int
+    last: int | None = None  # the last delivered; None: none yet (the stream decides)
     held: dict[int, tuple[int, bytes, float]] = field(default_factory=dict)  # prev ->
     timer: asyncio.TimerHandle | None = None
 
 
 class ReceiverOrder:
     """Delivers other replicas' no_drop frames in their senders' order.
+
+    The stream is the authority: its copies come in the sender's order, so when the
+    stream copy of a frame arrives, every earlier frame this replica will ever get from
+    the stream has arrived. Core NATS copies go at once when they follow the last
+    delivered frame, and wait otherwise: after a gap, and the first of a subject
+    (its predecessors may still come from the stream, which lags core NATS by a few
+    milliseconds). A held frame goes when its predecessor comes, when the stream vouches
+    for it (its own stream copy, or a later frame's), or after :data:`HOLD_S`.
 
     Args:
         deliver: Hands one frame to this replica's connections (it counts its own
@@ -99,34 +107,45 @@ class ReceiverOrder:
 
     def offer(self, order: str | None, subject: str, frame: bytes) -> None:
         """A first copy of another replica's frame on *subject* (the part after the
-        subject root, the same for its core and stream copies)."""
-        if order is None:
-            self._deliver(frame)  # latest-only, or from a replica that does not stamp
+        subject root), from core NATS."""
+        parsed = self._parse(order, frame)
+        if parsed is None:
             return
-        try:
-            epoch, seq_text, prev_text = order.split(":")
-            seq, prev = int(seq_text), int(prev_text)
-        except ValueError:
-            self.counters["order_malformed"] += 1
-            self._deliver(frame)
-            return
-        key = (epoch, subject)
-        state = self._subjects.get(key)
-        if state is None:
-            self._remember(key, _Subject(seq))
-            self._deliver(frame)
-            return
-        self._subjects.move_to_end(key)
-        if seq <= state.last:
-            self.counters["order_late"] += 1  # its successors went on without it
-            self._deliver(frame)
-            return
-        if prev == 0 or prev <= state.last:
+        epoch, seq, prev = parsed
+        state = self._state((epoch, subject))
+        last = state.last
+        if last is not None and seq <= last:
+            self._late(frame)
+        elif prev == 0 or (last is not None and prev <= last):
             state.last = seq
             self._deliver(frame)
             self._drain(state)
+        else:  # after a gap, or the first: the missing one or the stream settles it
+            self._hold(state, prev, seq, frame)
+
+    def offer_stream(self, order: str | None, subject: str, frame: bytes,
+                     first: bool) -> None:
+        """A stream copy of another replica's frame: the first copy (*first*), or the
+        second of one that came over core NATS (delivered, or held here)."""
+        parsed = self._parse(order, frame if first else None)
+        if parsed is None:
             return
-        self._hold(key, state, prev, seq, frame)
+        epoch, seq, _ = parsed
+        key = (epoch, subject)
+        state = self._subjects.get(key)
+        if state is None:
+            if not first:
+                return  # its core copy was delivered and its subject forgotten since
+            state = self._state(key)
+        if state.held:
+            self._vouch(state, seq)  # nothing before it is still coming from the stream
+        if first:
+            if state.last is not None and seq <= state.last:
+                self._late(frame)
+                return
+            state.last = seq
+            self._deliver(frame)
+        self._drain(state)
 
     def forget(self, keep: Callable[[str], bool]) -> None:
         """Forget the subjects *keep* says no to (no longer followed here): when they
@@ -142,22 +161,43 @@ class ReceiverOrder:
 
     # -- holding --------------------------------------------------------------------------
 
+    def _parse(self, order: str | None, frame: bytes | None) -> tuple[str, int, int] | None:
+        """``(epoch, seq, prev)``, or None: then *frame* (if any) is delivered as it is
+        (latest-only, a replica that does not stamp, a malformed value)."""
+        if order is not None:
+            try:
+                epoch, seq_text, prev_text = order.split(":")
+                return epoch, int(seq_text), int(prev_text)
+            except ValueError:
+                self.counters["order_malformed"] += 1
+        if frame is not None:
+            self._deliver(frame)
+        return None
+
+    def _state(self, key: tuple[str, str]) -> _Subject:
+        subjects = self._subjects
+        state = subjects.get(key)
+        if state is not None:
+            subjects.move_to_end(key)
+            return state
+        state = subjects[key] = _Subject()
+        if len(subjects) > MAX_ORDER_KEYS:
+            self._flush(subjects.popitem(last=False)[1])
+        return state
+
+    def _late(self, frame: bytes) -> None:
+        self.counters["order_late"] += 1  # its successors went on without it
+        self._deliver(frame)
+
     def _now(self) -> float:
         return self._clock() if self._clock is not None else asyncio.get_running_loop().time()
 
-    def _remember(self, key: tuple[str, str], state: _Subject) -> None:
-        subjects = self._subjects
-        subjects[key] = state
-        if len(subjects) > MAX_ORDER_KEYS:
-            self._flush(subjects.popitem(last=False)[1])
-
-    def _hold(self, key: tuple[str, str], state: _Subject, prev: int, seq: int,
-              frame: bytes) -> None:
-        self.counters["order_held"] += 1
+    def _hold(self, state: _Subject, prev: int, seq: int, frame: bytes) -> None:
         if prev in state.held:  # two frames claim the same predecessor: not a chain
             self.counters["order_malformed"] += 1
             self._deliver(frame)
             return
+        self.counters["order_held"] += 1
         state.held[prev] = (seq, frame, self._now())
         self._held_frames += 1
         self._held_bytes += len(frame)
@@ -165,6 +205,24 @@ class ReceiverOrder:
             self._skip(state)  # over the bounds: this subject's gap is not waited for
         elif state.timer is None:
             self._arm(state)
+
+    def _vouch(self, state: _Subject, seq: int) -> None:
+        """The stream brought frame *seq*: held frames up to it go, in order."""
+        for prev in sorted((p for p, v in state.held.items() if v[0] <= seq),
+                           key=lambda p: state.held[p][0]):
+            seq_held, frame, _ = self._pop(state, prev)
+            if state.last is None or seq_held > state.last:
+                state.last = seq_held
+            self._deliver(frame)
+
+    def _pop(self, state: _Subject, prev: int) -> tuple[int, bytes, float]:
+        entry = state.held.pop(prev)
+        self._held_frames -= 1
+        self._held_bytes -= len(entry[1])
+        if not state.held and state.timer is not None:
+            state.timer.cancel()
+            state.timer = None
+        return entry
 
     def _arm(self, state: _Subject) -> None:
         if not state.held:
@@ -178,7 +236,8 @@ class ReceiverOrder:
         now = self._now()
         while state.held and min(at for _, _, at in state.held.values()) + HOLD_S <= now:
             self._skip(state)
-        self._arm(state)
+        if state.held and state.timer is None:
+            self._arm(state)
 
     def _skip(self, state: _Subject, *, quiet: bool = False) -> None:
         """Give up on the oldest gap: deliver the first held frame after it, and what
@@ -194,15 +253,10 @@ class ReceiverOrder:
 
     def _drain(self, state: _Subject) -> None:
         held = state.held
-        while held and state.last in held:
-            seq, frame, _ = held.pop(state.last)
-            self._held_frames -= 1
-            self._held_bytes -= len(frame)
+        while held and state.last is not None and state.last in held:
+            seq, frame, _ = self._pop(state, state.last)
             state.last = seq
             self._deliver(frame)
-        if not held and state.timer is not None:
-            state.timer.cancel()
-            state.timer = None
 
     def _flush(self, state: _Subject) -> None:
         while state.held:

@@ -233,7 +233,7 @@ class SharedSessions:
         self._on_remote = on_remote
         self.remote_order = ReceiverOrder(self._deliver_remote, self.counters)
         self._remote = RemoteFeed(self._stream, config.subject_prefix, self._root,
-                                  config.name, REPLICA_HEADER, self.remote_order.offer,
+                                  config.name, REPLICA_HEADER, self.remote_order.offer_stream,
                                   self.counters, self.first_copy) \
             if on_remote is not None else None
         self._wanted: frozenset[str] = frozenset()

@@ -96,9 +96,38 @@ async def test_a_subject_no_longer_followed_is_forgotten_with_its_held_frames() 
     order.offer(sent[2][0], "husky1.events", sent[2][1])  # held
     order.forget(covered_by(["fleetctl.husky2.>"]))
     assert got == [sent[0][1], sent[2][1]] and order.held == 0
-    later = sender.stamp("husky1.events")  # followed again: the first frame goes at once
+    later = sender.stamp("husky1.events")  # followed again: a fresh start
     order.offer(later, "husky1.events", b"again")
-    assert got[-1] == b"again"
+    assert got[-1] != b"again"  # its predecessors could still come from the stream...
+    order.offer_stream(later, "husky1.events", b"again", first=False)
+    assert got[-1] == b"again"  # ... until the stream brings its own copy: none will
+
+
+async def test_the_first_frame_over_core_waits_for_what_the_stream_still_brings() -> None:
+    """The sender learnt of this replica's interest late: frames 0-2 reach it only
+    through the stream, which lags; frame 3's core copy comes first."""
+    order, got, counters = receiver()
+    sent = frames(SenderOrder(), "s", 5)
+    order.offer(sent[3][0], "s", sent[3][1])
+    order.offer(sent[4][0], "s", sent[4][1])
+    assert got == [] and order.held == 2
+    for i in range(3):
+        order.offer_stream(sent[i][0], "s", sent[i][1], first=True)
+    assert got == [f for _, f in sent] and order.held == 0
+    order.offer_stream(sent[3][0], "s", sent[3][1], first=False)  # seconds: nothing more
+    order.offer_stream(sent[4][0], "s", sent[4][1], first=False)
+    assert len(got) == 5 and counters["order_late"] == 0
+
+
+async def test_the_stream_vouches_for_a_held_frame_whose_predecessor_never_comes() -> None:
+    order, got, _ = receiver()
+    sent = frames(SenderOrder(), "s", 4)
+    order.offer(sent[0][0], "s", sent[0][1])
+    order.offer(sent[2][0], "s", sent[2][1])  # frame 1 was never stored nor sent here
+    order.offer(sent[3][0], "s", sent[3][1])
+    assert got == [sent[0][1]]
+    order.offer_stream(sent[2][0], "s", sent[2][1], first=False)
+    assert got == [sent[0][1], sent[2][1], sent[3][1]] and order.held == 0
 
 
 async def test_held_frames_are_bounded() -> None:

@@ -16,6 +16,7 @@ from __future__ import annotations
 import asyncio
 import json
 import os
+import re
 import shutil
 import socket
 import ssl
@@ -131,6 +132,22 @@ def connections_of(project: str, robot: str) -> int:
                if "authenticated" in line and robot in line)
 
 
+def server_closes(project: str, robot: str) -> int:
+    """How many of *robot*'s connections the server closed (``conn#N[robot@...] closed
+    <code>``: a reload that refused it, a takeover, ...)."""
+    closed = re.compile(rf"\[{re.escape(robot)}@[^\]]*\] closed \d+")
+    return sum(1 for line in server_log(project).splitlines() if closed.search(line))
+
+
+def tunnel_received(project: str) -> dict[str, int]:
+    """Bytes the server's WireGuard interface received from each peer (by public key):
+    a peer whose session was reset (``wg setconf``, an interface restart) starts at 0
+    again; ``wg syncconf`` keeps it."""
+    out = subprocess.run(["docker", "exec", server_container(project), "wg", "show", "wg0",
+                          "transfer"], capture_output=True, text=True, check=True).stdout
+    return {key: int(rx) for key, rx, _ in (line.split("\t") for line in out.splitlines())}
+
+
 async def token_refused(url: str, token: str) -> bool:
     context = ssl.create_default_context()
     context.check_hostname = False
@@ -189,18 +206,28 @@ def test_the_fleet_life_cycle_on_the_real_images(
     url = f"https://127.0.0.1:{https}/"
     asyncio.run(browse(url, token))
 
-    before = {n: connections_of(project, n) for n in ("husky1", "jackal2")}
-    assert all(v >= 1 for v in before.values()), before
+    # Neither adding a robot nor removing a user disturbs the robots already running:
+    # their tunnels are not reset (the server's WireGuard counters go on) and the server
+    # closes none of their connections. Not "no robot reconnected at all": a robot on
+    # userspace WireGuard whose packets wait for a starved CPU may re-dial by itself
+    # (docs/recovery.md), which CI's loaded runs showed twice (jackal2 authenticated a
+    # second time during remove-user).
+    robots_now = ("husky1", "jackal2")
+    assert all(connections_of(project, n) >= 1 for n in robots_now)
+    received = tunnel_received(project)
     op.run("add-robot", "rover3")
     wait_until("rover3 online", lambda: online(op, {"husky1", "jackal2", "rover3"}),
                ONLINE_TIMEOUT_S)
-    assert {n: connections_of(project, n) for n in before} == before
+    after = tunnel_received(project)
+    assert all(after.get(key, -1) >= rx for key, rx in received.items()), (received, after)
+    assert {n: server_closes(project, n) for n in robots_now} == dict.fromkeys(robots_now, 0)
 
     op.run("remove-user", "alice@example.com")
     start = time.monotonic()
     while not asyncio.run(token_refused(f"wss://127.0.0.1:{https}/", token)):
         assert time.monotonic() - start < REVOKE_TIMEOUT_S, "token still accepted"
-    assert {n: connections_of(project, n) for n in before} == before
+    assert {n: server_closes(project, n) for n in robots_now} == dict.fromkeys(robots_now, 0)
+    assert online(op, set(robots_now))
 
     first_seen = {n: r["first_seen_s"] for n, r in robots(op).items()}
     subprocess.run(["docker", "restart", server_container(project)], capture_output=True,

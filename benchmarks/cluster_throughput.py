@@ -26,12 +26,10 @@ half a core at 40,000 msgs/s; the way until 2026-11-26).
 The frames are no_drop (every one sent is delivered, so deliveries per second are the
 relay's throughput; a latest-only topic flooded by one publisher is delivered at the
 subscriber's pace, not the relay's). A replica stores each no_drop frame in the sessions'
-stream (docs/scaling.md, "Sessions, shared") and sends it over core NATS too where
-another replica wants it; the receiver delivers the first copy in its sender's order
-("No_drop frames cross twice"). The hop latency is measured twice: no_drop frames (both
-ways, the first copy delivered) and latest-only ones (core NATS only, to replicas that
-want them: "Publishing where wanted"; delivered at the subscriber's pace, so fewer than
-sent).
+stream (docs/scaling.md, "Sessions, shared") and other replicas read them from it, so the
+hop latency is measured twice: no_drop frames (through the stream) and latest-only ones
+(on core NATS, to replicas that want them: "Publishing where wanted"; delivered at the
+subscriber's pace, so fewer than sent).
 
 Last, ``CPU per frame`` in the relay core without sockets (one process pinned to core 0):
 accept + deliver in a single process, + publish to NATS, + another replica's receive and
@@ -422,7 +420,7 @@ def main() -> int:
     print(f"{'median':<18}" + "".join(f"{v:>14.0f}" for v in med.values()))
     print(f"2 replicas / 1 replica: {med['2 replicas'] / med['1 replica']:.2f}x (goal 1.7x); "
           f"1 replica / single process: {med['1 replica'] / med['single']:.2f}x")
-    for name, figures in (("no_drop, core NATS and the stream", lat),
+    for name, figures in (("no_drop, through the stream", lat),
                           ("latest-only, through core NATS", core)):
         print(f"hop latency at {args.latency_rate:.0f} msgs/s, {name}: " + "; ".join(
             f"{k} p50 {v['p50_ms']:.3f} ms p99 {v['p99_ms']:.3f} ms ({v['rate']} msgs/s)"

@@ -149,28 +149,23 @@ class NatsFanout:
 
     def publish(self, topic: str, frame: bytes, no_drop: bool, message_id: int | None) -> None:
         self._local(topic, frame, no_drop, message_id)
+        order: str | None = None
+        if no_drop and self.sessions is not None:
+            # Other replicas read no_drop frames from the sessions' stream (stored,
+            # acknowledged, in order, surviving a NATS node's death); over core NATS
+            # too only while the stream is away or another replica cannot read it. The
+            # copies carry the frame's digest (a receiver drops the second one) and its
+            # order (a receiver delivers in it: remoteorder.py). Why not over core NATS
+            # always: measured, it cost more than it saved (docs/scaling.md).
+            order = self.sessions.offer(topic, frame, message_id)
+            if not self.sessions.stream_away() and not self._a_reader_away():
+                return
         subject = self._subject(topic)
-        wanted = self.remote_interest is None or self.remote_interest.wants(subject)
-        sessions = self.sessions
-        if no_drop and sessions is not None:
-            # Stored in the sessions' stream (acknowledged, durable, ordered: sessions
-            # read it, and so does a replica whose core copy was lost) and, where another
-            # replica wants it, sent over core NATS at once too. A receiver delivers the
-            # first copy in its sender's order (remoteorder.py) and drops the other by
-            # its digest.
-            if wanted:
-                digest = frame_digest(frame)
-                order = sessions.offer(topic, frame, message_id, digest)
-                self._enqueue(queued(subject, frame, topic, True, message_id, digest, order))
-            else:
-                sessions.offer(topic, frame, message_id)
-                self.unwanted += 1
-            sessions.stream_away()  # noticed now: what waits for the stream goes live
-            return
-        if not wanted:
+        if self.remote_interest is not None and not self.remote_interest.wants(subject):
             self.unwanted += 1  # no other replica has a subscriber for it
             return
-        self._enqueue(queued(subject, frame, topic, no_drop, message_id))
+        digest = frame_digest(frame) if order is not None else None
+        self._enqueue(queued(subject, frame, topic, no_drop, message_id, digest, order))
 
     def follow(self, pattern: str, delta: int) -> None:
         if self.interest.follow(pattern, delta):
@@ -199,6 +194,19 @@ class NatsFanout:
         return stored._replace(subject=live_subject(self.config, stored.subject),
                                digest=stored.digest or frame_digest(stored.frame))
 
+    def _a_reader_away(self) -> bool:
+        """Another replica said it cannot read the stream, within
+        :data:`READER_AWAY_HOLD_S`: no_drop frames go to it over core NATS too."""
+        away = self._readers_away
+        if not away:
+            return False
+        now = time.monotonic()
+        for replica in [r for r, until in away.items() if until < now]:
+            del away[replica]
+            log.info("replica %s: replica %r reads the no_drop stream again (or is gone): "
+                     "no_drop frames through the stream only", self.config.name, replica)
+        return bool(away)
+
     async def _reader_away_received(self, msg: Msg) -> None:
         """Another replica cannot read the stream: send it what it may have missed (the
         last ``HISTORY_S`` of local no_drop frames, which it drops where it has them)
@@ -211,11 +219,8 @@ class NatsFanout:
         if replica == self.config.name or self.sessions is None or len(replica) > 64:
             return  # our own, or not a replica name (config.py: 1-64 characters)
         now = time.monotonic()
-        away = self._readers_away
-        for gone in [r for r, until in away.items() if until < now]:
-            del away[gone]  # it reads the stream again, or is gone
-        newly = replica not in away
-        away[replica] = now + READER_AWAY_HOLD_S
+        newly = self._readers_away.get(replica, 0.0) < now
+        self._readers_away[replica] = now + READER_AWAY_HOLD_S
         if not newly:
             return
         waiting = self.sessions.recent()

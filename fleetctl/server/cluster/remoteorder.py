@@ -1,21 +1,20 @@
 """Another replica's no_drop frames, in the order it accepted them, whichever way they came.
 
-A no_drop frame crosses replicas two ways (docs/scaling.md, "No_drop frames cross twice"):
-as a core NATS copy, at once (~0.6 ms p99 added), and through the sessions' stream,
-stored and acknowledged (~4 ms). The receiver delivers the first copy and drops the
-second by digest. Core NATS is at-most-once: a copy lost in a dying NATS node's socket
-comes later from the stream (or from the sender's replay when this replica's reader of
-the stream died too), after copies that followed it. To keep the order, each no_drop frame
-carries ``Fleetctl-Order: <epoch>:<seq>:<prev>``, set by its replica: a number counting
-its no_drop frames (``seq``), and the number of its previous frame on the same subject
+No_drop frames cross replicas through the sessions' stream, stored and acknowledged, and
+over core NATS too while the stream is away or a replica cannot read it (docs/scaling.md,
+"In the sender's order"); a receiver delivers the first copy and drops the second by
+digest. Core NATS is at-most-once: a copy lost in a dying NATS node's socket comes later
+(from the stream, or with the sender's replay to a replica whose reader died), after
+copies that followed it. To keep the order, each no_drop frame carries
+``Fleetctl-Order: <epoch>:<seq>:<prev>``, set by its replica: a number counting its
+no_drop frames (``seq``), and the number of its previous frame on the same subject
 (``prev``, 0: unknown); ``epoch`` is random per replica process, so a restarted replica
 starts afresh.
 
 :class:`ReceiverOrder` keeps, per (epoch, subject), the number of the last frame it
-delivered. A frame whose ``prev`` is that number (or unknown) goes at once, and so do the
-held frames it unblocks; a frame after a gap waits until the missing one comes, or at most
-:data:`HOLD_S` (then the gap is skipped, counted ``order_skipped``). A frame that comes
-after its successors (a skipped gap filled late) is delivered anyway, counted
+delivered; what it holds and when it lets it go: its docstring. A frame after a gap waits
+at most :data:`HOLD_S` (then the gap is skipped, counted ``order_skipped``). A frame
+that comes after its successors (a skipped gap filled late) is delivered anyway, counted
 ``order_late``: completeness before order. Duplicates never reach this stage (the digest
 check before it drops them).
 """

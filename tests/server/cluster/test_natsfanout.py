@@ -77,7 +77,7 @@ class Msg:
         self.data = data
 
 
-async def test_no_drop_frames_cross_at_once_with_their_digest_and_order_and_again_for_a_reader_away(
+async def test_a_replica_that_cannot_read_the_stream_gets_recent_and_next_no_drop_frames(
 ) -> None:
     import asyncio
 
@@ -96,27 +96,31 @@ async def test_no_drop_frames_cross_at_once_with_their_digest_and_order_and_agai
     task = asyncio.create_task(fan._publish_loop())
     try:
         fan.publish("/r/events", b"e1", True, None)
-        fan.publish("/r/pose", b"p1", False, None)
         fan.publish("/r/events", b"e2", True, None)
-        await wait_until(lambda: len(nats.sent) == 3, 5.0)
-        # Over core NATS at once, and queued for the stream too.
-        assert nats.sent == [("fleetctl.r.events", b"e1"), ("fleetctl.r.pose", b"p1"),
-                             ("fleetctl.r.events", b"e2")]
-        assert nats.headers == [
-            {"Fleetctl-Digest": frame_digest(b"e1"), "Fleetctl-Order": f"{epoch}:1:0"},
-            None,
-            {"Fleetctl-Digest": frame_digest(b"e2"), "Fleetctl-Order": f"{epoch}:2:1"}]
-        assert [q.frame for q in sessions._queue] == [b"e1", b"e2"]
+        fan.publish("/r/pose", b"p1", False, None)
+        await wait_until(lambda: len(nats.sent) == 1, 5.0)
+        assert nats.sent == [("fleetctl.r.pose", b"p1")]  # no_drop: through the stream only
         assert [q.order for q in sessions._queue] == [f"{epoch}:1:0", f"{epoch}:2:1"]
-        # B cannot read the stream: what A's senders sent lately comes again, same
-        # digests and orders (B drops what it had).
+        # B cannot read the stream: what A's senders sent lately, then the next ones, with
+        # their digests and orders (B drops what it had, and delivers in order).
         await fan._reader_away_received(Msg(b"relay-b"))  # type: ignore[arg-type]
-        await wait_until(lambda: len(nats.sent) == 5, 5.0)
-        assert nats.sent[3:] == [("fleetctl.r.events", b"e1"), ("fleetctl.r.events", b"e2")]
-        assert nats.headers[3:] == nats.headers[0:3:2]
+        fan.publish("/r/events", b"e3", True, None)
+        await wait_until(lambda: len(nats.sent) == 4, 5.0)
+        assert nats.sent[1:] == [("fleetctl.r.events", b"e1"), ("fleetctl.r.events", b"e2"),
+                                 ("fleetctl.r.events", b"e3")]
+        assert nats.headers[1:] == [
+            {"Fleetctl-Digest": frame_digest(f), "Fleetctl-Order": order}
+            for f, order in ((b"e1", f"{epoch}:1:0"), (b"e2", f"{epoch}:2:1"),
+                             (b"e3", f"{epoch}:3:2"))]
         assert fan.replays == 1
         await fan._reader_away_received(Msg(b"relay-b"))  # said again: no second replay
+        assert fan.replays == 1
         await fan._reader_away_received(Msg(b"relay-a"))  # our own name: ignored
-        assert fan.replays == 1 and len(nats.sent) == 5
+        # It stops saying so: after the hold, no_drop frames take the stream only again.
+        fan._readers_away["relay-b"] = 0.0  # its last "cannot" older than the hold
+        fan.publish("/r/events", b"e4", True, None)
+        fan.publish("/r/pose", b"p2", False, None)
+        await wait_until(lambda: len(nats.sent) == 5, 5.0)
+        assert nats.sent[-1] == ("fleetctl.r.pose", b"p2")
     finally:
         task.cancel()

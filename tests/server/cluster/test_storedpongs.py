@@ -9,8 +9,11 @@ import asyncio
 import os
 import signal
 import time
-from collections.abc import Callable, Iterator
+from collections.abc import AsyncIterator, Callable, Iterator
 from contextlib import contextmanager
+
+import pytest
+from websockets.asyncio.client import ClientConnection
 
 from fleetctl.server.app import RelayServer
 from fleetctl.server.cluster.sharedsessions import SharedSessions
@@ -40,48 +43,55 @@ def stopped(server: NatsServer) -> Iterator[None]:
         os.kill(server.proc.pid, signal.SIGCONT)
 
 
+async def event_then_ping(robot: ClientConnection, i: int) -> float:
+    """Send no_drop event *i*, then a ping; seconds until its pong."""
+    await robot.send(string_frame(EVENTS, f"e{i}", no_drop=True, seq=i))
+    start = time.monotonic()
+    await asyncio.wait_for(await robot.ping(), 10.0)
+    return time.monotonic() - start
+
+
+@pytest.fixture
+async def robot_on_a(nats_server: NatsServer, make_replica: Callable[..., RelayServer],
+                     ) -> AsyncIterator[tuple[RelayServer, ClientConnection]]:
+    """Replica A on *nats_server*, and a robot connected to it (welcomed)."""
+    async with make_replica("relay-a", [nats_server.url]) as a, \
+            client(a, source="127.0.0.2") as robot:
+        await next_json(robot, "welcome")
+        yield a, robot
+
+
 async def test_each_pong_comes_once_the_frame_before_its_ping_is_stored(
-        nats_server: NatsServer, make_replica: Callable[..., RelayServer]) -> None:
-    async with make_replica("relay-a", [nats_server.url]) as a:
-        counters = shared(a).counters
-        async with client(a, source="127.0.0.2") as robot:
-            await next_json(robot, "welcome")
-            for i in range(30):
-                await robot.send(string_frame(EVENTS, f"e{i}", no_drop=True, seq=i))
-                await asyncio.wait_for(await robot.ping(), 10.0)
-                # The replica runs in this process: its counter is read at the pong.
-                assert counters["stored"] == i + 1, (i, counters)
-            assert shared(a).acks.held >= 1  # at least one pong had to wait
-            assert shared(a).acks.unstored == 0
+        robot_on_a: tuple[RelayServer, ClientConnection]) -> None:
+    a, robot = robot_on_a
+    counters = shared(a).counters
+    for i in range(30):
+        await event_then_ping(robot, i)
+        # The replica runs in this process: its counter is read at the pong.
+        assert counters["stored"] == i + 1, (i, counters)
+    assert shared(a).acks.held >= 1  # at least one pong had to wait
+    assert shared(a).acks.unstored == 0
 
 
 async def test_a_pong_waits_for_a_hung_store_at_most_the_bound(
-        nats_server: NatsServer, make_replica: Callable[..., RelayServer]) -> None:
-    async with make_replica("relay-a", [nats_server.url]) as a:
-        acks, counters = shared(a).acks, shared(a).counters
-        async with client(a, source="127.0.0.2") as robot:
-            await next_json(robot, "welcome")
-            with stopped(nats_server):
-                await robot.send(string_frame(EVENTS, "e0", no_drop=True, seq=0))
-                start = time.monotonic()
-                await asyncio.wait_for(await robot.ping(), 10.0)
-                waited = time.monotonic() - start
-                # Sent by the bound, not by the store's 1 s timeout (no failure yet).
-                assert acks.unstored == 1 and counters["store_failures"] == 0, counters
-                assert waited >= PONG_HOLD_MAX_S * 0.9, waited
-            await wait_until(lambda: counters["stored"] == 1, 15.0)
+        nats_server: NatsServer, robot_on_a: tuple[RelayServer, ClientConnection]) -> None:
+    a, robot = robot_on_a
+    acks, counters = shared(a).acks, shared(a).counters
+    with stopped(nats_server):
+        waited = await event_then_ping(robot, 0)
+        # Sent by the bound, not by the store's 1 s timeout (no failure yet).
+        assert acks.unstored == 1 and counters["store_failures"] == 0, counters
+        assert waited >= PONG_HOLD_MAX_S * 0.9, waited
+    await wait_until(lambda: counters["stored"] == 1, 15.0)
 
 
 async def test_with_nats_lost_pongs_come_at_once(
-        nats_server: NatsServer, make_replica: Callable[..., RelayServer]) -> None:
-    async with make_replica("relay-a", [nats_server.url]) as a:
-        acks = shared(a).acks
-        async with client(a, source="127.0.0.2") as robot:
-            await next_json(robot, "welcome")
-            nats_server.stop()
-            await wait_until(lambda: not fanout(a).connected, 10.0)
-            for i in range(5):
-                await robot.send(string_frame(EVENTS, f"e{i}", no_drop=True, seq=i))
-                await asyncio.wait_for(await robot.ping(), 10.0)
-            assert acks.held == 0 and acks.unstored == 0
-            assert shared(a).counters["stored"] == 0
+        nats_server: NatsServer, robot_on_a: tuple[RelayServer, ClientConnection]) -> None:
+    a, robot = robot_on_a
+    acks = shared(a).acks
+    nats_server.stop()
+    await wait_until(lambda: not fanout(a).connected, 10.0)
+    for i in range(5):
+        await event_then_ping(robot, i)
+    assert acks.held == 0 and acks.unstored == 0
+    assert shared(a).counters["stored"] == 0

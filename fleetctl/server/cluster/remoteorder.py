@@ -272,8 +272,15 @@ def order_subject(subject: str) -> str:
 
 def covered_by(wanted: Iterable[str]) -> Callable[[str], bool]:
     """Whether a subject (after its root) is still followed, given the live subjects
-    *wanted* (``fleetctl.husky1.>``...)."""
-    from fleetctl.server.cluster.subjects import subject_matches
+    *wanted* (``fleetctl.husky1.>``...). A set lookup per prefix of the subject, not a
+    match per wanted subject: it runs for every remembered subject on every change."""
+    from fleetctl.server.cluster.subjects import covered, subject_matches
 
-    tails = [order_subject(w) for w in wanted]
-    return lambda tail: any(subject_matches("x." + tail, "x." + t) for t in tails)
+    tails = {order_subject(w) for w in wanted}
+    if ">" in tails:
+        return lambda tail: True
+    wild = {t[:-2] for t in tails if t.endswith(".>")}
+    exact = {t for t in tails if "*" not in t and not t.endswith(".>")}
+    other = ["x." + t for t in tails if "*" in t]  # not made by interest today; kept exact
+    return lambda tail: (tail in exact or covered(tail, wild)
+                         or any(subject_matches("x." + tail, o) for o in other))

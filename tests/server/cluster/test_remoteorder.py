@@ -147,5 +147,8 @@ async def test_held_frames_are_bounded() -> None:
 def test_both_copies_share_their_subject_after_the_root() -> None:
     assert order_subject("fleetctl.husky1.events") == "husky1.events"
     assert order_subject("fleetctl_nd.husky1.events") == "husky1.events"
-    keep = covered_by(["fleetctl.husky1.>", "fleetctl.jackal2.pose"])
-    assert keep("husky1.events") and keep("jackal2.pose") and not keep("jackal2.scan")
+    keep = covered_by(["fleetctl.husky1.>", "fleetctl.jackal2.pose", "fleetctl.r9.*.x"])
+    assert keep("husky1.events") and keep("husky1.a.b") and keep("jackal2.pose")
+    assert not keep("jackal2.scan") and not keep("husky1") and not keep("husky2.events")
+    assert keep("r9.cam.x") and not keep("r9.cam.y")
+    assert covered_by(["fleetctl.>"])("anything.at.all")

@@ -13,6 +13,7 @@ from typing import Any, TypeVar
 
 from nats.aio.client import Client
 from nats.js.errors import Error as JetStreamError
+from nats.js.errors import NoStreamResponseError, ServiceUnavailableError
 from nats.js.kv import KeyValue
 
 from fleetctl.server.cluster.config import ClusterConfig, ClusterStartError
@@ -22,6 +23,8 @@ log = logging.getLogger("fleetctl.server.cluster")
 T = TypeVar("T")
 # How long a replica's start waits for JetStream to answer (each try: nats-py's 5 s).
 ELECTION_WAIT_S = 20.0
+# What a JetStream request gets while the stream it writes to has no leader yet.
+_ELECTING = (NoStreamResponseError, ServiceUnavailableError)
 
 OnEntry = Callable[[str, bytes | None, str | None], None]
 """``(key, value, operation)`` of one bucket entry."""
@@ -101,23 +104,40 @@ async def write_forever(tick: Callable[[], Awaitable[None]], write: Callable[[],
                         counters: dict[str, int], what: str, retry_s: float) -> None:
     """Wait for *tick*, call *write*, forever. Failures count in ``put_failures`` (an
     exception from *write* too); one WARNING when writes start failing, one INFO when
-    they work again, naming *what*."""
-    failing = False
+    they work again, naming *what*.
+
+    A bucket created a moment ago in a NATS cluster that has just started has no stream
+    leader yet: its first writes fail with "no responders" or a 503 for a second or two.
+    Within :data:`ELECTION_WAIT_S` of the start such a failure is an INFO, not a WARNING
+    (it is how every ``fleetctl up --replicas`` begins); any other failure, or that one
+    later, warns."""
+    loop = asyncio.get_running_loop()
+    start = loop.time()
+    failing = warned = False
     while True:
         raise_if_cancelled()  # a cancellation a NATS request swallowed
         await tick()
         before = counters["put_failures"]
+        error: Exception | None = None
         try:
             await write()
         except Exception as exc:
             raise_if_cancelled()
             counters["put_failures"] += 1
+            error = exc
+        if counters["put_failures"] == before:
+            if failing:
+                log.info("%s: writing again", what)
+            failing = warned = False
+            continue
+        if isinstance(error, _ELECTING) and loop.time() - start < ELECTION_WAIT_S:
             if not failing:
-                log.warning("cannot write the %s: %r", what, exc)
-        now_failing = counters["put_failures"] > before
-        if now_failing and not failing:
+                log.info("%s: not written yet: %r (JetStream electing its leaders after a "
+                         "start?): retrying every %.2f s", what, error, retry_s)
+        elif not warned:
+            if error is not None:
+                log.warning("cannot write the %s: %r", what, error)
             log.warning("%s: writes failing (NATS away?); retrying every %.2f s", what,
                         retry_s)
-        elif failing and not now_failing:
-            log.info("%s: writing again", what)
-        failing = now_failing
+            warned = True
+        failing = True

@@ -192,7 +192,7 @@ class NatsFanout:
         """A frame of the sessions' stream queue as its core NATS copy: its live subject,
         and its digest, by which a receiver drops the stream's copy or this one."""
         return stored._replace(subject=live_subject(self.config, stored.subject),
-                               digest=stored.digest or frame_digest(stored.frame))
+                               digest=frame_digest(stored.frame))
 
     def _a_reader_away(self) -> bool:
         """Another replica said it cannot read the stream, within

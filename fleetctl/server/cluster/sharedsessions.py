@@ -64,7 +64,6 @@ from fleetctl.server.cluster.remoteorder import (
     ReceiverOrder,
     SenderOrder,
     covered_by,
-    order_subject,
 )
 from fleetctl.server.cluster.sessionfeed import SessionFeed
 from fleetctl.server.cluster.sessionrecord import (
@@ -395,16 +394,15 @@ class SharedSessions:
         held.dirty = True
         self._write_wake.set()
 
-    def offer(self, topic: str, frame: bytes, message_id: int | None = None,
-              digest: str | None = None) -> str:
+    def offer(self, topic: str, frame: bytes, message_id: int | None = None) -> str:
         """Store a no_drop frame a local sender sent (queued, bounded, counted), and keep
         it for :meth:`recent`; return its ``Fleetctl-Order`` (its core copy carries it
         too). Per-frame cost matters here (every no_drop frame of every local sender): no
-        digest unless given (the store makes it), the history pruned by size only (by age
-        when read)."""
+        digest yet (the store makes it), the history pruned by size only (by age when
+        read)."""
         subject = self._subject(topic)
-        order = self.order.stamp(order_subject(subject))
-        entry = queued(subject, frame, topic, True, message_id, digest, order)
+        order = self.order.stamp(subject)  # any key unique per subject: the stream's
+        entry = queued(subject, frame, topic, True, message_id, None, order)
         if not self._queue.put(entry):
             self.counters["queue_full"] += 1
             return order
@@ -650,7 +648,7 @@ class SharedSessions:
         if len(entry.subject) > MAX_SUBJECT_BYTES:
             self.counters["subject_too_long"] += 1
             return
-        headers = {"Nats-Msg-Id": entry.digest or frame_digest(entry.frame),
+        headers = {"Nats-Msg-Id": frame_digest(entry.frame),
                    REPLICA_HEADER: self.config.name}
         if entry.order is not None:
             headers[ORDER_HEADER] = entry.order

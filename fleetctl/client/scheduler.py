@@ -11,8 +11,8 @@ clock. The transport feeds it messages (:meth:`Scheduler.offer`), pulls frames t
 - Algorithm 2: Q_n first, then Q_f in DESCENDING ``priority x time since the topic's last
   send`` (Robofleet's code sorts ascending; that is a bug we do not copy). Ties go to the
   topic that waited longer, so priority 0 topics still progress when nothing else waits.
-- Fragments (Pound section 5.1): frames longer than the link-time budget (adapted to the
-  link rate, at most ``max_fragment_bytes``, see :meth:`Scheduler.whole_frame_bytes`) are
+- Fragments (Pound section 5.1): frames longer than twice the link-time budget (adapted to
+  the link rate, at most ``max_fragment_bytes``, see :meth:`Scheduler.whole_frame_bytes`) are
   split into fragments of :meth:`Scheduler.fragment_bytes` and the choice above is made per
   fragment, so an urgent small message waits behind at most one fragment of a large one.
   A topic's "last send" is its last fragment, which makes fragment streams of equal score
@@ -92,14 +92,23 @@ class SchedulerConfig:
     """Tunables of the scheduler.
 
     Attributes:
-        max_fragment_bytes: Largest frame or fragment (bytes). Frames up to about
-            ``fragment_time_s`` of link time at the measured delivery rate (and at most
-            this) go whole; longer ones are split into fragments of that budget rounded
-            down to a power of two, between ``min_fragment_bytes`` and this.
+        max_fragment_bytes: Largest frame or fragment (bytes). Frames up to
+            ``whole_frame_budgets`` x ``fragment_time_s`` of link time at the measured
+            link rate (and at most this) go whole; longer ones are split into fragments
+            of one budget rounded down to a power of two, between ``min_fragment_bytes``
+            and this.
         min_fragment_bytes: Smallest fragment size on a slow link (bytes).
         initial_fragment_bytes: Fragment size before the first rate sample (bytes).
         fragment_time_s: Link time one fragment may take (seconds): the longest an urgent
             message waits behind a fragment of a large one.
+        whole_frame_budgets: A frame up to this many fragment budgets (``fragment_time_s``
+            of link time) goes whole; longer ones are split into fragments of one budget.
+            Why 2: splitting a frame under two budgets long shortens the longest urgent
+            wait behind it by less than half, and each split costs the frame one more
+            message through every hop (robot, relay, each receiver) and, when the window
+            binds, a round trip. Measured on the e2e ``peer-fanout`` link (12 Mbit/s over
+            WireGuard): the 6 KB scan split into 4 + 2 KiB arrived 1.4-4 ms later at p50
+            than whole (docs/client.md).
         fragments: False sends whole frames (the Robofleet baseline).
         no_drop_queue_messages: Bound of Q_n plus unacknowledged no_drop messages.
         no_drop_queue_bytes: Byte bound of the same.
@@ -137,6 +146,7 @@ class SchedulerConfig:
     min_fragment_bytes: int = 1024
     initial_fragment_bytes: int = 4096
     fragment_time_s: float = 0.003
+    whole_frame_budgets: float = 2.0
     fragments: bool = True
     no_drop_queue_messages: int = 10000
     no_drop_queue_bytes: int = 64 * 1024 * 1024
@@ -671,14 +681,15 @@ class Scheduler:
         cfg = self.config
         rate = self._link_rate.value(None, 0.0)
         self._link_rate_Bps = rate  # a plain float for topic_feedback() on other threads
-        self._whole = self._compute_whole_bytes(rate)
+        budget = self._compute_budget_bytes(rate)
         if rate <= 0:
-            self._fragment = self._whole  # the configured initial size, as given
+            self._fragment = self._whole = budget  # the configured initial size, as given
         else:
             # Rounding never goes below the configured floor (a cap under
             # min_fragment_bytes that is not a power of two is itself the size).
             self._fragment = max(min(cfg.min_fragment_bytes, cfg.max_fragment_bytes),
-                                 _power_of_two_floor(self._whole))
+                                 _power_of_two_floor(budget))
+            self._whole = min(cfg.max_fragment_bytes, int(budget * cfg.whole_frame_budgets))
         floor = float(self._fragment if cfg.fragments else 1)
         window = min(self._delay_window, self.rate_cap_bytes())
         self._window = int(min(max(window, floor), self.config.max_window_bytes))
@@ -710,24 +721,25 @@ class Scheduler:
         return self._fragment
 
     def whole_frame_bytes(self) -> int:
-        """The longest frame sent unsplit now (bytes): ``fragment_time_s`` of link time,
-        not rounded (see :meth:`_compute_whole_bytes`)."""
+        """The longest frame sent unsplit now (bytes): ``whole_frame_budgets`` link-time
+        budgets, not rounded, at most ``max_fragment_bytes`` (see
+        :meth:`_compute_budget_bytes`)."""
         return self._whole
 
-    def _compute_whole_bytes(self, rate: float) -> int:
-        """The link-time budget of one frame at *rate* (bytes/s, 0 before the first
+    def _compute_budget_bytes(self, rate: float) -> int:
+        """The link-time budget of one fragment at *rate* (bytes/s, 0 before the first
         sample), between the fragment bounds.
 
         Pound sizes fragments to the radio's MTU; here the link is TCP, so the size
         follows the link rate instead: small enough that an urgent message waits at most
-        ``fragment_time_s`` behind a frame, large enough that a fast link is not limited
-        by per-frame costs (a 16 KB fragment on a 1.5 GB/s loopback: 3x slower). A frame
-        within this budget goes whole; a longer one is split into fragments of the
-        power of two below it (:meth:`fragment_bytes`), which keeps the fragmenter's
-        per-size templates reusable. Rounding only the split size matters for frames
-        just over a power of two: a cloud of 1 MiB of points is a 1 MiB + 700 B frame,
-        which a rounded budget split into 1 MiB and 700 B, two frames and a reassembly
-        per cloud, however fast the link.
+        ``fragment_time_s`` behind a fragment, large enough that a fast link is not
+        limited by per-frame costs (a 16 KB fragment on a 1.5 GB/s loopback: 3x slower).
+        A frame within ``whole_frame_budgets`` of it goes whole; a longer one is split
+        into fragments of the power of two below it (:meth:`fragment_bytes`), which keeps
+        the fragmenter's per-size templates reusable. Rounding only the split size
+        matters for frames just over a power of two: a cloud of 1 MiB of points is a
+        1 MiB + 700 B frame, which a rounded budget split into 1 MiB and 700 B, two
+        frames and a reassembly per cloud, however fast the link.
         """
         cfg = self.config
         top = cfg.max_fragment_bytes

@@ -287,7 +287,7 @@ def test_frame_within_the_link_time_budget_goes_whole() -> None:
     # 3 ms at 400 kB/s is 1200 B: fragments of 1024 B, but a 1100 B frame (just over
     # the power of two, like a cloud of 1 MiB of points) is not split into 1024 + 76.
     s = make(max_fragment_bytes=65536, min_fragment_bytes=256, fragment_time_s=0.003,
-             initial_window_bytes=10**6)
+             whole_frame_budgets=1.0, initial_window_bytes=10**6)
     s._link_rate.add(0.0, 400_000.0)
     s._update_limits()
     assert (s.fragment_bytes(), s.whole_frame_bytes()) == (1024, 1200)
@@ -295,6 +295,28 @@ def test_frame_within_the_link_time_budget_goes_whole() -> None:
     assert FakeLink(s).drain(0.0) == [b"c" * 1100]
     s.offer("/cloud", b"d" * 1300, 0.1, priority=1.0, no_drop=False)  # over the budget
     assert [tag(f) for f in FakeLink(s).drain(0.1)] == ["/cloud#0", "/cloud#1"]
+
+
+def test_a_frame_under_two_budgets_goes_whole_and_a_longer_one_in_budget_fragments() -> None:
+    # 3 ms at 1.5 MB/s (12 Mbit/s) is 4,500 B: fragments of 4 KiB. A 6 KB scan is under
+    # two budgets: split, it would go as 4 KiB + 1.9 KB, two messages through every hop
+    # for an urgent wait cut by less than half. A 64 KB frame still goes in 4 KiB pieces.
+    s = make(max_fragment_bytes=65536, min_fragment_bytes=1024, fragment_time_s=0.003,
+             initial_window_bytes=10**6)
+    s._link_rate.add(0.0, 1_500_000.0)
+    s._update_limits()
+    assert (s.fragment_bytes(), s.whole_frame_bytes()) == (4096, 9000)
+    s.offer("/scan", b"s" * 6000, 0.0, priority=1.0, no_drop=False)
+    assert FakeLink(s).drain(0.0) == [b"s" * 6000]
+    s.offer("/cloud", b"c" * 9001, 0.1, priority=1.0, no_drop=False)
+    assert [tag(f) for f in FakeLink(s).drain(0.1)] == ["/cloud#0", "/cloud#1", "/cloud#2"]
+
+
+def test_the_whole_frame_bound_never_exceeds_max_fragment_bytes() -> None:
+    s = make(max_fragment_bytes=4096, min_fragment_bytes=1024, fragment_time_s=0.003)
+    s._link_rate.add(0.0, 1_000_000.0)  # a 3,000 B budget: twice is over the cap
+    s._update_limits()
+    assert (s.fragment_bytes(), s.whole_frame_bytes()) == (2048, 4096)
 
 
 def test_in_flight_message_bound() -> None:

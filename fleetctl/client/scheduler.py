@@ -683,13 +683,15 @@ class Scheduler:
         self._link_rate_Bps = rate  # a plain float for topic_feedback() on other threads
         budget = self._compute_budget_bytes(rate)
         if rate <= 0:
-            self._fragment = self._whole = budget  # the configured initial size, as given
+            self._fragment = budget  # the configured initial size, as given
         else:
             # Rounding never goes below the configured floor (a cap under
             # min_fragment_bytes that is not a power of two is itself the size).
             self._fragment = max(min(cfg.min_fragment_bytes, cfg.max_fragment_bytes),
                                  _power_of_two_floor(budget))
-            self._whole = min(cfg.max_fragment_bytes, int(budget * cfg.whole_frame_budgets))
+        # Before the first rate sample too (a new connection): the first scan after an
+        # outage went as 4 + 2 KiB and arrived 2-3x later than the scans after it.
+        self._whole = min(cfg.max_fragment_bytes, int(budget * cfg.whole_frame_budgets))
         floor = float(self._fragment if cfg.fragments else 1)
         window = min(self._delay_window, self.rate_cap_bytes())
         self._window = int(min(max(window, floor), self.config.max_window_bytes))

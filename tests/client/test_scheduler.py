@@ -312,6 +312,16 @@ def test_a_frame_under_two_budgets_goes_whole_and_a_longer_one_in_budget_fragmen
     assert [tag(f) for f in FakeLink(s).drain(0.1)] == ["/cloud#0", "/cloud#1", "/cloud#2"]
 
 
+def test_before_the_first_rate_sample_a_frame_under_two_initial_fragments_goes_whole() -> None:
+    # A new connection (after an outage) has no rate yet: the 6 KB scan still goes whole.
+    s = make(max_fragment_bytes=65536, initial_fragment_bytes=4096, initial_window_bytes=10**6)
+    assert (s.fragment_bytes(), s.whole_frame_bytes()) == (4096, 8192)
+    s.offer("/scan", b"s" * 6000, 0.0, priority=1.0, no_drop=False)
+    assert FakeLink(s).drain(0.0) == [b"s" * 6000]
+    s.offer("/cloud", b"c" * 8200, 0.1, priority=1.0, no_drop=False)
+    assert [tag(f) for f in FakeLink(s).drain(0.1)] == ["/cloud#0", "/cloud#1", "/cloud#2"]
+
+
 def test_the_whole_frame_bound_never_exceeds_max_fragment_bytes() -> None:
     s = make(max_fragment_bytes=4096, min_fragment_bytes=1024, fragment_time_s=0.003)
     s._link_rate.add(0.0, 1_000_000.0)  # a 3,000 B budget: twice is over the cap

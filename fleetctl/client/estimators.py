@@ -67,6 +67,11 @@ class BusyRate:
         """Bytes per second, 0 before the first sample."""
         return self._bytes / self._busy_s if self._busy_s > 0 else 0.0
 
+    @property
+    def bytes(self) -> int:
+        """Bytes acknowledged within the window."""
+        return self._bytes
+
     def clear(self) -> None:
         """Forget all samples."""
         self._samples.clear()

@@ -322,6 +322,24 @@ def test_before_the_first_rate_sample_a_frame_under_two_initial_fragments_goes_w
     assert [tag(f) for f in FakeLink(s).drain(0.1)] == ["/cloud#0", "/cloud#1", "/cloud#2"]
 
 
+def test_a_small_message_s_round_trip_is_not_taken_for_the_link_rate() -> None:
+    # A new connection's first ack is a 256 B pose after 1 ms: 256 kB/s, a twentieth of the
+    # link. It must not shrink the fragments below the initial ones; 4 KiB acked do count.
+    s = make(max_fragment_bytes=65536, min_fragment_bytes=1024, initial_fragment_bytes=4096,
+             initial_window_bytes=10**6)
+    link = FakeLink(s)
+    s.offer("/pose", b"p" * 256, 0.0, priority=2.0, no_drop=False)
+    link.drain(0.0)
+    link.ack_all(0.001)
+    assert s.stats()["link_rate_Bps"] == 0.0
+    assert (s.fragment_bytes(), s.whole_frame_bytes()) == (4096, 8192)
+    s.offer("/scan", b"s" * 6000, 0.1, priority=1.0, no_drop=False)
+    assert link.drain(0.1) == [b"s" * 6000]
+    link.ack_all(0.102)  # 6,256 B over 3 ms of busy time
+    assert s.stats()["link_rate_Bps"] == pytest.approx(6256 / 0.003)
+    assert s.fragment_bytes() == 4096
+
+
 def test_the_whole_frame_bound_never_exceeds_max_fragment_bytes() -> None:
     s = make(max_fragment_bytes=4096, min_fragment_bytes=1024, fragment_time_s=0.003)
     s._link_rate.add(0.0, 1_000_000.0)  # a 3,000 B budget: twice is over the cap

@@ -109,11 +109,17 @@ def _fleetctl_files(work: Path, port: int) -> tuple[Path, Path]:
 async def _fleetctl_consumer(port: int, seconds: float) -> dict[str, list[tuple[float, ...]]]:
     from websockets.asyncio.client import connect
 
+    from fleetctl.e2e.consumer import REASSEMBLY_MAX_BYTES, REASSEMBLY_TIMEOUT_S
     from fleetctl.e2e.payloads import read_stamp
     from fleetctl.wire.codec import default_codec
     from fleetctl.wire.control import encode_subscription
+    from fleetctl.wire.fragments import FRAGMENT_TYPE, Reassembler
+    from fleetctl.wire.metadata import read_metadata
 
     codec = default_codec()
+    # The client may split a scan (before its first rate sample, or on a slow rate reading):
+    # a message counts when it is whole.
+    reassembler = Reassembler(REASSEMBLY_MAX_BYTES, REASSEMBLY_TIMEOUT_S)
     out: dict[str, list[tuple[float, ...]]] = {}
     deadline = time.monotonic() + 60
     while True:
@@ -135,7 +141,14 @@ async def _fleetctl_consumer(port: int, seconds: float) -> dict[str, list[tuple[
             except TimeoutError:
                 continue
             now = time.time_ns()
-            if not isinstance(frame, bytes) or time.monotonic() < measure_from:
+            if not isinstance(frame, bytes):
+                continue
+            if read_metadata(frame).type == FRAGMENT_TYPE:
+                whole = reassembler.feed(frame, time.monotonic())
+                if whole is None:
+                    continue
+                frame = whole
+            if time.monotonic() < measure_from:
                 continue
             meta, msg = codec.decode(frame)
             if meta.topic not in TOPICS:  # the client's own /status

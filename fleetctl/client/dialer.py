@@ -9,22 +9,26 @@ the others are closed before anything is sent on them, so the server sees at mos
 TCP connection close, never a second WebSocket handshake (which would take over the
 robot's session).
 
-Faster early in an outage (issue 19): a link cut for a few seconds should be back
-within tens of milliseconds, so the stagger starts at ``fast_stagger_s`` when the outage
-begins and doubles every ``double_every_s`` up to ``stagger_s``
-(:meth:`DialSettings.stagger_at`). The outage's age comes from the caller
+Faster in an outage (issue 19): a link cut for a few seconds, or for half a minute,
+should be back within tens of milliseconds, so the stagger starts at ``fast_stagger_s``
+when the outage begins, doubles every ``double_every_s`` up to ``outage_stagger_s``, stays
+there until the outage is ``fast_for_s`` old, and only then falls to the slow pace
+``stagger_s`` (:meth:`DialSettings.stagger_at`). The outage's age comes from the caller
 (``outage_age_s``): a dial that timed out and is started again continues the pace
-instead of starting over.
+instead of starting over. Why a minute: the e2e ``peer`` scenario's 30 s cuts at the slow
+pace took 0.245-0.327 s to recover (a SYN up to 0.25 s after the restore), against the
+0.1 s bar; a robot out of coverage for longer than a minute has a coverage problem that
+a few tens of milliseconds do not change, and then the bound below drops to its floor.
 
 Cost while the server is unreachable. Linux resends an unanswered SYN at 1 s. One attempt
 per ``stagger_s`` is a long one: it lives ``attempt_life_s`` (2 s, so a path with an RTT
 up to ~2 s still connects) and sends two SYNs; the extra attempts of the faster pace live
-``short_life_s`` (0.9 s) and send one. Every SYN is ~60 bytes (74 on Ethernet). So at most
-``1/stagger_at(age) + 1/stagger_s`` SYNs a second: with the defaults 54/s (~4 KB/s) when
-the outage begins, 25/s (~1.9 KB/s) at 5 s, 8/s (~600 B/s, as before the fast pace) from
-~15 s on; ~24 KB over a long outage's first 15 s. At most ``max_in_flight`` sockets
-are half open at once (the oldest is dropped for a new one); a dropped attempt in SYN-SENT
-sends nothing when closed.
+``short_life_s`` (0.9 s) and send one. Every SYN is ~60 bytes (74 on Ethernet, ~130 inside
+WireGuard). So at most ``1/stagger_at(age) + 1/stagger_s`` SYNs a second: with the defaults
+54/s (~4 KB/s) when the outage begins, 36/s (~2.7 KB/s) at 5 s, 29/s (~2.1 KB/s, 17 kbit/s)
+from 8 s to 60 s, 8/s (~600 B/s) after that; ~140 KB over a long outage's first minute.
+At most ``max_in_flight`` sockets are half open at once (the oldest is dropped for a new
+one); a dropped attempt in SYN-SENT sends nothing when closed.
 """
 
 from __future__ import annotations
@@ -57,7 +61,10 @@ class DialSettings:
             (before Linux resends their SYN at 1 s).
         fast_stagger_s: The stagger when an outage begins, seconds.
         double_every_s: The stagger doubles every this many seconds of outage, up to
-            ``stagger_s``.
+            ``outage_stagger_s``.
+        outage_stagger_s: The slowest stagger while the outage is younger than
+            ``fast_for_s``, seconds.
+        fast_for_s: From this age of an outage on, seconds, the slow pace ``stagger_s``.
     """
 
     stagger_s: float = 0.25
@@ -65,15 +72,17 @@ class DialSettings:
     attempt_life_s: float = 2.0
     short_life_s: float = 0.9
     fast_stagger_s: float = 0.02
-    double_every_s: float = 4.0
+    double_every_s: float = 8.0
+    outage_stagger_s: float = 0.04
+    fast_for_s: float = 60.0
 
     def stagger_at(self, outage_age_s: float) -> float:
         """The stagger for an attempt started *outage_age_s* into an outage (``inf``: not
         in an outage, the slow pace)."""
-        if outage_age_s >= self.double_every_s * 16:
+        if outage_age_s >= self.fast_for_s:
             return self.stagger_s
         growth = math.pow(2.0, max(0.0, outage_age_s) / self.double_every_s)
-        return min(self.stagger_s, self.fast_stagger_s * growth)
+        return min(self.outage_stagger_s, self.stagger_s, self.fast_stagger_s * growth)
 
 
 async def dial(host: str, port: int, timeout_s: float, settings: DialSettings = DialSettings(),

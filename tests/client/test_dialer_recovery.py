@@ -14,13 +14,21 @@ from fleetctl.deploy.shaping import LinkShaper, detect
 from tests.netns import NEEDS_ROOT, SINK_TCP_PORT, Link, host_run
 
 
-def test_stagger_starts_fast_and_doubles_up_to_the_slow_pace() -> None:
+def test_stagger_starts_fast_holds_for_a_minute_then_slows() -> None:
     s = DialSettings()
     assert s.stagger_at(0.0) == pytest.approx(0.02)
-    assert s.stagger_at(4.0) == pytest.approx(0.04)
-    assert s.stagger_at(5.0) < 0.05  # the e2e dropout's 5 s cut: a SYN every < 50 ms
-    assert s.stagger_at(20.0) == s.stagger_s == 0.25
+    assert s.stagger_at(4.0) == pytest.approx(0.02 * 2 ** 0.5)
+    assert s.stagger_at(5.0) < 0.035  # the e2e dropout's 5 s cut: a SYN every < 35 ms
+    assert s.stagger_at(8.0) == pytest.approx(0.04)
+    assert s.stagger_at(30.0) == s.outage_stagger_s == 0.04  # the e2e peer's 30 s cuts
+    assert s.stagger_at(59.9) == 0.04
+    assert s.stagger_at(60.0) == s.stagger_s == 0.25  # past a minute: the slow pace
     assert s.stagger_at(math.inf) == s.stagger_s  # not in an outage: the slow pace
+
+
+def test_outage_pace_never_slower_than_the_slow_pace() -> None:
+    s = DialSettings(stagger_s=0.03)
+    assert s.stagger_at(30.0) == 0.03
 
 
 def syns_per_second(s: DialSettings, age_s: float) -> float:
@@ -33,6 +41,8 @@ def syns_per_second(s: DialSettings, age_s: float) -> float:
 def test_documented_cost_bound() -> None:
     s = DialSettings()
     assert syns_per_second(s, 0.0) == pytest.approx(54.0)
+    assert syns_per_second(s, 5.0) == pytest.approx(36.4, abs=0.1)
+    assert syns_per_second(s, 30.0) == pytest.approx(29.0)
     assert syns_per_second(s, 60.0) == pytest.approx(8.0)
 
 

@@ -214,6 +214,11 @@ class Deployment:
         host = self.plan.server_ip if self.wireguard else server_ip
         return f"ws://{host}:{self.plan.server_port}/"
 
+    def loopback_url(self) -> str:
+        """The plain ``ws://`` URL of the relay's listener on loopback, for a process in
+        the server's own network namespace (``up`` binds the plain listener there too)."""
+        return f"ws://127.0.0.1:{self.plan.server_port}/"
+
     def consumer_url(self, server_ip: str) -> str:
         """The ``wss://`` URL of the HTTPS listener on the server network."""
         return f"wss://{server_ip}:{self.plan.https_port}/"

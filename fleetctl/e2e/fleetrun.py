@@ -230,15 +230,23 @@ class FleetRun:
 
     def start_consumers(self, role: str, count: int, regex: str = ".*",
                         image: str = "server", url: str | list[str] | None = None,
-                        session: str | None = None) -> Endpoint:
+                        session: str | None = None,
+                        beside_server: bool = False) -> Endpoint:
         """Start *count* WebSocket consumers in one container; wait until all subscribed.
 
         *image* is the component image they run in: ``client`` where they must decode
         video (PyAV is in the client image only). *url*: another relay than the run's
         server (a replica's ``wss://`` URL), or a failover list of them. *session*: the
         consumers name sessions (``<session>-<i>``) and reconnect after a close.
+        *beside_server*: the container shares the server's network namespace and reaches
+        the relay's plain listener on loopback (the ``peer`` scenarios, where the other
+        stack's consumer is placed the same way); otherwise it is a host of the server
+        network on the HTTPS listener, as people are.
         """
-        urls = [url] if isinstance(url, str) else url or [self.server_url]
+        if beside_server:
+            urls = [self.deployment.loopback_url()]
+        else:
+            urls = [url] if isinstance(url, str) else url or [self.server_url]
         args = ["python3", "-m", "fleetctl.e2e.consumer",
                 *(a for u in urls for a in ("--url", u)),
                 "--ca-file", f"{CONTAINER_DIR}/tls-cert.pem", "--tls-name", SERVER_ALIAS,
@@ -246,7 +254,14 @@ class FleetRun:
                 "--count", str(count), "--name", role, "--out", f"{CONTAINER_DIR}/out"]
         if session is not None:
             args += ["--session", session]
-        ep = self.topo.start(role, SERVER_SIDE, self.image(image), args, mounts=self.mounts())
+        if beside_server:
+            if self.server is None:
+                raise FleetError("the server is not started")
+            ep = self.topo.start_beside(role, self.server, self.image(image), args,
+                                        mounts=self.mounts())
+        else:
+            ep = self.topo.start(role, SERVER_SIDE, self.image(image), args,
+                                 mounts=self.mounts())
         ready = [self.out / f"{role}-{i}.ready" for i in range(count)]
         try:
             wait_for(f"{count} consumer(s) {role} subscribed",

@@ -5,11 +5,18 @@ Load (profile ``peer``): a 720-beam LaserScan at 10 Hz and a PoseStamped at 20 H
 5 s, three of 0.5 s and two of 30 s at full length). Three variants, one after
 the other, each with its own robot container and consumer:
 
-- ``fleetctl``: ``fleetctl client`` to ``up``'s server, a WebSocket consumer (as ``dropout``);
+- ``fleetctl``: ``fleetctl client`` to ``up``'s server, a WebSocket consumer;
 - ``zenoh-default`` and ``zenoh-best``: the same load publisher, a bridge routing each ROS 2
   topic to zenoh the way zenoh-bridge-ros2dds does, a zenoh router in the server's network
-  namespace and a zenoh consumer on the server network
+  namespace and a zenoh consumer
   (:mod:`fleetctl.e2e.zenohpeer` says what each settings name means).
+
+The consumers of every variant are placed alike, as the issue puts them: in the server's
+network namespace (a container sharing it), on plain TCP over loopback, to the relay's
+plain listener or to the zenoh router. Why: until 2026-11-28 fleetctl's consumer came
+through the HTTPS listener from another container (TLS, asyncio's Python TLS layer on
+both ends) while zenoh's came over plain TCP, so the floor compared TLS with no TLS. The
+other scenarios keep consumers on the HTTPS listener, as people reach it.
 
 Robots of every variant take the same path (through WireGuard when the run has it).
 Per variant: the steady uplink (router tx bytes towards the server network over
@@ -32,6 +39,7 @@ from fleetctl.e2e.fleetrun import CONTAINER_DIR, FleetRun, hold, wait_for
 from fleetctl.e2e.samples import Sample
 from fleetctl.e2e.topology import SERVER_SIDE, Endpoint
 from fleetctl.e2e.zenohpeer import PORT
+from fleetctl.errors import FleetError
 
 Progress = Callable[[str], None]
 CUT_S = 5.0
@@ -57,10 +65,12 @@ def _zenoh_robot(fr: FleetRun, role: str, settings: str, p: profiles.Profile) ->
 
 def _zenoh_consumers(fr: FleetRun, role: str, settings: str, p: profiles.Profile,
                      count: int) -> Endpoint:
-    ep = fr.topo.start(
-        role, SERVER_SIDE, fr.image("client"),
+    if fr.server is None:
+        raise FleetError("the server is not started")
+    ep = fr.topo.start_beside(
+        role, fr.server, fr.image("client"),
         ["python3", "-m", "fleetctl.e2e.zenohpeer", "consumer", "--profile", p.name,
-         "--settings", settings, "--connect", f"tcp/{fr.server_ip}:{PORT}",
+         "--settings", settings, "--connect", f"tcp/127.0.0.1:{PORT}",
          "--count", str(count), "--name", role, "--out", f"{CONTAINER_DIR}/out"],
         mounts=fr.mounts())
     ready = [fr.out / f"{role}-{i}.ready" for i in range(count)]
@@ -114,7 +124,7 @@ class _Run:
         """*count* consumers of this variant's kind in one container named *role*."""
         if self.variant == "fleetctl":
             regex = "(" + "|".join(self.topics) + ")"
-            return self.fr.start_consumers(role, count, regex)
+            return self.fr.start_consumers(role, count, regex, beside_server=True)
         return _zenoh_consumers(self.fr, role, self.settings, self.p, count)
 
     def stop(self) -> list[Sample]:
@@ -171,7 +181,8 @@ def run_peer(fr: FleetRun, caps: Capabilities, duration_s: float,
         f"{LINK_MBIT:g} Mbit/s both ways; cuts per variant (s): "
         f"{', '.join(f'{c:g}' for c in cuts)} (blackhole routes); robots of every variant "
         + ("through WireGuard" if fr.wireguard else "on the routed network")
-        + "; zenoh 1.x Python bindings, router in the server's network namespace "
+        + "; consumers of every variant in the server's network namespace, plain TCP over "
+        "loopback; zenoh 1.x Python bindings, router in the server's network namespace "
         "(fleetctl/e2e/zenohpeer.py: default = zenoh-bridge-ros2dds's defaults, best = "
         "congestion control Drop, express, pose at a higher priority, one-batch TX queues, "
         "8 KiB socket buffers, 3 s lease)"))
@@ -208,5 +219,7 @@ def run_peer_fanout(fr: FleetRun, caps: Capabilities, duration_s: float,
     link.clear()
     result = peeranalysis.fanout(steps)
     result["notes"].insert(0, f"load as peer; {FANOUT_MBIT:g} Mbit/s; {seconds:g} s per "
-                           "consumer count, after every consumer received both topics")
+                           "consumer count, after every consumer received both topics; "
+                           "consumers in the server's network namespace, plain TCP over "
+                           "loopback, for every variant")
     return result

@@ -69,6 +69,11 @@ def test_robots_use_ups_robot_config_and_reach_server_by_name(tmp_path: Path) ->
     assert options["mounts"] == [f"{deployment.robot_wg_dir}:{ROBOT_WG_DIR}:ro"]
     assert deployment.robot_url("172.19.0.3") == f"ws://{deployment.plan.server_ip}:8080/"
     assert deployment.robot_vpn_ip == "10.8.0.2"
+    # A consumer in the server's namespace (the peer scenarios) reaches the plain
+    # listener on loopback, which up binds beside the tunnel address.
+    assert deployment.loopback_url() == "ws://127.0.0.1:8080/"
+    cfg = yaml.safe_load((deployment.plan.compose_dir / "server" / "server.yaml").read_text())
+    assert "127.0.0.1" in cfg["listen_host"]
 
 
 def test_routed_robots_are_named_by_their_network(tmp_path: Path) -> None:

@@ -18,8 +18,10 @@
   live link keeps ACKing); it then dials a new connection at once (racing SYNs, fast
   early in the outage) and keeps the old one until the new one connects: if the old one
   got an ACK meanwhile it was a false alarm and the new socket is closed unused, else the
-  old connection is reset and the upgrade runs on the new socket (issue 19,
-  docs/recovery.md);
+  old connection is reset and the upgrade runs on the new socket; a path still silent
+  after ``stale_ack_gaps`` gaps is reset without waiting for the new socket (what it
+  holds is stale), and every reset is a TCP RST (``SO_LINGER`` 0), so no orphan socket
+  delivers the old data when the path returns (issue 19, docs/recovery.md);
 - declares the link dead when a ping stays unanswered for ``link_timeout_s`` (TCP alone can
   take minutes to notice a radio that went silent; the backstop where ``TCP_INFO`` is
   missing or the server's application hangs) and reconnects;
@@ -119,6 +121,11 @@ class LinkTuning:
         dead_ack_gap_s: With data unacknowledged, no ACK for at least this long (and for
             ``dead_ack_rtts`` smoothed RTTs) means the path is dead, seconds.
         dead_ack_rtts: The same gap in smoothed RTTs (``tcpi_rtt``).
+        stale_ack_gaps: With the path dead, no ACK for this many dead gaps means the old
+            connection holds nothing worth delivering any more: it is reset (a TCP RST,
+            its unacknowledged data discarded by the kernel) and the link reconnects at
+            the outage's pace. Before that, an ACK makes the dead path a false alarm and
+            the old connection carries on.
         deflate_max_message_bytes: Messages up to this size are sent with
             permessage-deflate when the server accepts it (:mod:`fleetctl.linkdeflate`);
             0 does not offer the extension (today's frames on the wire).
@@ -142,6 +149,7 @@ class LinkTuning:
     path_idle_poll_s: float = 0.5
     dead_ack_gap_s: float = 0.15
     dead_ack_rtts: float = 4.0
+    stale_ack_gaps: float = 2.0
     deflate_max_message_bytes: int = DEFAULT_MAX_MESSAGE_BYTES
 
 
@@ -162,6 +170,7 @@ class TcpInfo:
 
 # struct tcp_info up to tcpi_total_retrans: 8 one-byte fields, then 24 __u32.
 _TCP_INFO = struct.Struct("=8B24I")
+_LINGER_RESET = struct.pack("ii", 1, 0)  # struct linger {l_onoff = 1, l_linger = 0}
 _UNACKED, _LAST_ACK_RECV, _RTT = 4, 12, 15  # indices among the __u32 fields
 
 
@@ -197,14 +206,22 @@ class AckStall:
     off. On a bloated link the smoothed RTT includes the queue (measured srtt: 0.32 s with
     a 400 ms tbf queue at 1 Mbit/s, so dead after ~1.3 s instead of 0.15 s).
 
+    Stale: dead for ``stale_gaps`` gaps. The old connection is then given up for good:
+    what it still holds was sent before the outage, and a retransmission of it that wins
+    the race against the new connection's SYN when the path returns is a stale delivery
+    (seen in the e2e ``peer`` scenario's 0.5 s cuts: the kernel's second retransmission,
+    ~0.6 s after the cut, landed just after the restore and delivered 3 messages).
+
     Args:
         min_gap_s: Shortest ACK gap taken as dead, seconds (above delayed ACKs: 40 ms).
         rtts: The gap in smoothed RTTs.
+        stale_gaps: How many gaps without an ACK make the path stale.
     """
 
-    def __init__(self, min_gap_s: float, rtts: float) -> None:
+    def __init__(self, min_gap_s: float, rtts: float, stale_gaps: float = 2.0) -> None:
         self.min_gap_s = min_gap_s
         self.rtts = rtts
+        self.stale_gaps = stale_gaps
         self._busy_since_s: float | None = None  # first poll that saw unacked data
 
     def gap_s(self, info: TcpInfo) -> float:
@@ -229,6 +246,14 @@ class AckStall:
         if self._busy_since_s is None:
             self._busy_since_s = now_s
         gap = self.gap_s(info)
+        return info.last_ack_s > gap and now_s - self._busy_since_s > gap
+
+    def stale(self, now_s: float, info: TcpInfo) -> bool:
+        """True when the path has been dead for ``stale_gaps`` gaps (call after
+        :meth:`dead`, which tracks how long data has been in flight)."""
+        if info.unacked == 0 or self._busy_since_s is None:
+            return False
+        gap = self.stale_gaps * self.gap_s(info)
         return info.last_ack_s > gap and now_s - self._busy_since_s > gap
 
 
@@ -277,6 +302,26 @@ class LinkFeedback:
 
 class LinkDead(Exception):
     """No pong within ``link_timeout_s``: the connection is abandoned."""
+
+
+class PathStale(Exception):
+    """The path stayed dead past ``stale_ack_gaps`` (:meth:`AckStall.stale`): the
+    connection is reset and the link reconnects at the outage's pace."""
+
+
+def reset_transport(transport: asyncio.Transport) -> None:
+    """Close *transport* with a TCP reset (``SO_LINGER`` 0).
+
+    Why: a plain ``close()`` (asyncio's ``abort()`` too) leaves unacknowledged data to an
+    orphan socket that keeps retransmitting it with backoff and delivers it whenever the
+    path returns: frames published before an outage reaching the relay after it. With a
+    zero linger the kernel discards the send queue at once and sends a RST instead.
+    """
+    sock = transport.get_extra_info("socket")
+    if sock is not None:
+        with contextlib.suppress(OSError):
+            sock.setsockopt(socket.SOL_SOCKET, socket.SO_LINGER, _LINGER_RESET)
+    transport.abort()
 
 
 @dataclass(frozen=True)
@@ -513,6 +558,7 @@ class RobotLink:
         snap["reconnects"] = self._counters["reconnects"]
         snap["link_timeouts"] = self._counters["link_timeouts"]
         snap["dead_paths"] = self._counters["dead_paths"]
+        snap["stale_paths"] = self._counters["stale_paths"]
         snap["connect_failures"] = self._counters["connect_failures"]
         snap["failovers"] = self._counters["failovers"]
         snap["server_url"] = self.url
@@ -698,7 +744,7 @@ class RobotLink:
                 # without an exception: report it like the others.
                 exc = task.exception()
                 self._log_session_end(exc or _close_exc(ws))
-                if isinstance(exc, (LinkDead, PathDead)):
+                if isinstance(exc, (LinkDead, PathDead, PathStale)):
                     ended = _Ended(False, True, exc.dialed if isinstance(exc, PathDead) else None)
             if self._stop.is_set():
                 await self._goodbye(ws)
@@ -711,7 +757,10 @@ class RobotLink:
             self._ws = None
             self._scheduler.on_disconnect(self._clock())
             self._receiver.on_disconnect()
-            ws.transport.abort()  # a reset: the old path must not deliver stale data later
+            if ended.path_dead:  # a reset: the old path must not deliver stale data later
+                reset_transport(ws.transport)
+            else:
+                ws.transport.abort()
         return _Ended(self._acked_any, ended.path_dead, ended.ready)
 
     def _drop_stale(self) -> None:
@@ -740,6 +789,10 @@ class RobotLink:
         elif isinstance(exc, PathDead):
             self._counters["dead_paths"] += 1
             self._last_close = "dead path"
+            logger.warning("%s", exc)
+        elif isinstance(exc, PathStale):
+            self._counters["stale_paths"] += 1
+            self._last_close = "stale path"
             logger.warning("%s", exc)
         elif exc is not None:
             self._last_close = f"error: {exc!r}"
@@ -826,7 +879,7 @@ class RobotLink:
         """
         tune = self.tuning
         sock = ws.transport.get_extra_info("socket")
-        stall = AckStall(tune.dead_ack_gap_s, tune.dead_ack_rtts)
+        stall = AckStall(tune.dead_ack_gap_s, tune.dead_ack_rtts, tune.stale_ack_gaps)
         redial: asyncio.Task[Dialed] | None = None
         wrote = self._wrote = asyncio.Event()
         try:
@@ -837,6 +890,10 @@ class RobotLink:
                 dead = info is not None and stall.dead(now, info)
                 if dead and redial is None and info is not None:
                     redial = self._start_redial(now, info, stall)
+                if dead and info is not None and stall.stale(now, info):
+                    raise PathStale(
+                        f"no ACK from {self.url} for {info.last_ack_s:.2f} s: resetting the "
+                        "connection (what it holds is stale), reconnecting")
                 if redial is not None and redial.done():
                     done, redial = redial, None  # PathDead hands its socket on
                     redial = self._redial_done(done, dead)

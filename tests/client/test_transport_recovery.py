@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import asyncio
 import contextlib
 import socket
 import time
@@ -11,7 +12,14 @@ from typing import Any
 import pytest
 
 from fleetctl.client import transport
-from fleetctl.client.transport import AckStall, LinkTuning, RobotLink, TcpInfo, read_tcp_info
+from fleetctl.client.transport import (
+    AckStall,
+    LinkTuning,
+    RobotLink,
+    TcpInfo,
+    read_tcp_info,
+    reset_transport,
+)
 from fleetctl.deploy.shaping import LinkShaper, RateSpec, detect, mbit
 from fleetctl.server.app import RelayServer
 from tests.client.conftest import OPERATOR_TOKEN, robot_config, running, wait_until
@@ -42,6 +50,45 @@ def test_data_sent_after_an_idle_spell_is_not_a_false_alarm() -> None:
     assert not stall.dead(0.15, info(3, 0.06))
     assert not stall.dead(0.25, info(3, 0.16))  # busy for only 0.10 s
     assert stall.dead(0.35, info(3, 0.26))
+
+
+def test_a_path_dead_for_two_gaps_is_stale() -> None:
+    """Dead after one gap (an early dial, the old connection kept), stale after two (the
+    old connection is reset: what it holds would arrive stale)."""
+    stall = AckStall(0.15, 4.0, stale_gaps=2.0)
+    assert not stall.dead(0.0, info(4, 0.01))
+    assert stall.dead(0.2, info(4, 0.21)) and not stall.stale(0.2, info(4, 0.21))
+    assert stall.dead(0.29, info(4, 0.30)) and not stall.stale(0.29, info(4, 0.30))
+    assert stall.stale(0.31, info(4, 0.32))
+    assert not stall.stale(0.31, info(4, 0.01))  # an ACK came: neither dead nor stale
+    assert not stall.stale(0.5, info(0, 5.0))  # nothing in flight
+
+
+def test_stale_scales_with_the_smoothed_rtt_too() -> None:
+    stall = AckStall(0.15, 4.0, stale_gaps=2.0)
+    stall.dead(0.0, info(5, 0.0, srtt_s=0.1))  # dead after 0.4 s, stale after 0.8 s
+    assert not stall.stale(0.7, info(5, 0.7, srtt_s=0.1))
+    assert stall.stale(0.9, info(5, 0.9, srtt_s=0.1))
+
+
+async def test_reset_transport_sends_a_reset_not_a_fin() -> None:
+    """The peer sees ECONNRESET, not an orderly end of stream: the kernel discarded the
+    send queue (an orphan socket would retransmit it when the path returns)."""
+    accepted: asyncio.Queue[tuple[asyncio.StreamReader, asyncio.StreamWriter]] = (
+        asyncio.Queue())
+
+    async def on_client(r: asyncio.StreamReader, w: asyncio.StreamWriter) -> None:
+        await accepted.put((r, w))
+
+    server = await asyncio.start_server(on_client, "127.0.0.1", 0)
+    port = server.sockets[0].getsockname()[1]
+    async with server:
+        _, writer = await asyncio.open_connection("127.0.0.1", port)
+        reader, peer = await accepted.get()
+        reset_transport(writer.transport)
+        with pytest.raises(ConnectionResetError):
+            await asyncio.wait_for(reader.read(1), 5.0)
+        peer.close()
 
 
 def test_the_gap_scales_with_the_smoothed_rtt() -> None:
@@ -190,6 +237,56 @@ async def test_a_dead_path_switches_to_a_new_connection_exactly_once_in_order(
     assert got == [f"e{i}" for i in range(1, 31)]
     assert stats["connects"] == 2 and stats["link_timeouts"] == 0
     assert stats["last_close"] == "dead path"
+
+
+async def test_a_path_dead_past_two_gaps_is_reset_and_redialled_exactly_once_in_order(
+    server: RelayServer, tmp_path: Path, monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """The early dial does not connect (the path is still down) and the old path stays
+    silent past two gaps: the old connection is reset (not kept for a false alarm whose
+    retransmission would deliver stale data), the link reconnects once the path is back,
+    and the no_drop events still arrive once each, in order."""
+    kernel = FakeKernel()
+    monkeypatch.setattr(transport, "read_tcp_info", kernel)
+    restored = asyncio.Event()
+    real_dial = transport.dial_first
+
+    async def dial_when_restored(*args: Any, **kw: Any) -> tuple[int, socket.socket]:
+        await restored.wait()  # a silent path: no SYN-ACK until the restore
+        return await real_dial(*args, **kw)
+
+    got: list[str] = []
+    (tmp_path / "op.token").write_text(OPERATOR_TOKEN + "\n")
+    viewer_cfg = robot_config(server.url, tmp_path, robot_name="viewer", subscribe=[
+        {"remote_topic": "/r1/events", "type": "std_msgs/msg/String"}],
+        token_file="op.token")
+    robot = RobotLink(robot_config(server.url, tmp_path), on_frame=lambda f: None,
+                      tuning=TUNING)
+    viewer = RobotLink(viewer_cfg, on_frame=lambda f: got.append(decode_text(f)),
+                       tuning=LinkTuning(open_timeout_s=2.0))
+    async with running(viewer), running(robot):
+        await wait_until(lambda: robot.stats()["connected"]
+                         and viewer.stats()["subscribed"] == ["/r1/events"])
+
+        def offer(first: int, last: int) -> None:
+            for i in range(first, last + 1):
+                robot.offer("/r1/events", string_frame("/r1/events", f"e{i}", no_drop=True,
+                                                       seq=i), priority=1.0, no_drop=True)
+
+        offer(1, 10)
+        monkeypatch.setattr(transport, "dial_first", dial_when_restored)
+        kernel.dead = True
+        offer(11, 20)
+        await wait_until(lambda: robot.stats()["stale_paths"] == 1)
+        assert not robot.stats()["connected"]
+        kernel.dead = False
+        restored.set()
+        offer(21, 30)
+        await wait_until(lambda: "e30" in got)
+        stats = robot.stats()
+    assert got == [f"e{i}" for i in range(1, 31)]
+    assert stats["connects"] == 2 and stats["dead_paths"] == 0
+    assert stats["link_timeouts"] == 0 and stats["last_close"] == "stale path"
 
 
 async def test_a_false_alarm_keeps_the_connection_and_closes_the_new_socket(

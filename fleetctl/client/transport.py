@@ -434,6 +434,8 @@ class RobotLink:
         # When the current outage began (clock seconds): the last ACK of a dead path or
         # the oldest unanswered ping; None while the link is up.
         self._outage_since_s: float | None = None
+        # When the last dial's winning SYN left (clock seconds): see _drop_stale.
+        self._alive_since_s: float | None = None
         # While bind_address is on no interface: since when, the last WARNING, attempts.
         self._unbound_since_s: float | None = None
         self._unbound_warned_s = 0.0
@@ -607,6 +609,10 @@ class RobotLink:
         won, sock = await dial_first(targets, self.tuning.open_timeout_s, self.tuning.dial,
                                      head_start_s=self.tuning.failover_after_s,
                                      local_addr=local, outage_age_s=age)
+        # The winning SYN left one handshake RTT ago (the kernel's first RTT sample is
+        # the SYN's): from then on the path worked, so what is offered after it is fresh.
+        info = read_tcp_info(sock)
+        self._alive_since_s = self._clock() - (info.srtt_s if info is not None else 0.0)
         return Dialed(sock, order[won])
 
     def _use_replica(self, index: int) -> None:
@@ -768,7 +774,9 @@ class RobotLink:
         (:meth:`Scheduler.drop_stale`); the outage, if one ran, is over."""
         outage = self._outage_since_s is not None
         self._outage_since_s = None
-        dropped = self._scheduler.drop_stale(self._clock(), after_outage=outage)
+        dropped = self._scheduler.drop_stale(self._clock(), after_outage=outage,
+                                             alive_since_s=self._alive_since_s)
+        self._alive_since_s = None
         if dropped:
             logger.info("dropped %d held latest-only messages: stale after the outage",
                         dropped)

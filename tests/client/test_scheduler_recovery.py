@@ -34,6 +34,19 @@ def test_after_an_outage_every_held_message_is_dropped_and_counted() -> None:
     assert s.topic_feedback("/scan").dropped >= 1  # producers see the drop
 
 
+def test_after_an_outage_a_message_offered_once_the_path_worked_again_is_kept() -> None:
+    """The new connection's SYN left at 1.00: a scan offered at 1.01, while the
+    handshake ran, is fresh; the image offered at 0.95 was offered into the outage."""
+    s = make()
+    offer_every(s, "/scan", 0.1, 0.9)
+    s.offer("/scan", b"/scan@1.01", 1.01, priority=1.0, no_drop=False)
+    offer_every(s, "/image", 0.5, 0.5)
+    s.offer("/image", b"/image@0.95", 0.95, priority=1.0, no_drop=False)
+    assert s.drop_stale(1.02, after_outage=True, alive_since_s=1.0) == 1
+    assert FakeLink(s).drain(1.03) == [b"/scan@1.01"]
+    assert s.stats()["topics"]["/image"]["dropped_stale"] == 1  # type: ignore[index]
+
+
 def test_without_an_outage_only_messages_older_than_the_period_bound_go() -> None:
     s = make()  # stale_periods 1.5
     offer_every(s, "/scan", 0.1, 1.0)  # last at 1.0: 0.1 s old at 1.1, kept

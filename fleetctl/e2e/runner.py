@@ -243,7 +243,8 @@ def run(cfg: RunConfig, progress: Progress = print,
                "wireguard": _describe_wireguard(mode, deployment, link_mtu),
                "server": "the `server` service `fleetctl up` renders (compose.server_service), "
                          "as `docker run` arguments, without ports, restart policy or static "
-                         "address; consumers on its HTTPS port"}
+                         "address; consumers on its HTTPS port (peer, peer-fanout: beside it, "
+                         "on its plain listener over loopback)"}
         progress(f"topology up; {shaping}")
         progress(f"wireguard: {env['wireguard']}")
         for i, name in enumerate(cfg.scenarios, 1):

@@ -898,13 +898,14 @@ class RobotLink:
                 dead = info is not None and stall.dead(now, info)
                 if dead and redial is None and info is not None:
                     redial = self._start_redial(now, info, stall)
+                if redial is not None and redial.done():
+                    done, redial = redial, None  # PathDead hands its socket on
+                    redial = self._redial_done(done, dead)
+                # After the switch above: a new socket that connected is used, not dropped.
                 if dead and info is not None and stall.stale(now, info):
                     raise PathStale(
                         f"no ACK from {self.url} for {info.last_ack_s:.2f} s: resetting the "
                         "connection (what it holds is stale), reconnecting")
-                if redial is not None and redial.done():
-                    done, redial = redial, None  # PathDead hands its socket on
-                    redial = self._redial_done(done, dead)
                 self._check_pongs(now)
                 if redial is not None and not redial.done():
                     # the new connection is used the moment it connects

@@ -6,6 +6,7 @@ import asyncio
 import contextlib
 import socket
 import time
+from collections.abc import AsyncIterator
 from pathlib import Path
 from typing import Any
 
@@ -200,6 +201,35 @@ class FakeKernel:
 TUNING = LinkTuning(keepalive_interval_s=0.1, link_timeout_s=30.0, open_timeout_s=2.0)
 
 
+class EventsThroughTheRelay:
+    """A robot sending no_drop events ``e<i>`` and a viewer (its own RobotLink, which
+    drops resends) receiving them through the real relay."""
+
+    def __init__(self, server: RelayServer, tmp_path: Path) -> None:
+        self.got: list[str] = []
+        (tmp_path / "op.token").write_text(OPERATOR_TOKEN + "\n")
+        viewer_cfg = robot_config(server.url, tmp_path, robot_name="viewer", subscribe=[
+            {"remote_topic": "/r1/events", "type": "std_msgs/msg/String"}],
+            token_file="op.token")
+        self.robot = RobotLink(robot_config(server.url, tmp_path), on_frame=lambda f: None,
+                               tuning=TUNING)
+        self.viewer = RobotLink(viewer_cfg,
+                                on_frame=lambda f: self.got.append(decode_text(f)),
+                                tuning=LinkTuning(open_timeout_s=2.0))
+
+    @contextlib.asynccontextmanager
+    async def running(self) -> AsyncIterator[None]:
+        async with running(self.viewer), running(self.robot):
+            await wait_until(lambda: self.robot.stats()["connected"]
+                             and self.viewer.stats()["subscribed"] == ["/r1/events"])
+            yield
+
+    def offer(self, first: int, last: int) -> None:
+        for i in range(first, last + 1):
+            self.robot.offer("/r1/events", string_frame("/r1/events", f"e{i}", no_drop=True,
+                                                        seq=i), priority=1.0, no_drop=True)
+
+
 async def test_a_dead_path_switches_to_a_new_connection_exactly_once_in_order(
     server: RelayServer, tmp_path: Path, monkeypatch: pytest.MonkeyPatch,
 ) -> None:
@@ -208,33 +238,17 @@ async def test_a_dead_path_switches_to_a_new_connection_exactly_once_in_order(
     (through its own RobotLink, which drops resends) sees each once, in order."""
     kernel = FakeKernel()
     monkeypatch.setattr(transport, "read_tcp_info", kernel)
-    got: list[str] = []
-    (tmp_path / "op.token").write_text(OPERATOR_TOKEN + "\n")
-    viewer_cfg = robot_config(server.url, tmp_path, robot_name="viewer", subscribe=[
-        {"remote_topic": "/r1/events", "type": "std_msgs/msg/String"}],
-        token_file="op.token")
-    robot = RobotLink(robot_config(server.url, tmp_path), on_frame=lambda f: None,
-                      tuning=TUNING)
-    viewer = RobotLink(viewer_cfg, on_frame=lambda f: got.append(decode_text(f)),
-                       tuning=LinkTuning(open_timeout_s=2.0))
-    async with running(viewer), running(robot):
-        await wait_until(lambda: robot.stats()["connected"]
-                         and viewer.stats()["subscribed"] == ["/r1/events"])
-
-        def offer(first: int, last: int) -> None:
-            for i in range(first, last + 1):
-                robot.offer("/r1/events", string_frame("/r1/events", f"e{i}", no_drop=True,
-                                                       seq=i), priority=1.0, no_drop=True)
-
-        offer(1, 10)
+    events = EventsThroughTheRelay(server, tmp_path)
+    async with events.running():
+        events.offer(1, 10)
         kernel.dead = True
-        offer(11, 20)  # some of these go out unacknowledged on the old connection
-        await wait_until(lambda: robot.stats()["dead_paths"] == 1)
+        events.offer(11, 20)  # some of these go out unacknowledged on the old connection
+        await wait_until(lambda: events.robot.stats()["dead_paths"] == 1)
         kernel.dead = False
-        offer(21, 30)
-        await wait_until(lambda: "e30" in got)
-        stats = robot.stats()
-    assert got == [f"e{i}" for i in range(1, 31)]
+        events.offer(21, 30)
+        await wait_until(lambda: "e30" in events.got)
+        stats = events.robot.stats()
+    assert events.got == [f"e{i}" for i in range(1, 31)]
     assert stats["connects"] == 2 and stats["link_timeouts"] == 0
     assert stats["last_close"] == "dead path"
 
@@ -255,36 +269,21 @@ async def test_a_path_dead_past_two_gaps_is_reset_and_redialled_exactly_once_in_
         await restored.wait()  # a silent path: no SYN-ACK until the restore
         return await real_dial(*args, **kw)
 
-    got: list[str] = []
-    (tmp_path / "op.token").write_text(OPERATOR_TOKEN + "\n")
-    viewer_cfg = robot_config(server.url, tmp_path, robot_name="viewer", subscribe=[
-        {"remote_topic": "/r1/events", "type": "std_msgs/msg/String"}],
-        token_file="op.token")
-    robot = RobotLink(robot_config(server.url, tmp_path), on_frame=lambda f: None,
-                      tuning=TUNING)
-    viewer = RobotLink(viewer_cfg, on_frame=lambda f: got.append(decode_text(f)),
-                       tuning=LinkTuning(open_timeout_s=2.0))
-    async with running(viewer), running(robot):
-        await wait_until(lambda: robot.stats()["connected"]
-                         and viewer.stats()["subscribed"] == ["/r1/events"])
-
-        def offer(first: int, last: int) -> None:
-            for i in range(first, last + 1):
-                robot.offer("/r1/events", string_frame("/r1/events", f"e{i}", no_drop=True,
-                                                       seq=i), priority=1.0, no_drop=True)
-
-        offer(1, 10)
+    events = EventsThroughTheRelay(server, tmp_path)
+    robot = events.robot
+    async with events.running():
+        events.offer(1, 10)
         monkeypatch.setattr(transport, "dial_first", dial_when_restored)
         kernel.dead = True
-        offer(11, 20)
+        events.offer(11, 20)
         await wait_until(lambda: robot.stats()["stale_paths"] == 1
                          and not robot.stats()["connected"])  # reset, the dial waits
         kernel.dead = False
         restored.set()
-        offer(21, 30)
-        await wait_until(lambda: "e30" in got)
+        events.offer(21, 30)
+        await wait_until(lambda: "e30" in events.got)
         stats = robot.stats()
-    assert got == [f"e{i}" for i in range(1, 31)]
+    assert events.got == [f"e{i}" for i in range(1, 31)]
     assert stats["connects"] == 2 and stats["dead_paths"] == 0
     assert stats["link_timeouts"] == 0 and stats["last_close"] == "stale path"
 

@@ -60,7 +60,10 @@ COMPRESSIONS = ("none", "zstd", "deflate")
 _SUBSCRIBE_KEYS = frozenset({"remote_topic", "type", "local_topic"})
 _STATUS_KEYS = frozenset({"battery_topic", "period_s"})
 _LIMIT_KEYS = frozenset({"max_fragment_bytes", "no_drop_queue_messages", "reconnect_min_s",
-                         "reconnect_max_s", "scheduler"})
+                         "reconnect_max_s", "scheduler", "outage_dial_interval_s"})
+# The outage dial pace's range: below 10 ms the SYNs sent while down (100/s at 10 ms, ~7 KB/s
+# raw) cost more than the few milliseconds they save; above 0.25 s it is the slow pace.
+OUTAGE_DIAL_INTERVAL_RANGE_S = (0.01, 0.25)
 # adaptive: fragments sized to the link, window from RTT and delivery rate (the default).
 # robofleet: the paper's behaviour (whole frames, one frame in flight), for comparison runs.
 SCHEDULERS = ("adaptive", "robofleet")
@@ -146,6 +149,10 @@ class ClientLimits:
         reconnect_max_s: Cap of the reconnect delay in seconds.
         scheduler: ``adaptive`` (default) or ``robofleet``: whole frames and one frame in
             flight (Robofleet's n_T = 1), the baseline of comparison runs.
+        outage_dial_interval_s: During an outage's first minute, a new TCP connection
+            attempt (one SYN) at least this often, seconds: the first SYN after the link
+            returns leaves within it. Smaller recovers sooner and sends more while the
+            link is down (docs/recovery.md, the dial pace).
     """
 
     max_fragment_bytes: int = 4194304
@@ -153,6 +160,7 @@ class ClientLimits:
     reconnect_min_s: float = 0.1
     reconnect_max_s: float = 5.0
     scheduler: str = "adaptive"
+    outage_dial_interval_s: float = 0.04
 
 
 @dataclass(frozen=True)
@@ -469,7 +477,16 @@ def _limits(ctx: _Ctx, value: object) -> ClientLimits:
         reconnect_min_s=lo,
         reconnect_max_s=hi,
         scheduler=_scheduler(ctx, entry),
+        outage_dial_interval_s=_outage_dial_interval(ctx, entry, d.outage_dial_interval_s),
     )
+
+
+def _outage_dial_interval(ctx: _Ctx, entry: Mapping[str, Any], default: float) -> float:
+    low, high = OUTAGE_DIAL_INTERVAL_RANGE_S
+    value = _number(ctx, entry, "limits", "outage_dial_interval_s", default,
+                    lambda v: low <= v <= high, f"between {low} and {high}")
+    assert value is not None
+    return value
 
 
 def _scheduler(ctx: _Ctx, entry: Mapping[str, Any]) -> str:

@@ -46,6 +46,7 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import dataclasses
 import errno
 import functools
 import json
@@ -394,7 +395,10 @@ class RobotLink:
         tuning: LinkTuning | None = None,
     ) -> None:
         self.config = config
-        self.tuning = tuning or LinkTuning()
+        tuning = tuning or LinkTuning()
+        # The outage dial pace is the operator's trade-off (client.yaml limits): it wins.
+        self.tuning = dataclasses.replace(tuning, dial=dataclasses.replace(
+            tuning.dial, outage_stagger_s=config.limits.outage_dial_interval_s))
         self._on_frame = on_frame
         self._clock = clock
         self._scheduler = Scheduler(scheduler_config or scheduler_config_for(config))

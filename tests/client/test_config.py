@@ -154,6 +154,10 @@ def test_token_file_is_read_relative_and_never_shown(tmp_path: Path) -> None:
     (minimal(limits={"reconnect_min_s": float("nan")}), "reconnect_min_s: must be > 0"),
     (minimal(limits={"scheduler": "fifo"}),
      "limits: scheduler: must be one of adaptive, robofleet, got 'fifo'"),
+    (minimal(limits={"outage_dial_interval_s": 0.001}),
+     "limits: outage_dial_interval_s: must be between 0.01 and 0.25, got 0.001"),
+    (minimal(limits={"outage_dial_interval_s": "fast"}),
+     "limits: outage_dial_interval_s: must be a number, got 'fast'"),
     ([1, 2], "document: must be a mapping"),
 ])
 def test_bad_field_names_file_entry_and_field(data: Any, expected: str) -> None:
@@ -173,6 +177,19 @@ def test_robofleet_scheduler_sends_whole_frames_one_in_flight() -> None:
     assert cfg.limits.scheduler == "robofleet"
     robofleet = scheduler_config_for(cfg)
     assert not robofleet.fragments and robofleet.fixed_window_messages == 1
+
+
+def test_the_outage_dial_interval_reaches_the_link_s_dial_pace() -> None:
+    from fleetctl.client.transport import LinkTuning, RobotLink
+
+    default = parse_client_config(minimal(), source="c.yaml")
+    assert default.limits.outage_dial_interval_s == 0.04
+    cfg = parse_client_config(minimal(limits={"outage_dial_interval_s": 0.02}),
+                              source="c.yaml")
+    link = RobotLink(cfg, on_frame=lambda f: None, tuning=LinkTuning())
+    assert link.tuning.dial.outage_stagger_s == 0.02
+    assert link.tuning.dial.stagger_at(30.0) == 0.02  # held through the first minute
+    assert link.tuning.dial.stagger_at(90.0) == link.tuning.dial.stagger_s
 
 
 def test_file_errors(tmp_path: Path) -> None:

@@ -13,10 +13,17 @@ each round:
 
 - ``single``: one replica without ``cluster:`` (today's single process, the baseline);
 - ``1 replica``: one replica on NATS: its publisher's frames go to its subscriber and are
-  stored in the sessions' JetStream stream (nobody else listens);
+  offered to the sessions' JetStream stream (nobody else listens);
 - ``2 replicas``: two replicas, each with its own publisher and subscriber on its own
-  topic (``/bench/a``, ``/bench/b``), relayed locally and stored in the stream; aggregate
+  topic (``/bench/a``, ``/bench/b``), relayed locally and offered to the stream; aggregate
   = the sum of both subscribers' rates.
+
+Flat out, a replica relays far more frames than it can store in the stream: the store
+queue fills and the rest are not queued for it (counted ``queue_full``, printed per
+configuration from the replicas' ``/metrics``). So the throughput figures are the relay's;
+``store rate`` (``--store-rates``) then paces one no_drop publisher into one replica at
+each rate and prints how many of the frames it accepted were stored: the no_drop rate a
+replica keeps durable.
 
 The throughput subscribers count deliveries by bytes (:func:`run_counter`: the frames are
 all one size), so they take next to no CPU from the replica sharing their core;
@@ -51,11 +58,13 @@ import asyncio
 import json
 import multiprocessing as mp
 import os
+import re
 import statistics
 import struct
 import sys
 import tempfile
 import time
+import urllib.request
 from pathlib import Path
 from typing import Any
 
@@ -238,9 +247,23 @@ class Run:
             proc.join()
 
 
+def store_counters(port: int) -> dict[str, int]:
+    """A replica's no_drop frames stored in the sessions' stream and not queued for it
+    (its ``/metrics``, which a loopback caller may read)."""
+    text = urllib.request.urlopen(f"http://127.0.0.1:{port}/metrics", timeout=5).read()
+    found = dict(re.findall(rb'fleetctl_cluster_sessions_total\{event="(stored|queue_full)"\}'
+                            rb" (\S+)", text))
+    accepted = sum(float(n) for n in re.findall(
+        rb'fleetctl_messages_in_total\{topic="/bench/[^"]*"\} (\S+)', text))
+    return {"accepted": int(accepted),
+            **{name: int(float(found.get(name.encode(), b"0")))
+               for name in ("stored", "queue_full")}}
+
+
 def throughput(nats_url: str | None, replicas: int, seconds: float,
-               subscriber: Any = run_counter) -> float:
-    """Aggregate msgs/s delivered with *replicas* replicas, one pair of clients each."""
+               subscriber: Any = run_counter) -> tuple[float, dict[str, int]]:
+    """Aggregate msgs/s delivered with *replicas* replicas, one pair of clients each, and
+    the replicas' store counters (summed; empty without NATS) read as the run ends."""
     run = Run()
     try:
         # Replica i on core i; its clients on the other core.
@@ -253,9 +276,40 @@ def throughput(nats_url: str | None, replicas: int, seconds: float,
         for i, port, topic in pairs:
             run.start(run_publisher, i + 1, port, topic, None, seconds + 2)
         total: float = sum(run.out.get(timeout=seconds + 30)[1]["rate"] for _ in pairs)
-        return total
+        stores: dict[str, int] = {}
+        if nats_url is not None:
+            for _, port, _ in pairs:
+                for name, n in store_counters(port).items():
+                    stores[name] = stores.get(name, 0) + n
+        return total, stores
     finally:
         run.close()
+
+
+def store_rate(nats_url: str, rates: list[float], seconds: float) -> list[dict[str, Any]]:
+    """One replica, one paced no_drop publisher and a subscriber: at each rate, how many
+    of the frames accepted the replica stored in the sessions' stream (once the stream
+    caught up) and how many it could not queue for it."""
+    out = []
+    for rate in rates:
+        run = Run()
+        try:
+            port = run.replica(0, "relay-0", nats_url)
+            run.start(run_counter, 1, port, "/bench/r0", seconds, run.out, run.ready, "r0")
+            run.ready.get(timeout=30)
+            run.start(run_publisher, 1, port, "/bench/r0", rate, seconds + 2)
+            delivered = run.out.get(timeout=seconds + 30)[1]["rate"]
+            # The publisher is done 2 s after the subscriber; then the stream catches up.
+            counters = store_counters(port)
+            deadline = time.monotonic() + 30
+            while (counters["stored"] + counters["queue_full"] < counters["accepted"]
+                   or counters["accepted"] < rate * seconds) and time.monotonic() < deadline:
+                time.sleep(0.2)  # polling the replica's counters, bounded by the deadline
+                counters = store_counters(port)
+            out.append({"rate": rate, "delivered_rate": round(delivered), **counters})
+        finally:
+            run.close()
+    return out
 
 
 def hop_latency(nats_url: str, rate_hz: float, seconds: float) -> dict[str, Any]:
@@ -368,6 +422,9 @@ def main() -> int:
     parser.add_argument("--subscriber", choices=["bytes", "websockets"], default="bytes",
                         help="throughput subscribers: count bytes (cheap), or parse every "
                              "frame with a websockets client (as until 2026-11-26)")
+    parser.add_argument("--store-rates", type=float, nargs="+",
+                        default=[2000.0, 5000.0, 10000.0, 20000.0],
+                        help="msgs/s of the paced no_drop publisher in the store-rate phase")
     parser.add_argument("--json", action="store_true")
     args = parser.parse_args()
     subscriber = run_counter if args.subscriber == "bytes" else run_subscriber
@@ -378,14 +435,18 @@ def main() -> int:
     nats = NatsServer("bench", workdir)
     nats.start()
     try:
-        rounds = []
+        rounds: list[dict[str, float]] = []
+        store_rounds: list[dict[str, dict[str, int]]] = []
         for _ in range(args.rounds):
             # All three back to back in each round, so a slow spell of the host hits all.
-            rounds.append({
+            measured = {
                 "single": throughput(None, 1, args.seconds, subscriber),
                 "1 replica": throughput(nats.url, 1, args.seconds, subscriber),
                 "2 replicas": throughput(nats.url, 2, args.seconds, subscriber),
-            })
+            }
+            rounds.append({k: v[0] for k, v in measured.items()})
+            store_rounds.append({k: v[1] for k, v in measured.items() if v[1]})
+        stores = store_rate(nats.url, args.store_rates, args.seconds)
         hops = hop_latency(nats.url, args.latency_rate, args.seconds)
         os.environ[_LATEST_ONLY_ENV] = "1"
         try:
@@ -408,7 +469,8 @@ def main() -> int:
                 "p99_ms": round(_pct(v["lat_ns"], 0.99), 3),
                 "rate": round(v["rate"])} for k, v in core_hops.items()}
     if args.json:
-        print(json.dumps({"rounds": rounds, "median": med, "hop_latency": lat,
+        print(json.dumps({"rounds": rounds, "stored": store_rounds, "store_rate": stores,
+                          "median": med, "hop_latency": lat,
                           "hop_latency_latest_only": core, "cpu_per_frame": costs}, indent=2))
         return 0
     print(f"small messages ({len(_template('/bench/r0')[0])} B frames), "
@@ -420,6 +482,16 @@ def main() -> int:
     print(f"{'median':<18}" + "".join(f"{v:>14.0f}" for v in med.values()))
     print(f"2 replicas / 1 replica: {med['2 replicas'] / med['1 replica']:.2f}x (goal 1.7x); "
           f"1 replica / single process: {med['1 replica'] / med['single']:.2f}x")
+    for name in ("1 replica", "2 replicas"):
+        stored = sum(r[name]["stored"] for r in store_rounds)
+        not_queued = sum(r[name]["queue_full"] for r in store_rounds)
+        print(f"  {name}, flat out: {stored} frames stored in the sessions' stream, "
+              f"{not_queued} not queued for it (queue_full), all rounds")
+    print("store rate, 1 replica, paced no_drop publisher (frames accepted / stored / not "
+          "queued for the stream; delivered msgs/s):")
+    for r in stores:
+        print(f"  {r['rate']:>8.0f} msgs/s: {r['accepted']} / {r['stored']} / "
+              f"{r['queue_full']}; {r['delivered_rate']}")
     for name, figures in (("no_drop, through the stream", lat),
                           ("latest-only, through core NATS", core)):
         print(f"hop latency at {args.latency_rate:.0f} msgs/s, {name}: " + "; ".join(

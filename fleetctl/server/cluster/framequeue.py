@@ -119,6 +119,10 @@ class FrameQueue:
     def __len__(self) -> int:
         return len(self._entries)
 
+    def __getitem__(self, index: int) -> Queued:
+        """The entry at *index* (0: the oldest), left in place."""
+        return self._entries[index]
+
     def __iter__(self) -> Iterator[Queued]:
         return iter(self._entries)
 

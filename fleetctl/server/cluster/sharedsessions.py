@@ -25,7 +25,8 @@ session lives only in one replica:
   refused conditional write) closes its connection with 4409.
 
 Per-frame cost: droppable frames pay nothing; a no_drop frame pays one JetStream publish
-(acknowledged, pipelined) and, per attached session on any replica, one stream delivery.
+(acknowledged, up to 64 out at once: streamstores.py) and, per attached session on any
+replica, one stream delivery.
 """
 
 from __future__ import annotations
@@ -75,6 +76,7 @@ from fleetctl.server.cluster.sessionrecord import (
     record_key,
 )
 from fleetctl.server.cluster.storeacks import StoreAcks
+from fleetctl.server.cluster.streamstores import StreamStores
 from fleetctl.server.cluster.subjects import (
     MAX_SUBJECT_BYTES,
     control_subject,
@@ -98,8 +100,9 @@ REFRESH_S = 60.0
 # much, which the clients drop as duplicates).
 WRITE_S = 0.5
 RETRY_S = 1.0
-# Publishes in flight to the stream at once (pipelined on the one NATS connection).
-_PUBLISH_BATCH = 64
+# Frames out to the stream at once, waiting for their acknowledgement (each is published
+# as soon as it is queued and there is room: streamstores.py).
+STORES_IN_FLIGHT = 64
 # An acknowledged store: milliseconds normally; a request lost in a NATS node's dead socket
 # is retried after this (the frames behind it wait, in order).
 STORE_TIMEOUT_S = 1.0
@@ -223,6 +226,9 @@ class SharedSessions:
                          "put_failures": 0, "deletes": 0, "taken_over": 0, "malformed": 0,
                          "feed_failures": 0, "delivered": 0, "follow_failures": 0,
                          "reader_away": 0, "remote_duplicates": 0}
+        self._stores = StreamStores(self._stream, STORES_IN_FLIGHT, STORE_TIMEOUT_S,
+                                    self._acknowledged, self.counters)
+        self._store_failure: BaseException | None = None  # the oldest store's, to retry
         self._history: deque[tuple[float, Queued]] = deque()
         self._history_bytes = 0
         self.recent_remote = RecentDigests()
@@ -407,6 +413,8 @@ class SharedSessions:
             self.counters["queue_full"] += 1
             return order
         self.acks.note_offered()
+        if self._stores.has_room():
+            self._publish_wake.set()  # published now, not once the frames out are acked
         history = self._history
         history.append((time.monotonic(), entry))
         self._history_bytes += len(frame)
@@ -609,52 +617,98 @@ class SharedSessions:
     # -- the stream ------------------------------------------------------------------------
 
     async def _publish_loop(self) -> None:
-        queue, wake = self._queue, self._publish_wake
-        while True:
-            if not queue:
-                self.trim_history()
+        """Store the queued frames in order: each is published as soon as it is queued
+        and fewer than ``STORES_IN_FLIGHT`` wait for their acknowledgement
+        (:mod:`~fleetctl.server.cluster.streamstores`); it leaves the queue when its own
+        acknowledgement (or its refusal) is taken, oldest first (:meth:`_acknowledged`,
+        in the acknowledgement's callback: no task switch per frame)."""
+        queue, wake, stores = self._queue, self._publish_wake, self._stores
+        nc = self._nc
+        assert nc is not None
+        await stores.start(nc)
+        try:
+            while True:
                 wake.clear()
-                await wake.wait()
-            js = self._js
-            assert js is not None
-            batch = queue.head(_PUBLISH_BATCH)
-            results = await asyncio.gather(*(self._store(js, q) for q in batch),
-                                           return_exceptions=True)
-            kvloops.raise_if_cancelled()
-            for result in results:
-                if _transient(result):
-                    self.counters["store_failures"] += 1
-                    if not self._storing_fails:
-                        log.warning("replica %s: cannot store no_drop frames for sessions "
-                                    "(%r): held in order, sessions here get them live "
-                                    "meanwhile", self.config.name, result)
-                    self._storing_fails = True
-                    self.stream_away()  # the frames waiting go out live now
-                    await asyncio.sleep(STORE_RETRY_S)  # keep the rest, in order
-                    break
-                if self._storing_fails:
-                    log.info("replica %s: storing no_drop frames for sessions again",
-                             self.config.name)
-                self._storing_fails = False
-                subject, frame = queue.popleft()[:2]
-                self.acks.note_done()
-                if isinstance(result, BaseException):
-                    self.counters["refused"] += 1
-                    log.warning("replica %s: the sessions' stream refused a frame on %s "
-                                "(%d bytes): %r", self.config.name, subject, len(frame),
-                                result)
+                failure = self._store_failure
+                if failure is not None:
+                    self._store_failure = None
+                    await self._store_failed(failure)
+                    continue
+                launched = False
+                while stores.has_room() and len(stores) < len(queue):
+                    await self._send_store(nc, queue[len(stores)])
+                    launched = True
+                if self._retire() or launched:
+                    continue
+                if not queue:
+                    self.trim_history()
+                wait_s = stores.wait_s()
+                if wait_s is None:
+                    await wake.wait()
+                else:  # the oldest frame out times out then
+                    with contextlib.suppress(TimeoutError):
+                        async with asyncio.timeout(wait_s):
+                            await wake.wait()
+        finally:
+            await stores.stop()
 
-    async def _store(self, js: JetStreamContext, entry: Queued) -> None:
+    def _retire(self) -> bool:
+        """Take the finished stores off the queue, oldest first; ``True`` when the
+        oldest failed in a way worth retrying (left to the publish loop)."""
+        stores = self._stores
+        while True:
+            finished, result = stores.oldest()
+            if not finished:
+                return False
+            if _transient(result):
+                self._store_failure = result
+                return True
+            self._stored_one(result)
+
+    def _acknowledged(self) -> None:
+        """A store was acknowledged: retire what is finished; wake the publish loop
+        only when it has something to do (a failure, or frames waiting for room)."""
+        if self._retire() or (len(self._queue) > len(self._stores)
+                              and self._stores.has_room()):
+            self._publish_wake.set()
+
+    async def _send_store(self, nc: Client, entry: Queued) -> None:
         if len(entry.subject) > MAX_SUBJECT_BYTES:
             self.counters["subject_too_long"] += 1
+            self._stores.skip()
             return
         headers = {"Nats-Msg-Id": frame_digest(entry.frame),
                    REPLICA_HEADER: self.config.name}
         if entry.order is not None:
             headers[ORDER_HEADER] = entry.order
-        ack = await js.publish(entry.subject, entry.frame, stream=self._stream,
-                               timeout=STORE_TIMEOUT_S, headers=headers)
-        self.counters["duplicates" if ack.duplicate else "stored"] += 1
+        await self._stores.send(nc, entry.subject, entry.frame, headers)
+
+    async def _store_failed(self, result: BaseException | None) -> None:
+        """The oldest frame's store failed for a reason worth retrying: every frame
+        waiting goes out live meanwhile, and after a pause all of them are sent again
+        from that frame, in order (JetStream drops a second copy by ``Nats-Msg-Id``)."""
+        self.counters["store_failures"] += 1
+        if not self._storing_fails:
+            log.warning("replica %s: cannot store no_drop frames for sessions (%r): held "
+                        "in order, sessions here get them live meanwhile",
+                        self.config.name, result)
+        self._storing_fails = True
+        self.stream_away()  # the frames waiting go out live now
+        self._stores.forget()
+        await asyncio.sleep(STORE_RETRY_S)  # keep the rest, in order
+
+    def _stored_one(self, result: BaseException | None) -> None:
+        """The oldest frame's store is finished with: stored, or refused for good."""
+        if self._storing_fails:
+            log.info("replica %s: storing no_drop frames for sessions again",
+                     self.config.name)
+        self._storing_fails = False
+        subject, frame = self._queue.popleft()[:2]
+        self.acks.note_done()
+        if result is not None:
+            self.counters["refused"] += 1
+            log.warning("replica %s: the sessions' stream refused a frame on %s (%d bytes): "
+                        "%r", self.config.name, subject, len(frame), result)
 
     # -- other replicas' no_drop frames ----------------------------------------------------
 

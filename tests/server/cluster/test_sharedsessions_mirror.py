@@ -5,6 +5,7 @@ replica (taken over)."""
 from __future__ import annotations
 
 import datetime
+from typing import Any
 
 from fleetctl.server.cluster.config import ClusterConfig
 from fleetctl.server.cluster.framequeue import Queued
@@ -96,11 +97,31 @@ async def test_frames_waiting_for_a_failing_stream_go_out_live_too() -> None:
     away: list[list[Queued]] = []
     shared.on_away = away.append
 
-    class DownJetStream:  # a stream whose leader is being re-elected
-        async def publish(self, *args: object, **kwargs: object) -> None:
-            raise TimeoutError
+    from nats.aio.msg import Msg
 
-    shared._js = DownJetStream()  # type: ignore[assignment]
+    class DownStream:  # NATS whose stream has no leader (being re-elected): no responders
+        def __init__(self) -> None:
+            self.acks: Any = None
+
+        def new_inbox(self) -> str:
+            return "_INBOX.test"
+
+        async def subscribe(self, subject: str, cb: Any) -> Any:
+            self.acks = cb
+
+            class Sub:
+                async def unsubscribe(self) -> None:
+                    pass
+
+            return Sub()
+
+        async def publish(self, subject: str, payload: bytes, reply: str,
+                          headers: dict[str, str]) -> None:
+            answer = Msg(self, subject=reply, data=b"", headers={"Status": "503"})  # type: ignore[arg-type]
+            asyncio.get_running_loop().call_soon(
+                lambda: asyncio.ensure_future(self.acks(answer)))
+
+    shared._nc = DownStream()  # type: ignore[assignment]
     shared.offer("/husky1/events", b"e1")
     shared.offer("/husky1/events", b"e2")
     task = asyncio.create_task(shared._publish_loop())

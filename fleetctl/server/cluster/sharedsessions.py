@@ -635,7 +635,8 @@ class SharedSessions:
                     await self._store_failed(failure)
                     continue
                 launched = False
-                while stores.has_room() and len(stores) < len(queue):
+                while (stores.has_room() and len(stores) < len(queue)
+                       and self._store_failure is None):
                     await self._send_store(nc, queue[len(stores)])
                     launched = True
                 if self._retire() or launched:
@@ -654,7 +655,11 @@ class SharedSessions:
 
     def _retire(self) -> bool:
         """Take the finished stores off the queue, oldest first; ``True`` when the
-        oldest failed in a way worth retrying (left to the publish loop)."""
+        oldest failed in a way worth retrying (left to the publish loop). Nothing more
+        is retired until the loop has handled that failure: the failed frame is still
+        the queue's first, and everything after it is sent again."""
+        if self._store_failure is not None:
+            return True
         stores = self._stores
         while True:
             finished, result = stores.oldest()

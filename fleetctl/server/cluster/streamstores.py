@@ -169,6 +169,8 @@ class StreamStores:
                 APIError.from_error(answer["error"])  # raises the error's own class
             except APIError as exc:
                 return exc
-            return APIError(description=str(answer["error"]))
+            except (TypeError, ValueError, KeyError):  # not an error as JetStream words it
+                pass
+            return APIError(description=f"unreadable error: {answer['error']!r:.200}")
         self._counters["duplicates" if answer.get("duplicate") else "stored"] += 1
         return None

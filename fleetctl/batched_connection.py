@@ -26,7 +26,7 @@ from typing import cast
 
 from websockets.asyncio.connection import Connection
 from websockets.exceptions import ConcurrencyError
-from websockets.protocol import Side
+from websockets.protocol import Side, State
 
 from fleetctl.linkdeflate import passes_through
 from fleetctl.masked_frame import masked_binary_frame
@@ -53,32 +53,56 @@ class BatchedWritesConnection(Connection):
             ConcurrencyError: A ping with the same payload still waits for its pong.
         """
         async with self.send_context():
-            protocol = self.protocol
-            # send_context checked the state is OPEN; nothing below awaits, so it stays
-            # open. A frame no extension touches (the uplink deflate leaves large ones
-            # alone) is exactly what serialize() would produce, so it can be queued
-            # directly.
-            one_pass = (protocol.side is Side.CLIENT
-                        and not protocol.expect_continuation_frame)
-            extensions = protocol.extensions
-            for frame in frames:
-                if isinstance(frame, str):
-                    protocol.send_text(frame.encode())
-                elif (one_pass and len(frame) >= ONE_PASS_MIN_BYTES
-                      and passes_through(extensions, len(frame))):
-                    protocol.writes.append(cast(bytes, masked_binary_frame(frame)))
-                else:
-                    protocol.send_binary(frame)
-            if ping is None:
-                return None
-            # As Connection.ping registers its waiter (websockets 13-15), so that the
-            # connection's pong handling completes it and acknowledges earlier pings.
-            if ping in self.pong_waiters:
-                raise ConcurrencyError("already waiting for a pong with the same data")
-            waiter: asyncio.Future[float] = self.loop.create_future()
-            self.pong_waiters[ping] = (waiter, self.loop.time())
-            protocol.send_ping(ping)
-            return waiter
+            return self._queue_frames(frames, ping)
+
+    def can_write_now(self) -> bool:
+        """True when :meth:`write_frames_now` may be used: the connection is open and its
+        transport is below its write limit (nothing to wait for)."""
+        return (self.protocol.state is State.OPEN and not self.paused
+                and not self.transport.is_closing())
+
+    def write_frames_now(self, frames: Iterable[bytes | str],
+                         ping: bytes | None = None) -> asyncio.Future[float] | None:
+        """:meth:`send_frames` without awaiting, for a caller outside a coroutine that has
+        checked :meth:`can_write_now` (so there is no flow control to wait for).
+
+        Raises:
+            ConcurrencyError: A ping with the same payload still waits for its pong.
+        """
+        waiter = self._queue_frames(frames, ping)
+        self.send_data()
+        return waiter
+
+    def _queue_frames(self, frames: Iterable[bytes | str],
+                      ping: bytes | None) -> asyncio.Future[float] | None:
+        """Serialize *frames* (and *ping*) into the protocol's output; the caller writes
+        it (send_context's exit, or send_data)."""
+        protocol = self.protocol
+        # The state is OPEN (send_context or can_write_now checked) and nothing below
+        # awaits, so it stays open. A frame no extension touches (the uplink deflate
+        # leaves large ones alone) is exactly what serialize() would produce, so it can
+        # be queued directly.
+        one_pass = (protocol.side is Side.CLIENT
+                    and not protocol.expect_continuation_frame)
+        extensions = protocol.extensions
+        for frame in frames:
+            if isinstance(frame, str):
+                protocol.send_text(frame.encode())
+            elif (one_pass and len(frame) >= ONE_PASS_MIN_BYTES
+                  and passes_through(extensions, len(frame))):
+                protocol.writes.append(cast(bytes, masked_binary_frame(frame)))
+            else:
+                protocol.send_binary(frame)
+        if ping is None:
+            return None
+        # As Connection.ping registers its waiter (websockets 13-15), so that the
+        # connection's pong handling completes it and acknowledges earlier pings.
+        if ping in self.pong_waiters:
+            raise ConcurrencyError("already waiting for a pong with the same data")
+        waiter: asyncio.Future[float] = self.loop.create_future()
+        self.pong_waiters[ping] = (waiter, self.loop.time())
+        protocol.send_ping(ping)
+        return waiter
 
     def send_data(self) -> None:
         """Write pending protocol output; consecutive data chunks go in one write call."""

@@ -51,6 +51,7 @@ from fleetctl.server.registry import RobotRegistry
 from fleetctl.server.relay import Peer, RelayCore
 from fleetctl.server.tls import server_context
 from fleetctl.server.web import QuietSuccess, page_response, web_page
+from fleetctl.server.writethrough import ConnectionWriter, WriteThrough
 from fleetctl.webviz.httpserver import WebPage
 
 log = logging.getLogger("fleetctl.server")
@@ -81,7 +82,7 @@ class _Handshake(NamedTuple):
     peer: Peer
     identities: list[Identity]
     bad_token: bool
-    wake: asyncio.Event
+    writer: ConnectionWriter
     auth: AuthMap  # the map *identities* were matched against
     refusal: str | None = None  # why a Foxglove ticket was refused
 
@@ -138,6 +139,7 @@ class RelayServer:
                            else None)
         self.reloader = AuthReloader(config.auth_map, self.core.reload_auth, self.metrics)
         self.foxglove = FoxgloveAdapter(self.core, WRITE_BATCH_BYTES)
+        self.write_through = WriteThrough()
         self._server: Server | None = None
         self._web_server: Server | None = None
         self._page: WebPage | None = None
@@ -442,24 +444,29 @@ class RelayServer:
         assert isinstance(connection, RelayConnection)
         parsed: _Request = connection.relay_request
         upgrade = parsed.upgrade
-        wake = asyncio.Event()
+        foxglove = self.foxglove.speaks(connection)
+        writer = ConnectionWriter(self.write_through)
         peer = self.core.new_peer(
             str(upgrade.address) if upgrade.address else None, close=self._closer(connection),
-            wake=wake.set, session_name=upgrade.session_name,
-            by_address=by_address and not self.foxglove.speaks(connection),
+            # The Foxglove adapter's own writer task waits on the event; it is not
+            # written through.
+            wake=writer.event.set if foxglove else writer.wake,
+            session_name=upgrade.session_name, by_address=by_address and not foxglove,
         )
+        if not foxglove:
+            writer.write_now = functools.partial(self._write_now, connection, peer)
         try:
-            self._wire(connection, peer, parsed, wake)
+            self._wire(connection, peer, parsed, writer)
         except BaseException:  # never leave a peer behind a failed handshake
             self.core.close_peer(peer)
             raise
 
     def _wire(self, connection: RelayConnection, peer: Peer, parsed: _Request,
-              wake: asyncio.Event) -> None:
+              writer: ConnectionWriter) -> None:
         """Connect *peer* to *connection*: identities, frame sink, clean-up on loss."""
         # Only the hash of a token is kept (a reload re-checks the connection by it).
         peer.token_digests.update(i.token_sha256 for i in parsed.identities if i.token_sha256)
-        connection.relay_state = _Handshake(peer, parsed.identities, parsed.bad_token, wake,
+        connection.relay_state = _Handshake(peer, parsed.identities, parsed.bad_token, writer,
                                             parsed.auth, parsed.refusal)
         connection.relay_request = None
         max_frame_bytes = self.config.limits.max_frame_bytes
@@ -475,6 +482,7 @@ class RelayServer:
             return True
 
         connection.frame_sink = sink
+        connection.write_through = self.write_through
         connection.on_lost = lambda: core.close_peer(peer)
         if core.store_acks is not None:  # a cluster: a pong means "stored"
             connection.held_pongs = HeldPongs(connection, core.store_acks,
@@ -513,9 +521,10 @@ class RelayServer:
         if state.auth is not self.core.auth:  # reloaded since the upgrade: match again
             identities = self.core.current_identities(peer)
         if self.foxglove.speaks(connection):
-            await self.foxglove.serve(connection, peer, identities, state.refusal, state.wake)
+            await self.foxglove.serve(connection, peer, identities, state.refusal,
+                                       state.writer.event)
             return
-        writer = asyncio.create_task(self._write_loop(connection, peer, state.wake))
+        writer = asyncio.create_task(self._write_loop(connection, peer, state.writer))
         try:
             if bad_token:
                 self.core.on_token(peer, "")
@@ -568,14 +577,20 @@ class RelayServer:
                                  f"the server could not handle this frame ({type(exc).__name__})")
 
     async def _write_loop(
-        self, connection: RelayConnection, peer: Peer, wake: asyncio.Event
+        self, connection: RelayConnection, peer: Peer, writer: ConnectionWriter
     ) -> None:
-        outbound, metrics = peer.outbound, self.metrics
+        outbound, metrics, wake = peer.outbound, self.metrics, writer.event
         with contextlib.suppress(ConnectionClosed):
             while True:
                 if not len(outbound):
                     wake.clear()
-                    await wake.wait()
+                    writer.idle = True  # from here on frames may be written through
+                    try:
+                        await wake.wait()
+                    finally:
+                        writer.idle = False
+                    if not len(outbound):
+                        continue  # written through meanwhile
                 batch = outbound.pop_batch(WRITE_BATCH_BYTES)
                 for topic, frame in batch:
                     metrics.count_out(topic, len(frame))
@@ -583,6 +598,25 @@ class RelayServer:
                 mark = outbound.ack_mark()  # None unless the peer has a session
                 if mark is not None:
                     await self._ack_point(connection, outbound, mark)
+
+    def _write_now(self, connection: RelayConnection, peer: Peer) -> bool:
+        """One batch of *peer*'s queue written synchronously, as :meth:`_write_loop`
+        would (see :mod:`fleetctl.server.writethrough`); True when the queue is empty
+        afterwards, False when it could not write or more is queued."""
+        outbound = peer.outbound
+        if peer.closing or not connection.can_write_now():
+            return False
+        batch = outbound.pop_batch(WRITE_BATCH_BYTES)
+        metrics = self.metrics
+        for topic, frame in batch:
+            metrics.count_out(topic, len(frame))
+        mark = outbound.ack_mark()  # None unless the peer has a session
+        waiter = connection.write_frames_now(
+            [frame for _, frame in batch], None if mark is None else mark.to_bytes(8, "big"))
+        if waiter is not None and mark is not None:
+            waiter.add_done_callback(functools.partial(_on_pong, outbound, mark))
+        self.write_through.written += 1
+        return not len(outbound)
 
     @staticmethod
     async def _ack_point(connection: RelayConnection, outbound: OutboundScheduler,

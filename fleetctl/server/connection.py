@@ -36,6 +36,7 @@ from websockets.frames import Frame, Opcode
 from fleetctl.batched_connection import BatchedWritesConnection
 from fleetctl.server.admission import UnauthenticatedGate
 from fleetctl.server.heldpongs import HeldPongs
+from fleetctl.server.writethrough import WriteThrough
 
 _DATA = (Opcode.TEXT, Opcode.BINARY, Opcode.CONT)
 # Why 8 KiB: before authentication a client may send only its token frame (at most 4096
@@ -73,6 +74,9 @@ class RelayConnection(BatchedWritesConnection, ServerConnection):
         self.pending_messages = 0
         # A cluster: pongs wait until the no_drop frames before their ping are stored.
         self.held_pongs: HeldPongs | None = None
+        # Frames relayed while this connection's bytes are handled are written at the end
+        # of that handling (fleetctl.server.writethrough).
+        self.write_through: WriteThrough | None = None
 
     def process_event(self, event: Any) -> None:
         """Route complete binary frames to :attr:`frame_sink`, the rest as usual.
@@ -107,7 +111,28 @@ class RelayConnection(BatchedWritesConnection, ServerConnection):
             self.held_pongs.settle()
 
     def data_received(self, data: bytes) -> None:
-        super().data_received(data)
+        """websockets' ``data_received`` with the frames relayed before this connection's
+        own output (pongs) is written: relayed frames are written first (see
+        :mod:`fleetctl.server.writethrough`), a pong a few microseconds later."""
+        through = self.write_through
+        collecting = through is not None and through.begin()
+        protocol = self.protocol
+        try:
+            protocol.receive_data(data)
+            events = protocol.events_received()
+            for event in events:
+                self.process_event(event)
+        finally:
+            if collecting:
+                assert through is not None
+                through.end()
+        try:
+            self.send_data()
+        except Exception as exc:  # as websockets: the reader sees it, the loop goes on
+            self.set_recv_exc(exc)
+        if protocol.close_expected() and self.close_timeout is not None \
+                and self.close_deadline is None:
+            self.close_deadline = self.loop.time() + self.close_timeout
         # Pings read with these bytes are answered once every frame before them was
         # handled (a cluster: their pongs wait for those frames' store).
         if self.held_pongs is not None and not self.pending_messages:

@@ -444,3 +444,41 @@ async def test_a_new_outage_is_explained_again(tmp_path: Path,
         await wait_until(lambda: any("cannot connect to" in m for m in _warnings(caplog)))
         link.config = cfg
         await wait_until(lambda: sum("cannot bind" in m for m in _warnings(caplog)) == 2)
+
+
+async def test_held_offers_are_written_in_the_callers_turn(
+    server: RelayServer, tmp_path: Path
+) -> None:
+    # What the loop-thread intake does around a take: hold, offer, send_held. When the
+    # send loop is idle the frame is on the connection before send_held returns (no loop
+    # round in between); every frame arrives once, in order, either way.
+    cfg = robot_config(server.url, tmp_path)
+    topic = "/r1/events"
+    async with Consumer.open(server.url, "/r1/.*") as consumer, running(
+        RobotLink(cfg, on_frame=lambda f: None, tuning=FAST)
+    ) as link:
+        link.hold_wakes()  # before any connection: send_held can only wake the loop
+        link.offer(topic, string_frame(topic, "e0", no_drop=True, seq=1), priority=1.0,
+                   no_drop=True)
+        link.send_held()
+        offered = 1
+
+        def sent() -> int:
+            topics = link.stats()["topics"]
+            return int(topics[topic]["sent_frames"]) if topic in topics else 0
+
+        def offer_held_and_check() -> bool:
+            nonlocal offered
+            before = sent()
+            link.hold_wakes()
+            link.offer(topic, string_frame(topic, f"e{offered}", no_drop=True,
+                                           seq=offered + 1), priority=1.0, no_drop=True)
+            offered += 1
+            link.send_held()
+            return sent() == before + 1  # written synchronously
+
+        await wait_until(offer_held_and_check)
+        await wait_until(lambda: len(consumer.frames) >= offered)
+        assert consumer.texts(topic) == [f"e{i}" for i in range(offered)]
+        await wait_until(lambda: link.stats()["in_flight_bytes"] == 0)
+        assert link.stats()["topics"][topic]["acked"] == offered

@@ -25,6 +25,10 @@ the rcl symbol, :func:`load_wakeups` returns None and the client keeps its execu
 Subscriptions served this way carry a :class:`LoopServed` callback, which the client's
 executor (:mod:`fleetctl.client.ros.executor`) skips: it is set when the subscription is
 created, so no executor round ever takes one of their messages.
+
+With a *sender* (the robot link), the frames offered during one take are written at its
+end, in this same turn of the loop, rather than by the link's send loop in the next round
+(:meth:`fleetctl.client.transport.RobotLink.send_held`).
 """
 
 from __future__ import annotations
@@ -39,7 +43,7 @@ import sys
 import threading
 from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Any
+from typing import Any, Protocol
 
 from rclpy.exceptions import InvalidHandle
 
@@ -50,6 +54,15 @@ log = logging.getLogger(__name__)
 MAX_TAKES_PER_ROUND = 64
 _ABI_OK = sys.platform == "linux" and platform.machine() in ("x86_64", "aarch64")
 _RCL_LIBRARY = "librcl.so"  # loaded by rclpy already; dlopen finds it by this name
+
+
+class HeldSender(Protocol):
+    """What :class:`LoopIntake` needs of the link: hold its send loop's wakes during a
+    take, then write what was offered."""
+
+    def hold_wakes(self) -> None: ...
+
+    def send_held(self) -> None: ...
 
 
 class LoopServed:
@@ -130,11 +143,15 @@ class LoopIntake:
     Args:
         loop: The running asyncio loop whose thread takes the messages.
         wakeups: From :func:`load_wakeups`.
+        sender: The link the callbacks offer frames to (see the module docstring);
+            None: they wake the link as usual.
     """
 
-    def __init__(self, loop: asyncio.AbstractEventLoop, wakeups: Wakeups) -> None:
+    def __init__(self, loop: asyncio.AbstractEventLoop, wakeups: Wakeups,
+                 sender: HeldSender | None = None) -> None:
         self._loop = loop
         self._wakeups = wakeups
+        self._sender = sender
         self._served: dict[int, _Served] = {}  # by id(subscription)
         self._lock = threading.Lock()
         self._closed = False
@@ -219,6 +236,17 @@ class LoopIntake:
         # again, so no wake is lost.
         with contextlib.suppress(BlockingIOError):
             os.eventfd_read(served.fd)
+        sender = self._sender
+        if sender is None:
+            self._take(served)
+            return
+        sender.hold_wakes()
+        try:
+            self._take(served)
+        finally:
+            sender.send_held()
+
+    def _take(self, served: _Served) -> None:
         sub = served.subscription
         for _ in range(MAX_TAKES_PER_ROUND):
             try:

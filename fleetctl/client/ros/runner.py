@@ -119,7 +119,7 @@ async def _serve(config: ClientConfig, context: Context) -> dict[str, Any]:
     link = RobotLink(config, on_frame=on_frame)
     loop = asyncio.get_running_loop()
     wakeups = load_wakeups()
-    intake = None if wakeups is None else LoopIntake(loop, wakeups)
+    intake = None if wakeups is None else LoopIntake(loop, wakeups, link)
     bridge = Bridge(config, codec, codec.registry.typestore, _port(link, config.status_topic),
                     status_encoder(codec, config.robot_name), context=context, intake=intake)
     executor = NodeExecutor(bridge, context)

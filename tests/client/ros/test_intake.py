@@ -281,3 +281,46 @@ async def test_a_publisher_of_another_type_is_warned_about(
         stranger.destroy_node()
         other.try_shutdown()
     assert caplog.text.count("a publisher sends std_msgs/msg/Int32") == 1  # once, not per refresh
+
+
+class RecordingSender:
+    """Records the intake's calls to the link around its takes."""
+
+    def __init__(self, log: list[str]) -> None:
+        self.log = log
+
+    def hold_wakes(self) -> None:
+        self.log.append("hold")
+
+    def send_held(self) -> None:
+        self.log.append("send")
+
+
+async def test_a_sender_is_held_around_each_take_even_when_a_callback_fails(
+        nodes: Nodes) -> None:
+    from std_msgs.msg import String
+
+    calls: list[str] = []
+    intake = LoopIntake(asyncio.get_running_loop(), wakeups(), RecordingSender(calls))
+
+    def callback(cdr: bytes) -> None:
+        calls.append("bad" if b"bad" in cdr else "msg")
+        if b"bad" in cdr:
+            raise ValueError("boom")
+
+    intake.attach(raw_subscription(nodes.node, "/held", callback))
+    pub = nodes.publisher("/held")
+    await publish_until(pub, "first", lambda: "msg" in calls)
+    pub.publish(String(data="bad"))
+    await wait_until(lambda: "bad" in calls and calls[-1] == "send", 5.0)
+    # Every take is hold ... send, with the messages (and the failing one) inside.
+    rounds = "".join({"hold": "(", "send": ")", "msg": "m", "bad": "b"}[c] for c in calls)
+    assert rounds.replace("(", "").replace(")", "").count("b") == 1
+    depth = 0
+    for ch in rounds:
+        depth += {"(": 1, ")": -1}.get(ch, 0)
+        assert 0 <= depth <= 1
+        if ch in "mb":
+            assert depth == 1, rounds
+    assert depth == 0
+    intake.close()

@@ -579,7 +579,7 @@ class RelayServer:
     async def _write_loop(
         self, connection: RelayConnection, peer: Peer, writer: ConnectionWriter
     ) -> None:
-        outbound, metrics, wake = peer.outbound, self.metrics, writer.event
+        outbound, wake = peer.outbound, writer.event
         with contextlib.suppress(ConnectionClosed):
             while True:
                 if not len(outbound):
@@ -591,10 +591,7 @@ class RelayServer:
                         writer.idle = False
                     if not len(outbound):
                         continue  # written through meanwhile
-                batch = outbound.pop_batch(WRITE_BATCH_BYTES)
-                for topic, frame in batch:
-                    metrics.count_out(topic, len(frame))
-                await connection.send_frames([frame for _, frame in batch])
+                await connection.send_frames(self._pop_counted(outbound))
                 mark = outbound.ack_mark()  # None unless the peer has a session
                 if mark is not None:
                     await self._ack_point(connection, outbound, mark)
@@ -606,17 +603,22 @@ class RelayServer:
         outbound = peer.outbound
         if peer.closing or not connection.can_write_now():
             return False
-        batch = outbound.pop_batch(WRITE_BATCH_BYTES)
-        metrics = self.metrics
-        for topic, frame in batch:
-            metrics.count_out(topic, len(frame))
+        frames = self._pop_counted(outbound)
         mark = outbound.ack_mark()  # None unless the peer has a session
         waiter = connection.write_frames_now(
-            [frame for _, frame in batch], None if mark is None else mark.to_bytes(8, "big"))
+            frames, None if mark is None else mark.to_bytes(8, "big"))
         if waiter is not None and mark is not None:
             waiter.add_done_callback(functools.partial(_on_pong, outbound, mark))
         self.write_through.written += 1
         return not len(outbound)
+
+    def _pop_counted(self, outbound: OutboundScheduler) -> list[bytes | str]:
+        """One batch of *outbound*'s frames, counted as sent (both writers' first step)."""
+        batch = outbound.pop_batch(WRITE_BATCH_BYTES)
+        metrics = self.metrics
+        for topic, frame in batch:
+            metrics.count_out(topic, len(frame))
+        return [frame for _, frame in batch]
 
     @staticmethod
     async def _ack_point(connection: RelayConnection, outbound: OutboundScheduler,

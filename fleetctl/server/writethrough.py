@@ -6,8 +6,9 @@ empty queue, the queue wakes that task; it runs in the event loop's *next* round
 whatever else is ready, and only then writes. On loopback (``benchmarks/peer_latency.py``,
 packet times read off ``lo``) that hop was 0.15-0.2 ms of the relay's 0.5 ms per message.
 
-While a connection's received bytes are being handled (:meth:`WriteThrough.collect`), wakes
-are collected instead; when the handling ends, every woken connection whose writer is idle
+While a connection's received bytes are being handled (between :meth:`WriteThrough.begin`
+and :meth:`WriteThrough.end`), wakes are collected instead; when the handling ends, every
+woken connection whose writer is idle
 and whose transport is below its write limit gets its queue written right there, one batch
 each (the same batch the task would have written: one read of many frames still costs one
 write per receiver). A connection that cannot be written at once (its writer busy or

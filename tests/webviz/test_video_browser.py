@@ -125,6 +125,10 @@ async def test_a_seq_gap_stops_decoding_and_requests_a_keyframe(
         # every unit submitted has come out of the decoder.
         await wait_js(page, f"fleetviz.conn.health.topics.get('{FULL}')?.received === {feed.pos}"
                             f" && {stat('decoded')} === {stat('submitted')}")
+        # Requests are at most one per 0.5 s across breaks (a page joining mid-stream asked
+        # for one a moment ago): wait until the gap below may ask at once.
+        gate = f"fleetviz.views.video.streams.get('{FULL}').gate"
+        await wait_js(page, f"performance.now() - {gate}.lastRequestMs >= {gate}.requestIntervalMs")
         before = await page.evaluate(STATS)
         assert before["state"] == "decoding" and before["gaps"] == 0, before
         asked = len(requested)

@@ -553,3 +553,37 @@ def test_busy_rate_averages_bursts_over_time() -> None:
     assert rate.rate() == pytest.approx(1_000_000)
     rate.clear()
     assert rate.rate() == 0.0
+
+
+def test_a_frame_sent_whole_does_not_wait_behind_a_small_one_in_flight() -> None:
+    # The e2e peer-fanout link as the robot measured it: 1.17 MB/s, 1 ms min RTT, so the
+    # window (the rate cap) is 1.17 MB/s x 5 ms = 5.85 KB, under the 7 KB a frame may be
+    # to go whole (two 3 ms budgets). A 6.4 KB scan after a pose still in flight goes at
+    # once, whole.
+    s = make(max_fragment_bytes=4 * 1024 * 1024, target_queue_delay_s=0.004)
+    link = FakeLink(s)
+    s._min_rtt.add(0.0, 0.001)
+    s._link_rate.add(0.0, 1_170_000.0)
+    s._update_limits()
+    assert s.window_bytes() < 256 + 6_400 <= s.whole_frame_bytes()
+    s.offer("/pose", b"p" * 256, 1.0, priority=2, no_drop=False)
+    assert link.drain(1.0) == [b"p" * 256]
+    s.offer("/scan", b"s" * 6_400, 1.0, priority=1, no_drop=False)
+    assert link.drain(1.0) == [b"s" * 6_400]
+    assert s.in_flight_bytes == 256 + 6_400
+
+
+def test_fragments_keep_the_window_that_whole_frames_may_exceed() -> None:
+    # Same link: a 20 KB cloud goes in 2 KiB fragments, and they stop at the 5.85 KB
+    # window, not at the whole-frame limit: an urgent message waits behind at most that.
+    s = make(max_fragment_bytes=4 * 1024 * 1024, target_queue_delay_s=0.004)
+    link = FakeLink(s)
+    s._min_rtt.add(0.0, 0.001)
+    s._link_rate.add(0.0, 1_170_000.0)
+    s._update_limits()
+    assert s.fragment_bytes() == 2048
+    s.offer("/pose", b"p" * 256, 1.0, priority=2, no_drop=False)
+    link.drain(1.0)
+    s.offer("/cloud", b"c" * 20_000, 1.0, priority=1, no_drop=False)
+    assert [tag(f) for f in link.drain(1.0)] == ["/cloud#0", "/cloud#1"]
+    assert s.in_flight_bytes <= s.window_bytes() < s.whole_frame_bytes()

@@ -555,16 +555,22 @@ def test_busy_rate_averages_bursts_over_time() -> None:
     assert rate.rate() == 0.0
 
 
+def fanout_link() -> tuple[Scheduler, FakeLink]:
+    """A scheduler on the e2e peer-fanout link as the robot measured it (1.17 MB/s, 1 ms
+    min RTT, 4 ms target: a 5.85 KB rate cap, 2 KiB fragments, 7 KB whole frames)."""
+    s = make(max_fragment_bytes=4 * 1024 * 1024, target_queue_delay_s=0.004)
+    s._min_rtt.add(0.0, 0.001)
+    s._link_rate.add(0.0, 1_170_000.0)
+    s._update_limits()
+    return s, FakeLink(s)
+
+
 def test_a_frame_sent_whole_does_not_wait_behind_a_small_one_in_flight() -> None:
     # The e2e peer-fanout link as the robot measured it: 1.17 MB/s, 1 ms min RTT, so the
     # window (the rate cap) is 1.17 MB/s x 5 ms = 5.85 KB, under the 7 KB a frame may be
     # to go whole (two 3 ms budgets). A 6.4 KB scan after a pose still in flight goes at
     # once, whole.
-    s = make(max_fragment_bytes=4 * 1024 * 1024, target_queue_delay_s=0.004)
-    link = FakeLink(s)
-    s._min_rtt.add(0.0, 0.001)
-    s._link_rate.add(0.0, 1_170_000.0)
-    s._update_limits()
+    s, link = fanout_link()
     assert s.window_bytes() < 256 + 6_400 <= s.whole_frame_bytes()
     s.offer("/pose", b"p" * 256, 1.0, priority=2, no_drop=False)
     assert link.drain(1.0) == [b"p" * 256]
@@ -576,11 +582,7 @@ def test_a_frame_sent_whole_does_not_wait_behind_a_small_one_in_flight() -> None
 def test_fragments_keep_the_window_that_whole_frames_may_exceed() -> None:
     # Same link: a 20 KB cloud goes in 2 KiB fragments, and they stop at the 5.85 KB
     # window, not at the whole-frame limit: an urgent message waits behind at most that.
-    s = make(max_fragment_bytes=4 * 1024 * 1024, target_queue_delay_s=0.004)
-    link = FakeLink(s)
-    s._min_rtt.add(0.0, 0.001)
-    s._link_rate.add(0.0, 1_170_000.0)
-    s._update_limits()
+    s, link = fanout_link()
     assert s.fragment_bytes() == 2048
     s.offer("/pose", b"p" * 256, 1.0, priority=2, no_drop=False)
     link.drain(1.0)

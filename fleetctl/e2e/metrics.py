@@ -76,6 +76,40 @@ def recovery_s(
     return math.inf
 
 
+def publish_period_ns(samples: Sequence[Sample]) -> float:
+    """A periodic topic's publish period from its samples' stamps (ns; NaN if unknown).
+
+    Per consecutive pair in sequence order, the publish-time step over the ``seq`` step, so
+    a message lost in between does not count as a longer period; the median of those.
+    """
+    ordered = sorted(samples, key=lambda s: s.seq)
+    steps = [(b.publish_time_ns - a.publish_time_ns) / (b.seq - a.seq)
+             for a, b in itertools.pairwise(ordered) if b.seq > a.seq]
+    return float(np.median(steps)) if steps else math.nan
+
+
+def recovery_limit_s(samples: Sequence[Sample], cut_start_ns: int, restore_ns: int) -> float:
+    """The soonest any stack could meet :func:`recovery_s` after this restore (seconds).
+
+    That is the topic's first publish at or after the restore, plus its pre-cut median
+    latency: a message published before the restore waited out the cut and cannot be
+    under 2x that median. The publish time comes from the topic's timer, not from what
+    was delivered (the stack under test may have lost that message): the first message
+    published after the restore that did arrive, moved back by whole periods while it
+    stays at or after the restore. NaN without samples both before the cut and after the
+    restore.
+    """
+    before = [s for s in samples if s.recv_time_ns < cut_start_ns]
+    later = [s.publish_time_ns for s in samples if s.publish_time_ns >= restore_ns]
+    period = publish_period_ns(before)
+    if not before or not later or not period > 0:
+        return math.nan
+    first = min(later)
+    earliest = first - math.floor((first - restore_ns) / period) * period
+    median_ms = float(np.median([s.latency_ms for s in before]))
+    return (earliest - restore_ns) / 1e9 + median_ms / 1e3
+
+
 @dataclass(frozen=True)
 class OrderCheck:
     """Delivery of a no_drop topic: every sequence number once, in order."""

@@ -4,11 +4,11 @@ from __future__ import annotations
 
 import math
 from collections.abc import Mapping, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any
 
 from fleetctl.e2e.analysis import crit, latency_line, status_of
-from fleetctl.e2e.metrics import LatencyStats, by_topic, recovery_s
+from fleetctl.e2e.metrics import LatencyStats, by_topic, recovery_limit_s, recovery_s
 from fleetctl.e2e.samples import Sample
 
 RECOVERY_BAR_S = 0.1  # issue 19: every trial back within 0.1 s
@@ -46,16 +46,27 @@ class Trial:
         recovery_s: Per topic, seconds from the restore until latency is back.
         first_s: Seconds from the restore to the first message received after it.
         stale: Messages received after the restore that were published before it.
+        limit_s: Per topic, the soonest any stack could have recovered
+            (:func:`fleetctl.e2e.metrics.recovery_limit_s`: the topic's next publish after
+            the restore plus its floor). A 10 Hz topic's is anywhere in 0-0.1 s.
     """
 
     recovery_s: Mapping[str, float]
     first_s: float
     stale: int
+    limit_s: Mapping[str, float] = field(default_factory=dict)
 
     @property
     def worst_s(self) -> float:
         """The slowest topic's recovery."""
         return max(self.recovery_s.values()) if self.recovery_s else math.inf
+
+    @property
+    def past_limit_s(self) -> float:
+        """The stack's own share: the worst topic's recovery beyond its limit (NaN when
+        a limit is unknown)."""
+        gaps = [r - self.limit_s.get(t, math.nan) for t, r in self.recovery_s.items()]
+        return max(gaps) if gaps and not any(math.isnan(g) for g in gaps) else math.nan
 
 
 def trials_of(run: VariantRun, topics: Sequence[str]) -> list[Trial]:
@@ -70,10 +81,11 @@ def trials_of(run: VariantRun, topics: Sequence[str]) -> list[Trial]:
         window = [s for s in run.samples if start <= s.recv_time_ns < end]
         grouped = by_topic([*steady, *(s for s in window if s.recv_time_ns >= cut)])
         rec = {t: recovery_s(grouped.get(t, []), cut, restore) for t in topics}
+        limit = {t: recovery_limit_s(grouped.get(t, []), cut, restore) for t in topics}
         after = [s for s in window if s.recv_time_ns >= restore]
         first = (min(s.recv_time_ns for s in after) - restore) / 1e9 if after else math.inf
         stale = sum(1 for s in after if s.publish_time_ns < restore)
-        out.append(Trial(rec, first, stale))
+        out.append(Trial(rec, first, stale, limit))
         start = end
     return out
 
@@ -113,11 +125,13 @@ def peer(runs: Mapping[str, VariantRun], topics: Sequence[str]) -> dict[str, Any
         cuts = [(rs - c) / 1e9 for c, rs, _ in runs[v].trials]
         per = "; ".join(
             f"trial {i + 1} (cut {cut:.1f} s): " + ", ".join(
-                f"{t.rsplit('/', 1)[-1]} {x:.3f}" for t, x in tr.recovery_s.items())
+                f"{t.rsplit('/', 1)[-1]} {x:.3f} (limit {tr.limit_s.get(t, math.nan):.3f})"
+                for t, x in tr.recovery_s.items())
             + f" s, first message {tr.first_s:.3f} s, stale {tr.stale}"
             for i, (tr, cut) in enumerate(zip(ts, cuts, strict=False)))
         notes.append(f"{v}: uplink {runs[v].uplink_bit_s / 1e6:.3f} Mbit/s, latency floor "
                      f"p50 {floors[v]:.2f} ms; {per}")
+    notes.append(limit_note(trials))
     notes.append(bytes_note(runs))
     plots = []
     for v, r in runs.items():
@@ -132,9 +146,27 @@ def peer(runs: Mapping[str, VariantRun], topics: Sequence[str]) -> dict[str, Any
     return {"name": "peer", "status": status_of(criteria), "criteria": criteria,
             "notes": notes, "plots": plots,
             "trials": {v: [{"recovery_s": dict(t.recovery_s), "first_s": t.first_s,
-                            "stale": t.stale} for t in ts] for v, ts in trials.items()},
+                            "stale": t.stale, "limit_s": dict(t.limit_s),
+                            "past_limit_s": t.past_limit_s} for t in ts]
+                       for v, ts in trials.items()},
             "floor_p50_ms": floors,
             "uplink_bit_s": {v: r.uplink_bit_s for v, r in runs.items()}}
+
+
+def limit_note(trials: Mapping[str, Sequence[Trial]]) -> str:
+    """Each variant's recovery beyond the physical limit, per trial: what is left when the
+    wait for the topic's next publish (a phase no stack controls) is taken out."""
+    parts = []
+    for v, ts in trials.items():
+        gaps = [t.past_limit_s for t in ts]
+        known = sorted(g for g in gaps if not math.isnan(g))
+        if not known:
+            continue
+        parts.append(f"{v} {known[0]:.3f}-{known[-1]:.3f} s (median "
+                     f"{known[len(known) // 2]:.3f}; per trial "
+                     + ", ".join("?" if math.isnan(g) else f"{g:.3f}" for g in gaps) + ")")
+    return ("recovery past the physical limit (the worst topic's recovery minus its next "
+            "publish after the restore and its floor): " + ("; ".join(parts) or "unknown"))
 
 
 def mean_bytes(samples: Sequence[Sample]) -> dict[str, float]:

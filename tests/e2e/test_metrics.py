@@ -12,6 +12,8 @@ from fleetctl.e2e import report, samples
 from fleetctl.e2e.metrics import (
     LatencyStats,
     check_order,
+    publish_period_ns,
+    recovery_limit_s,
     recovery_s,
     throughput_bit_s,
 )
@@ -55,6 +57,34 @@ def test_isolated_spikes_like_before_the_cut_do_not_delay_recovery() -> None:
     run = _run([12.0, 12.0, 900.0] + [12.0] * 30)
     assert recovery_s(run, 5 * S, 10 * S) == pytest.approx(0.0)
     assert math.isinf(recovery_s([], 5 * S, 10 * S))
+
+
+def _timer(phase_s: float, lost: set[int]) -> list[Sample]:
+    """A 10 Hz topic published at phase_s + k/10 with 3 ms latency, cut 5-10 s; the
+    messages numbered in *lost* never arrive."""
+    out = []
+    for seq in range(150):
+        pub = phase_s + seq / 10
+        if 5 <= pub < 10 or seq in lost:
+            continue
+        out.append(Sample("/r/scan", seq, int(pub * S), int(pub * S) + 3_000_000, 100))
+    return out
+
+
+def test_the_period_comes_from_the_stamps_whatever_was_lost() -> None:
+    assert publish_period_ns(_timer(0.0, {3, 4, 20})) == pytest.approx(0.1 * S)
+    assert math.isnan(publish_period_ns(_timer(0.0, set())[:1]))
+
+
+def test_the_recovery_limit_is_the_next_publish_after_the_restore_plus_the_floor() -> None:
+    # Published at x.03: the first publish after the restore at 10 s is 10.03 s.
+    assert recovery_limit_s(_timer(0.03, set()), 5 * S, 10 * S) == pytest.approx(0.033)
+    # The stack lost the first three after the restore: the timer still says 10.03 s.
+    lost = {100, 101, 102}
+    assert recovery_limit_s(_timer(0.03, lost), 5 * S, 10 * S) == pytest.approx(0.033)
+    # Published at x.09: 90 ms to wait whatever the stack does.
+    assert recovery_limit_s(_timer(0.09, set()), 5 * S, 10 * S) == pytest.approx(0.093)
+    assert math.isnan(recovery_limit_s(_timer(0.0, set())[:40], 5 * S, 10 * S))
 
 
 def test_order_check_counts_missing_duplicates_inversions() -> None:

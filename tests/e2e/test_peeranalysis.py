@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import math
 
+import pytest
+
 from fleetctl.e2e import peeranalysis
 from fleetctl.e2e.samples import Sample
 
@@ -70,3 +72,18 @@ def test_trial_cuts_short_and_full_length() -> None:
     assert trial_cuts(6) == (5.0, 0.5, 5.0)
     full = trial_cuts(30)
     assert full.count(5.0) >= 10 and 0.5 in full and 30.0 in full
+
+
+def test_each_trial_knows_its_limit_and_the_stack_s_share_past_it() -> None:
+    # 20 Hz from t=0: the next publish after each restore (15 s, 26 s) is at once; the
+    # stream is back 0.08 s after it with 2 ms latency.
+    t1 = peeranalysis.trials_of(_run(0.08), ["/r/pose"])[0]
+    assert t1.limit_s["/r/pose"] == pytest.approx(0.002, abs=1e-6)
+    assert 0.078 <= t1.past_limit_s <= 0.14
+    runs = {"fleetctl": _run(0.02), "zenoh-best": _run(0.4)}  # back at 15.05 and 15.4 s
+    result = peeranalysis.peer(runs, ["/r/pose"])
+    note = next(n for n in result["notes"] if n.startswith("recovery past the physical limit"))
+    assert "fleetctl 0.050-0.050 s" in note and "zenoh-best 0.400-0.400 s" in note
+    assert result["trials"]["fleetctl"][0]["limit_s"] == {"/r/pose": t1.limit_s["/r/pose"]}
+    no_limit = peeranalysis.Trial({"/r/pose": 0.1}, 0.1, 0)
+    assert math.isnan(no_limit.past_limit_s)

@@ -12,7 +12,9 @@ publish time) goes, one stack after the other:
 
 - **fleetctl**: ``fleetctl client`` (a real process: rclpy raw subscription, encode, link)
   -> ``fleetctl server`` (:class:`fleetctl.server.app.RelayServer`, real process) -> a
-  WebSocket consumer in this process, which also reads each frame's metadata
+  WebSocket consumer in this process that takes each frame in the read that brought it, as
+  the e2e consumer does (:mod:`fleetctl.frame_sink`; ``--recv-consumer`` adds a run whose
+  consumer reads with ``async for`` instead, the e2e consumer's way before 2026-11-29). It also reads each frame's metadata
   ``publish_time_ns`` (when the client took the message from ROS) to split the path into
   *ROS -> client* (DDS, rclpy, the hop onto the client's loop) and *client -> consumer*
   (encode, schedule, send, relay, receive);
@@ -107,10 +109,15 @@ def _fleetctl_files(work: Path, port: int) -> tuple[Path, Path]:
     return server, client
 
 
-async def _fleetctl_consumer(port: int, seconds: float) -> dict[str, list[tuple[float, ...]]]:
+async def _fleetctl_consumer(port: int, seconds: float,
+                             sink: bool) -> dict[str, list[tuple[float, ...]]]:
     from websockets.asyncio.client import connect
 
-    from fleetctl.e2e.consumer import REASSEMBLY_MAX_BYTES, REASSEMBLY_TIMEOUT_S
+    from fleetctl.e2e.consumer import (
+        REASSEMBLY_MAX_BYTES,
+        REASSEMBLY_TIMEOUT_S,
+        ConsumerConnection,
+    )
     from fleetctl.wire.codec import default_codec
     from fleetctl.wire.control import encode_subscription
     from fleetctl.wire.fragments import Reassembler
@@ -124,23 +131,35 @@ async def _fleetctl_consumer(port: int, seconds: float) -> dict[str, list[tuple[
     while True:
         try:
             ws = await connect(f"ws://127.0.0.1:{port}/", max_size=None,
-                               additional_headers={"Authorization": f"Bearer {VIEWER_TOKEN}"})
+                               additional_headers={"Authorization": f"Bearer {VIEWER_TOKEN}"},
+                               create_connection=ConsumerConnection)
             break
         except OSError:
             if time.monotonic() > deadline:
                 raise
             await asyncio.sleep(0.1)  # polling the server's start, bounded by the deadline
+    assert isinstance(ws, ConsumerConnection)
     async with ws:
         await ws.send(encode_subscription("/robot1/.*"))
         start = time.monotonic()
         measure_from = start + WARMUP_S
         end = measure_from + seconds
+
+        def in_read(frame: bytes) -> bool:  # the e2e consumer's way (fleetctl.frame_sink)
+            now = time.time_ns()
+            if time.monotonic() < end:
+                _record(frame, now, measure_from, codec, reassembler, out)
+            return True
+
+        if sink:
+            ws.frame_sink = in_read
         # One deadline for the whole window, not a wait_for per frame: that would add a task
         # and a timer to every receive, which the e2e consumer (``async for``) does not pay.
         with contextlib.suppress(TimeoutError):  # the window ended while no frame came
             async with asyncio.timeout(end - start):
                 async for frame in ws:
                     now = time.time_ns()
+                    ws.message_handled()
                     if time.monotonic() >= end:
                         break
                     _record(frame, now, measure_from, codec, reassembler, out)
@@ -173,7 +192,8 @@ def _record(frame: str | bytes, now: int, measure_from: float, codec: Any, reass
         (now - meta.publish_time_ns) / 1e6))
 
 
-def run_fleetctl(work: Path, env: dict[str, str], seconds: float) -> dict[str, Any]:
+def run_fleetctl(work: Path, env: dict[str, str], seconds: float,
+                 sink: bool = True) -> dict[str, Any]:
     port = _free_port()
     server_cfg, client_cfg = _fleetctl_files(work, port)
     fleetctl = str(Path(PY).parent / "fleetctl")
@@ -183,7 +203,7 @@ def run_fleetctl(work: Path, env: dict[str, str], seconds: float) -> dict[str, A
         _start([PY, "-m", "fleetctl.e2e.load", "--profile", "peer"], env, work / "load.log"),
     ]
     try:
-        got = asyncio.run(_fleetctl_consumer(port, seconds))
+        got = asyncio.run(_fleetctl_consumer(port, seconds, sink))
     finally:
         _stop(procs)
     return {topic: {"total": _stats([r[0] for r in rows]),
@@ -241,6 +261,9 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--seconds", type=float, default=15.0)
     parser.add_argument("--json", type=Path)
+    parser.add_argument("--recv-consumer", action="store_true",
+                        help="also run fleetctl with a consumer that reads with recv() "
+                             "(async for) instead of in the read (fleetctl.frame_sink)")
     args = parser.parse_args()
     signal.signal(signal.SIGTERM, lambda *_: sys.exit(128 + signal.SIGTERM))
     env = {**os.environ, "PYTHONPATH": str(HERE.parent),
@@ -250,6 +273,8 @@ def main() -> None:
     with tempfile.TemporaryDirectory() as tmp:
         work = Path(tmp)
         results["fleetctl"] = run_fleetctl(work, env, args.seconds)
+        if args.recv_consumer:
+            results["fleetctl-recv"] = run_fleetctl(work, env, args.seconds, sink=False)
         for settings in ("default", "best"):
             results[f"zenoh-{settings}"] = run_zenoh(work, env, args.seconds, settings)
     print(f"loopback, {args.seconds:g} s after {WARMUP_S:g} s warm-up; latency = consumer "
@@ -261,9 +286,10 @@ def main() -> None:
             print(f"  {stack:14s} {topic:16s} {st['n']:5d} {st['p50_ms']:8.3f} "
                   f"{st['p99_ms']:8.3f}")
     print("  fleetctl split (p50 ms): ROS -> client intake | client intake -> consumer")
-    for topic, parts in results["fleetctl"].items():
-        print(f"    {topic:16s} {parts['ros_to_client']['p50_ms']:8.3f} | "
-              f"{parts['client_to_consumer']['p50_ms']:8.3f}")
+    for stack in ("fleetctl", "fleetctl-recv"):
+        for topic, parts in results.get(stack, {}).items():
+            print(f"    {stack:14s} {topic:16s} {parts['ros_to_client']['p50_ms']:8.3f} | "
+                  f"{parts['client_to_consumer']['p50_ms']:8.3f}")
     if args.json:
         args.json.write_text(json.dumps(results, indent=2))
 

@@ -73,6 +73,7 @@ from fleetctl.client.memory import tune_malloc
 from fleetctl.client.receiver import Receiver
 from fleetctl.client.scheduler import Scheduler, SchedulerConfig, TopicFeedback
 from fleetctl.client.wakeup import Wakeup
+from fleetctl.frame_sink import FrameSink
 from fleetctl.linkdeflate import DEFAULT_MAX_MESSAGE_BYTES, RobotDeflateFactory
 from fleetctl.wire.control import encode_subscription
 
@@ -341,13 +342,16 @@ class _Ended:
     ready: Dialed | None = None
 
 
-class LinkConnection(BatchedWritesConnection, ClientConnection):
-    """Client connection that writes a batch of binary frames in one transport write.
+class LinkConnection(FrameSink, BatchedWritesConnection, ClientConnection):
+    """Client connection that writes a batch of binary frames in one transport write and
+    takes complete binary frames in the read that brought them.
 
     ``send()`` costs a flow-control round through the event loop per frame; fragments
     make frames small and many, so the link hands the transport a batch instead (see
     :class:`~fleetctl.batched_connection.BatchedWritesConnection`, which the server's
-    ``RelayConnection`` shares).
+    ``RelayConnection`` shares). Received binary frames go to the receiver from
+    ``data_received`` (:class:`~fleetctl.frame_sink.FrameSink`), a loop round sooner than
+    through ``recv()``.
     """
 
 
@@ -776,6 +780,7 @@ class RobotLink:
         logger.info("connected to %s", self.url)
         tasks: list[asyncio.Task[None]] = []
         ended = _Ended(acked=False)
+        ws.frame_sink = self._sink
         try:
             await self._subscribe_all(ws, subscribe=True)
             tasks = [asyncio.create_task(self._send_loop(ws)),
@@ -798,6 +803,7 @@ class RobotLink:
         except ConnectionClosed as exc:
             self._log_session_end(exc)
         finally:
+            ws.frame_sink = None  # what the old connection still reads is not delivered
             for task in tasks:
                 task.cancel()
             await asyncio.gather(*tasks, return_exceptions=True)
@@ -1034,13 +1040,22 @@ class RobotLink:
 
     # -- receiving ------------------------------------------------------------------------
 
-    async def _receive_loop(self, ws: ClientConnection) -> None:
+    def _sink(self, frame: bytes) -> bool:
+        """A binary frame, in the read that brought it (``LinkConnection.frame_sink``)."""
+        self._receiver.on_binary(frame)
+        return True
+
+    async def _receive_loop(self, ws: LinkConnection) -> None:
+        """Text frames, and binary frames that queued behind one (the sink takes the rest)."""
         async for message in ws:
             if isinstance(message, str):
-                for stale in self._on_text(message):
+                stale_patterns = self._on_text(message)
+                ws.message_handled()
+                for stale in stale_patterns:
                     await ws.send(encode_subscription(stale, False))
             else:
                 self._receiver.on_binary(message)
+                ws.message_handled()
 
     def _on_text(self, text: str) -> list[str]:
         """Handle a server text frame; return subscriptions to drop (stale in the session)."""

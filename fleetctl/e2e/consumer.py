@@ -51,6 +51,7 @@ from fleetctl.e2e.payloads import read_stamp
 from fleetctl.e2e.samples import Sample, dump
 from fleetctl.e2e.videoview import VideoViewer
 from fleetctl.errors import FleetError
+from fleetctl.frame_sink import FrameSink
 from fleetctl.wire.codec import default_codec
 from fleetctl.wire.control import encode_keyframe_request, encode_subscription
 from fleetctl.wire.errors import WireError
@@ -134,10 +135,17 @@ class Recorder:
         return True
 
 
-async def _subscribe(ws: ClientConnection, regex: str) -> None:
+class ConsumerConnection(FrameSink, ClientConnection):
+    """The consumer's connection: binary frames are recorded in the read that brought them
+    (:mod:`fleetctl.frame_sink`, as fleetctl's client receives), the receipt time taken
+    there, as the zenoh consumer takes it in zenoh's callback."""
+
+
+async def _subscribe(ws: ConsumerConnection, regex: str) -> None:
     await ws.send(encode_subscription(regex))
     while True:
         msg = await ws.recv()
+        ws.message_handled()
         if isinstance(msg, str):
             event = json.loads(msg)
             if event.get("type") == "subscribed":
@@ -182,7 +190,7 @@ async def consume(urls: list[str], token: str, regex: str, name: str, out_dir: P
         headers[SESSION_HEADER] = session
     failover = len(urls) > 1 or session is not None
     requests = itertools.count(1)
-    current: list[ClientConnection] = []
+    current: list[ConsumerConnection] = []
 
     def request(topic: str) -> None:  # from the viewer's thread
         frame = encode_keyframe_request(topic, publish_time_ns=time.time_ns(),
@@ -193,6 +201,11 @@ async def consume(urls: list[str], token: str, regex: str, name: str, out_dir: P
 
     with (out_dir / f"{name}.jsonl").open("a", buffering=1) as out:
         recorder = Recorder(name, out)
+
+        def sink(frame: bytes) -> bool:  # in data_received, on the loop thread
+            recorder.feed(frame, time.time_ns())
+            return True
+
         recorder.viewer = VideoViewer(recorder.write, request)
         try:
             for attempt in itertools.count():
@@ -203,16 +216,20 @@ async def consume(urls: list[str], token: str, regex: str, name: str, out_dir: P
                     async with connect(url, additional_headers=headers,
                                        max_size=MAX_FRAME_BYTES, max_queue=None,
                                        open_timeout=SUBSCRIBE_TIMEOUT_S,
+                                       create_connection=ConsumerConnection,
                                        **tls.kwargs(url)) as ws:
+                        assert isinstance(ws, ConsumerConnection)
                         current.append(ws)
+                        ws.frame_sink = sink
                         await asyncio.wait_for(_subscribe(ws, regex), SUBSCRIBE_TIMEOUT_S)
                         (out_dir / f"{name}.ready").write_text("ok")
                         if attempt:
                             print(f"e2e consumer {name}: reconnected to {url}",
                                   file=sys.stderr)
-                        async for frame in ws:
+                        async for frame in ws:  # frames that queued behind a text one
                             if isinstance(frame, bytes):
                                 recorder.feed(frame, time.time_ns())
+                            ws.message_handled()
                 except (OSError, TimeoutError, ConnectionClosed):
                     if not failover:
                         raise

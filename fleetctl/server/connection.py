@@ -3,9 +3,10 @@
 Two departures from :class:`websockets.asyncio.server.ServerConnection`, both for the
 hot path:
 
-- complete binary frames go straight from ``data_received`` to :attr:`frame_sink`
-  (synchronously, no queue, no task switch). Text frames, fragmented messages, pings and
-  close frames take the normal path (``recv()`` / the protocol).
+- complete binary frames go straight from ``data_received`` to ``frame_sink``
+  (synchronously, no queue, no task switch; :class:`~fleetctl.frame_sink.FrameSink`,
+  shared with the client). Text frames, fragmented messages, pings and close frames take
+  the normal path (``recv()`` / the protocol).
 - ``send_frames`` serializes a batch of frames and hands the transport one buffer,
   instead of one ``write()`` (often one syscall) per frame (from
   :class:`~fleetctl.batched_connection.BatchedWritesConnection`, shared with the client).
@@ -31,14 +32,13 @@ from collections.abc import Callable
 from typing import Any
 
 from websockets.asyncio.server import ServerConnection
-from websockets.frames import Frame, Opcode
 
 from fleetctl.batched_connection import BatchedWritesConnection
+from fleetctl.frame_sink import FrameSink
 from fleetctl.server.admission import UnauthenticatedGate
 from fleetctl.server.heldpongs import HeldPongs
 from fleetctl.server.writethrough import WriteThrough
 
-_DATA = (Opcode.TEXT, Opcode.BINARY, Opcode.CONT)
 # Why 8 KiB: before authentication a client may send only its token frame (at most 4096
 # characters of JSON); frames or fragmented messages past this close with 1009.
 PRE_AUTH_MAX_FRAME_BYTES = 8 * 1024
@@ -54,7 +54,7 @@ THROTTLED_READ_BYTES = 4096  # a peer that does not read our close frame is cut 
 _LOG_EVERY = 1000  # refusals are logged first, then every 1000th (counted in metrics)
 
 
-class RelayConnection(BatchedWritesConnection, ServerConnection):
+class RelayConnection(FrameSink, BatchedWritesConnection, ServerConnection):
     """Server connection with a synchronous binary-frame sink and batched writes."""
 
     def __init__(self, *args: Any, gate: UnauthenticatedGate | None = None,
@@ -63,50 +63,18 @@ class RelayConnection(BatchedWritesConnection, ServerConnection):
         self._gate = gate
         self._slot: str | None = None  # address holding an unauthenticated slot
         self._strikes = 0  # throttles in a row (see throttle)
-        self.frame_sink: Callable[[bytes], bool] | None = None
         self.on_lost: Callable[[], None] | None = None
         self.relay_state: Any = None
         self.relay_request: Any = None  # from process_request to process_response
-        self._fragmenting = False
-        # Messages handed to the recv() path and not yet marked handled by the reader
-        # (message_handled). While any is pending, binary frames queue behind them too,
-        # so frames are handled in arrival order whichever path they take.
-        self.pending_messages = 0
         # A cluster: pongs wait until the no_drop frames before their ping are stored.
         self.held_pongs: HeldPongs | None = None
         # Frames relayed while this connection's bytes are handled are written at the end
         # of that handling (fleetctl.server.writethrough).
         self.write_through: WriteThrough | None = None
 
-    def process_event(self, event: Any) -> None:
-        """Route complete binary frames to :attr:`frame_sink`, the rest as usual.
-
-        The sink returns ``False`` to decline a frame (e.g. before authentication); the
-        frame then takes the ``recv()`` path.
-        """
-        sink = self.frame_sink
-        if sink is not None and isinstance(event, Frame):
-            opcode = event.opcode
-            if (
-                opcode is Opcode.BINARY
-                and event.fin
-                and not self._fragmenting
-                and not self.pending_messages
-            ):
-                data = event.data
-                if sink(data if isinstance(data, bytes) else bytes(data)):
-                    return
-            if opcode is Opcode.TEXT or opcode is Opcode.BINARY:
-                self._fragmenting = not event.fin
-            elif opcode is Opcode.CONT and event.fin:
-                self._fragmenting = False
-            if event.fin and opcode in _DATA:
-                self.pending_messages += 1
-        super().process_event(event)
-
     def message_handled(self) -> None:
-        """Mark one message from ``recv()`` as handled (see :attr:`pending_messages`)."""
-        self.pending_messages = max(0, self.pending_messages - 1)
+        """Mark one message from ``recv()`` as handled; pongs held behind it may go."""
+        super().message_handled()
         if not self.pending_messages and self.held_pongs is not None:
             self.held_pongs.settle()
 

@@ -9,7 +9,7 @@ from pathlib import Path
 import pytest
 
 from fleetctl.client.scheduler import SchedulerConfig
-from fleetctl.client.transport import LinkTuning, RobotLink, backoff_delay_s
+from fleetctl.client.transport import LinkConnection, LinkTuning, RobotLink, backoff_delay_s
 from fleetctl.server.app import RelayServer
 from fleetctl.wire.fragments import split
 from tests.client.conftest import (
@@ -70,6 +70,41 @@ async def test_robot_receives_commands_reassembled_and_subscribes(
         await wait_until(lambda: len(received) == 2)
         assert [decode_text(f) for f in received] == ["go", "y" * 100_000]
         assert link.stats()["received"]["reassembly"]["completed"] == 1
+
+
+async def test_commands_reach_on_frame_in_the_read_that_brought_them(
+    server: RelayServer, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    # A binary frame is delivered from LinkConnection.data_received (fleetctl.frame_sink),
+    # not a loop round later from the receive task; order with text frames is kept.
+    reading = [False]
+    real = LinkConnection.data_received
+
+    def data_received(self: LinkConnection, data: bytes) -> None:
+        reading[0] = True
+        try:
+            real(self, data)
+        finally:
+            reading[0] = False
+
+    monkeypatch.setattr(LinkConnection, "data_received", data_received)
+    in_read: list[bool] = []
+    received: list[bytes] = []
+
+    def on_frame(frame: bytes) -> None:
+        in_read.append(reading[0])
+        received.append(frame)
+
+    cfg = robot_config(server.url, tmp_path)
+    async with Consumer.open(server.url) as operator, running(
+        RobotLink(cfg, on_frame=on_frame, tuning=FAST)
+    ) as link:
+        await wait_until(lambda: link.stats()["subscribed"] == ["/r1/cmd.*"])
+        for i in range(20):
+            await operator.ws.send(string_frame("/r1/cmd", f"c{i}", no_drop=True, seq=i + 1))
+        await wait_until(lambda: len(received) == 20)
+        assert [decode_text(f) for f in received] == [f"c{i}" for i in range(20)]
+        assert all(in_read)
 
 
 async def test_duplicate_no_drop_frames_are_dropped_on_receive(

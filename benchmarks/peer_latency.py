@@ -14,10 +14,10 @@ publish time) goes, one stack after the other:
   -> ``fleetctl server`` (:class:`fleetctl.server.app.RelayServer`, real process) -> a
   WebSocket consumer in this process that takes each frame in the read that brought it, as
   the e2e consumer does (:mod:`fleetctl.frame_sink`; ``--recv-consumer`` adds a run whose
-  consumer reads with ``async for`` instead, the e2e consumer's way before 2026-11-29). It also reads each frame's metadata
-  ``publish_time_ns`` (when the client took the message from ROS) to split the path into
-  *ROS -> client* (DDS, rclpy, the hop onto the client's loop) and *client -> consumer*
-  (encode, schedule, send, relay, receive);
+  consumer reads with ``async for`` instead, the e2e consumer's way before 2026-11-29). It
+  also reads each frame's metadata ``publish_time_ns`` (when the client took the message
+  from ROS) to split the path into *ROS -> client* (DDS, rclpy, the hop onto the client's
+  loop) and *client -> consumer* (encode, schedule, send, relay, receive);
 - **zenoh-default** and **zenoh-best**: the e2e zenoh bridge -> zenoh router -> zenoh
   consumer (:mod:`fleetctl.e2e.zenohpeer`, same settings as the e2e ``peer`` scenario).
 

@@ -3,7 +3,7 @@
 websockets' asyncio connection puts every received message in a queue; a task awaiting
 ``recv()`` (or ``async for``) takes it in the event loop's next round. For a relay or a
 receiver of telemetry that round is most of the cost of a small message: on loopback it
-put 0.05-0.1 ms on each delivery (docs/benchmarks.md). A :class:`FrameSink` connection
+put 0.08-0.2 ms on each delivery (docs/benchmarks.md). A :class:`FrameSink` connection
 gives each complete, unfragmented binary frame to :attr:`FrameSink.frame_sink` from
 ``data_received`` instead, synchronously. Text frames, fragmented messages, pings and the
 close frame take websockets' normal path.

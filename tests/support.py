@@ -38,6 +38,24 @@ def decode_text(frame: bytes) -> str:
     return str(msg.data)
 
 
+def watch_reads(monkeypatch: Any,
+                connection_class: type[asyncio.Protocol]) -> Callable[[], bool]:
+    """Wrap *connection_class*'s ``data_received``; the returned callable says whether the
+    caller runs inside one (a frame handed over in the read that brought it)."""
+    reading = [False]
+    real = connection_class.data_received
+
+    def data_received(self: Any, data: bytes) -> None:
+        reading[0] = True
+        try:
+            real(self, data)
+        finally:
+            reading[0] = False
+
+    monkeypatch.setattr(connection_class, "data_received", data_received)
+    return lambda: reading[0]
+
+
 async def wait_until(predicate: Callable[[], bool], timeout_s: float) -> None:
     """Poll *predicate* (every 5 ms) on the event loop until true; fail after *timeout_s*."""
     deadline = time.monotonic() + timeout_s

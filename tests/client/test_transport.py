@@ -21,7 +21,7 @@ from tests.client.conftest import (
     running,
     wait_until,
 )
-from tests.support import decode_text, string_frame
+from tests.support import decode_text, string_frame, watch_reads
 
 FAST = LinkTuning(keepalive_interval_s=0.1, link_timeout_s=0.6, open_timeout_s=1.0)
 
@@ -77,22 +77,12 @@ async def test_commands_reach_on_frame_in_the_read_that_brought_them(
 ) -> None:
     # A binary frame is delivered from LinkConnection.data_received (fleetctl.frame_sink),
     # not a loop round later from the receive task; order with text frames is kept.
-    reading = [False]
-    real = LinkConnection.data_received
-
-    def data_received(self: LinkConnection, data: bytes) -> None:
-        reading[0] = True
-        try:
-            real(self, data)
-        finally:
-            reading[0] = False
-
-    monkeypatch.setattr(LinkConnection, "data_received", data_received)
+    reading = watch_reads(monkeypatch, LinkConnection)
     in_read: list[bool] = []
     received: list[bytes] = []
 
     def on_frame(frame: bytes) -> None:
-        in_read.append(reading[0])
+        in_read.append(reading())
         received.append(frame)
 
     cfg = robot_config(server.url, tmp_path)

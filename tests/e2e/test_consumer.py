@@ -4,7 +4,6 @@ receipt time taken in the read (fleetctl.frame_sink)."""
 from __future__ import annotations
 
 import asyncio
-import hashlib
 import time
 from pathlib import Path
 
@@ -13,61 +12,41 @@ from websockets.asyncio.client import connect
 
 from fleetctl.e2e import consumer, payloads
 from fleetctl.e2e.samples import load
-from fleetctl.server.app import RelayServer
-from fleetctl.server.authmap import parse_auth_map
-from fleetctl.server.config import ServerConfig
 from fleetctl.wire.codec import default_codec
-from tests.support import wait_until
+from tests.client.conftest import OPERATOR_TOKEN, ROBOT_TOKEN, make_server
+from tests.support import wait_until, watch_reads
 
-TOKEN = "consumer-test-token"
 POSE = "geometry_msgs/msg/PoseStamped"
-
-
-def _server(tmp_path: Path) -> RelayServer:
-    auth = parse_auth_map({"version": 1, "identities": [
-        {"name": "all", "token_sha256": hashlib.sha256(TOKEN.encode()).hexdigest(),
-         "rules": [{"topic": ".*", "op": "both"}]}]}, tmp_path / "auth.yaml")
-    config = ServerConfig(listen_host="127.0.0.1", listen_port=0,
-                          auth_map=tmp_path / "auth.yaml", database=tmp_path / "fleet.db")
-    return RelayServer(config, auth)
 
 
 def test_the_consumer_records_every_frame_once_in_order(tmp_path: Path,
                                                        monkeypatch: pytest.MonkeyPatch) -> None:
     # Watch where frames are recorded: inside the connection's data_received (the sink)
     # or later, from the reader's recv() path.
-    reading = [False]
+    reading = watch_reads(monkeypatch, consumer.ConsumerConnection)
     in_read: list[bool] = []
-    real_read, real_feed = consumer.ConsumerConnection.data_received, consumer.Recorder.feed
-
-    def data_received(self: consumer.ConsumerConnection, data: bytes) -> None:
-        reading[0] = True
-        try:
-            real_read(self, data)
-        finally:
-            reading[0] = False
+    real_feed = consumer.Recorder.feed
 
     def feed(self: consumer.Recorder, frame: bytes, recv_time_ns: int) -> object:
-        in_read.append(reading[0])
+        in_read.append(reading())
         return real_feed(self, frame, recv_time_ns)
 
-    monkeypatch.setattr(consumer.ConsumerConnection, "data_received", data_received)
     monkeypatch.setattr(consumer.Recorder, "feed", feed)
     codec = default_codec()
     ts = codec.registry.typestore
     count = 200
 
     async def main() -> None:
-        async with _server(tmp_path) as srv:
+        async with make_server(tmp_path) as srv:
             url = f"ws://127.0.0.1:{srv.port}/"
             task = asyncio.create_task(consumer.consume(
-                [url], TOKEN, "/robot1/.*", "c0", tmp_path))
+                [url], OPERATOR_TOKEN, "/r1/.*", "c0", tmp_path))
             await wait_until(lambda: (tmp_path / "c0.ready").exists(), 10.0)
-            async with connect(url, additional_headers={"Authorization": f"Bearer {TOKEN}"},
+            async with connect(url, additional_headers={"Authorization": f"Bearer {ROBOT_TOKEN}"},
                                compression=None) as robot:
                 for seq in range(1, count + 1):
                     msg = payloads.build(ts, POSE, 0, seq, time.time_ns())
-                    await robot.send(codec.encode(msg, POSE, "/robot1/pose", no_drop=True,
+                    await robot.send(codec.encode(msg, POSE, "/r1/pose", no_drop=True,
                                                   seq=seq))
                     if seq % 50 == 0:  # some frames alone in a read, some many in one
                         await asyncio.sleep(0.01)
@@ -83,5 +62,5 @@ def test_the_consumer_records_every_frame_once_in_order(tmp_path: Path,
     samples = list(load((tmp_path / "c0.jsonl").read_text()))
     assert len(in_read) == count and all(in_read)
     assert [s.seq for s in samples] == list(range(1, count + 1))
-    assert all(s.topic == "/robot1/pose" and s.consumer == "c0" for s in samples)
+    assert all(s.topic == "/r1/pose" and s.consumer == "c0" for s in samples)
     assert all(0 <= s.latency_ms < 5000 for s in samples)

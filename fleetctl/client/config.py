@@ -63,7 +63,7 @@ _LIMIT_KEYS = frozenset({"max_fragment_bytes", "no_drop_queue_messages", "reconn
                          "reconnect_max_s", "scheduler", "outage_dial_interval_s"})
 # The outage dial pace's range: below 10 ms the SYNs sent while down (100/s at 10 ms, ~7 KB/s
 # raw) cost more than the few milliseconds they save; above 0.25 s it is the slow pace.
-OUTAGE_DIAL_INTERVAL_RANGE_S = (0.01, 0.25)
+OUTAGE_DIAL_INTERVAL_RANGE_S = (0.005, 0.25)
 # adaptive: fragments sized to the link, window from RTT and delivery rate (the default).
 # robofleet: the paper's behaviour (whole frames, one frame in flight), for comparison runs.
 SCHEDULERS = ("adaptive", "robofleet")
@@ -160,7 +160,7 @@ class ClientLimits:
     reconnect_min_s: float = 0.1
     reconnect_max_s: float = 5.0
     scheduler: str = "adaptive"
-    outage_dial_interval_s: float = 0.04
+    outage_dial_interval_s: float = 0.01
 
 
 @dataclass(frozen=True)

@@ -10,25 +10,32 @@ TCP connection close, never a second WebSocket handshake (which would take over 
 robot's session).
 
 Faster in an outage (issue 19): a link cut for a few seconds, or for half a minute,
-should be back within tens of milliseconds, so the stagger starts at ``fast_stagger_s``
-when the outage begins, doubles every ``double_every_s`` up to ``outage_stagger_s``, stays
-there until the outage is ``fast_for_s`` old, and only then falls to the slow pace
-``stagger_s`` (:meth:`DialSettings.stagger_at`). The outage's age comes from the caller
-(``outage_age_s``): a dial that timed out and is started again continues the pace
-instead of starting over. Why a minute: the e2e ``peer`` scenario's 30 s cuts at the slow
-pace took 0.245-0.327 s to recover (a SYN up to 0.25 s after the restore), against the
-0.1 s bar; a robot out of coverage for longer than a minute has a coverage problem that
-a few tens of milliseconds do not change, and then the bound below drops to its floor.
+should be back within milliseconds, so the stagger starts at ``fast_stagger_s`` when the
+outage begins, doubles every ``double_every_s`` up to ``outage_stagger_s``, stays there
+until the outage is ``fast_for_s`` old, and only then falls to the slow pace ``stagger_s``
+(:meth:`DialSettings.stagger_at`). The defaults make it flat: 10 ms for a minute; an
+operator who sets a slower outage pace (client.yaml ``outage_dial_interval_s``) gets the
+doubling from 10 ms up to it. The outage's age comes from the caller (``outage_age_s``):
+a dial that timed out and is started again continues the pace instead of starting over.
+Why a minute: the e2e ``peer`` scenario's 30 s cuts at the slow pace took 0.245-0.327 s
+to recover (a SYN up to 0.25 s after the restore), against the 0.1 s bar; a robot out of
+coverage for longer than a minute has a coverage problem that a few tens of milliseconds
+do not change, and then the bound below drops to its floor. Why 10 ms: a topic whose
+first message after the restore is published before the next SYN leaves loses a period
+(docs/recovery.md, the trade-off), with probability ~stagger / (2 x period) per cut: 5 %
+for a 10 Hz scan at 10 ms, 10-20 % at the 20-40 ms of before.
 
 Cost while the server is unreachable. Linux resends an unanswered SYN at 1 s. One attempt
 per ``stagger_s`` is a long one: it lives ``attempt_life_s`` (2 s, so a path with an RTT
 up to ~2 s still connects) and sends two SYNs; the extra attempts of the faster pace live
 ``short_life_s`` (0.9 s) and send one. Every SYN is ~60 bytes (74 on Ethernet, ~130 inside
 WireGuard). So at most ``1/stagger_at(age) + 1/stagger_s`` SYNs a second: with the defaults
-54/s (~4 KB/s) when the outage begins, 36/s (~2.7 KB/s) at 5 s, 29/s (~2.1 KB/s, 17 kbit/s)
-from 8 s to 60 s, 8/s (~600 B/s) after that; ~140 KB over a long outage's first minute.
-At most ``max_in_flight`` sockets are half open at once (the oldest is dropped for a new
-one); a dropped attempt in SYN-SENT sends nothing when closed.
+104/s (~7.7 KB/s, ~13.5 KB/s or 0.11 Mbit/s inside WireGuard) for the outage's first
+minute, ~810 KB inside WireGuard in all, a third of what the e2e ``peer`` load sends in
+that minute when the link is up; 8/s (~600 B/s) after that. At most ``max_in_flight``
+sockets are half open at once: the oldest short attempt is dropped for a new one (never a
+long one while a short one is open); a dropped attempt in SYN-SENT sends nothing when
+closed.
 """
 
 from __future__ import annotations
@@ -54,7 +61,8 @@ class DialSettings:
 
     Args:
         stagger_s: A new attempt starts this long after the previous one, seconds.
-        max_in_flight: Attempts waiting at once; the oldest is abandoned for a new one.
+        max_in_flight: Attempts waiting at once; the oldest short one is abandoned for a
+            new one.
         attempt_life_s: A long attempt (one per ``stagger_s``) is abandoned this old,
             seconds: the longest RTT a connect can have.
         short_life_s: The extra attempts of the fast pace are abandoned this old, seconds
@@ -71,9 +79,9 @@ class DialSettings:
     max_in_flight: int = 64
     attempt_life_s: float = 2.0
     short_life_s: float = 0.9
-    fast_stagger_s: float = 0.02
+    fast_stagger_s: float = 0.01
     double_every_s: float = 8.0
-    outage_stagger_s: float = 0.04
+    outage_stagger_s: float = 0.01
     fast_for_s: float = 60.0
 
     def stagger_at(self, outage_age_s: float) -> float:
@@ -183,32 +191,68 @@ async def dial_first(targets: Sequence[tuple[str, int]], timeout_s: float,
 async def _race(family: int, proto: int, address: tuple[str, int] | tuple[str, int, int, int],
                 local_addr: tuple[str, int] | None, settings: DialSettings,
                 stagger: Callable[[], float]) -> socket.socket:
-    """Staggered attempts to one address until one connects or one is refused."""
+    """Staggered attempts to one address until one connects or one is refused.
+
+    The attempts report their end through one event rather than an ``asyncio.wait`` on
+    all of them per stagger, which registers and removes a callback on each open attempt
+    every round: at a 10 ms pace with 64 open that was most of the dialer's CPU while the
+    link is down.
+    """
     loop = asyncio.get_running_loop()
     attempts: list[asyncio.Task[socket.socket]] = []
     expires: list[float] = []  # when each attempt is abandoned, in start order
+    longs: list[bool] = []  # whether each attempt is a long one
     long_started = -math.inf  # the last long attempt (one per stagger_s)
+    ended: list[asyncio.Task[socket.socket]] = []
+    wake = asyncio.Event()
+
+    def on_end(task: asyncio.Task[socket.socket]) -> None:
+        if not task.cancelled():  # an abandoned attempt is no news
+            ended.append(task)
+            wake.set()
+
     try:
         while True:
             now = loop.time()
             while attempts and (len(attempts) >= settings.max_in_flight
                                 or now >= min(expires)):
-                index = 0 if len(attempts) >= settings.max_in_flight else (
-                    expires.index(min(expires)))
+                index = (_oldest_short(longs) if len(attempts) >= settings.max_in_flight
+                         else expires.index(min(expires)))
                 attempts.pop(index).cancel()
                 expires.pop(index)
+                longs.pop(index)
             long = now - long_started >= settings.stagger_s * 0.999
             long_started = now if long else long_started
-            attempts.append(asyncio.create_task(_attempt(family, proto, address, local_addr)))
+            task = asyncio.create_task(_attempt(family, proto, address, local_addr))
+            task.add_done_callback(on_end)
+            attempts.append(task)
             expires.append(now + (settings.attempt_life_s if long else settings.short_life_s))
-            done, _ = await asyncio.wait(attempts, timeout=stagger(),
-                                         return_when=asyncio.FIRST_COMPLETED)
-            for task in done:
-                expires.pop(attempts.index(task))
-                attempts.remove(task)
+            longs.append(long)
+            with contextlib.suppress(TimeoutError):
+                async with asyncio.timeout(stagger()):
+                    await wake.wait()
+            wake.clear()
+            while ended:
+                task = ended.pop(0)
+                if task not in attempts:  # abandoned as it connected: not the winner
+                    with contextlib.suppress(OSError):
+                        task.result().close()
+                    continue
+                index = attempts.index(task)
+                del attempts[index], expires[index], longs[index]
                 return task.result()  # a refusal or unreachable network raises here
     finally:
         await _cancel_and_close(attempts)
+
+
+def _oldest_short(longs: list[bool]) -> int:
+    """The attempt to abandon when ``max_in_flight`` are open: the oldest short one.
+
+    Why not simply the oldest: at a 10 ms pace 64 attempts span 0.64 s, so the long
+    attempts (the ones that wait ``attempt_life_s`` for a path with a long RTT, a
+    satellite hop's ~0.6 s and more) would be abandoned before their SYN-ACK could come.
+    """
+    return next((i for i, long in enumerate(longs) if not long), 0)
 
 
 async def _cancel_and_close(tasks: Iterable[asyncio.Task[socket.socket]]) -> None:

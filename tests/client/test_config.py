@@ -155,7 +155,7 @@ def test_token_file_is_read_relative_and_never_shown(tmp_path: Path) -> None:
     (minimal(limits={"scheduler": "fifo"}),
      "limits: scheduler: must be one of adaptive, robofleet, got 'fifo'"),
     (minimal(limits={"outage_dial_interval_s": 0.001}),
-     "limits: outage_dial_interval_s: must be between 0.01 and 0.25, got 0.001"),
+     "limits: outage_dial_interval_s: must be between 0.005 and 0.25, got 0.001"),
     (minimal(limits={"outage_dial_interval_s": "fast"}),
      "limits: outage_dial_interval_s: must be a number, got 'fast'"),
     ([1, 2], "document: must be a mapping"),
@@ -183,12 +183,15 @@ def test_the_outage_dial_interval_reaches_the_link_s_dial_pace() -> None:
     from fleetctl.client.transport import LinkTuning, RobotLink
 
     default = parse_client_config(minimal(), source="c.yaml")
-    assert default.limits.outage_dial_interval_s == 0.04
-    cfg = parse_client_config(minimal(limits={"outage_dial_interval_s": 0.02}),
+    assert default.limits.outage_dial_interval_s == 0.01
+    flat = RobotLink(default, on_frame=lambda f: None, tuning=LinkTuning()).tuning.dial
+    assert flat.stagger_at(0.0) == flat.stagger_at(59.0) == 0.01  # 10 ms for a minute
+    cfg = parse_client_config(minimal(limits={"outage_dial_interval_s": 0.04}),
                               source="c.yaml")
     link = RobotLink(cfg, on_frame=lambda f: None, tuning=LinkTuning())
-    assert link.tuning.dial.outage_stagger_s == 0.02
-    assert link.tuning.dial.stagger_at(30.0) == 0.02  # held through the first minute
+    assert link.tuning.dial.outage_stagger_s == 0.04
+    assert link.tuning.dial.stagger_at(0.0) == 0.01  # doubling from 10 ms ...
+    assert link.tuning.dial.stagger_at(30.0) == 0.04  # ... to it, held to a minute
     assert link.tuning.dial.stagger_at(90.0) == link.tuning.dial.stagger_s
 
 

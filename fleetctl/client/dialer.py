@@ -31,7 +31,7 @@ up to ~2 s still connects) and sends two SYNs; the extra attempts of the faster 
 ``short_life_s`` (0.9 s) and send one. Every SYN is ~60 bytes (74 on Ethernet, ~130 inside
 WireGuard). So at most ``1/stagger_at(age) + 1/stagger_s`` SYNs a second: with the defaults
 104/s (~7.7 KB/s, ~13.5 KB/s or 0.11 Mbit/s inside WireGuard) for the outage's first
-minute, ~810 KB inside WireGuard in all, a third of what the e2e ``peer`` load sends in
+minute, ~810 KB inside WireGuard in all, ~30 % of what the e2e ``peer`` load sends in
 that minute when the link is up; 8/s (~600 B/s) after that. At most ``max_in_flight``
 sockets are half open at once: the oldest short attempt is dropped for a new one (never a
 long one while a short one is open); a dropped attempt in SYN-SENT sends nothing when

@@ -589,3 +589,56 @@ def test_fragments_keep_the_window_that_whole_frames_may_exceed() -> None:
     s.offer("/cloud", b"c" * 20_000, 1.0, priority=1, no_drop=False)
     assert [tag(f) for f in link.drain(1.0)] == ["/cloud#0", "/cloud#1"]
     assert s.in_flight_bytes <= s.window_bytes() < s.whole_frame_bytes()
+
+
+def scan_rounds(s: Scheduler, rtt_s: float, count: int) -> list[int]:
+    """The e2e ``peer`` load as the scheduler saw it in the low state: a 6 KB scan every
+    100 ms, each flight of it acked *rtt_s* after it was sent, and a 256 B pose every
+    50 ms acked after 2.5 ms (app-limited: its round trip counts as busy time). The link
+    rate starts held at 0.54 MB/s. Returns how many frames each scan took."""
+    s._min_rtt.add(0.0, 0.001)
+    s._link_rate.add(0.0, 540_000.0)
+    s._update_limits()
+    link, frames = FakeLink(s), []
+    for i in range(count):
+        now = i * 0.1
+        for pose_at in (now + 0.02, now + 0.07):
+            s.offer("/pose", b"p" * 256, pose_at, priority=2.0, no_drop=False)
+            link.drain(pose_at)
+            link.ack_all(pose_at + 0.0025)
+        now += 0.08
+        s.offer("/scan", bytes([65 + i % 26]) * 6000, now, priority=1.0, no_drop=False)
+        sent = 0
+        while s.has_sendable():
+            sent += len(link.drain(now))
+            now += rtt_s
+            link.ack_all(now)
+        frames.append(sent)
+    return frames
+
+
+def cap_probing(**kw: object) -> Scheduler:
+    return make(max_fragment_bytes=4 * 1024 * 1024, min_fragment_bytes=1024,
+                fragment_time_s=0.003, target_queue_delay_s=0.004, **kw)
+
+
+def test_a_capped_window_without_a_queue_probes_the_rate_up_until_scans_go_whole() -> None:
+    s = cap_probing()
+    frames = scan_rounds(s, 0.0016, 20)  # 0.6 ms over the min RTT: no queue to speak of
+    assert frames[0] >= 5  # 1 KiB fragments under a ~3 KB cap, as in the low state
+    assert frames[-1] == 1, frames  # whole: the rate was probed up
+    assert s.rate_probes > 0
+    assert s.whole_frame_bytes() >= 6000
+
+
+def test_without_the_probe_the_low_state_holds_itself() -> None:
+    s = cap_probing(rate_probe_gain=1.0)
+    frames = scan_rounds(s, 0.0016, 20)
+    assert s.rate_probes == 0
+    assert min(frames) > 1, frames  # the measured rate never lets the scan go whole
+
+
+def test_a_queue_stops_the_probe() -> None:
+    s = cap_probing()
+    scan_rounds(s, 0.003, 20)  # 2 ms of queue: over a quarter of the 4 ms target
+    assert s.rate_probes == 0

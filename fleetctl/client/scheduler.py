@@ -130,13 +130,6 @@ class SchedulerConfig:
             over busy time (seconds).
         link_rate_hold_s: Fragments are sized by the highest such rate in this window
             (seconds), so they shrink only after the link stayed slower this long.
-        rate_probe_gain: An ack that finds the window held by the rate cap while the
-            queueing delay is under ``rate_probe_queue_fraction`` x
-            ``target_queue_delay_s`` raises the link rate to this x its value (1 turns
-            it off): the link took what the cap let through without a queue, so the
-            rate may be higher than measured (see :meth:`Scheduler._probe_rate_up`).
-        rate_probe_queue_fraction: The queueing delay under which the cap is probed, as
-            a fraction of ``target_queue_delay_s``.
         ack_every_window_fraction: An ack point is due after this fraction of the window
             was sent without one, so acks return while the window is still open.
         max_consecutive_supersedes: Supersedes in a row per droppable topic before the
@@ -170,8 +163,6 @@ class SchedulerConfig:
     rate_filter_s: float = 2.0
     link_rate_window_s: float = 0.5
     link_rate_hold_s: float = 4.0
-    rate_probe_gain: float = 1.25
-    rate_probe_queue_fraction: float = 0.25
     ack_every_window_fraction: float = 0.25
     max_consecutive_supersedes: int = 1
     rate_tolerance: float = 0.05
@@ -310,7 +301,6 @@ class Scheduler:
         self._link_rate = WindowedExtremum(self.config.link_rate_hold_s, keep_max=True)
         self._last_rtt_s: float | None = None
         self.no_drop_overflow = 0
-        self.rate_probes = 0  # times the link rate was raised by _probe_rate_up
         self.last_error: str | None = None
         self._delay_window = float(self.config.initial_window_bytes)
         self._fragment = self._whole = self._window = 0
@@ -660,7 +650,15 @@ class Scheduler:
         busy_s = now_s - self._delivered_s  # since the last ack or the restart from idle
         # Acks that arrive together (one read of several pongs) still count their bytes:
         # dropping the zero-time ones underestimated the rate, and so the window cap.
-        if acked_now > 0 and busy_s >= 0:
+        # An app-limited ack (nothing was waiting when its ping went) measured the
+        # round trip of what the application offered, not the link: a lone 256 B pose
+        # acked after 2.5 ms reads 0.1 MB/s. Counted, they put the e2e peer load (a pose
+        # at 20 Hz, a 6 KB scan at 10 Hz, 4 Mbit/s over WireGuard) at 0.54 MB/s on 6 of
+        # 16 connections of one run: the scan went as 1 KiB fragments under a 2.8 KB
+        # window, whose round trips kept the rate there, at 8-15 ms p50 for the whole
+        # connection instead of 3.5-4.4 ms. Only acks of a window in use (something was
+        # waiting) say what the link moves; a light load leaves the initial sizes.
+        if acked_now > 0 and busy_s >= 0 and not point.app_limited:
             self._busy_rate.add(now_s, acked_now, busy_s)
             # Less than an initial fragment acknowledged is a small message's round trip,
             # not the link's rate: a new connection's first pose measured 0.2 MB/s on a
@@ -674,38 +672,8 @@ class Scheduler:
             # App-limited samples underestimate the link; keep them only if they raise it.
             if not point.app_limited or rate > self._max_rate.value(now_s, 0.0):
                 self._max_rate.add(now_s, rate)
-        self._probe_rate_up(point, rtt, now_s)
         self._update_limits()
         self._delivered_s = now_s
-
-    def _probe_rate_up(self, point: _AckPoint, rtt_s: float, now_s: float) -> None:
-        """Raise the link rate by ``rate_probe_gain`` when the rate cap held the window
-        and the link showed no queue.
-
-        Why: the link rate (bytes acknowledged over busy time) is measured through the
-        window it caps, so a low value holds itself. Under the cap a 6 KB scan goes as
-        1 KiB fragments, a few per round trip, and each round trip counts as busy time:
-        the rate reads what the cap lets through, the cap follows the rate. In the e2e
-        ``peer`` run (4 Mbit/s tbf over WireGuard) 6 of 16 connections settled at
-        0.54 MB/s that way (scan p50 8-15 ms for the whole connection) and the others at
-        1.2-1.8 MB/s (scan whole, 3.5-4.4 ms), depending on their first samples. The
-        delay signal tells the two apart: when the cap binds but an ack's RTT is within
-        a quarter of the target above the min RTT, nothing queued, so the cap was too
-        low. A queue stops the probing (a link that is full, the competing flow of the
-        priority benchmark, queues to about the target), and an app-limited ack says
-        nothing. The raised value is held like a measured one and replaced by the
-        measurements taken with the larger window.
-        """
-        cfg = self.config
-        if cfg.rate_probe_gain <= 1.0 or point.app_limited or self._window >= self._delay_window:
-            return
-        min_rtt = self.min_rtt_s()
-        rate = self._link_rate.value(now_s, 0.0)
-        if rate <= 0 or min_rtt is None:
-            return
-        if rtt_s - min_rtt < cfg.rate_probe_queue_fraction * cfg.target_queue_delay_s:
-            self._link_rate.add(now_s, rate * cfg.rate_probe_gain)
-            self.rate_probes += 1
 
     def min_rtt_s(self, now_s: float | None = None) -> float | None:
         """Minimum RTT over the filter window in seconds, None before the first sample."""

@@ -650,15 +650,17 @@ class Scheduler:
         busy_s = now_s - self._delivered_s  # since the last ack or the restart from idle
         # Acks that arrive together (one read of several pongs) still count their bytes:
         # dropping the zero-time ones underestimated the rate, and so the window cap.
-        # An app-limited ack (nothing was waiting when its ping went) measured the
-        # round trip of what the application offered, not the link: a lone 256 B pose
-        # acked after 2.5 ms reads 0.1 MB/s. Counted, they put the e2e peer load (a pose
-        # at 20 Hz, a 6 KB scan at 10 Hz, 4 Mbit/s over WireGuard) at 0.54 MB/s on 6 of
-        # 16 connections of one run: the scan went as 1 KiB fragments under a 2.8 KB
-        # window, whose round trips kept the rate there, at 8-15 ms p50 for the whole
-        # connection instead of 3.5-4.4 ms. Only acks of a window in use (something was
-        # waiting) say what the link moves; a light load leaves the initial sizes.
-        if acked_now > 0 and busy_s >= 0 and not point.app_limited:
+        # An app-limited ack (nothing was waiting when its ping went) of less than an
+        # initial fragment measured the round trip of a small message, not the link: a
+        # lone 256 B pose acked after 2.5 ms reads 0.1 MB/s. Counted, such acks put the
+        # e2e peer load (a pose at 20 Hz, a 6 KB scan at 10 Hz, 4 Mbit/s over
+        # WireGuard) at 0.54 MB/s on 6 of 16 connections of one run: the scan went as
+        # 1 KiB fragments under a 2.8 KB window, whose round trips kept the rate there,
+        # at 8-15 ms p50 for the whole connection instead of 3.5-4.4 ms. A larger one
+        # (a whole scan) does say what the link moves: on a 1 Mbit/s link its round trip
+        # is mostly the link's time, and it must still shrink the fragments there.
+        if acked_now > 0 and busy_s >= 0 and (
+                not point.app_limited or acked_now >= self.config.initial_fragment_bytes):
             self._busy_rate.add(now_s, acked_now, busy_s)
             # Less than an initial fragment acknowledged is a small message's round trip,
             # not the link's rate: a new connection's first pose measured 0.2 MB/s on a

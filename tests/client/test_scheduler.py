@@ -614,10 +614,22 @@ def peer_load(s: Scheduler, seconds: float) -> list[int]:
     return frames
 
 
-def test_a_light_load_s_round_trips_do_not_set_the_link_rate() -> None:
+def test_a_light_load_s_small_round_trips_do_not_set_the_link_rate() -> None:
     # Counted, the poses' round trips read 0.1 MB/s and split the scan into fragments.
     s = make(max_fragment_bytes=4 * 1024 * 1024, min_fragment_bytes=1024,
              fragment_time_s=0.003, target_queue_delay_s=0.004)
     frames = peer_load(s, 3.0)
-    assert frames == [1] * 30, frames  # every scan whole, as on a new connection
-    assert s.stats()["link_rate_Bps"] == 0.0
+    assert frames == [1] * 30, frames  # every scan whole
+    # The whole scans' acks are the link's rate: 6 KB in 1.6 ms.
+    assert s.stats()["link_rate_Bps"] == pytest.approx(6000 / 0.0016, rel=0.05)
+
+
+def test_a_whole_message_s_round_trip_on_a_slow_link_still_sizes_the_fragments() -> None:
+    # 1 Mbit/s: a lone 6 KB scan takes 48 ms; app-limited, yet the link's own time.
+    s = make(max_fragment_bytes=65536, min_fragment_bytes=1024, initial_window_bytes=10**6)
+    link = FakeLink(s)
+    s.offer("/scan", b"s" * 6000, 0.0, priority=1.0, no_drop=False)
+    assert link.drain(0.0) == [b"s" * 6000]
+    link.ack_all(0.048)
+    assert s.stats()["link_rate_Bps"] == pytest.approx(6000 / 0.048, rel=0.01)
+    assert s.fragment_bytes() == 1024

@@ -157,6 +157,42 @@ async def test_a_seq_gap_stops_decoding_and_requests_a_keyframe(
         assert (await page.evaluate(STATS))["state"] == "decoding"
 
 
+async def test_a_page_that_falls_behind_keeps_its_decoder(
+    tmp_path: Path, browser: Any, webviz_factory: list[Any]
+) -> None:
+    """Behind, the page skips to the next keyframe on the decoder it has: a new decoder at
+    every keyframe paid its start-up again each time, and on a busy page that start-up
+    alone kept it behind (9 of 556 frames decoded in 36 s in the 3D scene under load)."""
+    units = encode("h264", 60, width=320, height=240, keyframe_every=15)
+    async with scripted_fleet(tmp_path) as relay:
+        web = webviz_server(relay.url).start()
+        webviz_factory.append(web)
+        page = await browser.new_page()
+        problems = watch_errors(page)
+        await open_robot_page(page, web.url, [FULL])
+        feed = VideoFeed(relay.robots["r1"], TOPIC, units, "h264")
+        feed.run()
+        await wait_js(page, f"{stat('decoded')} >= 3")
+        await feed.stop()
+        stream = f"fleetviz.views.video.streams.get('{FULL}')"
+        # Mark this decoder, then make the page fall behind (what a decode queue past its
+        # limit or a full pending list does).
+        await page.evaluate(f"(() => {{ const s = {stream}; s.decoder.mark = 'first';"
+                            " s.behind(performance.now()); })()")
+        behind = await page.evaluate(STATS)
+        assert behind["state"] == "waiting" and behind["reason"] == "behind", behind
+        assert await page.evaluate(f"{stream}.decoder?.state") == "configured"
+        # Delta frames are skipped; the next keyframe goes on the same decoder.
+        while not feed.peek().key:
+            await send_one(page, feed)
+        await send_one(page, feed)
+        await wait_js(page, f"{stat('decoded')} > {behind['decoded']}")
+        after = await page.evaluate(STATS)
+        assert after["state"] == "decoding" and after["errors"] == 0, after
+        assert await page.evaluate(f"{stream}.decoder.mark") == "first"
+        assert not problems, problems
+
+
 async def test_a_keyframe_request_reaches_the_publishing_robot(
     tmp_path: Path, browser: Any, webviz_factory: list[Any]
 ) -> None:

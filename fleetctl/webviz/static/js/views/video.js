@@ -7,6 +7,13 @@
 // keyframe at most every 0.5 s, and resumes at the next keyframe, so no frame is ever drawn
 // from a broken reference. Decoded frames are drawn at the next animation frame, latest
 // wins (older ones are closed and counted as not shown).
+//
+// Behind (or after a gap) the decoder is kept, not closed or reset: what it holds is a
+// whole chain and still decodes, and a keyframe references nothing, so it may follow any
+// of it. Closing it threw that work away and paid the decoder's start again at every
+// keyframe: on a busy page (the 3D scene rendered in software, 2 cores under load) that
+// start alone outlasted the queue limit, and 556 submitted frames gave 9 decoded in 36 s.
+// Kept, a page that cannot keep up decodes what it can (keyframes at the least).
 
 import { inspectVideo } from "../videocodec.js";
 import { VideoGate } from "../videogate.js";
@@ -54,7 +61,7 @@ export class VideoStream {
     this.gate = new VideoGate();
     this.decoder = null;
     this.configured = null; // codec string the decoder is configured with
-    this.pending = []; // [{chunk, codec, key, resume}] while a support check runs
+    this.pending = []; // [{chunk, codec, key}] while a support check runs
     this.checking = false;
     this.format = null;
     this.note = null; // what the panel says about this topic (missing codec, ...)
@@ -84,7 +91,7 @@ export class VideoStream {
       return;
     }
     const chunk = new EncodedVideoChunk({ type: info.key ? "key" : "delta", timestamp: timestampUs(msg, meta.seq), data: msg.data });
-    this.pending.push({ chunk, codec: info.codec, key: info.key, resume: d.resume });
+    this.pending.push({ chunk, codec: info.codec, key: info.key });
     if (this.pending.length > MAX_PENDING) return this.behind(nowMs);
     this.pump();
   }
@@ -109,7 +116,7 @@ export class VideoStream {
       const item = this.pending[0];
       // Only a keyframe can (re)configure: a delta frame has no SPS, so its codec string is
       // the default and says nothing about the stream.
-      if (!this.decoder || item.resume || (item.key && item.codec !== this.configured)) {
+      if (!this.decoder || (item.key && item.codec !== this.configured)) {
         this.checking = true;
         const ok = await supported(item.codec);
         this.checking = false;
@@ -137,7 +144,7 @@ export class VideoStream {
     if (!this.decoder || this.decoder.state === "closed") {
       this.decoder = new VideoDecoder({ output: (f) => this.output(f), error: (e) => this.failed(e) });
     } else {
-      this.decoder.reset(); // a restart at a keyframe: pending output of the old chain is discarded
+      this.decoder.reset(); // a new codec string at a keyframe: the old chain's output goes
     }
     this.decoder.configure({ codec, optimizeForLatency: true });
     this.configured = codec;
@@ -161,11 +168,11 @@ export class VideoStream {
     if (this.gate.broken("error", performance.now())) this.requestKeyframe(this.topic);
   }
 
-  /** The page cannot keep up: drop what waits, and restart at the next keyframe. */
+  /** The page cannot keep up: drop what waits to be submitted and go on at the next
+   * keyframe; the decoder keeps and finishes what it holds (see the top of this file). */
   behind(nowMs) {
     this.counts.droppedBehind += this.pending.length;
     this.pending = [];
-    this.closeDecoder();
     if (this.gate.broken("behind", nowMs)) this.requestKeyframe(this.topic);
   }
 

@@ -49,12 +49,17 @@ class Trial:
         limit_s: Per topic, the soonest any stack could have recovered
             (:func:`fleetctl.e2e.metrics.recovery_limit_s`: the topic's next publish after
             the restore plus its floor). A 10 Hz topic's is anywhere in 0-0.1 s.
+        stale_before_s: How long before the restore the oldest stale message was
+            published (0 without one): a backlog that waited out the cut is seconds old,
+            a message published a millisecond before the restore mark is not, and the
+            count alone does not tell them apart.
     """
 
     recovery_s: Mapping[str, float]
     first_s: float
     stale: int
     limit_s: Mapping[str, float] = field(default_factory=dict)
+    stale_before_s: float = 0.0
 
     @property
     def worst_s(self) -> float:
@@ -84,8 +89,8 @@ def trials_of(run: VariantRun, topics: Sequence[str]) -> list[Trial]:
         limit = {t: recovery_limit_s(grouped.get(t, []), cut, restore) for t in topics}
         after = [s for s in window if s.recv_time_ns >= restore]
         first = (min(s.recv_time_ns for s in after) - restore) / 1e9 if after else math.inf
-        stale = sum(1 for s in after if s.publish_time_ns < restore)
-        out.append(Trial(rec, first, stale, limit))
+        stale = [restore - s.publish_time_ns for s in after if s.publish_time_ns < restore]
+        out.append(Trial(rec, first, len(stale), limit, max(stale, default=0) / 1e9))
         start = end
     return out
 
@@ -128,6 +133,8 @@ def peer(runs: Mapping[str, VariantRun], topics: Sequence[str]) -> dict[str, Any
                 f"{t.rsplit('/', 1)[-1]} {x:.3f} (limit {tr.limit_s.get(t, math.nan):.3f})"
                 for t, x in tr.recovery_s.items())
             + f" s, first message {tr.first_s:.3f} s, stale {tr.stale}"
+            + (f" (published up to {tr.stale_before_s * 1e3:.1f} ms before the restore)"
+               if tr.stale else "")
             for i, (tr, cut) in enumerate(zip(ts, cuts, strict=False)))
         notes.append(f"{v}: uplink {runs[v].uplink_bit_s / 1e6:.3f} Mbit/s, latency floor "
                      f"p50 {floors[v]:.2f} ms; {per}")
@@ -146,7 +153,8 @@ def peer(runs: Mapping[str, VariantRun], topics: Sequence[str]) -> dict[str, Any
     return {"name": "peer", "status": status_of(criteria), "criteria": criteria,
             "notes": notes, "plots": plots,
             "trials": {v: [{"recovery_s": dict(t.recovery_s), "first_s": t.first_s,
-                            "stale": t.stale, "limit_s": dict(t.limit_s),
+                            "stale": t.stale, "stale_before_s": t.stale_before_s,
+                            "limit_s": dict(t.limit_s),
                             "past_limit_s": t.past_limit_s} for t in ts]
                        for v, ts in trials.items()},
             "floor_p50_ms": floors,

@@ -46,6 +46,11 @@ def test_stale_messages_and_the_criteria() -> None:
     result = peeranalysis.peer(runs, ["/r/pose"])
     crits = {c["name"]: c for c in result["criteria"]}
     assert crits["fleetctl stale messages after the restores"]["value"] == 1
+    # How old it was at the restore is said, trial by trial (published 0.5 s before it).
+    (t1, t2) = result["trials"]["fleetctl"]
+    assert t1["stale"] == 1 and t1["stale_before_s"] == pytest.approx(0.5)
+    assert t2["stale"] == 0 and t2["stale_before_s"] == 0
+    assert "stale 1 (published up to 500.0 ms before the restore)" in result["notes"][0]
     assert crits["fleetctl recovery, worst topic of the worst trial (s)"]["ok"]
     factor = crits["zenoh-best / fleetctl recovery, worst trial"]["value"]
     assert 4 <= factor < 10

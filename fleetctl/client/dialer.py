@@ -188,6 +188,16 @@ async def dial_first(targets: Sequence[tuple[str, int]], timeout_s: float,
     raise timeouts[0] if timeouts else errors[min(errors)]
 
 
+@dataclass(eq=False)  # identity: removed from its list as itself
+class _Attempt:
+    """One open connect of a race: its task, when it is given up, and whether it is a
+    long one (one per ``stagger_s``, living ``attempt_life_s``)."""
+
+    task: asyncio.Task[socket.socket]
+    expires: float
+    long: bool
+
+
 async def _race(family: int, proto: int, address: tuple[str, int] | tuple[str, int, int, int],
                 local_addr: tuple[str, int] | None, settings: DialSettings,
                 stagger: Callable[[], float]) -> socket.socket:
@@ -199,9 +209,7 @@ async def _race(family: int, proto: int, address: tuple[str, int] | tuple[str, i
     link is down.
     """
     loop = asyncio.get_running_loop()
-    attempts: list[asyncio.Task[socket.socket]] = []
-    expires: list[float] = []  # when each attempt is abandoned, in start order
-    longs: list[bool] = []  # whether each attempt is a long one
+    attempts: list[_Attempt] = []  # in start order
     long_started = -math.inf  # the last long attempt (one per stagger_s)
     ended: list[asyncio.Task[socket.socket]] = []
     wake = asyncio.Event()
@@ -214,45 +222,46 @@ async def _race(family: int, proto: int, address: tuple[str, int] | tuple[str, i
     try:
         while True:
             now = loop.time()
-            while attempts and (len(attempts) >= settings.max_in_flight
-                                or now >= min(expires)):
-                index = (_oldest_short(longs) if len(attempts) >= settings.max_in_flight
-                         else expires.index(min(expires)))
-                attempts.pop(index).cancel()
-                expires.pop(index)
-                longs.pop(index)
+            while attempts:
+                if len(attempts) >= settings.max_in_flight:
+                    given_up = _oldest_short(attempts)
+                else:
+                    given_up = min(attempts, key=lambda a: a.expires)
+                    if now < given_up.expires:
+                        break
+                attempts.remove(given_up)
+                given_up.task.cancel()
             long = now - long_started >= settings.stagger_s * 0.999
             long_started = now if long else long_started
             task = asyncio.create_task(_attempt(family, proto, address, local_addr))
             task.add_done_callback(on_end)
-            attempts.append(task)
-            expires.append(now + (settings.attempt_life_s if long else settings.short_life_s))
-            longs.append(long)
+            life = settings.attempt_life_s if long else settings.short_life_s
+            attempts.append(_Attempt(task, now + life, long))
             with contextlib.suppress(TimeoutError):
                 async with asyncio.timeout(stagger()):
                     await wake.wait()
             wake.clear()
             while ended:
                 task = ended.pop(0)
-                if task not in attempts:  # abandoned as it connected: not the winner
+                mine = next((a for a in attempts if a.task is task), None)
+                if mine is None:  # abandoned as it connected: not the winner
                     with contextlib.suppress(OSError):
                         task.result().close()
                     continue
-                index = attempts.index(task)
-                del attempts[index], expires[index], longs[index]
+                attempts.remove(mine)
                 return task.result()  # a refusal or unreachable network raises here
     finally:
-        await _cancel_and_close(attempts)
+        await _cancel_and_close(a.task for a in attempts)
 
 
-def _oldest_short(longs: list[bool]) -> int:
+def _oldest_short(attempts: list[_Attempt]) -> _Attempt:
     """The attempt to abandon when ``max_in_flight`` are open: the oldest short one.
 
     Why not simply the oldest: at a 10 ms pace 64 attempts span 0.64 s, so the long
     attempts (the ones that wait ``attempt_life_s`` for a path with a long RTT, a
     satellite hop's ~0.6 s and more) would be abandoned before their SYN-ACK could come.
     """
-    return next((i for i, long in enumerate(longs) if not long), 0)
+    return next((a for a in attempts if not a.long), attempts[0])
 
 
 async def _cancel_and_close(tasks: Iterable[asyncio.Task[socket.socket]]) -> None:

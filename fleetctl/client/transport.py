@@ -449,6 +449,9 @@ class RobotLink:
         self._outage_since_s: float | None = None
         # When the last dial's winning SYN left (clock seconds): see _drop_stale.
         self._alive_since_s: float | None = None
+        # When the last dial connected and its SYN's round trip (s), for the connect log:
+        # after an outage, where the time to the first message goes.
+        self._dialed: tuple[float, float] | None = None
         # While bind_address is on no interface: since when, the last WARNING, attempts.
         self._unbound_since_s: float | None = None
         self._unbound_warned_s = 0.0
@@ -657,7 +660,10 @@ class RobotLink:
         # The winning SYN left one handshake RTT ago (the kernel's first RTT sample is
         # the SYN's): from then on the path worked, so what is offered after it is fresh.
         info = read_tcp_info(sock)
-        self._alive_since_s = self._clock() - (info.srtt_s if info is not None else 0.0)
+        syn_rtt_s = info.srtt_s if info is not None else 0.0
+        now = self._clock()
+        self._alive_since_s = now - syn_rtt_s
+        self._dialed = (now, syn_rtt_s)
         return Dialed(sock, order[won])
 
     def _use_replica(self, index: int) -> None:
@@ -777,7 +783,15 @@ class RobotLink:
         self._identities = []
         self._acked_any = False
         self._drop_stale()
-        logger.info("connected to %s", self.url)
+        if self._dialed is None:
+            logger.info("connected to %s", self.url)
+        else:
+            # The upgrade includes a wait for the old connection when the watchdog dialled
+            # early (a false alarm is decided first).
+            dialed_s, syn_rtt_s = self._dialed
+            self._dialed = None
+            logger.info("connected to %s (SYN round trip %.1f ms, upgrade %.1f ms)", self.url,
+                        syn_rtt_s * 1e3, (self._clock() - dialed_s) * 1e3)
         tasks: list[asyncio.Task[None]] = []
         ended = _Ended(acked=False)
         ws.frame_sink = self._sink

@@ -447,10 +447,9 @@ class RobotLink:
         # When the current outage began (clock seconds): the last ACK of a dead path or
         # the oldest unanswered ping; None while the link is up.
         self._outage_since_s: float | None = None
-        # When the last dial's winning SYN left (clock seconds): see _drop_stale.
-        self._alive_since_s: float | None = None
-        # When the last dial connected and its SYN's round trip (s), for the connect log:
-        # after an outage, where the time to the first message goes.
+        # When the last dial connected and its SYN's round trip (clock seconds, s): the
+        # SYN left that long before, so the path worked from then on (see _drop_stale);
+        # the connect log says both (after an outage, where the time goes).
         self._dialed: tuple[float, float] | None = None
         # While bind_address is on no interface: since when, the last WARNING, attempts.
         self._unbound_since_s: float | None = None
@@ -660,10 +659,7 @@ class RobotLink:
         # The winning SYN left one handshake RTT ago (the kernel's first RTT sample is
         # the SYN's): from then on the path worked, so what is offered after it is fresh.
         info = read_tcp_info(sock)
-        syn_rtt_s = info.srtt_s if info is not None else 0.0
-        now = self._clock()
-        self._alive_since_s = now - syn_rtt_s
-        self._dialed = (now, syn_rtt_s)
+        self._dialed = (self._clock(), info.srtt_s if info is not None else 0.0)
         return Dialed(sock, order[won])
 
     def _use_replica(self, index: int) -> None:
@@ -782,14 +778,15 @@ class RobotLink:
         self._subscribed.clear()
         self._identities = []
         self._acked_any = False
-        self._drop_stale()
-        if self._dialed is None:
+        dialed, self._dialed = self._dialed, None
+        if dialed is None:
+            self._drop_stale(None)
             logger.info("connected to %s", self.url)
         else:
+            dialed_s, syn_rtt_s = dialed
+            self._drop_stale(dialed_s - syn_rtt_s)
             # The upgrade includes a wait for the old connection when the watchdog dialled
             # early (a false alarm is decided first).
-            dialed_s, syn_rtt_s = self._dialed
-            self._dialed = None
             logger.info("connected to %s (SYN round trip %.1f ms, upgrade %.1f ms)", self.url,
                         syn_rtt_s * 1e3, (self._clock() - dialed_s) * 1e3)
         tasks: list[asyncio.Task[None]] = []
@@ -830,14 +827,14 @@ class RobotLink:
                 ws.transport.abort()
         return _Ended(self._acked_any, ended.path_dead, ended.ready)
 
-    def _drop_stale(self) -> None:
+    def _drop_stale(self, alive_since_s: float | None) -> None:
         """A connection opened: drop held latest-only messages that are stale by now
-        (:meth:`Scheduler.drop_stale`); the outage, if one ran, is over."""
+        (:meth:`Scheduler.drop_stale`; *alive_since_s*: when its winning SYN left, None
+        if not known); the outage, if one ran, is over."""
         outage = self._outage_since_s is not None
         self._outage_since_s = None
         dropped = self._scheduler.drop_stale(self._clock(), after_outage=outage,
-                                             alive_since_s=self._alive_since_s)
-        self._alive_since_s = None
+                                             alive_since_s=alive_since_s)
         if dropped:
             logger.info("dropped %d held latest-only messages: stale after the outage",
                         dropped)

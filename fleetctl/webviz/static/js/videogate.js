@@ -26,8 +26,8 @@ export class VideoGate {
    * @param {boolean} key the frame is a keyframe
    * @param {number} nowMs a clock in ms (for the request rate)
    * @returns {{decode: boolean, resume: boolean, request: boolean}} `resume`: decoding
-   *     restarts at this keyframe (reset the decoder first); `request`: send a
-   *     KeyframeRequest now
+   *     restarts at this keyframe (a keyframe needs no decoder reset: views/video.js
+   *     keeps its decoder); `request`: send a KeyframeRequest now
    */
   frame(seq, key, nowMs) {
     this.stats.received++;

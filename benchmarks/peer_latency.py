@@ -4,6 +4,7 @@ time go?).
 Usage::
 
     .venv/bin/python benchmarks/peer_latency.py [--seconds 15] [--json FILE]
+        [--python-hop] [--compiled-hop] [--consumers N] [--rounds K]
 
 No network between the parts (everything on 127.0.0.1, no tc, no tunnel): what is left is
 each stack's own per-message path. The e2e ``peer`` load (``python -m fleetctl.e2e.load
@@ -21,9 +22,21 @@ publish time) goes, one stack after the other:
 - **zenoh-default** and **zenoh-best**: the e2e zenoh bridge -> zenoh router -> zenoh
   consumer (:mod:`fleetctl.e2e.zenohpeer`, same settings as the e2e ``peer`` scenario).
 
+- **python-hop** and **compiled-hop** (``--python-hop``, ``--compiled-hop``): fleetctl's
+  client, load and consumer as above, with a probe in the relay's place that does only
+  the relay's data path (parse, unmask, inflate, one frame written to every receiver in
+  the read; no authentication, sessions or routing): ``benchmarks/python_hop.py`` in the
+  leanest asyncio Python, ``benchmarks/compiled_hop`` in Rust (built with cargo on first
+  use). They answer "what would it take": how much of fleetctl's gap to zenoh is the
+  relay being Python (docs/benchmarks.md).
+
+``--consumers N`` puts N consumers in one process for every stack (the fan-out case, as
+the e2e ``peer-fanout``); ``--rounds K`` runs every stack K times, alternating, so that
+the host's drift shows as spread instead of as a difference between stacks.
+
 Printed: p50 and p99 per topic and stack over ``--seconds`` (after a 3 s warm-up), and
-fleetctl's split. Latency is consumer receipt minus the ROS publish stamp (one host
-clock).
+the split for fleetctl's client. Latency is consumer receipt minus the ROS publish stamp
+(one host clock).
 """
 
 from __future__ import annotations
@@ -34,6 +47,7 @@ import contextlib
 import hashlib
 import json
 import os
+import shutil
 import signal
 import socket
 import statistics
@@ -107,6 +121,18 @@ def _fleetctl_files(work: Path, port: int) -> tuple[Path, Path]:
     client = work / "client.yaml"
     client.write_text(yaml.safe_dump(cfg))
     return server, client
+
+
+async def _fleetctl_consumers(port: int, seconds: float, sink: bool,
+                              count: int) -> dict[str, list[tuple[float, ...]]]:
+    """*count* consumers in this process (one event loop, as the e2e consumer's
+    ``--count``), their rows together."""
+    out: dict[str, list[tuple[float, ...]]] = {}
+    for got in await asyncio.gather(*(_fleetctl_consumer(port, seconds, sink)
+                                      for _ in range(count))):
+        for topic, rows in got.items():
+            out.setdefault(topic, []).extend(rows)
+    return out
 
 
 async def _fleetctl_consumer(port: int, seconds: float,
@@ -192,18 +218,22 @@ def _record(frame: str | bytes, now: int, measure_from: float, codec: Any, reass
         (now - meta.publish_time_ns) / 1e6))
 
 
-def run_fleetctl(work: Path, env: dict[str, str], seconds: float,
-                 sink: bool = True) -> dict[str, Any]:
+def run_fleetctl(work: Path, env: dict[str, str], seconds: float, sink: bool = True,
+                 hop: list[str] | None = None, consumers: int = 1) -> dict[str, Any]:
+    """The fleetctl path; *hop*: a probe's command in the relay's place (its address is
+    appended)."""
     port = _free_port()
     server_cfg, client_cfg = _fleetctl_files(work, port)
     fleetctl = str(Path(PY).parent / "fleetctl")
+    relay = ([*hop, f"127.0.0.1:{port}"] if hop is not None
+             else [fleetctl, "server", "--config", str(server_cfg)])
     procs = [
-        _start([fleetctl, "server", "--config", str(server_cfg)], env, work / "server.log"),
+        _start(relay, env, work / "server.log"),
         _start([fleetctl, "client", "--config", str(client_cfg)], env, work / "client.log"),
         _start([PY, "-m", "fleetctl.e2e.load", "--profile", "peer"], env, work / "load.log"),
     ]
     try:
-        got = asyncio.run(_fleetctl_consumer(port, seconds, sink))
+        got = asyncio.run(_fleetctl_consumers(port, seconds, sink, consumers))
     finally:
         _stop(procs)
     return {topic: {"total": _stats([r[0] for r in rows]),
@@ -212,7 +242,8 @@ def run_fleetctl(work: Path, env: dict[str, str], seconds: float,
             for topic, rows in sorted(got.items())}
 
 
-def run_zenoh(work: Path, env: dict[str, str], seconds: float, settings: str) -> dict[str, Any]:
+def run_zenoh(work: Path, env: dict[str, str], seconds: float, settings: str,
+              consumers: int = 1) -> dict[str, Any]:
     from fleetctl.e2e.samples import load
 
     endpoint = f"tcp/127.0.0.1:{_free_port()}"
@@ -226,9 +257,9 @@ def run_zenoh(work: Path, env: dict[str, str], seconds: float, settings: str) ->
         _wait(lambda: "listening" in (work / f"router-{settings}.log").read_text(), 30,
               "the zenoh router")
         procs.append(_start([*zp, "consumer", "--settings", settings, "--connect", endpoint,
-                             "--name", "z", "--out", str(out)], env,
-                            work / f"consumer-{settings}.log"))
-        _wait(lambda: (out / "z-0.ready").exists(), 30, "the zenoh consumer")
+                             "--name", "z", "--count", str(consumers), "--out", str(out)],
+                            env, work / f"consumer-{settings}.log"))
+        _wait(lambda: (out / f"z-{consumers - 1}.ready").exists(), 30, "the zenoh consumers")
         procs.append(_start([*zp, "bridge", "--settings", settings, "--connect", endpoint],
                             env, work / f"bridge-{settings}.log"))
         procs.append(_start([PY, "-m", "fleetctl.e2e.load", "--profile", "peer"], env,
@@ -240,13 +271,24 @@ def run_zenoh(work: Path, env: dict[str, str], seconds: float, settings: str) ->
               "the measuring window")
     finally:
         _stop(procs)
-    text = (out / "z-0.jsonl").read_text()
-    samples = [s for s in load(text[: text.rfind("\n") + 1])
-               if s.recv_time_ns >= start_ns]
+    samples = []
+    for i in range(consumers):
+        text = (out / f"z-{i}.jsonl").read_text()
+        samples += [s for s in load(text[: text.rfind("\n") + 1]) if s.recv_time_ns >= start_ns]
     by: dict[str, list[float]] = {}
     for s in samples:
         by.setdefault(s.topic, []).append(s.latency_ms)
     return {topic: {"total": _stats(v)} for topic, v in sorted(by.items())}
+
+
+def build_compiled_hop() -> Path:
+    """``cargo build --release`` of benchmarks/compiled_hop; the binary's path."""
+    crate = HERE / "compiled_hop"
+    if shutil.which("cargo") is None:
+        raise SystemExit("--compiled-hop needs cargo (the Rust toolchain) on PATH")
+    subprocess.run(["cargo", "build", "--release", "--quiet", "--manifest-path",
+                    str(crate / "Cargo.toml")], check=True)
+    return crate / "target" / "release" / "fleetctl-compiled-hop"
 
 
 def _wait(cond: Any, timeout_s: float, what: str) -> None:
@@ -264,31 +306,57 @@ def main() -> None:
     parser.add_argument("--recv-consumer", action="store_true",
                         help="also run fleetctl with a consumer that reads with recv() "
                              "(async for) instead of in the read (fleetctl.frame_sink)")
+    parser.add_argument("--compiled-hop", action="store_true",
+                        help="also run fleetctl's client and consumer with the relay's data "
+                             "path compiled in the relay's place (benchmarks/compiled_hop, "
+                             "built with cargo)")
+    parser.add_argument("--python-hop", action="store_true",
+                        help="also run them with the same probe in the leanest asyncio "
+                             "Python (benchmarks/python_hop.py)")
+    parser.add_argument("--consumers", type=int, default=1,
+                        help="consumers per stack, in one process (the fan-out case)")
+    parser.add_argument("--rounds", type=int, default=1,
+                        help="repeat every stack's run, alternating (side by side)")
     args = parser.parse_args()
+    if args.consumers < 1 or args.rounds < 1:
+        parser.error("--consumers and --rounds must be at least 1")
+    hops: dict[str, list[str]] = {}
+    if args.python_hop:
+        hops["python-hop"] = [PY, str(HERE / "python_hop.py")]
+    if args.compiled_hop:
+        hops["compiled-hop"] = [str(build_compiled_hop())]
     signal.signal(signal.SIGTERM, lambda *_: sys.exit(128 + signal.SIGTERM))
     env = {**os.environ, "PYTHONPATH": str(HERE.parent),
            "ROS_DOMAIN_ID": str(100 + os.getpid() % 100),
            "ROS_AUTOMATIC_DISCOVERY_RANGE": "LOCALHOST", "PYTHONUNBUFFERED": "1"}
     results: dict[str, Any] = {}
-    with tempfile.TemporaryDirectory() as tmp:
-        work = Path(tmp)
-        results["fleetctl"] = run_fleetctl(work, env, args.seconds)
-        if args.recv_consumer:
-            results["fleetctl-recv"] = run_fleetctl(work, env, args.seconds, sink=False)
-        for settings in ("default", "best"):
-            results[f"zenoh-{settings}"] = run_zenoh(work, env, args.seconds, settings)
-    print(f"loopback, {args.seconds:g} s after {WARMUP_S:g} s warm-up; latency = consumer "
-          "receipt - ROS publish stamp")
-    print(f"  {'stack':14s} {'topic':16s} {'n':>5s} {'p50 ms':>8s} {'p99 ms':>8s}")
+    for round_no in range(args.rounds):
+        tag = f" #{round_no + 1}" if args.rounds > 1 else ""
+        with tempfile.TemporaryDirectory() as tmp:
+            work = Path(tmp)
+            n = args.consumers
+            results[f"fleetctl{tag}"] = run_fleetctl(work, env, args.seconds, consumers=n)
+            if args.recv_consumer:
+                results[f"fleetctl-recv{tag}"] = run_fleetctl(work, env, args.seconds,
+                                                              sink=False, consumers=n)
+            for name, argv in hops.items():
+                results[f"{name}{tag}"] = run_fleetctl(work, env, args.seconds, hop=argv,
+                                                       consumers=n)
+            for settings in ("default", "best"):
+                results[f"zenoh-{settings}{tag}"] = run_zenoh(work, env, args.seconds,
+                                                              settings, consumers=n)
+    print(f"loopback, {args.seconds:g} s after {WARMUP_S:g} s warm-up, {args.consumers} "
+          "consumer(s); latency = consumer receipt - ROS publish stamp")
+    print(f"  {'stack':18s} {'topic':16s} {'n':>5s} {'p50 ms':>8s} {'p99 ms':>8s}")
     for stack, topics in results.items():
         for topic, parts in topics.items():
             st = parts["total"]
-            print(f"  {stack:14s} {topic:16s} {st['n']:5d} {st['p50_ms']:8.3f} "
+            print(f"  {stack:18s} {topic:16s} {st['n']:5d} {st['p50_ms']:8.3f} "
                   f"{st['p99_ms']:8.3f}")
     print("  fleetctl split (p50 ms): ROS -> client intake | client intake -> consumer")
-    for stack in ("fleetctl", "fleetctl-recv"):
-        for topic, parts in results.get(stack, {}).items():
-            print(f"    {stack:14s} {topic:16s} {parts['ros_to_client']['p50_ms']:8.3f} | "
+    for stack in (k for k in results if not k.startswith("zenoh")):
+        for topic, parts in results[stack].items():
+            print(f"    {stack:18s} {topic:16s} {parts['ros_to_client']['p50_ms']:8.3f} | "
                   f"{parts['client_to_consumer']['p50_ms']:8.3f}")
     if args.json:
         args.json.write_text(json.dumps(results, indent=2))

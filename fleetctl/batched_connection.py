@@ -13,6 +13,13 @@ websockets' three), and large chunks are written on their own instead of being j
 with their neighbours (one more pass saved). Small frames take websockets' own path (and
 the uplink deflate of :mod:`fleetctl.linkdeflate`, which leaves large frames alone).
 
+On the server side a binary frame is serialized once for all its receivers
+(:func:`server_binary_frame`): the relay writes one relayed frame to each receiver in
+turn, a server's frames are not masked and it compresses nothing it sends, so the bytes
+are the same for every one of them. websockets' own path built them anew per receiver
+(a ``Frame``, its checks, a ``BytesIO`` and two copies of the payload): at 16 receivers
+that was most of the relay's Python per delivery (docs/benchmarks.md).
+
 The robot client (:class:`fleetctl.client.transport.LinkConnection`) and the relay
 (:class:`fleetctl.server.connection.RelayConnection`) both derive from this class.
 """
@@ -29,11 +36,28 @@ from websockets.exceptions import ConcurrencyError
 from websockets.protocol import Side, State
 
 from fleetctl.linkdeflate import passes_through
-from fleetctl.masked_frame import masked_binary_frame
+from fleetctl.masked_frame import masked_binary_frame, unmasked_binary_header
 
 # Frames from this size on are masked in one pass and written without joining: below it
 # the per-call costs of numpy and of a separate write exceed the copy they save.
 ONE_PASS_MIN_BYTES = 16 * 1024
+
+# The last payload server_binary_frame serialized and its frame, as one tuple so that a
+# reader sees a matching pair (the demo runs the relay and clients on threads of one
+# process). Kept until the next one: at most one relayed message and its frame.
+_last_server_frame: tuple[bytes, bytes] | None = None
+
+
+def server_binary_frame(payload: bytes) -> bytes:
+    """*payload* as an unmasked final binary frame; the same object again for the same
+    payload object (a relayed frame written to each of its receivers in turn)."""
+    global _last_server_frame
+    last = _last_server_frame
+    if last is not None and last[0] is payload:
+        return last[1]
+    frame = unmasked_binary_header(len(payload)) + payload
+    _last_server_frame = (payload, frame)
+    return frame
 
 
 class BatchedWritesConnection(Connection):
@@ -82,14 +106,18 @@ class BatchedWritesConnection(Connection):
         # awaits, so it stays open. A frame no extension touches (the uplink deflate
         # leaves large ones alone) is exactly what serialize() would produce, so it can
         # be queued directly.
-        one_pass = (protocol.side is Side.CLIENT
-                    and not protocol.expect_continuation_frame)
+        # websockets' own path logs each frame when debugging: keep it then.
+        direct = not protocol.expect_continuation_frame and not protocol.debug
+        client = protocol.side is Side.CLIENT
         extensions = protocol.extensions
         for frame in frames:
             if isinstance(frame, str):
                 protocol.send_text(frame.encode())
-            elif (one_pass and len(frame) >= ONE_PASS_MIN_BYTES
-                  and passes_through(extensions, len(frame))):
+            elif not (direct and passes_through(extensions, len(frame))):
+                protocol.send_binary(frame)
+            elif not client:
+                protocol.writes.append(server_binary_frame(frame))
+            elif len(frame) >= ONE_PASS_MIN_BYTES:
                 protocol.writes.append(cast(bytes, masked_binary_frame(frame)))
             else:
                 protocol.send_binary(frame)

@@ -1,4 +1,5 @@
-"""One-pass serialization of a client's masked binary WebSocket frame (RFC 6455 section 5).
+"""One-pass serialization of a client's masked binary WebSocket frame (RFC 6455 section 5),
+and the header of a server's unmasked one.
 
 A client must mask every frame it sends (section 5.3). websockets' ``Frame.serialize``
 masks into a new buffer, writes header and masked data into a ``BytesIO`` and copies that
@@ -32,14 +33,20 @@ _HEAD_64 = struct.Struct("!BBQ")
 _MASK_BYTES = 4
 
 
-def _header(length: int) -> bytes:
+def _header(length: int, mask_bit: int = _MASK_BIT) -> bytes:
     """Section 5.2: FIN + opcode, then MASK + payload length (7, 7+16 or 7+64 bits)."""
     first = _FIN | int(Opcode.BINARY)
     if length < 126:
-        return _HEAD_7.pack(first, _MASK_BIT | length)
+        return _HEAD_7.pack(first, mask_bit | length)
     if length < 65536:
-        return _HEAD_16.pack(first, _MASK_BIT | 126, length)
-    return _HEAD_64.pack(first, _MASK_BIT | 127, length)
+        return _HEAD_16.pack(first, mask_bit | 126, length)
+    return _HEAD_64.pack(first, mask_bit | 127, length)
+
+
+def unmasked_binary_header(length: int) -> bytes:
+    """The header of a final binary frame of *length* bytes as a server sends it
+    (section 5.1: a server never masks); the payload follows it unchanged."""
+    return _header(length, 0)
 
 
 def masked_binary_frame(payload: bytes | bytearray | memoryview,

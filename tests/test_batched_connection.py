@@ -8,7 +8,12 @@ import os
 from websockets.asyncio.client import ClientConnection, connect
 from websockets.asyncio.server import ServerConnection, serve
 
-from fleetctl.batched_connection import ONE_PASS_MIN_BYTES, BatchedWritesConnection
+from fleetctl.batched_connection import (
+    ONE_PASS_MIN_BYTES,
+    BatchedWritesConnection,
+    server_binary_frame,
+)
+from fleetctl.linkdeflate import RelayDeflateFactory
 
 
 class BatchedClient(BatchedWritesConnection, ClientConnection):
@@ -80,3 +85,51 @@ def test_ping_pongs_after_large_small_and_no_frames() -> None:
     got, rtts = asyncio.run(main())
     assert got == [batches[0][0], b"small"]
     assert len(rtts) == 3 and all(rtt >= 0 for rtt in rtts)
+
+
+class BatchedServer(BatchedWritesConnection, ServerConnection):
+    """The server side, as the relay composes it."""
+
+
+def test_a_server_frame_is_built_once_for_all_its_receivers() -> None:
+    # The relay writes one relayed payload to each receiver in turn: the same frame object
+    # serves them all, and each receiver (one without extensions, one that negotiated the
+    # inbound-only deflate, as browsers and robots do) reads every message intact, the
+    # batch's text and sizes on both sides of 126 and 65536 included.
+    payloads = [b"", b"x" * 125, os.urandom(126), os.urandom(70_000), b"last"]
+    batch: list[bytes | str] = [payloads[0], "text", *payloads[1:]]
+    assert server_binary_frame(payloads[2]) is server_binary_frame(payloads[2])
+    other = bytes(payloads[2])  # equal bytes, another object: built anew, same bytes
+    assert server_binary_frame(other) == server_binary_frame(payloads[2])
+
+    async def main() -> list[list[bytes | str]]:
+        receivers: list[BatchedServer] = []
+        both = asyncio.Event()
+
+        async def handler(ws: ServerConnection) -> None:
+            assert isinstance(ws, BatchedServer)
+            receivers.append(ws)
+            if len(receivers) == 2:
+                both.set()
+            await ws.wait_closed()
+
+        async def receive(port: int, **kwargs: object) -> list[bytes | str]:
+            async with connect(f"ws://127.0.0.1:{port}", max_size=None,
+                               **kwargs) as ws:  # type: ignore[arg-type]
+                await asyncio.wait_for(both.wait(), 10.0)
+                return [await asyncio.wait_for(ws.recv(), 10.0) for _ in batch]
+
+        async with serve(handler, "127.0.0.1", 0, compression=None, max_size=None,
+                         extensions=[RelayDeflateFactory()],
+                         create_connection=BatchedServer) as server:
+            port = server.sockets[0].getsockname()[1]
+            tasks = [asyncio.create_task(receive(port, compression=None)),
+                     asyncio.create_task(receive(port, compression="deflate"))]
+            await asyncio.wait_for(both.wait(), 10.0)
+            assert sorted(len(r.protocol.extensions) for r in receivers) == [0, 1]
+            for ws in receivers:
+                assert ws.can_write_now()
+                ws.write_frames_now(batch)
+            return list(await asyncio.gather(*tasks))
+
+    assert asyncio.run(main()) == [batch, batch]

@@ -8,7 +8,7 @@ import pytest
 from websockets.frames import OP_BINARY, Frame
 from websockets.streams import StreamReader
 
-from fleetctl.masked_frame import masked_binary_frame
+from fleetctl.masked_frame import masked_binary_frame, unmasked_binary_header
 
 KEY = b"\x9a\x01\xfe\x37"
 LENGTHS = [0, 1, 3, 4, 7, 8, 9, 125, 126, 127, 65535, 65536, 65537, 1_000_003]
@@ -71,3 +71,10 @@ def test_fresh_key_each_frame_and_parses_back() -> None:
 def test_bad_key_length() -> None:
     with pytest.raises(ValueError, match="4 bytes"):
         masked_binary_frame(b"x", b"abc")
+
+
+@pytest.mark.parametrize("length", LENGTHS)
+def test_unmasked_header_and_payload_are_websockets_server_frame(length: int) -> None:
+    payload = os.urandom(length)
+    assert (unmasked_binary_header(length) + payload
+            == Frame(OP_BINARY, payload).serialize(mask=False))

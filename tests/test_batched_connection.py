@@ -101,6 +101,10 @@ def test_a_server_frame_is_built_once_for_all_its_receivers() -> None:
     assert server_binary_frame(payloads[2]) is server_binary_frame(payloads[2])
     other = bytes(payloads[2])  # equal bytes, another object: built anew, same bytes
     assert server_binary_frame(other) == server_binary_frame(payloads[2])
+    buffer = bytearray(b"before")  # mutable: never taken from the cache
+    assert server_binary_frame(buffer).endswith(b"before")
+    buffer[:] = b"after!"
+    assert server_binary_frame(buffer).endswith(b"after!")
 
     async def main() -> list[list[bytes | str]]:
         receivers: list[BatchedServer] = []

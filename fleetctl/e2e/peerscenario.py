@@ -84,10 +84,12 @@ class _Run:
     files stay)."""
 
     def __init__(self, fr: FleetRun, variant: str, p: profiles.Profile,
-                 consumers: int = 1) -> None:
+                 consumers: int = 1, scenario: str = "peer") -> None:
         # consumers=0: none of its own (the fan-out starts its own per consumer count).
         self.fr, self.variant, self.p, self.count = fr, variant, p, consumers
-        self.tag = f"peer-{variant}"
+        # Names its containers, and so their kept logs: one scenario's robot log must not
+        # be overwritten by the next one's (the reconnects after each cut are in it).
+        self.tag = f"{scenario}-{variant}"
         self.settings = variant.removeprefix("zenoh-")
         self.endpoints: list[Endpoint] = []
         self.published: dict[str, dict[str, int]] = {}
@@ -201,7 +203,7 @@ def run_peer_fanout(fr: FleetRun, caps: Capabilities, duration_s: float,
     steps: dict[str, list[dict[str, Any]]] = {}
     for variant in ("fleetctl", *ZENOH_VARIANTS):
         steps[variant] = []
-        with _Run(fr, variant, p, consumers=0) as run:
+        with _Run(fr, variant, p, consumers=0, scenario="fanout") as run:
             for n in FANOUT_COUNTS:
                 tag = f"fan{n}-{variant}"  # not under run.tag: its samples stay apart
                 consumers = run.start_consumers(tag, n)

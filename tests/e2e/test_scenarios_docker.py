@@ -125,6 +125,12 @@ def test_peer_measures_every_variant_after_every_cut(
         # Messages flowed again after every restore, through fleetctl and through zenoh.
         assert all(t["first_s"] < 10 for t in trials), (variant, trials)
     assert all(0 < b < 4e6 for b in result["uplink_bit_s"].values()), result["uplink_bit_s"]
+    # The robot's log of this scenario is kept apart from the fan-out's robot (same load,
+    # run after it): its first connection and the new one after each 5 s cut are there.
+    logs = run[1] / "raw" / "logs"
+    robot_log = (logs / "peer-fleetctl-robot.log").read_text()
+    assert robot_log.count("connected to ") >= 3, robot_log[-2000:]
+    assert (logs / "fanout-fleetctl-robot.log").is_file()
 
 
 def test_peer_fanout_reaches_every_consumer(run: tuple[int, Path, dict[str, Any]]) -> None:

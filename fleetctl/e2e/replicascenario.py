@@ -16,7 +16,8 @@ Containers, all from the fleet's images (the server image carries ``nats-server`
 
 Timeline: both viewers receive the pose and the events; quiet for ``max(3, D/3)`` s; kill
 ``nats1`` (relay A's node: cross-replica frames must find another node); after
-``max(6, D/3)`` s (JetStream's leaders re-elected) kill ``relay-a`` (``docker kill``: the
+``max(3, D/3)`` s and once both other nodes report JetStream healthy again (its leaders
+re-elected, their streams current) kill ``relay-a`` (``docker kill``: the
 robot must fail over to B); run on for ``max(5, D/2)`` s; stop the load and let the
 events drain. The viewer on B must never disconnect. Criteria: :mod:`fleetctl.e2e.replicaanalysis`.
 """
@@ -45,9 +46,11 @@ from fleetctl.errors import FleetError
 Progress = Callable[[str], None]
 NATS_NODES = ("nats1", "nats2", "nats3")
 # After a NATS node's death JetStream re-elects the leaders of the streams it led (the
-# sessions' no_drop stream included), which took ~3 s here; the relay is killed only after
-# that, so each fault is judged on its own (docs/scaling.md, "Sessions, shared").
-JETSTREAM_SETTLE_S = 6.0
+# sessions' no_drop stream included): ~3 s on a quiet host, 4-8 s in a loaded CI run. The
+# relay is killed only once the other nodes say JetStream is healthy again, so each fault
+# is judged on its own (docs/scaling.md, "Sessions, shared"): a fixed 6 s wait once let
+# the relay die before the leaders were back, and a frame it had acknowledged unstored
+# went with it (the documented double fault, not the single one this scenario tests).
 # Every NATS node is its own container; a cluster needs all three up before JetStream
 # elects its meta leader, and a replica's start waits for the KV bucket.
 READY_TIMEOUT_S = 90.0
@@ -144,9 +147,11 @@ def run_replica_failure(fr: FleetRun, caps: Capabilities, duration_s: float,
         progress(f"replica-failure: quiet for {phase_s:.0f} s")
         hold(phase_s)
         nats_kill = _kill(fr, nats[0])
-        settle_s = max(phase_s, JETSTREAM_SETTLE_S)
-        progress(f"replica-failure: nats1 killed; {settle_s:.0f} s")
-        hold(settle_s)
+        progress(f"replica-failure: nats1 killed; {phase_s:.0f} s, then until JetStream "
+                 "is healthy on nats2 and nats3")
+        hold(phase_s)  # the measuring window after the first fault
+        for node in nats[1:]:
+            _wait_nats(fr, node)
         relay_kill = _kill(fr, a)
         progress("replica-failure: relay-a killed")
         hold(max(5.0, duration_s / 2))

@@ -116,14 +116,15 @@ class BatchedWritesConnection(Connection):
         for frame in frames:
             if isinstance(frame, str):
                 protocol.send_text(frame.encode())
-            elif not (direct and passes_through(extensions, len(frame))):
+            elif (not direct or (client and len(frame) < ONE_PASS_MIN_BYTES)
+                  or not passes_through(extensions, len(frame))):
+                # A client's small frame is decided by its size alone: no extension call
+                # on the robot's per-message path.
                 protocol.send_binary(frame)
-            elif not client:
-                protocol.writes.append(server_binary_frame(frame))
-            elif len(frame) >= ONE_PASS_MIN_BYTES:
+            elif client:
                 protocol.writes.append(cast(bytes, masked_binary_frame(frame)))
             else:
-                protocol.send_binary(frame)
+                protocol.writes.append(server_binary_frame(frame))
         if ping is None:
             return None
         # As Connection.ping registers its waiter (websockets 13-15), so that the

@@ -60,7 +60,8 @@ COMPRESSIONS = ("none", "zstd", "deflate")
 _SUBSCRIBE_KEYS = frozenset({"remote_topic", "type", "local_topic"})
 _STATUS_KEYS = frozenset({"battery_topic", "period_s"})
 _LIMIT_KEYS = frozenset({"max_fragment_bytes", "no_drop_queue_messages", "reconnect_min_s",
-                         "reconnect_max_s", "scheduler", "outage_dial_interval_s"})
+                         "reconnect_max_s", "scheduler", "outage_dial_interval_s",
+                         "standby_connection"})
 # The outage dial pace's range: below 5 ms the SYNs sent while down (200/s at 5 ms, ~15 KB/s
 # raw, ~26 KB/s inside WireGuard) cost more than the millisecond or two they save; above
 # 0.25 s it is the slow pace. The default, 10 ms, is docs/recovery.md's trade-off.
@@ -154,6 +155,10 @@ class ClientLimits:
             attempt (one SYN) at least this often, seconds: the first SYN after the link
             returns leaves within it. Smaller recovers sooner and sends more while the
             link is down (docs/recovery.md, the dial pace).
+        standby_connection: Keep a second, idle connection to the server (when the
+            server offers it) and switch to it the moment a cut link returns, instead of
+            a WebSocket upgrade on a new connection (docs/recovery.md, the standby
+            connection). It costs one more TCP connection per robot; false turns it off.
     """
 
     max_fragment_bytes: int = 4194304
@@ -162,6 +167,7 @@ class ClientLimits:
     reconnect_max_s: float = 5.0
     scheduler: str = "adaptive"
     outage_dial_interval_s: float = 0.01
+    standby_connection: bool = True
 
 
 @dataclass(frozen=True)
@@ -479,6 +485,8 @@ def _limits(ctx: _Ctx, value: object) -> ClientLimits:
         reconnect_max_s=hi,
         scheduler=_scheduler(ctx, entry),
         outage_dial_interval_s=_outage_dial_interval(ctx, entry, d.outage_dial_interval_s),
+        standby_connection=_bool(ctx, entry, "limits", "standby_connection",
+                                 d.standby_connection),
     )
 
 

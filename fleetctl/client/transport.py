@@ -72,6 +72,7 @@ from fleetctl.client.dialer import DialSettings, DialTimeout, dial_first
 from fleetctl.client.memory import tune_malloc
 from fleetctl.client.receiver import Receiver
 from fleetctl.client.scheduler import Scheduler, SchedulerConfig, TopicFeedback
+from fleetctl.client.standby import ACTIVATE, STANDBY_HEADER, Standby
 from fleetctl.client.wakeup import Wakeup
 from fleetctl.frame_sink import FrameSink
 from fleetctl.linkdeflate import DEFAULT_MAX_MESSAGE_BYTES, RobotDeflateFactory
@@ -451,6 +452,17 @@ class RobotLink:
         # SYN left that long before, so the path worked from then on (see _drop_stale);
         # the connect log says both (after an outage, where the time goes).
         self._dialed: tuple[float, float] | None = None
+        # The idle second connection taken over after an outage (fleetctl.client.standby),
+        # whether the server offered it (its upgrade response), and whether the connection
+        # _open just returned is that standby, to be activated.
+        self._standby: Standby | None = None
+        if config.limits.standby_connection:
+            self._standby = Standby(self._upgrade_standby, self._dial_standby,
+                                    _unacked_segments,
+                                    retry_min_s=max(1.0, config.limits.reconnect_min_s),
+                                    retry_max_s=max(30.0, config.limits.reconnect_max_s))
+        self._standby_offered = False
+        self._activating = False
         # While bind_address is on no interface: since when, the last WARNING, attempts.
         self._unbound_since_s: float | None = None
         self._unbound_warned_s = 0.0
@@ -588,6 +600,8 @@ class RobotLink:
         finally:
             if ready is not None:
                 ready.sock.close()  # stopped before the upgrade ran on it
+            if self._standby is not None:
+                await self._standby.close()
             self._running = False
             self._stopped.set()
 
@@ -618,6 +632,7 @@ class RobotLink:
         snap["identities"] = list(self._identities)
         snap["subscribed"] = sorted(self._subscribed)
         snap["received"] = self._receiver.stats()
+        snap["standby"] = None if self._standby is None else self._standby.stats()
         return snap
 
     @property
@@ -684,11 +699,37 @@ class RobotLink:
     async def _open(self, ready: Dialed | None = None) -> LinkConnection:
         """One connection attempt: raced TCP connect within ``open_timeout_s`` (or the
         *ready* socket the watchdog connected), then TLS and the upgrade within another
-        ``open_timeout_s``."""
+        ``open_timeout_s``. After an outage, the standby connection instead, when it is
+        usable: the connected socket shows the path works again, and becomes the next
+        standby (:mod:`fleetctl.client.standby`)."""
+        sock, index = ready if ready is not None else await self._dial()
+        if self._standby is not None and self._outage_since_s is not None:
+            spare = await self._standby.take(index)
+            if spare is not None:
+                assert isinstance(spare, LinkConnection)
+                self._standby.adopt(sock, index)
+                self._activating = True
+                self._use_replica(index)
+                return spare
+        try:
+            ws = await self._upgrade(sock, index, standby=False)
+        except BaseException as exc:
+            if not isinstance(exc, asyncio.CancelledError):
+                self._skip_replica(index)
+            raise
+        self._use_replica(index)
+        return ws
+
+    async def _upgrade(self, sock: socket.socket, index: int, *,
+                       standby: bool) -> LinkConnection:
+        """TLS and the WebSocket upgrade on *sock* (connected to replica *index*) within
+        ``open_timeout_s``; *standby* asks for a standby connection. The socket is closed
+        when that fails."""
         headers = {SESSION_HEADER: self.config.robot_name}
+        if standby:
+            headers[STANDBY_HEADER] = "1"
         if self.config.token is not None:
             headers["Authorization"] = f"Bearer {self.config.token}"
-        sock, index = ready if ready is not None else await self._dial()
         try:
             async with asyncio.timeout(self.tuning.open_timeout_s):
                 ws = await connect(
@@ -699,14 +740,25 @@ class RobotLink:
                     max_size=self.tuning.max_receive_frame_bytes,
                     write_limit=self.tuning.write_limit_bytes,
                     create_connection=LinkConnection)
-        except BaseException as exc:
+        except BaseException:
             sock.close()  # the handshake failed or timed out: the socket is ours
-            if not isinstance(exc, asyncio.CancelledError):
-                self._skip_replica(index)
             raise
         assert isinstance(ws, LinkConnection)
-        self._use_replica(index)
         return ws
+
+    async def _upgrade_standby(self, sock: socket.socket, index: int) -> LinkConnection:
+        return await self._upgrade(sock, index, standby=True)
+
+    async def _dial_standby(self) -> tuple[socket.socket, int]:
+        """A socket for a standby: the current replica only, at the normal pace (the
+        path works; this dial must not touch the outage state or the SYN timing)."""
+        index = self._url_index
+        uri = parse_uri(self._urls[index])
+        local = (None if self.config.bind_address is None
+                 else (self.config.bind_address, 0))
+        _, sock = await dial_first([(uri.host, uri.port)], self.tuning.open_timeout_s,
+                                   self.tuning.dial, head_start_s=0.0, local_addr=local)
+        return sock, index
 
     async def _connect(self, attempt: int,
                        ready: Dialed | None = None) -> LinkConnection | None:
@@ -778,6 +830,11 @@ class RobotLink:
         self._subscribed.clear()
         self._identities = []
         self._acked_any = False
+        activating, self._activating = self._activating, False
+        if not activating:
+            # An older server, or another Robofleet-convention one, does not offer it.
+            self._standby_offered = ws.response is not None and (
+                ws.response.headers.get(STANDBY_HEADER) == "1")
         dialed, self._dialed = self._dialed, None
         if dialed is None:
             self._drop_stale(None)
@@ -787,12 +844,16 @@ class RobotLink:
             self._drop_stale(dialed_s - syn_rtt_s)
             # The upgrade includes a wait for the old connection when the watchdog dialled
             # early (a false alarm is decided first).
-            logger.info("connected to %s (SYN round trip %.1f ms, upgrade %.1f ms)", self.url,
-                        syn_rtt_s * 1e3, (self._clock() - dialed_s) * 1e3)
+            logger.info("connected to %s (SYN round trip %.1f ms, %s %.1f ms)", self.url,
+                        syn_rtt_s * 1e3, "standby activated in" if activating else "upgrade",
+                        (self._clock() - dialed_s) * 1e3)
         tasks: list[asyncio.Task[None]] = []
         ended = _Ended(acked=False)
         ws.frame_sink = self._sink
         try:
+            if activating:
+                # First on the wire: the server moves the session here, then the frames.
+                await ws.send(ACTIVATE)
             await self._subscribe_all(ws, subscribe=True)
             tasks = [asyncio.create_task(self._send_loop(ws)),
                      asyncio.create_task(self._receive_loop(ws)),
@@ -813,7 +874,13 @@ class RobotLink:
                 await self._goodbye(ws)
         except ConnectionClosed as exc:
             self._log_session_end(exc)
+            if activating and not self._acked_any:
+                # The standby was gone (a server restarted during the outage): dial again
+                # at once, as after any dead path.
+                ended = _Ended(False, True)
         finally:
+            if self._standby is not None:
+                self._standby.main_down()
             ws.frame_sink = None  # what the old connection still reads is not delivered
             for task in tasks:
                 task.cancel()
@@ -946,7 +1013,10 @@ class RobotLink:
     def _on_pong(self, token: int, fut: asyncio.Future[float]) -> None:
         if self._pings.pop(token, None) is None or fut.cancelled() or fut.exception():
             return
-        self._acked_any = True
+        if not self._acked_any:
+            self._acked_any = True
+            if self._standby is not None:  # the path works: keep a standby beside it
+                self._standby.main_up(self._standby_offered)
         self._scheduler.on_ack(token, self._clock())
         # A pong matters to the send loop only when something waits for the window it
         # opened; otherwise waking it costs a loop round per message for nothing.
@@ -1107,6 +1177,11 @@ class RobotLink:
         patterns = event.get("subscriptions")
         return [p for p in patterns if isinstance(p, str) and p not in wanted] if isinstance(
             patterns, list) else []
+
+
+def _unacked_segments(sock: Any) -> int | None:
+    info = read_tcp_info(sock)
+    return None if info is None else info.unacked
 
 
 async def _discard(task: asyncio.Task[Dialed]) -> None:

@@ -49,6 +49,7 @@ from fleetctl.server.recording.http import RECORDINGS_PATH, RecordingsEndpoint
 from fleetctl.server.recording.recorder import Recorder
 from fleetctl.server.registry import RobotRegistry
 from fleetctl.server.relay import Peer, RelayCore
+from fleetctl.server.sessions import STANDBY_HEADER
 from fleetctl.server.tls import server_context
 from fleetctl.server.web import QuietSuccess, page_response, web_page
 from fleetctl.server.writethrough import ConnectionWriter, WriteThrough
@@ -430,7 +431,10 @@ class RelayServer:
                                   "GET /metrics needs loopback or a valid Bearer token\n")
         families = [*(self.recorder.metric_families() if self.recorder is not None else ()),
                     *self.foxglove.metric_families(),
-                    *self.core.fanout.metric_families()]
+                    *self.core.fanout.metric_families(),
+                    ("fleetctl_standby_connections", "gauge", "Robots' standby connections "
+                     "open (authenticated, one per session at most).", "",
+                     {"": float(len(self.core.standbys))})]
         text = self.metrics.render(self._gauges(), self.core.session_gauges(), families)
         return endpoints.response(http.HTTPStatus.OK, text.encode("utf-8", "backslashreplace"),
                                   endpoints.PROMETHEUS_CONTENT_TYPE)
@@ -452,9 +456,13 @@ class RelayServer:
             # written through.
             wake=writer.event.set if foxglove else writer.wake,
             session_name=upgrade.session_name, by_address=by_address and not foxglove,
+            standby=upgrade.standby and not foxglove,
         )
         if not foxglove:
             writer.write_now = functools.partial(self._write_now, connection, peer)
+            # This server takes standby connections (RelayCore.activate): a client opens
+            # one only to a server that says so.
+            response.headers[STANDBY_HEADER] = "1"
         try:
             self._wire(connection, peer, parsed, writer)
         except BaseException:  # never leave a peer behind a failed handshake
@@ -472,6 +480,19 @@ class RelayServer:
         max_frame_bytes = self.config.limits.max_frame_bytes
         peer.on_authenticated = lambda: connection.authenticated(max_frame_bytes)
         peer.throttle = lambda delay_s: connection.throttle(delay_s, peer)
+        if peer.standby:
+            # No keepalive pings while standby: the robot keeps the connection free of
+            # unacknowledged data so that its first write after a cut leaves at once, and
+            # a server ping sent into the cut would hold back every server frame after
+            # the activation (pongs, the session) until TCP retransmitted it. websockets
+            # starts the keepalive after this hook; it starts on activation instead.
+            interval, connection.ping_interval = connection.ping_interval, None
+
+            def start_keepalive() -> None:
+                connection.ping_interval = interval
+                connection.start_keepalive()
+
+            peer.on_activated = start_keepalive
         core = self.core
 
         def sink(frame: bytes) -> bool:

@@ -30,7 +30,7 @@ from fleetctl.server.identity import (
     parse_address,
     within,
 )
-from fleetctl.server.sessions import SESSION_HEADER
+from fleetctl.server.sessions import SESSION_HEADER, STANDBY_HEADER
 
 __all__ = ["BadRequest", "HandshakeLog", "Upgrade", "read_request", "wants_websocket"]
 
@@ -49,12 +49,16 @@ class Upgrade:
         proxied_loopback: The TCP peer is loopback and not a trusted proxy, yet the request
             carries a proxy header: a same-host reverse proxy nobody listed in
             ``trusted_proxies``. Such a request gets no loopback privilege.
+        standby: ``X-Fleetctl-Standby: 1`` (only with a session header): a robot's
+            standby connection of its session (see
+            :meth:`~fleetctl.server.relay.RelayCore.activate`).
     """
 
     address: IPAddress | None
     token: str | None = field(repr=False)
     session_name: str | None
     proxied_loopback: bool = False
+    standby: bool = False
 
     @property
     def is_local(self) -> bool:
@@ -68,7 +72,8 @@ def read_request(connection: ServerConnection, request: Request,
     """Read who sent *request*.
 
     Raises:
-        BadRequest: A header that must appear once appears several times.
+        BadRequest: A header that must appear once appears several times, or a bad
+            ``X-Fleetctl-Standby`` header.
     """
     headers = request.headers
     remote = connection.remote_address
@@ -77,9 +82,26 @@ def read_request(connection: ServerConnection, request: Request,
     address = effective_address(peer, forwarded, trusted_proxies)
     token = bearer_token(one_header(headers, "Authorization"))
     names = headers.get_all(SESSION_HEADER)
+    standby = _standby(one_header(headers, STANDBY_HEADER), bool(names))
     proxied = (peer is not None and peer.is_loopback and not within(peer, trusted_proxies)
                and any(name in headers for name in PROXY_HEADERS))
-    return Upgrade(address, token, ",".join(names) if names else None, proxied)
+    return Upgrade(address, token, ",".join(names) if names else None, proxied, standby)
+
+
+def _standby(value: str | None, has_session: bool) -> bool:
+    """Whether an ``X-Fleetctl-Standby`` header *value* marks a standby connection.
+
+    Raises:
+        BadRequest: A value other than ``1``, or no session header.
+    """
+    if value is None:
+        return False
+    if value.strip() != "1":
+        raise BadRequest(f"{STANDBY_HEADER}: {value[:40]!r} is not 1 (the only value)")
+    if not has_session:
+        raise BadRequest(f"{STANDBY_HEADER} without {SESSION_HEADER}: a standby connection "
+                         "is one of a named session")
+    return True
 
 
 def wants_websocket(request: Request) -> bool:

@@ -9,7 +9,7 @@ from typing import TYPE_CHECKING
 from fleetctl.server.authmap import Identity
 from fleetctl.server.outbound import OutboundScheduler
 from fleetctl.server.permissions import Permissions
-from fleetctl.server.sessions import Session
+from fleetctl.server.sessions import Session, SessionKey
 
 if TYPE_CHECKING:
     from fleetctl.server.cluster.sessionfeed import SessionFeed
@@ -27,6 +27,7 @@ class Peer:
             when the connection authenticates).
         by_address: Whether ``ip``/``cidr`` identities apply to this connection (not on
             the web listener, where people sign in with tokens).
+        standby: The upgrade said ``X-Fleetctl-Standby: 1`` (see :attr:`standby`).
 
     Attributes:
         token_digests: SHA-256 hex digests of the tokens the connection authenticated
@@ -39,6 +40,18 @@ class Peer:
             seconds, then to clear :attr:`throttled` (``None``: the core only discards).
         throttled: The connection is over its control request rate: every frame it sent
             is discarded (counted) until the I/O layer clears this.
+        standby: A robot's idle standby connection of :attr:`session_name`: welcomed but
+            not attached to the session, sent nothing else, and every binary frame it
+            sends is discarded (counted), until ``{"type": "activate"}`` clears this
+            (:meth:`~fleetctl.server.relay.RelayCore.activate`).
+        standby_key: The session key this standby is registered under in
+            ``RelayCore.standbys`` (``None``: not registered).
+        standby_warned: A binary frame of this standby was answered with an error already
+            (the next ones are only counted).
+        on_activated: Called when a standby activates (the I/O layer starts the
+            keepalive pings it held back: a ping the server sent into a cut would make
+            everything after it on the activated connection wait for TCP's
+            retransmission).
     """
 
     def __init__(
@@ -49,6 +62,7 @@ class Peer:
         close: Callable[[int, str], None],
         session_name: str | None = None,
         by_address: bool = True,
+        standby: bool = False,
     ) -> None:
         self.peer_id = peer_id
         self.session_name = session_name
@@ -62,8 +76,12 @@ class Peer:
         self.identities: list[Identity] = []
         self.counted: tuple[str, ...] = ()
         self.on_authenticated: Callable[[], None] | None = None
+        self.on_activated: Callable[[], None] | None = None
         self.throttle: Callable[[float], None] | None = None
         self.throttled = False
+        self.standby = standby
+        self.standby_key: SessionKey | None = None
+        self.standby_warned = False
         self.is_robot = False
         self.closing = False
         # In a cluster, a session's connection: its no_drop frames come from the shared

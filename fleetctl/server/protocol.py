@@ -34,6 +34,8 @@ ERROR_CODES = (
     "bad_session",
     "rate_limited",
     "keyframe_refused",
+    "standby",  # a binary frame on a standby connection (discarded)
+    "not_standby",  # {"type": "activate"} on a connection that is not a standby
 )
 
 

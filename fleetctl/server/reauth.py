@@ -24,7 +24,8 @@ def reload_auth(core: RelayCore, auth: AuthMap) -> tuple[int, int]:
     Each authenticated connection's identities are recomputed from its address
     (address identities) and its token digests. A connection left with none is closed
     with 4403 and stops receiving at once; the others keep their connection, get the
-    new permissions (a new ``welcome`` if its rules changed) and lose the
+    new permissions (a new ``welcome`` if its rules changed; a standby connection gets
+    it when it activates) and lose the
     subscriptions they may no longer hold (an ``error`` and an ``unsubscribed`` frame
     each). Permission caches and receiver caches are rebuilt; sessions follow
     (:meth:`SessionTable.reauthorize`).
@@ -75,7 +76,9 @@ def regrant(core: RelayCore, peer: Peer, identities: list[Identity]) -> None:
     peer.refused_topics.clear()  # a refused send may be allowed now, and the reverse
     core.recount(peer)
     welcome = protocol.welcome(peer.perms)
-    if welcome != before:
+    if peer.standby:  # sent nothing while standby: activating welcomes it anew
+        core.register_standby(peer)  # its session key may have changed
+    elif welcome != before:
         peer.outbound.push_control(welcome)
         log.info("%s re-authorized: rules changed", peer.label)
     for pattern, refusal in core.subs.set_permissions(peer, peer.perms):

@@ -34,8 +34,10 @@ from fleetctl.server.registry import RobotRegistry, robot_name
 from fleetctl.server.sessions import (
     BadSessionName,
     Session,
+    SessionKey,
     SessionTable,
     check_session_name,
+    session_label,
 )
 from fleetctl.server.sessionstore import SessionStore
 from fleetctl.server.subscriptions import Refusal, SubscriptionMap
@@ -107,6 +109,9 @@ class RelayCore:
         self._buckets: dict[tuple[str, ...], TokenBucket] = {}
         self._clock = clock
         self.peers: dict[int, Peer] = {}
+        # Robots' standby connections (X-Fleetctl-Standby), at most one per session key:
+        # a newer one closes the older. An entry leaves when its peer closes or activates.
+        self.standbys: dict[SessionKey, Peer] = {}
         self._no_drop_res = tuple(compile_full(p) for p in config.no_drop_topics)
         self._no_drop_memo: dict[str, bool] = {}
         self._next_id = 0
@@ -134,12 +139,14 @@ class RelayCore:
 
     def new_peer(self, address: str | None, close: Callable[[int, str], None],
                  wake: Callable[[], None] | None, session_name: str | None = None,
-                 by_address: bool = True) -> Peer:
+                 by_address: bool = True, standby: bool = False) -> Peer:
         """Create the relay state of a new connection (not yet authenticated).
 
         *session_name* is the ``X-Fleetctl-Session`` header, if any; *by_address* says
-        whether address identities apply (see :class:`Peer`).
+        whether address identities apply (see :class:`Peer`); *standby* is
+        ``X-Fleetctl-Standby: 1`` (needs *session_name*; see :meth:`activate`).
         """
+        assert not standby or session_name is not None, "a standby names its session"
         self._next_id += 1
         outbound = OutboundScheduler(
             self.limits.outbound_queue_bytes,
@@ -148,7 +155,8 @@ class RelayCore:
             self.metrics.count_drop,
             self.limits.latched_bytes,
         )
-        peer = Peer(self._next_id, address, outbound, close, session_name, by_address)
+        peer = Peer(self._next_id, address, outbound, close, session_name, by_address,
+                    standby)
         self.peers[peer.peer_id] = peer
         self.metrics.connections_total += 1
         self.metrics.connections_open += 1
@@ -185,7 +193,10 @@ class RelayCore:
         if first and peer.on_authenticated is not None:
             peer.on_authenticated()
         if peer.session_name is not None and peer.session is None:
-            self._attach_session(peer, peer.session_name)
+            if peer.standby:  # attached when it activates
+                self.register_standby(peer)
+            else:
+                self._attach_session(peer, peer.session_name)
         return True
 
     def recount(self, peer: Peer) -> None:
@@ -220,6 +231,8 @@ class RelayCore:
             self.catalog.forget(peer)
         if peer.session is not None:
             self._detach_session(peer)
+        if peer.standby_key is not None:
+            self._unregister_standby(peer)
         for name in peer.robots:
             self.registry.detach(name)
         self.connections.remove(peer.counted)
@@ -243,6 +256,9 @@ class RelayCore:
         if perms is None:
             self.close_with(peer, protocol.CLOSE_NO_IDENTITY,
                         "connection matches no identity: send a token frame first")
+            return
+        if peer.standby:
+            self._standby_frame(peer)
             return
         try:
             meta, root = read_root(frame)
@@ -313,7 +329,8 @@ class RelayCore:
         self.fanout.follow(pattern, delta)
 
     def on_text(self, peer: Peer, text: str) -> None:
-        """Handle one text frame: a token frame or a ``list_robots`` request."""
+        """Handle one text frame: a token frame, a ``list_robots`` request or a standby's
+        ``activate``."""
         if peer.throttled:
             self.discard(peer)
             return
@@ -334,9 +351,11 @@ class RelayCore:
                                                    "robots": self.robots_for(peer.perms)}))
         elif peer.perms is None:
             self.close_with(peer, protocol.CLOSE_NO_IDENTITY, "connection matches no identity")
+        elif data.get("type") == "activate":  # once per connection: no control request
+            self.activate(peer)
         else:
-            self.malformed(peer, "unknown_type", None,
-                           "text frames are {'token': ...} or {'type': 'list_robots'}")
+            self.malformed(peer, "unknown_type", None, "text frames are {'token': ...}, "
+                           "{'type': 'list_robots'} or {'type': 'activate'}")
 
     def on_token(self, peer: Peer, token: Any, session: Any = None) -> None:
         """Authenticate *peer* by a token; close with 4401 if it matches no identity.
@@ -403,6 +422,69 @@ class RelayCore:
             ("fleetctl_session_mailbox_bytes", "Bytes held for a session.", "session", nbytes),
         ]
 
+    # -- standby connections ------------------------------------------------------------
+
+    def activate(self, peer: Peer) -> None:
+        """``{"type": "activate"}`` from an authenticated *peer*: a standby becomes the
+        robot's connection (``welcome`` again, then its session is attached, taking it
+        over from the robot's current connection: 4409). Anything but a standby gets a
+        ``not_standby`` error and stays open."""
+        if not peer.standby:
+            self.malformed(peer, "not_standby", None, "activate: this connection is not a "
+                           "standby (X-Fleetctl-Standby: 1 on the upgrade)")
+            return
+        name = peer.session_name
+        assert peer.perms is not None and name is not None
+        self._unregister_standby(peer)
+        peer.standby = False
+        peer.malformed_in_row = 0
+        if peer.on_activated is not None:
+            peer.on_activated()
+        peer.outbound.push_control(protocol.welcome(peer.perms))
+        log.info("%s activated its standby for session %s", peer.label, name)
+        self._attach_session(peer, name)
+
+    def register_standby(self, peer: Peer) -> None:
+        """Keep an authenticated standby *peer* as the one standby of its session key (on
+        authentication, and again when an auth map reload changed its identities); an
+        older standby of the key is closed with 4409. A bad session name closes *peer*
+        with 4400, as :meth:`_attach_session` would."""
+        assert peer.standby and peer.session_name is not None
+        try:
+            check_session_name(peer.session_name)
+        except BadSessionName as exc:
+            self._bad_session(peer, str(exc))
+            return
+        key = _session_key(peer, peer.session_name)
+        if peer.standby_key == key:
+            return
+        self._unregister_standby(peer)
+        old = self.standbys.get(key)
+        if old is not None:
+            old.standby_key = None
+            self.close_with(old, protocol.CLOSE_SESSION_TAKEN_OVER,
+                            "standby replaced by a newer one")
+        self.standbys[key] = peer
+        peer.standby_key = key
+        log.info("%s is a standby for session %s", peer.label, session_label(key))
+
+    def _unregister_standby(self, peer: Peer) -> None:
+        key, peer.standby_key = peer.standby_key, None
+        if key is not None and self.standbys.get(key) is peer:
+            del self.standbys[key]
+
+    def _standby_frame(self, peer: Peer) -> None:
+        """A binary frame of a standby: discarded, counted; the first one is answered
+        (and logged), like a refused send (:meth:`_unauthorized`)."""
+        self.metrics.count_error("standby")
+        if peer.standby_warned:
+            return
+        peer.standby_warned = True
+        log.warning("%s sent a binary frame on its standby connection", peer.label)
+        peer.outbound.push_control(protocol.error(
+            "standby", None, "a standby connection relays nothing: send "
+            "{'type': 'activate'} first (frames are discarded)"))
+
     # -- sessions -----------------------------------------------------------------------
 
     def _attach_session(self, peer: Peer, name: str) -> None:
@@ -414,7 +496,7 @@ class RelayCore:
         except BadSessionName as exc:
             self._bad_session(peer, str(exc))
             return
-        key = (tuple(sorted(i.name for i in peer.identities)), name)
+        key = _session_key(peer, name)
         existing = self.sessions.get(key)
         if existing is not None and existing.attached is not None:
             old = existing.attached
@@ -623,6 +705,11 @@ class RelayCore:
         if added:  # a repeat (a client's resubscribe after its session resumed) gets nothing
             firstframes.on_new_subscription(self, peer, pattern)
         return True
+
+
+def _session_key(peer: Peer, name: str) -> SessionKey:
+    """The key of *peer*'s session *name*: its sorted identity names and the name."""
+    return tuple(sorted(i.name for i in peer.identities)), name
 
 
 def _session_store(registry: RobotRegistry) -> SessionStore | None:

@@ -46,6 +46,10 @@ if TYPE_CHECKING:
 log = logging.getLogger("fleetctl.server")
 
 SESSION_HEADER = "X-Fleetctl-Session"
+# ``X-Fleetctl-Standby: 1`` on an upgrade (with SESSION_HEADER): a robot's idle standby
+# connection, attached to its session only when it sends ``{"type": "activate"}``. Every
+# 101 of the relay carries it too: the server takes standby connections.
+STANDBY_HEADER = "X-Fleetctl-Standby"
 MAX_SESSION_NAME_CHARS = 64
 _NAME_RE = re.compile(r"[A-Za-z0-9][A-Za-z0-9_.@:-]{0,63}")
 

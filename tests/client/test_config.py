@@ -158,6 +158,8 @@ def test_token_file_is_read_relative_and_never_shown(tmp_path: Path) -> None:
      "limits: outage_dial_interval_s: must be between 0.005 and 0.25, got 0.001"),
     (minimal(limits={"outage_dial_interval_s": "fast"}),
      "limits: outage_dial_interval_s: must be a number, got 'fast'"),
+    (minimal(limits={"standby_connection": "yes"}),
+     "limits: standby_connection: must be true or false, got 'yes'"),
     ([1, 2], "document: must be a mapping"),
 ])
 def test_bad_field_names_file_entry_and_field(data: Any, expected: str) -> None:
@@ -193,6 +195,18 @@ def test_the_outage_dial_interval_reaches_the_link_s_dial_pace() -> None:
     assert link.tuning.dial.stagger_at(0.0) == 0.01  # doubling from 10 ms ...
     assert link.tuning.dial.stagger_at(30.0) == 0.04  # ... to it, held to a minute
     assert link.tuning.dial.stagger_at(90.0) == link.tuning.dial.stagger_s
+
+
+def test_the_standby_connection_is_on_unless_turned_off() -> None:
+    from fleetctl.client.transport import LinkTuning, RobotLink
+
+    default = parse_client_config(minimal(), source="c.yaml")
+    assert default.limits.standby_connection
+    assert RobotLink(default, on_frame=lambda f: None,
+                     tuning=LinkTuning()).stats()["standby"]["open"] is False
+    off = parse_client_config(minimal(limits={"standby_connection": False}), source="c.yaml")
+    assert not off.limits.standby_connection
+    assert RobotLink(off, on_frame=lambda f: None, tuning=LinkTuning()).stats()["standby"] is None
 
 
 def test_file_errors(tmp_path: Path) -> None:

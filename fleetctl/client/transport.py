@@ -704,7 +704,11 @@ class RobotLink:
         standby (:mod:`fleetctl.client.standby`)."""
         sock, index = ready if ready is not None else await self._dial()
         if self._standby is not None and self._outage_since_s is not None:
-            spare = await self._standby.take(index)
+            try:
+                spare = await self._standby.take(index)
+            except BaseException:
+                sock.close()  # stopped while the standby was handed over
+                raise
             if spare is not None:
                 assert isinstance(spare, LinkConnection)
                 self._standby.adopt(sock, index)

@@ -144,9 +144,11 @@ def closes_chosen_by_server(log: str, robot: str) -> int:
     choice: a newer connection of the robot's own took its session over (``conn#M[...]
     takes session S over from conn#N[...]``, then conn#N ``closed 4409``), which a robot
     that re-dials by itself causes (see the test's comment); those closes are left out
-    only when the takeover line names that very connection."""
+    only when the takeover line names that very connection. So is a standby the robot's
+    own newer standby replaced (``closed 4409: standby replaced by a newer one``: the
+    robot opened another after it lost sight of that one, docs/server.md, "Sessions")."""
     label = rf"conn#\d+\[{re.escape(robot)}@[^\]]*\]"
-    closed = re.compile(rf"({label}) closed (\d+)")
+    closed = re.compile(rf"({label}) closed (\d+)(: standby replaced by a newer one)?")
     taken_over = re.compile(rf"\[{re.escape(robot)}@[^\]]*\] takes session \S+ over "
                             rf"from ({label})")
     superseded: set[str] = set()
@@ -155,8 +157,8 @@ def closes_chosen_by_server(log: str, robot: str) -> int:
         if (took := taken_over.search(line)) is not None:
             superseded.add(took.group(1))
         elif (close := closed.search(line)) is not None:
-            by_takeover = (int(close.group(2)) == CLOSE_SESSION_TAKEN_OVER
-                           and close.group(1) in superseded)
+            by_takeover = int(close.group(2)) == CLOSE_SESSION_TAKEN_OVER and (
+                close.group(1) in superseded or close.group(3) is not None)
             count += not by_takeover
     return count
 
@@ -170,8 +172,9 @@ def test_a_takeover_the_robot_caused_is_not_counted_as_a_server_close() -> None:
         "conn#3[jackal2@10.9.0.3:40000] closed 4409: session taken over by a newer connection",
         "conn#9[husky1@10.9.0.2:40004] closed 4409: session taken over by a newer connection",
         "conn#7[jackal2@10.9.0.3:40002] closed 4401: token revoked",
+        "conn#8[jackal2@10.9.0.3:40004] closed 4409: standby replaced by a newer one",
     ])
-    assert closes_chosen_by_server(log, "jackal2") == 1  # the refusal, not the takeover
+    assert closes_chosen_by_server(log, "jackal2") == 1  # the refusal, not the takeovers
     # A 4409 with no takeover line naming that connection is counted.
     assert closes_chosen_by_server(log, "husky1") == 1
 

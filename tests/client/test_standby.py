@@ -88,7 +88,7 @@ async def test_nothing_is_opened_for_a_server_that_does_not_offer_it() -> None:
     h = Harness()
     keeper = h.standby()
     keeper.main_up(False)
-    await asyncio.sleep(0)  # give a wrongly started opener its first step
+    assert keeper._opener is None  # nothing started: no dial can follow
     assert keeper.connection is None and h.dials == 0
     assert await keeper.take(0) is None
     await keeper.close()
@@ -179,6 +179,7 @@ async def test_close_closes_the_standby_and_opens_no_more() -> None:
     ws = h.upgraded[0]
     await keeper.close()
     assert ws.closed and keeper.connection is None
+    opener = keeper._opener
     keeper.main_up(True)
-    await asyncio.sleep(0)
+    assert keeper._opener is opener and opener is not None and opener.done()  # none new
     assert h.dials == 1

@@ -179,9 +179,7 @@ class Standby:
             self.counters["open_failures"] += 1
             logger.info("standby connection not opened (%r); next try in %.0f s", exc,
                         self._retry_s)
-            delay, self._retry_s = self._retry_s, min(self._retry_max_s, self._retry_s * 2)
-            self._opener = None
-            self._open_soon(delay)
+            self._retry_later()
             return
         if self._closed:
             ws.transport.abort()
@@ -204,9 +202,14 @@ class Standby:
             self.counters["lost"] += 1
             rcvd = getattr(ws, "close_rcvd", None)
             logger.info("standby connection closed (%s); opening another", rcvd or "no close frame")
-            delay, self._retry_s = self._retry_s, min(self._retry_max_s, self._retry_s * 2)
-            self._opener = None
-            self._open_soon(delay)
+            self._retry_later()
+
+    def _retry_later(self) -> None:
+        """Open again after the current wait, and double the wait (up to its cap); called
+        from the opener or the reader, whose task is ending."""
+        delay, self._retry_s = self._retry_s, min(self._retry_max_s, self._retry_s * 2)
+        self._opener = None
+        self._open_soon(delay)
 
     async def _stop_reader(self) -> None:
         reader, self._reader = self._reader, None

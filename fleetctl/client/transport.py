@@ -660,21 +660,27 @@ class RobotLink:
         """The raced TCP connect, at the stagger for the current outage's age; the
         current replica first, the others after ``failover_after_s``."""
         order = [(self._url_index + k) % len(self._urls) for k in range(len(self._urls))]
+        since = self._outage_since_s
+        age = math.inf if since is None else max(0.0, self._clock() - since)
+        dialed = await self._race(order, age)
+        # The winning SYN left one handshake RTT ago (the kernel's first RTT sample is
+        # the SYN's): from then on the path worked, so what is offered after it is fresh.
+        info = read_tcp_info(dialed.sock)
+        self._dialed = (self._clock(), info.srtt_s if info is not None else 0.0)
+        return dialed
+
+    async def _race(self, order: list[int], outage_age_s: float = math.inf) -> Dialed:
+        """:func:`dial_first` to the replicas at the positions *order*, from
+        ``bind_address`` when one is set."""
         targets = []
         for i in order:
             uri = parse_uri(self._urls[i])
             targets.append((uri.host, uri.port))
         local = (None if self.config.bind_address is None
                  else (self.config.bind_address, 0))
-        since = self._outage_since_s
-        age = math.inf if since is None else max(0.0, self._clock() - since)
         won, sock = await dial_first(targets, self.tuning.open_timeout_s, self.tuning.dial,
                                      head_start_s=self.tuning.failover_after_s,
-                                     local_addr=local, outage_age_s=age)
-        # The winning SYN left one handshake RTT ago (the kernel's first RTT sample is
-        # the SYN's): from then on the path worked, so what is offered after it is fresh.
-        info = read_tcp_info(sock)
-        self._dialed = (self._clock(), info.srtt_s if info is not None else 0.0)
+                                     local_addr=local, outage_age_s=outage_age_s)
         return Dialed(sock, order[won])
 
     def _use_replica(self, index: int) -> None:
@@ -756,13 +762,7 @@ class RobotLink:
     async def _dial_standby(self) -> tuple[socket.socket, int]:
         """A socket for a standby: the current replica only, at the normal pace (the
         path works; this dial must not touch the outage state or the SYN timing)."""
-        index = self._url_index
-        uri = parse_uri(self._urls[index])
-        local = (None if self.config.bind_address is None
-                 else (self.config.bind_address, 0))
-        _, sock = await dial_first([(uri.host, uri.port)], self.tuning.open_timeout_s,
-                                   self.tuning.dial, head_start_s=0.0, local_addr=local)
-        return sock, index
+        return await self._race([self._url_index])
 
     async def _connect(self, attempt: int,
                        ready: Dialed | None = None) -> LinkConnection | None:

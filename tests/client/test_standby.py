@@ -83,6 +83,13 @@ class Harness:
     def standby(self, **kw: Any) -> Standby:
         return Standby(self.upgrade, self.dial, lambda s: self.unacked.get(s, 0), **kw)
 
+    async def opened(self, **kw: Any) -> Standby:
+        """A keeper whose main connection works, once its standby is open."""
+        keeper = self.standby(**kw)
+        keeper.main_up(True)
+        await wait_until(lambda: keeper.connection is not None)
+        return keeper
+
 
 async def test_nothing_is_opened_for_a_server_that_does_not_offer_it() -> None:
     h = Harness()
@@ -110,9 +117,7 @@ async def test_it_opens_once_the_main_connection_works_and_is_taken_when_usable(
 @pytest.mark.parametrize("case", ["other replica", "unacknowledged data", "closed"])
 async def test_an_unusable_standby_is_closed_not_taken(case: str) -> None:
     h = Harness()
-    keeper = h.standby()
-    keeper.main_up(True)
-    await wait_until(lambda: keeper.connection is not None)
+    keeper = await h.opened()
     ws = h.upgraded[0]
     replica = 1 if case == "other replica" else 0
     if case == "unacknowledged data":
@@ -160,9 +165,7 @@ async def test_nothing_is_opened_while_the_main_connection_is_down() -> None:
 
 async def test_a_standby_the_server_closes_is_replaced() -> None:
     h = Harness()
-    keeper = h.standby(retry_min_s=0.01)
-    keeper.main_up(True)
-    await wait_until(lambda: keeper.connection is not None)
+    keeper = await h.opened(retry_min_s=0.01)
     first = h.upgraded[0]
     first.inbox.put_nowait('{"type": "welcome", "identities": ["r1"]}')
     first.end()
@@ -173,9 +176,7 @@ async def test_a_standby_the_server_closes_is_replaced() -> None:
 
 async def test_close_closes_the_standby_and_opens_no_more() -> None:
     h = Harness()
-    keeper = h.standby(retry_min_s=0.01)
-    keeper.main_up(True)
-    await wait_until(lambda: keeper.connection is not None)
+    keeper = await h.opened(retry_min_s=0.01)
     ws = h.upgraded[0]
     await keeper.close()
     assert ws.closed and keeper.connection is None

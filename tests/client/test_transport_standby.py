@@ -43,19 +43,26 @@ class DeadSockets:
 
     def kill(self, link: RobotLink) -> None:
         """The path of *link*'s current connection goes silent."""
-        ws = link._ws
+        self._kill(link._ws)
+
+    def kill_standby(self, link: RobotLink) -> None:
+        """The path of *link*'s standby connection goes silent."""
+        assert link._standby is not None
+        self._kill(link._standby.connection)
+
+    def _kill(self, ws: Any) -> None:
         assert ws is not None
         port = local_port(ws.transport.get_extra_info("socket"))
         assert port is not None
         self.ports.add(port)
 
-    def kill_standby(self, link: RobotLink) -> None:
-        assert link._standby is not None
-        spare = link._standby.connection
-        assert spare is not None
-        port = local_port(spare.transport.get_extra_info("socket"))
-        assert port is not None
-        self.ports.add(port)
+
+def through_the_relay(server: RelayServer, tmp_path: Path, monkeypatch: pytest.MonkeyPatch,
+                      ) -> tuple[DeadSockets, EventsThroughTheRelay]:
+    """The robot and its viewer through the real relay, with the kernel's view faked."""
+    kernel = DeadSockets()
+    monkeypatch.setattr(transport, "read_tcp_info", kernel)
+    return kernel, EventsThroughTheRelay(server, tmp_path)
 
 
 def standby(link: RobotLink) -> dict[str, Any]:
@@ -73,9 +80,7 @@ async def test_after_a_dead_path_the_standby_carries_on_exactly_once_in_order(
     session onto it, the no_drop events arrive once each, in order, and the socket that
     dial connected becomes the next standby."""
     caplog.set_level(logging.INFO)
-    kernel = DeadSockets()
-    monkeypatch.setattr(transport, "read_tcp_info", kernel)
-    events = EventsThroughTheRelay(server, tmp_path)
+    kernel, events = through_the_relay(server, tmp_path, monkeypatch)
     robot = events.robot
     async with events.running():
         await wait_until(lambda: standby(robot)["open"])
@@ -104,9 +109,7 @@ async def test_a_standby_with_unacknowledged_data_is_not_used(
 ) -> None:
     """A standby whose own path looks stuck would wait for a retransmission too: it is
     closed, and the dialled socket gets a normal upgrade; nothing is lost."""
-    kernel = DeadSockets()
-    monkeypatch.setattr(transport, "read_tcp_info", kernel)
-    events = EventsThroughTheRelay(server, tmp_path)
+    kernel, events = through_the_relay(server, tmp_path, monkeypatch)
     robot = events.robot
     async with events.running():
         await wait_until(lambda: standby(robot)["open"])

@@ -25,6 +25,7 @@ import asyncio
 import contextlib
 import json
 import logging
+import random
 import socket
 from collections.abc import Awaitable, Callable
 from typing import Any, Protocol
@@ -36,6 +37,26 @@ logger = logging.getLogger("fleetctl.client.link")
 
 STANDBY_HEADER = "X-Fleetctl-Standby"  # fleetctl.server.sessions.STANDBY_HEADER
 ACTIVATE = json.dumps({"type": "activate"})
+
+# TCP keepalive on the standby's socket: seconds idle before the first probe, seconds
+# between probes, unanswered probes before the kernel gives the connection up.
+# Why: the standby carries nothing for hours, and a NAT (a robot's LTE carrier, a site
+# router) may forget an idle TCP mapping long before RFC 5382's two hours; the standby would
+# then fail the moment it is needed. A probe every 25 s (WireGuard's advice for its own
+# keepalive) keeps the mapping, and carries no data: it never shows as unacknowledged, so
+# an activation is not held behind it. Four unanswered probes (125 s) end a standby the
+# network lost, and the keeper opens another; a cut shorter than about 100 s leaves it be.
+KEEPALIVE_IDLE_S = 25
+KEEPALIVE_INTERVAL_S = 25
+KEEPALIVE_PROBES = 4
+
+
+def keep_mapping_alive(sock: socket.socket) -> None:
+    """Turn on the standby's TCP keepalive (:data:`KEEPALIVE_IDLE_S` and the rest)."""
+    sock.setsockopt(socket.SOL_SOCKET, socket.SO_KEEPALIVE, 1)
+    sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_KEEPIDLE, KEEPALIVE_IDLE_S)
+    sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_KEEPINTVL, KEEPALIVE_INTERVAL_S)
+    sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_KEEPCNT, KEEPALIVE_PROBES)
 
 
 class StandbyWebSocket(Protocol):
@@ -66,16 +87,19 @@ class Standby:
         unacked: Reads the kernel's unacknowledged segments of a socket.
         retry_min_s: First wait after a failed open, seconds (doubles per failure).
         retry_max_s: Cap of that wait, seconds.
+        rng: Draws each wait's jitter (injected for tests).
     """
 
     def __init__(self, upgrade: Upgrade, dial: Dial, unacked: Unacked, *,
-                 retry_min_s: float = 1.0, retry_max_s: float = 30.0) -> None:
+                 retry_min_s: float = 1.0, retry_max_s: float = 30.0,
+                 rng: random.Random | None = None) -> None:
         self._upgrade = upgrade
         self._dial = dial
         self._unacked = unacked
         self._retry_min_s = retry_min_s
         self._retry_max_s = retry_max_s
         self._retry_s = retry_min_s
+        self._rng = rng if rng is not None else random.Random()
         self._ws: StandbyWebSocket | None = None
         self._replica: int | None = None
         self._reader: asyncio.Task[None] | None = None
@@ -177,9 +201,8 @@ class Standby:
             raise
         except Exception as exc:  # refused, timed out, handshake failed: retry later
             self.counters["open_failures"] += 1
-            logger.info("standby connection not opened (%r); next try in %.0f s", exc,
-                        self._retry_s)
-            self._retry_later()
+            logger.info("standby connection not opened (%r); next try in %.1f s", exc,
+                        self._retry_later())
             return
         if self._closed:
             ws.transport.abort()
@@ -201,15 +224,21 @@ class Standby:
             self._ws = self._replica = None
             self.counters["lost"] += 1
             rcvd = getattr(ws, "close_rcvd", None)
-            logger.info("standby connection closed (%s); opening another", rcvd or "no close frame")
-            self._retry_later()
+            logger.info("standby connection closed (%s); opening another in %.1f s",
+                        rcvd or "no close frame", self._retry_later())
 
-    def _retry_later(self) -> None:
-        """Open again after the current wait, and double the wait (up to its cap); called
-        from the opener or the reader, whose task is ending."""
+    def _retry_later(self) -> float:
+        """Open again after the current wait times U(0.5, 1) jitter, and double the wait
+        (up to its cap); called from the opener or the reader, whose task is ending.
+
+        The jitter is the reconnect backoff's (``transport.backoff_delay_s``) for the same
+        reason: a relay restart closes every robot's standby at once, and a fleet that
+        retried in step would hit the new relay's handshakes in one burst."""
         delay, self._retry_s = self._retry_s, min(self._retry_max_s, self._retry_s * 2)
+        delay *= self._rng.uniform(0.5, 1.0)
         self._opener = None
         self._open_soon(delay)
+        return delay
 
     async def _stop_reader(self) -> None:
         reader, self._reader = self._reader, None

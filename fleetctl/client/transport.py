@@ -72,7 +72,7 @@ from fleetctl.client.dialer import DialSettings, DialTimeout, dial_first
 from fleetctl.client.memory import tune_malloc
 from fleetctl.client.receiver import Receiver
 from fleetctl.client.scheduler import Scheduler, SchedulerConfig, TopicFeedback
-from fleetctl.client.standby import ACTIVATE, STANDBY_HEADER, Standby
+from fleetctl.client.standby import ACTIVATE, STANDBY_HEADER, Standby, keep_mapping_alive
 from fleetctl.client.wakeup import Wakeup
 from fleetctl.frame_sink import FrameSink
 from fleetctl.linkdeflate import DEFAULT_MAX_MESSAGE_BYTES, RobotDeflateFactory
@@ -757,6 +757,7 @@ class RobotLink:
         return ws
 
     async def _upgrade_standby(self, sock: socket.socket, index: int) -> LinkConnection:
+        keep_mapping_alive(sock)
         return await self._upgrade(sock, index, standby=True)
 
     async def _dial_standby(self) -> tuple[socket.socket, int]:

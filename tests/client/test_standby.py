@@ -6,6 +6,7 @@ RobotLink's use of it through the real relay is in test_transport_standby.py.
 from __future__ import annotations
 
 import asyncio
+import random
 import socket
 from typing import Any
 
@@ -148,6 +149,19 @@ async def test_a_failed_open_is_retried_later_with_a_growing_wait() -> None:
     await wait_until(lambda: keeper.connection is not None)
     assert h.dials == 3 and keeper.stats()["open_failures"] == 2
     await keeper.close()
+
+
+def test_the_retry_wait_doubles_with_jitter_under_its_cap() -> None:
+    """A fleet whose standbys a relay restart closed at once must not retry in step: each
+    wait is the doubling one (capped) times U(0.5, 1)."""
+    keeper = Harness().standby(retry_min_s=1.0, retry_max_s=4.0, rng=random.Random(7))
+    scheduled: list[float] = []
+    keeper._open_soon = scheduled.append  # type: ignore[method-assign]
+    returned = [keeper._retry_later() for _ in range(4)]
+    draws = random.Random(7)
+    expected = [base * draws.uniform(0.5, 1.0) for base in (1.0, 2.0, 4.0, 4.0)]
+    assert scheduled == returned == expected
+    assert len(set(returned)) == 4  # not in step with an unjittered fleet
 
 
 async def test_nothing_is_opened_while_the_main_connection_is_down() -> None:

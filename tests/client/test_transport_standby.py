@@ -8,6 +8,7 @@ connections, the dial that shows the path works again.
 from __future__ import annotations
 
 import logging
+import socket
 from pathlib import Path
 from typing import Any
 
@@ -15,6 +16,7 @@ import pytest
 from websockets.asyncio.server import ServerConnection, serve
 
 from fleetctl.client import transport
+from fleetctl.client.standby import KEEPALIVE_IDLE_S, KEEPALIVE_INTERVAL_S, KEEPALIVE_PROBES
 from fleetctl.client.transport import RobotLink, TcpInfo, read_tcp_info
 from fleetctl.server.app import RelayServer
 from tests.client.conftest import robot_config, running, wait_until
@@ -135,6 +137,16 @@ async def test_the_standby_opens_only_once_the_connection_works(
         await wait_until(lambda: standby(robot)["open"])
         assert robot.stats()["connected"]
         assert server.core.metrics.connections_open == 2  # the link and its standby
+        assert robot._standby is not None and robot._standby.connection is not None
+        sock = robot._standby.connection.transport.get_extra_info("socket")
+        # Kept alive for NATs that forget idle mappings; the link's own socket is not.
+        assert sock.getsockopt(socket.SOL_SOCKET, socket.SO_KEEPALIVE) == 1
+        assert [sock.getsockopt(socket.IPPROTO_TCP, opt) for opt in (
+            socket.TCP_KEEPIDLE, socket.TCP_KEEPINTVL, socket.TCP_KEEPCNT)] == [
+            KEEPALIVE_IDLE_S, KEEPALIVE_INTERVAL_S, KEEPALIVE_PROBES]
+        assert robot._ws is not None
+        main = robot._ws.transport.get_extra_info("socket")
+        assert main.getsockopt(socket.SOL_SOCKET, socket.SO_KEEPALIVE) == 0
 
 
 async def test_a_server_that_does_not_offer_it_gets_no_standby(tmp_path: Path) -> None:

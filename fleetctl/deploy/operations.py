@@ -8,6 +8,7 @@ code (``fleetctl demo``, tests) calls them directly. Bad input raises a
 
 from __future__ import annotations
 
+import os
 from dataclasses import dataclass, replace
 from ipaddress import IPv4Address
 from pathlib import Path
@@ -288,6 +289,7 @@ def create_fleet(
         ConflictError: *fleet_dir* already holds a fleet and *force* is false.
         ConfigError: an argument is invalid (the message names it).
     """
+    _check_can_be_directory(fleet_dir)
     if fleet_file(fleet_dir).exists() and not force:
         raise ConflictError(f"{fleet_file(fleet_dir)} already exists "
                             "(use --force to replace the fleet and all its keys)")
@@ -317,6 +319,17 @@ def create_fleet(
     tls.plan_self_signed(plan, fleet_dir, tls.self_signed(tls.san_names(host), _TLS_KEYS))
     _plan_fleet(plan, fleet_dir, fleet, FleetKeys(server_key, {}), force=force)
     return InitResult(fleet, public_key(server_key), finish_plan(plan, fleet_dir, dry_run))
+
+
+def _check_can_be_directory(fleet_dir: Path) -> None:
+    """Raise :class:`ConfigError` when *fleet_dir*, or the nearest of its parents that
+    exists, is not a directory (a fleet could never be written there)."""
+    for path in (fleet_dir, *fleet_dir.absolute().parents):
+        if os.path.lexists(path):
+            if not path.is_dir():
+                raise ConfigError(f"{fleet_dir}: cannot create a fleet here: {path} exists "
+                                  "and is not a directory")
+            return
 
 
 def add_robot(

@@ -283,10 +283,32 @@ def parse_endpoint(endpoint: str) -> tuple[str, int]:
     """
     host, sep, port = endpoint.rpartition(":")
     if (not sep or len(host) > MAX_HOST_CHARS or not _HOST.fullmatch(host)
+            or not _host_is_valid(host)
             or not _PORT.fullmatch(port) or not 0 < int(port) < 65536):
         raise FleetInvalid(("endpoint",), f"expected HOST:PORT (ASCII, port 1..65535), "
                            f"got {shown(endpoint)}")
     return host, int(port)
+
+
+def _host_is_valid(host: str) -> bool:
+    """True for ``[IPv6]``, a dotted-quad IPv4 address, or a DNS name whose labels are 1..63
+    characters (*host* already matched :data:`_HOST`): what WireGuard's ``Endpoint`` and
+    the certificate's subject names can use."""
+    if host.startswith("["):
+        try:
+            ipaddress.IPv6Address(host[1:-1])
+        except ValueError:
+            return False
+        return True
+    labels = host.split(".")
+    if all(label.isdigit() for label in labels):  # looks like an IPv4 address: must be one
+        try:
+            IPv4Address(host)
+        except ValueError:
+            return False
+        return True
+    return all(0 < len(label) <= 63 and not label.startswith("-") and not label.endswith("-")
+               for label in labels)
 
 
 def _check_host_ip(fleet: Fleet, ip: IPv4Address, path: FieldPath) -> None:

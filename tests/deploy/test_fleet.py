@@ -6,7 +6,14 @@ from pathlib import Path
 
 import pytest
 
-from fleetctl.deploy.fleet import dump_fleet, load_fleet, parse_fleet, require_endpoint
+from fleetctl.deploy.fleet import (
+    FleetInvalid,
+    dump_fleet,
+    load_fleet,
+    parse_endpoint,
+    parse_fleet,
+    require_endpoint,
+)
 from fleetctl.deploy.topics import DEFAULT_PUBLISH
 from fleetctl.errors import ConfigError
 
@@ -133,6 +140,26 @@ def test_endpoint_null_and_absent() -> None:
         fleet = parse_fleet(Path("fleet.yaml"), text)
         assert fleet.endpoint is None
         assert "endpoint: null" in dump_fleet(fleet)
+
+
+@pytest.mark.parametrize("endpoint", [
+    "[::::]:51820", "[1.2.3]:5", "[fe80::1::2]:1", "a..b:1", "999.1.1.1:1", "1.2.3.4.5:1",
+    "a.-b.org:1", "a-.b.org:1", "%s.org:1" % ("a" * 64),
+])
+def test_endpoint_host_must_be_an_address_or_a_dns_name(endpoint: str) -> None:
+    with pytest.raises(FleetInvalid, match="expected HOST:PORT"):
+        parse_endpoint(endpoint)
+    assert _error(GOOD.replace("vpn.example.com:51820", f"'{endpoint}'")).startswith(
+        "/f/fleet.yaml:3: endpoint: expected HOST:PORT")
+
+
+@pytest.mark.parametrize(("endpoint", "host"), [
+    ("[fe80::1]:51820", "[fe80::1]"), ("[::ffff:1.2.3.4]:1", "[::ffff:1.2.3.4]"),
+    ("10.0.0.1:51820", "10.0.0.1"), ("vpn-1.example.org:1", "vpn-1.example.org"),
+    ("localhost:9", "localhost"), ("1.example:2", "1.example"),
+])
+def test_endpoint_good_hosts(endpoint: str, host: str) -> None:
+    assert parse_endpoint(endpoint)[0] == host
 
 
 def test_require_endpoint(tmp_path: Path) -> None:

@@ -216,6 +216,8 @@ def project_name(fleet_dir: Path) -> str:
 
 
 TUN_DEVICE = Path("/dev/net/tun")
+# Characters a bind mount's source path cannot hold in the compose file (see plan_for).
+_COMPOSE_PATH_SPECIAL = ":$"
 
 
 def wireguard_wanted(requested: str, tun: Path = TUN_DEVICE) -> bool:
@@ -304,6 +306,12 @@ def plan_for(fleet_dir: Path, options: Options | None = None) -> ComposePlan:
     if not (fleet_dir / "fleet.yaml").is_file():
         raise ConfigError(f"{fleet_dir / 'fleet.yaml'}: missing; is this a fleet directory? "
                           "(set --fleet or FLEET_DIR)")
+    if bad := sorted(set(_COMPOSE_PATH_SPECIAL) & set(str(fleet_dir))):
+        # Its path is a bind mount's source: Compose splits "src:dst:ro" on ':' and
+        # expands "$NAME", so such a path would mount the wrong directory or none.
+        shown = " and ".join(repr(c) for c in bad)
+        raise ConfigError(f"{fleet_dir}: the fleet directory's path has {shown}, which a "
+                          "docker compose volume cannot carry; move or rename the directory")
     options = options or Options(project_name(fleet_dir))
     server_yaml = fleet_dir / "server" / "server.yaml"
     server = _read_mapping(server_yaml, "server config")

@@ -3,6 +3,7 @@
 
 from __future__ import annotations
 
+import re
 import shutil
 import stat
 import subprocess
@@ -138,6 +139,15 @@ def test_bad_fleet_dirs_are_named(tmp_path: Path, fleet: Path) -> None:
     (fleet / "robots" / "husky1" / "wireguard" / "wg0.conf").write_text("[Interface]\n")
     with pytest.raises(ConfigError, match=r"wg0.conf: field Address: missing"):
         compose.plan_for(fleet, _opts(fleet, wireguard="off"))
+
+
+@pytest.mark.parametrize(("dirname", "shown"), [("my:fleet", "':'"), ("my$HOME", "'$'")])
+def test_a_fleet_path_compose_cannot_mount_is_named(tmp_path: Path, dirname: str,
+                                                     shown: str) -> None:
+    fleet_dir = tmp_path / dirname
+    ops.create_fleet(fleet_dir, endpoint="fleet.example:51820")
+    with pytest.raises(ConfigError, match=re.escape(f"path has {shown}, which a docker")):
+        compose.plan_for(fleet_dir, _opts(fleet_dir, wireguard="off"))
 
 
 def test_a_server_config_without_https_is_named(fleet: Path) -> None:

@@ -12,6 +12,8 @@ from __future__ import annotations
 
 import datetime
 import ipaddress
+import os
+import stat
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
@@ -130,9 +132,22 @@ def check_operator_files(cert_path: Path, key_path: Path) -> None:
                            f"{cert_path}")
 
 
+# A PEM certificate chain or key is a few KiB; more than this is not one (and a device or
+# FIFO such as /dev/zero must not be read until memory runs out).
+MAX_PEM_BYTES = 1 << 20
+
+
 def _read(path: Path, field_name: str) -> bytes:
     try:
-        return path.read_bytes()
+        # O_NONBLOCK: opening a FIFO without a writer would otherwise wait forever.
+        with os.fdopen(os.open(path, os.O_RDONLY | os.O_NONBLOCK), "rb") as f:
+            if not stat.S_ISREG(os.fstat(f.fileno()).st_mode):
+                raise FleetInvalid(("tls", field_name), f"{path}: not a regular file")
+            data = f.read(MAX_PEM_BYTES + 1)
     except OSError as exc:
         raise FleetInvalid(("tls", field_name),
                            f"cannot read {path}: {exc.strerror or type(exc).__name__}") from None
+    if len(data) > MAX_PEM_BYTES:
+        raise FleetInvalid(("tls", field_name),
+                           f"{path}: larger than {MAX_PEM_BYTES} bytes, not a PEM file")
+    return data

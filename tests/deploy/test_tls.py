@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import datetime
+import os
 import stat
 from pathlib import Path
 
@@ -13,7 +14,13 @@ from cryptography.hazmat.primitives.asymmetric import ec
 
 from fleetctl.deploy import operations as ops
 from fleetctl.deploy.keys import SystemKeySource
-from fleetctl.deploy.tls import CERT_RELPATH, KEY_RELPATH, cert_names, self_signed
+from fleetctl.deploy.tls import (
+    CERT_RELPATH,
+    KEY_RELPATH,
+    MAX_PEM_BYTES,
+    cert_names,
+    self_signed,
+)
 from fleetctl.errors import ConfigError
 
 
@@ -99,6 +106,12 @@ def test_operator_files_go_to_server_yaml_as_absolute_paths(tmp_path: Path) -> N
         (lambda c, k: k.write_text("nope"), r"fleet\.yaml:\d+: tls\.key: .*not an unencrypted"),
         (lambda c, k: k.write_text(self_signed(("x",), SystemKeySource()).key_pem.reveal()),
          r"fleet\.yaml:\d+: tls\.key: .*is not the key of the certificate"),
+        (lambda c, k: (c.unlink(), c.symlink_to("/dev/zero")),
+         r"fleet\.yaml:\d+: tls\.cert: .*cert\.pem: not a regular file"),
+        (lambda c, k: (k.unlink(), os.mkfifo(k)),
+         r"fleet\.yaml:\d+: tls\.key: .*key\.pem: not a regular file"),
+        (lambda c, k: c.write_bytes(c.read_bytes() + b"\n" * MAX_PEM_BYTES),
+         r"fleet\.yaml:\d+: tls\.cert: .*cert\.pem: larger than 1048576 bytes"),
     ],
 )
 def test_bad_operator_files_change_nothing(tmp_path: Path, break_it: object,

@@ -8,6 +8,7 @@ field at fault; it never returns a half-valid config.
 from __future__ import annotations
 
 import ipaddress
+import math
 import os
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -393,7 +394,10 @@ def _limits(value: Any, path: Path) -> ServerLimits:
     for name in _FLOAT_LIMITS:
         if name in value:
             v = value[name]
-            if isinstance(v, bool) or not isinstance(v, (int, float)) or v <= 0:
-                raise ConfigError(f"{path}: field 'limits.{name}' must be a positive number")
+            # isfinite: NaN passed "v <= 0" (every comparison with NaN is false).
+            if (isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v)
+                    or v <= 0):
+                raise ConfigError(f"{path}: field 'limits.{name}' must be a positive number, "
+                                  f"got {v!r}")
             kwargs[name] = float(v)
     return ServerLimits(**kwargs)

@@ -22,6 +22,7 @@ Only paths are kept: the secret is read when connecting, so it is in no repr or 
 
 from __future__ import annotations
 
+import math
 import os
 import re
 from dataclasses import dataclass
@@ -145,7 +146,8 @@ def _token(raw: dict[str, Any], name: str, default: str | None, path: Path) -> s
 
 def _positive(raw: dict[str, Any], name: str, default: float, path: Path) -> Any:
     value = raw.get(name, default)
-    if isinstance(value, bool) or not isinstance(value, (int, float)) or value <= 0:
+    if (isinstance(value, bool) or not isinstance(value, (int, float))
+            or not math.isfinite(value) or value <= 0):  # NaN <= 0 is false
         raise ConfigError(f"{path}: field 'cluster.{name}' must be a positive number")
     if isinstance(default, int) and not isinstance(value, int):
         raise ConfigError(f"{path}: field 'cluster.{name}' must be a positive integer")

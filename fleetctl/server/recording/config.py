@@ -17,6 +17,7 @@ Example::
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -142,7 +143,7 @@ def parse_recording(value: Any, base: Path, path: Path) -> RecordingConfig | Non
 
 def _positive(v: Any, name: str, path: Path, *, integer: bool) -> int | float:
     ok = isinstance(v, int) if integer else isinstance(v, (int, float))
-    if isinstance(v, bool) or not ok or v <= 0:
+    if isinstance(v, bool) or not ok or not math.isfinite(v) or v <= 0:  # NaN <= 0 is false
         what = "a positive integer" if integer else "a positive number"
         raise ConfigError(f"{path}: field 'recording.{name}' must be {what}")
     number: int | float = v

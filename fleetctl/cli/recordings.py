@@ -19,6 +19,7 @@ import datetime as dt
 import json
 import ssl
 import urllib.error
+import urllib.parse
 import urllib.request
 from dataclasses import dataclass
 from pathlib import Path
@@ -118,6 +119,14 @@ class Remote:
         for ws, plain in (("wss://", "https://"), ("ws://", "http://")):
             if base.startswith(ws):
                 base = plain + base[len(ws):]
+        try:
+            parts = urllib.parse.urlsplit(base)
+            parts.port  # noqa: B018  (raises ValueError for a port out of range)
+        except ValueError as exc:
+            raise ConfigError(f"--server {self.url}: not a URL: {exc}") from None
+        if parts.scheme not in ("http", "https") or not parts.hostname:
+            raise ConfigError(f"--server {self.url}: expected a ws://, wss://, http:// or "
+                              "https:// URL with a host")
         request = urllib.request.Request(base + path)
         if self.token is not None:
             request.add_header("Authorization", f"Bearer {self.token}")

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import contextlib
 import datetime as dt
+import struct
 import time
 from collections.abc import Iterator
 from dataclasses import dataclass
@@ -115,6 +116,11 @@ def read_messages(path: Path) -> Iterator[tuple[Schema | None, Channel, Message]
 
 
 def _tolerant_records(stream: Any) -> Iterator[Any]:
+    head = stream.read(len(_TAIL_MAGIC))
+    if not _TAIL_MAGIC.startswith(head) and len(head) < len(_TAIL_MAGIC):
+        # Too short for the reader's own magic check (it fails with struct.error).
+        raise FleetError(f"{getattr(stream, 'name', '?')}: not an MCAP file")
+    stream.seek(0)
     reader = StreamReader(stream, skip_magic=False)
     try:
         for record in reader.records:
@@ -125,7 +131,7 @@ def _tolerant_records(stream: Any) -> Iterator[Any]:
         raise FleetError(f"{getattr(stream, 'name', '?')}: not an MCAP file") from None
     except McapError:
         return  # the end of what was written so far (an empty file: nothing yet)
-    except (EOFError, ValueError, IndexError, KeyError, AttributeError):
+    except (EOFError, ValueError, IndexError, KeyError, AttributeError, struct.error):
         return  # a record cut short by the end of the data (zstd frame, struct unpack)
 
 

@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import math
 import re
 import time
 from collections.abc import Iterator
@@ -21,6 +22,8 @@ from pathlib import Path
 
 import typer
 from rosbags.typesys import get_types_from_msg
+from websockets.exceptions import InvalidURI
+from websockets.uri import parse_uri
 
 from fleetctl.cli.output import OutputFormat, emit, output_option
 from fleetctl.cli.tokenfile import read_token_file
@@ -236,13 +239,17 @@ def register(app: typer.Typer) -> None:
         output: OutputFormat = output_option(),
     ) -> None:
         """Play an MCAP recording into a fleet as a robot, live (real time or faster)."""
-        if rate < 0:
-            raise ConfigError(f"--rate {rate}: must be >= 0")
+        if not math.isfinite(rate) or rate < 0:
+            raise ConfigError(f"--rate {rate}: must be a number >= 0")
         if not _ROBOT_NAME.fullmatch(robot):
             raise ConfigError(f"--robot {robot!r}: must match [A-Za-z][A-Za-z0-9_]* (at most "
                               "63 characters)")
         if not server.startswith(("ws://", "wss://")):
             raise ConfigError(f"--server {server!r}: expected a ws:// or wss:// URL")
+        try:
+            parse_uri(server)
+        except (InvalidURI, ValueError) as exc:  # ValueError: urllib's bad IPv6 or port
+            raise ConfigError(f"--server {server!r}: not a URL: {exc}") from None
         options = ReplayOptions(server, rate or None, read_token_file(token_file), robot,
                                 _parse_remap(remap), not latest_only)
         result = asyncio.run(replay(file, options))

@@ -156,6 +156,15 @@ def test_replay_errors_name_the_file_and_option(tmp_path: Path,
                  "no spaces"]) == ExitCode.CONFIG
     assert main(["replay", str(missing), "--server", "http://x/"]) == ExitCode.CONFIG
     assert "expected a ws:// or wss:// URL" in capsys.readouterr().err
+    for rate in ("nan", "inf"):
+        assert main(["replay", str(missing), "--server", "ws://x/", "--rate",
+                     rate]) == ExitCode.CONFIG
+        assert f"--rate {rate}: must be a number >= 0" in capsys.readouterr().err
+    for url, why in (("ws://[::1/", "Invalid IPv6 URL"), ("ws://x:99999/", "Port out of range"),
+                     ("ws://", "hostname isn't provided")):
+        assert main(["replay", str(missing), "--server", url]) == ExitCode.CONFIG
+        err = capsys.readouterr().err
+        assert err.startswith(f"fleetctl: error: --server {url!r}: not a URL: ") and why in err
 
 
 def test_replay_command_line_with_a_token_file(

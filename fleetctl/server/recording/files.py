@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import contextlib
 import datetime as dt
+import stat
 import struct
 import time
 from collections.abc import Iterator
@@ -63,18 +64,27 @@ def new_path(directory: Path, now_s: float, label: str | None = None) -> Path:
 
 def scan(directory: Path) -> list[RecordingFile]:
     """The ``.mcap`` files of *directory*, oldest (last write) first; a missing directory
-    has none. Files that vanish while scanning are skipped."""
+    has none. Files that vanish while scanning, and entries that are not regular files
+    (a directory named ``x.mcap``), are skipped.
+
+    Raises:
+        FleetError: *directory* is not a directory.
+    """
     found = []
     try:
         entries = list(directory.iterdir())
     except FileNotFoundError:
         return []
+    except NotADirectoryError:
+        raise FleetError(f"{directory}: not a directory") from None
     for entry in entries:
         if entry.suffix != SUFFIX:
             continue
         try:
             st = entry.stat()
         except FileNotFoundError:
+            continue
+        if not stat.S_ISREG(st.st_mode):
             continue
         found.append(RecordingFile(entry.name, entry, st.st_size, st.st_mtime))
     return sorted(found, key=lambda f: (f.modified_s, f.name))

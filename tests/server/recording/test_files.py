@@ -25,3 +25,16 @@ def test_a_file_cut_short_has_no_messages_yet(tmp_path: Path, data: bytes) -> No
     path = tmp_path / "r.mcap"
     path.write_bytes(data)
     assert list(files.read_messages(path)) == []
+
+
+def test_scan_skips_what_is_not_a_regular_file(tmp_path: Path) -> None:
+    (tmp_path / "dir.mcap").mkdir()
+    (tmp_path / "r.mcap").write_bytes(MAGIC)
+    assert [f.name for f in files.scan(tmp_path)] == ["r.mcap"]
+
+
+def test_scan_of_a_file_is_named(tmp_path: Path) -> None:
+    (tmp_path / "afile").write_text("x")
+    with pytest.raises(FleetError, match=r"afile: not a directory"):
+        files.scan(tmp_path / "afile")
+    assert files.scan(tmp_path / "missing") == []

@@ -16,7 +16,11 @@ from fleetctl.webviz.run import run_webviz
 def _check_url(url: str | None) -> str | None:
     if url is None:
         return None
-    parts = urlsplit(url)
+    try:
+        parts = urlsplit(url)
+        parts.port  # noqa: B018  (raises ValueError for a bad port)
+    except ValueError:  # urllib: a bad IPv6 literal or port
+        parts = urlsplit("")
     if parts.scheme not in ("ws", "wss") or not parts.hostname:
         raise ConfigError(f"--server-url {url!r}: expected ws://HOST:PORT/ or wss://HOST:PORT/")
     return url

@@ -50,6 +50,14 @@ def test_bad_server_url_is_a_clear_error(capsys: object) -> None:
     assert "--server-url" in err and "ws://" in err
 
 
+def test_malformed_server_url_is_a_clear_error(capsys: object) -> None:
+    for url in ("ws://[::1/", "ws://host:99999/", "ws://host:port/"):
+        assert main(["webviz", "--server-url", url]) == 3
+        err = capsys.readouterr().err  # type: ignore[attr-defined]
+        assert err.startswith(f"fleetctl: error: --server-url {url!r}: expected ws://")
+        assert "Traceback" not in err
+
+
 def test_port_in_use_is_a_clear_error(capsys: object) -> None:
     import socket
 

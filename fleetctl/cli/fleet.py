@@ -146,7 +146,8 @@ def add_robot(
     output: OutputFormat = output_option(),
 ) -> None:
     """Add a robot: keys, WireGuard and client configs, server peer, auth rules."""
-    result = ops.add_robot(fleet, name, ip=ip, mtu_bytes=mtu, dry_run=dry_run)
+    with ops.fleet_lock(fleet):
+        result = ops.add_robot(fleet, name, ip=ip, mtu_bytes=mtu, dry_run=dry_run)
 
     def text() -> str:
         return (_header(result.outcome, f"robot {name!r} at {result.robot.ip}")
@@ -164,7 +165,8 @@ def remove_robot(
     output: OutputFormat = output_option(),
 ) -> None:
     """Remove a robot, its keys and files, its server peer and its auth rules."""
-    result = ops.remove_robot(fleet, name, dry_run=dry_run)
+    with ops.fleet_lock(fleet):
+        result = ops.remove_robot(fleet, name, dry_run=dry_run)
     emit(result, output, lambda: _header(result.outcome, f"removed robot {name!r}"))
     _finish(result.outcome, output)
 
@@ -177,7 +179,8 @@ def add_user(
     output: OutputFormat = output_option(),
 ) -> None:
     """Add a user; prints their token once (only its SHA-256 is stored)."""
-    result = ops.add_user(fleet, email, role, dry_run=dry_run)
+    with ops.fleet_lock(fleet):
+        result = ops.add_user(fleet, email, role, dry_run=dry_run)
     shown = {"user": result.user, "outcome": result.outcome,
              "token": result.token.reveal() if result.token else None}
 
@@ -198,7 +201,8 @@ def remove_user(
     output: OutputFormat = output_option(),
 ) -> None:
     """Remove a user; their token stops working once the server reloads auth.yaml."""
-    result = ops.remove_user(fleet, email, dry_run=dry_run)
+    with ops.fleet_lock(fleet):
+        result = ops.remove_user(fleet, email, dry_run=dry_run)
     emit(result, output, lambda: _header(result.outcome, f"removed user {email!r}"))
     _finish(result.outcome, output)
 
@@ -232,7 +236,8 @@ def render(
     output: OutputFormat = output_option(),
 ) -> None:
     """Regenerate every config from fleet.yaml and the keys (unchanged files stay untouched)."""
-    outcome = ops.render_fleet(fleet, dry_run=dry_run, force=force)
+    with ops.fleet_lock(fleet):
+        outcome = ops.render_fleet(fleet, dry_run=dry_run, force=force)
     emit(outcome, output, lambda: _header(outcome, f"rendered {outcome.fleet_dir}"))
     _finish(outcome, output)
 
@@ -244,7 +249,8 @@ def set_endpoint(
     output: OutputFormat = output_option(),
 ) -> None:
     """Set where robots reach the server's WireGuard (HOST:PORT), then re-render."""
-    result = ops.set_endpoint(fleet, endpoint, dry_run=dry_run)
+    with ops.fleet_lock(fleet):
+        result = ops.set_endpoint(fleet, endpoint, dry_run=dry_run)
 
     def text() -> str:
         out = _header(result.outcome, f"endpoint {result.endpoint} (was "

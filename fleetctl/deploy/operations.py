@@ -8,7 +8,10 @@ code (``fleetctl demo``, tests) calls them directly. Bad input raises a
 
 from __future__ import annotations
 
+import contextlib
+import fcntl
 import os
+from collections.abc import Iterator
 from dataclasses import dataclass, replace
 from ipaddress import IPv4Address
 from pathlib import Path
@@ -248,6 +251,33 @@ def finish_plan(plan: Plan, fleet_dir: Path, dry_run: bool,
     """Apply *plan* (or only preview it when *dry_run*) and return the outcome."""
     changes = plan.preview() if dry_run else plan.apply()
     return Outcome(fleet_dir, tuple(changes), dry_run, warnings)
+
+
+LOCK_FILE = ".fleetctl.lock"
+
+
+@contextlib.contextmanager
+def fleet_lock(fleet_dir: Path) -> Iterator[None]:
+    """Hold an exclusive lock on *fleet_dir* (``flock`` on ``FLEET/.fleetctl.lock``) so two
+    commands that change the fleet at once run one after the other: each reads fleet.yaml,
+    changes it and writes it back, and the later write would drop the earlier change.
+
+    A directory that is not there (yet) is not locked: loading the fleet reports it.
+    """
+    if not fleet_dir.is_dir():
+        yield
+        return
+    try:
+        fd = os.open(fleet_dir / LOCK_FILE,
+                     os.O_RDWR | os.O_CREAT | os.O_NOFOLLOW | os.O_CLOEXEC, 0o600)
+    except OSError as exc:
+        raise ConfigError(f"{fleet_dir / LOCK_FILE}: cannot open the fleet's lock file: "
+                          f"{exc.strerror or exc}") from None
+    try:
+        fcntl.flock(fd, fcntl.LOCK_EX)
+        yield
+    finally:
+        os.close(fd)  # releases the lock
 
 
 # --- operations ------------------------------------------------------------------------

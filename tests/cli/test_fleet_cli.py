@@ -406,3 +406,28 @@ def test_export_out_errors(fleet: Path, cli: Cli, tmp_path: Path,
     assert len(err.strip().splitlines()) == 1
     cli("export", "husky1", "--out", str(tmp_path / "b.tgz"))
     assert (tmp_path / "b.tgz").is_file()
+
+
+def test_concurrent_changes_are_not_lost(tmp_path: Path) -> None:
+    """Each change reads fleet.yaml and writes it back: without the fleet lock, commands run
+    at once all reported success and only the last write survived."""
+    import subprocess
+    import sys
+
+    fleet = tmp_path / "f"
+    assert main(["init", str(fleet), "--endpoint", "vpn.example.org:51820"]) == 0
+    procs = [subprocess.Popen([sys.executable, "-m", "fleetctl.cli.main", "add-robot", f"r{i}",
+                               "--fleet", str(fleet)], stdout=subprocess.DEVNULL,
+                              stderr=subprocess.PIPE, text=True) for i in range(4)]
+    procs.append(subprocess.Popen([sys.executable, "-m", "fleetctl.cli.main", "add-user",
+                                   "a@example.org", "--role", "viewer", "--fleet", str(fleet)],
+                                  stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True))
+    for proc in procs:
+        _out, err = proc.communicate(timeout=120)
+        assert proc.returncode == 0, err
+    data = yaml.safe_load((fleet / "fleet.yaml").read_text())
+    assert sorted(r["name"] for r in data["robots"]) == ["r0", "r1", "r2", "r3"]
+    assert len({r["ip"] for r in data["robots"]}) == 4
+    assert [u["email"] for u in data["users"]] == ["a@example.org"]
+    peers = (fleet / "server" / "wireguard" / "wg0.conf").read_text().count("[Peer]")
+    assert peers == 4

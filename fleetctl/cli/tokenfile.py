@@ -6,9 +6,12 @@ a file holding it instead (what ``fleetctl add-user`` writes, 0600).
 
 from __future__ import annotations
 
+import re
 from pathlib import Path
 
 from fleetctl.errors import ConfigError
+
+_TOKEN = re.compile(r"[\x21-\x7e]+")
 
 
 def read_token_file(token_file: Path | None) -> str | None:
@@ -29,4 +32,9 @@ def read_token_file(token_file: Path | None) -> str | None:
         raise ConfigError(f"--token-file {token_file}: not UTF-8 text") from None
     if not token:
         raise ConfigError(f"--token-file {token_file}: the file is empty")
+    if not _TOKEN.fullmatch(token):
+        # It goes into an HTTP header (Authorization: Bearer ...), where a line break or a
+        # non-ASCII character cannot go (http.client raised ValueError on it).
+        raise ConfigError(f"--token-file {token_file}: the token must be one line of "
+                          "printable ASCII without spaces")
     return token

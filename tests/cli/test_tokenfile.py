@@ -24,6 +24,9 @@ def test_the_token_is_stripped(tmp_path: Path) -> None:
     (None, "cannot read: No such file or directory"),
     (b"\n \n", "the file is empty"),
     (b"\xff\xfe", "not UTF-8 text"),
+    (b"abc\ndef\n", "the token must be one line of printable ASCII without spaces"),
+    (b"a b", "the token must be one line of printable ASCII without spaces"),
+    ("t\u20acken".encode(), "the token must be one line of printable ASCII without spaces"),
 ])
 def test_a_bad_file_is_named(tmp_path: Path, content: bytes | None, why: str) -> None:
     f = tmp_path / "token"

@@ -132,8 +132,12 @@ class Remote:
             request.add_header("Authorization", f"Bearer {self.token}")
         if byte_range is not None:
             request.add_header("Range", byte_range)
-        context = (ssl.create_default_context(cafile=str(self.ca_file))
-                   if self.ca_file is not None else None)
+        try:
+            context = (ssl.create_default_context(cafile=str(self.ca_file))
+                       if self.ca_file is not None else None)
+        except OSError as exc:  # ssl.SSLError too: not PEM certificates
+            raise ConfigError(f"--ca-file {self.ca_file}: cannot load a CA bundle from it: "
+                              f"{exc.strerror or getattr(exc, 'reason', None) or exc}") from None
         try:
             with urllib.request.urlopen(request, timeout=30, context=context) as resp:
                 return resp.status, dict(resp.headers), resp.read()

@@ -219,3 +219,21 @@ def test_a_bad_server_url_is_one_line(tmp_path: Path, capsys: pytest.CaptureFixt
         err = capsys.readouterr().err
         assert err.startswith(f"fleetctl: error: --server {url}: {expected}")
         assert "Traceback" not in err and err.count("\n") == 1
+
+
+@pytest.mark.parametrize(("content", "why"), [
+    (None, "No such file or directory"),
+    ("not a certificate\n", "NO_CERTIFICATE_OR_CRL_FOUND"),
+])
+def test_a_bad_ca_file_is_one_line(tmp_path: Path, capsys: pytest.CaptureFixture[str],
+                                   content: str | None, why: str) -> None:
+    token, ca = tmp_path / "token", tmp_path / "ca.pem"
+    token.write_text("t0ken\n")
+    if content is not None:
+        ca.write_text(content)
+    for command in (["recordings", "list"], ["foxglove-url"]):
+        assert main([*command, "-s", "https://127.0.0.1:9/", "--token-file", str(token),
+                     "--ca-file", str(ca)]) == ExitCode.CONFIG
+        err = capsys.readouterr().err
+        assert err.startswith(f"fleetctl: error: --ca-file {ca}: cannot load a CA bundle")
+        assert why in err and err.count("\n") == 1

@@ -16,6 +16,8 @@ from dataclasses import asdict, dataclass, replace
 from pathlib import Path
 from typing import Any
 
+from fleetctl.errors import ConfigError
+
 _SCHEMA = """
 CREATE TABLE IF NOT EXISTS robots (
     name TEXT PRIMARY KEY,
@@ -87,10 +89,14 @@ class RobotRegistry:
         self._clock = clock
         # Used from one thread at a time: the event loop, or the worker that runs
         # take_flush()'s job while the loop waits for it (RelayServer).
-        self._db = sqlite3.connect(str(path) if path is not None else ":memory:",
-                                   check_same_thread=False)
-        self._db.execute(_SCHEMA)
-        self._db.commit()
+        try:
+            self._db = sqlite3.connect(str(path) if path is not None else ":memory:",
+                                       check_same_thread=False)
+            self._db.execute(_SCHEMA)
+            self._db.commit()
+        except sqlite3.DatabaseError as exc:  # not a database, a directory, no permission
+            raise ConfigError(f"{path}: field 'database' of the server config: cannot use "
+                              f"it as the robot registry (SQLite): {exc}") from None
         self._robots: dict[str, RobotRecord] = {}
         self._last_seen: dict[str, float] = {}
         self._dirty: set[str] = set()

@@ -2,6 +2,9 @@ from __future__ import annotations
 
 from pathlib import Path
 
+import pytest
+
+from fleetctl.errors import ConfigError
 from fleetctl.server.registry import RobotRegistry, robot_name
 
 
@@ -45,3 +48,15 @@ def test_online_offline_and_persistence(tmp_path: Path) -> None:
     assert [r["name"] for r in again.as_json()] == ["husky1", "husky2"]
     assert not any(r["online"] for r in again.as_json())
     again.close()
+
+
+@pytest.mark.parametrize("kind", ["text", "directory"])
+def test_a_database_path_that_is_no_database_is_a_config_error(tmp_path: Path,
+                                                                kind: str) -> None:
+    path = tmp_path / "fleet.db"
+    if kind == "text":
+        path.write_text("not a database\n")
+    else:
+        path.mkdir()
+    with pytest.raises(ConfigError, match=r"fleet\.db: field 'database' of the server config"):
+        RobotRegistry(path, 5.0)

@@ -295,7 +295,7 @@ class _Fd:
 def _write_kind(w: FileWrite) -> ChangeKind:
     try:
         st = w.path.lstat()
-    except FileNotFoundError:
+    except (FileNotFoundError, NotADirectoryError):  # a parent is a file: missing too
         return ChangeKind.CREATE
     if not stat.S_ISREG(st.st_mode):
         return ChangeKind.UPDATE  # a symlink (or other) is replaced by a regular file
@@ -307,7 +307,7 @@ def _same_bytes(path: Path, data: bytes) -> bool:
     """True when *path* is a regular file (not a symlink) holding exactly *data*."""
     try:
         st = path.lstat()
-    except FileNotFoundError:
+    except (FileNotFoundError, NotADirectoryError):  # a parent is a file: missing too
         return False
     return stat.S_ISREG(st.st_mode) and path.read_bytes() == data
 
@@ -389,7 +389,7 @@ def check_overwrite(path: Path, new_text: str, label: str, hint: str) -> None:
     """
     try:
         st = path.lstat()
-    except FileNotFoundError:
+    except (FileNotFoundError, NotADirectoryError):  # a parent is a file: missing too
         return
     state = "edited" if not stat.S_ISREG(st.st_mode) else edit_state(path.read_bytes(), new_text)
     if state == "generated":

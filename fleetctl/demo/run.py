@@ -229,8 +229,12 @@ def run_demo(options: DemoOptions, out: Callable[[str], None]) -> DemoResult:
         FleetError: a component failed to start or died (the message quotes its log).
     """
     root = options.workdir or Path(tempfile.mkdtemp(prefix="fleetctl-demo-"))
-    fleet = create_demo_fleet(root, options.robots, port=options.port,
-                              base_domain_id=options.base_domain_id)
+    try:
+        fleet = create_demo_fleet(root, options.robots, port=options.port,
+                                  base_domain_id=options.base_domain_id)
+    except OSError as exc:  # e.g. --workdir is a regular file, or not writable
+        raise FleetError(f"--workdir {root}: cannot write the demo's files: "
+                         f"{exc.strerror or exc}", exit_code=ExitCode.CONFIG) from None
     logs = root / "logs"
     guard = _Guard(Supervisor(), threading.Event())
     online: set[str] = set()

@@ -8,7 +8,6 @@ field at fault; it never returns a half-valid config.
 from __future__ import annotations
 
 import ipaddress
-import math
 import os
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -18,7 +17,7 @@ import re2
 
 from fleetctl.errors import ConfigError
 from fleetctl.server.cluster.config import ClusterConfig, parse_cluster
-from fleetctl.server.configsection import section
+from fleetctl.server.configsection import is_positive_number, section
 from fleetctl.server.recording.config import RecordingConfig, parse_recording
 from fleetctl.server.tls import server_context
 from fleetctl.webviz.config import DEBIAN_JS_DIR
@@ -394,9 +393,7 @@ def _limits(value: Any, path: Path) -> ServerLimits:
     for name in _FLOAT_LIMITS:
         if name in value:
             v = value[name]
-            # isfinite: NaN passed "v <= 0" (every comparison with NaN is false).
-            if (isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v)
-                    or v <= 0):
+            if not is_positive_number(v):
                 raise ConfigError(f"{path}: field 'limits.{name}' must be a positive number, "
                                   f"got {v!r}")
             kwargs[name] = float(v)

@@ -1,8 +1,9 @@
-"""One check every optional ``server.yaml`` section shares (``web:``, ``recording:``,
+"""Checks the ``server.yaml`` sections share (``limits:``, ``web:``, ``recording:``,
 ``cluster:`` and their sub-mappings)."""
 
 from __future__ import annotations
 
+import math
 from collections.abc import Collection
 from pathlib import Path
 from typing import Any
@@ -28,3 +29,10 @@ def section(value: Any, known: Collection[str], field: str, path: Path) -> dict[
     if unknown:
         raise ConfigError(f"{path}: unknown field '{field}.{unknown[0]}'")
     return value
+
+
+def is_positive_number(value: Any) -> bool:
+    """True for a finite int or float above 0: not a bool (YAML's ``true`` is no number),
+    not NaN (``.nan <= 0`` is false, like every comparison with NaN) and not infinite."""
+    return (not isinstance(value, bool) and isinstance(value, (int, float))
+            and math.isfinite(value) and value > 0)

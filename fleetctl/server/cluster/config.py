@@ -22,7 +22,6 @@ Only paths are kept: the secret is read when connecting, so it is in no repr or 
 
 from __future__ import annotations
 
-import math
 import os
 import re
 from dataclasses import dataclass
@@ -31,7 +30,7 @@ from typing import Any
 from urllib.parse import urlsplit
 
 from fleetctl.errors import ConfigError
-from fleetctl.server.configsection import section
+from fleetctl.server.configsection import is_positive_number, section
 
 _KEYS = {"name", "nats_urls", "credentials", "subject_prefix", "publish_queue_frames",
          "publish_queue_bytes", "connect_timeout_s", "state_replicas",
@@ -146,8 +145,7 @@ def _token(raw: dict[str, Any], name: str, default: str | None, path: Path) -> s
 
 def _positive(raw: dict[str, Any], name: str, default: float, path: Path) -> Any:
     value = raw.get(name, default)
-    if (isinstance(value, bool) or not isinstance(value, (int, float))
-            or not math.isfinite(value) or value <= 0):  # NaN <= 0 is false
+    if not is_positive_number(value):
         raise ConfigError(f"{path}: field 'cluster.{name}' must be a positive number")
     if isinstance(default, int) and not isinstance(value, int):
         raise ConfigError(f"{path}: field 'cluster.{name}' must be a positive integer")

@@ -17,13 +17,12 @@ Example::
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 from fleetctl.errors import ConfigError
-from fleetctl.server.configsection import section
+from fleetctl.server.configsection import is_positive_number, section
 from fleetctl.server.regex import BadRegex, compile_full
 
 MIB = 1024 * 1024
@@ -142,8 +141,7 @@ def parse_recording(value: Any, base: Path, path: Path) -> RecordingConfig | Non
 
 
 def _positive(v: Any, name: str, path: Path, *, integer: bool) -> int | float:
-    ok = isinstance(v, int) if integer else isinstance(v, (int, float))
-    if isinstance(v, bool) or not ok or not math.isfinite(v) or v <= 0:  # NaN <= 0 is false
+    if not is_positive_number(v) or (integer and not isinstance(v, int)):
         what = "a positive integer" if integer else "a positive number"
         raise ConfigError(f"{path}: field 'recording.{name}' must be {what}")
     number: int | float = v

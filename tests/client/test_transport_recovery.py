@@ -307,7 +307,9 @@ async def test_a_false_alarm_keeps_the_connection_and_closes_the_new_socket(
     robot = RobotLink(robot_config(server.url, tmp_path), on_frame=lambda f: None,
                       tuning=TUNING)
     async with running(robot):
-        await wait_until(lambda: robot.stats()["connected"])
+        # The standby's own dial must come first: patched, it would be the socket seen.
+        await wait_until(lambda: robot.stats()["connected"]
+                         and robot.stats()["standby"]["open"])
         monkeypatch.setattr(transport, "dial_first", slow_dial)
         robot.offer("/r1/events", string_frame("/r1/events", "x", no_drop=True, seq=1),
                     priority=1.0, no_drop=True)

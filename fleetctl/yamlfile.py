@@ -13,6 +13,7 @@ from typing import Any
 import yaml
 
 from fleetctl.errors import ConfigError
+from fleetctl.smallfile import read_small_text
 
 
 def read_yaml(path: Path, what: str) -> Any:
@@ -25,9 +26,11 @@ def read_yaml(path: Path, what: str) -> Any:
         ConfigError: ``PATH: cannot read WHAT: REASON`` or ``PATH: not valid YAML: ...``.
     """
     try:
-        text = path.read_text(encoding="utf-8")
+        text = read_small_text(path)
     except OSError as exc:
         raise ConfigError(f"{path}: cannot read {what}: {exc.strerror or exc}") from None
+    except UnicodeDecodeError:
+        raise ConfigError(f"{path}: cannot read {what}: not UTF-8 text") from None
     try:
         return yaml.safe_load(text)
     except yaml.YAMLError as exc:

@@ -10,6 +10,7 @@ import re
 from pathlib import Path
 
 from fleetctl.errors import ConfigError
+from fleetctl.smallfile import MAX_SECRET_BYTES, read_small_text
 
 _TOKEN = re.compile(r"[\x21-\x7e]+")
 
@@ -24,7 +25,7 @@ def read_token_file(token_file: Path | None) -> str | None:
     if token_file is None:
         return None
     try:
-        token = token_file.read_text(encoding="utf-8").strip()
+        token = read_small_text(token_file, MAX_SECRET_BYTES).strip()
     except OSError as exc:
         raise ConfigError(f"--token-file {token_file}: cannot read: "
                           f"{exc.strerror or exc}") from None

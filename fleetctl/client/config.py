@@ -33,6 +33,7 @@ from fleetctl.client.mediaconfig import (
     viewer_cloud_spec,
 )
 from fleetctl.client.serverurls import parse_server_urls
+from fleetctl.smallfile import MAX_SECRET_BYTES, read_small_text
 from fleetctl.yamlfile import read_yaml
 
 # The media keys live in fleetctl.client.mediaconfig; they are imported from here.
@@ -299,9 +300,11 @@ def _token(ctx: _Ctx, top: Mapping[str, Any], base_dir: Path) -> str | None:
         return None
     path = Path(value) if Path(value).is_absolute() else base_dir / value
     try:
-        token = path.read_text(encoding="utf-8").strip()
+        token = read_small_text(path, MAX_SECRET_BYTES).strip()
     except OSError as exc:
         raise ctx.error("", "token_file", f"cannot read {path}: {exc.strerror or exc}") from exc
+    except UnicodeDecodeError:
+        raise ctx.error("", "token_file", f"{path} is not UTF-8 text") from None
     if not token or any(c.isspace() for c in token):
         # Never echo the token itself: it is a secret.
         raise ctx.error("", "token_file", f"{path} must hold one token without whitespace")

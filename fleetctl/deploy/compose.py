@@ -49,6 +49,7 @@ from fleetctl import __version__
 from fleetctl.deploy.files import FileWrite, write_file
 from fleetctl.deploy.images import image_tag
 from fleetctl.errors import ConfigError, EnvironmentMissing, FleetError
+from fleetctl.smallfile import MAX_PEM_BYTES, MAX_SECRET_BYTES, read_small_text
 from fleetctl.yamlfile import read_yaml
 
 COMPOSE_DIR = ".compose"
@@ -188,8 +189,8 @@ def _read_mapping(path: Path, what: str) -> dict[str, Any]:
 
 def _wg_value(conf: Path, key: str) -> str | None:
     try:
-        text = conf.read_text()
-    except OSError:
+        text = read_small_text(conf, MAX_SECRET_BYTES)
+    except (OSError, UnicodeDecodeError):
         return None
     match = re.search(rf"^\s*{key}\s*=\s*(.+?)\s*$", text, re.M)
     return match.group(1) if match else None
@@ -484,7 +485,7 @@ def container_server_config(plan: ComposePlan) -> dict[str, Any]:
 def robot_wireguard(plan: ComposePlan, robot: RobotEntry) -> str:
     """The robot's wg0.conf with ``Endpoint = server:PORT``: inside compose the server is
     reached by its service name, whatever public endpoint fleet.yaml names (or none yet)."""
-    text = (robot.robot_dir / "wireguard" / "wg0.conf").read_text()
+    text = read_small_text(robot.robot_dir / "wireguard" / "wg0.conf", MAX_SECRET_BYTES)
     endpoint = f"Endpoint = server:{plan.wireguard_port}"
     text, count = re.subn(r"(?m)^\s*Endpoint\s*=.*$", endpoint, text)
     if count == 0:
@@ -501,8 +502,9 @@ def write_files(plan: ComposePlan) -> Path:
     (out / "server").mkdir(exist_ok=True)
     _write(out / "server" / "server.yaml", yaml.safe_dump(container_server_config(plan),
                                                             sort_keys=False))
-    _write(out / "server" / "tls-cert.pem", plan.tls_cert.read_text())
-    _write(out / "secrets" / "tls.key", plan.tls_key.read_text(), secret=True)
+    _write(out / "server" / "tls-cert.pem", read_small_text(plan.tls_cert, MAX_PEM_BYTES))
+    _write(out / "secrets" / "tls.key", read_small_text(plan.tls_key, MAX_PEM_BYTES),
+           secret=True)
     if plan.wireguard and plan.options.sim:
         for robot in plan.robots:
             _write(out / "robots" / robot.name / "wg0.conf", robot_wireguard(plan, robot),
@@ -533,7 +535,7 @@ def saved_options(fleet_dir: Path) -> Options | None:
     if not path.is_file():
         return None
     try:
-        data = json.loads(path.read_text())
+        data = json.loads(read_small_text(path))
         return Options(**data)
     except (OSError, ValueError, TypeError) as exc:
         raise ConfigError(f"{path}: unreadable deployment state ({exc}); "

@@ -36,6 +36,7 @@ from fleetctl.deploy.compose import (
 )
 from fleetctl.deploy.images import image_tag
 from fleetctl.errors import ConfigError
+from fleetctl.smallfile import MAX_PEM_BYTES, read_small_text
 from fleetctl.yamlfile import read_yaml
 
 Write = Callable[..., None]
@@ -175,7 +176,7 @@ def write_files(plan: ComposePlan, write: Write) -> None:
     """Write the replicas' configs and secrets, the NATS configs and the simulated robots'
     configs under ``FLEET/.compose`` (secrets 0600, never through a link)."""
     out = plan.compose_dir
-    key = plan.tls_key.read_text()
+    key = read_small_text(plan.tls_key, MAX_PEM_BYTES)
     hashes: dict[str, str] = {}
     for index, name in enumerate(replicas.replica_names(plan.options.replicas)):
         write(out / "server" / f"{name}.yaml",

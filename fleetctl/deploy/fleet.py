@@ -36,6 +36,7 @@ from fleetctl.deploy.topics import (
 )
 from fleetctl.deploy.yamlnodes import Document, FieldPath, FleetInvalid
 from fleetctl.errors import ConfigError
+from fleetctl.smallfile import read_small_text
 
 __all__ = ["FleetInvalid"]  # defined beside Document, raised and re-exported here
 
@@ -484,12 +485,14 @@ def load_fleet(fleet_dir: Path) -> Fleet:
                           "(create one with 'fleetctl init', or set --fleet / FLEET_DIR)")
     path = fleet_file(fleet_dir)
     try:
-        text = path.read_text(encoding="utf-8")
+        text = read_small_text(path)
     except FileNotFoundError:
         raise ConfigError(f"{path}: not found: {fleet_dir} is not a fleet directory "
                           "(create one with 'fleetctl init')") from None
-    except (OSError, UnicodeDecodeError) as exc:
-        raise ConfigError(f"{path}: cannot read: {exc}") from None
+    except OSError as exc:
+        raise ConfigError(f"{path}: cannot read: {exc.strerror or exc}") from None
+    except UnicodeDecodeError:
+        raise ConfigError(f"{path}: cannot read: not UTF-8 text") from None
     return parse_fleet(path, text, fleet_dir)
 
 

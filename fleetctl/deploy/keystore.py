@@ -19,6 +19,7 @@ from fleetctl.deploy.files import SECRET_DIR_MODE, Plan
 from fleetctl.deploy.keys import KeySource, decode_key, new_preshared_key, new_private_key
 from fleetctl.deploy.secrets import Secret
 from fleetctl.errors import ConfigError
+from fleetctl.smallfile import MAX_SECRET_BYTES, read_small_text
 
 KEYS_DIR = "keys"
 
@@ -44,11 +45,15 @@ def robot_key_paths(fleet_dir: Path, name: str) -> tuple[Path, Path]:
 
 def _read_key(path: Path) -> Secret:
     try:
-        text = path.read_text(encoding="ascii").strip()
+        text = read_small_text(path, MAX_SECRET_BYTES, encoding="ascii").strip()
     except FileNotFoundError:
         raise ConfigError(f"{path}: key file not found") from None
-    except (OSError, UnicodeDecodeError) as exc:
-        raise ConfigError(f"{path}: cannot read key file: {type(exc).__name__}") from None
+    except OSError as exc:
+        raise ConfigError(f"{path}: cannot read key file: "
+                          f"{exc.strerror or type(exc).__name__}") from None
+    except UnicodeDecodeError:
+        # Never the decoder's message: it would quote bytes of the key.
+        raise ConfigError(f"{path}: cannot read key file: not ASCII text") from None
     decode_key(text, str(path))  # validates; the error never includes the key
     return Secret(text)
 

@@ -34,6 +34,7 @@ from fleetctl.deploy.compose import (
 from fleetctl.deploy.dockercli import Runner, check, subprocess_runner
 from fleetctl.deploy.replicas import replica_names
 from fleetctl.errors import FleetError
+from fleetctl.smallfile import MAX_PEM_BYTES, read_small
 
 
 def sync_running(fleet_dir: Path, progress: Callable[[str], None],
@@ -85,7 +86,8 @@ def sync_running(fleet_dir: Path, progress: Callable[[str], None],
 def _certificate_changed(plan: ComposePlan) -> bool:
     deployed = plan.compose_dir / "server" / "tls-cert.pem"
     try:
-        return deployed.read_bytes() != plan.tls_cert.read_bytes()
+        return (read_small(deployed, MAX_PEM_BYTES)
+                != read_small(plan.tls_cert, MAX_PEM_BYTES))
     except OSError:
         return True
 

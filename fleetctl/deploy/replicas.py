@@ -31,7 +31,6 @@ from __future__ import annotations
 
 import ipaddress
 import json
-import os
 import secrets
 from pathlib import Path
 from typing import Any
@@ -39,6 +38,7 @@ from typing import Any
 import bcrypt
 
 from fleetctl.errors import ConfigError
+from fleetctl.smallfile import MAX_SECRET_BYTES, read_small_text
 
 NATS_NODES = ("nats-1", "nats-2", "nats-3")
 NATS_CLIENT_PORT, NATS_ROUTE_PORT, NATS_MONITOR_PORT = 4222, 6222, 8222
@@ -139,14 +139,14 @@ def read_or_make_password(path: Path) -> str:
         ConfigError: *path* exists but cannot be read or is empty.
     """
     try:
-        fd = os.open(path, os.O_RDONLY | os.O_NOFOLLOW)
+        text = read_small_text(path, MAX_SECRET_BYTES, follow_symlinks=False).strip()
     except FileNotFoundError:
         return secrets.token_urlsafe(32)
     except OSError as exc:
         raise ConfigError(f"{path}: cannot read the replica's NATS password: "
                           f"{exc.strerror or exc}") from None
-    with os.fdopen(fd, "r", encoding="utf-8") as stream:
-        text = stream.read().strip()
+    except UnicodeDecodeError:
+        raise ConfigError(f"{path}: the replica's NATS password is not UTF-8 text") from None
     if not text:
         raise ConfigError(f"{path}: empty NATS password; delete it and run `fleetctl up`")
     return text

@@ -11,9 +11,8 @@ installs their own.
 from __future__ import annotations
 
 import datetime
+import errno
 import ipaddress
-import os
-import stat
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
@@ -28,6 +27,7 @@ from fleetctl.deploy.keys import KeySource
 from fleetctl.deploy.keystore import KEYS_DIR, plan_secret_file
 from fleetctl.deploy.secrets import Secret
 from fleetctl.deploy.yamlnodes import FleetInvalid
+from fleetctl.smallfile import MAX_PEM_BYTES, read_small
 
 CERT_RELPATH = "server/tls/cert.pem"
 KEY_RELPATH = f"{KEYS_DIR}/tls.key"
@@ -132,22 +132,17 @@ def check_operator_files(cert_path: Path, key_path: Path) -> None:
                            f"{cert_path}")
 
 
-# A PEM certificate chain or key is a few KiB; more than this is not one (and a device or
-# FIFO such as /dev/zero must not be read until memory runs out).
-MAX_PEM_BYTES = 1 << 20
-
-
 def _read(path: Path, field_name: str) -> bytes:
+    # A PEM certificate chain or key is a few KiB: a device or FIFO such as /dev/zero must
+    # not be read until memory runs out (read_small refuses it).
     try:
-        # O_NONBLOCK: opening a FIFO without a writer would otherwise wait forever.
-        with os.fdopen(os.open(path, os.O_RDONLY | os.O_NONBLOCK), "rb") as f:
-            if not stat.S_ISREG(os.fstat(f.fileno()).st_mode):
-                raise FleetInvalid(("tls", field_name), f"{path}: not a regular file")
-            data = f.read(MAX_PEM_BYTES + 1)
+        return read_small(path, MAX_PEM_BYTES)
     except OSError as exc:
+        if exc.errno == errno.EFBIG:
+            raise FleetInvalid(("tls", field_name),
+                               f"{path}: larger than {MAX_PEM_BYTES} bytes, not a PEM file"
+                               ) from None
+        if exc.errno == errno.EINVAL:
+            raise FleetInvalid(("tls", field_name), f"{path}: not a regular file") from None
         raise FleetInvalid(("tls", field_name),
                            f"cannot read {path}: {exc.strerror or type(exc).__name__}") from None
-    if len(data) > MAX_PEM_BYTES:
-        raise FleetInvalid(("tls", field_name),
-                           f"{path}: larger than {MAX_PEM_BYTES} bytes, not a PEM file")
-    return data

@@ -20,6 +20,7 @@ from fleetctl.server.cluster.config import ClusterConfig, parse_cluster
 from fleetctl.server.configsection import is_positive_number, section
 from fleetctl.server.recording.config import RecordingConfig, parse_recording
 from fleetctl.server.tls import server_context
+from fleetctl.smallfile import MAX_PEM_BYTES, read_small
 from fleetctl.webviz.config import DEBIAN_JS_DIR
 from fleetctl.yamlfile import read_yaml
 
@@ -308,8 +309,7 @@ def _readable(raw: dict[str, Any], name: str, base: Path, path: Path) -> Path:
     if found is None:
         raise ConfigError(f"{path}: field 'web.{name}' is required (a PEM file)")
     try:
-        with found.open("rb"):
-            pass
+        read_small(found, MAX_PEM_BYTES)  # opening a FIFO must not hang the server's start
     except OSError as exc:
         reason = exc.strerror or str(exc)
         raise ConfigError(f"{path}: field 'web.{name}': cannot read {found}: {reason}") from None

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import hashlib
 import json
+import os
 from collections.abc import Callable
 from pathlib import Path
 
@@ -431,3 +432,18 @@ def test_concurrent_changes_are_not_lost(tmp_path: Path) -> None:
     assert [u["email"] for u in data["users"]] == ["a@example.org"]
     peers = (fleet / "server" / "wireguard" / "wg0.conf").read_text().count("[Peer]")
     assert peers == 4
+
+
+@pytest.mark.parametrize("victim", ["fleet.yaml", "keys/server.key"])
+@pytest.mark.parametrize("make", ["link to /dev/zero", "fifo"])
+def test_a_fleet_file_that_is_a_device_or_fifo_is_a_config_error(
+        fleet: Path, cli: Cli, victim: str, make: str) -> None:
+    """Read unbounded, /dev/zero ran the command out of memory and a FIFO hung it."""
+    path = fleet / victim
+    path.unlink()
+    if make == "fifo":
+        os.mkfifo(path)
+    else:
+        path.symlink_to("/dev/zero")
+    _, err = cli("render", code=ExitCode.CONFIG)
+    assert f"{victim}: cannot read" in err and "not a regular file" in err

@@ -34,3 +34,10 @@ def test_a_bad_file_is_named(tmp_path: Path, content: bytes | None, why: str) ->
         f.write_bytes(content)
     with pytest.raises(ConfigError, match=f"--token-file {f}: {why}"):
         read_token_file(f)
+
+
+def test_a_link_to_a_device_is_refused_unread(tmp_path: Path) -> None:
+    f = tmp_path / "token"
+    f.symlink_to("/dev/zero")
+    with pytest.raises(ConfigError, match=f"--token-file {f}: cannot read: not a regular file"):
+        read_token_file(f)

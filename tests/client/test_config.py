@@ -223,6 +223,13 @@ def test_file_errors(tmp_path: Path) -> None:
     (tmp_path / "d.yaml").write_text("server_url: ws://h/\nrobot_name: r\ntoken_file: empty\n")
     with pytest.raises(ConfigError, match=r"token_file: .* must hold one token"):
         load_client_config(tmp_path / "d.yaml")
+    (tmp_path / "zero").symlink_to("/dev/zero")
+    (tmp_path / "z.yaml").write_text("server_url: ws://h/\nrobot_name: r\ntoken_file: zero\n")
+    with pytest.raises(ConfigError, match=r"token_file: cannot read .*zero: not a regular file"):
+        load_client_config(tmp_path / "z.yaml")
+    (tmp_path / "y.yaml").symlink_to("/dev/zero")
+    with pytest.raises(ConfigError, match=r"y\.yaml: cannot read .*: not a regular file"):
+        load_client_config(tmp_path / "y.yaml")
 
 
 def _cam(**video: Any) -> dict[str, Any]:

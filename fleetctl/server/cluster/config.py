@@ -31,6 +31,7 @@ from urllib.parse import urlsplit
 
 from fleetctl.errors import ConfigError
 from fleetctl.server.configsection import is_positive_number, section
+from fleetctl.smallfile import MAX_SECRET_BYTES, read_small_text
 
 _KEYS = {"name", "nats_urls", "credentials", "subject_prefix", "publish_queue_frames",
          "publish_queue_bytes", "connect_timeout_s", "state_replicas",
@@ -69,7 +70,7 @@ class NatsCredentials:
             OSError: The file cannot be read.
         """
         assert self.password_file is not None
-        return self.password_file.read_text("utf-8").splitlines()[0]
+        return read_small_text(self.password_file, MAX_SECRET_BYTES).splitlines()[0]
 
 
 @dataclass(frozen=True)

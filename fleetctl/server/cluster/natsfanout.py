@@ -376,7 +376,8 @@ class NatsFanout:
             return {"user": creds.user, "password": creds.read_password()}
         except (OSError, IndexError, UnicodeError) as exc:
             raise ConfigError(f"field 'cluster.credentials.password_file': cannot read "
-                              f"{creds.password_file}: {type(exc).__name__}") from None
+                              f"{creds.password_file}: "
+                              f"{getattr(exc, 'strerror', None) or type(exc).__name__}") from None
 
     async def _on_error(self, exc: Exception) -> None:
         if isinstance(exc, nats.errors.SlowConsumerError):

@@ -162,11 +162,15 @@ def remove_robot(
     name: str = typer.Argument(..., help="Robot to remove."),
     fleet: Path = fleet_option(),
     dry_run: bool = _dry_run_option(),
+    force: bool = typer.Option(
+        False, "--force",
+        help="Also delete files under robots/NAME/ that fleetctl did not write or that "
+             "were edited by hand (without it, such files stop the removal)."),
     output: OutputFormat = output_option(),
 ) -> None:
     """Remove a robot, its keys and files, its server peer and its auth rules."""
     with ops.fleet_lock(fleet):
-        result = ops.remove_robot(fleet, name, dry_run=dry_run)
+        result = ops.remove_robot(fleet, name, dry_run=dry_run, force=force)
     emit(result, output, lambda: _header(result.outcome, f"removed robot {name!r}"))
     _finish(result.outcome, output)
 

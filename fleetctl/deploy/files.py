@@ -375,6 +375,14 @@ def edit_state(data: bytes, new_text: str) -> str:
     return "generated" if hashlib.sha256(rest).hexdigest() == match.group(1) else "edited"
 
 
+def is_untouched(data: bytes) -> bool:
+    """True when *data* carries fleetctl's digest line and still matches it: a generated
+    file nobody edited, which fleetctl may delete without losing anyone's work."""
+    first, _, rest = data.partition(b"\n")
+    match = _STAMP.fullmatch(first.decode("utf-8", "replace").rstrip("\r"))
+    return match is not None and hashlib.sha256(rest).hexdigest() == match.group(1)
+
+
 def check_overwrite(path: Path, new_text: str, label: str, hint: str) -> None:
     """Refuse to replace the generated file *path* if someone edited it.
 

@@ -18,7 +18,7 @@ from pathlib import Path
 
 from fleetctl.client.mediaconfig import TfSpec
 from fleetctl.deploy import keystore, tls
-from fleetctl.deploy.files import Change, Plan
+from fleetctl.deploy.files import Change, Plan, is_untouched
 from fleetctl.deploy.fleet import (
     DEFAULT_COMMAND_TOPICS,
     DEFAULT_HTTPS_PORT,
@@ -56,6 +56,7 @@ from fleetctl.deploy.render import FleetKeys, fleet_artifacts, plan_artifacts
 from fleetctl.deploy.secrets import Secret
 from fleetctl.deploy.yamlnodes import FieldPath, format_path
 from fleetctl.errors import ConfigError, ConflictError, ExitCode, FleetError
+from fleetctl.smallfile import MAX_CONFIG_BYTES, read_small
 
 _SYSTEM_KEYS = SystemKeySource()
 # The certificate is never byte-reproducible (its signature is randomized, its dates are
@@ -405,16 +406,29 @@ def add_robot(
     return RobotResult(robot, pub, outcome)
 
 
-def remove_robot(fleet_dir: Path, name: str, *, dry_run: bool = False) -> RobotResult:
+def remove_robot(fleet_dir: Path, name: str, *, dry_run: bool = False,
+                 force: bool = False) -> RobotResult:
     """Remove a robot, its keys, its files, its server peer and its auth rules.
+
+    ``robots/NAME/`` goes as a whole, so anything an operator put or edited there would go
+    with it: unless *force*, such files stop the removal before anything changes.
 
     Raises:
         ConfigError: there is no such robot, or the fleet directory is missing/malformed.
+        ConflictError: (unless *force*) ``robots/NAME/`` holds files fleetctl did not
+            generate, or generated files edited by hand.
     """
     fleet = load_fleet(fleet_dir)
     robot = fleet.robot(name)
     if robot is None:
         raise ConfigError(f"robot {name!r} is not in {fleet_file(fleet_dir)}")
+    robot_dir = fleet_dir / "robots" / name
+    kept = [] if force else _operator_files(robot_dir)
+    if kept:
+        shown = ", ".join(kept[:5]) + (f" and {len(kept) - 5} more" if len(kept) > 5 else "")
+        raise ConflictError(f"{robot_dir} holds files fleetctl did not write or that were "
+                            f"edited by hand ({shown}): move them out of it, or run "
+                            f"`fleetctl remove-robot {name} --force` to delete them too")
     new = replace(fleet, robots=tuple(r for r in fleet.robots if r.name != name))
     plan = Plan()
     fleet_keys = _load_keys(fleet_dir, new, _SYSTEM_KEYS, plan)
@@ -423,6 +437,36 @@ def remove_robot(fleet_dir: Path, name: str, *, dry_run: bool = False) -> RobotR
     _plan_tls(plan, fleet_dir, new)
     _plan_fleet(plan, fleet_dir, new, fleet_keys)
     return RobotResult(robot, None, finish_plan(plan, fleet_dir, dry_run))
+
+
+# What fleetctl writes under robots/NAME/ (render.fleet_artifacts), relative to it.
+_ROBOT_FILES = frozenset({"client.yaml", os.path.join("wireguard", "wg0.conf")})
+_ROBOT_DIRS = frozenset({"", "wireguard"})
+
+
+def _operator_files(robot_dir: Path) -> list[str]:
+    """What under *robot_dir* is not an untouched generated file (relative paths, sorted):
+    files and links someone added, and generated files edited since."""
+    found: list[str] = []
+    for top, dirs, files in os.walk(robot_dir):  # links to directories are not entered
+        rel_top = os.path.relpath(top, robot_dir)
+        rel_top = "" if rel_top == "." else rel_top
+        for d in dirs:
+            rel = os.path.join(rel_top, d)
+            if rel not in _ROBOT_DIRS or os.path.islink(os.path.join(top, d)):
+                found.append(rel)
+        for f in files:
+            rel = os.path.join(rel_top, f)
+            if rel not in _ROBOT_FILES or not _untouched(Path(top) / f):
+                found.append(rel)
+    return sorted(found)
+
+
+def _untouched(path: Path) -> bool:
+    try:
+        return is_untouched(read_small(path, MAX_CONFIG_BYTES, follow_symlinks=False))
+    except OSError:
+        return False  # a link, a device, unreadable: not fleetctl's to delete unasked
 
 
 def parse_role(text: str) -> Role:

@@ -146,6 +146,27 @@ def test_remove_robot(fleet: Path, cli: Cli) -> None:
     assert "robot 'husky1' is not in" in err
 
 
+@pytest.mark.parametrize(("change", "named"), [
+    (lambda d: (d / "notes.txt").write_text("calibration of arm 2\n"), "notes.txt"),
+    (lambda d: (d / "client.yaml").write_text(
+        (d / "client.yaml").read_text() + "# tuned on site\n"), "client.yaml"),
+    (lambda d: (d / "wireguard" / "backup.conf").symlink_to("/etc/hostname"),
+     "wireguard/backup.conf"),
+])
+def test_remove_robot_keeps_what_an_operator_put_in_its_directory(
+        fleet: Path, cli: Cli, change: Callable[[Path], object], named: str) -> None:
+    """The robot's directory goes as a whole: someone's files in it stop the removal."""
+    change(fleet / "robots/husky1")
+    before = _snapshot(fleet)
+    _, err = cli("remove-robot", "husky1", code=ExitCode.CONFLICT)
+    assert "robots/husky1 holds files fleetctl did not write" in err and named in err
+    assert "--force" in err
+    assert _snapshot(fleet) == before
+    cli("remove-robot", "husky1", "--force")
+    assert not (fleet / "robots/husky1").exists()
+    assert "husky1" not in (fleet / "server/auth.yaml").read_text()
+
+
 def test_add_user_prints_token_once_and_stores_hash(fleet: Path, cli: Cli) -> None:
     out, _ = cli("add-user", "alice@example.com", "--role", "operator", "--output", "json")
     token = json.loads(out)["token"]

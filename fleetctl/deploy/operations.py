@@ -565,14 +565,19 @@ def set_endpoint(fleet_dir: Path, endpoint: str, *, dry_run: bool = False,
     """
     fleet = load_fleet(fleet_dir)
     try:
-        parse_endpoint(endpoint)
+        port = parse_endpoint(endpoint)[1]
     except FleetInvalid as exc:
         raise ConfigError(f"{format_path(exc.path)}: {exc}") from None
     new = _checked(replace(fleet, endpoint=endpoint))
     plan = Plan()
     regenerated = _plan_tls(plan, fleet_dir, new, refresh=True)
     _plan_fleet(plan, fleet_dir, new, _load_keys(fleet_dir, new, keys, plan))
-    outcome = finish_plan(plan, fleet_dir, dry_run)
+    warnings = () if port == new.wireguard_port else (
+        f"the endpoint's port {port} is not wireguard_port {new.wireguard_port} (where the "
+        f"server's WireGuard listens): right only if UDP {port} is forwarded to "
+        f"{new.wireguard_port}; otherwise set wireguard_port: {port} in "
+        f"{fleet_file(fleet_dir)} and run `fleetctl render`",)
+    outcome = finish_plan(plan, fleet_dir, dry_run, warnings)
     return EndpointResult(endpoint, fleet.endpoint, regenerated, outcome)
 
 

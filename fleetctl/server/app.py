@@ -13,10 +13,12 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import dataclasses
+import errno
 import functools
 import http
 import logging
 import signal
+import socket
 import ssl
 from collections.abc import Awaitable, Callable
 from typing import Any, NamedTuple, cast
@@ -73,8 +75,20 @@ REGISTRY_FLUSH_PERIOD_S = 1.0
 
 
 class ListenError(Exception):
-    """A listener cannot bind; the message names the config field (``listen_port`` or
-    ``web.listen_port``), the address and the reason."""
+    """A listener cannot bind; the message names the config field at fault (the port:
+    ``listen_port`` or ``web.listen_port``; the address: ``listen_host`` or
+    ``web.listen_host``), the address and the reason."""
+
+
+# The bind failures that are the address's fault, not the port's: a name that does not
+# resolve (socket.gaierror), an address this machine does not have.
+_HOST_ERRNOS = frozenset({errno.EADDRNOTAVAIL, errno.EAFNOSUPPORT})
+
+
+def _listen_field(exc: OSError, prefix: str) -> str:
+    if isinstance(exc, socket.gaierror) or exc.errno in _HOST_ERRNOS:
+        return f"{prefix}listen_host"
+    return f"{prefix}listen_port"
 
 
 class _Handshake(NamedTuple):
@@ -212,12 +226,11 @@ class RelayServer:
         try:
             await self.core.fanout.start()  # NATS first: no connection before it is up
             self._server = await self._listen(config.listen_host, config.listen_port, main_ssl,
-                                              web=False, field="listen_port")
+                                              web=False, prefix="")
             if web is not None:
                 self._page = web_page(web)
                 self._web_server = await self._listen(web.listen_host, web.listen_port,
-                                                      web_ssl, web=True,
-                                                      field="web.listen_port")
+                                                      web_ssl, web=True, prefix="web.")
         except BaseException:
             await self.stop()
             raise
@@ -261,7 +274,7 @@ class RelayServer:
         return self.reloader.reload(reason)
 
     async def _listen(self, hosts: Hosts, port: int, ssl_context: ssl.SSLContext | None, *,
-                      web: bool, field: str) -> Server:
+                      web: bool, prefix: str) -> Server:
         def respond(connection: ServerConnection, request: Request,
                     response: Response) -> None:
             self._process_response(connection, request, response, by_address=not web)
@@ -290,6 +303,7 @@ class RelayServer:
                 extensions=[RelayDeflateFactory()],
             )
         except OSError as exc:
+            field = _listen_field(exc, prefix)
             raise ListenError(f"field {field!r}: cannot listen on {hosts_text(hosts)}:{port}: "
                               f"{exc.strerror or exc}") from None
 

@@ -286,6 +286,17 @@ def test_init_without_arguments_then_set_endpoint(cli: Cli, synced: list[Path]) 
     assert "warning" not in err
 
 
+def test_set_endpoint_on_another_port_warns_about_wireguard_port(fleet: Path, cli: Cli) -> None:
+    """The server keeps listening on wireguard_port: right behind port forwarding, a dead
+    tunnel otherwise, so the operator is told which of the two they have to mean."""
+    out, err = cli("set-endpoint", "vpn.example.com:443")
+    assert "endpoint vpn.example.com:443" in out
+    assert ("fleetctl: warning: the endpoint's port 443 is not wireguard_port 51820"
+            in err) and "set wireguard_port: 443 in" in err
+    _, err = cli("set-endpoint", "vpn.example.com:51820")
+    assert "warning" not in err
+
+
 @pytest.mark.parametrize("endpoint", ["vpn.example.com", "vpn:0", "a b:1", "h:99999",
                                       "x\n[Peer]:1"])
 def test_set_endpoint_bad_input_changes_nothing(fleet: Path, cli: Cli, endpoint: str,

@@ -116,6 +116,15 @@ async def test_busy_port_names_the_field(
             await second.start()
 
 
+async def test_an_address_this_machine_lacks_names_the_host_field(
+    make_server: Callable[..., RelayServer],
+) -> None:
+    """192.0.2.1 (TEST-NET-1) is on no interface here: the address is at fault, not the
+    port, and the message says listen_host."""
+    with pytest.raises(ListenError, match=r"field 'listen_host': cannot listen on 192\.0\.2\.1"):
+        await make_server(listen_host="192.0.2.1").start()
+
+
 async def test_successful_http_answers_are_not_logged_as_rejections(
     make_server: Callable[..., RelayServer], web_config: WebConfig,
     caplog: pytest.LogCaptureFixture,

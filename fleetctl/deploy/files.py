@@ -366,21 +366,27 @@ def edit_state(data: bytes, new_text: str) -> str:
     """
     if data == new_text.encode("utf-8"):
         return "generated"
-    first, _, rest = data.partition(b"\n")
-    match = _STAMP.fullmatch(first.decode("utf-8", "replace").rstrip("\r"))
-    if match is None:
+    matches = _stamp_matches(data)
+    if matches is None:
         # Without a header: fine only if it is exactly what fleetctl would write now.
         body = new_text.partition("\n")[2].encode("utf-8")
         return "generated" if data == body else "unstamped"
-    return "generated" if hashlib.sha256(rest).hexdigest() == match.group(1) else "edited"
+    return "generated" if matches else "edited"
 
 
 def is_untouched(data: bytes) -> bool:
     """True when *data* carries fleetctl's digest line and still matches it: a generated
     file nobody edited, which fleetctl may delete without losing anyone's work."""
+    return _stamp_matches(data) is True
+
+
+def _stamp_matches(data: bytes) -> bool | None:
+    """Whether the rest of *data* matches its digest line; None without one."""
     first, _, rest = data.partition(b"\n")
     match = _STAMP.fullmatch(first.decode("utf-8", "replace").rstrip("\r"))
-    return match is not None and hashlib.sha256(rest).hexdigest() == match.group(1)
+    if match is None:
+        return None
+    return hashlib.sha256(rest).hexdigest() == match.group(1)
 
 
 def check_overwrite(path: Path, new_text: str, label: str, hint: str) -> None:

@@ -52,7 +52,7 @@ from fleetctl.deploy.keys import (
     token_sha256,
 )
 from fleetctl.deploy.keystore import RobotKeys
-from fleetctl.deploy.render import FleetKeys, fleet_artifacts, plan_artifacts
+from fleetctl.deploy.render import ROBOT_FILES, FleetKeys, fleet_artifacts, plan_artifacts
 from fleetctl.deploy.secrets import Secret
 from fleetctl.deploy.yamlnodes import FieldPath, format_path
 from fleetctl.errors import ConfigError, ConflictError, ExitCode, FleetError
@@ -439,9 +439,9 @@ def remove_robot(fleet_dir: Path, name: str, *, dry_run: bool = False,
     return RobotResult(robot, None, finish_plan(plan, fleet_dir, dry_run))
 
 
-# What fleetctl writes under robots/NAME/ (render.fleet_artifacts), relative to it.
-_ROBOT_FILES = frozenset({"client.yaml", os.path.join("wireguard", "wg0.conf")})
-_ROBOT_DIRS = frozenset({"", "wireguard"})
+# What fleetctl writes under robots/NAME/, relative to it, and the directories they need.
+_ROBOT_FILES = frozenset(ROBOT_FILES)
+_ROBOT_DIRS = frozenset({"", *(os.path.dirname(f) for f in ROBOT_FILES)})
 
 
 def _operator_files(robot_dir: Path) -> list[str]:

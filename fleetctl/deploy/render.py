@@ -371,6 +371,13 @@ def server_config(fleet: Fleet, fleet_dir: Path) -> str:
                            tls_cert=cert, tls_key=key)
 
 
+# A robot's generated files, relative to robots/NAME/ (remove-robot tells them from an
+# operator's own files by these names).
+ROBOT_CLIENT_FILE = "client.yaml"
+ROBOT_WIREGUARD_FILE = "wireguard/wg0.conf"
+ROBOT_FILES = (ROBOT_CLIENT_FILE, ROBOT_WIREGUARD_FILE)
+
+
 def fleet_artifacts(fleet: Fleet, keys: FleetKeys, fleet_dir: Path) -> list[Artifact]:
     """Return every generated file of the fleet directory (docs/design.md section 6)."""
     out = [
@@ -384,10 +391,10 @@ def fleet_artifacts(fleet: Fleet, keys: FleetKeys, fleet_dir: Path) -> list[Arti
     ]
     for i, robot in enumerate(fleet.robots):
         out.append(Artifact(
-            f"robots/{robot.name}/client.yaml", client_config(fleet, robot),
+            f"robots/{robot.name}/{ROBOT_CLIENT_FILE}", client_config(fleet, robot),
             hint=f"put topics in fleet.yaml robots[{i}].publish / subscribe / battery_topic"))
         out.append(Artifact(
-            f"robots/{robot.name}/wireguard/wg0.conf", robot_wireguard(fleet, robot, keys),
+            f"robots/{robot.name}/{ROBOT_WIREGUARD_FILE}", robot_wireguard(fleet, robot, keys),
             secret=True, hint=f"set ip and mtu_bytes in fleet.yaml robots[{i}] and the "
                               "endpoint with `fleetctl set-endpoint`"))
     return out

@@ -8,7 +8,6 @@ field at fault; it never returns a half-valid config.
 from __future__ import annotations
 
 import ipaddress
-import os
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -313,8 +312,6 @@ def _readable(raw: dict[str, Any], name: str, base: Path, path: Path) -> Path:
     except OSError as exc:
         reason = exc.strerror or str(exc)
         raise ConfigError(f"{path}: field 'web.{name}': cannot read {found}: {reason}") from None
-    if not found.is_file() or not os.access(found, os.R_OK):
-        raise ConfigError(f"{path}: field 'web.{name}': {found} is not a readable file")
     return found
 
 

@@ -39,8 +39,8 @@ def e2e(
 ) -> None:
     """Run the e2e scenarios; write JSON, Markdown and PNGs; exit 1 if a criterion fails.
 
-    SIGTERM, SIGINT and SIGHUP stop the run: every container and network it made is removed
-    and the exit status is 128 + the signal's number.
+    SIGTERM, SIGINT and SIGHUP stop the run: every container and network it
+    made is removed and the exit status is 128 + the signal's number.
     """
     if clean:
         _cleanup(clean_all)

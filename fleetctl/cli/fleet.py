@@ -118,8 +118,10 @@ def init(
     dry_run: bool = _dry_run_option(),
     output: OutputFormat = output_option(),
 ) -> None:
-    """Create a fleet: fleet.yaml, server WireGuard key and config, server config, auth map,
-    a self-signed HTTPS certificate."""
+    """Create a fleet: fleet.yaml, server keys and configs, auth map, HTTPS certificate.
+
+    Writes fleet.yaml, the server's WireGuard key and config, server.yaml,
+    auth.yaml and a self-signed HTTPS certificate for the web page."""
     result = ops.create_fleet(
         directory or fleet, endpoint=endpoint, name=name, subnet=subnet, server_ip=server_ip,
         server_port=server_port, wireguard_port=wireguard_port, https_port=https_port,

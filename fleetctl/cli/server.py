@@ -10,8 +10,10 @@ import typer
 
 from fleetctl.errors import ConfigError
 
-CONFIG_HELP = """Run the relay server (WebSocket + HTTP on one port, optionally the web
-page + WebSocket on a second, HTTPS port).
+CONFIG_HELP = """Run the relay server: WebSocket + HTTP, optionally the web page over HTTPS.
+
+The WebSocket and HTTP share one port; the web page and its WebSocket
+(wss://) take a second, HTTPS port when server.yaml has a `web` section.
 
 \b
 server.yaml (relative paths are relative to the file):
@@ -25,7 +27,8 @@ server.yaml (relative paths are relative to the file):
   tls_cert: null                PEM cert and key for wss://; both or neither
   tls_key: null
   trusted_proxies: []           IPs/CIDRs whose X-Forwarded-For is believed
-  no_drop_topics: []            RE2 full-match topics always delivered in order
+  no_drop_topics: []            RE2 full-match topics always delivered
+                                in order
   limits:
     max_frame_bytes: 16777216          larger frames close with 1009
     max_subscriptions_per_connection: 256
@@ -34,8 +37,10 @@ server.yaml (relative paths are relative to the file):
     robot_offline_after_s: 5.0
     max_malformed_in_row: 10           then close with 1007
     auth_timeout_s: 10.0               for the {"token": ...} frame
-    session_expiry_s: 3600.0           named sessions offline this long are dropped
-    session_mailbox_messages: 10000    no_drop frames kept per offline session
+    session_expiry_s: 3600.0           named sessions offline this long
+                                       are dropped
+    session_mailbox_messages: 10000    no_drop frames kept per offline
+                                       session
     session_mailbox_bytes: 16777216
     max_sessions_per_identity: 64
   web:                          optional: the web page and the relay on one

@@ -36,3 +36,44 @@ def test_fleet_error_is_one_line_on_stderr(
     expected = "fleetctl: error: fleet.yaml: robots[0].ip: 10.9.0.2 is outside 10.8.0.0/24"
     assert err.strip() == expected
     assert "Traceback" not in err
+
+
+def _commands(command: object, path: str = "fleetctl") -> list[tuple[str, object]]:
+    found = [(path, command)]
+    for name, sub in (getattr(command, "commands", None) or {}).items():
+        found += _commands(sub, f"{path} {name}")
+    return found
+
+
+def test_every_command_summary_is_one_line() -> None:
+    # The help's command list shows a docstring's first paragraph with its line breaks,
+    # so a summary wrapped in the source shows up wrapped mid-sentence in `fleetctl -h`.
+    import typer.main
+
+    root = typer.main.get_command(cli_main.build_app())
+    wrapped = [path for path, command in _commands(root)
+               if "\n" in (getattr(command, "help", None) or "").strip().split("\n\n")[0]]
+    assert wrapped == []
+
+
+def test_every_top_level_command_is_in_a_help_panel() -> None:
+    app = cli_main.build_app()
+    unpanelled = [info.name or getattr(info.callback, "__name__", "?")
+                  for info in [*app.registered_commands, *app.registered_groups]
+                  if not info.rich_help_panel and not info.hidden]
+    assert unpanelled == []
+
+
+def test_help_lines_that_the_source_breaks_fit_an_80_column_terminal() -> None:
+    # The help keeps the source's line breaks; a broken line longer than the terminal is
+    # wrapped again, which leaves a one-word line after it. A one-line paragraph is free
+    # to be long: the terminal wraps it cleanly.
+    import typer.main
+
+    root = typer.main.get_command(cli_main.build_app())
+    too_long = []
+    for path, command in _commands(root):
+        for paragraph in (getattr(command, "help", None) or "").split("\n\n"):
+            lines = paragraph.strip("\n").splitlines()
+            too_long += [f"{path}: {line}" for line in lines if len(lines) > 1 and len(line) > 77]
+    assert too_long == []

@@ -18,6 +18,7 @@ from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
+from fleetctl.deploy import hostports
 from fleetctl.deploy.compose import (
     DEFAULT_BIND,
     WG_INTERFACE,
@@ -26,6 +27,7 @@ from fleetctl.deploy.compose import (
     plan_for,
     project_name,
     read_robots,
+    render,
     saved_options,
     write_files,
 )
@@ -89,7 +91,7 @@ def container_id(fleet_dir: Path, project: str, service: str,
     return ids[0] if ids else None
 
 
-CONFIG_FILES_LABEL = "com.docker.compose.project.config_files"
+CONFIG_FILES_LABEL = hostports.CONFIG_FILES_LABEL
 
 
 def _check_not_changed(fleet_dir: Path, wanted: Options, runner: Runner) -> None:
@@ -114,7 +116,8 @@ def _require_images(plan: ComposePlan, runner: Runner) -> None:
 
 
 def up(fleet_dir: Path, options: Options, progress: Progress = print,
-       runner: Runner = subprocess_runner) -> UpResult:
+       runner: Runner = subprocess_runner,
+       port_probe: hostports.PortProbe = hostports.bind_error) -> UpResult:
     """Render and start (or update) the deployment, detached.
 
     Services whose definition did not change keep running: ``up`` on a running fleet only
@@ -122,13 +125,18 @@ def up(fleet_dir: Path, options: Options, progress: Progress = print,
 
     Raises:
         ConfigError: the fleet directory is incomplete (the message names file and field).
-        ConflictError: the fleet already runs with other options.
+        ConflictError: the fleet already runs with other options, or a port it publishes
+            is taken on this host.
         EnvironmentMissing: an image or Compose is missing.
         FleetError: compose failed (its output is shown).
     """
     plan = plan_for(fleet_dir, options)
     _check_not_changed(plan.fleet_dir, options, runner)
     _require_images(plan, runner)
+    hostports.require_free(
+        hostports.published_ports(render(plan)),
+        hostports.held_by_fleet(runner, plan.project, plan.compose_file.resolve()),
+        port_probe)
     progress(f"wireguard: {plan.wireguard_note}")
     path = write_files(plan)
     sims = len(plan.robots) if options.sim else 0

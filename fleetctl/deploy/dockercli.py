@@ -106,8 +106,10 @@ def require_docker(which: Callable[[str], str | None] = shutil.which) -> str:
 def check(result: Completed, what: str) -> Completed:
     """Raise a :class:`FleetError` naming *what* failed when *result* is non-zero."""
     if result.returncode != 0:
-        detail = (result.stderr or result.stdout).strip().splitlines()[-5:]
-        raise FleetError(f"{what} failed (exit {result.returncode}): " + " | ".join(detail))
+        detail = (result.stderr or result.stdout or "").strip().splitlines()[-5:]
+        # A command whose output went straight to the terminal left nothing to quote.
+        said = " | ".join(detail) if detail else "its output is above"
+        raise FleetError(f"{what} failed (exit {result.returncode}): {said}")
     return result
 
 

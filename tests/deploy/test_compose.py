@@ -3,6 +3,7 @@
 
 from __future__ import annotations
 
+import errno
 import re
 import shutil
 import stat
@@ -278,3 +279,32 @@ def test_bind_and_project_are_checked_before_they_reach_compose(fleet: Path) -> 
         _opts(fleet, project="x y")
     plan = compose.plan_for(fleet, _opts(fleet, wireguard="off", bind="::1"))
     assert compose.render(plan)["services"]["server"]["ports"] == ["[::1]:8443:8443/tcp"]
+
+
+def test_up_names_a_taken_host_port_before_compose_runs(fleet: Path) -> None:
+    def https_taken(host: str, port: int, protocol: str) -> OSError | None:
+        return OSError(errno.EADDRINUSE, "Address in use") if protocol == "tcp" else None
+
+    docker = FakeDocker()
+    with pytest.raises(ConflictError, match=r"0\.0\.0\.0:8443/tcp \(server\) is in use"):
+        composerun.up(fleet, _opts(fleet, wireguard="off"), progress=lambda _: None,
+                      runner=docker, port_probe=https_taken)
+    assert docker.compose_calls() == []
+    assert not (fleet / ".compose").exists()
+
+
+def test_up_on_a_running_fleet_does_not_trip_over_its_own_ports(fleet: Path) -> None:
+    class PublishingDocker(FakeDocker):
+        def __call__(self, argv: Sequence[str], stdin: bytes | None, capture: bool) -> Completed:
+            if "{{.Ports}}" in argv:
+                self.calls.append(list(argv))
+                return Completed(tuple(argv), 0, "0.0.0.0:8443->8443/tcp\n", "")
+            return super().__call__(argv, stdin, capture)
+
+    def held_by_the_fleet(host: str, port: int, protocol: str) -> OSError | None:
+        return OSError(errno.EADDRINUSE, "Address in use")
+
+    docker = PublishingDocker()
+    composerun.up(fleet, _opts(fleet, wireguard="off"), progress=lambda _: None,
+                  runner=docker, port_probe=held_by_the_fleet)
+    assert any("up" in call for call in docker.compose_calls())

@@ -7,7 +7,13 @@ import time
 
 import pytest
 
-from fleetctl.deploy.dockercli import DEADLINE_EXIT, check, deadline_runner, subprocess_runner
+from fleetctl.deploy.dockercli import (
+    DEADLINE_EXIT,
+    Completed,
+    check,
+    deadline_runner,
+    subprocess_runner,
+)
 from fleetctl.errors import EnvironmentMissing, FleetError
 
 
@@ -39,3 +45,11 @@ def test_a_hung_command_is_killed_tried_again_and_named(tmp_path) -> None:
     with pytest.raises(FleetError, match=r"list things failed \(exit 124\): `.*python.* -c "
                                          r"open.*` did not return within 0.5 s \(3 tries\)"):
         check(res, "list things")
+
+
+def test_a_failure_whose_output_went_to_the_terminal_points_there() -> None:
+    # `compose up` streams its output (capture off): there is nothing to quote.
+    with pytest.raises(FleetError, match=r"^compose up failed \(exit 1\): its output is above$"):
+        check(Completed(("docker", "compose", "up"), 1, "", ""), "compose up")
+    with pytest.raises(FleetError, match=r"failed \(exit 2\): line 2 \| bind: in use$"):
+        check(Completed(("docker",), 2, "", "line 2\nbind: in use\n"), "docker run")

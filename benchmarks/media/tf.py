@@ -286,8 +286,8 @@ def measure_tf(duration_s: float = 60.0, spec: TfSpec | None = None,
     def tick(now_s: float) -> None:
         out = throttle.poll(now_s)
         if out is not None:
-            send(republished, "rep", TOPIC, out, now_s)
-            receiver.apply(out)
+            send(republished, "rep", TOPIC, out.transforms, now_s, latched=out.snapshot)
+            receiver.apply(out.transforms)
             receiver.max_after_message = _max(receiver.max_after_message,
                                               receiver.error(truth))
 

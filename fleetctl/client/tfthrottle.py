@@ -9,6 +9,18 @@ moves). What a receiver holds is therefore, right after each emission, within th
 of the newest transform the robot had; between emissions a change waits at most one
 period (1 / ``max_rate_hz``).
 
+Late receivers. tf2_web_republisher throttles per client, so each new client gets every
+transform once; here the robot throttles once for all receivers, so a pair that stopped
+moving (a localizer's constant ``map -> odom``, a parked robot's ``odom -> base_link``)
+would never reach a viewer who subscribes after it was last sent. So some emissions are
+*snapshots*: every known pair's newest transform, sent latched. The relay keeps the
+newest latched message of the topic (docs/server.md) and gives it to every later
+subscriber first, then the deltas follow. A snapshot goes out in place of a delta when
+the last one is out of date (a pair was sent since, or a new pair appeared), at most
+every :data:`SNAPSHOT_PERIOD_S`, and at once after :meth:`TfThrottle.force_snapshot` (a
+new connection: a restarted server holds nothing). A parked robot sends nothing after
+its snapshot; a moving one pays one message of every pair per period.
+
 tf2_web_republisher (RobotWebTools) looks transforms up per requested (target, source)
 pair on a timer and compares with bullet's ``Quaternion::angle``, which is *half* the
 rotation angle; here the raw edges are compared and the rotation delta is the full angle
@@ -37,6 +49,11 @@ from fleetctl.client.config import TfSpec
 # A robot has tens to a few hundred frames; a publisher inventing frame names (a bug, or a
 # per-object tracker) must not grow the table without bound. Excess pairs are counted.
 MAX_PAIRS = 4096
+
+# How stale the relay's copy of the TF tree may get while pairs move: a viewer subscribing
+# now may see a pair that stopped moving within this long at an older value until the next
+# snapshot. Moving pairs are corrected by the next delta (one period).
+SNAPSHOT_PERIOD_S = 2.0
 
 Pair = tuple[str, str]  # (parent, child), without tf2's optional leading '/'
 Pose = tuple[float, float, float, float, float, float, float]  # x y z qx qy qz qw
@@ -91,6 +108,7 @@ class TfStats:
         pairs_over_limit: transforms dropped because :data:`MAX_PAIRS` pairs are known.
         static_in: transforms received on ``/tf_static``.
         static_out: whole ``tf_static`` messages emitted.
+        snapshots_out: of ``messages_out``, latched snapshots of every pair.
     """
 
     transforms_in: int = 0
@@ -100,6 +118,16 @@ class TfStats:
     pairs_over_limit: int = 0
     static_in: int = 0
     static_out: int = 0
+    snapshots_out: int = 0
+
+
+@dataclass(frozen=True)
+class TfEmission:
+    """One ``/tf`` message to send: its transforms, and whether it is a latched snapshot of
+    every pair (see the module docstring) or the pairs that moved."""
+
+    transforms: list[Any]
+    snapshot: bool
 
 
 class TfThrottle:
@@ -108,16 +136,23 @@ class TfThrottle:
     Args:
         spec: The deltas and the rate bound.
         stats: Counters to update (shared with :class:`StaticTf`); None: its own.
+        snapshot_period_s: Least time between two snapshots while pairs move.
     """
 
-    def __init__(self, spec: TfSpec, stats: TfStats | None = None) -> None:
+    def __init__(self, spec: TfSpec, stats: TfStats | None = None,
+                 snapshot_period_s: float = SNAPSHOT_PERIOD_S) -> None:
         self.spec = spec
         self.stats = stats or TfStats()
         self.period_s = 1.0 / spec.max_rate_hz
+        self.snapshot_period_s = snapshot_period_s
         self._latest: dict[Pair, tuple[Any, Pose]] = {}
         self._sent: dict[Pair, Pose] = {}
         self._changed: set[Pair] = set()
         self._next_s = -math.inf
+        self._snapshot_s = -math.inf
+        # The relay's latched copy misses something: a pair sent since, or a new pair.
+        self._snapshot_stale = False
+        self._snapshot_forced = False
 
     def offer(self, transforms: Iterable[Any]) -> None:
         """Take the transforms of one ``/tf`` message (newer replace older per pair)."""
@@ -131,6 +166,8 @@ class TfThrottle:
             if pair not in self._latest and len(self._latest) >= MAX_PAIRS:
                 self.stats.pairs_over_limit += 1
                 continue
+            if pair not in self._latest:
+                self._snapshot_stale = True
             self._latest[pair] = (transform, pose)
             if self._moved(pair, pose):
                 self._changed.add(pair)
@@ -142,8 +179,18 @@ class TfThrottle:
         return (translation_m(sent, pose) > self.spec.translation_delta_m
                 or rotation_rad(sent, pose) > self.spec.rotation_delta_rad)
 
-    def poll(self, now_s: float) -> list[Any] | None:
-        """The transforms to send now, or None (nothing moved, or too soon).
+    def force_snapshot(self) -> None:
+        """Send a snapshot at the next :meth:`poll` the rate allows (a new connection)."""
+        self._snapshot_forced = True
+
+    def _snapshot_due(self, now_s: float) -> bool:
+        if not self._latest:
+            return False
+        return self._snapshot_forced or (
+            self._snapshot_stale and now_s - self._snapshot_s >= self.snapshot_period_s)
+
+    def poll(self, now_s: float) -> TfEmission | None:
+        """The message to send now, or None (nothing moved, or too soon).
 
         Call after :meth:`offer` (low latency when the rate allows) and on a timer at
         ``max_rate_hz`` (so a pending change never waits longer than one period).
@@ -151,24 +198,34 @@ class TfThrottle:
         Args:
             now_s: Monotonic clock in seconds.
         """
-        if now_s < self._next_s or not self._changed:
+        if now_s < self._next_s:
+            return None
+        snapshot = self._snapshot_due(now_s)
+        if not snapshot and not self._changed:
             return None
         out = []
-        for pair in sorted(self._changed):  # stable order: same input, same bytes
+        # Sorted: the same input gives the same bytes.
+        for pair in sorted(self._latest) if snapshot else sorted(self._changed):
             transform, pose = self._latest[pair]
             # Checked again: a pair that moved and came back within the period stays.
-            if self._moved(pair, pose):
+            if snapshot or self._moved(pair, pose):
                 self._sent[pair] = pose
                 out.append(transform)
         self._changed.clear()
         if not out:
             return None
+        if snapshot:
+            self._snapshot_s = now_s
+            self._snapshot_stale = self._snapshot_forced = False
+            self.stats.snapshots_out += 1
+        else:
+            self._snapshot_stale = True
         # From now, not from the due time: two messages are never closer than one period,
         # so the bound holds however the caller's timer and /tf callbacks interleave.
         self._next_s = now_s + self.period_s
         self.stats.messages_out += 1
         self.stats.transforms_out += len(out)
-        return out
+        return TfEmission(out, snapshot)
 
     def sent_pose(self, pair: Pair) -> Pose | None:
         """The pose last emitted for *pair* (what a receiver holds), or None."""

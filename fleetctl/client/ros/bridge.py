@@ -330,6 +330,8 @@ class Bridge(Node):
         if connects > self._connects_seen:
             if self._connects_seen > 0:
                 self.resend_latched()
+                if self.tf is not None:
+                    self.tf.reconnected()
             self._connects_seen = connects
 
     def _make_callback(self, spec: PublishSpec) -> Callable[[bytes], None]:

@@ -6,7 +6,8 @@ TRANSIENT_LOCAL, depth 100: tf2's own static listener QoS, so every static broad
 stored message arrives however late the client starts), both raw. Messages are decoded
 with the rosbags type store and go through :mod:`fleetctl.client.tfthrottle`; what comes
 out is sent through the bridge like any publish entry's message: ``/<robot>/tf`` (the
-throttled pairs, droppable) and ``/<robot>/tf_static`` (every static pair, latched).
+throttled pairs, droppable, and now and then a latched snapshot of every pair for late
+viewers) and ``/<robot>/tf_static`` (every static pair, latched).
 
 rclpy needs the ``tf2_msgs`` Python package to subscribe; a robot's apt ROS has it, the
 PyPI wheels do not (scripts/ros_msgs.sh builds it into a venv). Without it TF is skipped
@@ -103,7 +104,13 @@ class TfRepublisher:
     def _tick(self) -> None:
         out = self.throttle.poll(self._clock_s())
         if out is not None:
-            self._send(self.tf_spec, self._build(transforms=out))
+            # A snapshot is latched: the relay keeps it for whoever subscribes later.
+            self._send(self.tf_spec, self._build(transforms=out.transforms),
+                       latched=out.snapshot)
+
+    def reconnected(self) -> None:
+        """A new connection to the server: send a snapshot soon (it may hold none)."""
+        self.throttle.force_snapshot()
 
     def _on_static(self, cdr: bytes) -> None:
         transforms = self._decode(cdr, "/tf_static")

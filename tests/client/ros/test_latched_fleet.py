@@ -225,3 +225,33 @@ def test_tf_static_reaches_a_late_node_and_a_late_viewer(fleet: Fleet) -> None:
     meta, whole = codec.decode(frame)
     assert meta.latched and meta.type == TF_TYPE
     assert sorted(t.child_frame_id for t in whole.transforms) == sorted(STATIC_CHILDREN)
+
+
+def _map_to_odom_cdr(registry: TypeRegistry) -> bytes:
+    get = registry.get
+    identity = get("geometry_msgs/msg/TransformStamped").cls(
+        get("std_msgs/msg/Header").cls(get("builtin_interfaces/msg/Time").cls(0, 0), "map"),
+        "odom",
+        get("geometry_msgs/msg/Transform").cls(get("geometry_msgs/msg/Vector3").cls(0, 0, 0),
+                                               get("geometry_msgs/msg/Quaternion").cls(0, 0, 0,
+                                                                                       1)))
+    return bytes(registry.typestore.serialize_cdr(get(TF_TYPE).cls([identity]), TF_TYPE))
+
+
+@pytest.mark.skipif(not HAVE_TF2_MSGS, reason="needs tf2_msgs (scripts/ros_msgs.sh)")
+def test_a_transform_that_never_moves_reaches_viewers_who_come_later(fleet: Fleet) -> None:
+    # A localizer publishing a constant map -> odom at 20 Hz: the robot's throttle sends it
+    # once; viewers who subscribe after that get it from the relay's latched snapshot.
+    codec = Codec(codec_registry := TypeRegistry.default())
+    (fleet.root / "map_odom.cdr").write_bytes(_map_to_odom_cdr(codec_registry))
+    fleet.start("localizer", ros_helper(
+        "publish", ["/tf", TF_TYPE, f"@{fleet.root / 'map_odom.cdr'}", "20"], ALPHA_DOMAIN,
+        fleet.root / "localizer.log")
+    ).wait_for(lambda line: line.get("ready", False), STARTUP_S, "alpha's client on /tf")
+    for _ in range(2):  # the second surely comes after map -> odom was last sent live
+        (frame,) = viewer_frames(fleet, ["/alpha/tf"], 1)
+        meta, msg = codec.decode(frame)
+        assert (meta.type, meta.topic) == (TF_TYPE, "/alpha/tf")
+        assert [(t.header.frame_id, t.child_frame_id) for t in msg.transforms] == [
+            ("map", "odom")]
+    assert meta.latched

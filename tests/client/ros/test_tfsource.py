@@ -117,7 +117,10 @@ def test_tf_is_throttled_by_delta_and_rate(ros: tuple[Context, Node], codec: Cod
         wait_for(lambda: bridge.tf is not None and bridge.tf.stats.transforms_in == 200)
         frames = sent_on(fake, "/r1/tf")
         decoded = [codec.decode(f)[1] for f in frames]
-        assert not any(read_metadata(f).latched for f in frames)
+        # The first message is the whole tree, latched for late viewers; within the
+        # snapshot period the rest are deltas.
+        assert [read_metadata(f).latched for f in frames[:2]] == [True, False]
+        assert not any(read_metadata(f).latched for f in frames[1:])
         # At most max_rate_hz messages (plus the first), each with the moved pair only.
         assert 3 <= len(frames) <= elapsed * 10 + 2
         assert sorted(t.child_frame_id for t in decoded[0].transforms) == ["base_link", "wheel"]
@@ -190,8 +193,17 @@ def test_republisher_callbacks_encode_throttled_and_static_frames(codec: Codec) 
         ("base_link", 0.5)]
     static_meta, static = codec.decode(frames[2][1])
     assert static_meta.latched and [t.child_frame_id for t in static.transforms] == ["laser"]
-    assert not codec.decode(frames[0][1])[0].latched
+    assert codec.decode(frames[0][1])[0].latched  # the first is the whole tree
+    assert not codec.decode(frames[1][1])[0].latched
     assert republisher.decode_errors == 1 and republisher.stats.static_out == 1
+    # A new connection: the next tick sends every pair again, latched (the server may have
+    # restarted with nothing), though nothing moved.
+    republisher.reconnected()
+    now[0] = 0.5
+    node.timers[0][1]()
+    meta, snapshot = codec.decode(frames[-1][1])
+    assert len(frames) == 4 and meta.latched and meta.topic == "/r1/tf"
+    assert [t.child_frame_id for t in snapshot.transforms] == ["wheel", "base_link"]
 
 
 def test_a_subscribe_entry_onto_local_tf_is_refused_with_tf_on(codec: Codec) -> None:

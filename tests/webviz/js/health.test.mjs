@@ -20,6 +20,22 @@ test("seq gaps count as drops; rate and latency over the window", () => {
   assert.deepEqual(h.rows("/other/", now), []);
 });
 
+test("a latched message the server kept starts no sequence", () => {
+  const h = new LinkHealth();
+  const now = 1_700_000_000_000;
+  const rec = (seq, latched) => h.record({ topic: "/r/tf", seq: BigInt(seq), latched, publish_time_ns: 0n }, 10, now);
+  rec(100, true); // the TF snapshot kept since seq 100
+  rec(150, false); // the live stream goes on from 150
+  rec(151, false);
+  rec(152, true); // a snapshot amid the live ones
+  rec(153, false);
+  rec(120, true); // the kept snapshot again after a reconnect
+  rec(154, false);
+  assert.equal(h.rows("/r/", now)[0].drops, 0);
+  rec(157, false);
+  assert.equal(h.rows("/r/", now)[0].drops, 2);
+});
+
 test("rules: full match, op both, unparseable regex grants nothing", () => {
   const r = new Rules([{ topic: "/r1/.*", op: "receive" }, { topic: "/r1/goal_pose", op: "both" }, { topic: "(?P<x>", op: "send" }]);
   assert.ok(r.canReceive("/r1/scan"));

@@ -26,8 +26,16 @@ export class TopicHealth {
     this.bytes += size;
     const seq = BigInt(meta.seq);
     // seq 0 means "the sender does not number this topic".
-    if (this.lastSeq !== null && seq > this.lastSeq + 1n) this.gaps += Number(seq - this.lastSeq - 1n);
-    if (seq !== 0n) this.lastSeq = seq;
+    if (!meta.latched) {
+      if (this.lastSeq !== null && seq > this.lastSeq + 1n) this.gaps += Number(seq - this.lastSeq - 1n);
+      if (seq !== 0n) this.lastSeq = seq;
+    } else if (this.lastSeq !== null && seq > this.lastSeq) {
+      // A latched message amid the live ones (a TF snapshot) continues the sequence. One the
+      // server kept for this subscriber was numbered before the live ones that follow it
+      // (or, after a reconnect, before those already seen): it starts no sequence, else
+      // every message in between would count as a drop.
+      this.lastSeq = seq;
+    }
     const pub = Number(meta.publish_time_ns) / 1e6;
     // A latched message the server kept (a map sent minutes ago) is no latency sample.
     this.samples.push({ t: nowMs, latencyMs: pub > 0 && !meta.latched ? nowMs - pub : NaN });

@@ -267,7 +267,10 @@ export class VideoView {
     const s = this.streams.get(this.current);
     const el = this.statusEl;
     if (!s) {
-      el.textContent = webCodecsMissing() ?? "no video yet";
+      // Nothing came: say where video comes from, so an operator knows what to change.
+      el.textContent = webCodecsMissing() ??
+        "no video yet: a robot sends a camera as video when the camera's publish entry " +
+        "in fleet.yaml has a video: section (docs/operator.md)";
       el.classList.toggle("bad", !!webCodecsMissing());
       return;
     }

@@ -18,8 +18,12 @@ from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
+import yaml
+
 from fleetctl.deploy import hostports
 from fleetctl.deploy.compose import (
+    COMPOSE_DIR,
+    COMPOSE_FILE,
     DEFAULT_BIND,
     WG_INTERFACE,
     ComposePlan,
@@ -35,6 +39,7 @@ from fleetctl.deploy.dockercli import Runner, check, image_exists, subprocess_ru
 from fleetctl.deploy.images import image_tag
 from fleetctl.deploy.replicas import check_count
 from fleetctl.errors import ConfigError, ConflictError, EnvironmentMissing, FleetError
+from fleetctl.smallfile import MAX_CONFIG_BYTES, read_small_text
 
 Progress = Callable[[str], None]
 
@@ -183,8 +188,28 @@ def down(fleet_dir: Path, options: Options, *, delete_data: bool = False,
           "compose down")
 
 
+def deployed_services(fleet_dir: Path) -> list[str]:
+    """The services of the compose file ``up`` last wrote in *fleet_dir* (none: [])."""
+    path = fleet_dir / COMPOSE_DIR / COMPOSE_FILE
+    try:
+        document = yaml.safe_load(read_small_text(path, MAX_CONFIG_BYTES))
+    except (OSError, yaml.YAMLError):
+        return []
+    services = document.get("services") if isinstance(document, dict) else None
+    return sorted(services) if isinstance(services, dict) else []
+
+
 def logs(fleet_dir: Path, options: Options, services: Sequence[str], *, follow: bool) -> int:
-    """Print the logs (following when *follow*); returns compose's exit code."""
+    """Print the logs (following when *follow*); returns compose's exit code.
+
+    Raises:
+        ConfigError: a named service is not one of the deployment's.
+    """
+    known = deployed_services(fleet_dir)
+    unknown = [name for name in services if known and name not in known]
+    if unknown:
+        raise ConfigError(f"logs: no service {', '.join(map(repr, unknown))} in this fleet's "
+                          f"deployment; its services: {', '.join(known)}")
     args = ["logs", "--no-color", *(["--follow"] if follow else []), *services]
     return subprocess.run(compose_argv(fleet_dir, options.project, *args), check=False).returncode
 

@@ -308,3 +308,13 @@ def test_up_on_a_running_fleet_does_not_trip_over_its_own_ports(fleet: Path) -> 
     composerun.up(fleet, _opts(fleet, wireguard="off"), progress=lambda _: None,
                   runner=docker, port_probe=held_by_the_fleet)
     assert any("up" in call for call in docker.compose_calls())
+
+
+def test_logs_names_the_services_when_one_is_unknown(fleet: Path) -> None:
+    composerun.up(fleet, _opts(fleet, wireguard="off", sim=True), progress=lambda _: None,
+                  runner=FakeDocker(), port_probe=lambda *_: None)
+    assert composerun.deployed_services(fleet) == ["robot-husky1", "robot-jackal2", "server"]
+    with pytest.raises(ConfigError, match=r"no service 'sever' .*its services: robot-husky1, "
+                                          r"robot-jackal2, server"):
+        composerun.logs(fleet, _opts(fleet), ["server", "sever"], follow=False)
+    assert composerun.deployed_services(fleet / "nowhere") == []

@@ -122,7 +122,7 @@ def _require_images(plan: ComposePlan, runner: Runner) -> None:
 
 def up(fleet_dir: Path, options: Options, progress: Progress = print,
        runner: Runner = subprocess_runner,
-       port_probe: hostports.PortProbe = hostports.bind_error) -> UpResult:
+       port_probe: hostports.PortProbe | None = None) -> UpResult:
     """Render and start (or update) the deployment, detached.
 
     Services whose definition did not change keep running: ``up`` on a running fleet only
@@ -141,7 +141,7 @@ def up(fleet_dir: Path, options: Options, progress: Progress = print,
     hostports.require_free(
         hostports.published_ports(render(plan)),
         hostports.held_by_fleet(runner, plan.project, plan.compose_file.resolve()),
-        port_probe)
+        port_probe or hostports.bind_error)
     progress(f"wireguard: {plan.wireguard_note}")
     path = write_files(plan)
     sims = len(plan.robots) if options.sim else 0

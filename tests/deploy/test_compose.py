@@ -16,7 +16,7 @@ import pytest
 import yaml
 
 from fleetctl.cli.main import main
-from fleetctl.deploy import compose, composerun, live
+from fleetctl.deploy import compose, composerun, hostports, live
 from fleetctl.deploy import operations as ops
 from fleetctl.deploy.compose import Options
 from fleetctl.deploy.dockercli import Completed
@@ -184,6 +184,14 @@ def test_wireguard_mode_choice(tmp_path: Path) -> None:
         compose.wireguard_mode("maybe", absent)
 
 
+@pytest.fixture(autouse=True)
+def host_ports_free(monkeypatch: pytest.MonkeyPatch) -> None:
+    """`up` with a fake docker must not depend on what this machine's ports hold (a real
+    fleet may be up on 8443 beside the tests); tests/deploy/test_hostports.py binds real
+    sockets, and the Docker life-cycle test runs the real check."""
+    monkeypatch.setattr(hostports, "bind_error", lambda *_: None)
+
+
 class FakeDocker:
     """Records docker commands; answers `ps` with a running server when told to."""
 
@@ -312,7 +320,7 @@ def test_up_on_a_running_fleet_does_not_trip_over_its_own_ports(fleet: Path) -> 
 
 def test_logs_names_the_services_when_one_is_unknown(fleet: Path) -> None:
     composerun.up(fleet, _opts(fleet, wireguard="off", sim=True), progress=lambda _: None,
-                  runner=FakeDocker(), port_probe=lambda *_: None)
+                  runner=FakeDocker())
     assert composerun.deployed_services(fleet) == ["robot-husky1", "robot-jackal2", "server"]
     with pytest.raises(ConfigError, match=r"no service 'sever' .*its services: robot-husky1, "
                                           r"robot-jackal2, server"):

@@ -122,11 +122,15 @@ def _require_images(plan: ComposePlan, runner: Runner) -> None:
 
 def up(fleet_dir: Path, options: Options, progress: Progress = print,
        runner: Runner = subprocess_runner,
-       port_probe: hostports.PortProbe | None = None) -> UpResult:
+       port_probe: hostports.PortProbe | None = None,
+       robots_only: bool = False) -> UpResult:
     """Render and start (or update) the deployment, detached.
 
     Services whose definition did not change keep running: ``up`` on a running fleet only
-    adds, removes or recreates what changed.
+    adds, removes or recreates what changed. With *robots_only* (a live update after
+    ``add-robot`` & co.) only the simulated robots are started, recreated or removed; the
+    server and replicas are left as they run even if their image was rebuilt since, so an
+    ``add-user`` never restarts the relay behind the operator's back.
 
     Raises:
         ConfigError: the fleet directory is incomplete (the message names file and field).
@@ -148,7 +152,7 @@ def up(fleet_dir: Path, options: Options, progress: Progress = print,
     what = ("server" if options.replicas == 1 else
             f"{options.replicas} relay replicas on 3 NATS nodes")
     progress(f"compose file {path}; {what} + {sims} simulated robot(s)")
-    check(runner(compose_argv(plan.fleet_dir, plan.project, "up", "-d", "--remove-orphans",
+    check(runner(compose_argv(plan.fleet_dir, plan.project, *_up_args(plan, robots_only),
                               runner=runner), None, False), "compose up")
     urls: tuple[tuple[str, ...], tuple[str, ...]] = ((), ())
     if options.replicas > 1:
@@ -158,6 +162,18 @@ def up(fleet_dir: Path, options: Options, progress: Progress = print,
                 tuple(composereplicas.page_urls(plan)))
     return UpResult(path, plan.wireguard_note, plan.url,
                     tuple(r.name for r in plan.robots), options.sim, options.replicas, *urls)
+
+
+def _up_args(plan: ComposePlan, robots_only: bool) -> list[str]:
+    args = ["up", "-d", "--remove-orphans"]
+    if not robots_only:
+        return args
+    robots = [f"robot-{robot.name}" for robot in plan.robots] if plan.options.sim else []
+    if robots:
+        # Named services only, without the server they depend on.
+        return [*args, "--no-deps", *robots]
+    # No robot left: only the orphans (removed robots) go; the server stays as it is.
+    return [*args, "--no-deps", "--no-recreate", "server"]
 
 
 def existing_options(fleet_dir: Path, project: str | None = None) -> Options:

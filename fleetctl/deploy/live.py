@@ -75,7 +75,8 @@ def sync_running(fleet_dir: Path, progress: Callable[[str], None],
         done.append("server restarted with the new TLS certificate")
     if options.sim:
         try:
-            composerun.up(fleet_dir, options, progress=progress, runner=runner)
+            composerun.up(fleet_dir, options, progress=progress, runner=runner,
+                          robots_only=True)
         except FleetError as exc:
             raise FleetError(f"{'; '.join(done) or 'nothing applied'}; then: {exc}") from None
         done.append("simulated robots updated")

@@ -264,6 +264,24 @@ def test_live_sync_reloads_peers_and_adds_simulated_robots(fleet: Path) -> None:
     assert all(mine in " ".join(c) for c in docker.calls if c[:2] == ["docker", "ps"])
     doc = yaml.safe_load((fleet / ".compose" / "docker-compose.yml").read_text())
     assert "robot-rover3" in doc["services"]
+    # Only the simulated robots are brought up to date: a server whose image was rebuilt
+    # since is not recreated by an add-robot.
+    live_up = docker.compose_calls()[-1]
+    assert live_up[-4:] == ["--no-deps", "robot-husky1", "robot-jackal2", "robot-rover3"]
+    assert "server" not in live_up[live_up.index("up"):]
+
+
+def test_live_sync_after_the_last_robot_goes_leaves_the_server_alone(fleet: Path) -> None:
+    docker = FakeDocker()
+    composerun.up(fleet, _opts(fleet, wireguard="off", sim=True), progress=lambda _: None,
+                  runner=docker)
+    docker.server_running = True
+    for name in ("husky1", "jackal2"):
+        ops.remove_robot(fleet, name)
+    live.sync_running(fleet, lambda _: None, runner=docker)
+    live_up = docker.compose_calls()[-1]
+    assert live_up[live_up.index("up"):] == [
+        "up", "-d", "--remove-orphans", "--no-deps", "--no-recreate", "server"]
 
 
 def test_live_sync_restarts_the_server_only_for_a_new_certificate(fleet: Path) -> None:

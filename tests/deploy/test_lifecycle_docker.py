@@ -218,6 +218,10 @@ async def browse(url: str, token: str) -> None:
             await page.click('#robots a[href="#/robot/husky1"]')
             await wait_js(page, "Number(document.querySelector('#scan-canvas').dataset.beams"
                                 " || 0) > 0")
+            # The sim's map -> odom never moves: its client sent it before this viewer came,
+            # so the scene finds the map frame only through the relay's latched TF snapshot.
+            await wait_js(page, "document.querySelector('#scene-canvas').dataset.fixed"
+                                " === 'map'")
             shots = os.environ.get("FLEETCTL_WEBVIZ_SCREENSHOTS")
             if shots:
                 await page.screenshot(path=str(Path(shots) / "up-robot.png"), full_page=True)

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import importlib.util
 import re
 import secrets
 from pathlib import Path
@@ -11,7 +12,7 @@ import typer
 
 from fleetctl.e2e import cleanup, report, runner
 from fleetctl.e2e.interrupt import Interrupted, SignalGuard
-from fleetctl.errors import ExitCode, FleetError
+from fleetctl.errors import EnvironmentMissing, ExitCode, FleetError
 
 _RUN_ID = re.compile(r"[a-z0-9]{1,8}")
 
@@ -56,6 +57,10 @@ def e2e(
                          exit_code=ExitCode.USAGE)
     if run_id is not None and not _RUN_ID.fullmatch(run_id):
         raise FleetError("--run-id: 1 to 8 of a-z, 0-9", exit_code=ExitCode.USAGE)
+    # Checked before the run, not when the report is written minutes later.
+    if importlib.util.find_spec("matplotlib") is None:
+        raise EnvironmentMissing("fleetctl e2e draws the report's plots with matplotlib, which "
+                                 "is not installed: pip install 'fleetctl[e2e]'")
     cfg = runner.RunConfig(scenarios=tuple(scenario) or runner.SCENARIOS, duration_s=duration,
                            work_dir=out / "raw",
                            source_dir=mount_source.resolve() if mount_source else None,

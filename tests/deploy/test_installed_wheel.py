@@ -66,6 +66,11 @@ def test_the_installed_wheel_runs_the_whole_fleet_life_cycle(venv: Path,
     assert "Endpoint = vpn.example.org:51820" in (
         work / "husky1-bundle" / "wg0.conf").read_text()
     assert (work / "yard" / "server" / "server.yaml").is_file()
+    # The bare wheel has no matplotlib: `e2e` says which extra before starting anything.
+    res = _run([fleetctl, "e2e", "-s", "link", "--out", str(work / "report")], work, env,
+               ok=False)
+    assert res.returncode == 5 and "fleetctl[e2e]" in res.stderr and "Traceback" not in res.stderr
+    assert not (work / "report").exists()
 
 
 def test_the_installed_wheel_rebuilds_itself_for_images_and_bundles(venv: Path,

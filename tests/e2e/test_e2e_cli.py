@@ -44,3 +44,19 @@ def test_bad_options_are_usage_errors(argv: list[str], message: str,
                                       capsys: pytest.CaptureFixture[str]) -> None:
     assert main(["e2e", *argv]) == 2
     assert message in capsys.readouterr().err
+
+
+def test_without_matplotlib_nothing_runs_and_the_extra_is_named(
+        monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str],
+        tmp_path: Path) -> None:
+    import importlib.util
+
+    from fleetctl.e2e import runner
+
+    real = importlib.util.find_spec
+    monkeypatch.setattr(importlib.util, "find_spec",
+                        lambda name, *a: None if name == "matplotlib" else real(name, *a))
+    monkeypatch.setattr(runner, "run", lambda *a, **k: pytest.fail("the run started"))
+    assert main(["e2e", "--scenario", "link", "--out", str(tmp_path)]) == 5
+    assert "pip install 'fleetctl[e2e]'" in capsys.readouterr().err
+    assert not any(tmp_path.iterdir())

@@ -28,6 +28,7 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import logging
+import socket
 from collections.abc import Callable
 from typing import Any
 
@@ -52,6 +53,31 @@ MAX_THROTTLE_S = 1.0
 THROTTLE_MEMORY_S = 5.0
 THROTTLED_READ_BYTES = 4096  # a peer that does not read our close frame is cut off after this
 _LOG_EVERY = 1000  # refusals are logged first, then every 1000th (counted in metrics)
+
+
+# Bytes the kernel may hold not yet sent on a connection (TCP_NOTSENT_LOWAT). Why: a
+# receiver slower than what the relay has for it (a browser drawing clouds in software, a
+# viewer behind a slow downlink) keeps its TCP window nearly closed, and the kernel's send
+# buffer, autotuned up to tcp_wmem's 4 MiB, fills with frames that nothing can supersede:
+# 7.8 s of latency on the demo's page (docs/server.md, "Slow receivers"). Capped, the socket
+# stops being writable, the transport's write limit holds the writer, and frames wait in
+# the connection's OutboundScheduler, where a newer message of a topic replaces the older.
+UNSENT_LIMIT_BYTES = 64 * 1024
+
+
+def limit_unsent(transport: asyncio.BaseTransport, limit: int = UNSENT_LIMIT_BYTES) -> bool:
+    """Cap the unsent bytes the kernel keeps for *transport*'s socket; False where the
+    socket or the option is not there (not TCP, not Linux): the connection works as before."""
+    sock = transport.get_extra_info("socket")
+    option = getattr(socket, "TCP_NOTSENT_LOWAT", None)
+    if sock is None or option is None or sock.family not in (socket.AF_INET, socket.AF_INET6):
+        return False
+    try:
+        sock.setsockopt(socket.IPPROTO_TCP, option, limit)
+    except OSError as exc:
+        log.debug("TCP_NOTSENT_LOWAT not set: %s", exc)
+        return False
+    return True
 
 
 class RelayConnection(FrameSink, BatchedWritesConnection, ServerConnection):
@@ -109,6 +135,7 @@ class RelayConnection(FrameSink, BatchedWritesConnection, ServerConnection):
     def connection_made(self, transport: asyncio.BaseTransport) -> None:
         """Take an unauthenticated slot, or abort the connection when there is none."""
         super().connection_made(transport)
+        limit_unsent(transport)
         if self._gate is None:
             return
         peer = transport.get_extra_info("peername")

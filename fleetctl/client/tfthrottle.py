@@ -163,11 +163,11 @@ class TfThrottle:
             except (ValueError, TypeError, AttributeError):
                 self.stats.invalid += 1
                 continue
-            if pair not in self._latest and len(self._latest) >= MAX_PAIRS:
-                self.stats.pairs_over_limit += 1
-                continue
             if pair not in self._latest:
-                self._snapshot_stale = True
+                if len(self._latest) >= MAX_PAIRS:
+                    self.stats.pairs_over_limit += 1
+                    continue
+                self._snapshot_stale = True  # the relay's snapshot lacks it
             self._latest[pair] = (transform, pose)
             if self._moved(pair, pose):
                 self._changed.add(pair)

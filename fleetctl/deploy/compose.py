@@ -421,6 +421,11 @@ def _robot_service(plan: ComposePlan, robot: RobotEntry) -> dict[str, Any]:
     return svc
 
 
+def robot_service(robot: RobotEntry) -> str:
+    """The compose service of *robot*'s simulated robot (``up --sim``)."""
+    return f"robot-{robot.name}"
+
+
 def render(plan: ComposePlan) -> dict[str, Any]:
     """The compose document of *plan* (pure: no files touched)."""
     volumes: dict[str, Any] = {"server-data": {}}
@@ -434,7 +439,7 @@ def render(plan: ComposePlan) -> dict[str, Any]:
         services = {"server": _server_service(plan)}
     if plan.options.sim:
         for robot in plan.robots:
-            services[f"robot-{robot.name}"] = _robot_service(plan, robot)
+            services[robot_service(robot)] = _robot_service(plan, robot)
     for svc in services.values():
         if "networks" in svc:  # not the replicas, which live in the server's namespace
             svc["networks"] = {k: v for k, v in svc["networks"].items() if v} or ["fleet"]

@@ -32,10 +32,17 @@ from fleetctl.deploy.compose import (
     project_name,
     read_robots,
     render,
+    robot_service,
     saved_options,
     write_files,
 )
-from fleetctl.deploy.dockercli import Runner, check, image_exists, subprocess_runner
+from fleetctl.deploy.dockercli import (
+    Runner,
+    check,
+    fleet_filters,
+    image_exists,
+    subprocess_runner,
+)
 from fleetctl.deploy.images import image_tag
 from fleetctl.deploy.replicas import check_count
 from fleetctl.errors import ConfigError, ConflictError, EnvironmentMissing, FleetError
@@ -89,14 +96,10 @@ def container_id(fleet_dir: Path, project: str, service: str,
     project name started from another fleet directory is not ours and is never touched.
     """
     compose_file = fleet_dir.resolve() / ".compose" / "docker-compose.yml"
-    res = runner(["docker", "ps", "-q", "--filter", f"label=com.docker.compose.project={project}",
-                  "--filter", f"label=com.docker.compose.service={service}",
-                  "--filter", f"label={CONFIG_FILES_LABEL}={compose_file}"], None, True)
+    res = runner(["docker", "ps", "-q", *fleet_filters(project, compose_file),
+                  "--filter", f"label=com.docker.compose.service={service}"], None, True)
     ids = res.stdout.split() if res.returncode == 0 else []
     return ids[0] if ids else None
-
-
-CONFIG_FILES_LABEL = hostports.CONFIG_FILES_LABEL
 
 
 def _check_not_changed(fleet_dir: Path, wanted: Options, runner: Runner) -> None:
@@ -168,7 +171,7 @@ def _up_args(plan: ComposePlan, robots_only: bool) -> list[str]:
     args = ["up", "-d", "--remove-orphans"]
     if not robots_only:
         return args
-    robots = [f"robot-{robot.name}" for robot in plan.robots] if plan.options.sim else []
+    robots = [robot_service(robot) for robot in plan.robots] if plan.options.sim else []
     if robots:
         # Named services only, without the server they depend on.
         return [*args, "--no-deps", *robots]

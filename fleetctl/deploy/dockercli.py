@@ -11,6 +11,7 @@ import shutil
 import subprocess
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
+from pathlib import Path
 
 from fleetctl.errors import EnvironmentMissing, FleetError
 
@@ -111,6 +112,18 @@ def check(result: Completed, what: str) -> Completed:
         said = " | ".join(detail) if detail else "its output is above"
         raise FleetError(f"{what} failed (exit {result.returncode}): {said}")
     return result
+
+
+# The label compose puts on a container naming the file(s) it came from.
+CONFIG_FILES_LABEL = "com.docker.compose.project.config_files"
+
+
+def fleet_filters(project: str, compose_file: Path) -> list[str]:
+    """``docker ps`` filters for the containers compose made for *project* from
+    *compose_file*: a container of the same project name from another fleet directory is
+    not this fleet's."""
+    return ["--filter", f"label=com.docker.compose.project={project}",
+            "--filter", f"label={CONFIG_FILES_LABEL}={compose_file}"]
 
 
 def image_exists(runner: Runner, image: str) -> bool:

@@ -19,11 +19,8 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from fleetctl.deploy.dockercli import Runner
+from fleetctl.deploy.dockercli import Runner, fleet_filters
 from fleetctl.errors import ConflictError
-
-# The label compose puts on a container naming the file(s) it came from.
-CONFIG_FILES_LABEL = "com.docker.compose.project.config_files"
 
 
 @dataclass(frozen=True)
@@ -61,8 +58,7 @@ def held_by_fleet(runner: Runner, project: str, compose_file: Path) -> set[tuple
     Only containers compose made from *compose_file*: a container of the same project
     name from another fleet directory is "another program" to this fleet.
     """
-    res = runner(["docker", "ps", "--filter", f"label=com.docker.compose.project={project}",
-                  "--filter", f"label={CONFIG_FILES_LABEL}={compose_file}",
+    res = runner(["docker", "ps", *fleet_filters(project, compose_file),
                   "--format", "{{.Ports}}"], None, True)
     if res.returncode != 0:
         return set()

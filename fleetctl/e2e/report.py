@@ -56,6 +56,17 @@ def write(out_dir: Path, environment: dict[str, Any], results: list[dict[str, An
     return path
 
 
+def legend_once(spans: list[list[Any]]) -> list[tuple[float, float, str | None]]:
+    """*spans* ``[x0, x1, label]`` with each label kept on its first span only, so fifteen
+    link cuts make one legend entry, not fifteen (matplotlib leaves ``None`` out)."""
+    seen: set[str] = set()
+    out = []
+    for x0, x1, label in spans:
+        out.append((x0, x1, None if label in seen else label))
+        seen.add(label)
+    return out
+
+
 def _plots(out_dir: Path, result: dict[str, Any]) -> list[Path]:
     # Imported here: matplotlib is a dev/report dependency, and the images (which import
     # every CLI module) do not ship it.
@@ -70,7 +81,7 @@ def _plots(out_dir: Path, result: dict[str, Any]) -> list[Path]:
         for label, (xs, ys) in plot["lines"].items():
             ax.plot(xs, ys, marker=plot.get("marker", ""), linestyle=plot.get("style", "-"),
                     markersize=3, label=label)
-        for x0, x1, label in plot.get("spans", []):
+        for x0, x1, label in legend_once(plot.get("spans", [])):
             ax.axvspan(x0, x1, color="red", alpha=0.15, label=label)
         ax.set_xlabel(plot["xlabel"])
         ax.set_ylabel(plot["ylabel"])

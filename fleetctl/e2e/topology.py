@@ -31,6 +31,7 @@ from fleetctl.deploy.dockerrun import run_args
 from fleetctl.deploy.images import image_tag
 from fleetctl.deploy.shaping import Capabilities, LinkShaper, detect
 from fleetctl.e2e import cleanup
+from fleetctl.e2e.cutagent import CutAgent
 from fleetctl.e2e.interrupt import deferred
 from fleetctl.errors import FleetError
 
@@ -53,25 +54,6 @@ _TX_WINDOW = (
     "while (left := end - time.time_ns()) > 0:\n"
     "    time.sleep(left / 1e9)\n"
     "b = read(); print(*a, *b)\n"
-)
-
-
-# Run in the router: every blackhole route added or removed by one `ip -batch` (the four
-# changes microseconds apart), the clock read as that process is reaped, then the routes
-# left. A failed addition fails the script; a removal of a route that is gone is no error
-# (-force goes on), what is left is checked by the caller.
-_BLACKHOLE = (
-    "import subprocess, sys, time\n"
-    "verb, *halves = sys.argv[1:]\n"
-    "batch = ''.join(f'route {verb} blackhole {h}\\n' for h in halves)\n"
-    "ran = subprocess.run(['ip', '-force', '-batch', '-'], input=batch, text=True,\n"
-    "                     capture_output=True)\n"
-    "mark = time.time_ns()\n"
-    "if verb != 'del' and ran.returncode != 0:\n"
-    "    sys.exit(ran.stderr or 'ip -batch failed')\n"
-    "left = subprocess.run(['ip', 'route', 'show', 'type', 'blackhole'], text=True,\n"
-    "                      capture_output=True, check=True).stdout\n"
-    "print(mark); print(left.replace(chr(10), ' '))\n"
 )
 
 
@@ -122,6 +104,7 @@ class Topology:
     endpoints: list[Endpoint] = field(default_factory=list)
     router: str = ""
     cleanup_runner: Runner | None = None
+    _cut_agent: CutAgent | None = field(default=None, repr=False)
 
     @property
     def labels(self) -> list[str]:
@@ -302,21 +285,22 @@ class Topology:
         crossed several milliseconds before the mark (a message published 6.7 ms before
         the restore mark counted as stale although it crossed after the first routes
         went). Now one ``ip -batch`` changes all four routes within microseconds and the
-        clock is read in the process that ran it, as it exits (:data:`_BLACKHOLE`).
+        clock is read in the process that ran it. That process is one agent kept for the
+        run (:mod:`fleetctl.e2e.cutagent`), not a ``docker exec`` per cut, whose start-up
+        and tear-down took the host's cores just when the stacks recovered.
 
         Raises:
             FleetError: a route could not be set, or one is still there after the removal.
         """
         halves = [str(h) for side in (SERVER_SIDE, ROBOT_SIDE)
                   for h in ipaddress.ip_network(self.subnets[side]).subnets(prefixlen_diff=1)]
-        res = check(self.exec(self.router, ["python3", "-c", _BLACKHOLE,
-                                             "replace" if on else "del", *halves]),
-                    f"blackhole routes {'on' if on else 'off'}")
-        mark, *rest = res.stdout.split("\n", 1)
-        left = [h for h in halves if rest and h in rest[0]]
+        if self._cut_agent is None or self._cut_agent.container != self.router:
+            self._cut_agent = CutAgent(self.router)
+        mark, routes = self._cut_agent.change("replace" if on else "del", halves)
+        left = [h for h in halves if h in routes.split()]
         if not on and left:
             raise FleetError(f"blackhole routes still in the router after the restore: {left}")
-        return int(mark.strip())
+        return mark
 
     def tx_bytes(self, container: str, dev: str = "eth0") -> int:
         """Bytes *container* has sent on *dev* (from the kernel's counters)."""
@@ -362,6 +346,9 @@ class Topology:
         A signal that arrives meanwhile is raised when the removal is done.
         """
         with deferred():
+            if self._cut_agent is not None:
+                self._cut_agent.close()
+                self._cut_agent = None
             names = [e.name for e in self.endpoints] + ([self.router] if self.router else [])
             runner = self.cleanup_runner or self.runner
             if names:

@@ -2,12 +2,12 @@
 
 Why not a ``docker exec`` per cut: each one starts a process through dockerd, containerd
 and runc, and a Python interpreter in the router, and tears them down again. On the
-2-core hosts the e2e runs on, that work lands on the host's cores in the 40-150 ms after
-the routes change (the exec returns that much later), which is exactly when every stack
-recovers: in `peer` runs of 2026-12-05 the first message after a restore was often
-5-12 ms late on every hop at once (link, relay, consumer), so a topic lost a period for
-CPU the harness spent. One ``docker exec -i`` opened at the first cut and kept for the
-run leaves a single ``ip -batch`` in the router per cut.
+2-core hosts the e2e runs on, that work runs in the 40-150 ms after the routes change (the
+exec returns that much later), which is exactly when every stack recovers. One
+``docker exec -i`` opened at the first cut and kept for the run leaves a single
+``ip -batch`` in the router per cut, so the harness's own process starts stay out of the
+measured window. (An A/B on 2026-12-05, 15 trials each way, could not show a difference in
+recovery: docs/e2e.md.)
 
 Protocol (one line each way): ``<verb> <cidr>...`` in (``replace`` or ``del``);
 ``<mark_ns> <blackhole routes left, space-separated>`` out, or ``error <message>``.
@@ -50,8 +50,8 @@ class CutAgent:
 
     Args:
         container: The router's container name.
-        argv_prefix: How to run a command in it (tests run the script locally with
-            ``[]``, which skips docker).
+        argv_prefix: How to run a command in it (default ``docker exec -i <container>``;
+            the tests use ``ip netns exec <namespace>``).
     """
 
     def __init__(self, container: str, argv_prefix: list[str] | None = None) -> None:

@@ -2,11 +2,14 @@
 
 from __future__ import annotations
 
+import asyncio
+import time
 from collections.abc import AsyncIterator, Callable, Iterator
 from pathlib import Path
 from typing import Any
 
 import pytest
+from nats.js.errors import NoStreamResponseError
 
 from fleetctl.server.app import RelayServer
 from fleetctl.server.cluster.config import ClusterConfig
@@ -58,7 +61,30 @@ async def replicas(make_replica: Callable[..., RelayServer],
     a = make_replica("relay-a", [nats_cluster[0].url])
     b = make_replica("relay-b", [nats_cluster[1].url])
     async with a, b:
+        await stream_takes_stores(a)
+        await stream_takes_stores(b)
         yield a, b
+
+
+async def stream_takes_stores(server: RelayServer, timeout_s: float = 10.0) -> None:
+    """Wait until a store published on *server*'s NATS connection reaches the sessions'
+    stream. Right after the start, the node the replica is on may not yet know over its
+    routes where the stream lives: a store then has no responders and the replica
+    (rightly) sends its no_drop frames live instead, so a test of the stream's path
+    would see none of them there. The probe's subject is under the stream's root and no
+    live subject's; readers start after it, so no replica ever reads it."""
+    shared = server.core.sessions.shared
+    assert shared is not None and shared._js is not None
+    js, subject = shared._js, f"{shared._root}.probe.{shared.config.name}"
+    deadline = time.monotonic() + timeout_s
+    while True:
+        try:
+            await js.publish(subject, b"", timeout=1.0)
+            return
+        except (NoStreamResponseError, TimeoutError):
+            if time.monotonic() > deadline:
+                raise
+        await asyncio.sleep(0.05)  # the poll interval of a deadline-bounded wait
 
 
 def fanout(server: RelayServer) -> NatsFanout:

@@ -19,6 +19,7 @@ from fleetctl.server.cluster.natsfanout import NatsFanout
 from fleetctl.server.cluster.remotefeed import MAX_FILTER_SUBJECTS, RemoteFeed
 from fleetctl.server.cluster.sharedsessions import SharedSessions
 from fleetctl.wire.metadata import read_metadata
+from tests.server.cluster.conftest import stream_takes_stores
 from tests.server.cluster.natsproc import NatsServer
 from tests.server.conftest import ALICE_TOKEN, client, next_binary, next_json, subscribe
 from tests.support import decode_text, string_frame, wait_until
@@ -156,6 +157,7 @@ async def test_a_replica_whose_reader_died_with_its_node_misses_no_event(
     async with a, b, client(a, source="127.0.0.2") as robot, \
             client(b, token=ALICE_TOKEN) as viewer:
         await next_json(robot, "welcome")
+        await stream_takes_stores(a)
         assert (await subscribe(viewer, EVENTS))["type"] == "subscribed"
         await wait_until(lambda: shared(b).remote_subjects == ("fleetctl_nd.husky1.events",),
                          10.0)

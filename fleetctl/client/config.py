@@ -62,7 +62,7 @@ _SUBSCRIBE_KEYS = frozenset({"remote_topic", "type", "local_topic"})
 _STATUS_KEYS = frozenset({"battery_topic", "period_s"})
 _LIMIT_KEYS = frozenset({"max_fragment_bytes", "no_drop_queue_messages", "reconnect_min_s",
                          "reconnect_max_s", "scheduler", "outage_dial_interval_s",
-                         "standby_connection"})
+                         "standby_connection", "dial_ahead_of_messages"})
 # The outage dial pace's range: below 5 ms the SYNs sent while down (200/s at 5 ms, ~15 KB/s
 # raw, ~26 KB/s inside WireGuard) cost more than the millisecond or two they save; above
 # 0.25 s it is the slow pace. The default, 10 ms, is docs/recovery.md's trade-off.
@@ -160,6 +160,12 @@ class ClientLimits:
             server offers it) and switch to it the moment a cut link returns, instead of
             a WebSocket upgrade on a new connection (docs/recovery.md, the standby
             connection). It costs one more TCP connection per robot; false turns it off.
+        dial_ahead_of_messages: During an outage's first minute, also a connection
+            attempt 3 ms before each message a topic is due to offer (its last offer
+            plus whole periods), so that a link that returns just before a message has
+            been seen to work when it is offered (docs/recovery.md, dialing ahead of
+            the next message). It adds one SYN per message due while the link is down
+            (at most 333 a second); false turns it off.
     """
 
     max_fragment_bytes: int = 4194304
@@ -169,6 +175,7 @@ class ClientLimits:
     scheduler: str = "adaptive"
     outage_dial_interval_s: float = 0.01
     standby_connection: bool = True
+    dial_ahead_of_messages: bool = True
 
 
 @dataclass(frozen=True)
@@ -490,6 +497,8 @@ def _limits(ctx: _Ctx, value: object) -> ClientLimits:
         outage_dial_interval_s=_outage_dial_interval(ctx, entry, d.outage_dial_interval_s),
         standby_connection=_bool(ctx, entry, "limits", "standby_connection",
                                  d.standby_connection),
+        dial_ahead_of_messages=_bool(ctx, entry, "limits", "dial_ahead_of_messages",
+                                     d.dial_ahead_of_messages),
     )
 
 

@@ -366,6 +366,22 @@ class Scheduler:
             t = self._topics[name] = _Topic(name, priority, last_sent_s=now_s)
         return t
 
+    def next_offer_after(self, t_s: float) -> float:
+        """When the soonest message after *t_s* is expected: each topic with a measured
+        period offers again at its last offer plus whole periods (``inf``: no topic has
+        one yet). Used while the link is down to dial just before it (the dialer's
+        *ahead*)."""
+        soonest = math.inf
+        for t in self._topics.values():
+            last, period = t.last_offer_s, t.period_s
+            if last is None or period is None or period <= 0.0:
+                continue
+            nxt = last + max(1, math.floor((t_s - last) / period) + 1) * period
+            if nxt <= t_s:  # the division rounded down a whole period
+                nxt += period
+            soonest = min(soonest, nxt)
+        return soonest
+
     def _measure_period(self, t: _Topic, now_s: float) -> None:
         """Moving average of the topic's offer intervals (an srtt-like filter)."""
         if t.last_offer_s is not None:

@@ -680,8 +680,21 @@ class RobotLink:
                  else (self.config.bind_address, 0))
         won, sock = await dial_first(targets, self.tuning.open_timeout_s, self.tuning.dial,
                                      head_start_s=self.tuning.failover_after_s,
-                                     local_addr=local, outage_age_s=outage_age_s)
+                                     local_addr=local, outage_age_s=outage_age_s,
+                                     ahead=self._ahead_s if outage_age_s < math.inf
+                                     and self.config.limits.dial_ahead_of_messages else None)
         return Dialed(sock, order[won])
+
+    def _ahead_s(self) -> float:
+        """Seconds to the next message a topic is expected to offer after the window the
+        attempt just started covers (``ahead_s``), for the dialer's extra attempt just
+        before it. Why: a message offered before the winning SYN left is dropped as
+        stale (:meth:`Scheduler.drop_stale`: nothing offered while the path may have
+        been dead is sent), so a restore in the ~10 ms between two evenly paced SYNs cost
+        the message offered there a whole period; a SYN leaving ``ahead_s`` before each
+        expected message narrows that to ``ahead_s``."""
+        now = self._clock()
+        return self._scheduler.next_offer_after(now + self.tuning.dial.ahead_s) - now
 
     def _use_replica(self, index: int) -> None:
         """Replica *index* connected: it is the current one from now on. A connection to

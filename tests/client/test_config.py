@@ -160,6 +160,8 @@ def test_token_file_is_read_relative_and_never_shown(tmp_path: Path) -> None:
      "limits: outage_dial_interval_s: must be a number, got 'fast'"),
     (minimal(limits={"standby_connection": "yes"}),
      "limits: standby_connection: must be true or false, got 'yes'"),
+    (minimal(limits={"dial_ahead_of_messages": 1}),
+     "limits: dial_ahead_of_messages: must be true or false, got 1"),
     ([1, 2], "document: must be a mapping"),
 ])
 def test_bad_field_names_file_entry_and_field(data: Any, expected: str) -> None:
@@ -207,6 +209,13 @@ def test_the_standby_connection_is_on_unless_turned_off() -> None:
     off = parse_client_config(minimal(limits={"standby_connection": False}), source="c.yaml")
     assert not off.limits.standby_connection
     assert RobotLink(off, on_frame=lambda f: None, tuning=LinkTuning()).stats()["standby"] is None
+
+
+def test_dialing_ahead_of_messages_is_on_unless_turned_off() -> None:
+    assert parse_client_config(minimal(), source="c.yaml").limits.dial_ahead_of_messages
+    off = parse_client_config(minimal(limits={"dial_ahead_of_messages": False}),
+                              source="c.yaml")
+    assert not off.limits.dial_ahead_of_messages
 
 
 def test_file_errors(tmp_path: Path) -> None:

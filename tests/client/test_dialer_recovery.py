@@ -127,6 +127,79 @@ async def test_a_full_set_of_attempts_gives_up_short_ones_not_the_long_one(
     assert hanging.most_at_once <= 4  # 5 open at most, the long one among them
 
 
+class TimedConnects(HangingConnects):
+    """:class:`HangingConnects` that also notes when each attempt started (loop time)."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.times: list[float] = []
+
+    async def __call__(self, sock: socket.socket, address: Any) -> None:
+        self.times.append(asyncio.get_running_loop().time())
+        await super().__call__(sock, address)
+
+
+async def test_an_attempt_starts_just_before_each_expected_message(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """A 20 Hz and a 10 Hz topic, paced SYNs every 50 ms: without *ahead* most messages
+    have no attempt in the ``ahead_s`` before them; with it, every one has."""
+    loop = asyncio.get_running_loop()
+    settings = DialSettings(fast_stagger_s=0.05, outage_stagger_s=0.05, ahead_s=0.005)
+
+    async def run(use_ahead: bool) -> tuple[list[float], list[float]]:
+        """The attempts' start times, and the messages expected in the dial's 0.6 s
+        (the last ones left out: the dial may end before their attempt)."""
+        start = loop.time()
+        expected = sorted([start + 0.0137 + k * 0.05 for k in range(11)]
+                          + [start + 0.0411 + k * 0.1 for k in range(5)])
+
+        def ahead() -> float:
+            now = loop.time()
+            return min((t for t in expected if t > now + settings.ahead_s),
+                       default=math.inf) - now
+
+        timed = TimedConnects()
+        monkeypatch.setattr(loop, "sock_connect", timed)
+        with pytest.raises(DialTimeout):
+            await dial("127.0.0.1", 9, timeout_s=0.6, settings=settings, outage_age_s=0.0,
+                       ahead=ahead if use_ahead else None)
+        return timed.times, expected
+
+    def covered(times: list[float], expected: list[float]) -> int:
+        # An attempt in the ahead_s before the message (2 ms more: a loaded loop wakes late).
+        return sum(any(t - settings.ahead_s - 0.002 <= a <= t for a in times)
+                   for t in expected)
+
+    paced, expected = await run(use_ahead=False)
+    assert covered(paced, expected) < len(expected) / 2
+    timed, expected = await run(use_ahead=True)
+    assert covered(timed, expected) == len(expected), (timed, expected)
+    # One extra attempt per expected message, no more.
+    assert len(timed) <= len(paced) + len(expected) + 1
+
+
+async def test_ahead_attempts_are_bounded_however_many_topics(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """Messages expected every 0.1 ms (hundreds of topics): still one attempt per
+    ``ahead_s`` at most; and none of it once the outage is past ``fast_for_s``."""
+    hanging = HangingConnects()
+    monkeypatch.setattr(asyncio.get_running_loop(), "sock_connect", hanging)
+    settings = DialSettings(ahead_s=0.01, fast_stagger_s=1.0, outage_stagger_s=1.0,
+                            stagger_s=1.0)
+    with pytest.raises(DialTimeout):
+        await dial("127.0.0.1", 9, timeout_s=0.3, settings=settings, outage_age_s=0.0,
+                   ahead=lambda: 0.0001)
+    assert 5 <= hanging.started <= 31, hanging.started  # 0.3 s / 10 ms, loosely
+    late = HangingConnects()
+    monkeypatch.setattr(asyncio.get_running_loop(), "sock_connect", late)
+    with pytest.raises(DialTimeout):
+        await dial("127.0.0.1", 9, timeout_s=0.3, settings=settings, outage_age_s=61.0,
+                   ahead=lambda: 0.0001)
+    assert late.started == 1  # the slow pace only: one attempt a second
+
+
 @pytest.mark.netns
 @NEEDS_ROOT
 async def test_fast_pace_connects_within_tens_of_ms_of_the_restore(link: Link) -> None:

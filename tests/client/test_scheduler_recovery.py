@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import pytest
+
 from fleetctl.client.scheduler import Scheduler, SchedulerConfig
 from tests.client.test_scheduler import FakeLink, fake_split
 
@@ -98,3 +100,17 @@ def test_the_period_is_a_moving_average_of_offer_intervals() -> None:
     # average 0.25: 1.5 periods = 0.375; the held message is 0.3 s old at 1.0: kept
     assert s.drop_stale(1.0, after_outage=False) == 0
     assert s.drop_stale(1.1, after_outage=False) == 1  # 0.4 s old
+
+
+def test_the_next_offer_is_each_topics_last_offer_plus_whole_periods() -> None:
+    """What the dialer dials just before while the link is down (``next_offer_after``)."""
+    s = make()
+    assert s.next_offer_after(0.0) == float("inf")  # no topic has a period yet
+    offer_every(s, "/pose", 0.05, 1.0)  # last offer 1.00
+    offer_every(s, "/scan", 0.1, 0.93, start_s=0.03)  # last offer 0.93
+    assert s.next_offer_after(1.003) == pytest.approx(1.03)  # the scan's, before the pose's
+    assert s.next_offer_after(1.031) == pytest.approx(1.05)  # the pose's
+    # Into an outage the topics go on offering (held, replaced): far ahead it is still
+    # whole periods on from the last offer, never one at or before the time asked.
+    assert s.next_offer_after(3.0) == pytest.approx(3.03)
+    assert s.next_offer_after(3.051) == pytest.approx(3.1)

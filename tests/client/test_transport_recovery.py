@@ -317,3 +317,38 @@ async def test_a_false_alarm_keeps_the_connection_and_closes_the_new_socket(
         await wait_until(lambda: bool(opened) and opened[0].fileno() == -1)
         stats = robot.stats()
     assert stats["connects"] == 1 and stats["dead_paths"] == 0
+
+
+async def test_an_outage_dial_is_told_when_the_next_message_is_due(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """The link's dial in an outage gets *ahead*: the seconds to the next message a topic
+    is due to offer (past the window the attempt just started covers); a dial on a
+    working path (the standby's) gets none."""
+    now = [100.0]
+    link = RobotLink(robot_config("ws://127.0.0.1:9/", tmp_path), on_frame=lambda f: None,
+                     clock=lambda: now[0])
+    for i in range(5):  # /r1/chatter every 50 ms, the last at 100.2
+        now[0] = 100.0 + 0.05 * i
+        link.offer("/r1/chatter", string_frame("/r1/chatter", f"c{i}"), priority=1.0,
+                   no_drop=False)
+    given: list[Any] = []
+
+    async def capture(*args: Any, **kw: Any) -> tuple[int, socket.socket]:
+        given.append(kw.get("ahead"))
+        return 0, socket.socket()
+
+    monkeypatch.setattr(transport, "dial_first", capture)
+    (await link._race([0], outage_age_s=0.5)).sock.close()
+    (await link._race([0])).sock.close()
+    off = RobotLink(robot_config("ws://127.0.0.1:9/", tmp_path,
+                                 limits={"dial_ahead_of_messages": False}),
+                    on_frame=lambda f: None)
+    (await off._race([0], outage_age_s=0.5)).sock.close()
+    ahead, standby, turned_off = given
+    assert standby is None and turned_off is None
+    assert link.tuning.dial.ahead_s == 0.003  # the default, which the figures below assume
+    now[0] = 100.23  # an attempt started now covers up to 100.233: next due at 100.25
+    assert ahead() == pytest.approx(0.02)
+    now[0] = 100.248  # the one due at 100.25 is covered: next due at 100.30
+    assert ahead() == pytest.approx(0.052)

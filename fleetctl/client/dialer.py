@@ -49,6 +49,12 @@ that minute when the link is up; 8/s (~600 B/s) after that. At most ``max_in_fli
 sockets are half open at once: the oldest short attempt is dropped for a new one (never a
 long one while a short one is open); a dropped attempt in SYN-SENT sends nothing when
 closed.
+
+The losers of a won race are closed after the winner is returned, one per pass of the
+event loop (:func:`_reap_soon`). Closing them first, all at once, held the winner back by
+~0.9 ms with the 64 attempts a cut of more than ~0.6 s leaves open (more on a busy host):
+the moment the link is back, when the first message after the restore is being offered
+and sent.
 """
 
 from __future__ import annotations
@@ -206,6 +212,8 @@ async def dial_first(targets: Sequence[tuple[str, int]], timeout_s: float,
                 index = running.pop(task)
                 exc = task.exception()
                 if exc is None:
+                    _reap_soon(running)
+                    running.clear()
                     return index, task.result()
                 if not isinstance(exc, OSError):  # TimeoutError is an OSError too
                     raise exc
@@ -280,7 +288,10 @@ async def _race(family: int, proto: int, address: tuple[str, int] | tuple[str, i
                         task.result().close()
                     continue
                 attempts.remove(mine)
-                return task.result()  # a refusal or unreachable network raises here
+                won = task.result()  # a refusal or unreachable network raises here
+                _reap_soon(a.task for a in attempts)
+                attempts.clear()
+                return won
     finally:
         await _cancel_and_close(a.task for a in attempts)
 
@@ -293,6 +304,35 @@ def _oldest_short(attempts: list[_Attempt]) -> _Attempt:
     satellite hop's ~0.6 s and more) would be abandoned before their SYN-ACK could come.
     """
     return next((a for a in attempts if not a.long), attempts[0])
+
+
+_reapers: set[asyncio.Task[None]] = set()  # strong references until each is done
+
+
+def _reap_soon(tasks: Iterable[asyncio.Task[socket.socket]]) -> None:
+    """Cancel and close the losers of a won race in the background, one per pass of the
+    event loop, so that the winner is used at once and no pass spends more than one
+    loser's cleanup (~15 us) ahead of the link's own work. A loser that connects in the
+    meantime is closed too (the server sees a bare TCP close, as for any loser)."""
+    tasks = list(tasks)
+    if tasks:
+        reaper = asyncio.create_task(_reap_one_by_one(tasks))
+        _reapers.add(reaper)
+        reaper.add_done_callback(_reapers.discard)
+
+
+async def _reap_one_by_one(tasks: list[asyncio.Task[socket.socket]]) -> None:
+    left = list(reversed(tasks))
+    try:
+        while left:
+            await asyncio.sleep(0)  # yield a pass: the link's work comes first
+            await _cancel_and_close([left.pop()])
+    finally:  # cancelled itself (the loop is closing): the rest without waiting
+        for task in left:
+            if not task.done():
+                task.cancel()  # the attempt closes its socket as it ends
+            elif not task.cancelled() and task.exception() is None:
+                task.result().close()
 
 
 async def _cancel_and_close(tasks: Iterable[asyncio.Task[socket.socket]]) -> None:

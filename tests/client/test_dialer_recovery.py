@@ -3,14 +3,16 @@
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import math
 import socket
 from typing import Any
 
 import pytest
 
-from fleetctl.client.dialer import DialSettings, DialTimeout, dial
+from fleetctl.client.dialer import DialSettings, DialTimeout, dial, dial_first
 from fleetctl.deploy.shaping import LinkShaper, detect
+from tests.client.conftest import wait_until
 from tests.netns import NEEDS_ROOT, SINK_TCP_PORT, Link, host_run
 
 
@@ -125,6 +127,82 @@ async def test_a_full_set_of_attempts_gives_up_short_ones_not_the_long_one(
     sock.close()
     assert hanging.started >= 10  # the short ones kept coming and were given up
     assert hanging.most_at_once <= 4  # 5 open at most, the long one among them
+
+
+class LoserCleanupsPerPass:
+    """Counts, for each pass of the event loop while it runs, how many attempts of
+    *connects* were cancelled (closed) in that pass."""
+
+    def __init__(self, connects: HangingConnects) -> None:
+        self.connects = connects
+        self.per_pass: list[int] = []
+        self.task = asyncio.create_task(self._tick())
+
+    async def _tick(self) -> None:
+        seen = self.connects.cancelled
+        while True:
+            await asyncio.sleep(0)  # one pass of the loop
+            self.per_pass.append(self.connects.cancelled - seen)
+            seen = self.connects.cancelled
+
+    async def stop(self) -> list[int]:
+        self.task.cancel()
+        with contextlib.suppress(asyncio.CancelledError):
+            await self.task
+        return self.per_pass
+
+
+async def test_the_winner_comes_back_before_the_losers_are_closed_one_per_pass(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """The 20th attempt connects while 19 are open: the dial returns it before closing
+    those (all at once they held the winner back ~0.9 ms at the moment the link is
+    back), and then closes every loser, never more than one per pass of the loop."""
+    hanging = HangingConnects()
+    calls = 0
+
+    async def twentieth_connects(sock: socket.socket, address: Any) -> None:
+        nonlocal calls
+        calls += 1
+        if calls != 20:
+            await hanging(sock, address)
+
+    monkeypatch.setattr(asyncio.get_running_loop(), "sock_connect", twentieth_connects)
+    cleanups = LoserCleanupsPerPass(hanging)
+    sock = await dial("127.0.0.1", 9, timeout_s=5.0, outage_age_s=0.0)
+    sock.close()
+    assert hanging.started == 19
+    assert hanging.cancelled <= 1  # returned first
+    await wait_until(lambda: hanging.cancelled == 19)
+    per_pass = await cleanups.stop()
+    assert max(per_pass) == 1, per_pass
+
+
+async def test_dial_first_returns_the_winner_before_closing_the_other_targets_dials(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """Two targets, both silent past the head start, then the second's attempt
+    connects: it is returned while the first target's attempts are still open, and they
+    are all closed soon after."""
+    hanging = HangingConnects()
+    loop = asyncio.get_running_loop()
+    connect_second = loop.create_future()
+
+    async def second_connects_when_told(sock: socket.socket, address: Any) -> None:
+        if address[1] == 2 and not connect_second.done():
+            await connect_second
+            return
+        await hanging(sock, address)
+
+    monkeypatch.setattr(loop, "sock_connect", second_connects_when_told)
+    loop.call_later(0.15, connect_second.set_result, None)  # after the 0.05 s head start
+    index, sock = await dial_first([("127.0.0.1", 1), ("127.0.0.1", 2)], 5.0,
+                                   head_start_s=0.05, outage_age_s=0.0)
+    sock.close()
+    assert index == 1
+    assert hanging.started >= 10
+    assert hanging.cancelled < hanging.started  # returned first
+    await wait_until(lambda: hanging.cancelled == hanging.started)
 
 
 class TimedConnects(HangingConnects):

@@ -50,11 +50,12 @@ sockets are half open at once: the oldest short attempt is dropped for a new one
 long one while a short one is open); a dropped attempt in SYN-SENT sends nothing when
 closed.
 
-The losers of a won race are closed after the winner is returned, one per pass of the
-event loop (:func:`_reap_soon`). Closing them first, all at once, held the winner back by
-~0.9 ms with the 64 attempts a cut of more than ~0.6 s leaves open (more on a busy host):
-the moment the link is back, when the first message after the restore is being offered
-and sent.
+The losers of a won race are closed after the winner is returned: from ``REAP_AFTER_S``
+on, one per pass of the event loop (:func:`_reap_soon`). Closing them first, all at once,
+held the winner back by ~0.9 ms with the 64 attempts a cut of more than ~0.6 s leaves
+open (more on a busy host), at the moment the link is back, when the first message after
+the restore is being offered and sent; closed at once after the return, they delayed the
+standby's activation instead.
 """
 
 from __future__ import annotations
@@ -306,14 +307,19 @@ def _oldest_short(attempts: list[_Attempt]) -> _Attempt:
     return next((a for a in attempts if not a.long), attempts[0])
 
 
+# When the losers of a won race start being closed, seconds after the win: past the
+# standby's activation and the messages offered right after it (the activation comes
+# within ~2 ms of the win; a message offered ahead of it, within ``ahead_s``).
+REAP_AFTER_S = 0.02
 _reapers: set[asyncio.Task[None]] = set()  # strong references until each is done
 
 
 def _reap_soon(tasks: Iterable[asyncio.Task[socket.socket]]) -> None:
-    """Cancel and close the losers of a won race in the background, one per pass of the
-    event loop, so that the winner is used at once and no pass spends more than one
-    loser's cleanup (~15 us) ahead of the link's own work. A loser that connects in the
-    meantime is closed too (the server sees a bare TCP close, as for any loser)."""
+    """Cancel and close the losers of a won race in the background: ``REAP_AFTER_S``
+    after the win, then one per pass of the event loop, so that the winner is used at
+    once and no pass spends more than one loser's cleanup (~15 us) ahead of the link's
+    own work. A loser that connects in the meantime is closed too (the server sees a
+    bare TCP close, as for any loser; a SYN-SENT socket sends nothing when closed)."""
     tasks = list(tasks)
     if tasks:
         reaper = asyncio.create_task(_reap_one_by_one(tasks))
@@ -324,6 +330,7 @@ def _reap_soon(tasks: Iterable[asyncio.Task[socket.socket]]) -> None:
 async def _reap_one_by_one(tasks: list[asyncio.Task[socket.socket]]) -> None:
     left = list(reversed(tasks))
     try:
+        await asyncio.sleep(REAP_AFTER_S)  # a pace, not a synchronization
         while left:
             await asyncio.sleep(0)  # yield a pass: the link's work comes first
             await _cancel_and_close([left.pop()])

@@ -10,7 +10,7 @@ since the cut has nothing to retransmit: the first write on it after the restore
 once. So the robot keeps one such connection open beside the one it uses, upgraded and
 authenticated but sending nothing (``X-Fleetctl-Standby: 1`` on the upgrade: the server
 attaches no session to it and sends it nothing). When a dial shows the path works again
-(the link's SYN probes), the link sends ``{"type": "activate"}`` on the standby, which
+(the link's SYN probes), the keeper sends ``{"type": "activate"}`` on the standby, which
 makes the server move the robot's session onto it (the usual takeover), and the fresh
 frames follow in the same flight. The socket that dial connected becomes the next
 standby once the activated connection has its first pong.
@@ -67,6 +67,7 @@ class StandbyWebSocket(Protocol):
     @property
     def transport(self) -> Any: ...
     def __aiter__(self) -> Any: ...
+    async def send(self, message: str) -> None: ...
     async def close(self, code: int = 1000, reason: str = "") -> None: ...
 
 
@@ -139,15 +140,23 @@ class Standby:
             self._adopted[0].close()
         self._adopted = (sock, replica)
 
-    async def take(self, replica: int) -> StandbyWebSocket | None:
-        """The standby, handed over for activation, if it reaches *replica*, is open and
+    async def activate(self, replica: int) -> StandbyWebSocket | None:
+        """Activate the standby and hand it over, if it reaches *replica*, is open and
         has nothing unacknowledged (a write on it would otherwise wait for the kernel's
-        retransmission); None otherwise (an unusable standby is closed)."""
+        retransmission); None otherwise (an unusable standby is closed).
+
+        ``{"type": "activate"}`` goes out first, before this keeper's reader is stopped
+        and before the caller's own work on the new connection: the server's takeover
+        then runs while the robot prepares its first frames. A standby that closed
+        meanwhile is still handed over: the caller's next send on it says so."""
         ws = self._ws
         if ws is None:
             return None
         usable = (self._replica == replica and ws.state is State.OPEN
                   and self._unacked(ws.transport.get_extra_info("socket")) == 0)
+        if usable:
+            with contextlib.suppress(ConnectionClosed):
+                await ws.send(ACTIVATE)
         await self._stop_reader()
         self._ws = self._replica = None
         if not usable:

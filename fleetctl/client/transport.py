@@ -72,7 +72,7 @@ from fleetctl.client.dialer import DialSettings, DialTimeout, dial_first
 from fleetctl.client.memory import tune_malloc
 from fleetctl.client.receiver import Receiver
 from fleetctl.client.scheduler import Scheduler, SchedulerConfig, TopicFeedback
-from fleetctl.client.standby import ACTIVATE, STANDBY_HEADER, Standby, keep_mapping_alive
+from fleetctl.client.standby import STANDBY_HEADER, Standby, keep_mapping_alive
 from fleetctl.client.wakeup import Wakeup
 from fleetctl.frame_sink import FrameSink
 from fleetctl.linkdeflate import DEFAULT_MAX_MESSAGE_BYTES, RobotDeflateFactory
@@ -463,6 +463,7 @@ class RobotLink:
                                     retry_max_s=max(30.0, config.limits.reconnect_max_s))
         self._standby_offered = False
         self._activating = False
+        self._activated_s = 0.0  # when the last activation was sent (the connect log)
         # While bind_address is on no interface: since when, the last WARNING, attempts.
         self._unbound_since_s: float | None = None
         self._unbound_warned_s = 0.0
@@ -724,7 +725,8 @@ class RobotLink:
         sock, index = ready if ready is not None else await self._dial()
         if self._standby is not None and self._outage_since_s is not None:
             try:
-                spare = await self._standby.take(index)
+                spare = await self._standby.activate(index)
+                self._activated_s = self._clock()
             except BaseException:
                 sock.close()  # stopped while the standby was handed over
                 raise
@@ -862,16 +864,16 @@ class RobotLink:
             self._drop_stale(dialed_s - syn_rtt_s)
             # The upgrade includes a wait for the old connection when the watchdog dialled
             # early (a false alarm is decided first).
+            ready_s = self._activated_s if activating else self._clock()
             logger.info("connected to %s (SYN round trip %.1f ms, %s %.1f ms)", self.url,
                         syn_rtt_s * 1e3, "standby activated in" if activating else "upgrade",
-                        (self._clock() - dialed_s) * 1e3)
+                        (ready_s - dialed_s) * 1e3)
         tasks: list[asyncio.Task[None]] = []
         ended = _Ended(acked=False)
         ws.frame_sink = self._sink
         try:
-            if activating:
-                # First on the wire: the server moves the session here, then the frames.
-                await ws.send(ACTIVATE)
+            # When activating, {"type": "activate"} went first (Standby.activate): the
+            # server moves the session here, then come the subscriptions and the frames.
             await self._subscribe_all(ws, subscribe=True)
             tasks = [asyncio.create_task(self._send_loop(ws)),
                      asyncio.create_task(self._receive_loop(ws)),

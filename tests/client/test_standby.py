@@ -15,7 +15,7 @@ from websockets.exceptions import ConnectionClosedOK
 from websockets.frames import Close
 from websockets.protocol import State
 
-from fleetctl.client.standby import Standby
+from fleetctl.client.standby import ACTIVATE, Standby
 from tests.client.conftest import wait_until
 
 
@@ -40,6 +40,13 @@ class FakeWebSocket:
         self.inbox: asyncio.Queue[str | None] = asyncio.Queue()
         self.close_rcvd: Close | None = None
         self.closed = False
+        self.sent: list[str] = []
+        self.send_fails = False  # closed by the peer, not yet seen by the state
+
+    async def send(self, message: str) -> None:
+        if self.state is not State.OPEN or self.send_fails:
+            raise ConnectionClosedOK(Close(1001, "going away"), None)
+        self.sent.append(message)
 
     def __aiter__(self) -> FakeWebSocket:
         return self
@@ -98,7 +105,7 @@ async def test_nothing_is_opened_for_a_server_that_does_not_offer_it() -> None:
     keeper.main_up(False)
     assert keeper._opener is None  # nothing started: no dial can follow
     assert keeper.connection is None and h.dials == 0
-    assert await keeper.take(0) is None
+    assert await keeper.activate(0) is None
     await keeper.close()
 
 
@@ -109,8 +116,9 @@ async def test_it_opens_once_the_main_connection_works_and_is_taken_when_usable(
     keeper.main_up(True)  # a second call while opening opens nothing more
     await wait_until(lambda: keeper.connection is not None)
     assert h.dials == 1 and len(h.upgraded) == 1
-    ws = await keeper.take(0)
+    ws = await keeper.activate(0)
     assert ws is h.upgraded[0] and not ws.transport.aborted
+    assert ws.sent == [ACTIVATE]  # sent by the keeper, before anything of the caller's
     assert keeper.connection is None and keeper.stats()["activations"] == 1
     await keeper.close()
 
@@ -125,9 +133,22 @@ async def test_an_unusable_standby_is_closed_not_taken(case: str) -> None:
         h.unacked[ws.transport.sock] = 2  # a write on it would wait for a retransmission
     if case == "closed":
         ws.state = State.CLOSING
-    assert await keeper.take(replica) is None
+    assert await keeper.activate(replica) is None
     assert ws.transport.aborted and keeper.stats()["unusable"] == 1
+    assert ws.sent == []  # an unusable standby is not activated
     assert keeper.connection is None
+    await keeper.close()
+
+
+async def test_a_standby_that_closed_as_it_was_activated_is_still_handed_over() -> None:
+    """The activation's send found it closed: no exception here; the caller's next send
+    on it raises, and the link dials again (test_transport_standby.py)."""
+    h = Harness()
+    keeper = await h.opened()
+    ws = h.upgraded[0]
+    ws.send_fails = True
+    assert await keeper.activate(0) is ws
+    assert ws.sent == [] and not ws.transport.aborted
     await keeper.close()
 
 

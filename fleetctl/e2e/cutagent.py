@@ -75,7 +75,10 @@ class CutAgent:
             proc.stdin.write(f"{verb} {' '.join(halves)}\n")
             proc.stdin.flush()
         except OSError as exc:
-            raise FleetError(f"cut agent in {self.container}: {exc}; "
+            # A broken pipe: the agent is gone already (which of the write or the read
+            # finds out depends on how fast it died), said as the read would say it.
+            reason = "it exited" if isinstance(exc, BrokenPipeError) else str(exc)
+            raise FleetError(f"cut agent in {self.container}: {reason}; "
                              f"{self._end_with_output()}") from exc
         ready, _, _ = select.select([proc.stdout], [], [], REPLY_TIMEOUT_S)
         line = proc.stdout.readline() if ready else ""

@@ -132,6 +132,14 @@ class LinkTuning:
         deflate_max_message_bytes: Messages up to this size are sent with
             permessage-deflate when the server accepts it (:mod:`fleetctl.linkdeflate`);
             0 does not offer the extension (today's frames on the wire).
+        publish_to_offer_s: After an outage, a held message counts as published after
+            the path came back only when it was offered at least this long after the
+            winning SYN left, seconds. Why: the robot's own intake (DDS delivery, the
+            take, the encode) puts 0.5-2 ms between a publish and its offer (a 6 KB
+            scan's is the longer), so a message offered just after the SYN left may
+            have been published into the cut (e2e ``peer``: one scan published 2 ms
+            before the restore and delivered, once the dial's return stopped lagging
+            its connect; docs/recovery.md, "Nothing ahead of the activation").
     """
 
     open_timeout_s: float = 5.0
@@ -154,6 +162,7 @@ class LinkTuning:
     dead_ack_rtts: float = 4.0
     stale_ack_gaps: float = 2.0
     deflate_max_message_bytes: int = DEFAULT_MAX_MESSAGE_BYTES
+    publish_to_offer_s: float = 0.002
 
 
 @dataclass(frozen=True)
@@ -861,7 +870,7 @@ class RobotLink:
             logger.info("connected to %s", self.url)
         else:
             dialed_s, syn_rtt_s = dialed
-            self._drop_stale(dialed_s - syn_rtt_s)
+            self._drop_stale(self._fresh_since(dialed_s, syn_rtt_s))
             # The upgrade includes a wait for the old connection when the watchdog dialled
             # early (a false alarm is decided first).
             ready_s = self._activated_s if activating else self._clock()
@@ -913,6 +922,13 @@ class RobotLink:
             else:
                 ws.transport.abort()
         return _Ended(self._acked_any, ended.path_dead, ended.ready)
+
+    def _fresh_since(self, dialed_s: float, syn_rtt_s: float) -> float:
+        """From when a held message counts as published after the path came back: the
+        winning SYN left one handshake RTT before the dial returned (the kernel's first
+        RTT sample is the SYN's), and a message is offered ``publish_to_offer_s`` after
+        it is published."""
+        return dialed_s - syn_rtt_s + self.tuning.publish_to_offer_s
 
     def _drop_stale(self, alive_since_s: float | None) -> None:
         """A connection opened: drop held latest-only messages that are stale by now

@@ -352,3 +352,25 @@ async def test_an_outage_dial_is_told_when_the_next_message_is_due(
     assert ahead() == pytest.approx(0.02)
     now[0] = 100.248  # the one due at 100.25 is covered: next due at 100.30
     assert ahead() == pytest.approx(0.052)
+
+
+def test_after_an_outage_a_held_message_is_fresh_only_offered_well_after_the_syn(
+    tmp_path: Path,
+) -> None:
+    """The dial returned at 100.010 with a SYN round trip of 1 ms: the SYN left at
+    100.009; a message offered at 100.010 may still have been published into the cut
+    (the robot's intake takes up to ~2 ms), one offered at 100.012 was not."""
+    now = [100.0]
+    link = RobotLink(robot_config("ws://127.0.0.1:9/", tmp_path), on_frame=lambda f: None,
+                     clock=lambda: now[0])
+    assert link.tuning.publish_to_offer_s == 0.002
+    for i, at in enumerate((99.90, 99.95, 100.0, 100.010)):  # the last one held
+        now[0] = at
+        link.offer("/r1/pose", string_frame("/r1/pose", f"p{i}"), priority=1.0, no_drop=False)
+    now[0] = 100.013
+    fresh_since = link._fresh_since(100.010, 0.001)
+    assert fresh_since == pytest.approx(100.011)
+    assert link.scheduler.drop_stale(now[0], after_outage=True, alive_since_s=fresh_since) == 1
+    now[0] = 100.012
+    link.offer("/r1/pose", string_frame("/r1/pose", "p4"), priority=1.0, no_drop=False)
+    assert link.scheduler.drop_stale(now[0], after_outage=True, alive_since_s=fresh_since) == 0

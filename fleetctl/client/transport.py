@@ -471,8 +471,9 @@ class RobotLink:
                                     retry_min_s=max(1.0, config.limits.reconnect_min_s),
                                     retry_max_s=max(30.0, config.limits.reconnect_max_s))
         self._standby_offered = False
-        self._activating = False
-        self._activated_s = 0.0  # when the last activation was sent (the connect log)
+        # When the standby's activation was sent, until the session it starts begins;
+        # None when the next session is not an activation.
+        self._activated_s: float | None = None
         # While bind_address is on no interface: since when, the last WARNING, attempts.
         self._unbound_since_s: float | None = None
         self._unbound_warned_s = 0.0
@@ -735,14 +736,13 @@ class RobotLink:
         if self._standby is not None and self._outage_since_s is not None:
             try:
                 spare = await self._standby.activate(index)
-                self._activated_s = self._clock()
             except BaseException:
                 sock.close()  # stopped while the standby was handed over
                 raise
             if spare is not None:
                 assert isinstance(spare, LinkConnection)
                 self._standby.adopt(sock, index)
-                self._activating = True
+                self._activated_s = self._clock()
                 self._use_replica(index)
                 return spare
         try:
@@ -859,7 +859,8 @@ class RobotLink:
         self._subscribed.clear()
         self._identities = []
         self._acked_any = False
-        activating, self._activating = self._activating, False
+        activated_s, self._activated_s = self._activated_s, None
+        activating = activated_s is not None
         if not activating:
             # An older server, or another Robofleet-convention one, does not offer it.
             self._standby_offered = ws.response is not None and (
@@ -873,7 +874,7 @@ class RobotLink:
             self._drop_stale(self._fresh_since(dialed_s, syn_rtt_s))
             # The upgrade includes a wait for the old connection when the watchdog dialled
             # early (a false alarm is decided first).
-            ready_s = self._activated_s if activating else self._clock()
+            ready_s = activated_s if activated_s is not None else self._clock()
             logger.info("connected to %s (SYN round trip %.1f ms, %s %.1f ms)", self.url,
                         syn_rtt_s * 1e3, "standby activated in" if activating else "upgrade",
                         (ready_s - dialed_s) * 1e3)

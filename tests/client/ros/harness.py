@@ -63,6 +63,15 @@ class JsonProc:
             if predicate(line):
                 return line
 
+    def drain(self) -> list[dict[str, Any]]:
+        """Take every line read so far, without waiting."""
+        taken: list[dict[str, Any]] = []
+        with contextlib.suppress(queue.Empty):
+            while True:
+                taken.append(self.lines.get_nowait())
+        self.received.extend(taken)
+        return taken
+
     def signal(self, signum: int) -> None:
         """Send *signum* to the child's process group."""
         os.killpg(self.process.pid, signum)

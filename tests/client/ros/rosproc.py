@@ -8,9 +8,14 @@ JSON lines on stdout that the test reads with deadlines:
 - ``publish TOPIC TYPE CDR RATE_HZ``: waits for a subscriber, prints ``{"ready": true}``,
   then publishes the given CDR bytes at RATE_HZ forever. CDR is hex, or ``@PATH`` of a file
   holding the raw bytes (for messages too large for a command line).
-- ``events TOPIC COUNT RATE_HZ``: waits for a subscriber, then publishes std_msgs/String
-  ``event-1`` ... ``event-COUNT`` at RATE_HZ (reliable), printing ``{"sent": N}`` every
-  message, then ``{"done": true}`` and keeps running (so late discovery loses nothing).
+- ``events TOPIC COUNT RATE_HZ``: publishes std_msgs/String ``warmup`` at RATE_HZ
+  (reliable) until it gets SIGUSR1, then ``event-1`` ... ``event-COUNT``, printing
+  ``{"sent": N}`` every event, then ``{"done": true}`` and keeps running (so late discovery
+  loses nothing). The warm-up is there because a publisher that sees a subscriber is not
+  yet seen by it: DDS discovery is matched on each side separately, and a volatile reader
+  drops what a writer sent before the reader matched it (seen once in CI: the first 32
+  events, 0.8 s, lost on a loaded machine). The test sends SIGUSR1 once a warm-up message
+  went all the way through.
 - ``latch TOPIC TYPE CDR``: publishes CDR once, TRANSIENT_LOCAL depth 1 (as map_server
   does), without waiting for anyone; prints ``{"published": true}`` and keeps running
   (the publisher holds the sample for late subscribers).
@@ -22,7 +27,9 @@ JSON lines on stdout that the test reads with deadlines:
 from __future__ import annotations
 
 import json
+import signal
 import sys
+import threading
 import time
 from pathlib import Path
 from typing import Any
@@ -42,6 +49,7 @@ LATCHED = QoSProfile(
     durability=DurabilityPolicy.TRANSIENT_LOCAL,
 )
 _DISCOVERY_TIMEOUT_S = 30.0
+WARMUP = "warmup"  # what ``events`` publishes until it is told to start
 
 
 def _emit(obj: dict[str, Any]) -> None:
@@ -111,12 +119,15 @@ def _events(node: Node, executor: SingleThreadedExecutor, args: list[str]) -> No
 
     topic, count, rate_hz = args[0], int(args[1]), float(args[2])
     publisher = node.create_publisher(String, topic, RELIABLE)
-    _wait_for_subscriber(node, executor, publisher)
+    go = threading.Event()
+    signal.signal(signal.SIGUSR1, lambda _signum, _frame: go.set())
     sent = 0
 
     def tick() -> None:
         nonlocal sent
-        if sent < count:
+        if not go.is_set():
+            publisher.publish(String(data=WARMUP))
+        elif sent < count:
             sent += 1
             publisher.publish(String(data=f"event-{sent}"))
             _emit({"sent": sent})

@@ -36,6 +36,7 @@ from tests.client.ros.harness import (
     fleetctl_argv,
     ros_helper,
 )
+from tests.client.ros.rosproc import WARMUP
 
 pytestmark = [pytest.mark.ros, pytest.mark.slow]
 ALPHA_DOMAIN, BRAVO_DOMAIN = 21, 22  # this engineer's range is 20-39
@@ -280,8 +281,8 @@ def _event_stream(fleet: Fleet, tag: str, count: int) -> Iterator[
     """alpha publishes *count* no_drop events (40 Hz) that bravo's listener collects.
 
     Yields ``(events, got, take, listener)`` once the first 40 arrived: ``take`` is the
-    listener predicate that appends each event's text to ``got``; both processes stop on
-    exit.
+    listener predicate that appends each event's text to ``got`` (the helper's warm-up
+    messages are not events); both processes stop on exit.
     """
     from std_msgs.msg import String
 
@@ -296,9 +297,15 @@ def _event_stream(fleet: Fleet, tag: str, count: int) -> Iterator[
 
         def take(line: dict[str, Any]) -> bool:
             if "cdr" in line:
-                got.append(deserialize_message(bytes.fromhex(line["cdr"]), String).data)
+                text = deserialize_message(bytes.fromhex(line["cdr"]), String).data
+                if text != WARMUP:
+                    got.append(text)
             return len(got) >= 40
 
+        # Every DDS hop (helper -> alpha, bravo -> listener) has matched once a warm-up
+        # message got through: only then are the counted events published.
+        listener.wait_for(lambda line: "cdr" in line, STARTUP_S, "a warm-up event")
+        events.signal(signal.SIGUSR1)
         listener.wait_for(take, STARTUP_S, "40 events before the restart")
         yield events, got, take, listener
     finally:
@@ -336,7 +343,8 @@ def test_server_restart_keeps_every_no_drop_message_in_order(fleet: Fleet) -> No
 
 def _wait_events_sent_during_outage(events: JsonProc, extra: int) -> None:
     """Wait until the publisher reports *extra* events sent after the server went away."""
-    sent_at_stop = events.wait_for(lambda line: "sent" in line, 10.0, "a sent event")["sent"]
+    # The latest count it printed so far (the queue holds every line since it started).
+    sent_at_stop = max((line["sent"] for line in events.drain() if "sent" in line), default=0)
     events.wait_for(lambda line: line.get("sent", 0) >= sent_at_stop + extra, 10.0,
                     "events during the outage")
 

@@ -42,10 +42,12 @@ clock. The transport feeds it messages (:meth:`Scheduler.offer`), pulls frames t
   head of Q_n in their order (at-least-once; receivers dedupe by (topic, seq)); partly
   sent droppable messages are dropped (counted): the topic resumes with fresh data.
 - Stale after an outage (issue 19): when a new connection opens after an outage, every
-  held latest-only message was offered while the path was dead: it is dropped
-  (:meth:`Scheduler.drop_stale`, counted in ``dropped_stale``), a fresh one is due within
-  a period. On other reconnects (a server restart) only those older than
-  ``stale_periods`` x their topic's measured publish period are. A dropped video frame
+  held latest-only message published before the connection proved the path alive is
+  dropped (:meth:`Scheduler.drop_stale`, counted in ``dropped_stale``), a fresh one is due
+  within a period; so is one published before then that reaches the offer only later
+  (``fresh_since_s`` of :meth:`Scheduler.offer`). On other reconnects (a server
+  restart) only those older than ``stale_periods`` x their topic's measured publish
+  period are. A dropped video frame
   (a topic that offers keyframes) leaves later delta frames without their reference, so
   the topic's deltas are dropped until its next keyframe (``dropped_behind_keyframe``;
   the video hook makes one after a drop or a new connection). Never dropped this way:
@@ -221,12 +223,16 @@ class TopicFeedback:
 
 class _Message:
     __slots__ = ("fragments", "frame", "keyframe", "message_id", "next_index", "no_drop",
-                 "offered_s", "topic")
+                 "offered_s", "published_s", "topic")
 
     def __init__(self, topic: _Topic, frame: bytes, no_drop: bool,
-                 keyframe: bool = False, offered_s: float = 0.0) -> None:
+                 keyframe: bool = False, offered_s: float = 0.0,
+                 published_s: float | None = None) -> None:
         self.topic = topic
         self.offered_s = offered_s
+        # When it was published (the scheduler's clock), as far as the offer knew it:
+        # what decides whether it is stale after an outage (drop_stale).
+        self.published_s = offered_s if published_s is None else published_s
         self.frame = frame
         self.no_drop = no_drop
         self.keyframe = keyframe
@@ -334,7 +340,8 @@ class Scheduler:
         return False
 
     def offer(self, topic: str, frame: bytes, now_s: float, *, priority: float,
-              no_drop: bool, keyframe: bool = False) -> bool:
+              no_drop: bool, keyframe: bool = False, published_s: float | None = None,
+              fresh_since_s: float | None = None) -> bool:
         """Queue an encoded frame (Algorithm 1, 7-15).
 
         Args:
@@ -345,6 +352,12 @@ class Scheduler:
             no_drop: True queues in the bounded FIFO Q_n; False keeps latest only.
             keyframe: A droppable video keyframe: later frames of the topic depend on it,
                 so they never replace it (see the module docstring).
+            published_s: When the message was published, on this clock (None: *now_s*).
+            fresh_since_s: A latest-only message published before this is stale (it was
+                published into the last outage and reached the offer only after the
+                path came back): it is dropped at once, counted in ``dropped_stale``,
+                unless its topic has no measured period (as in :meth:`drop_stale`).
+                None: no such check.
 
         Returns:
             False when a no_drop message was refused because Q_n is full (counted in
@@ -354,9 +367,13 @@ class Scheduler:
         t.priority = priority
         t.stats.offered += 1
         self._measure_period(t, now_s)
-        msg = _Message(t, frame, no_drop, keyframe, now_s)
+        msg = _Message(t, frame, no_drop, keyframe, now_s, published_s)
         if no_drop:
             return self._push_no_drop(msg)
+        if (fresh_since_s is not None and msg.published_s < fresh_since_s
+                and t.period_s is not None):  # as drop_stale: a latched map's one offer stays
+            t.stats.dropped_stale += 1
+            return True
         self._update_droppable(t, msg)
         return True
 
@@ -395,12 +412,12 @@ class Scheduler:
         """Drop held latest-only messages that would arrive stale on a new connection.
 
         Call when a connection opens. *after_outage*: the previous connection's path went
-        silent, so every held message offered before *alive_since_s* (when the new
-        connection's SYN left: the path worked from then on; None: not known) was
-        offered while it was dead: its latency would
+        silent, so every held message published before *alive_since_s* (from when the
+        new connection proves the path worked; None: not known) may have been published
+        while it was dead: its latency would
         be its age plus the backlog it waits behind (no_drop messages of the outage),
         while the topic's next message is due within a period and would wait behind it.
-        A message offered after it is a few milliseconds old (the handshake) and is
+        A message published after it is a few milliseconds old (the handshake) and is
         kept: dropping it made a 10 Hz scan published during the handshake wait a whole
         period for the next one (e2e ``peer``: 0.11-0.13 s in 4 of 10 cuts).
         Measured in the e2e dropout: keeping held messages younger than half a period
@@ -419,8 +436,8 @@ class Scheduler:
             msg = t.pending
             if msg is None or t.period_s is None or (msg.keyframe and not after_outage):
                 continue
-            if after_outage and alive_since_s is not None and msg.offered_s >= alive_since_s:
-                continue  # offered while the path worked again: fresh
+            if after_outage and alive_since_s is not None and msg.published_s >= alive_since_s:
+                continue  # published while the path worked again: fresh
             if after_outage or now_s - msg.offered_s > limit * t.period_s:
                 t.pending = None
                 t.awaiting_keyframe = t.video

@@ -132,14 +132,16 @@ class LinkTuning:
         deflate_max_message_bytes: Messages up to this size are sent with
             permessage-deflate when the server accepts it (:mod:`fleetctl.linkdeflate`);
             0 does not offer the extension (today's frames on the wire).
-        publish_to_offer_s: After an outage, a held message counts as published after
-            the path came back only when it was offered at least this long after the
-            winning SYN left, seconds. Why: the robot's own intake (DDS delivery, the
-            take, the encode) puts 0.5-2 ms between a publish and its offer (a 6 KB
-            scan's is the longer), so a message offered just after the SYN left may
-            have been published into the cut (e2e ``peer``: one scan published 2 ms
-            before the restore and delivered, once the dial's return stopped lagging
-            its connect; docs/recovery.md, "Nothing ahead of the activation").
+        publish_to_offer_s: For a message offered without its publish time (one the
+            rclpy executor took, which does not see the middleware's source
+            timestamp), how long before its offer it counts as published, seconds: the
+            robot's own intake (DDS delivery, the take, the encode) puts 0.5-2 ms
+            between the two (a 6 KB scan's is the longer), so after an outage such a
+            message is fresh only when offered this long after the path was proven
+            alive (docs/recovery.md, "Nothing ahead of the activation").
+        max_publish_age_s: A publish time (the middleware's source timestamp) more than
+            this before its offer, or after it, is not believed (a publisher on another
+            host whose clock is off): the offer then counts as above, seconds.
     """
 
     open_timeout_s: float = 5.0
@@ -163,6 +165,7 @@ class LinkTuning:
     stale_ack_gaps: float = 2.0
     deflate_max_message_bytes: int = DEFAULT_MAX_MESSAGE_BYTES
     publish_to_offer_s: float = 0.002
+    max_publish_age_s: float = 1.0
 
 
 @dataclass(frozen=True)
@@ -395,6 +398,8 @@ class RobotLink:
         on_frame: Called on the loop thread with every complete (reassembled) binary
             frame from the server. Exceptions it raises are logged and counted.
         clock: Monotonic clock in seconds (injected for tests).
+        wall_clock_ns: The wall clock in ns, which publish times are read on (injected
+            for tests).
         scheduler_config: Overrides the scheduler settings derived from ``config``.
         tuning: Transport settings not in the config file.
     """
@@ -405,6 +410,7 @@ class RobotLink:
         *,
         on_frame: Callable[[bytes], None],
         clock: Clock = time.monotonic,
+        wall_clock_ns: Callable[[], int] = time.time_ns,
         scheduler_config: SchedulerConfig | None = None,
         tuning: LinkTuning | None = None,
     ) -> None:
@@ -415,6 +421,7 @@ class RobotLink:
             tuning.dial, outage_stagger_s=config.limits.outage_dial_interval_s))
         self._on_frame = on_frame
         self._clock = clock
+        self._wall_clock_ns = wall_clock_ns
         self._scheduler = Scheduler(scheduler_config or scheduler_config_for(config))
         self._rates = {p.remote_topic: p.rate_limit_hz for p in config.publish}
         now = clock()
@@ -458,9 +465,12 @@ class RobotLink:
         # the oldest unanswered ping; None while the link is up.
         self._outage_since_s: float | None = None
         # When the last dial connected and its SYN's round trip (clock seconds, s): the
-        # SYN left that long before, so the path worked from then on (see _drop_stale);
-        # the connect log says both (after an outage, where the time goes).
+        # path worked by then (see _session); the connect log says both (after an
+        # outage, where the time goes).
         self._dialed: tuple[float, float] | None = None
+        # Since the last reconnect after an outage: a latest-only message published
+        # before this (clock seconds) is stale even when its offer comes later.
+        self._fresh_since_s: float | None = None
         # The idle second connection taken over after an outage (fleetctl.client.standby),
         # whether the server offered it (its upgrade response), and whether the connection
         # _open just returned is that standby, to be activated.
@@ -496,7 +506,7 @@ class RobotLink:
             return self._scheduler.admit(remote_topic, rate, self._clock())
 
     def offer(self, remote_topic: str, frame: bytes, *, priority: float, no_drop: bool,
-              keyframe: bool = False) -> None:
+              keyframe: bool = False, published_ns: int = 0) -> None:
         """Queue an encoded frame for sending. Call on the loop thread.
 
         Args:
@@ -505,9 +515,20 @@ class RobotLink:
             priority: Algorithm 2 weight (>= 0).
             no_drop: Reliable in-order (bounded FIFO, kept across reconnects) or latest-only.
             keyframe: A video keyframe: later frames of the topic never replace it.
+            published_ns: When the message was published (the middleware's source
+                timestamp, wall clock ns; 0: not known). After an outage it decides
+                whether the message is stale (:meth:`_published_s`).
         """
-        if not self._scheduler.offer(remote_topic, frame, self._clock(),
-                                     priority=priority, no_drop=no_drop, keyframe=keyframe):
+        now_s = self._clock()
+        published_s = self._published_s(now_s, published_ns)
+        # Only a known publish time drops a message at its offer: an estimated one would
+        # drop fresh messages offered just after the path came back.
+        fresh_since_s = self._fresh_since_s if published_s is not None else None
+        if published_s is None:
+            published_s = now_s - self.tuning.publish_to_offer_s
+        if not self._scheduler.offer(remote_topic, frame, now_s, priority=priority,
+                                     no_drop=no_drop, keyframe=keyframe,
+                                     published_s=published_s, fresh_since_s=fresh_since_s):
             n = self._scheduler.no_drop_overflow
             if n == 1 or n % 1000 == 0:
                 logger.warning("no_drop queue full (%d messages): dropped a message on %s "
@@ -517,6 +538,16 @@ class RobotLink:
             self._held_wake = True
             return
         self._wake.set()
+
+    def _published_s(self, now_s: float, published_ns: int) -> float | None:
+        """*published_ns* (wall clock) on the link's clock, or None when not known or not
+        believable (older than ``max_publish_age_s``, or in the future)."""
+        if published_ns <= 0:
+            return None
+        age_s = (self._wall_clock_ns() - published_ns) / 1e9
+        if not 0.0 <= age_s <= self.tuning.max_publish_age_s:
+            return None
+        return now_s - age_s
 
     def hold_wakes(self) -> None:
         """Until :meth:`send_held`, frames offered do not wake the send loop. Call on
@@ -549,7 +580,7 @@ class RobotLink:
 
     def offer_threadsafe(
         self, remote_topic: str, frame: bytes, *, priority: float, no_drop: bool,
-        keyframe: bool = False,
+        keyframe: bool = False, published_ns: int = 0,
     ) -> None:
         """:meth:`offer` from any thread (e.g. an rclpy executor's).
 
@@ -565,11 +596,12 @@ class RobotLink:
             raise RuntimeError("RobotLink has no event loop yet: create it inside the loop")
         if threading.get_ident() == self._loop_thread:
             self.offer(remote_topic, frame, priority=priority, no_drop=no_drop,
-                       keyframe=keyframe)
+                       keyframe=keyframe, published_ns=published_ns)
             return
         loop.call_soon_threadsafe(
             functools.partial(self.offer, remote_topic, frame, priority=priority,
-                              no_drop=no_drop, keyframe=keyframe))
+                              no_drop=no_drop, keyframe=keyframe,
+                              published_ns=published_ns))
 
     @property
     def connects(self) -> int:
@@ -871,7 +903,14 @@ class RobotLink:
             logger.info("connected to %s", self.url)
         else:
             dialed_s, syn_rtt_s = dialed
-            self._drop_stale(self._fresh_since(dialed_s, syn_rtt_s))
+            # What was published before the dial returned, after the winning SYN's answer
+            # came, is stale. Only that is proof: the path came back somewhere between
+            # the SYN's send and its answer, and a SYN can wait on the robot's own host
+            # before it leaves (a userspace WireGuard on a busy CPU: e2e ``peer`` saw a
+            # 4.5 ms SYN round trip against 0.5 ms, and a scan published 1.5 ms before
+            # that SYN was sent was delivered, stale). The message expected next is still
+            # kept: the dialer sends a SYN ``ahead_s`` before it.
+            self._drop_stale(dialed_s)
             # The upgrade includes a wait for the old connection when the watchdog dialled
             # early (a false alarm is decided first).
             ready_s = activated_s if activated_s is not None else self._clock()
@@ -924,19 +963,15 @@ class RobotLink:
                 ws.transport.abort()
         return _Ended(self._acked_any, ended.path_dead, ended.ready)
 
-    def _fresh_since(self, dialed_s: float, syn_rtt_s: float) -> float:
-        """From when a held message counts as published after the path came back: the
-        winning SYN left one handshake RTT before the dial returned (the kernel's first
-        RTT sample is the SYN's), and a message is offered ``publish_to_offer_s`` after
-        it is published."""
-        return dialed_s - syn_rtt_s + self.tuning.publish_to_offer_s
-
     def _drop_stale(self, alive_since_s: float | None) -> None:
         """A connection opened: drop held latest-only messages that are stale by now
-        (:meth:`Scheduler.drop_stale`; *alive_since_s*: when its winning SYN left, None
-        if not known); the outage, if one ran, is over."""
+        (:meth:`Scheduler.drop_stale`; *alive_since_s*: from when the path is proven to
+        work, None if not known), and after an outage, those offered later but published
+        before *alive_since_s*; the outage, if one ran, is over."""
         outage = self._outage_since_s is not None
         self._outage_since_s = None
+        if outage:
+            self._fresh_since_s = alive_since_s
         dropped = self._scheduler.drop_stale(self._clock(), after_outage=outage,
                                              alive_since_s=alive_since_s)
         if dropped:

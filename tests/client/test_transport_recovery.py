@@ -354,23 +354,85 @@ async def test_an_outage_dial_is_told_when_the_next_message_is_due(
     assert ahead() == pytest.approx(0.052)
 
 
-def test_after_an_outage_a_held_message_is_fresh_only_offered_well_after_the_syn(
-    tmp_path: Path,
-) -> None:
-    """The dial returned at 100.010 with a SYN round trip of 1 ms: the SYN left at
-    100.009; a message offered at 100.010 may still have been published into the cut
-    (the robot's intake takes up to ~2 ms), one offered at 100.012 was not."""
+def _clocked_link(tmp_path: Path) -> tuple[RobotLink, list[float]]:
+    """A link on a settable clock; its wall clock reads the same seconds (as ns)."""
     now = [100.0]
     link = RobotLink(robot_config("ws://127.0.0.1:9/", tmp_path), on_frame=lambda f: None,
-                     clock=lambda: now[0])
-    assert link.tuning.publish_to_offer_s == 0.002
-    for i, at in enumerate((99.90, 99.95, 100.0, 100.010)):  # the last one held
+                     clock=lambda: now[0], wall_clock_ns=lambda: round(now[0] * 1e9))
+    return link, now
+
+
+def _pose(link: RobotLink, text: str, published_s: float | None = None) -> None:
+    link.offer("/r1/pose", string_frame("/r1/pose", text), priority=1.0, no_drop=False,
+               published_ns=0 if published_s is None else round(published_s * 1e9))
+
+
+def _stale(link: RobotLink) -> int:
+    return link.scheduler.stats()["topics"]["/r1/pose"]["dropped_stale"]  # type: ignore[index,no-any-return]
+
+
+def test_after_an_outage_a_held_message_is_judged_by_its_publish_time(
+    tmp_path: Path,
+) -> None:
+    """The dial returned at 100.010, the path's only proof. A pose offered at 100.012
+    but published (its source timestamp) at 100.009 may have been published into the
+    cut: dropped, though its offer came after the proof; one published at 100.011 is
+    kept."""
+    link, now = _clocked_link(tmp_path)
+    for i, at in enumerate((99.90, 99.95, 100.0)):
         now[0] = at
-        link.offer("/r1/pose", string_frame("/r1/pose", f"p{i}"), priority=1.0, no_drop=False)
-    now[0] = 100.013
-    fresh_since = link._fresh_since(100.010, 0.001)
-    assert fresh_since == pytest.approx(100.011)
-    assert link.scheduler.drop_stale(now[0], after_outage=True, alive_since_s=fresh_since) == 1
+        _pose(link, f"p{i}", at)
     now[0] = 100.012
-    link.offer("/r1/pose", string_frame("/r1/pose", "p4"), priority=1.0, no_drop=False)
-    assert link.scheduler.drop_stale(now[0], after_outage=True, alive_since_s=fresh_since) == 0
+    _pose(link, "late", 100.009)
+    assert link.scheduler.drop_stale(now[0], after_outage=True, alive_since_s=100.010) == 1
+    _pose(link, "fresh", 100.011)
+    assert link.scheduler.drop_stale(now[0], after_outage=True, alive_since_s=100.010) == 0
+
+
+def test_without_a_publish_time_a_held_message_counts_as_published_before_its_offer(
+    tmp_path: Path,
+) -> None:
+    """A message the executor took has no source timestamp: it counts as published
+    ``publish_to_offer_s`` (2 ms) before its offer; so does one whose source timestamp
+    is in the future or older than ``max_publish_age_s`` (another host's clock)."""
+    link, now = _clocked_link(tmp_path)
+    assert link.tuning.publish_to_offer_s == 0.002
+    for i, at in enumerate((99.90, 99.95, 100.0)):
+        now[0] = at
+        _pose(link, f"p{i}")
+    for published in (None, 100.2, 90.0):  # unknown, in the future, 10 s old
+        now[0] = 100.0115  # counts as published at 100.0095: before the proof
+        _pose(link, "early", published)
+        assert link.scheduler.drop_stale(now[0], after_outage=True,
+                                         alive_since_s=100.010) == 1
+        now[0] = 100.012  # counts as published at 100.010: kept
+        _pose(link, "kept", published)
+        assert link.scheduler.drop_stale(now[0], after_outage=True,
+                                         alive_since_s=100.010) == 0
+
+
+def test_after_a_reconnect_a_message_published_into_the_outage_is_dropped_at_its_offer(
+    tmp_path: Path,
+) -> None:
+    """A pose published at 100.008, before the dial that ended the outage returned
+    (100.010), reaches the offer at 100.013, after the new connection opened (a busy
+    robot): it is stale, dropped and counted. One published at 100.011 goes; so does a
+    no_drop message, whatever its age, and one without a publish time."""
+    link, now = _clocked_link(tmp_path)
+    for i, at in enumerate((99.90, 99.95)):
+        now[0] = at
+        _pose(link, f"p{i}", at)
+    link._outage_since_s = 99.96
+    now[0] = 100.011
+    link._drop_stale(100.010)
+    assert _stale(link) == 1  # p1, held through the outage
+    now[0] = 100.013
+    _pose(link, "into the cut", 100.008)
+    assert _stale(link) == 2
+    _pose(link, "unknown")
+    assert _stale(link) == 2
+    link.offer("/r1/events", string_frame("/r1/events", "e"), priority=1.0, no_drop=True,
+               published_ns=round(100.008 * 1e9))
+    _pose(link, "fresh", 100.011)
+    assert _stale(link) == 2
+    assert link.scheduler.stats()["topics"]["/r1/events"]["offered"] == 1  # type: ignore[index]

@@ -47,7 +47,7 @@ from rclpy.qos import (
 from fleetctl.client.config import ClientConfig, PublishSpec, SubscribeSpec
 from fleetctl.client.latched import LatchedFrames
 from fleetctl.client.ros import qos
-from fleetctl.client.ros.intake import LoopIntake
+from fleetctl.client.ros.intake import LoopIntake, MessageCallback
 from fleetctl.client.ros.msgtypes import message_class
 from fleetctl.client.ros.qos import AdaptiveSubscription
 from fleetctl.client.ros.tfsource import TfRepublisher, start_tf
@@ -90,7 +90,8 @@ class LinkPort:
     Attributes:
         admit: ``admit(remote_topic) -> bool``: False when the topic's rate limit says skip
             this message (checked before any decoding work).
-        send: ``send(spec, frame)``: queue an encoded frame of publish entry *spec*
+        send: ``send(spec, frame, published_ns)``: queue an encoded frame of publish
+            entry *spec*, published at *published_ns* (wall clock; 0: not known)
             (thread-safe; called from the rclpy executor's thread or the loop's).
         send_status: ``send_status(frame)``: queue an encoded RobofleetStatus frame.
         connects: ``connects() -> int``: connections the link has established so far
@@ -103,7 +104,7 @@ class LinkPort:
     """
 
     admit: Callable[[str], bool]
-    send: Callable[[PublishSpec, bytes], None]
+    send: Callable[[PublishSpec, bytes, int], None]
     send_status: Callable[[bytes], None]
     connects: Callable[[], int] | None = None
     send_video: Callable[[PublishSpec, bytes, bool], None] | None = None
@@ -334,18 +335,21 @@ class Bridge(Node):
                     self.tf.reconnected()
             self._connects_seen = connects
 
-    def _make_callback(self, spec: PublishSpec) -> Callable[[bytes], None]:
+    def _make_callback(self, spec: PublishSpec) -> MessageCallback:
         index = len(self.inputs)  # the AdaptiveSubscription this callback is given to
 
-        def callback(cdr: bytes) -> None:
-            self.on_local_message(spec, cdr, latched=self.inputs[index].latched)
+        def callback(cdr: bytes, published_ns: int = 0, /) -> None:
+            self.on_local_message(spec, cdr, latched=self.inputs[index].latched,
+                                  published_ns=published_ns)
 
         return callback
 
-    def on_local_message(self, spec: PublishSpec, cdr: bytes, *, latched: bool = False) -> None:
+    def on_local_message(self, spec: PublishSpec, cdr: bytes, *, latched: bool = False,
+                         published_ns: int = 0) -> None:
         """Encode one local CDR message of *spec* and hand it to the link (unless rate limited).
 
         *latched*: the topic's publishers are TRANSIENT_LOCAL (the frame is marked so).
+        *published_ns*: its source timestamp (0: not known), for the link.
         """
         self.stats.local_in += 1
         if not self._port.admit(spec.remote_topic):
@@ -361,11 +365,12 @@ class Bridge(Node):
             self.stats.encode_errors += 1
             log.warning("cannot decode %s from %s: %s", spec.type, spec.topic, exc)
             return
-        self.send_message(spec, msg, latched=latched)
+        self.send_message(spec, msg, latched=latched, published_ns=published_ns)
         if spec.viewer_cloud is not None:  # after the full cloud, which is sent regardless
             self.viewer_clouds.on_cloud(spec, msg, latched=latched)
 
-    def send_message(self, spec: PublishSpec, msg: Any, *, latched: bool = False) -> bool:
+    def send_message(self, spec: PublishSpec, msg: Any, *, latched: bool = False,
+                     published_ns: int = 0) -> bool:
         """Encode a message object (rosbags, of ``spec.type``) and hand it to the link.
 
         Compression as the entry says, or deflate for a large latched message; a latched
@@ -394,7 +399,7 @@ class Bridge(Node):
             log.warning("cannot encode %s from %s: %s", spec.type, spec.topic, exc)
             return False
         self._keep_latched(spec, frame, latched)
-        self._port.send(spec, frame)
+        self._port.send(spec, frame, published_ns)
         self.stats.sent += 1
         self.stats.per_topic_sent[spec.remote_topic] = (
             self.stats.per_topic_sent.get(spec.remote_topic, 0) + 1
@@ -437,13 +442,13 @@ class Bridge(Node):
         frames = self.latched.snapshot()
         for _, spec, frame in frames:
             # A kept frame may be the encoder's read-only view; the link only reads it.
-            self._port.send(spec, cast(bytes, frame))
+            self._port.send(spec, cast(bytes, frame), 0)
         self.stats.latched_resent += len(frames)
         return len(frames)
 
     def _send_video(self, spec: PublishSpec, frame: bytes, keyframe: bool) -> None:
         if self._port.send_video is None:
-            self._port.send(spec, frame)
+            self._port.send(spec, frame, 0)
         else:
             self._port.send_video(spec, frame, keyframe)
         self.stats.sent += 1

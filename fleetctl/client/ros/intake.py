@@ -65,15 +65,25 @@ class HeldSender(Protocol):
     def send_held(self) -> None: ...
 
 
+class MessageCallback(Protocol):
+    """What a loop-served subscription's messages go to: the raw CDR and the
+    middleware's source timestamp (when the publisher published it, wall clock ns; 0
+    when not known), which rclpy's executor does not pass on. The robot link judges a
+    message after an outage by it (fleetctl.client.transport.RobotLink.offer)."""
+
+    def __call__(self, cdr: bytes, published_ns: int = 0, /) -> None: ...
+
+
 class LoopServed:
     """A subscription callback that marks its subscription as served by a :class:`LoopIntake`.
 
-    Calling it calls the wrapped callback, so nothing breaks if something else does.
+    Calling it calls the wrapped callback (without a publish time), so nothing breaks if
+    something else does.
     """
 
     __slots__ = ("callback",)
 
-    def __init__(self, callback: Callable[[bytes], None]) -> None:
+    def __init__(self, callback: MessageCallback) -> None:
         self.callback = callback
 
     def __call__(self, cdr: bytes) -> None:
@@ -131,7 +141,7 @@ class _Served:
 
     __slots__ = ("callback", "fd", "subscription")
 
-    def __init__(self, subscription: Any, callback: Callable[[bytes], None], fd: int) -> None:
+    def __init__(self, subscription: Any, callback: MessageCallback, fd: int) -> None:
         self.subscription = subscription
         self.callback = callback
         self.fd = fd
@@ -258,11 +268,17 @@ class LoopIntake:
                 return
             self.taken += 1
             try:
-                served.callback(taken[0])
+                served.callback(taken[0], _source_timestamp_ns(taken[1]))
             except Exception:  # one bad message must not stop the intake
                 self.failed_callbacks += 1
                 log.exception("callback of %s failed", sub.topic_name)
         os.eventfd_write(served.fd, 1)  # more may wait: come back after others had a turn
+
+
+def _source_timestamp_ns(info: Any) -> int:
+    """The source timestamp in a take's message info (a dict in rclpy), 0 without one."""
+    stamp = info.get("source_timestamp") if isinstance(info, dict) else None
+    return stamp if isinstance(stamp, int) and stamp > 0 else 0
 
 
 def _in_loop_thread(loop: asyncio.AbstractEventLoop) -> bool:

@@ -28,7 +28,7 @@ from rclpy.event_handler import SubscriptionEventCallbacks
 from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 
-from fleetctl.client.ros.intake import LoopIntake, LoopServed
+from fleetctl.client.ros.intake import LoopIntake, LoopServed, MessageCallback
 
 log = logging.getLogger(__name__)
 
@@ -103,7 +103,7 @@ class AdaptiveSubscription:
     """
 
     def __init__(self, node: Node, msg_type: Any, topic: str,
-                 callback: Callable[[bytes], None], *, no_drop: bool,
+                 callback: MessageCallback, *, no_drop: bool,
                  intake: LoopIntake | None = None) -> None:
         self._node = node
         self._intake = intake
@@ -141,7 +141,8 @@ class AdaptiveSubscription:
             return self._subscribe(self._callback)
         return subscription
 
-    def _subscribe(self, callback: Callable[[bytes], None], **options: Any) -> Any:
+    def _subscribe(self, callback: Callable[[bytes], None] | MessageCallback,
+                   **options: Any) -> Any:
         return self._node.create_subscription(
             self._msg_type, self._topic, callback,
             profile(self.reliable, self._no_drop, self.latched), raw=True, **options,

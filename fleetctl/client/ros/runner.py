@@ -75,16 +75,17 @@ def status_encoder(codec: Codec, robot_name: str) -> Callable[[float | None], by
 
 def _port(link: RobotLink, status_topic: str) -> LinkPort:
     def offer(topic: str, frame: bytes, priority: float, no_drop: bool,
-              keyframe: bool = False) -> None:
+              keyframe: bool = False, published_ns: int = 0) -> None:
         try:
             link.offer_threadsafe(topic, frame, priority=priority, no_drop=no_drop,
-                                  keyframe=keyframe)
+                                  keyframe=keyframe, published_ns=published_ns)
         except RuntimeError:
             # The loop is gone (shutting down): a callback raced the executor's shutdown.
             log.debug("dropped a frame on %s: the link is stopping", topic)
 
-    def send(spec: PublishSpec, frame: bytes) -> None:
-        offer(spec.remote_topic, frame, spec.priority, spec.no_drop)
+    def send(spec: PublishSpec, frame: bytes, published_ns: int) -> None:
+        offer(spec.remote_topic, frame, spec.priority, spec.no_drop,
+              published_ns=published_ns)
 
     def send_status(frame: bytes) -> None:
         offer(status_topic, frame, STATUS_PRIORITY, False)

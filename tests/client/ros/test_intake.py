@@ -7,6 +7,7 @@ import contextlib
 import logging
 import os
 import threading
+import time
 from collections.abc import AsyncIterator, Iterator
 from typing import Any
 
@@ -75,10 +76,22 @@ def wakeups() -> Wakeups:
     return loaded
 
 
+def collect(into: list[bytes]) -> Any:
+    """A message callback (``cdr, published_ns``) that keeps the CDR in *into*."""
+    def callback(cdr: bytes, published_ns: int = 0, /) -> None:
+        into.append(cdr)
+
+    return callback
+
+
 def raw_subscription(node: Node, topic: str, callback: Any) -> Any:
+    """A loop-served subscription whose *callback* gets the CDR only."""
     from std_msgs.msg import String
 
-    return node.create_subscription(String, topic, LoopServed(callback), QOS, raw=True)
+    def served(cdr: bytes, published_ns: int = 0, /) -> None:
+        callback(cdr)
+
+    return node.create_subscription(String, topic, LoopServed(served), QOS, raw=True)
 
 
 async def publish_until(pub: Any, text: str, done: Any, timeout_s: float = 10.0) -> None:
@@ -103,6 +116,30 @@ async def test_messages_are_taken_on_the_loop_thread(nodes: Nodes) -> None:
     assert isinstance(cdr, bytes) and b"hello" in cdr
     assert thread == threading.get_ident()  # the loop's thread: no executor involved
     assert intake.taken == len(got)
+    intake.close()
+
+
+async def test_each_message_comes_with_its_publish_time(nodes: Nodes) -> None:
+    """The middleware's source timestamp (wall clock ns), which rclpy's executor does
+    not pass on: the link judges a message after an outage by it."""
+    from std_msgs.msg import String
+
+    intake = LoopIntake(asyncio.get_running_loop(), wakeups())
+    got: list[tuple[bytes, int]] = []
+    sub = nodes.node.create_subscription(
+        String, "/stamped", LoopServed(lambda cdr, ns=0: got.append((cdr, ns))), QOS,
+        raw=True)
+    intake.attach(sub)
+    pub = nodes.publisher("/stamped")
+    await publish_until(pub, "probe", lambda: got)
+    before = len(got)
+    before_publish = time.time_ns()
+    pub.publish(String(data="timed"))
+    after_publish = time.time_ns()
+    await wait_until(lambda: len(got) > before, 10.0)
+    cdr, published_ns = got[-1]
+    assert b"timed" in cdr
+    assert before_publish <= published_ns <= after_publish
     intake.close()
 
 
@@ -202,7 +239,7 @@ async def test_adaptive_subscription_follows_a_qos_switch_on_the_loop(nodes: Nod
 
     intake = LoopIntake(asyncio.get_running_loop(), wakeups())
     got: list[bytes] = []
-    entry = AdaptiveSubscription(nodes.node, String, "/switch", got.append, no_drop=True,
+    entry = AdaptiveSubscription(nodes.node, String, "/switch", collect(got), no_drop=True,
                                  intake=intake)
     assert entry.loop_served and entry.reliable
     best_effort = QoSProfile(depth=10, reliability=ReliabilityPolicy.BEST_EFFORT)
@@ -226,7 +263,7 @@ async def test_adaptive_subscription_falls_back_to_the_executor(
     intake = LoopIntake(asyncio.get_running_loop(), refusing)
     got: list[bytes] = []
     with caplog.at_level(logging.WARNING, logger="fleetctl.client.ros.qos"):
-        entry = AdaptiveSubscription(nodes.node, String, "/fallback", got.append,
+        entry = AdaptiveSubscription(nodes.node, String, "/fallback", collect(got),
                                      no_drop=False, intake=intake)
     assert not entry.loop_served
     assert "taken by the executor thread" in caplog.text
@@ -245,7 +282,7 @@ async def test_the_executor_does_not_spin_beside_a_loop_served_topic(nodes: Node
 
     intake = LoopIntake(asyncio.get_running_loop(), wakeups())
     got: list[bytes] = []
-    entry = AdaptiveSubscription(nodes.node, String, "/quiet", got.append, no_drop=False,
+    entry = AdaptiveSubscription(nodes.node, String, "/quiet", collect(got), no_drop=False,
                                  intake=intake)
     assert entry._subscription.event_handlers == []
     with executor_spinning(nodes) as executor:
@@ -261,7 +298,7 @@ async def test_a_publisher_of_another_type_is_warned_about(
         nodes: Nodes, caplog: pytest.LogCaptureFixture) -> None:
     from std_msgs.msg import Int32, String
 
-    entry = AdaptiveSubscription(nodes.node, String, "/typed_in", lambda cdr: None,
+    entry = AdaptiveSubscription(nodes.node, String, "/typed_in", collect([]),
                                  no_drop=False)
     # Another participant (a DDS participant allows one type per topic), as another
     # process would be.

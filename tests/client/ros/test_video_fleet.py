@@ -299,7 +299,7 @@ def bridge_and_camera(ros: tuple[Any, Any]) -> Iterator[tuple[Any, Any, list[Any
         with lock:
             sent.append((frame, keyframe))
 
-    port = LinkPort(admit=lambda topic: True, send=lambda spec, frame: None,
+    port = LinkPort(admit=lambda topic: True, send=lambda spec, frame, published_ns: None,
                     send_status=lambda frame: None, send_video=send_video)
     config = parse_client_config({
         "server_url": "ws://127.0.0.1:1/", "robot_name": "r1",

@@ -25,17 +25,17 @@ first message after the restore is published before the next SYN leaves loses a 
 (docs/recovery.md, the trade-off), with probability ~stagger / (2 x period) per cut: 5 %
 for a 10 Hz scan at 10 ms, 10-20 % at the 20-40 ms of before.
 
-Dialing ahead of the next message (issue 19). A message offered before the winning SYN
-left is dropped as stale (``Scheduler.drop_stale``: it may have been offered while the path
-was dead), so a link that returned in the 10 ms between two paced SYNs cost the message
-offered in that gap a whole period (traced e2e ``peer`` runs: the cause in 4 of 12
-trials). The caller can pass *ahead*, the time to the next message a topic is due to
-offer, and an extra attempt then starts ``ahead_s`` (3 ms) before it: the path has been
-seen to work when the message is offered (0 of 12 traced trials; an alternating A/B was
-dominated by another effect, docs/recovery.md). The intake of the e2e load's topics keeps
-its period within 2 ms (0.6 ms at p99). At most one such attempt per ``ahead_s`` (333 a
-second, however many topics), only in the outage's first ``fast_for_s``; the e2e load
-(20 + 10 + 1 Hz) adds 31 a second.
+Dialing ahead of the next message (issue 19). A message published before the winning
+SYN's answer came back is dropped as stale (``Scheduler.drop_stale``: it may have been
+published while the path was dead), so a link that returned in the 10 ms between two
+paced SYNs cost the message offered in that gap a whole period (traced e2e ``peer``
+runs: the cause in 4 of 12 trials). The caller can pass *ahead*, the time to the next
+message a topic is due to offer, and an extra attempt then starts ``ahead_s`` (3 ms)
+before it: the path has been seen to work when the message is offered (0 of 12 traced
+trials; an alternating A/B was dominated by another effect, docs/recovery.md). The
+intake of the e2e load's topics keeps its period within 2 ms (0.6 ms at p99). At most
+one such attempt per ``ahead_s`` (333 a second, however many topics), only in the
+outage's first ``fast_for_s``; the e2e load (20 + 10 + 1 Hz) adds 31 a second.
 
 Cost while the server is unreachable. Linux resends an unanswered SYN at 1 s. One attempt
 per ``stagger_s`` is a long one: it lives ``attempt_life_s`` (2 s, so a path with an RTT

@@ -706,8 +706,8 @@ class RobotLink:
         since = self._outage_since_s
         age = math.inf if since is None else max(0.0, self._clock() - since)
         dialed = await self._race(order, age)
-        # The winning SYN left one handshake RTT ago (the kernel's first RTT sample is
-        # the SYN's): from then on the path worked, so what is offered after it is fresh.
+        # The path works by now (the winning SYN's answer came): what is published from
+        # here on is fresh (_session). The SYN's RTT (the kernel's first sample) is logged.
         info = read_tcp_info(dialed.sock)
         self._dialed = (self._clock(), info.srtt_s if info is not None else 0.0)
         return dialed
@@ -731,9 +731,9 @@ class RobotLink:
     def _ahead_s(self) -> float:
         """Seconds to the next message a topic is expected to offer after the window the
         attempt just started covers (``ahead_s``), for the dialer's extra attempt just
-        before it. Why: a message offered before the winning SYN left is dropped as
-        stale (:meth:`Scheduler.drop_stale`: nothing offered while the path may have
-        been dead is sent), so a restore in the ~10 ms between two evenly paced SYNs cost
+        before it. Why: a message published before the winning SYN's answer came is
+        dropped as stale (:meth:`Scheduler.drop_stale`: nothing published while the path
+        may have been dead is sent), so a restore in the ~10 ms between two evenly paced SYNs cost
         the message offered there a whole period; a SYN leaving ``ahead_s`` before each
         expected message narrows that to ``ahead_s``."""
         now = self._clock()

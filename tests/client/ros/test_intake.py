@@ -76,22 +76,20 @@ def wakeups() -> Wakeups:
     return loaded
 
 
-def collect(into: list[bytes]) -> Any:
-    """A message callback (``cdr, published_ns``) that keeps the CDR in *into*."""
-    def callback(cdr: bytes, published_ns: int = 0, /) -> None:
-        into.append(cdr)
+def cdr_only(callback: Any) -> Any:
+    """A message callback (``cdr, published_ns``) that passes *callback* the CDR only."""
+    def served(cdr: bytes, published_ns: int = 0, /) -> None:
+        callback(cdr)
 
-    return callback
+    return served
 
 
 def raw_subscription(node: Node, topic: str, callback: Any) -> Any:
     """A loop-served subscription whose *callback* gets the CDR only."""
     from std_msgs.msg import String
 
-    def served(cdr: bytes, published_ns: int = 0, /) -> None:
-        callback(cdr)
-
-    return node.create_subscription(String, topic, LoopServed(served), QOS, raw=True)
+    return node.create_subscription(String, topic, LoopServed(cdr_only(callback)), QOS,
+                                    raw=True)
 
 
 async def publish_until(pub: Any, text: str, done: Any, timeout_s: float = 10.0) -> None:
@@ -239,7 +237,7 @@ async def test_adaptive_subscription_follows_a_qos_switch_on_the_loop(nodes: Nod
 
     intake = LoopIntake(asyncio.get_running_loop(), wakeups())
     got: list[bytes] = []
-    entry = AdaptiveSubscription(nodes.node, String, "/switch", collect(got), no_drop=True,
+    entry = AdaptiveSubscription(nodes.node, String, "/switch", cdr_only(got.append), no_drop=True,
                                  intake=intake)
     assert entry.loop_served and entry.reliable
     best_effort = QoSProfile(depth=10, reliability=ReliabilityPolicy.BEST_EFFORT)
@@ -263,7 +261,7 @@ async def test_adaptive_subscription_falls_back_to_the_executor(
     intake = LoopIntake(asyncio.get_running_loop(), refusing)
     got: list[bytes] = []
     with caplog.at_level(logging.WARNING, logger="fleetctl.client.ros.qos"):
-        entry = AdaptiveSubscription(nodes.node, String, "/fallback", collect(got),
+        entry = AdaptiveSubscription(nodes.node, String, "/fallback", cdr_only(got.append),
                                      no_drop=False, intake=intake)
     assert not entry.loop_served
     assert "taken by the executor thread" in caplog.text
@@ -282,7 +280,7 @@ async def test_the_executor_does_not_spin_beside_a_loop_served_topic(nodes: Node
 
     intake = LoopIntake(asyncio.get_running_loop(), wakeups())
     got: list[bytes] = []
-    entry = AdaptiveSubscription(nodes.node, String, "/quiet", collect(got), no_drop=False,
+    entry = AdaptiveSubscription(nodes.node, String, "/quiet", cdr_only(got.append), no_drop=False,
                                  intake=intake)
     assert entry._subscription.event_handlers == []
     with executor_spinning(nodes) as executor:
@@ -298,7 +296,7 @@ async def test_a_publisher_of_another_type_is_warned_about(
         nodes: Nodes, caplog: pytest.LogCaptureFixture) -> None:
     from std_msgs.msg import Int32, String
 
-    entry = AdaptiveSubscription(nodes.node, String, "/typed_in", collect([]),
+    entry = AdaptiveSubscription(nodes.node, String, "/typed_in", cdr_only([].append),
                                  no_drop=False)
     # Another participant (a DDS participant allows one type per topic), as another
     # process would be.

@@ -124,19 +124,32 @@ async def drag_goal(page: Any) -> None:
     """Press at x=+4 m, y=0 (map centred on the origin, 40 px/m, 640 px wide), drag up.
 
     First the map must have stayed in place for 0.5 s: a panel or health row appearing
-    above it while the mouse moves would shift the goal (a CI run got y = -1.3 m)."""
+    above it while the mouse moves would shift the goal (a CI run got y = -1.3 m). Each
+    pointer position is then taken relative to the canvas where it is at that moment
+    (``hover`` scrolls it into view and checks the point reaches the canvas), not from
+    a box read before: a press below the viewport or on a panel that moved over the
+    map reaches nothing (a CI run sent no goal at all)."""
     await page.click("#tool-goal")
+    await page.locator("#map-canvas").scroll_into_view_if_needed()
     await page.wait_for_function(
         "() => { const r = document.querySelector('#map-canvas').getBoundingClientRect();"
         " const k = [r.x, r.y, r.width, r.height].join(); const w = (window.__mapBox ??="
         " {k: '', n: 0}); if (w.k === k) w.n++; else { w.k = k; w.n = 0; }"
         " return w.n >= 5; }", polling=100, timeout=15_000)
-    box = await page.locator("#map-canvas").bounding_box()
-    x0, y0 = box["x"] + box["width"] * 0.75, box["y"] + box["height"] * 0.5
-    await page.mouse.move(x0, y0)
+    canvas = page.locator("#map-canvas")
+    box = await canvas.bounding_box()
+    x, y = box["width"] * 0.75, box["height"] * 0.5
+    await canvas.hover(position={"x": x, "y": y})
     await page.mouse.down()
-    await page.mouse.move(x0, y0 - box["height"] * 0.2, steps=5)
+    for step in range(1, 6):
+        await canvas.hover(position={"x": x, "y": y - box["height"] * 0.04 * step})
     await page.mouse.up()
+    status = "document.querySelector('#command-status').textContent"
+    try:
+        await wait_js(page, f"{status}.startsWith('Sent') || {status}.startsWith('Not sent')")
+    except Exception as err:
+        shown = await page.evaluate(f"[{status}, fleetviz.views.map.tool]")
+        raise AssertionError(f"the drag sent nothing: status, tool = {shown}") from err
 
 
 async def check_topic_selection_and_pause(page: Any) -> None:

@@ -161,10 +161,10 @@ class ClientLimits:
             a WebSocket upgrade on a new connection (docs/recovery.md, the standby
             connection). It costs one more TCP connection per robot; false turns it off.
         dial_ahead_of_messages: During an outage's first minute, also a connection
-            attempt 3 ms before each message a topic is due to offer (its last offer
-            plus whole periods), so that a link that returns just before a message has
-            been seen to work when it is offered (docs/recovery.md, dialing ahead of
-            the next message). It adds one SYN per message due while the link is down
+            attempt 3 ms (or two SYN round trips, when longer) before each message a
+            topic is due to publish (its last publish plus whole periods), so that a
+            link that returns just before a message has been seen to work when it is
+            published (docs/recovery.md, dialing ahead of the next message). It adds one SYN per message due while the link is down
             (at most 333 a second); false turns it off.
     """
 

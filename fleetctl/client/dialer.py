@@ -28,12 +28,15 @@ for a 10 Hz scan at 10 ms, 10-20 % at the 20-40 ms of before.
 Dialing ahead of the next message (issue 19). A message published before the winning
 SYN's answer came back is dropped as stale (``Scheduler.drop_stale``: it may have been
 published while the path was dead), so a link that returned in the 10 ms between two
-paced SYNs cost the message offered in that gap a whole period (traced e2e ``peer``
+paced SYNs cost the message published in that gap a whole period (traced e2e ``peer``
 runs: the cause in 4 of 12 trials). The caller can pass *ahead*, the time to the next
-message a topic is due to offer, and an extra attempt then starts ``ahead_s`` (3 ms)
-before it: the path has been seen to work when the message is offered (0 of 12 traced
-trials; an alternating A/B was dominated by another effect, docs/recovery.md). The
-intake of the e2e load's topics keeps its period within 2 ms (0.6 ms at p99). At most
+message a topic is due to publish, and an extra attempt then starts ``ahead_s`` (3 ms)
+before it: the path has been seen to work when the message is published. (Until
+2026-12-05 the caller gave the time to the next *offer*, which comes 0.5-3 ms after the
+publish: a traced run had the SYN for a scan leave 0.4 ms before its publish and its
+answer come after it, so the scan went as possibly stale.) The RobotLink moves the
+target earlier on a path whose SYN round trip is long (two of them ahead).
+The intake of the e2e load's topics keeps its period within 2 ms (0.6 ms at p99). At most
 one such attempt per ``ahead_s`` (333 a second, however many topics), only in the
 outage's first ``fast_for_s``; the e2e load (20 + 10 + 1 Hz) adds 31 a second.
 

@@ -254,6 +254,7 @@ class _Topic:
     current: _Message | None = None  # droppable: partly sent
     supersede_streak: int = 0
     last_offer_s: float | None = None
+    last_published_s: float | None = None  # the last offer's publish time, as offer knew it
     period_s: float | None = None  # moving average of offer intervals
     video: bool = False  # a keyframe was offered: later frames depend on earlier ones
     awaiting_keyframe: bool = False  # a frame was dropped as stale: deltas are useless
@@ -368,6 +369,7 @@ class Scheduler:
         t.stats.offered += 1
         self._measure_period(t, now_s)
         msg = _Message(t, frame, no_drop, keyframe, now_s, published_s)
+        t.last_published_s = msg.published_s
         if no_drop:
             return self._push_no_drop(msg)
         if (fresh_since_s is not None and msg.published_s < fresh_since_s
@@ -383,14 +385,18 @@ class Scheduler:
             t = self._topics[name] = _Topic(name, priority, last_sent_s=now_s)
         return t
 
-    def next_offer_after(self, t_s: float) -> float:
-        """When the soonest message after *t_s* is expected: each topic with a measured
-        period offers again at its last offer plus whole periods (``inf``: no topic has
-        one yet). Used while the link is down to dial just before it (the dialer's
-        *ahead*)."""
+    def next_publish_after(self, t_s: float) -> float:
+        """When the soonest message after *t_s* is expected to be published: each topic
+        with a measured period publishes again at its last publish time plus whole
+        periods (``inf``: no topic has one yet). Used while the link is down to dial just
+        before it (the dialer's *ahead*). Why the publish time and not the offer: a
+        message is kept after an outage when it was published after the winning SYN's
+        answer came (``drop_stale``), and it reaches the offer 0.5-3 ms after its publish
+        (DDS, the take, the encode); a SYN aimed at the offer left too late for a scan in
+        traced e2e runs (0.4 ms before its publish, answered after it)."""
         soonest = math.inf
         for t in self._topics.values():
-            last, period = t.last_offer_s, t.period_s
+            last, period = t.last_published_s, t.period_s
             if last is None or period is None or period <= 0.0:
                 continue
             nxt = last + max(1, math.floor((t_s - last) / period) + 1) * period

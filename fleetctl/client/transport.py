@@ -468,6 +468,9 @@ class RobotLink:
         # path worked by then (see _session); the connect log says both (after an
         # outage, where the time goes).
         self._dialed: tuple[float, float] | None = None
+        # The last dial's SYN round trip (s; 0 before the first): how far ahead of an
+        # expected message an outage's dial must leave for its answer to come first.
+        self._path_rtt_s = 0.0
         # Since the last reconnect after an outage: a latest-only message published
         # before this (clock seconds) is stale even when its offer comes later.
         self._fresh_since_s: float | None = None
@@ -710,6 +713,7 @@ class RobotLink:
         # here on is fresh (_session). The SYN's RTT (the kernel's first sample) is logged.
         info = read_tcp_info(dialed.sock)
         self._dialed = (self._clock(), info.srtt_s if info is not None else 0.0)
+        self._path_rtt_s = self._dialed[1]
         return dialed
 
     async def _race(self, order: list[int], outage_age_s: float = math.inf) -> Dialed:
@@ -729,15 +733,20 @@ class RobotLink:
         return Dialed(sock, order[won])
 
     def _ahead_s(self) -> float:
-        """Seconds to the next message a topic is expected to offer after the window the
-        attempt just started covers (``ahead_s``), for the dialer's extra attempt just
-        before it. Why: a message published before the winning SYN's answer came is
-        dropped as stale (:meth:`Scheduler.drop_stale`: nothing published while the path
-        may have been dead is sent), so a restore in the ~10 ms between two evenly paced SYNs cost
-        the message offered there a whole period; a SYN leaving ``ahead_s`` before each
-        expected message narrows that to ``ahead_s``."""
+        """Seconds to the next message a topic is expected to publish after the window the
+        attempt just started covers, minus the lead beyond ``ahead_s`` (the dialer starts
+        its extra attempt ``ahead_s`` before what this returns). Why: a message published
+        before the winning SYN's answer came is dropped as stale
+        (:meth:`Scheduler.drop_stale`: nothing published while the path may have been
+        dead is sent), so a restore in the ~10 ms between two evenly paced SYNs cost the
+        message published there a whole period; a SYN leaving just before each expected
+        publish narrows that to the lead. The lead is ``ahead_s``, or two of the path's
+        SYN round trips when that is longer (a Wi-Fi or LTE path): the answer needs one,
+        the other is room for its jitter."""
         now = self._clock()
-        return self._scheduler.next_offer_after(now + self.tuning.dial.ahead_s) - now
+        ahead_s = self.tuning.dial.ahead_s
+        lead = max(ahead_s, 2.0 * self._path_rtt_s)
+        return self._scheduler.next_publish_after(now + lead) - now - (lead - ahead_s)
 
     def _use_replica(self, index: int) -> None:
         """Replica *index* connected: it is the current one from now on. A connection to

@@ -102,15 +102,25 @@ def test_the_period_is_a_moving_average_of_offer_intervals() -> None:
     assert s.drop_stale(1.1, after_outage=False) == 1  # 0.4 s old
 
 
-def test_the_next_offer_is_each_topics_last_offer_plus_whole_periods() -> None:
-    """What the dialer dials just before while the link is down (``next_offer_after``)."""
+def test_the_next_publish_is_each_topics_last_publish_plus_whole_periods() -> None:
+    """What the dialer dials just before while the link is down (``next_publish_after``);
+    without publish times, the offers stand for them."""
     s = make()
-    assert s.next_offer_after(0.0) == float("inf")  # no topic has a period yet
+    assert s.next_publish_after(0.0) == float("inf")  # no topic has a period yet
     offer_every(s, "/pose", 0.05, 1.0)  # last offer 1.00
     offer_every(s, "/scan", 0.1, 0.93, start_s=0.03)  # last offer 0.93
-    assert s.next_offer_after(1.003) == pytest.approx(1.03)  # the scan's, before the pose's
-    assert s.next_offer_after(1.031) == pytest.approx(1.05)  # the pose's
+    assert s.next_publish_after(1.003) == pytest.approx(1.03)  # the scan's, before the pose's
+    assert s.next_publish_after(1.031) == pytest.approx(1.05)  # the pose's
     # Into an outage the topics go on offering (held, replaced): far ahead it is still
     # whole periods on from the last offer, never one at or before the time asked.
-    assert s.next_offer_after(3.0) == pytest.approx(3.03)
-    assert s.next_offer_after(3.051) == pytest.approx(3.1)
+    assert s.next_publish_after(3.0) == pytest.approx(3.03)
+    assert s.next_publish_after(3.051) == pytest.approx(3.1)
+
+
+def test_the_next_publish_comes_from_publish_times_not_offers() -> None:
+    """A scan offered 2.5 ms after each publish: the next is due on the publish's phase."""
+    s = make()
+    for i in range(4):
+        s.offer("/scan", b"s", 1.0 + 0.1 * i + 0.0025, priority=1.0, no_drop=False,
+                published_s=1.0 + 0.1 * i)
+    assert s.next_publish_after(1.31) == pytest.approx(1.4)

@@ -323,15 +323,13 @@ async def test_an_outage_dial_is_told_when_the_next_message_is_due(
     tmp_path: Path, monkeypatch: pytest.MonkeyPatch,
 ) -> None:
     """The link's dial in an outage gets *ahead*: the seconds to the next message a topic
-    is due to offer (past the window the attempt just started covers); a dial on a
-    working path (the standby's) gets none."""
-    now = [100.0]
-    link = RobotLink(robot_config("ws://127.0.0.1:9/", tmp_path), on_frame=lambda f: None,
-                     clock=lambda: now[0])
-    for i in range(5):  # /r1/chatter every 50 ms, the last at 100.2
-        now[0] = 100.0 + 0.05 * i
-        link.offer("/r1/chatter", string_frame("/r1/chatter", f"c{i}"), priority=1.0,
-                   no_drop=False)
+    is due to publish (past the window the attempt just started covers), on its publish
+    times, not its offers (each offered 2.5 ms after its publish, as a scan is); a dial
+    on a working path (the standby's) gets none."""
+    link, now = _clocked_link(tmp_path)
+    for i in range(5):  # /r1/pose published every 50 ms, the last at 100.2
+        now[0] = 100.0025 + 0.05 * i
+        _pose(link, f"p{i}", published_s=100.0 + 0.05 * i)
     given: list[Any] = []
 
     async def capture(*args: Any, **kw: Any) -> tuple[int, socket.socket]:
@@ -349,9 +347,27 @@ async def test_an_outage_dial_is_told_when_the_next_message_is_due(
     assert standby is None and turned_off is None
     assert link.tuning.dial.ahead_s == 0.003  # the default, which the figures below assume
     now[0] = 100.23  # an attempt started now covers up to 100.233: next due at 100.25
-    assert ahead() == pytest.approx(0.02)
+    assert ahead() == pytest.approx(0.02)  # the dialer starts one at 100.247
     now[0] = 100.248  # the one due at 100.25 is covered: next due at 100.30
     assert ahead() == pytest.approx(0.052)
+
+
+async def test_on_a_long_round_trip_the_outage_dial_leads_by_two_of_them(
+    tmp_path: Path,
+) -> None:
+    """With a 20 ms SYN round trip a SYN 3 ms before a publish is answered 17 ms after
+    it (the message then goes as possibly stale): the lead is two round trips, 40 ms."""
+    link, now = _clocked_link(tmp_path)
+    for i in range(5):  # published every 100 ms, the last at 100.4
+        now[0] = 100.0 + 0.1 * i
+        _pose(link, f"p{i}", published_s=now[0])
+    link._path_rtt_s = 0.02
+    now[0] = 100.41  # covers up to 100.45: next due at 100.5, 90 ms away, led by 40 ms
+    assert link._ahead_s() - link.tuning.dial.ahead_s == pytest.approx(0.05)
+    now[0] = 100.47  # 100.5 is inside the lead (the attempt now covers it): next 100.6
+    assert link._ahead_s() - link.tuning.dial.ahead_s == pytest.approx(0.09)
+    link._path_rtt_s = 0.0005  # a LAN: the lead is ahead_s itself, 100.5 not covered
+    assert link._ahead_s() == pytest.approx(0.03)
 
 
 def _clocked_link(tmp_path: Path) -> tuple[RobotLink, list[float]]:

@@ -160,12 +160,13 @@ class ClientLimits:
             server offers it) and switch to it the moment a cut link returns, instead of
             a WebSocket upgrade on a new connection (docs/recovery.md, the standby
             connection). It costs one more TCP connection per robot; false turns it off.
-        dial_ahead_of_messages: During an outage's first minute, also a connection
-            attempt 3 ms (or two SYN round trips, when longer) before each message a
-            topic is due to publish (its last publish plus whole periods), so that a
-            link that returns just before a message has been seen to work when it is
-            published (docs/recovery.md, dialing ahead of the next message). It adds one SYN per message due while the link is down
-            (at most 333 a second); false turns it off.
+        dial_ahead_of_messages: During an outage's first minute, also two connection
+            attempts before each message a topic is due to publish (its last publish
+            plus whole periods), 3 and 1.5 ms ahead of it (more on a path with a long
+            SYN round trip), so that a link that returns just before a message has been
+            seen to work when it is published (docs/recovery.md, dialing ahead of the
+            next message). They take the place of paced SYNs where they fall; at most
+            666 a second; false turns it off.
     """
 
     max_fragment_bytes: int = 4194304

@@ -30,15 +30,17 @@ SYN's answer came back is dropped as stale (``Scheduler.drop_stale``: it may hav
 published while the path was dead), so a link that returned in the 10 ms between two
 paced SYNs cost the message published in that gap a whole period (traced e2e ``peer``
 runs: the cause in 4 of 12 trials). The caller can pass *ahead*, the time to the next
-message a topic is due to publish, and an extra attempt then starts ``ahead_s`` (3 ms)
-before it: the path has been seen to work when the message is published. (Until
-2026-12-05 the caller gave the time to the next *offer*, which comes 0.5-3 ms after the
-publish: a traced run had the SYN for a scan leave 0.4 ms before its publish and its
-answer come after it, so the scan went as possibly stale.) The RobotLink moves the
-target earlier on a path whose SYN round trip is long (two of them ahead).
-The intake of the e2e load's topics keeps its period within 2 ms (0.6 ms at p99). At most
-one such attempt per ``ahead_s`` (333 a second, however many topics), only in the
-outage's first ``fast_for_s``; the e2e load (20 + 10 + 1 Hz) adds 31 a second.
+message it wants an attempt ahead of, and an extra attempt then starts ``ahead_s``
+(1.5 ms) before it, no sooner than ``ahead_s`` after the previous one. The RobotLink
+asks for two per expected publish, 3 and 1.5 ms ahead of it (more on a path with a long
+SYN round trip): the path has been seen to work when the message is published unless
+the link came back in the last 1.5 ms before it. (Until 2026-12-05 one attempt, 3 ms
+ahead of the next *offer*, which comes 0.5-3 ms after the publish: a traced run had the
+SYN for a scan leave 0.4 ms before its publish and its answer come after it, so the scan
+went as possibly stale; docs/recovery.md, "Aimed at the publish".) The intake of the e2e
+load's topics keeps its period within 2 ms (0.6 ms at p99). At most one such attempt per
+``ahead_s`` (666 a second, however many topics), only in the outage's first
+``fast_for_s``; the e2e load (20 + 10 + 1 Hz) adds 62 a second.
 
 Cost while the server is unreachable. Linux resends an unanswered SYN at 1 s. One attempt
 per ``stagger_s`` is a long one: it lives ``attempt_life_s`` (2 s, so a path with an RTT
@@ -113,7 +115,7 @@ class DialSettings:
     double_every_s: float = 8.0
     outage_stagger_s: float = 0.01
     fast_for_s: float = 60.0
-    ahead_s: float = 0.003
+    ahead_s: float = 0.0015
 
     def stagger_at(self, outage_age_s: float) -> float:
         """The stagger for an attempt started *outage_age_s* into an outage (``inf``: not

@@ -345,29 +345,41 @@ async def test_an_outage_dial_is_told_when_the_next_message_is_due(
     (await off._race([0], outage_age_s=0.5)).sock.close()
     ahead, standby, turned_off = given
     assert standby is None and turned_off is None
-    assert link.tuning.dial.ahead_s == 0.003  # the default, which the figures below assume
-    now[0] = 100.23  # an attempt started now covers up to 100.233: next due at 100.25
-    assert ahead() == pytest.approx(0.02)  # the dialer starts one at 100.247
-    now[0] = 100.248  # the one due at 100.25 is covered: next due at 100.30
-    assert ahead() == pytest.approx(0.052)
+    spacing = link.tuning.dial.ahead_s
+    assert spacing == 0.0015  # the default, which the figures below assume
+
+    def starts_in(now_s: float) -> float:
+        """When the dialer starts its next extra attempt, asked at *now_s* (its rule)."""
+        now[0] = now_s
+        return max(spacing, ahead() - spacing)
+
+    # Two attempts lead the pose due at 100.25 (on its publishes, not its offers at
+    # x.xx25): 3 ms and 1.5 ms before it; then the next pose, 100.30.
+    assert starts_in(100.23) == pytest.approx(0.017)  # at 100.247
+    assert starts_in(100.2471) == pytest.approx(0.0015)  # at 100.2486 (the loop was late)
+    assert starts_in(100.2486) == pytest.approx(0.0484)  # at 100.297
 
 
-async def test_on_a_long_round_trip_the_outage_dial_leads_by_two_of_them(
-    tmp_path: Path,
-) -> None:
+async def test_on_a_long_round_trip_the_outage_dial_leads_by_more(tmp_path: Path) -> None:
     """With a 20 ms SYN round trip a SYN 3 ms before a publish is answered 17 ms after
-    it (the message then goes as possibly stale): the lead is two round trips, 40 ms."""
+    it (the message then goes as possibly stale): the two attempts lead by 1.5 and 3
+    round trips, 30 and 60 ms."""
     link, now = _clocked_link(tmp_path)
     for i in range(5):  # published every 100 ms, the last at 100.4
         now[0] = 100.0 + 0.1 * i
         _pose(link, f"p{i}", published_s=now[0])
     link._path_rtt_s = 0.02
-    now[0] = 100.41  # covers up to 100.45: next due at 100.5, 90 ms away, led by 40 ms
-    assert link._ahead_s() - link.tuning.dial.ahead_s == pytest.approx(0.05)
-    now[0] = 100.47  # 100.5 is inside the lead (the attempt now covers it): next 100.6
-    assert link._ahead_s() - link.tuning.dial.ahead_s == pytest.approx(0.09)
-    link._path_rtt_s = 0.0005  # a LAN: the lead is ahead_s itself, 100.5 not covered
-    assert link._ahead_s() == pytest.approx(0.03)
+    spacing = link.tuning.dial.ahead_s
+
+    def target(now_s: float) -> float:
+        now[0] = now_s
+        return now_s + link._ahead_s() - spacing
+
+    assert target(100.41) == pytest.approx(100.44)  # 60 ms before 100.5
+    assert target(100.44) == pytest.approx(100.47)  # 30 ms before it
+    assert target(100.47) == pytest.approx(100.54)  # 100.5 covered: 60 ms before 100.6
+    link._path_rtt_s = 0.0005  # a LAN: 3 and 1.5 ms
+    assert target(100.47) == pytest.approx(100.497)
 
 
 def _clocked_link(tmp_path: Path) -> tuple[RobotLink, list[float]]:

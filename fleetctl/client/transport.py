@@ -745,8 +745,8 @@ class RobotLink:
         publish costs the period unless the near one's answer comes before the publish;
         a restore between the near one and the publish is the window left (traced e2e
         runs: 3 losses in 30 trials with a single attempt 3 ms ahead, about the 9 % that
-        3 ms in a 50 ms and a 100 ms period predict). *near* is ``ahead_s`` (1.5 ms: two
-        to three SYN round trips on the e2e link), or 1.5 of the path's SYN round trips
+        3 ms in a 50 ms and a 100 ms period predict). *near* is ``ahead_s`` (1.5 ms: 1.5
+        to 3 SYN round trips on the e2e link), or 1.5 of the path's SYN round trips
         when that is longer (a Wi-Fi or LTE path: the answer needs one); *far* is twice
         *near*, for a host too busy to start or answer the near one in time.
         """

@@ -3,7 +3,7 @@ import assert from "node:assert/strict";
 import { LinkHealth } from "../../../fleetctl/webviz/static/js/health.js";
 import { Rules } from "../../../fleetctl/webviz/static/js/rules.js";
 import { reEscape, wantedRegexes } from "../../../fleetctl/webviz/static/js/panels.js";
-import { robotRow, toEpochS } from "../../../fleetctl/webviz/static/js/views/overview.js";
+import { batteryText, robotRow, toEpochS } from "../../../fleetctl/webviz/static/js/views/overview.js";
 import { cloudXYZ } from "../../../fleetctl/webviz/static/js/views/cloudpoints.js";
 
 test("seq gaps count as drops; rate and latency over the window", () => {
@@ -64,6 +64,16 @@ test("overview rows from partial registry entries", () => {
   const live = robotRow({ name: "b", online: true, status: "old" }, { status: "ok", is_ok: true, battery_level: 0.5, location: "x" });
   assert.equal(live.battery, 0.5);
   assert.equal(live.status, "ok");
+});
+
+test("battery column: a fraction as percent, unknown (-1 from a robot without battery_topic) as a dash", () => {
+  assert.equal(batteryText(0.42), "42%");
+  assert.equal(batteryText(1), "100%");
+  assert.equal(batteryText(0), "0%");
+  assert.equal(batteryText(87), "87%");
+  assert.equal(batteryText(-1), "–");
+  assert.equal(batteryText(undefined), "–");
+  assert.equal(batteryText(NaN), "–");
 });
 
 test("point cloud extraction decimates and handles unaligned data", () => {

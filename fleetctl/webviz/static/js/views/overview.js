@@ -41,10 +41,20 @@ export function robotRow(entry, live) {
   };
 }
 
+/**
+ * The battery column: a fraction 0..1 as the Robofleet convention has it (a robot that
+ * reports 0..100 is shown as is); a negative level is the client's "unknown" (-1, sent when
+ * the robot has no battery_topic), shown as a dash like a missing one, not as "-100%".
+ */
+export function batteryText(level) {
+  if (!Number.isFinite(level) || level < 0) return "–";
+  return `${Math.round(level <= 1 ? level * 100 : level)}%`;
+}
+
 export function renderOverview(tbody, rows, linkFor) {
   tbody.innerHTML = rows.map((r) => {
     const link = linkFor(r.name);
-    const batt = Number.isFinite(r.battery) ? `${Math.round(r.battery <= 1 ? r.battery * 100 : r.battery)}%` : "–";
+    const batt = batteryText(r.battery);
     const ok = r.isOk === undefined ? "–" : r.isOk ? "OK" : "NOT OK";
     return `<tr data-robot="${esc(r.name)}" class="${r.online ? "online" : "offline"}">
       <td><a href="#/robot/${encodeURIComponent(r.name)}">${esc(r.name)}</a></td>

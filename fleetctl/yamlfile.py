@@ -23,7 +23,8 @@ def read_yaml(path: Path, what: str) -> Any:
         The document (``None`` for an empty file).
 
     Raises:
-        ConfigError: ``PATH: cannot read WHAT: REASON`` or ``PATH: not valid YAML: ...``.
+        ConfigError: ``PATH: cannot read WHAT: REASON`` or ``PATH:LINE: not valid YAML: ...``
+            (one line).
     """
     try:
         text = read_small_text(path)
@@ -34,4 +35,22 @@ def read_yaml(path: Path, what: str) -> Any:
     try:
         return yaml.safe_load(text)
     except yaml.YAMLError as exc:
-        raise ConfigError(f"{path}: not valid YAML: {exc}") from None
+        raise yaml_error(path, exc) from None
+    except RecursionError:
+        raise ConfigError(f"{path}: not valid YAML: {TOO_DEEP}") from None
+
+
+# PyYAML's parser recurses once per level of nesting: a few hundred "[" exhaust Python's
+# stack. No config of ours nests more than a handful of levels.
+TOO_DEEP = "nested too deeply"
+
+
+def yaml_error(path: Path, exc: yaml.YAMLError) -> ConfigError:
+    """``PATH:LINE: not valid YAML: PROBLEM`` on one line (PyYAML's own message spans
+    several lines and names ``<unicode string>`` instead of the file)."""
+    if isinstance(exc, yaml.MarkedYAMLError):
+        mark = exc.problem_mark or exc.context_mark
+        line = f":{mark.line + 1}" if mark is not None else ""
+        problem = exc.problem or exc.context or "not valid YAML"
+        return ConfigError(f"{path}{line}: not valid YAML: {problem}")
+    return ConfigError(f"{path}: not valid YAML: {exc}")

@@ -25,5 +25,22 @@ def test_missing_file_names_file_and_role(tmp_path: Path) -> None:
 def test_bad_yaml_names_the_file(tmp_path: Path) -> None:
     path = tmp_path / "bad.yaml"
     path.write_text("a: [\n")
-    with pytest.raises(ConfigError, match=r"bad\.yaml: not valid YAML"):
+    with pytest.raises(ConfigError, match=r"bad\.yaml:2: not valid YAML"):
         read_yaml(path, "client config")
+
+
+def test_a_syntax_error_is_one_line_with_the_file_and_its_line(tmp_path: Path) -> None:
+    path = tmp_path / "server.yaml"
+    path.write_text("listen_host: 127.0.0.1\nlisten_port: [1\n")
+    with pytest.raises(ConfigError) as info:
+        read_yaml(path, "server config")
+    message = str(info.value)
+    assert message.startswith(f"{path}:3: not valid YAML: ")
+    assert "\n" not in message and "<unicode string>" not in message
+
+
+def test_deep_nesting_is_a_config_error_not_a_recursion_crash(tmp_path: Path) -> None:
+    path = tmp_path / "auth.yaml"
+    path.write_text("robots: " + "[" * 2000 + "]" * 2000 + "\n")
+    with pytest.raises(ConfigError, match=r"auth\.yaml: not valid YAML: nested too deeply"):
+        read_yaml(path, "auth map")

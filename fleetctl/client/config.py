@@ -411,13 +411,15 @@ def _subscribe(ctx: _Ctx, raw: object, where: str) -> SubscribeSpec:
 
 
 def _check_regex(ctx: _Ctx, where: str, pattern: str) -> None:
-    import re2
+    # The relay's compiler: RE2 with its own stderr logging off, so that a bad pattern
+    # gives this one error line and no absl noise before it.
+    from fleetctl.server.regex import BadRegex, compile_full
 
     try:
-        re2.compile(pattern)
-    except Exception as exc:  # re2 raises its own error type; any failure is a bad regex
+        compile_full(pattern)
+    except BadRegex as exc:
         reason = f"neither a topic nor a valid RE2 regex: {exc}"
-        raise ctx.error(where, "remote_topic", reason) from exc
+        raise ctx.error(where, "remote_topic", reason) from None
 
 
 def _type(ctx: _Ctx, entry: Mapping[str, Any], where: str) -> str:

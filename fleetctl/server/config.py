@@ -12,12 +12,11 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-import re2
-
 from fleetctl.errors import ConfigError
 from fleetctl.server.cluster.config import ClusterConfig, parse_cluster
 from fleetctl.server.configsection import is_positive_number, section
 from fleetctl.server.recording.config import RecordingConfig, parse_recording
+from fleetctl.server.regex import BadRegex, compile_full
 from fleetctl.server.tls import server_context
 from fleetctl.smallfile import MAX_PEM_BYTES, read_small
 from fleetctl.webviz.config import DEBIAN_JS_DIR
@@ -365,8 +364,8 @@ def _regexes(value: Any, path: Path) -> tuple[str, ...]:
         if not isinstance(item, str):
             raise ConfigError(f"{path}: field 'no_drop_topics[{i}]' must be a string")
         try:
-            re2.compile(item)
-        except re2.error as exc:
+            compile_full(item)  # RE2 with its stderr logging off, as every relay regex
+        except BadRegex as exc:
             raise ConfigError(
                 f"{path}: field 'no_drop_topics[{i}]': bad RE2 regex {item!r}: {exc}"
             ) from None

@@ -223,7 +223,7 @@ def test_file_errors(tmp_path: Path) -> None:
         load_client_config(tmp_path / "missing.yaml")
     bad = tmp_path / "bad.yaml"
     bad.write_text("server_url: [unclosed\n")
-    with pytest.raises(ConfigError, match=r"bad\.yaml: not valid YAML"):
+    with pytest.raises(ConfigError, match=r"bad\.yaml:2: not valid YAML"):
         load_client_config(bad)
     (tmp_path / "c.yaml").write_text("server_url: ws://h/\nrobot_name: r\ntoken_file: nope\n")
     with pytest.raises(ConfigError, match="token_file: cannot read"):
@@ -307,3 +307,14 @@ def test_media_fields_name_entry_and_field(data: Any, expected: str) -> None:
     with pytest.raises(ConfigError) as info:
         parse_client_config(data, source="client.yaml")
     assert expected in str(info.value)
+
+
+def test_a_bad_subscribe_regex_is_one_error_line_and_no_re2_log(
+        tmp_path: Path, capfd: pytest.CaptureFixture[str]) -> None:
+    path = tmp_path / "c.yaml"
+    path.write_text("server_url: ws://h/\nrobot_name: r\nsubscribe:\n"
+                    "  - remote_topic: '/a/(('\n    type: std_msgs/msg/String\n"
+                    "    local_topic: /x\n")
+    with pytest.raises(ConfigError, match="neither a topic nor a valid RE2 regex"):
+        load_client_config(path)
+    assert "((" not in capfd.readouterr().err

@@ -173,6 +173,19 @@ async def test_broken_file_keeps_the_old_map(
         assert len(infos) == 1 and "file changed" in infos[0]
 
 
+async def test_a_deeply_nested_file_is_one_error_line_and_keeps_the_old_map(
+    live: RelayServer, auth_file: Path, caplog: pytest.LogCaptureFixture
+) -> None:
+    caplog.set_level(logging.INFO, logger="fleetctl.server")
+    auth_file.write_text("identities: " + "[" * 2000 + "]" * 2000 + "\n")
+    assert not live.reload_auth("SIGHUP")  # a RecursionError in PyYAML before
+    errors = [r for r in caplog.records if r.levelno >= logging.ERROR]
+    assert len(errors) == 1 and errors[0].exc_info is None
+    assert "nested too deeply" in errors[0].getMessage()
+    async with client(live, token=BOB_TOKEN) as bob:
+        assert (await next_json(bob, "welcome"))["identities"] == ["bob"]
+
+
 async def test_sighup_reloads(auth_file: Path, tmp_path: Path) -> None:
     config = ServerConfig(listen_host="127.0.0.1", listen_port=0, auth_map=auth_file,
                           database=tmp_path / "fleet.db")

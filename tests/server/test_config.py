@@ -93,3 +93,12 @@ def test_bad_config_names_file_and_field(tmp_path: Path, text: str, field: str) 
 def test_missing_file(tmp_path: Path) -> None:
     with pytest.raises(ConfigError, match="cannot read"):
         load_server_config(tmp_path / "nope.yaml")
+
+
+def test_a_bad_no_drop_regex_is_one_error_line_and_no_re2_log(
+        tmp_path: Path, capfd: pytest.CaptureFixture[str]) -> None:
+    path = write(tmp_path, "auth_map: a.yaml\nno_drop_topics: ['((']")
+    with pytest.raises(ConfigError, match=r"no_drop_topics\[0\]': bad RE2 regex"):
+        load_server_config(path)
+    # RE2's default options log the parse error to stderr (absl) before ours.
+    assert "((" not in capfd.readouterr().err

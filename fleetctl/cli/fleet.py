@@ -148,7 +148,7 @@ def add_robot(
     output: OutputFormat = output_option(),
 ) -> None:
     """Add a robot: keys, WireGuard and client configs, server peer, auth rules."""
-    with ops.fleet_lock(fleet):
+    with ops.fleet_lock(fleet, dry_run=dry_run):
         result = ops.add_robot(fleet, name, ip=ip, mtu_bytes=mtu, dry_run=dry_run)
 
     def text() -> str:
@@ -171,7 +171,7 @@ def remove_robot(
     output: OutputFormat = output_option(),
 ) -> None:
     """Remove a robot, its keys and files, its server peer and its auth rules."""
-    with ops.fleet_lock(fleet):
+    with ops.fleet_lock(fleet, dry_run=dry_run):
         result = ops.remove_robot(fleet, name, dry_run=dry_run, force=force)
     emit(result, output, lambda: _header(result.outcome, f"removed robot {name!r}"))
     _finish(result.outcome, output)
@@ -185,7 +185,7 @@ def add_user(
     output: OutputFormat = output_option(),
 ) -> None:
     """Add a user; prints their token once (only its SHA-256 is stored)."""
-    with ops.fleet_lock(fleet):
+    with ops.fleet_lock(fleet, dry_run=dry_run):
         result = ops.add_user(fleet, email, role, dry_run=dry_run)
     shown = {"user": result.user, "outcome": result.outcome,
              "token": result.token.reveal() if result.token else None}
@@ -207,7 +207,7 @@ def remove_user(
     output: OutputFormat = output_option(),
 ) -> None:
     """Remove a user; their token stops working once the server reloads auth.yaml."""
-    with ops.fleet_lock(fleet):
+    with ops.fleet_lock(fleet, dry_run=dry_run):
         result = ops.remove_user(fleet, email, dry_run=dry_run)
     emit(result, output, lambda: _header(result.outcome, f"removed user {email!r}"))
     _finish(result.outcome, output)
@@ -242,7 +242,7 @@ def render(
     output: OutputFormat = output_option(),
 ) -> None:
     """Regenerate every config from fleet.yaml and the keys (unchanged files stay untouched)."""
-    with ops.fleet_lock(fleet):
+    with ops.fleet_lock(fleet, dry_run=dry_run):
         outcome = ops.render_fleet(fleet, dry_run=dry_run, force=force)
     emit(outcome, output, lambda: _header(outcome, f"rendered {outcome.fleet_dir}"))
     _finish(outcome, output)
@@ -255,7 +255,7 @@ def set_endpoint(
     output: OutputFormat = output_option(),
 ) -> None:
     """Set where robots reach the server's WireGuard (HOST:PORT), then re-render."""
-    with ops.fleet_lock(fleet):
+    with ops.fleet_lock(fleet, dry_run=dry_run):
         result = ops.set_endpoint(fleet, endpoint, dry_run=dry_run)
 
     def text() -> str:

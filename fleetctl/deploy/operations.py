@@ -18,7 +18,7 @@ from pathlib import Path
 
 from fleetctl.client.mediaconfig import TfSpec
 from fleetctl.deploy import keystore, tls
-from fleetctl.deploy.files import Change, Plan, is_untouched
+from fleetctl.deploy.files import Change, Plan, WriteFailed, is_untouched
 from fleetctl.deploy.fleet import (
     DEFAULT_COMMAND_TOPICS,
     DEFAULT_HTTPS_PORT,
@@ -258,24 +258,46 @@ LOCK_FILE = ".fleetctl.lock"
 
 
 @contextlib.contextmanager
-def fleet_lock(fleet_dir: Path) -> Iterator[None]:
+def fleet_lock(fleet_dir: Path, *, dry_run: bool = False) -> Iterator[None]:
     """Hold an exclusive lock on *fleet_dir* (``flock`` on ``FLEET/.fleetctl.lock``) so two
     commands that change the fleet at once run one after the other: each reads fleet.yaml,
     changes it and writes it back, and the later write would drop the earlier change.
 
-    A directory that is not there (yet) is not locked: loading the fleet reports it.
+    A directory that is not a fleet (missing, or without ``fleet.yaml``) is not locked and
+    the lock file is not made there: loading the fleet then reports it, and a failing
+    command leaves nothing behind.
+
+    With *dry_run* the lock is shared and the lock file is never created. A dry run writes
+    nothing, so it cannot lose another command's change and needs no exclusive lock; making
+    the lock file would be a change of its own (and fails in a fleet directory the caller
+    may only read, where a preview should still work). A shared lock on an existing lock
+    file keeps the preview from reading a fleet halfway through another command's change;
+    when there is no lock file yet (no command has changed this fleet) or it cannot be
+    opened, the dry run goes on unlocked: at worst it previews a fleet that another
+    command is changing at that moment, and it still writes nothing.
+
+    Raises:
+        WriteFailed: (exit code 5) the lock file cannot be created or opened, e.g. a fleet
+            directory the caller may not write; nothing was changed.
     """
-    if not fleet_dir.is_dir():
+    if not fleet_dir.is_dir() or not os.path.lexists(fleet_file(fleet_dir)):
         yield
         return
+    path = fleet_dir / LOCK_FILE
     try:
-        fd = os.open(fleet_dir / LOCK_FILE,
-                     os.O_RDWR | os.O_CREAT | os.O_NOFOLLOW | os.O_CLOEXEC, 0o600)
+        if dry_run:
+            fd = os.open(path, os.O_RDONLY | os.O_NOFOLLOW | os.O_CLOEXEC)
+        else:
+            fd = os.open(path, os.O_RDWR | os.O_CREAT | os.O_NOFOLLOW | os.O_CLOEXEC, 0o600)
     except OSError as exc:
-        raise ConfigError(f"{fleet_dir / LOCK_FILE}: cannot open the fleet's lock file: "
-                          f"{exc.strerror or exc}") from None
+        if dry_run:
+            yield
+            return
+        raise WriteFailed(f"{path}: cannot write: {exc.strerror or exc}; nothing was "
+                          "changed (the lock file of commands that change the fleet; "
+                          "--dry-run does not need it)") from None
     try:
-        fcntl.flock(fd, fcntl.LOCK_EX)
+        fcntl.flock(fd, fcntl.LOCK_SH if dry_run else fcntl.LOCK_EX)
         yield
     finally:
         os.close(fd)  # releases the lock

@@ -479,3 +479,75 @@ def test_a_fleet_file_that_is_a_device_or_fifo_is_a_config_error(
         path.symlink_to("/dev/zero")
     _, err = cli("render", code=ExitCode.CONFIG)
     assert f"{victim}: cannot read" in err and "not a regular file" in err
+
+
+# --- the fleet lock: never made outside a fleet, not needed by a dry run -----------------
+
+
+_CHANGE_COMMANDS = [["add-robot", "r1"], ["remove-robot", "r1"], ["render"],
+                    ["add-user", "a@example.com", "--role", "viewer"],
+                    ["remove-user", "a@example.com"], ["set-endpoint", "h.example:51820"]]
+
+
+@pytest.mark.parametrize("dry_run", [[], ["--dry-run"]])
+@pytest.mark.parametrize("args", _CHANGE_COMMANDS)
+def test_a_change_outside_a_fleet_leaves_no_lock_file(cli: Cli, args: list[str],
+                                                      dry_run: list[str]) -> None:
+    """A directory without fleet.yaml is not a fleet: the command fails and changes
+    nothing (it used to leave .fleetctl.lock behind)."""
+    cli.fleet.mkdir()
+    _, err = cli(*args, *dry_run, code=ExitCode.CONFIG)
+    assert "is not a fleet directory" in err
+    assert list(cli.fleet.iterdir()) == []
+
+
+@pytest.fixture
+def lock_refused(monkeypatch: pytest.MonkeyPatch) -> list[int]:
+    """Opening FLEET/.fleetctl.lock fails as in a read-only fleet directory (the tests may
+    run as root, whom a mode of 0555 does not stop). Returns the flags of each attempt."""
+    from fleetctl.deploy.operations import LOCK_FILE
+
+    real_open = os.open
+    attempts: list[int] = []
+
+    def fake_open(path: str | os.PathLike[str], flags: int, *args: int, **kwargs: object) -> int:
+        if os.path.basename(os.fspath(path)) == LOCK_FILE:
+            attempts.append(flags)
+            raise PermissionError(1, "Operation not permitted", os.fspath(path))
+        return real_open(path, flags, *args, **kwargs)  # type: ignore[arg-type]
+
+    monkeypatch.setattr(os, "open", fake_open)
+    return attempts
+
+
+def test_a_dry_run_in_a_read_only_fleet_works(fleet: Path, cli: Cli,
+                                              lock_refused: list[int]) -> None:
+    (fleet / ".fleetctl.lock").unlink()
+    (fleet / "server/auth.yaml").unlink()
+    before = _snapshot(fleet)
+    out, _ = cli("render", "--dry-run")
+    assert "would create server/auth.yaml" in out
+    cli("add-robot", "r2", "--dry-run")
+    assert _snapshot(fleet) == before and not (fleet / ".fleetctl.lock").exists()
+    assert lock_refused and not any(flags & os.O_CREAT for flags in lock_refused)
+
+
+def test_a_lock_file_that_cannot_be_made_is_a_write_error(fleet: Path, cli: Cli,
+                                                          lock_refused: list[int]) -> None:
+    """exit 5 (a file could not be written), not 3 (a bad config)."""
+    (fleet / ".fleetctl.lock").unlink()
+    before = _snapshot(fleet)
+    _, err = cli("render", code=ExitCode.ENVIRONMENT)
+    assert err.startswith(f"fleetctl: error: {fleet / '.fleetctl.lock'}: cannot write: "
+                          "Operation not permitted; nothing was changed")
+    assert len(err.strip().splitlines()) == 1 and _snapshot(fleet) == before
+
+
+def test_a_dry_run_does_not_make_the_lock_file(cli: Cli) -> None:
+    cli("init")
+    for args in _CHANGE_COMMANDS[:1] + _CHANGE_COMMANDS[2:4] + _CHANGE_COMMANDS[5:]:
+        cli(*args, "--dry-run")
+    assert not (cli.fleet / ".fleetctl.lock").exists()
+    cli("add-robot", "r1")
+    assert (cli.fleet / ".fleetctl.lock").exists()
+    cli("remove-robot", "r1", "--dry-run")  # a shared lock on the existing file

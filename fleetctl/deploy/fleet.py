@@ -481,7 +481,8 @@ def load_fleet(fleet_dir: Path) -> Fleet:
             the message names the file, the line and the field.
     """
     if not fleet_dir.is_dir():
-        raise ConfigError(f"fleet directory {fleet_dir} does not exist "
+        what = "exists and is not a directory" if os.path.lexists(fleet_dir) else "does not exist"
+        raise ConfigError(f"fleet directory {fleet_dir} {what} "
                           "(create one with 'fleetctl init', or set --fleet / FLEET_DIR)")
     path = fleet_file(fleet_dir)
     try:

@@ -551,3 +551,15 @@ def test_a_dry_run_does_not_make_the_lock_file(cli: Cli) -> None:
     cli("add-robot", "r1")
     assert (cli.fleet / ".fleetctl.lock").exists()
     cli("remove-robot", "r1", "--dry-run")  # a shared lock on the existing file
+
+
+def test_a_fleet_directory_that_is_a_file(cli: Cli, tmp_path: Path,
+                                          monkeypatch: pytest.MonkeyPatch) -> None:
+    """It used to be reported as missing."""
+    afile = tmp_path / "afile"
+    afile.write_text("mine\n")
+    monkeypatch.setenv("FLEET_DIR", str(afile))
+    for cmd in (["list"], ["render", "--dry-run"], ["add-robot", "x"]):
+        _, err = cli(*cmd, code=ExitCode.CONFIG)
+        assert f"fleet directory {afile} exists and is not a directory" in err
+    assert afile.read_text() == "mine\n"

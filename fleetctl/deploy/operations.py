@@ -399,26 +399,43 @@ def add_robot(
     Args:
         fleet_dir: the fleet directory.
         name: a ROS namespace segment, unique in the fleet.
-        ip: its VPN address; ``None``: the lowest free address of the subnet.
+        ip: its VPN address; ``None``: the lowest free address of the subnet (an empty
+            string is an error).
         mtu_bytes: MTU of its WireGuard interface.
         dry_run: compute and return the changes without writing anything.
         keys: where key material comes from.
 
     Raises:
-        ConfigError: a bad name or address, or a missing/malformed fleet directory.
+        ConfigError: a bad name, address or MTU, or a missing/malformed fleet directory;
+            a problem with *ip* or *mtu_bytes* names the option (``ip (--ip): ...``).
         ConflictError: the name or address is taken, or the subnet is full.
     """
     fleet = load_fleet(fleet_dir)
+    # The fields of the new robot that come from an option (--ip only when given).
+    options = {"mtu_bytes": "--mtu", **({"ip": "--ip"} if ip is not None else {})}
     try:
         check_robot_name(name)
-        address = parse_ip(ip, ("ip",)) if ip else next_free_ip(fleet)
+        # An empty --ip is refused (as an empty endpoint is), not taken as "next free".
+        address = parse_ip(ip, ("ip",)) if ip is not None else next_free_ip(fleet)
     except FleetInvalid as exc:
-        raise (ConflictError(str(exc)) if exc.conflict else ConfigError(str(exc))) from None
+        message = (f"robot {name!r}: ip (--ip): {exc}" if exc.path == ("ip",)
+                   else str(exc))
+        raise (ConflictError(message) if exc.conflict else ConfigError(message)) from None
     # A new robot sends TF (throttled, tf2_web_republisher's defaults): what the page needs
     # to draw its sensors in one scene. fleet.yaml's `tf:` says so and can be removed.
     robot = Robot(name, address, mtu_bytes=mtu_bytes, command_topics=DEFAULT_COMMAND_TOPICS,
                   tf=TfSpec())
-    new = _checked(replace(fleet, robots=(*fleet.robots, robot)))
+    new = replace(fleet, robots=(*fleet.robots, robot))
+    try:
+        validate(new)
+    except FleetInvalid as exc:
+        path = exc.path
+        option = (options.get(str(path[2]))
+                  if len(path) == 3 and path[:2] == ("robots", len(fleet.robots)) else None)
+        if option is None:
+            raise _error(new, exc) from None
+        message = f"robot {name!r}: {path[2]} ({option}): {exc}"
+        raise (ConflictError(message) if exc.conflict else ConfigError(message)) from None
     plan = Plan()
     fleet_keys = _load_keys(fleet_dir, new, keys, plan)
     _plan_tls(plan, fleet_dir, new)

@@ -71,7 +71,9 @@ _RELATIVE_TOPIC = re.compile(r"[A-Za-z][A-Za-z0-9_]*(/[A-Za-z][A-Za-z0-9_]*)*")
 _TYPE = re.compile(r"[A-Za-z][A-Za-z0-9_]*/(msg/)?[A-Za-z][A-Za-z0-9_]*")
 # A fleet name: ASCII letters, digits, '.', '_' and '-', starting with a letter or digit.
 _FLEET_NAME = re.compile(r"[A-Za-z0-9][A-Za-z0-9._-]*")
-_PORT = re.compile(r"[0-9]{1,5}")  # ASCII only: str.isdigit() and int() take any digits
+# ASCII only (str.isdigit() and int() take any digits), and no leading zero: `host:01`
+# would be written as is into wg0.conf's Endpoint while fleetctl reads port 1.
+_PORT = re.compile(r"[1-9][0-9]{0,4}")
 _SHA256 = re.compile(r"[0-9a-f]{64}")
 _HOST = re.compile(r"[A-Za-z0-9]([A-Za-z0-9.-]*[A-Za-z0-9])?|\[[0-9A-Fa-f:.]+\]")
 _RE2_OPTIONS = re2.Options()
@@ -286,8 +288,8 @@ def parse_endpoint(endpoint: str) -> tuple[str, int]:
     if (not sep or len(host) > MAX_HOST_CHARS or not _HOST.fullmatch(host)
             or not _host_is_valid(host)
             or not _PORT.fullmatch(port) or not 0 < int(port) < 65536):
-        raise FleetInvalid(("endpoint",), f"expected HOST:PORT (ASCII, port 1..65535), "
-                           f"got {shown(endpoint)}")
+        raise FleetInvalid(("endpoint",), f"expected HOST:PORT (ASCII, port 1..65535 "
+                           f"without a leading zero), got {shown(endpoint)}")
     return host, int(port)
 
 

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+import re
 from collections.abc import Iterable
 from pathlib import Path
 
@@ -17,6 +18,8 @@ _INT = "tag:yaml.org,2002:int"
 _FLOAT = "tag:yaml.org,2002:float"
 _NULL = "tag:yaml.org,2002:null"
 _BOOL = "tag:yaml.org,2002:bool"
+# An integer as fleet.yaml may write it: decimal ASCII digits, no leading zero, a sign.
+_DECIMAL = re.compile(r"[-+]?(0|[1-9][0-9]{0,29})")
 
 
 class FleetInvalid(Exception):
@@ -119,17 +122,20 @@ class Document:
         return str(node.value)
 
     def integer(self, node: yaml.Node, path: FieldPath, low: int, high: int) -> int:
-        """Return an integer scalar in ``[low, high]``."""
+        """Return an integer scalar in ``[low, high]``, written in decimal ASCII digits.
+
+        YAML 1.1 also reads ``0x1f90``, ``0o17``, ``0b1``, ``8_080``, ``017`` (octal) and
+        ``2:13:20`` (base 60) as integers; those are refused, as are other scripts' digits
+        (``int()`` reads them): what the file says is the number it means.
+        """
         self._seen(node, path)
         if not isinstance(node, yaml.ScalarNode) or node.tag != _INT:
             raise self.error(path, "expected an integer")
-        text = str(node.value).replace("_", "")
-        try:
-            if not text.isascii():  # int() also reads other scripts' digits
-                raise ValueError(text)
-            value = int(text, 0)
-        except ValueError:
-            raise self.error(path, "expected an integer") from None
+        text = str(node.value)
+        if not _DECIMAL.fullmatch(text):
+            raise self.error(path, f"expected an integer in decimal ASCII digits without "
+                             f"leading zeros, got {text[:40]!r}")
+        value = int(text)
         if not low <= value <= high:
             raise self.error(path, f"must be between {low} and {high}, got {value}")
         return value

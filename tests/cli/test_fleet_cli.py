@@ -304,7 +304,7 @@ def test_set_endpoint_on_another_port_warns_about_wireguard_port(fleet: Path, cl
 
 
 @pytest.mark.parametrize("endpoint", ["vpn.example.com", "vpn:0", "a b:1", "h:99999",
-                                      "x\n[Peer]:1"])
+                                      "x\n[Peer]:1", "host:01", "h:051820", "h:00"])
 def test_set_endpoint_bad_input_changes_nothing(fleet: Path, cli: Cli, endpoint: str,
                                                 synced: list[Path]) -> None:
     before = _snapshot(fleet)

@@ -78,6 +78,23 @@ def test_good_fleet_round_trips() -> None:
         ("name: campus\n", "", "/f/fleet.yaml:1: (document): missing required field 'name'"),
         ("    ip: 10.8.0.2\n", "    ip: 10.8.0.2\n    mtu_bytes: big\n",
          "/f/fleet.yaml:9: robots[0].mtu_bytes: expected an integer"),
+        # YAML 1.1 reads these as 8080, 8080, 8 and 8080: fleet.yaml's integers are
+        # decimal ASCII digits, as the docs say.
+        ("server_ip: 10.8.0.1\n", "server_ip: 10.8.0.1\nserver_port: 0x1f90\n",
+         "/f/fleet.yaml:6: server_port: expected an integer in decimal ASCII digits without "
+         "leading zeros, got '0x1f90'"),
+        ("server_ip: 10.8.0.1\n", "server_ip: 10.8.0.1\nserver_port: 8_080\n",
+         "/f/fleet.yaml:6: server_port: expected an integer in decimal ASCII digits"),
+        ("server_ip: 10.8.0.1\n", "server_ip: 10.8.0.1\nhttps_port: 010\n",
+         "/f/fleet.yaml:6: https_port: expected an integer in decimal ASCII digits"),
+        ("server_ip: 10.8.0.1\n", "server_ip: 10.8.0.1\nwireguard_port: 2:14:40\n",
+         "/f/fleet.yaml:6: wireguard_port: expected an integer in decimal ASCII digits"),
+        ("    ip: 10.8.0.2\n", "    ip: 10.8.0.2\n    mtu_bytes: 0b10100000000\n",
+         "/f/fleet.yaml:9: robots[0].mtu_bytes: expected an integer in decimal ASCII digits"),
+        ("version: 1\n", "version: 0o1\n", "/f/fleet.yaml:1: version: expected an integer"),
+        ("endpoint: vpn.example.com:51820\n", "endpoint: vpn.example.com:051820\n",
+         "/f/fleet.yaml:3: endpoint: expected HOST:PORT (ASCII, port 1..65535 without a "
+         "leading zero), got 'vpn.example.com:051820'"),
         ("  - name: husky1\n", "  - name: [husky1]\n",
          "/f/fleet.yaml:7: robots[0].name: expected a string"),
     ],
@@ -233,7 +250,7 @@ def test_require_endpoint(tmp_path: Path) -> None:
         ("  - name: jackal2\n", f"  - name: {'j' * 64}\n",
          "/f/fleet.yaml:9: robots[1].name: robot name"),
         ("endpoint: vpn.example.com:51820\n", "endpoint: vpn.example.com:\uff15\uff11\uff18\n",
-         "/f/fleet.yaml:3: endpoint: expected HOST:PORT (ASCII, port 1..65535)"),
+         "/f/fleet.yaml:3: endpoint: expected HOST:PORT (ASCII, port 1..65535 without"),
         ("endpoint: vpn.example.com:51820\n", "endpoint: vpn.example.com:\u00b2\n",
          "/f/fleet.yaml:3: endpoint: expected HOST:PORT"),
         ("endpoint: vpn.example.com:51820\n", "endpoint: vpn.example.com:70000\n",

@@ -33,6 +33,8 @@ from fleetctl.deploy.fleet import (
     DEFAULT_MTU_BYTES,
     DEFAULT_SERVER_PORT,
     DEFAULT_SUBNET,
+    MAX_MTU_BYTES,
+    MIN_MTU_BYTES,
     Fleet,
 )
 
@@ -141,8 +143,12 @@ def init(
 def add_robot(
     name: str = typer.Argument(..., help="Robot name (a ROS namespace segment)."),
     ip: str | None = typer.Option(None, "--ip", help="VPN address (default: next free one)."),
-    mtu: int = typer.Option(DEFAULT_MTU_BYTES, "--mtu", parser=AsciiInt(1, 65535),
-                            help="WireGuard MTU in bytes (1280 suits LTE)."),
+    # The range fleet.yaml allows: out of it is a usage error (exit 2) like a port out of
+    # range, whether above 65535 or below 576 (once exit 2 and exit 3 with two messages).
+    mtu: int = typer.Option(DEFAULT_MTU_BYTES, "--mtu",
+                            parser=AsciiInt(MIN_MTU_BYTES, MAX_MTU_BYTES),
+                            help=f"WireGuard MTU in bytes, {MIN_MTU_BYTES}..{MAX_MTU_BYTES} "
+                            "(1280 suits LTE)."),
     fleet: Path = fleet_option(),
     dry_run: bool = _dry_run_option(),
     output: OutputFormat = output_option(),

@@ -116,8 +116,12 @@ def test_add_robot_allocates_and_writes(fleet: Path, cli: Cli) -> None:
         (["bad-name"], ExitCode.CONFIG, "not a ROS namespace segment"),
         (["9lives"], ExitCode.CONFIG, "not a ROS namespace segment"),
         (["a__b"], ExitCode.CONFIG, "not a ROS namespace segment"),
-        (["other", "--mtu", "100"], ExitCode.CONFIG,
-         "robot 'other': mtu_bytes (--mtu): must be between 576 and 9000"),
+        # Out of range is a usage error, above 65535 as below 576 (once 2 and 3).
+        (["other", "--mtu", "100"], ExitCode.USAGE, "Invalid value for '--mtu': 100 is not in "
+         "576..9000"),
+        (["other", "--mtu", "575"], ExitCode.USAGE, "575 is not in 576..9000"),
+        (["other", "--mtu", "9001"], ExitCode.USAGE, "9001 is not in 576..9000"),
+        (["other", "--mtu", "99999"], ExitCode.USAGE, "99999 is not in 576..9000"),
         (["r" * 300], ExitCode.CONFIG, "is 300 characters long (at most 63)"),
         (["r\u00e9"], ExitCode.CONFIG, "not a ROS namespace segment"),
         (["other", "--mtu", "\uff11\uff12\uff18\uff10"], ExitCode.USAGE, "ASCII digits"),
@@ -569,3 +573,8 @@ def test_a_fleet_directory_that_is_a_file(cli: Cli, tmp_path: Path,
         _, err = cli(*cmd, code=ExitCode.CONFIG)
         assert f"fleet directory {afile} exists and is not a directory" in err
     assert afile.read_text() == "mine\n"
+
+
+def test_mtu_help_states_its_range() -> None:
+    out = CliRunner().invoke(build_app(), ["add-robot", "--help"], terminal_width=200).output
+    assert "576..9000" in out

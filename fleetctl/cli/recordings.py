@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import datetime as dt
 import json
+import os
 import ssl
 import urllib.error
 import urllib.parse
@@ -29,7 +30,7 @@ import typer
 
 from fleetctl.cli.output import OutputFormat, emit, output_option, table
 from fleetctl.cli.tokenfile import read_token_file
-from fleetctl.errors import ConfigError, ConflictError, FleetError
+from fleetctl.errors import ConfigError, ConflictError, ExitCode, FleetError
 from fleetctl.server.config import load_server_config
 from fleetctl.server.recording import files
 
@@ -246,13 +247,38 @@ def _check_name(name: str) -> None:
                          "`fleetctl recordings list`")
 
 
+def check_one_source(config: Path | None, directory: Path | None,
+                     server: list[str] | None) -> None:
+    """Refuse more than one of ``--config``, ``--dir`` and ``--server`` (one was used, the
+    others silently ignored).
+
+    Raises:
+        FleetError: (usage, exit code 2) naming the options given.
+    """
+    given = [name for name, value in (("--config", config), ("--dir", directory),
+                                      ("--server", server)) if value]
+    if len(given) > 1:
+        raise FleetError(f"{' and '.join(given)} given: use one of --config, --dir and "
+                         "--server", exit_code=ExitCode.USAGE)
+
+
 def recording_dir(config: Path | None, directory: Path | None) -> Path:
     """The recording directory from ``--dir``, else from ``--config``'s ``recording:``.
 
+    A ``--config`` whose directory is not there yet has no recordings (the server makes it
+    when it records); a ``--dir`` that is not there is a mistyped path.
+
     Raises:
-        ConfigError: Neither is given, the config is invalid or has no ``recording:``.
+        ConfigError: Neither is given, ``--dir`` is not a directory, the config is invalid
+            or has no ``recording:``.
+        FleetError: (usage) both are given.
     """
+    check_one_source(config, directory, None)
     if directory is not None:
+        if not directory.is_dir():
+            what = ("is not a directory" if os.path.lexists(directory)
+                    else "no such directory")
+            raise ConfigError(f"--dir {directory}: {what}")
         return directory
     if config is None:
         raise ConfigError("give --config server.yaml or --dir DIR")
@@ -345,6 +371,7 @@ def register(app: typer.Typer) -> None:
                      ca_file: Path | None = _CA, output: OutputFormat = output_option(),
                      ) -> None:
         """List the recordings (oldest first), the one being written included."""
+        check_one_source(config, directory, server)
         if server:
             token = read_token_file(token_file)
             listed, errors = list_replicas([Remote(u, token, ca_file) for u in server])
@@ -365,6 +392,7 @@ def register(app: typer.Typer) -> None:
         ca_file: Path | None = _CA, output: OutputFormat = output_option(),
     ) -> None:
         """Write a complete, indexed copy of a recording (also of the open one)."""
+        check_one_source(config, directory, server)
         if server:
             token = read_token_file(token_file)
             result = fetch_from_replicas([Remote(u, token, ca_file) for u in server], name, to)

@@ -82,6 +82,38 @@ def test_list_reads_the_directory_from_server_yaml(tmp_path: Path,
     assert main(["recordings", "list"]) == ExitCode.CONFIG
 
 
+@pytest.mark.parametrize("fmt", ["text", "json"])
+def test_list_of_a_directory_that_is_not_there_is_an_error(
+        tmp_path: Path, capsys: pytest.CaptureFixture[str], fmt: str) -> None:
+    """It used to say `no recordings in nodir` (or `[]`), exit 0: a mistyped path."""
+    missing, afile = tmp_path / "nodir", tmp_path / "afile"
+    afile.write_text("mine\n")
+    assert main(["recordings", "list", "-d", str(missing), "-o", fmt]) == ExitCode.CONFIG
+    out, err = capsys.readouterr()
+    assert not out and err == f"fleetctl: error: --dir {missing}: no such directory\n"
+    assert main(["recordings", "list", "-d", str(afile), "-o", fmt]) == ExitCode.CONFIG
+    assert capsys.readouterr().err == f"fleetctl: error: --dir {afile}: is not a directory\n"
+    assert main(["recordings", "fetch", "x.mcap", "-d", str(missing)]) == ExitCode.CONFIG
+    assert f"--dir {missing}: no such directory" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("command", [["list"], ["fetch", "fleet_a.mcap"]])
+def test_config_dir_and_server_are_one_or_the_other(
+        tmp_path: Path, capsys: pytest.CaptureFixture[str], command: list[str]) -> None:
+    """-c was silently ignored beside -d (and both beside --server)."""
+    (tmp_path / "rec").mkdir()
+    config = tmp_path / "server.yaml"
+    config.write_text("auth_map: auth.yaml\n")
+    for args, named in ((["-c", str(config), "-d", str(tmp_path / "rec")], "--config and --dir"),
+                        (["-d", str(tmp_path), "-s", "ws://127.0.0.1:9/"], "--dir and --server"),
+                        (["-c", str(config), "-s", "ws://127.0.0.1:9/"], "--config and --server")):
+        to = ["--to", str(tmp_path / "out")] if command[0] == "fetch" else []
+        assert main(["recordings", *command, *args, *to]) == ExitCode.USAGE
+        assert capsys.readouterr().err == (f"fleetctl: error: {named} given: use one of "
+                                           "--config, --dir and --server\n")
+    assert not (tmp_path / "out").exists()
+
+
 def test_fetch_writes_a_complete_copy_of_an_open_file(
         tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     rec, out = tmp_path / "rec", tmp_path / "out"

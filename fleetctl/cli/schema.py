@@ -3,13 +3,14 @@
 from __future__ import annotations
 
 import json
+import os
 from dataclasses import dataclass
 from pathlib import Path
 
 import typer
 
 from fleetctl.cli.output import OutputFormat, emit, output_option
-from fleetctl.errors import ExitCode, FleetError
+from fleetctl.errors import ConflictError, ExitCode, FleetError
 from fleetctl.wire.errors import WireError
 from fleetctl.wire.registry import TypeRegistry
 from fleetctl.wire.schema import describe, export_fbs
@@ -47,17 +48,26 @@ def _registry(from_ros: bool) -> TypeRegistry:
 def export(out_dir: Path, types: list[str] | None, *, from_ros: bool = False) -> ExportResult:
     """Write ``.fbs`` files for *types* (None: all known) and their dependencies.
 
+    Exit codes as for ``fleetctl export --out`` (docs/operator.md): a path that is there
+    and not a directory is a conflict (4), one that cannot be written an environment
+    error (5).
+
     Raises:
         UnknownTypeError: A type is unknown or malformed.
-        FleetError: The directory cannot be written.
+        ConflictError: *out_dir* exists and is not a directory.
+        FleetError: (exit code 5) The directory cannot be written.
     """
     registry = _registry(from_ros)
+    if os.path.lexists(out_dir) and not out_dir.is_dir():
+        raise ConflictError(f"{out_dir}: exists and is not a directory (give a new or "
+                            "existing directory to write the .fbs files into)")
     try:
         files = export_fbs(registry, types or None, out_dir)
     except WireError as exc:
         raise UnknownTypeError(f"--type: {exc}") from exc
     except OSError as exc:
-        raise FleetError(f"{out_dir}: cannot write schemas: {exc.strerror or exc}") from exc
+        raise FleetError(f"{out_dir}: cannot write schemas: {exc.strerror or exc}",
+                         exit_code=ExitCode.ENVIRONMENT) from exc
     return ExportResult(out_dir, files)
 
 

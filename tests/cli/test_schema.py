@@ -54,8 +54,21 @@ def test_unwritable_directory_is_a_clear_error(
 ) -> None:
     blocker = tmp_path / "file"
     blocker.write_text("")
-    assert main(["schema", "export", str(blocker / "sub")]) == ExitCode.FAILURE
+    assert main(["schema", "export", str(blocker / "sub")]) == ExitCode.ENVIRONMENT
     assert f"{blocker / 'sub'}: cannot write schemas" in capsys.readouterr().err
+
+
+def test_a_file_where_the_directory_goes_is_a_conflict(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """As `export --out FILE` (exit 4); it used to be exit 1."""
+    afile = tmp_path / "afile"
+    afile.write_text("mine\n")
+    assert main(["schema", "export", str(afile)]) == ExitCode.CONFLICT
+    assert capsys.readouterr().err == (f"fleetctl: error: {afile}: exists and is not a "
+                                       "directory (give a new or existing directory to write "
+                                       "the .fbs files into)\n")
+    assert afile.read_text() == "mine\n"
 
 
 def test_describe_prints_json(capsys: pytest.CaptureFixture[str]) -> None:

@@ -2,7 +2,10 @@
 
 from __future__ import annotations
 
+import ipaddress
 import logging
+import re
+import socket
 from pathlib import Path
 from urllib.parse import urlsplit
 
@@ -26,6 +29,37 @@ def _check_url(url: str | None) -> str | None:
     return url
 
 
+# A DNS name: dot-separated labels of ASCII letters, digits and '-' (not at either end).
+_LABEL = re.compile(r"[A-Za-z0-9]([A-Za-z0-9-]{0,61}[A-Za-z0-9])?")
+
+
+def _check_host(host: str, port: int) -> str:
+    """Return *host* if it is an IP address, or a DNS name that resolves.
+
+    Raises:
+        ConfigError: (exit code 3, naming ``--host``) anything else; binding would fail
+            later with exit code 5 as if the machine lacked something.
+    """
+    try:
+        ipaddress.ip_address(host)
+        return host
+    except ValueError:
+        pass
+    labels = host.removesuffix(".").split(".")
+    # All digits and not an IP address (1.2.3.999, 010.0.0.1, which the resolver would
+    # read as octal): not a name either.
+    if (len(host) > 253 or not all(_LABEL.fullmatch(label) for label in labels)
+            or all(label.isdigit() for label in labels)):
+        raise ConfigError(f"--host {host[:80]!r}: not an IP address or a host name "
+                          "(e.g. 127.0.0.1, 0.0.0.0, :: or localhost)")
+    try:
+        socket.getaddrinfo(host, port, type=socket.SOCK_STREAM, flags=socket.AI_PASSIVE)
+    except (OSError, UnicodeError) as exc:
+        raise ConfigError(f"--host {host!r}: cannot resolve it: "
+                          f"{getattr(exc, 'strerror', None) or exc}") from None
+    return host
+
+
 def register(app: typer.Typer) -> None:
     """Add ``webviz`` to *app*."""
 
@@ -37,7 +71,8 @@ def register(app: typer.Typer) -> None:
             help="Fleet server WebSocket URL the page connects to "
             "(default: ws://<the page's host>:8080/).",
         ),
-        host: str = typer.Option("127.0.0.1", "--host", help="Address to listen on."),
+        host: str = typer.Option("127.0.0.1", "--host",
+                                 help="Address to listen on: an IP address or a host name."),
         port: int = typer.Option(
             8000, "--port", min=0, max=65535, help="TCP port (0: any free port)."
         ),
@@ -51,7 +86,7 @@ def register(app: typer.Typer) -> None:
         """Serve the web visualizer (static page, config.json, type layouts)."""
         logging.basicConfig(level=logging.DEBUG if verbose else logging.INFO, format="%(message)s")
         config = WebvizConfig(
-            listen_host=host,
+            listen_host=_check_host(host, port),
             listen_port=port,
             server_url=_check_url(server_url),
             vendor_dir=vendor_dir,

@@ -68,3 +68,29 @@ def test_port_in_use_is_a_clear_error(capsys: object) -> None:
         assert main(["webviz", "--port", str(port)]) == 5
     err = capsys.readouterr().err  # type: ignore[attr-defined]
     assert f"cannot listen on 127.0.0.1:{port}" in err
+
+
+def test_bad_host_is_a_config_error_naming_the_option(capsys: object) -> None:
+    """It was exit 5 ('cannot listen on not a host:8000'), as if the machine lacked
+    something, and did not name --host."""
+    for host in ("not a host", "", "1.2.3.999", "010.0.0.1", "-x.example", "a..b",
+                 "x" * 300, "h\u00e9.example"):
+        assert main(["webviz", "--host", host]) == 3
+        err = capsys.readouterr().err  # type: ignore[attr-defined]
+        assert err.startswith(f"fleetctl: error: --host {host[:80]!r}: not an IP address "
+                              "or a host name"), err
+        assert len(err.strip().splitlines()) == 1
+
+
+def test_host_that_does_not_resolve_is_a_config_error(capsys: object,
+                                                      monkeypatch: object) -> None:
+    import socket
+
+    def no_such_name(*_args: object, **_kwargs: object) -> list[object]:
+        raise socket.gaierror(socket.EAI_NONAME, "Name or service not known")
+
+    monkeypatch.setattr(socket, "getaddrinfo", no_such_name)  # type: ignore[attr-defined]
+    assert main(["webviz", "--host", "nosuch.invalid"]) == 3
+    err = capsys.readouterr().err  # type: ignore[attr-defined]
+    assert err == ("fleetctl: error: --host 'nosuch.invalid': cannot resolve it: "
+                   "Name or service not known\n")

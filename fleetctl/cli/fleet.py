@@ -71,9 +71,11 @@ def _dry_run_option() -> Any:
     return typer.Option(False, "--dry-run", help=_DRY_RUN_HELP)
 
 
-def _header(outcome: ops.Outcome, what: str) -> str:
-    prefix = "dry run: " if outcome.dry_run else ""
-    return f"{prefix}{what}\n" + changes_text(outcome.changes, outcome.fleet_dir, outcome.dry_run)
+def _header(outcome: ops.Outcome, done: str, would: str) -> str:
+    """The first line (*done*, or for a dry run ``dry run: `` and *would*: what would be
+    done, never said as done) and the list of changes."""
+    first = f"dry run: {would}" if outcome.dry_run else done
+    return f"{first}\n" + changes_text(outcome.changes, outcome.fleet_dir, outcome.dry_run)
 
 
 def _endpoint_text(f: Fleet) -> str:
@@ -131,8 +133,9 @@ def init(
     f = result.fleet
 
     def text() -> str:
-        return (_header(result.outcome, f"fleet {f.name!r}: subnet {f.subnet}, server "
-                        f"{f.server_ip}, WireGuard {_endpoint_text(f)}")
+        what = (f"fleet {f.name!r}: subnet {f.subnet}, server {f.server_ip}, WireGuard "
+                f"{_endpoint_text(f)}")
+        return (_header(result.outcome, what, f"would create {what}")
                 + f"\nserver public key: {result.server_public_key}"
                 + f"\nHTTPS port {f.https_port}: self-signed certificate server/tls/cert.pem "
                 "(set tls in fleet.yaml to use your own)")
@@ -158,8 +161,11 @@ def add_robot(
         result = ops.add_robot(fleet, name, ip=ip, mtu_bytes=mtu, dry_run=dry_run)
 
     def text() -> str:
-        return (_header(result.outcome, f"robot {name!r} at {result.robot.ip}")
-                + f"\npublic key: {result.public_key}"
+        what = f"robot {name!r} at {result.robot.ip}"
+        out = _header(result.outcome, what, f"would add {what}")
+        if dry_run:  # its key pair was made for the preview only and is not kept
+            return out
+        return (out + f"\npublic key: {result.public_key}"
                 + f"\nnext: fleetctl export {name}   (the bundle to copy to the robot)")
 
     emit(result, output, text)
@@ -179,7 +185,8 @@ def remove_robot(
     """Remove a robot, its keys and files, its server peer and its auth rules."""
     with ops.fleet_lock(fleet, dry_run=dry_run):
         result = ops.remove_robot(fleet, name, dry_run=dry_run, force=force)
-    emit(result, output, lambda: _header(result.outcome, f"removed robot {name!r}"))
+    emit(result, output, lambda: _header(result.outcome, f"removed robot {name!r}",
+                                         f"would remove robot {name!r}"))
     _finish(result.outcome, output)
 
 
@@ -197,7 +204,8 @@ def add_user(
              "token": result.token.reveal() if result.token else None}
 
     def text() -> str:
-        out = _header(result.outcome, f"user {email!r} ({result.user.role.value})")
+        what = f"user {email!r} ({result.user.role.value})"
+        out = _header(result.outcome, what, f"would add {what}")
         if result.token is not None:
             out += f"\ntoken (shown once, store it now): {result.token.reveal()}"
         return out
@@ -215,7 +223,8 @@ def remove_user(
     """Remove a user; their token stops working once the server reloads auth.yaml."""
     with ops.fleet_lock(fleet, dry_run=dry_run):
         result = ops.remove_user(fleet, email, dry_run=dry_run)
-    emit(result, output, lambda: _header(result.outcome, f"removed user {email!r}"))
+    emit(result, output, lambda: _header(result.outcome, f"removed user {email!r}",
+                                         f"would remove user {email!r}"))
     _finish(result.outcome, output)
 
 
@@ -250,7 +259,8 @@ def render(
     """Regenerate every config from fleet.yaml and the keys (unchanged files stay untouched)."""
     with ops.fleet_lock(fleet, dry_run=dry_run):
         outcome = ops.render_fleet(fleet, dry_run=dry_run, force=force)
-    emit(outcome, output, lambda: _header(outcome, f"rendered {outcome.fleet_dir}"))
+    emit(outcome, output, lambda: _header(outcome, f"rendered {outcome.fleet_dir}",
+                                          f"would render {outcome.fleet_dir}"))
     _finish(outcome, output)
 
 
@@ -265,10 +275,11 @@ def set_endpoint(
         result = ops.set_endpoint(fleet, endpoint, dry_run=dry_run)
 
     def text() -> str:
-        out = _header(result.outcome, f"endpoint {result.endpoint} (was "
-                      f"{result.previous or 'not set'})")
+        what = f"endpoint {result.endpoint} (was {result.previous or 'not set'})"
+        out = _header(result.outcome, what, f"would set {what}")
         if result.certificate_regenerated:
-            out += "\nself-signed HTTPS certificate made again for the new host"
+            out += ("\nself-signed HTTPS certificate would be made again for the new host"
+                    if dry_run else "\nself-signed HTTPS certificate made again for the new host")
         return out
 
     emit(result, output, text)
@@ -286,7 +297,8 @@ def export(
 ) -> None:
     """Write robot NAME's bundle: its WireGuard config, client config and how to start them."""
     result = export_robot(fleet, name, out, dry_run=dry_run)
-    emit(result, output, lambda: _header(result.outcome, f"bundle of {name!r}: {result.path}"))
+    what = f"bundle of {name!r}: {result.path}"
+    emit(result, output, lambda: _header(result.outcome, what, f"would write the {what}"))
 
 
 def register(app: typer.Typer) -> None:

@@ -103,6 +103,9 @@ def export_robot(fleet_dir: Path, name: str, out: Path | None = None, *,
             files = robot_bundle(fleet, robot, keys, build_wheel(Path(tmp)))
     plan = Plan()
     suffix = tarball_suffix(path)
+    # The changes are listed relative to this: the bundle directory, or the directory the
+    # tarball lands in (relative to the tarball itself it was listed as "create .").
+    root = path if suffix is None else path.parent
     if suffix is not None:
         # 0600 file, but the directory it lands in is the caller's: leave its mode alone.
         plan.writes.append(FileWrite(path, tarball(path.name.removesuffix(suffix), files),
@@ -114,7 +117,7 @@ def export_robot(fleet_dir: Path, name: str, out: Path | None = None, *,
         for f in files:
             plan.writes.append(FileWrite(path / f.relpath, f.data, f.mode, None))
     try:
-        outcome = finish_plan(plan, path, dry_run)
+        outcome = finish_plan(plan, root, dry_run)
     except WriteFailed as exc:
         raise WriteFailed(f"--out {path}: {exc}") from None
     return ExportResult(robot, path, outcome)

@@ -578,3 +578,51 @@ def test_a_fleet_directory_that_is_a_file(cli: Cli, tmp_path: Path,
 def test_mtu_help_states_its_range() -> None:
     out = CliRunner().invoke(build_app(), ["add-robot", "--help"], terminal_width=200).output
     assert "576..9000" in out
+
+
+def test_dry_runs_say_what_would_be_done(fleet: Path, cli: Cli) -> None:
+    """`dry run: removed robot 'husky1'` read as done."""
+    cli("add-user", "a@example.com", "--role", "viewer")
+    before = _snapshot(fleet)
+    firsts = {args[0]: cli(*args, "--dry-run")[0].splitlines()[0] for args in (
+        ["remove-robot", "husky1"], ["add-robot", "r2"], ["remove-user", "a@example.com"],
+        ["add-user", "b@example.com", "--role", "admin"], ["render"],
+        ["set-endpoint", "other.example.com:51820"])}
+    assert firsts == {
+        "remove-robot": "dry run: would remove robot 'husky1'",
+        "add-robot": "dry run: would add robot 'r2' at 10.8.0.3",
+        "remove-user": "dry run: would remove user 'a@example.com'",
+        "add-user": "dry run: would add user 'b@example.com' (admin)",
+        "render": f"dry run: would render {fleet}",
+        "set-endpoint": "dry run: would set endpoint other.example.com:51820 (was "
+                        "vpn.example.com:51820)"}
+    out, _ = cli("set-endpoint", "other.example.com:51820", "--dry-run")
+    assert "certificate would be made again" in out
+    out, _ = cli("add-robot", "r2", "--dry-run")
+    assert "public key" not in out and "next:" not in out  # a key pair that is not kept
+    out, _ = cli("init", str(fleet.parent / "new"), "--dry-run")
+    assert out.startswith("dry run: would create fleet 'new': subnet")
+    assert _snapshot(fleet) == before and not (fleet.parent / "new").exists()
+    out, _ = cli("remove-robot", "husky1")
+    assert out.startswith("removed robot 'husky1'\n")
+
+
+def test_export_lists_the_tarball_by_its_name(fleet: Path, cli: Cli, tmp_path: Path,
+                                              monkeypatch: pytest.MonkeyPatch) -> None:
+    """It was listed as `create .` (relative to itself)."""
+    import functools
+
+    from fleetctl.cli import fleet as fleet_cli
+    from fleetctl.deploy.export import export_robot
+    from tests.deploy.test_bundle import fake_wheel
+
+    monkeypatch.setattr(fleet_cli, "export_robot",
+                        functools.partial(export_robot, wheel=fake_wheel(tmp_path)))
+    monkeypatch.chdir(tmp_path)
+    out, _ = cli("export", "husky1", "--out", "b.tgz", "--dry-run")
+    assert out.splitlines() == ["dry run: would write the bundle of 'husky1': b.tgz",
+                                "  would create b.tgz"]
+    out, _ = cli("export", "husky1", "--out", str(tmp_path / "sub" / "b.tar.gz"))
+    assert out.splitlines()[1:] == ["  create b.tar.gz"]
+    out, _ = cli("export", "husky1", "--out", "bundle")
+    assert "  create wg0.conf" in out.splitlines()

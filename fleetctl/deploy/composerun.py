@@ -212,7 +212,7 @@ def deployed_services(fleet_dir: Path) -> list[str]:
     path = fleet_dir / COMPOSE_DIR / COMPOSE_FILE
     try:
         document = yaml.safe_load(read_small_text(path, MAX_CONFIG_BYTES))
-    except (OSError, yaml.YAMLError):
+    except (OSError, yaml.YAMLError, RecursionError):  # not ours any more: nothing known
         return []
     services = document.get("services") if isinstance(document, dict) else None
     return sorted(services) if isinstance(services, dict) else []

@@ -25,7 +25,7 @@ import secrets
 import shutil
 import stat
 import tempfile
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -167,6 +167,21 @@ def rename(src: Path, dst: Path) -> None:
     os.replace(src, dst)
 
 
+@contextlib.contextmanager
+def _named(target: Path) -> Iterator[None]:
+    """An OSError while writing *target* names *target*: the operator's file, not the
+    random temp or backup name beside it where the failure happened
+    (``fleet.yaml: cannot write: ...``, not ``.fleet.yaml.17vn9af5.tmp: ...``). A failure
+    on a directory on the way keeps naming that directory."""
+    try:
+        yield
+    except OSError as exc:
+        if exc.filename is not None and Path(exc.filename) in (target.parent,
+                                                               *target.parent.parents):
+            raise
+        raise OSError(exc.errno, exc.strerror or str(exc), str(target)) from exc
+
+
 def _exists(path: Path) -> bool:
     return os.path.lexists(path)
 
@@ -193,10 +208,14 @@ class _Transaction:
             self._directory(path, mode, force=True)
         for path, mode in plan.new_directories.items():
             self._directory(path, mode, force=False)
-        staged = [self._stage(w, kind) for w, kind in zip(plan.writes, kinds, strict=True)]
+        staged = []
+        for w, kind in zip(plan.writes, kinds, strict=True):
+            with _named(w.path):
+                staged.append(self._stage(w, kind))
         for w, temp in zip(plan.writes, staged, strict=True):
             if temp is not None:
-                self._commit(temp, w.path)
+                with _named(w.path):
+                    self._commit(temp, w.path)
         return changes + [Change(w.path, kind) for w, kind in zip(plan.writes, kinds,
                                                                   strict=True)]
 

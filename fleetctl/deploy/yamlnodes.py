@@ -10,6 +10,7 @@ from pathlib import Path
 import yaml
 
 from fleetctl.errors import ConfigError
+from fleetctl.yamlfile import TOO_DEEP
 
 FieldPath = tuple[str | int, ...]
 
@@ -62,6 +63,8 @@ class Document:
             raise ConfigError(f"{path}:{line}: not valid YAML: {exc.problem}") from None
         except yaml.YAMLError as exc:
             raise ConfigError(f"{path}: not valid YAML: {exc}") from None
+        except RecursionError:  # PyYAML's composer recurses per level: "[[[[..."
+            raise ConfigError(f"{path}: not valid YAML: {TOO_DEEP}") from None
         if root is None:
             raise ConfigError(f"{path}:1: the file is empty")
         self.root = root

@@ -110,6 +110,11 @@ def test_yaml_syntax_error_names_line() -> None:
     assert "not valid YAML" in message
 
 
+def test_deep_nesting_is_an_error_not_a_recursion_crash() -> None:
+    text = "version: 1\nname: x\nrobots: " + "[" * 2000 + "]" * 2000 + "\n"
+    assert _error(text) == "/f/fleet.yaml: not valid YAML: nested too deeply"
+
+
 def test_empty_and_non_mapping() -> None:
     assert _error("") == "/f/fleet.yaml:1: the file is empty"
     assert _error("- 1\n").startswith("/f/fleet.yaml:1: (document): expected a mapping")

@@ -52,7 +52,13 @@ from fleetctl.deploy.keys import (
     token_sha256,
 )
 from fleetctl.deploy.keystore import RobotKeys
-from fleetctl.deploy.render import ROBOT_FILES, FleetKeys, fleet_artifacts, plan_artifacts
+from fleetctl.deploy.render import (
+    ROBOT_FILES,
+    ROBOT_WIREGUARD_FILE,
+    FleetKeys,
+    fleet_artifacts,
+    plan_artifacts,
+)
 from fleetctl.deploy.secrets import Secret
 from fleetctl.deploy.yamlnodes import FieldPath, format_path
 from fleetctl.errors import ConfigError, ConflictError, ExitCode, FleetError
@@ -191,11 +197,23 @@ def _load_keys(fleet_dir: Path, fleet: Fleet, source: KeySource, plan: Plan) -> 
 
     A robot added to fleet.yaml by hand gets its keys on the next operation; a missing
     server key is an error, because a new one would cut off every robot already deployed.
+    So are the missing keys of a robot whose WireGuard config was generated already: that
+    config (and the bundle exported from it) holds the keys the robot may be using, and new
+    ones would cut it off without a word (a fleet directory restored without ``keys/``).
     """
     robots: dict[str, RobotKeys] = {}
     for robot in fleet.robots:
         keys = keystore.load_robot_keys(fleet_dir, robot.name)
         if keys is None:
+            generated = fleet_dir / "robots" / robot.name / ROBOT_WIREGUARD_FILE
+            if os.path.lexists(generated):
+                key_path, psk_path = keystore.robot_key_paths(fleet_dir, robot.name)
+                raise ConfigError(
+                    f"{key_path} and {psk_path.name}: not found, but {generated} was made "
+                    f"from them and robot {robot.name!r} may be using them: restore them "
+                    f"from a backup, or, to give the robot new keys, delete {generated}, "
+                    f"run `fleetctl render` and install a new `fleetctl export "
+                    f"{robot.name}` on the robot")
             keys = keystore.new_robot_keys(source)
             keystore.plan_robot_keys(plan, fleet_dir, robot.name, keys)
         robots[robot.name] = keys

@@ -20,3 +20,36 @@ def test_init_on_a_file_is_a_config_error(tmp_path: Path, sub: str) -> None:
 
 def test_init_in_a_new_nested_directory_still_works(tmp_path: Path) -> None:
     ops.create_fleet(tmp_path / "a" / "b", dry_run=True)
+
+
+def test_a_deployed_robot_whose_keys_are_gone_gets_no_new_ones_silently(
+        tmp_path: Path) -> None:
+    fleet_dir = tmp_path / "f"
+    ops.create_fleet(fleet_dir)
+    ops.add_robot(fleet_dir, "r1")
+    (fleet_dir / "keys/robots/r1.key").unlink()
+    (fleet_dir / "keys/robots/r1.psk").unlink()
+    conf = fleet_dir / "robots/r1/wireguard/wg0.conf"
+    before = conf.read_text()
+    # New keys would cut off the robot running the bundle exported from this config.
+    for operation in (lambda: ops.render_fleet(fleet_dir),
+                      lambda: ops.add_user(fleet_dir, "a@example.com", "viewer")):
+        with pytest.raises(ConfigError, match=r"r1\.key and r1\.psk: not found, but .*"
+                                              r"wg0\.conf was made from them"):
+            operation()
+    assert conf.read_text() == before
+    assert not (fleet_dir / "keys/robots/r1.key").exists()
+    # The way out the message gives: the config goes, render makes new keys.
+    conf.unlink()
+    ops.render_fleet(fleet_dir)
+    assert (fleet_dir / "keys/robots/r1.key").is_file() and conf.is_file()
+
+
+def test_a_robot_added_to_fleet_yaml_by_hand_still_gets_its_keys(tmp_path: Path) -> None:
+    fleet_dir = tmp_path / "f"
+    ops.create_fleet(fleet_dir)
+    fleet_yaml = fleet_dir / "fleet.yaml"
+    fleet_yaml.write_text(fleet_yaml.read_text().replace(
+        "robots: []", "robots:\n  - name: r2\n    ip: 10.8.0.7"))
+    ops.render_fleet(fleet_dir)
+    assert (fleet_dir / "keys/robots/r2.key").is_file()

@@ -14,10 +14,20 @@ from typing import Any
 
 import typer
 
-from fleetctl.cli.output import OutputFormat, emit, fleet_option, output_option
+from fleetctl.cli.output import (
+    OutputFormat,
+    changes_text,
+    emit,
+    fleet_option,
+    output_option,
+    to_jsonable,
+)
 from fleetctl.deploy import composerun, images
+from fleetctl.deploy import operations as ops
 from fleetctl.deploy.compose import DEFAULT_BIND
 from fleetctl.deploy.dockercli import require_docker
+from fleetctl.deploy.fleet import load_fleet
+from fleetctl.deploy.operations import Outcome
 from fleetctl.deploy.replicas import MAX_REPLICAS
 from fleetctl.errors import FleetError
 
@@ -73,10 +83,11 @@ def up(
         None, "--https-port", min=1, max=65535,
         help="Host port of the page + WebSocket (default: the fleet's https_port)."),
     project: str | None = typer.Option(None, "--project", help="Compose project name."),
-    replicas: int = typer.Option(
-        1, "--replicas", min=1, max=MAX_REPLICAS,
+    replicas: int | None = typer.Option(
+        None, "--replicas", min=1, max=MAX_REPLICAS,
         help="Relay replicas on a 3-node NATS cluster (robots fail over between them); "
-        "1: one server, no NATS."),
+        "1: one server, no NATS. Recorded in fleet.yaml (relay_replicas), which robots' "
+        "client.yaml follow; default: fleet.yaml's (1 when not set)."),
     output: OutputFormat = output_option(),
 ) -> None:
     """Start the fleet on this server host: server, web page and WireGuard (docker compose).
@@ -84,10 +95,18 @@ def up(
     On a running fleet it applies what changed and leaves the rest running.
     """
     require_docker()
+    recorded = load_fleet(fleet).relay_replicas
+    count = recorded if replicas is None else replicas
     options = composerun.default_options(fleet, project=project, wireguard=wireguard,
                                          sim=sim, bind=bind, https_port=https_port,
-                                         replicas=replicas)
+                                         replicas=count)
     result = composerun.up(fleet, options, progress=_progress)
+    recorded_now: Outcome | None = None
+    if count != recorded:
+        # Only once the deployment runs (up refuses a change of mode on a running fleet):
+        # from here on robots' client.yaml list every replica, and a plain `up` keeps them.
+        with ops.fleet_lock(fleet):
+            recorded_now = ops.set_relay_replicas(fleet, count)
 
     def text() -> str:
         robots = ", ".join(result.robots) or "none yet"
@@ -95,13 +114,20 @@ def up(
                  "(`fleetctl add-user`)", f"wireguard: {result.wireguard_note}",
                  f"robots: {robots}{' (simulated)' if result.simulated else ''}"]
         if result.replicas > 1:
-            lines += [f"replicas: {result.replicas} (pages: {' '.join(result.page_urls)})",
-                      "robots on other hosts fail over when their client.yaml lists every "
-                      f"replica: server_url: [{', '.join(result.robot_urls)}]"]
+            lines += [f"replicas: {result.replicas} (pages: {' '.join(result.page_urls)})"]
+        if recorded_now is not None:
+            lists = (f"every replica: server_url: [{', '.join(result.robot_urls)}]"
+                     if count > 1 else "the one server")
+            lines += [f"relay_replicas: {count} recorded in fleet.yaml; robots' client.yaml "
+                      f"now list {lists}",
+                      changes_text(recorded_now.changes, fleet, False),
+                      "robots on other hosts follow it once they run a new "
+                      "`fleetctl export NAME` bundle"]
         lines += [f"compose file: {result.compose_file}", "next: fleetctl status"]
         return "\n".join(lines)
 
-    emit(result, output, text)
+    emit({**to_jsonable(result), "relay_replicas_recorded": recorded_now is not None},
+         output, text)
 
 
 def down(

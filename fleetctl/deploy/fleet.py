@@ -46,6 +46,8 @@ DEFAULT_SUBNET = "10.8.0.0/24"
 DEFAULT_SERVER_PORT = 8080
 DEFAULT_WIREGUARD_PORT = 51820
 DEFAULT_HTTPS_PORT = 8443
+# Relay replicas `fleetctl up --replicas` deploys at most (fleetctl.deploy.replicas).
+MAX_RELAY_REPLICAS = 8
 # WireGuard's default 1420 assumes a 1500-byte path; LTE carriers often give 1428-1450 or
 # less after their own tunnelling. 1280 is the IPv6 minimum and works on every path.
 DEFAULT_MTU_BYTES = 1280
@@ -194,6 +196,10 @@ class Fleet:
         https_port: TCP port of the one HTTPS listener people use (web page and wss://).
         tls: the operator's certificate and key; ``None``: a self-signed one that
             fleetctl generates (``server/tls/cert.pem``, ``keys/tls.key``).
+        relay_replicas: relays the server host runs (``fleetctl up --replicas N`` records
+            it): replica *i* listens on ``server_port`` + *i* and ``https_port`` + *i*, and
+            every robot's ``client.yaml`` lists every replica's URL, so that a bundle
+            exported from it fails over between them (docs/deploy.md).
     """
 
     name: str
@@ -206,6 +212,7 @@ class Fleet:
     users: tuple[User, ...] = ()
     https_port: int = DEFAULT_HTTPS_PORT
     tls: TlsFiles | None = None
+    relay_replicas: int = 1
 
     def robot(self, name: str) -> Robot | None:
         """Return the robot called *name*, or ``None``."""
@@ -403,6 +410,7 @@ def validate(fleet: Fleet) -> None:
     if fleet.https_port == fleet.server_port:
         raise FleetInvalid(("https_port",), f"{fleet.https_port} is also server_port "
                            "(the plain ws:// port); the two listeners need two ports")
+    _check_replica_ports(fleet)
     if fleet.tls is not None:
         _check_tls_paths(fleet.tls)
     if fleet.subnet.num_addresses < 4:
@@ -414,6 +422,26 @@ def validate(fleet: Fleet) -> None:
     emails: set[str] = set()
     for i, user in enumerate(fleet.users):
         _check_user(i, user, emails)
+
+
+def _check_replica_ports(fleet: Fleet) -> None:
+    """Replica *i* listens on server_port + *i* and https_port + *i*: both runs of ports
+    must exist and must not overlap."""
+    n = fleet.relay_replicas
+    if not 1 <= n <= MAX_RELAY_REPLICAS:
+        raise FleetInvalid(("relay_replicas",), f"expected 1 to {MAX_RELAY_REPLICAS}, got {n}")
+    if n == 1:
+        return
+    for key, first in (("server_port", fleet.server_port), ("https_port", fleet.https_port)):
+        if first + n - 1 > 65535:
+            raise FleetInvalid((key,), f"{n} relay replicas need ports {first} to "
+                               f"{first + n - 1}, past 65535")
+    plain = range(fleet.server_port, fleet.server_port + n)
+    https = range(fleet.https_port, fleet.https_port + n)
+    if plain.start < https.stop and https.start < plain.stop:
+        raise FleetInvalid(("relay_replicas",), f"{n} relay replicas listen on server_port "
+                           f"{plain.start}-{plain.stop - 1} and https_port "
+                           f"{https.start}-{https.stop - 1}: the two runs overlap")
 
 
 def _check_tls_paths(tls: TlsFiles) -> None:
@@ -527,7 +555,7 @@ def parse_fleet(path: Path, text: str, fleet_dir: Path | None = None) -> Fleet:
 def _build_fleet(doc: Document) -> Fleet:
     f = doc.mapping(doc.root, (), ["version", "name", "subnet", "server_ip"],
                     ["endpoint", "server_port", "wireguard_port", "https_port", "tls", "robots",
-                     "users"])
+                     "users", "relay_replicas"])
     version = doc.integer(f["version"], ("version",), 1, 1_000_000)
     if version != FORMAT_VERSION:
         raise FleetInvalid(("version",), f"unsupported version {version} "
@@ -549,6 +577,8 @@ def _build_fleet(doc: Document) -> Fleet:
         users=tuple(_build_user(doc, n, ("users", i)) for i, n in enumerate(user_nodes)),
         https_port=_port(doc, f, "https_port", DEFAULT_HTTPS_PORT),
         tls=_build_tls(doc, f["tls"]) if "tls" in f and not doc.is_null(f["tls"]) else None,
+        relay_replicas=(doc.integer(f["relay_replicas"], ("relay_replicas",), 1,
+                                    MAX_RELAY_REPLICAS) if "relay_replicas" in f else 1),
     )
 
 
@@ -640,6 +670,8 @@ def dump_fleet(fleet: Fleet) -> str:
         "wireguard_port": fleet.wireguard_port,
         "https_port": fleet.https_port,
         "tls": {"cert": fleet.tls.cert, "key": fleet.tls.key} if fleet.tls else None,
+        # Only when set: a fleet with one relay keeps the bytes it had before the field.
+        **({"relay_replicas": fleet.relay_replicas} if fleet.relay_replicas != 1 else {}),
         "robots": [_dump_robot(r) for r in fleet.robots],
         "users": [{"email": u.email, "role": u.role.value, "token_sha256": u.token_sha256}
                   for u in fleet.users],

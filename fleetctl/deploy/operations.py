@@ -638,6 +638,24 @@ def set_endpoint(fleet_dir: Path, endpoint: str, *, dry_run: bool = False,
     return EndpointResult(endpoint, fleet.endpoint, regenerated, outcome)
 
 
+def set_relay_replicas(fleet_dir: Path, count: int, *,
+                       keys: KeySource = _SYSTEM_KEYS) -> Outcome:
+    """Record that the server host runs *count* relay replicas (``fleet.yaml``
+    ``relay_replicas``), and re-render: every robot's ``client.yaml`` then lists every
+    replica, so that the bundle exported from it fails over between them. ``up
+    --replicas N`` calls this once the deployment is up.
+
+    Raises:
+        ConfigError: *count* out of range, replica ports that do not fit, or a bad
+            fleet directory.
+    """
+    fleet = load_fleet(fleet_dir)
+    new = _checked(replace(fleet, relay_replicas=count))
+    plan = Plan()
+    _plan_fleet(plan, fleet_dir, new, _load_keys(fleet_dir, new, keys, plan))
+    return finish_plan(plan, fleet_dir, False)
+
+
 def describe_fleet(fleet_dir: Path) -> FleetInfo:
     """Return the fleet with its public keys (robots without keys yet have none listed).
 

@@ -319,8 +319,16 @@ def robot_wireguard(fleet: Fleet, robot: Robot, keys: FleetKeys) -> str:
 
 
 def server_url(fleet: Fleet) -> str:
-    """Return the WebSocket URL robots reach the server on (through the tunnel)."""
-    return f"ws://{fleet.server_ip}:{fleet.server_port}/"
+    """Return the WebSocket URL robots reach the server on (through the tunnel); with
+    relay replicas, the first replica's."""
+    return server_urls(fleet)[0]
+
+
+def server_urls(fleet: Fleet) -> list[str]:
+    """Every relay replica's WebSocket URL as robots reach it (one without replicas);
+    replica *i* listens on ``server_port`` + *i* (fleetctl.deploy.composereplicas)."""
+    return [f"ws://{fleet.server_ip}:{fleet.server_port + i}/"
+            for i in range(fleet.relay_replicas)]
 
 
 def client_config(fleet: Fleet, robot: Robot) -> str:
@@ -336,7 +344,7 @@ def client_config(fleet: Fleet, robot: Robot) -> str:
         "client/client.yaml.j2",
         fleet_name=fleet.name,
         robot_name=robot.name,
-        server_url=server_url(fleet),
+        server_urls=server_urls(fleet),
         bind_address=str(robot.ip),
         publish=robot.publish_topics,
         subscribe=subscribe,

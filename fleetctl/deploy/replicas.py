@@ -37,6 +37,7 @@ from typing import Any
 
 import bcrypt
 
+from fleetctl.deploy.fleet import MAX_RELAY_REPLICAS
 from fleetctl.errors import ConfigError
 from fleetctl.smallfile import MAX_SECRET_BYTES, read_small_text
 
@@ -48,7 +49,7 @@ NATS_HEALTH_COMMAND = [
     f"'http://127.0.0.1:{NATS_MONITOR_PORT}/healthz', timeout=2).status == 200 else 1)"]
 """Exit 0 when the NATS node in this container is healthy (its monitoring endpoint; with
 JetStream, once the cluster elected its meta leader): `up`'s and e2e's health check."""
-MAX_REPLICAS = 8
+MAX_REPLICAS = MAX_RELAY_REPLICAS
 SUBJECT_PREFIX = "fleetctl"
 # <prefix>_<name>: sharedregistry.py, sharedlatched.py, sharedsessions.py, remoteinterest.py
 BUCKETS = ("robots", "latched", "sessions", "interest")

@@ -347,3 +347,27 @@ def test_video_viewer_cloud_and_tf_round_trip() -> None:
 def test_media_errors_name_file_line_field(old: str, new: str, expected: str) -> None:
     assert old in MEDIA
     assert _error(MEDIA.replace(old, new, 1)).startswith(expected)
+
+
+def test_relay_replicas_round_trip_and_only_when_set() -> None:
+    one = parse_fleet(Path("fleet.yaml"), GOOD)
+    assert one.relay_replicas == 1 and "relay_replicas" not in dump_fleet(one)
+    two = parse_fleet(Path("fleet.yaml"), GOOD.replace("robots:\n", "relay_replicas: 2\nrobots:\n"))
+    assert two.relay_replicas == 2
+    assert "\nrelay_replicas: 2\n" in dump_fleet(two)
+    assert parse_fleet(Path("fleet.yaml"), dump_fleet(two)) == two
+
+
+@pytest.mark.parametrize(("lines", "expected"), [
+    ("relay_replicas: 0\n", "/f/fleet.yaml:6: relay_replicas: must be between 1 and 8"),
+    ("relay_replicas: 9\n", "/f/fleet.yaml:6: relay_replicas: must be between 1 and 8"),
+    ("relay_replicas: two\n", "/f/fleet.yaml:6: relay_replicas: expected an integer"),
+    # Replica i listens on server_port + i and https_port + i.
+    ("relay_replicas: 4\nserver_port: 8080\nhttps_port: 8082\n",
+     "/f/fleet.yaml:6: relay_replicas: 4 relay replicas listen on server_port 8080-8083 and "
+     "https_port 8082-8085: the two runs overlap"),
+    ("relay_replicas: 3\nhttps_port: 65534\n",
+     "/f/fleet.yaml:7: https_port: 3 relay replicas need ports 65534 to 65536, past 65535"),
+])
+def test_bad_relay_replicas_name_the_field(lines: str, expected: str) -> None:
+    assert _error(GOOD.replace("robots:\n", lines + "robots:\n")).startswith(expected)

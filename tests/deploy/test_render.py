@@ -396,3 +396,23 @@ def test_fleet_name_cannot_inject_into_wireguard(fleet_dir: Path) -> None:
     with pytest.raises(ConfigError, match=r"fleet\.yaml:5: name: fleet name .* must be ASCII"):
         ops.render_fleet(fleet_dir)
     assert _snapshot(fleet_dir) == before
+
+
+def test_relay_replicas_reach_every_robots_client_yaml_and_back(fleet_dir: Path) -> None:
+    from fleetctl.client.config import load_client_config
+
+    config = fleet_dir / "robots/husky1/client.yaml"
+    one = config.read_bytes()
+    outcome = ops.set_relay_replicas(fleet_dir, 3)
+    changed = {str(c.path.relative_to(fleet_dir)) for c in outcome.changes
+               if c.kind is not ChangeKind.UNCHANGED}
+    assert changed == {"fleet.yaml", "robots/husky1/client.yaml", "robots/jackal2/client.yaml"}
+    # What the robot's client reads from it: the first replica, then the others to fail
+    # over to (replica i on server_port + i).
+    assert load_client_config(config).server_urls == (
+        "ws://10.8.0.1:8080/", "ws://10.8.0.1:8081/", "ws://10.8.0.1:8082/")
+    # The new files are the generated ones, not hand edits: render leaves them as they are.
+    assert {c.kind for c in ops.render_fleet(fleet_dir).changes} == {ChangeKind.UNCHANGED}
+    ops.set_relay_replicas(fleet_dir, 1)
+    assert config.read_bytes() == one
+    assert "relay_replicas" not in (fleet_dir / "fleet.yaml").read_text()

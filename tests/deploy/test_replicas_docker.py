@@ -21,6 +21,7 @@ from pathlib import Path
 import pytest
 from websockets.asyncio.client import connect
 
+from fleetctl.client.config import load_client_config
 from fleetctl.wire.control import encode_subscription
 from fleetctl.wire.metadata import read_metadata
 from tests.deploy.test_lifecycle_docker import (
@@ -89,6 +90,10 @@ def test_a_robot_fails_over_between_replicas_deployed_by_up(
     out = op.run("up", "--sim", "--wireguard", "on", "--replicas", "2", "--bind", "127.0.0.1",
                  "--https-port", str(https), "--project", project)
     assert "server_url: [ws://10.8.0.1:8080/, ws://10.8.0.1:8081/]" in out, out
+    # Recorded in fleet.yaml: the robot's own client.yaml (its exported bundle) lists both.
+    assert "relay_replicas: 2" in (fleet / "fleet.yaml").read_text()
+    robot_config = load_client_config(fleet / "robots/husky1/client.yaml")
+    assert robot_config.server_urls == ("ws://10.8.0.1:8080/", "ws://10.8.0.1:8081/")
     took = wait_until("husky1 online", lambda: online(op, {"husky1"}), ONLINE_TIMEOUT_S * 3)
     print(f"husky1 online {took:.1f} s after `up --replicas 2` returned")
     services = {s["service"]: s for s in op.json("status")["services"]}

@@ -55,7 +55,9 @@ CONTEXTS: dict[str, dict[str, Any]] = {
                         "rules": [{"topic": ".*", "op": "both"}]}],
     },
     "client/client.yaml.j2": {
-        "fleet_name": "campus", "robot_name": "husky1", "server_url": "ws://10.8.0.1:8080/",
+        "fleet_name": "campus", "robot_name": "husky1",
+        # Two relay replicas: the list form, each URL a value of its own.
+        "server_urls": ["ws://10.8.0.1:8080/", "ws://10.8.0.1:8081/"],
         "bind_address": "10.8.0.2", "battery_topic": "/battery",
         "publish": [{"topic": "/odom", "type": "nav_msgs/msg/Odometry", "priority": 4.0,
                      "rate_limit_hz": 10.0, "no_drop": False, "compression": "none",

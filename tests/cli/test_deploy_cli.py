@@ -1,0 +1,82 @@
+"""fleetctl.cli.deploy: what ``up`` records in the fleet (Docker itself is not run here:
+the compose deployment is replaced by a recorder; tests/deploy/test_replicas_docker.py runs
+the real one)."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+from typing import Any
+
+import pytest
+
+from fleetctl.cli import deploy as deploy_cli
+from fleetctl.cli.main import main
+from fleetctl.deploy import composerun
+from fleetctl.deploy import operations as ops
+from fleetctl.deploy.fleet import load_fleet
+
+
+@pytest.fixture
+def fleet(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> Path:
+    fleet_dir = tmp_path / "fleet"
+    ops.create_fleet(fleet_dir)
+    ops.add_robot(fleet_dir, "husky1")
+    monkeypatch.setenv("FLEET_DIR", str(fleet_dir))
+    return fleet_dir
+
+
+@pytest.fixture
+def deployed(monkeypatch: pytest.MonkeyPatch) -> list[composerun.Options]:
+    """Every deployment ``up`` asked for (its options), instead of docker compose."""
+    calls: list[composerun.Options] = []
+
+    def fake_up(fleet_dir: Path, options: composerun.Options, **_: Any) -> composerun.UpResult:
+        calls.append(options)
+        urls = tuple(f"ws://10.8.0.1:{8080 + i}/" for i in range(options.replicas))
+        return composerun.UpResult(fleet_dir / ".compose/docker-compose.yml", "off",
+                                   "https://localhost:8443/", ("husky1",), False,
+                                   options.replicas, urls if options.replicas > 1 else ())
+
+    monkeypatch.setattr(deploy_cli, "require_docker", lambda: None)
+    monkeypatch.setattr(composerun, "up", fake_up)
+    return calls
+
+
+def _urls(fleet: Path) -> str:
+    return (fleet / "robots/husky1/client.yaml").read_text().split("robot_name:")[0]
+
+
+def test_up_replicas_is_recorded_and_a_plain_up_keeps_it(
+        fleet: Path, deployed: list[composerun.Options],
+        capsys: pytest.CaptureFixture[str]) -> None:
+    assert main(["up", "--replicas", "2"]) == 0
+    out = capsys.readouterr().out
+    assert "relay_replicas: 2 recorded in fleet.yaml" in out
+    assert "update robots/husky1/client.yaml" in out
+    assert load_fleet(fleet).relay_replicas == 2
+    assert "- \"ws://10.8.0.1:8081/\"" in _urls(fleet)
+    # The next up without --replicas deploys what fleet.yaml says and records nothing.
+    assert main(["up", "-o", "json"]) == 0
+    result = json.loads(capsys.readouterr().out)
+    assert [o.replicas for o in deployed] == [2, 2]
+    assert result["replicas"] == 2 and result["relay_replicas_recorded"] is False
+    # Back to one server: the robots' client.yaml name it alone again.
+    assert main(["up", "--replicas", "1"]) == 0
+    assert load_fleet(fleet).relay_replicas == 1
+    assert _urls(fleet).count("ws://") == 1
+
+
+def test_a_failed_up_records_nothing(fleet: Path, monkeypatch: pytest.MonkeyPatch,
+                                     capsys: pytest.CaptureFixture[str]) -> None:
+    from fleetctl.errors import ConflictError
+
+    def refused(*_: Any, **__: Any) -> composerun.UpResult:
+        raise ConflictError("the fleet runs with replicas=1, not 2; run `fleetctl down`")
+
+    monkeypatch.setattr(deploy_cli, "require_docker", lambda: None)
+    monkeypatch.setattr(composerun, "up", refused)
+    before = (fleet / "fleet.yaml").read_bytes()
+    assert main(["up", "--replicas", "2"]) == 4
+    assert "run `fleetctl down`" in capsys.readouterr().err
+    assert (fleet / "fleet.yaml").read_bytes() == before

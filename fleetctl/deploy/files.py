@@ -424,7 +424,12 @@ def check_overwrite(path: Path, new_text: str, label: str, hint: str) -> None:
         st = path.lstat()
     except (FileNotFoundError, NotADirectoryError):  # a parent is a file: missing too
         return
-    state = "edited" if not stat.S_ISREG(st.st_mode) else edit_state(path.read_bytes(), new_text)
+    if not stat.S_ISREG(st.st_mode):
+        # Said as it is: "edited by hand" sends the operator looking for an edit.
+        kind = "a symbolic link" if stat.S_ISLNK(st.st_mode) else "not a regular file"
+        raise ConfigError(f"{label} is {kind}, which fleetctl never writes through: "
+                          f"{hint}, then run `fleetctl render --force` to replace it")
+    state = edit_state(path.read_bytes(), new_text)
     if state == "generated":
         return
     what = ("was edited by hand" if state == "edited" else

@@ -98,6 +98,18 @@ def test_every_generated_file_is_guarded(fleet_dir: Path, relpath: str) -> None:
     assert path.read_text().endswith("# mine\n")
 
 
+def test_a_generated_file_replaced_by_a_link_is_said_to_be_one(fleet_dir: Path) -> None:
+    conf = fleet_dir / "robots/husky1/wireguard/wg0.conf"
+    target = fleet_dir.parent / "elsewhere.conf"
+    target.write_text(conf.read_text())  # even the same content: never written through
+    conf.unlink()
+    conf.symlink_to(target)
+    with pytest.raises(ConfigError, match=r"wg0\.conf is a symbolic link, which fleetctl "
+                                          r"never writes through: set ip and mtu_bytes"):
+        ops.render_fleet(fleet_dir)
+    assert conf.is_symlink()
+
+
 def test_digest_line_is_the_sha256_of_the_rest(fleet_dir: Path) -> None:
     for rel in GENERATED[1:]:
         first, rest = (fleet_dir / rel).read_bytes().split(b"\n", 1)

@@ -12,6 +12,7 @@ Public keys are always derived from private keys, never stored, so they cannot d
 
 from __future__ import annotations
 
+import stat
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -55,7 +56,24 @@ def _read_key(path: Path) -> Secret:
         # Never the decoder's message: it would quote bytes of the key.
         raise ConfigError(f"{path}: cannot read key file: not ASCII text") from None
     decode_key(text, str(path))  # validates; the error never includes the key
+    _require_private(path)
     return Secret(text)
+
+
+def _require_private(path: Path) -> None:
+    """Refuse a key that others may read, as ssh refuses such a private key: fleetctl
+    makes every key 0600, so a looser one was copied or linked in from elsewhere (e.g. a
+    link to a 0644 file) and may already be known to others."""
+    try:
+        mode = stat.S_IMODE(path.stat().st_mode)
+    except OSError as exc:
+        raise ConfigError(f"{path}: cannot read key file: "
+                          f"{exc.strerror or type(exc).__name__}") from None
+    if mode & 0o077:
+        raise ConfigError(f"{path}: key file is readable or writable by others (mode "
+                          f"{mode:04o}{', through a symbolic link' if path.is_symlink() else ''})"
+                          f": `chmod 600` it if nobody else could read it, otherwise "
+                          "replace the key")
 
 
 def load_server_key(fleet_dir: Path) -> Secret:

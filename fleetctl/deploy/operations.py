@@ -225,10 +225,20 @@ def _plan_fleet(plan: Plan, fleet_dir: Path, fleet: Fleet, keys: FleetKeys, *,
     """Plan fleet.yaml (unless *write_fleet* is false) and every artifact.
 
     Raises:
-        ConfigError: (unless *force*) a generated file was edited by hand.
+        ConfigError: (unless *force*) a generated file was edited by hand; fleet.yaml is
+            a symbolic link and would change.
     """
     if write_fleet:
-        plan.write(fleet_file(fleet_dir), dump_fleet(fleet))
+        path, text = fleet_file(fleet_dir), dump_fleet(fleet)
+        if path.is_symlink() and read_small(path, MAX_CONFIG_BYTES) != text.encode():
+            # Every write replaces the file whole (atomically), which would put a copy in
+            # place of the link and leave the operator's own file (in a repository, say)
+            # behind without a word.
+            raise ConfigError(
+                f"{path} is a symbolic link (to {os.readlink(path)}): fleetctl replaces "
+                "fleet.yaml whole and would replace the link, not the file it points to; "
+                "point FLEET_DIR at a directory where fleet.yaml is the file itself")
+        plan.write(path, text)
     plan_artifacts(plan, fleet_dir, fleet_artifacts(fleet, keys, fleet_dir), force=force)
     return plan
 

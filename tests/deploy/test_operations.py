@@ -53,3 +53,34 @@ def test_a_robot_added_to_fleet_yaml_by_hand_still_gets_its_keys(tmp_path: Path)
         "robots: []", "robots:\n  - name: r2\n    ip: 10.8.0.7"))
     ops.render_fleet(fleet_dir)
     assert (fleet_dir / "keys/robots/r2.key").is_file()
+
+
+def test_a_key_others_may_read_is_refused_as_ssh_refuses_one(tmp_path: Path) -> None:
+    fleet_dir = tmp_path / "f"
+    ops.create_fleet(fleet_dir)
+    ops.add_robot(fleet_dir, "r1")
+    key = fleet_dir / "keys/robots/r1.key"
+    outside = tmp_path / "r1.key"  # a copy kept elsewhere, world-readable, linked in
+    outside.write_text(key.read_text())
+    outside.chmod(0o644)
+    key.unlink()
+    key.symlink_to(outside)
+    with pytest.raises(ConfigError, match=r"r1\.key: key file is readable or writable by "
+                                          r"others \(mode 0644, through a symbolic link\)"):
+        ops.render_fleet(fleet_dir)
+    outside.chmod(0o600)
+    ops.render_fleet(fleet_dir)  # the operator's call: a private key, wherever it lives
+
+
+def test_a_linked_fleet_yaml_is_read_but_never_replaced_by_a_copy(tmp_path: Path) -> None:
+    fleet_dir = tmp_path / "f"
+    ops.create_fleet(fleet_dir)
+    repo = tmp_path / "repo.yaml"  # the operator's file, kept in a repository
+    (fleet_dir / "fleet.yaml").rename(repo)
+    (fleet_dir / "fleet.yaml").symlink_to(repo)
+    before = repo.read_text()
+    ops.render_fleet(fleet_dir)  # nothing to change in fleet.yaml: fine through the link
+    with pytest.raises(ConfigError, match=r"fleet\.yaml is a symbolic link \(to .*repo\.yaml\)"
+                                          r": fleetctl replaces fleet\.yaml whole"):
+        ops.add_robot(fleet_dir, "r1")
+    assert (fleet_dir / "fleet.yaml").is_symlink() and repo.read_text() == before

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import importlib.util
+import os
 import re
 import secrets
 from pathlib import Path
@@ -12,7 +13,7 @@ import typer
 
 from fleetctl.e2e import cleanup, report, runner
 from fleetctl.e2e.interrupt import Interrupted, SignalGuard
-from fleetctl.errors import EnvironmentMissing, ExitCode, FleetError
+from fleetctl.errors import ConflictError, EnvironmentMissing, ExitCode, FleetError
 
 _RUN_ID = re.compile(r"[a-z0-9]{1,8}")
 
@@ -61,6 +62,7 @@ def e2e(
     if importlib.util.find_spec("matplotlib") is None:
         raise EnvironmentMissing("fleetctl e2e draws the report's plots with matplotlib, which "
                                  "is not installed: pip install 'fleetctl[e2e]'")
+    _report_dir(out)  # the last check: it is the first thing that writes
     cfg = runner.RunConfig(scenarios=tuple(scenario) or runner.SCENARIOS, duration_s=duration,
                            work_dir=out / "raw",
                            source_dir=mount_source.resolve() if mount_source else None,
@@ -75,6 +77,19 @@ def e2e(
     typer.echo(f"report: {path}")
     if not report.overall_ok(results):
         raise typer.Exit(int(ExitCode.FAILURE))
+
+
+def _report_dir(out: Path) -> None:
+    """Make ``--out`` (and its ``raw/``) now: a path that cannot be the report's directory
+    is one line before the run, not a traceback after containers were started."""
+    if os.path.lexists(out) and not out.is_dir():
+        raise ConflictError(f"--out {out}: exists and is not a directory (give a new or "
+                            "existing directory for the report)")
+    try:
+        (out / "raw").mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise FleetError(f"--out {out}: cannot make the report directory: "
+                         f"{exc.strerror or exc}", exit_code=ExitCode.ENVIRONMENT) from None
 
 
 def _interrupted(exc: Interrupted, run_id: str) -> NoReturn:

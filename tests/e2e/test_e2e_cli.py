@@ -60,3 +60,18 @@ def test_without_matplotlib_nothing_runs_and_the_extra_is_named(
     assert main(["e2e", "--scenario", "link", "--out", str(tmp_path)]) == 5
     assert "pip install 'fleetctl[e2e]'" in capsys.readouterr().err
     assert not any(tmp_path.iterdir())
+
+
+def test_an_out_that_is_a_file_is_one_line_before_anything_runs(
+        tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    afile = tmp_path / "afile"
+    afile.write_text("mine\n")
+    assert main(["e2e", "--scenario", "link", "--out", str(afile)]) == 4
+    err = capsys.readouterr().err
+    assert err.strip() == (f"fleetctl: error: --out {afile}: exists and is not a directory "
+                           "(give a new or existing directory for the report)")
+    assert afile.read_text() == "mine\n"
+    # A parent that is a file: the directory cannot be made (was a NotADirectoryError
+    # traceback once the run had started).
+    assert main(["e2e", "--scenario", "link", "--out", str(afile / "report")]) == 5
+    assert "cannot make the report directory: Not a directory" in capsys.readouterr().err

@@ -97,6 +97,11 @@ def up(
     require_docker()
     recorded = load_fleet(fleet).relay_replicas
     count = recorded if replicas is None else replicas
+    if count != recorded:
+        # Whatever would stop the recording below (replica ports that do not fit, a
+        # client.yaml edited by hand) stops `up` now, before anything is deployed.
+        with ops.fleet_lock(fleet, dry_run=True):
+            ops.set_relay_replicas(fleet, count, dry_run=True)
     options = composerun.default_options(fleet, project=project, wireguard=wireguard,
                                          sim=sim, bind=bind, https_port=https_port,
                                          replicas=count)

@@ -648,7 +648,7 @@ def set_endpoint(fleet_dir: Path, endpoint: str, *, dry_run: bool = False,
     return EndpointResult(endpoint, fleet.endpoint, regenerated, outcome)
 
 
-def set_relay_replicas(fleet_dir: Path, count: int, *,
+def set_relay_replicas(fleet_dir: Path, count: int, *, dry_run: bool = False,
                        keys: KeySource = _SYSTEM_KEYS) -> Outcome:
     """Record that the server host runs *count* relay replicas (``fleet.yaml``
     ``relay_replicas``), and re-render: every robot's ``client.yaml`` then lists every
@@ -663,7 +663,7 @@ def set_relay_replicas(fleet_dir: Path, count: int, *,
     new = _checked(replace(fleet, relay_replicas=count))
     plan = Plan()
     _plan_fleet(plan, fleet_dir, new, _load_keys(fleet_dir, new, keys, plan))
-    return finish_plan(plan, fleet_dir, False)
+    return finish_plan(plan, fleet_dir, dry_run)
 
 
 def describe_fleet(fleet_dir: Path) -> FleetInfo:

@@ -80,3 +80,13 @@ def test_a_failed_up_records_nothing(fleet: Path, monkeypatch: pytest.MonkeyPatc
     assert main(["up", "--replicas", "2"]) == 4
     assert "run `fleetctl down`" in capsys.readouterr().err
     assert (fleet / "fleet.yaml").read_bytes() == before
+
+
+def test_what_would_stop_the_recording_stops_up_before_it_deploys(
+        fleet: Path, deployed: list[composerun.Options],
+        capsys: pytest.CaptureFixture[str]) -> None:
+    config = fleet / "robots/husky1/client.yaml"
+    config.write_text(config.read_text() + "# mine\n")
+    assert main(["up", "--replicas", "2"]) == 3
+    assert "client.yaml was edited by hand" in capsys.readouterr().err
+    assert deployed == [] and load_fleet(fleet).relay_replicas == 1

@@ -16,8 +16,10 @@ What runs (docs/scaling.md, "Deploying replicas"):
 
 Robots fail over with client-side URL lists (docs/client.md, "Replicas and failover"):
 simulated robots get ``server_url: [ws://10.8.0.1:8080/, ws://10.8.0.1:8081/, ...]``;
-``up`` prints the list for real robots. No load balancer: the client's list already does
-what HAProxy would, without another hop or a place that rewrites robots' addresses.
+robots on other hosts get it in their generated ``client.yaml`` once ``up --replicas N``
+has recorded N in fleet.yaml (``relay_replicas``). No load balancer: the client's list
+already does what HAProxy would, without another hop or a place that rewrites robots'
+addresses.
 
 Credentials: every replica has its own NATS user and a random password (32 bytes), kept in
 ``.compose/secrets/relay-i/nats.password`` (0600, reused by the next ``up``); the NATS

@@ -35,6 +35,7 @@ from fleetctl.deploy.compose import (
     container_server_config,
 )
 from fleetctl.deploy.images import image_tag
+from fleetctl.deploy.render import replica_urls
 from fleetctl.errors import ConfigError
 from fleetctl.smallfile import MAX_PEM_BYTES, read_small_text
 from fleetctl.yamlfile import read_yaml
@@ -52,8 +53,7 @@ def relay_ports(plan: ComposePlan, index: int) -> tuple[int, int]:
 
 def robot_urls(plan: ComposePlan) -> list[str]:
     """Every replica's WebSocket URL as robots reach it (through the tunnel)."""
-    return [f"ws://{plan.server_ip}:{relay_ports(plan, i)[0]}/"
-            for i in range(plan.options.replicas)]
+    return replica_urls(plan.server_ip, relay_ports(plan, 0)[0], plan.options.replicas)
 
 
 def page_urls(plan: ComposePlan) -> list[str]:

@@ -325,10 +325,14 @@ def server_url(fleet: Fleet) -> str:
 
 
 def server_urls(fleet: Fleet) -> list[str]:
-    """Every relay replica's WebSocket URL as robots reach it (one without replicas);
-    replica *i* listens on ``server_port`` + *i* (fleetctl.deploy.composereplicas)."""
-    return [f"ws://{fleet.server_ip}:{fleet.server_port + i}/"
-            for i in range(fleet.relay_replicas)]
+    """Every relay replica's WebSocket URL as robots reach it (one without replicas)."""
+    return replica_urls(str(fleet.server_ip), fleet.server_port, fleet.relay_replicas)
+
+
+def replica_urls(server_ip: str, server_port: int, count: int) -> list[str]:
+    """The WebSocket URLs of *count* relay replicas through the tunnel: replica *i*
+    listens on *server_port* + *i* (fleetctl.deploy.composereplicas)."""
+    return [f"ws://{server_ip}:{server_port + i}/" for i in range(count)]
 
 
 def client_config(fleet: Fleet, robot: Robot) -> str:

@@ -10,7 +10,7 @@ from pathlib import Path
 import yaml
 
 from fleetctl.errors import ConfigError
-from fleetctl.yamlfile import TOO_DEEP
+from fleetctl.yamlfile import TOO_DEEP, yaml_error
 
 FieldPath = tuple[str | int, ...]
 
@@ -57,12 +57,8 @@ class Document:
         self.lines: dict[FieldPath, int] = {}
         try:
             root = yaml.compose(text, Loader=yaml.SafeLoader)
-        except yaml.MarkedYAMLError as exc:
-            mark = exc.problem_mark or exc.context_mark
-            line = mark.line + 1 if mark is not None else 1
-            raise ConfigError(f"{path}:{line}: not valid YAML: {exc.problem}") from None
         except yaml.YAMLError as exc:
-            raise ConfigError(f"{path}: not valid YAML: {exc}") from None
+            raise yaml_error(path, exc) from None
         except RecursionError:  # PyYAML's composer recurses per level: "[[[[..."
             raise ConfigError(f"{path}: not valid YAML: {TOO_DEEP}") from None
         if root is None:

@@ -77,3 +77,17 @@ def test_help_lines_that_the_source_breaks_fit_an_80_column_terminal() -> None:
             lines = paragraph.strip("\n").splitlines()
             too_long += [f"{path}: {line}" for line in lines if len(lines) > 1 and len(line) > 77]
     assert too_long == []
+
+
+def test_no_help_shows_a_value_after_a_flag(capsys: pytest.CaptureFixture[str]) -> None:
+    # typer 0.29 printed `<bool>` after every flag (`--sim <bool>`, even `-h <bool>`),
+    # which reads as "takes a value": `fleetctl up --sim true` is then a usage error.
+    import typer.main
+
+    root = typer.main.get_command(cli_main.build_app())
+    valued_flags = []
+    for path, _command in _commands(root):
+        assert cli_main.main([*path.split()[1:], "-h"]) == 0
+        valued_flags += [f"{path}: {line.strip()}" for line in capsys.readouterr().out.splitlines()
+                         if "<bool>" in line]
+    assert valued_flags == []

@@ -27,8 +27,9 @@ import numpy as np
 from websockets.asyncio.client import connect
 
 from fleetctl.client.config import parse_client_config
+from fleetctl.client.linktuning import LinkTuning
 from fleetctl.client.scheduler import SchedulerConfig
-from fleetctl.client.transport import LinkTuning, RobotLink, scheduler_config_for
+from fleetctl.client.transport import RobotLink, scheduler_config_for
 from fleetctl.wire.codec import default_codec
 
 ROBOT_TOKEN = "bench-robot-token"

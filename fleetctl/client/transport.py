@@ -54,12 +54,11 @@ import logging
 import math
 import random
 import socket
-import struct
 import threading
 import time
 from collections import Counter, deque
 from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from typing import Any, NamedTuple
 
 from websockets.asyncio.client import ClientConnection, connect
@@ -68,14 +67,16 @@ from websockets.uri import parse_uri
 
 from fleetctl.batched_connection import BatchedWritesConnection
 from fleetctl.client.config import ClientConfig
-from fleetctl.client.dialer import DialSettings, DialTimeout, dial_first
+from fleetctl.client.dialer import DialTimeout, dial_first
+from fleetctl.client.linktuning import LinkTuning
 from fleetctl.client.memory import tune_malloc
 from fleetctl.client.receiver import Receiver
 from fleetctl.client.scheduler import Scheduler, SchedulerConfig, TopicFeedback
 from fleetctl.client.standby import STANDBY_HEADER, Standby, keep_mapping_alive
+from fleetctl.client.tcppath import AckStall, TcpInfo, read_tcp_info, reset_transport
 from fleetctl.client.wakeup import Wakeup
 from fleetctl.frame_sink import FrameSink
-from fleetctl.linkdeflate import DEFAULT_MAX_MESSAGE_BYTES, RobotDeflateFactory
+from fleetctl.linkdeflate import RobotDeflateFactory
 from fleetctl.wire.control import encode_subscription
 
 logger = logging.getLogger("fleetctl.client.link")
@@ -84,193 +85,6 @@ SESSION_HEADER = "X-Fleetctl-Session"  # fleetctl.server.sessions.SESSION_HEADER
 PATH_RTT_DIALS = 5  # the dials whose SYN round trips give the path's (RobotLink._path_rtt_s)
 
 Clock = Callable[[], float]
-
-
-@dataclass(frozen=True)
-class LinkTuning:
-    """Transport settings that are not in ``client.yaml`` (defaults suit most links).
-
-    Attributes:
-        open_timeout_s: Limit of one connection attempt (TCP + TLS + upgrade), seconds.
-        dial: How the TCP connection is raced (see :mod:`fleetctl.client.dialer`).
-        failover_after_s: With several replicas (``server_url`` a list), the current one
-            has this head start in a dial before the others join the race, seconds
-            (:func:`~fleetctl.client.dialer.dial_first`); a replica that refuses is left
-            at once.
-        keepalive_interval_s: A ping is sent when the link was idle this long, seconds.
-        link_timeout_s: A ping unanswered this long means the link is dead, seconds.
-        close_timeout_s: Time allowed for the closing handshake on stop, seconds.
-        max_receive_frame_bytes: Largest frame accepted from the server (bytes).
-        reassembly_max_bytes: Bytes of incomplete fragmented messages kept (bytes).
-        reassembly_timeout_s: An incomplete fragmented message is dropped after this.
-        dedupe_window: How many recent no_drop frames per topic are remembered to drop
-            resends (at most 4096).
-        send_batch_bytes: Frames are handed to the transport in batches up to this size
-            (bytes); a batch also ends where an ack point (ping) is due.
-        write_limit_bytes: High-water mark of the transport's write buffer (bytes): a
-            write waits above it. Small enough that data waits in the scheduler (where it
-            can be superseded), large enough that one batch does not stall on it.
-        tune_malloc: Raise glibc's malloc thresholds when :meth:`RobotLink.run` starts
-            (process-wide; see :mod:`fleetctl.client.memory`).
-        bind_reminder_interval_s: While ``bind_address`` is on no interface (the tunnel is
-            down), the failed attempts are logged at DEBUG, with a WARNING reminder at most
-            this often, seconds (the first one explains).
-        path_poll_s: While an early dial is under way, or a dead path is redialled, how
-            often the kernel's TCP state is read again, seconds. Otherwise it is read when
-            the path could first be declared dead (data in flight) or right after a
-            write that follows an idle spell: no periodic wake-ups (each cost the robot
-            about 0.2 ms of CPU, 0.45 % of a core at 20 per second).
-        path_idle_poll_s: With nothing in flight, the longest wait between two reads (it
-            is also how often the pong backstop is checked), seconds.
-        dead_ack_gap_s: With data unacknowledged, no ACK for at least this long (and for
-            ``dead_ack_rtts`` smoothed RTTs) means the path is dead, seconds.
-        dead_ack_rtts: The same gap in smoothed RTTs (``tcpi_rtt``).
-        stale_ack_gaps: With the path dead, no ACK for this many dead gaps means the old
-            connection holds nothing worth delivering any more: it is reset (a TCP RST,
-            its unacknowledged data discarded by the kernel) and the link reconnects at
-            the outage's pace. Before that, an ACK makes the dead path a false alarm and
-            the old connection carries on.
-        deflate_max_message_bytes: Messages up to this size are sent with
-            permessage-deflate when the server accepts it (:mod:`fleetctl.linkdeflate`);
-            0 does not offer the extension (today's frames on the wire).
-        publish_to_offer_s: For a message offered without its publish time (one the
-            rclpy executor took, which does not see the middleware's source
-            timestamp), how long before its offer it counts as published, seconds: the
-            robot's own intake (DDS delivery, the take, the encode) puts 0.5-2 ms
-            between the two (a 6 KB scan's is the longer), so after an outage such a
-            message is fresh only when offered this long after the path was proven
-            alive (docs/recovery.md, "Nothing ahead of the activation").
-        max_publish_age_s: A publish time (the middleware's source timestamp) more than
-            this before its offer, or after it, is not believed (a publisher on another
-            host whose clock is off): the offer then counts as above, seconds.
-    """
-
-    open_timeout_s: float = 5.0
-    dial: DialSettings = field(default_factory=DialSettings)
-    failover_after_s: float = 0.5
-    keepalive_interval_s: float = 0.5
-    link_timeout_s: float = 3.0
-    close_timeout_s: float = 1.0
-    max_receive_frame_bytes: int = 32 * 1024 * 1024
-    reassembly_max_bytes: int = 64 * 1024 * 1024
-    reassembly_timeout_s: float = 5.0
-    dedupe_window: int = 100_000
-    send_batch_bytes: int = 1024 * 1024
-    write_limit_bytes: int = 1024 * 1024
-    tune_malloc: bool = True
-    bind_reminder_interval_s: float = 30.0
-    path_poll_s: float = 0.05
-    path_idle_poll_s: float = 0.5
-    dead_ack_gap_s: float = 0.15
-    dead_ack_rtts: float = 4.0
-    stale_ack_gaps: float = 2.0
-    deflate_max_message_bytes: int = DEFAULT_MAX_MESSAGE_BYTES
-    publish_to_offer_s: float = 0.002
-    max_publish_age_s: float = 1.0
-
-
-@dataclass(frozen=True)
-class TcpInfo:
-    """What :class:`AckStall` reads from Linux's ``struct tcp_info``.
-
-    Attributes:
-        unacked: Segments sent and not acknowledged (``tcpi_unacked``).
-        last_ack_s: Time since the last ACK arrived, seconds (``tcpi_last_ack_recv``).
-        srtt_s: Smoothed RTT, seconds (``tcpi_rtt``); not updated while no ACK comes.
-    """
-
-    unacked: int
-    last_ack_s: float
-    srtt_s: float
-
-
-# struct tcp_info up to tcpi_total_retrans: 8 one-byte fields, then 24 __u32.
-_TCP_INFO = struct.Struct("=8B24I")
-_LINGER_RESET = struct.pack("ii", 1, 0)  # struct linger {l_onoff = 1, l_linger = 0}
-_UNACKED, _LAST_ACK_RECV, _RTT = 4, 12, 15  # indices among the __u32 fields
-
-
-def read_tcp_info(sock: Any) -> TcpInfo | None:
-    """The kernel's view of *sock* (a socket or asyncio's ``TransportSocket``); None where
-    ``TCP_INFO`` does not exist (not Linux) or the socket is gone."""
-    option = getattr(socket, "TCP_INFO", None)
-    if option is None or sock is None:
-        return None
-    try:
-        raw = sock.getsockopt(socket.IPPROTO_TCP, option, _TCP_INFO.size)
-    except OSError:
-        return None
-    if len(raw) < _TCP_INFO.size:
-        return None
-    words = _TCP_INFO.unpack(raw)[8:]
-    return TcpInfo(words[_UNACKED], words[_LAST_ACK_RECV] / 1e3, words[_RTT] / 1e6)
-
-
-class AckStall:
-    """Decides from polled :class:`TcpInfo` whether the path is dead (pure, no I/O).
-
-    Dead: data is unacknowledged, no ACK came for ``max(min_gap_s, rtts x srtt)``, and the
-    unacknowledged data has been seen for that long too. The last condition matters after
-    an idle spell: ``tcpi_last_ack_recv`` is then large although the data was just sent.
-    A live link, however congested, ACKs what arrives; only a silent path stops the ACKs
-    with data outstanding (a receiver that stops reading still ACKs, window probes too).
-
-    A false alarm is cheap and self-correcting, which is why the gap can be short (4
-    smoothed RTTs, not the kernel's RTO with its backoff): it only starts an early dial,
-    and on a path that is alive but slow the old connection's ACK comes back before the
-    new connection's SYN-ACK (the SYN queues behind the data), so the switch is called
-    off. On a bloated link the smoothed RTT includes the queue (measured srtt: 0.32 s with
-    a 400 ms tbf queue at 1 Mbit/s, so dead after ~1.3 s instead of 0.15 s).
-
-    Stale: dead for ``stale_gaps`` gaps. The old connection is then given up for good:
-    what it still holds was sent before the outage, and a retransmission of it that wins
-    the race against the new connection's SYN when the path returns is a stale delivery
-    (seen in the e2e ``peer`` scenario's 0.5 s cuts: the kernel's second retransmission,
-    ~0.6 s after the cut, landed just after the restore and delivered 3 messages).
-
-    Args:
-        min_gap_s: Shortest ACK gap taken as dead, seconds (above delayed ACKs: 40 ms).
-        rtts: The gap in smoothed RTTs.
-        stale_gaps: How many gaps without an ACK make the path stale.
-    """
-
-    def __init__(self, min_gap_s: float, rtts: float, stale_gaps: float = 2.0) -> None:
-        self.min_gap_s = min_gap_s
-        self.rtts = rtts
-        self.stale_gaps = stale_gaps
-        self._busy_since_s: float | None = None  # first poll that saw unacked data
-
-    def gap_s(self, info: TcpInfo) -> float:
-        """How long without an ACK means dead, for this connection's RTT."""
-        return max(self.min_gap_s, self.rtts * info.srtt_s)
-
-    def next_check_s(self, now_s: float, info: TcpInfo) -> float | None:
-        """Seconds from *now_s* until the path could be dead if no ACK comes (0 when it
-        already looks dead); None with nothing unacknowledged. Call after :meth:`dead`."""
-        if info.unacked == 0 or self._busy_since_s is None:
-            return None
-        gap = self.gap_s(info)
-        # dead() compares with ">": look just after the gap, not on it.
-        due = max(gap - info.last_ack_s, self._busy_since_s + gap - now_s)
-        return max(0.0, due + 0.001)
-
-    def dead(self, now_s: float, info: TcpInfo) -> bool:
-        """Update with a poll at *now_s*; True while the path looks dead."""
-        if info.unacked == 0:
-            self._busy_since_s = None
-            return False
-        if self._busy_since_s is None:
-            self._busy_since_s = now_s
-        gap = self.gap_s(info)
-        return info.last_ack_s > gap and now_s - self._busy_since_s > gap
-
-    def stale(self, now_s: float, info: TcpInfo) -> bool:
-        """True when the path has been dead for ``stale_gaps`` gaps (call after
-        :meth:`dead`, which tracks how long data has been in flight)."""
-        if info.unacked == 0 or self._busy_since_s is None:
-            return False
-        gap = self.stale_gaps * self.gap_s(info)
-        return info.last_ack_s > gap and now_s - self._busy_since_s > gap
 
 
 class Dialed(NamedTuple):
@@ -323,21 +137,6 @@ class LinkDead(Exception):
 class PathStale(Exception):
     """The path stayed dead past ``stale_ack_gaps`` (:meth:`AckStall.stale`): the
     connection is reset and the link reconnects at the outage's pace."""
-
-
-def reset_transport(transport: asyncio.Transport) -> None:
-    """Close *transport* with a TCP reset (``SO_LINGER`` 0).
-
-    Why: a plain ``close()`` (asyncio's ``abort()`` too) leaves unacknowledged data to an
-    orphan socket that keeps retransmitting it with backoff and delivers it whenever the
-    path returns: frames published before an outage reaching the relay after it. With a
-    zero linger the kernel discards the send queue at once and sends a RST instead.
-    """
-    sock = transport.get_extra_info("socket")
-    if sock is not None:
-        with contextlib.suppress(OSError):
-            sock.setsockopt(socket.SOL_SOCKET, socket.SO_LINGER, _LINGER_RESET)
-    transport.abort()
 
 
 @dataclass(frozen=True)

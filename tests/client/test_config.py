@@ -184,7 +184,8 @@ def test_robofleet_scheduler_sends_whole_frames_one_in_flight() -> None:
 
 
 def test_the_outage_dial_interval_reaches_the_link_s_dial_pace() -> None:
-    from fleetctl.client.transport import LinkTuning, RobotLink
+    from fleetctl.client.linktuning import LinkTuning
+    from fleetctl.client.transport import RobotLink
 
     default = parse_client_config(minimal(), source="c.yaml")
     assert default.limits.outage_dial_interval_s == 0.01
@@ -200,7 +201,8 @@ def test_the_outage_dial_interval_reaches_the_link_s_dial_pace() -> None:
 
 
 def test_the_standby_connection_is_on_unless_turned_off() -> None:
-    from fleetctl.client.transport import LinkTuning, RobotLink
+    from fleetctl.client.linktuning import LinkTuning
+    from fleetctl.client.transport import RobotLink
 
     default = parse_client_config(minimal(), source="c.yaml")
     assert default.limits.standby_connection

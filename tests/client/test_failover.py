@@ -11,7 +11,8 @@ from __future__ import annotations
 import asyncio
 from pathlib import Path
 
-from fleetctl.client.transport import LinkTuning, RobotLink
+from fleetctl.client.linktuning import LinkTuning
+from fleetctl.client.transport import RobotLink
 from fleetctl.server.app import RelayServer
 from tests.client.conftest import Consumer, make_server, robot_config, running, wait_until
 from tests.client.test_dialer import silent_port

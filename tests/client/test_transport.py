@@ -8,8 +8,9 @@ from pathlib import Path
 
 import pytest
 
+from fleetctl.client.linktuning import LinkTuning
 from fleetctl.client.scheduler import SchedulerConfig
-from fleetctl.client.transport import LinkConnection, LinkTuning, RobotLink, backoff_delay_s
+from fleetctl.client.transport import LinkConnection, RobotLink, backoff_delay_s
 from fleetctl.server.app import RelayServer
 from fleetctl.wire.fragments import split
 from tests.client.conftest import (

@@ -17,7 +17,8 @@ from websockets.asyncio.server import ServerConnection, serve
 
 from fleetctl.client import transport
 from fleetctl.client.standby import KEEPALIVE_IDLE_S, KEEPALIVE_INTERVAL_S, KEEPALIVE_PROBES
-from fleetctl.client.transport import RobotLink, TcpInfo, read_tcp_info
+from fleetctl.client.tcppath import TcpInfo, read_tcp_info
+from fleetctl.client.transport import RobotLink
 from fleetctl.server.app import RelayServer
 from tests.client.conftest import robot_config, running, wait_until
 from tests.client.test_transport_recovery import TUNING, EventsThroughTheRelay

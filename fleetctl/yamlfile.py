@@ -33,11 +33,37 @@ def read_yaml(path: Path, what: str) -> Any:
     except UnicodeDecodeError:
         raise ConfigError(f"{path}: cannot read {what}: not UTF-8 text") from None
     try:
-        return yaml.safe_load(text)
+        return safe_load(text)
     except yaml.YAMLError as exc:
         raise yaml_error(path, exc) from None
     except RecursionError:
         raise ConfigError(f"{path}: not valid YAML: {TOO_DEEP}") from None
+
+
+class _CheckedLoader(yaml.SafeLoader):
+    """``yaml.SafeLoader`` whose explicitly tagged scalars fail as YAML errors.
+
+    PyYAML's safe constructors turn ``!!int x`` into ``ValueError``, ``!!bool x`` into
+    ``KeyError`` and ``!!timestamp x`` into ``AttributeError``: exceptions no caller of a
+    YAML loader expects. Each is re-raised as a ``ConstructorError`` marked with the node's
+    line.
+    """
+
+    def construct_object(self, node: yaml.Node, deep: bool = False) -> Any:
+        try:
+            return super().construct_object(node, deep)
+        except (ValueError, KeyError, TypeError, AttributeError, OverflowError):
+            tag = str(node.tag).replace("tag:yaml.org,2002:", "!!")
+            value = node.value if isinstance(node, yaml.ScalarNode) else "..."
+            raise yaml.constructor.ConstructorError(
+                None, None, f"{str(value)[:40]!r} is not a valid {tag} value",
+                node.start_mark) from None
+
+
+def safe_load(text: str) -> Any:
+    """``yaml.safe_load`` whose every failure on bad input is a ``yaml.YAMLError`` (or a
+    ``RecursionError`` for deep nesting), never another exception."""
+    return yaml.load(text, Loader=_CheckedLoader)
 
 
 # PyYAML's parser recurses once per level of nesting: a few hundred "[" exhaust Python's

@@ -44,3 +44,22 @@ def test_deep_nesting_is_a_config_error_not_a_recursion_crash(tmp_path: Path) ->
     path.write_text("robots: " + "[" * 2000 + "]" * 2000 + "\n")
     with pytest.raises(ConfigError, match=r"auth\.yaml: not valid YAML: nested too deeply"):
         read_yaml(path, "auth map")
+
+
+@pytest.mark.parametrize(
+    ("line", "problem"),
+    [  # fuzzing: PyYAML's constructors raised ValueError, KeyError or AttributeError
+        ("limits: !!int 2ateee2ater!", "'2ateee2ater!' is not a valid !!int value"),
+        ("ok: !!bool t3- @", "'t3- @' is not a valid !!bool value"),
+        ("at: !!timestamp x", "'x' is not a valid !!timestamp value"),
+        ("rate: !!float fast", "'fast' is not a valid !!float value"),
+        ("? !!float x\n: 1", "'x' is not a valid !!float value"),
+    ],
+)
+def test_a_tagged_value_of_another_type_is_a_config_error(tmp_path: Path, line: str,
+                                                          problem: str) -> None:
+    path = tmp_path / "server.yaml"
+    path.write_text(f"listen_port: 8080\n{line}\n")
+    with pytest.raises(ConfigError) as info:
+        read_yaml(path, "server config")
+    assert str(info.value) == f"{path}:2: not valid YAML: {problem}"

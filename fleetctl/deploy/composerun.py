@@ -47,6 +47,7 @@ from fleetctl.deploy.images import image_tag
 from fleetctl.deploy.replicas import check_count
 from fleetctl.errors import ConfigError, ConflictError, EnvironmentMissing, FleetError
 from fleetctl.smallfile import MAX_CONFIG_BYTES, read_small_text
+from fleetctl.yamlfile import safe_load
 
 Progress = Callable[[str], None]
 
@@ -211,11 +212,12 @@ def deployed_services(fleet_dir: Path) -> list[str]:
     """The services of the compose file ``up`` last wrote in *fleet_dir* (none: [])."""
     path = fleet_dir / COMPOSE_DIR / COMPOSE_FILE
     try:
-        document = yaml.safe_load(read_small_text(path, MAX_CONFIG_BYTES))
-    except (OSError, yaml.YAMLError, RecursionError):  # not ours any more: nothing known
+        document = safe_load(read_small_text(path, MAX_CONFIG_BYTES))
+    # Not ours any more (edited, replaced, not text): nothing known.
+    except (OSError, UnicodeDecodeError, yaml.YAMLError, RecursionError):
         return []
     services = document.get("services") if isinstance(document, dict) else None
-    return sorted(services) if isinstance(services, dict) else []
+    return sorted(map(str, services)) if isinstance(services, dict) else []
 
 
 def logs(fleet_dir: Path, options: Options, services: Sequence[str], *, follow: bool) -> int:

@@ -10,7 +10,7 @@ from pathlib import Path
 import yaml
 
 from fleetctl.errors import ConfigError
-from fleetctl.yamlfile import TOO_DEEP, yaml_error
+from fleetctl.yamlfile import TOO_DEEP, safe_load, yaml_error
 
 FieldPath = tuple[str | int, ...]
 
@@ -153,13 +153,17 @@ class Document:
         self._seen(node, path)
         if not isinstance(node, yaml.ScalarNode) or node.tag not in (_INT, _FLOAT):
             raise self.error(path, "expected a number")
+        text = str(node.value)
         try:
-            if not str(node.value).isascii():  # float() and int() read other scripts' digits
-                raise ValueError(node.value)
-            value = float(int(str(node.value).replace("_", ""), 0)) if node.tag == _INT else (
-                float(yaml.safe_load(node.value)))
-        except (ValueError, TypeError):
+            if not text.isascii():  # float() and int() read other scripts' digits
+                raise ValueError(text)
+            # A quoted "!!float" value is any text: reading it may fail as YAML too.
+            value = float(int(text.replace("_", ""), 0)) if node.tag == _INT else (
+                float(safe_load(text)))
+        except (ValueError, TypeError, yaml.YAMLError, RecursionError):
             raise self.error(path, "expected a number") from None
+        except OverflowError:  # an integer of hundreds of digits: no float holds it
+            raise self.error(path, f"must be a finite number, got {text[:40]}...") from None
         if not math.isfinite(value):
             raise self.error(path, f"must be a finite number, got {node.value}")
         return value
@@ -167,6 +171,10 @@ class Document:
     def boolean(self, node: yaml.Node, path: FieldPath) -> bool:
         """Return a ``true`` / ``false`` scalar."""
         self._seen(node, path)
-        if not isinstance(node, yaml.ScalarNode) or node.tag != _BOOL:
+        value = None
+        if isinstance(node, yaml.ScalarNode) and node.tag == _BOOL:
+            # As PyYAML reads a bool; a quoted "!!bool" value is any text (refused).
+            value = yaml.constructor.SafeConstructor.bool_values.get(str(node.value).lower())
+        if value is None:
             raise self.error(path, "expected true or false")
-        return bool(yaml.safe_load(node.value))
+        return bool(value)

@@ -344,3 +344,8 @@ def test_logs_names_the_services_when_one_is_unknown(fleet: Path) -> None:
                                           r"robot-jackal2, server"):
         composerun.logs(fleet, _opts(fleet), ["server", "sever"], follow=False)
     assert composerun.deployed_services(fleet / "nowhere") == []
+    compose_file = fleet / composerun.COMPOSE_DIR / composerun.COMPOSE_FILE
+    compose_file.write_text("services: !!int x\n")  # edited by hand: nothing known
+    assert composerun.deployed_services(fleet) == []
+    compose_file.write_text("services: {1: {}, server: {}}\n")
+    assert composerun.deployed_services(fleet) == ["1", "server"]

@@ -220,6 +220,16 @@ def test_require_endpoint(tmp_path: Path) -> None:
          "deflate, got 'lz4'"),
         ("compression: zstd}", "no_drop: maybe}",
          "/f/fleet.yaml:15: robots[1].publish[2].no_drop: expected true or false"),
+        # fuzzing: a quoted !!float / !!bool value is any text, and was parsed as YAML again
+        ("rate_limit_hz: 1}", "rate_limit_hz: !!float \"[\"}",
+         "/f/fleet.yaml:13: robots[1].publish[0].rate_limit_hz: expected a number"),
+        ("compression: zstd}", "no_drop: !!bool \"[\"}",
+         "/f/fleet.yaml:15: robots[1].publish[2].no_drop: expected true or false"),
+        ("compression: zstd}", "no_drop: !!bool \"sure\"}",  # was read as true
+         "/f/fleet.yaml:15: robots[1].publish[2].no_drop: expected true or false"),
+        ("rate_limit_hz: 1}", f"rate_limit_hz: 1{'0' * 400}}}",  # float() overflowed
+         "/f/fleet.yaml:13: robots[1].publish[0].rate_limit_hz: must be a finite number, "
+         "got 1000"),
         ("compression: zstd}", "qos: best}",
          "/f/fleet.yaml:15: robots[1].publish[2].qos: unknown field"),
         ("{remote_topic: /husky1/map, type: nav_msgs/msg/OccupancyGrid}",

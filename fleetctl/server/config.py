@@ -224,7 +224,7 @@ def load_server_config(path: Path) -> ServerConfig:
 
 def parse_server_config(raw: dict[str, Any], path: Path) -> ServerConfig:
     """Validate an already-parsed ``server.yaml`` mapping (see :func:`load_server_config`)."""
-    unknown = sorted(set(raw) - _TOP_KEYS)
+    unknown = sorted(set(raw) - _TOP_KEYS, key=str)  # YAML keys may be numbers or null
     if unknown:
         raise ConfigError(f"{path}: unknown field {unknown[0]!r}")
     base = path.parent
@@ -376,7 +376,7 @@ def _limits(value: Any, path: Path) -> ServerLimits:
     if not isinstance(value, dict):
         raise ConfigError(f"{path}: field 'limits' must be a mapping")
     known = set(_INT_LIMITS) | set(_FLOAT_LIMITS)
-    unknown = sorted(set(value) - known)
+    unknown = sorted(set(value) - known, key=str)
     if unknown:
         raise ConfigError(f"{path}: unknown field 'limits.{unknown[0]}'")
     kwargs: dict[str, Any] = {}

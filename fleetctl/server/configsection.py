@@ -25,7 +25,7 @@ def section(value: Any, known: Collection[str], field: str, path: Path) -> dict[
         return None
     if not isinstance(value, dict):
         raise ConfigError(f"{path}: field '{field}' must be a mapping")
-    unknown = sorted(set(value) - set(known))
+    unknown = sorted(set(value) - set(known), key=str)  # YAML keys may be numbers or null
     if unknown:
         raise ConfigError(f"{path}: unknown field '{field}.{unknown[0]}'")
     return value

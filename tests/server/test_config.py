@@ -78,6 +78,13 @@ limits: {session_expiry_s: 60, session_mailbox_messages: 5, session_mailbox_byte
         ("auth_map: a.yaml\nlimits: {max_control_requests_per_s: .inf}",
          "limits.max_control_requests_per_s"),
         ("auth_map: a.yaml\nlisten_prot: 1", "listen_prot"),
+        # fuzzing: keys of mixed types (a number or null beside names) were sorted: TypeError
+        ("auth_map: a.yaml\n~: 1\nh2leetctl: ge", "unknown field None"),
+        ("auth_map: a.yaml\n1: 2\nzz: 3", "unknown field 1"),
+        ("auth_map: a.yaml\nlimits: {1: 2, zz: 3}", "limits.1"),
+        ("auth_map: a.yaml\nweb: {1: 2, zz: 3}", "web.1"),
+        ("auth_map: a.yaml\nrecording: {directory: r, rules: [{topic: a, 1: 2, zz: 3}]}",
+         "recording.rules[0].1"),
         ("- just a list", "top level"),
         ("a: [", "not valid YAML"),
     ],

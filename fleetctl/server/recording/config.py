@@ -157,7 +157,7 @@ def _rules(value: Any, path: Path) -> tuple[RecordingRule, ...]:
         where = f"recording.rules[{i}]"
         if not isinstance(item, dict):
             raise ConfigError(f"{path}: field '{where}' must be a mapping")
-        unknown = sorted(set(item) - {"topic", "identities"})
+        unknown = sorted(set(item) - {"topic", "identities"}, key=str)
         if unknown:
             raise ConfigError(f"{path}: unknown field '{where}.{unknown[0]}'")
         topic = item.get("topic")

@@ -27,7 +27,7 @@ import re
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
-from urllib.parse import urlsplit
+from urllib.parse import SplitResult, urlsplit
 
 from fleetctl.errors import ConfigError
 from fleetctl.server.configsection import is_positive_number, section
@@ -158,7 +158,7 @@ def _urls(value: Any, path: Path) -> tuple[str, ...]:
         raise ConfigError(f"{path}: field 'cluster.nats_urls' must be a non-empty list of "
                           "nats://host:port URLs")
     for i, url in enumerate(value):
-        parts = urlsplit(url) if isinstance(url, str) else None
+        parts = _split(url)
         if parts is None or parts.scheme not in _SCHEMES or not parts.hostname:
             raise ConfigError(f"{path}: field 'cluster.nats_urls[{i}]': {url!r} is not a "
                               "nats://host:port URL")
@@ -166,6 +166,20 @@ def _urls(value: Any, path: Path) -> tuple[str, ...]:
             raise ConfigError(f"{path}: field 'cluster.nats_urls[{i}]': put credentials "
                               "in 'cluster.credentials', not in the URL")
     return tuple(value)
+
+
+def _split(url: Any) -> SplitResult | None:
+    """*url*'s parts, or ``None`` when it is no URL with a valid host and port:
+    ``urlsplit`` raises ValueError for a bad bracketed host (``tls://[]::1]:4222``), and
+    reading ``port`` for one out of range or not a number."""
+    if not isinstance(url, str):
+        return None
+    try:
+        parts = urlsplit(url)
+        parts.port  # noqa: B018 - read for its check
+    except ValueError:
+        return None
+    return parts
 
 
 def _credentials(value: Any, base: Path, path: Path) -> NatsCredentials | None:

@@ -44,6 +44,11 @@ def test_full_section(tmp_path: Path) -> None:
     ({"name": "a", "nats_urls": []}, "cluster.nats_urls"),
     ({"name": "a", "nats_urls": ["http://h"]}, r"cluster.nats_urls\[0\]"),
     ({"name": "a", "nats_urls": ["nats://u:pw@h:4222"]}, r"cluster.nats_urls\[0\]"),
+    # fuzzing: urlsplit raised ValueError (a traceback) for a bad bracketed host
+    ({"name": "a", "nats_urls": ["nats://h:4222", "tls://[]::1]:4222"]},
+     r"cluster.nats_urls\[1\]': 'tls://\[\]::1\]:4222' is not a nats://host:port URL"),
+    ({"name": "a", "nats_urls": ["nats://[x"]}, r"cluster.nats_urls\[0\]"),
+    ({"name": "a", "nats_urls": ["nats://h:99999"]}, r"cluster.nats_urls\[0\]"),
     ({"name": "a", "nats_urls": ["nats://h"], "extra": 1}, "cluster.extra"),
     ({"name": "a", "nats_urls": ["nats://h"], "credentials": {"user": "u"}},
      "cluster.credentials"),

@@ -283,6 +283,8 @@ def check_regex(pattern: str, path: FieldPath) -> None:
         re2.compile(pattern, _RE2_OPTIONS)
     except re2.error as exc:
         raise FleetInvalid(path, f"not a valid RE2 regex {pattern!r}: {exc}") from None
+    except UnicodeEncodeError:  # a lone surrogate ("\ud800"): RE2 takes UTF-8
+        raise FleetInvalid(path, f"not a valid RE2 regex {pattern!r}: not UTF-8 text") from None
 
 
 def parse_endpoint(endpoint: str) -> tuple[str, int]:

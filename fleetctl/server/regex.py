@@ -49,6 +49,8 @@ class FullMatch:
             if isinstance(detail, bytes):
                 detail = detail.decode("utf-8", "replace")
             raise BadRegex(str(detail)) from None
+        except UnicodeEncodeError:  # a lone surrogate ("\ud800" in YAML or JSON): RE2 takes UTF-8
+            raise BadRegex("not UTF-8 text (a lone surrogate code point)") from None
         self.pattern = pattern
         self.literal = pattern if _LITERAL.fullmatch(pattern) else None
 
@@ -56,7 +58,10 @@ class FullMatch:
         """Return whether *topic* matches the pattern from its first to its last character."""
         if self.literal is not None:
             return topic == self.literal
-        return self._regex.fullmatch(topic) is not None
+        try:
+            return self._regex.fullmatch(topic) is not None
+        except UnicodeEncodeError:  # a lone surrogate: no UTF-8 topic, so none it could be
+            return False
 
     def __repr__(self) -> str:
         return f"FullMatch({self.pattern!r})"

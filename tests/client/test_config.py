@@ -130,6 +130,8 @@ def test_token_file_is_read_relative_and_never_shown(tmp_path: Path) -> None:
                       {"topic": "/b", "type": "std_msgs/msg/String", "remote_topic": "/r1/a"}]),
      "publish[1] (/b): remote_topic: /r1/a is already sent by publish[0]"),
     (minimal(publish=["/a"]), "publish[0]: entry: must be a mapping"),
+    (minimal(subscribe=[{"remote_topic": "\ud800[", "type": "std_msgs/msg/String"}]),
+     "remote_topic: neither a topic nor a valid RE2 regex: not UTF-8 text"),
     (minimal(publish=[{"topic": "/a", "type": "std_msgs/msg/String", "compression": "gzip"}]),
      "publish[0] (/a): compression: must be one of none, zstd, deflate, got 'gzip'"),
     (minimal(publish=[{"topic": "/a", "type": "std_msgs/msg/String", "compression": True}]),

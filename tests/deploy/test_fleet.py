@@ -72,6 +72,9 @@ def test_good_fleet_round_trips() -> None:
          "/f/fleet.yaml:6: servr_port: unknown field"),
         ("    extra_receive: [\"/husky1/scan\"]\n", "    extra_receive: [\"(\"]\n",
          "/f/fleet.yaml:11: robots[1].extra_receive[0]: not a valid RE2 regex '('"),
+        ("    extra_receive: [\"/husky1/scan\"]\n", "    extra_receive: [\"\\ud800\"]\n",
+         "/f/fleet.yaml:11: robots[1].extra_receive[0]: not a valid RE2 regex '\\ud800': "
+         "not UTF-8 text"),
         ("endpoint: vpn.example.com:51820\n", "endpoint: vpn.example.com\n",
          "/f/fleet.yaml:3: endpoint: expected HOST:PORT"),
         ("version: 1\n", "version: 2\n", "/f/fleet.yaml:1: version: unsupported version 2"),

@@ -67,6 +67,9 @@ def test_nothing_allowed_by_default() -> None:
         ({"name": "x", "ip": "1.2.3.400"}, "field 'ip'"),
         ({"name": "x", "token_sha256": "abc"}, "64 hex"),
         ({"ip": "1.2.3.4"}, "field 'name'"),
+        # a lone surrogate ("\ud800" in YAML): RE2 raised UnicodeEncodeError
+        ({"name": "x", "ip": "1.2.3.4", "rules": [{"topic": "/r1/\ud800", "op": "send"}]},
+         "identity 'x': rules[0]: field 'topic': bad RE2 regex '/r1/\\ud800': not UTF-8 text"),
     ],
 )
 def test_bad_auth_map_is_config_error(identity: dict[str, Any], message: str) -> None:
@@ -85,3 +88,9 @@ def test_duplicate_names_and_file_errors(tmp_path: Path) -> None:
     bad.write_text("identities: [")
     with pytest.raises(ConfigError, match="YAML"):
         load_auth_map(bad)
+
+
+def test_a_surrogate_topic_matches_no_rule() -> None:
+    # Foxglove's JSON can name "/husky1/\ud800" (fuzzing): no topic on the wire can be it.
+    perms = PermissionsPool().get(list(auth_map().identities))
+    assert not perms.may_send("/husky1/\ud800") and not perms.may_receive("\udc00")

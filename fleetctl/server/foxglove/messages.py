@@ -189,6 +189,11 @@ def _text(item: dict[str, Any], key: str) -> str:
     value = item.get(key)
     if not isinstance(value, str) or not value or len(value) > 1024:
         raise ProtocolError(f"channel field {key!r} must be a non-empty string")
+    try:
+        value.encode("utf-8")
+    except UnicodeEncodeError:  # JSON's "\ud800" escape: a lone surrogate, in no topic
+        raise ProtocolError(f"channel field {key!r} is not UTF-8 text (a lone surrogate "
+                            "code point)") from None
     return value
 
 

@@ -51,7 +51,10 @@ def test_requests_parse() -> None:
     '"channelId": 1}]}', '{"op": "subscribe", "subscriptions": [{"id": 4294967296, '
     '"channelId": 1}]}', '{"op": "unsubscribe", "subscriptionIds": [-1]}',
     '{"op": "advertise", "channels": [{"id": 1, "topic": "", "encoding": "cdr", '
-    '"schemaName": "x"}]}', json.dumps({"op": "unsubscribe", "subscriptionIds":
+    '"schemaName": "x"}]}',
+    # fuzzing: a lone surrogate topic reached RE2 (may_send) and raised UnicodeEncodeError
+    '{"op": "advertise", "channels": [{"id": 9, "topic": "/husky1/\\ud800", "encoding": '
+    '"cdr", "schemaName": "std_msgs/String"}]}', json.dumps({"op": "unsubscribe", "subscriptionIds":
                                         list(range(fx.MAX_ITEMS_PER_REQUEST + 1))}),
 ])
 def test_bad_requests_are_protocol_errors(text: str) -> None:

@@ -78,9 +78,13 @@ def number(
         return None
     if isinstance(value, bool) or not isinstance(value, int | float):
         raise ctx.error(where, key, f"must be a number, got {value!r}")
-    if not math.isfinite(value) or not check(float(value)):
+    try:
+        number = float(value)
+    except OverflowError:  # an integer of hundreds of digits
+        raise ctx.error(where, key, f"must be a finite number, got {str(value)[:40]}...") from None
+    if not math.isfinite(number) or not check(number):
         raise ctx.error(where, key, f"must be {rule}, got {value!r}")
-    return float(value)
+    return number
 
 
 def integer(ctx: Ctx, entry: Mapping[str, Any], where: str, key: str, default: int,

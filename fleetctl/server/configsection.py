@@ -33,6 +33,12 @@ def section(value: Any, known: Collection[str], field: str, path: Path) -> dict[
 
 def is_positive_number(value: Any) -> bool:
     """True for a finite int or float above 0: not a bool (YAML's ``true`` is no number),
-    not NaN (``.nan <= 0`` is false, like every comparison with NaN) and not infinite."""
-    return (not isinstance(value, bool) and isinstance(value, (int, float))
-            and math.isfinite(value) and value > 0)
+    not NaN (``.nan <= 0`` is false, like every comparison with NaN), not infinite, and not
+    an integer too large for a float (hundreds of digits: ``math.isfinite`` overflows)."""
+    if isinstance(value, bool) or not isinstance(value, (int, float)):
+        return False
+    try:
+        number = float(value)
+    except OverflowError:
+        return False
+    return math.isfinite(number) and number > 0

@@ -120,6 +120,8 @@ def test_token_file_is_read_relative_and_never_shown(tmp_path: Path) -> None:
     (minimal(publish=[{"topic": "/a"}]), "publish[0] (/a): type: is required"),
     (minimal(publish=[{"topic": "/a", "type": "std_msgs/msg/String", "priority": -1}]),
      "publish[0] (/a): priority: must be >= 0"),
+    (minimal(publish=[{"topic": "/a", "type": "std_msgs/msg/String", "priority": 10**400}]),
+     "publish[0] (/a): priority: must be a finite number, got 1000"),  # was OverflowError
     (minimal(publish=[{"topic": "/a", "type": "std_msgs/msg/String", "rate_limit_hz": 0}]),
      "rate_limit_hz: must be > 0 or null, got 0"),
     (minimal(publish=[{"topic": "/a", "type": "std_msgs/msg/String", "no_drop": "yes"}]),

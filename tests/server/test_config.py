@@ -72,6 +72,9 @@ limits: {session_expiry_s: 60, session_mailbox_messages: 5, session_mailbox_byte
         ("auth_map: a.yaml\nlimits: {session_mailbox_bytes: 1.5}",
          "limits.session_mailbox_bytes"),
         ("auth_map: a.yaml\nlimits: {latched_bytes: 0}", "limits.latched_bytes"),
+        # an integer no float holds: math.isfinite raised OverflowError
+        (f"auth_map: a.yaml\nlimits: {{robot_offline_after_s: 1{'0' * 400}}}",
+         "limits.robot_offline_after_s' must be a positive number"),
         ("auth_map: a.yaml\nlimits: {keyframe_request_interval_s: -1}",
          "limits.keyframe_request_interval_s"),
         ("auth_map: a.yaml\nlimits: {auth_timeout_s: .nan}", "limits.auth_timeout_s"),

@@ -56,6 +56,8 @@ def test_full_section(tmp_path: Path) -> None:
      "cluster.credentials.creds_file"),
     ({"name": "a", "nats_urls": ["nats://h"], "publish_queue_frames": 0},
      "cluster.publish_queue_frames"),
+    ({"name": "a", "nats_urls": ["nats://h"], "connect_timeout_s": 10**400},  # OverflowError
+     "cluster.connect_timeout_s"),
     ({"name": "a", "nats_urls": ["nats://h"], "connect_timeout_s": float("nan")},
      "cluster.connect_timeout_s"),
     ({"name": "a", "nats_urls": ["nats://h"], "state_replicas": 6}, "cluster.state_replicas"),

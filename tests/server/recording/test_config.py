@@ -52,6 +52,8 @@ def test_section_parsed_with_defaults_and_relative_directory() -> None:
      "'recording.max_file_bytes' must be a positive integer"),
     ({"directory": "r", "rules": [{"topic": ".*"}], "max_age_s": "1d"},
      "'recording.max_age_s' must be a positive number"),
+    ({"directory": "r", "rules": [{"topic": ".*"}], "max_age_s": 10**400},  # OverflowError
+     "'recording.max_age_s' must be a positive number"),
     ({"directory": "r", "rules": [{"topic": ".*"}], "max_age_s": float("nan")},
      "'recording.max_age_s' must be a positive number"),
     ({"directory": "r", "rules": [{"topic": ".*"}], "max_file_duration_s": float("inf")},

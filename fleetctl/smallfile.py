@@ -27,12 +27,15 @@ def read_small(path: Path, limit: int, *, follow_symlinks: bool = True) -> bytes
     """The whole content of the regular file *path*, at most *limit* bytes.
 
     Raises:
-        OSError: The file cannot be opened (as ``open`` raises it), is not a regular file
-            (``EINVAL``, "not a regular file"), or is larger than *limit* (``EFBIG``).
+        OSError: The file cannot be opened (as ``open`` raises it), its path holds a NUL
+            byte (``EINVAL``), is not a regular file (``EINVAL``, "not a regular file"), or
+            is larger than *limit* (``EFBIG``).
     """
     flags = os.O_RDONLY | os.O_NONBLOCK | os.O_CLOEXEC  # NONBLOCK: a FIFO must not hang
     if not follow_symlinks:
         flags |= os.O_NOFOLLOW
+    if "\0" in str(path):  # os.open raises ValueError, which no caller expects
+        raise OSError(errno.EINVAL, "the path contains a NUL byte", str(path))
     fd = os.open(path, flags)
     with os.fdopen(fd, "rb") as stream:
         if not stat.S_ISREG(os.fstat(fd).st_mode):

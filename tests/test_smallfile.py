@@ -26,6 +26,13 @@ def test_a_file_over_the_limit_is_refused(tmp_path: Path) -> None:
     assert info.value.errno == errno.EFBIG
 
 
+def test_a_path_with_a_nul_byte_is_an_os_error(tmp_path: Path) -> None:
+    # YAML's "\0" escape puts one in a config's path: os.open raised ValueError
+    with pytest.raises(OSError, match="the path contains a NUL byte") as info:
+        read_small_text(tmp_path / "a\0b")
+    assert info.value.errno == errno.EINVAL
+
+
 def test_a_link_to_a_device_is_refused_without_reading(tmp_path: Path) -> None:
     link = tmp_path / "fleet.yaml"
     link.symlink_to("/dev/zero")

@@ -338,6 +338,8 @@ def _opt_path(
         return None
     if not isinstance(value, str) or not value:
         raise ConfigError(f"{path}: field '{prefix}{name}' must be a path string or null")
+    if "\0" in value:  # YAML's "\0" escape: open(), ssl and sqlite3 raise ValueError
+        raise ConfigError(f"{path}: field '{prefix}{name}' must be a path without a NUL byte")
     return base / value  # an absolute value stays absolute
 
 

@@ -234,6 +234,9 @@ def test_file_errors(tmp_path: Path) -> None:
     (tmp_path / "c.yaml").write_text("server_url: ws://h/\nrobot_name: r\ntoken_file: nope\n")
     with pytest.raises(ConfigError, match="token_file: cannot read"):
         load_client_config(tmp_path / "c.yaml")
+    (tmp_path / "n.yaml").write_text('server_url: ws://h/\nrobot_name: r\ntoken_file: "a\\0"\n')
+    with pytest.raises(ConfigError, match=r"token_file: cannot read .*: the path contains a NUL"):
+        load_client_config(tmp_path / "n.yaml")  # was ValueError from os.open
     (tmp_path / "empty").write_text("\n")
     (tmp_path / "d.yaml").write_text("server_url: ws://h/\nrobot_name: r\ntoken_file: empty\n")
     with pytest.raises(ConfigError, match=r"token_file: .* must hold one token"):

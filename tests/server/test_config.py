@@ -75,6 +75,12 @@ limits: {session_expiry_s: 60, session_mailbox_messages: 5, session_mailbox_byte
         # an integer no float holds: math.isfinite raised OverflowError
         (f"auth_map: a.yaml\nlimits: {{robot_offline_after_s: 1{'0' * 400}}}",
          "limits.robot_offline_after_s' must be a positive number"),
+        # YAML's "\0" escape: open(), ssl and sqlite3 raised ValueError at start
+        ('auth_map: "a.yaml\\0"', "'auth_map' must be a path without a NUL byte"),
+        ('auth_map: a.yaml\ndatabase: "f\\0.db"', "'database' must be a path without"),
+        ('auth_map: a.yaml\nweb: {tls_cert: "c.pem\\0", tls_key: k.pem}', "'web.tls_cert'"),
+        ('auth_map: a.yaml\nrecording: {directory: "r\\0", rules: [{topic: a}]}',
+         "'recording.directory' is required (a path string without a NUL byte)"),
         ("auth_map: a.yaml\nlimits: {keyframe_request_interval_s: -1}",
          "limits.keyframe_request_interval_s"),
         ("auth_map: a.yaml\nlimits: {auth_timeout_s: .nan}", "limits.auth_timeout_s"),

@@ -115,8 +115,9 @@ def parse_recording(value: Any, base: Path, path: Path) -> RecordingConfig | Non
     if value is None:
         return None
     directory = value.get("directory")
-    if not isinstance(directory, str) or not directory:
-        raise ConfigError(f"{path}: field 'recording.directory' is required (a path string)")
+    if not isinstance(directory, str) or not directory or "\0" in directory:
+        raise ConfigError(f"{path}: field 'recording.directory' is required (a path string "
+                          "without a NUL byte)")
     kwargs: dict[str, Any] = {}
     for name in _INTS:
         if name in value:

@@ -420,8 +420,7 @@ class RelayServer:
     def _robots(self, parsed: _Request) -> Response:
         allowed, perms = self._caller(parsed)
         if not allowed:
-            return endpoints.text(http.HTTPStatus.UNAUTHORIZED,
-                                  "GET /robots needs loopback or a valid Bearer token\n")
+            return _unauthorized("/robots", parsed.bad_token)
         if perms is None:
             return endpoints.json_response({"robots": self.registry.as_json()})
         return endpoints.json_response({"robots": self.core.robots_for(perms)})
@@ -431,8 +430,7 @@ class RelayServer:
         # receive rules (fleetctl.server.recording.http).
         allowed, perms = self._caller(parsed)
         if not allowed:
-            return endpoints.text(http.HTTPStatus.UNAUTHORIZED,
-                                  "GET /recordings needs loopback or a valid Bearer token\n")
+            return _unauthorized("/recordings", parsed.bad_token)
         if self.recordings is None:
             return endpoints.text(http.HTTPStatus.NOT_FOUND, "this server records nothing "
                                   "(no recording: section in its config)\n")
@@ -441,8 +439,7 @@ class RelayServer:
     def _metrics(self, parsed: _Request) -> Response:
         allowed, _ = self._caller(parsed)
         if not allowed:
-            return endpoints.text(http.HTTPStatus.UNAUTHORIZED,
-                                  "GET /metrics needs loopback or a valid Bearer token\n")
+            return _unauthorized("/metrics", parsed.bad_token)
         families = [*(self.recorder.metric_families() if self.recorder is not None else ()),
                     *self.foxglove.metric_families(),
                     *self.core.fanout.metric_families(),
@@ -673,6 +670,14 @@ class RelayServer:
             ("fleetctl_outbound_queue_bytes", "Bytes queued per connection.", nbytes),
             ("fleetctl_outbound_dropped", "Frames dropped per open connection.", dropped),
         ]
+
+
+def _unauthorized(path: str, bad_token: bool) -> Response:
+    """401 for a caller that :func:`endpoints.robots_allowed` refused, saying why."""
+    why = ("the Bearer token matches no user or robot of this fleet" if bad_token else
+           "needs a fleet identity (a robot's or user's address, or a Bearer token) or a "
+           "loopback caller")
+    return endpoints.text(http.HTTPStatus.UNAUTHORIZED, f"GET {path}: {why}\n")
 
 
 def _on_pong(outbound: OutboundScheduler, mark: int, waiter: asyncio.Future[float]) -> None:

@@ -260,8 +260,9 @@ async def test_http_endpoints_and_forwarded_for(
             status, body = await http_get(srv.port, "/robots",
                                           {"Authorization": f"Bearer {BOB_TOKEN}"})
             assert [r["name"] for r in json.loads(body)["robots"]] == ["husky1"]
-            status, _ = await http_get(srv.port, "/robots", {"Authorization": "Bearer bad"})
-            assert status == 401
+            status, text = await http_get(srv.port, "/robots", {"Authorization": "Bearer bad"})
+            assert (status, text) == (
+                401, "GET /robots: the Bearer token matches no user or robot of this fleet\n")
             await robot.send(json.dumps({"type": "list_robots"}))
             assert (await next_json(robot, "robots"))["robots"] == []  # cannot receive status
         status, text = await http_get(srv.port, "/metrics")

@@ -76,6 +76,8 @@ class ReplayResult:
         topics: Messages per (remapped) topic.
         duration_s: Wall-clock seconds the replay took.
         skipped: Messages skipped (a type without a usable schema), per type.
+        dropped: Messages the link dropped: stale ones under ``--latest-only`` (by
+            design), or no_drop ones that overflowed its FIFO (then the replay fails).
     """
 
     file: Path
@@ -83,6 +85,7 @@ class ReplayResult:
     topics: dict[str, int] = field(default_factory=dict)
     duration_s: float = 0.0
     skipped: dict[str, int] = field(default_factory=dict)
+    dropped: int = 0
 
 
 class _Decoder:
@@ -137,9 +140,12 @@ async def replay(path: Path, options: ReplayOptions) -> ReplayResult:
     sent (and, with ``no_drop``, acknowledged by the server).
 
     Raises:
-        FleetError: The file cannot be read or is not MCAP; the link did not drain in
-            time.
+        FleetError: The file cannot be read, is not MCAP or holds no message to replay;
+            the server refused the token (exit 3) or a topic (no send permission); the
+            link did not drain in time; no_drop messages were dropped.
     """
+    if path.is_dir():
+        raise FleetError(f"{path}: is a directory, not a recording file")
     if not path.is_file():
         raise FleetError(f"{path}: no such recording file")
     config = ClientConfig(server_url=options.server_url, robot_name=options.robot_name,
@@ -150,19 +156,56 @@ async def replay(path: Path, options: ReplayOptions) -> ReplayResult:
     started = time.monotonic()
     try:
         await _play(path, options, link, result)
+        if result.messages == 0:
+            raise FleetError(_nothing_to_replay(path, result))
         await _drain(link, runner)
     finally:
         await link.stop()
         with contextlib.suppress(asyncio.CancelledError):
             await runner
         result.duration_s = time.monotonic() - started
+    _check_delivered(link, result, options)
     return result
+
+
+def _nothing_to_replay(path: Path, result: ReplayResult) -> str:
+    if result.skipped:
+        types = ", ".join(sorted(t or "<no schema>" for t in result.skipped))
+        return f"{path}: no message to replay: every type lacks a usable schema ({types})"
+    return (f"{path}: no message to replay (an empty recording, or a file cut before its "
+            "first complete chunk)")
+
+
+def _check_refused(link: RobotLink) -> None:
+    """A refused token is final for a replay (a robot would wait for the auth map to
+    change; a person at a terminal wants to know now)."""
+    close = link.last_close or ""
+    if close.startswith(("4401", "4403")):
+        raise FleetError(f"replay: the server {link.config.server_url} refused this "
+                         f"identity: {close} (check --token-file)", exit_code=ExitCode.CONFIG)
+
+
+def _check_delivered(link: RobotLink, result: ReplayResult, options: ReplayOptions) -> None:
+    stats = link.stats()
+    result.dropped = sum(int(n) for topic in stats["topics"].values()
+                         for key, n in topic.items() if key.startswith("dropped_"))
+    refused = stats["refused_topics"]
+    if refused:
+        raise FleetError(f"replay: the server refused {len(refused)} topic(s), no send "
+                         f"permission for this identity: {', '.join(refused)} (give it send "
+                         "rules, or --remap to topics it may send)")
+    overflow = link.scheduler.no_drop_overflow
+    if options.no_drop and overflow:
+        raise FleetError(f"replay: {overflow} message(s) dropped: the link's no_drop queue "
+                         "was full")
 
 
 async def _play(path: Path, options: ReplayOptions, link: RobotLink,
                 result: ReplayResult) -> None:
     decoder = _Decoder()
-    high = int(link.config.limits.no_drop_queue_messages * _QUEUE_HIGH_FRACTION)
+    bounds = link.scheduler.config
+    high = int(bounds.no_drop_queue_messages * _QUEUE_HIGH_FRACTION)
+    high_bytes = int(bounds.no_drop_queue_bytes * _QUEUE_HIGH_FRACTION)
     first_log: int | None = None
     t0 = time.monotonic()
     for topic, type_name, schema, log_ns, cdr, seq in _messages(path):
@@ -174,8 +217,9 @@ async def _play(path: Path, options: ReplayOptions, link: RobotLink,
             delay = t0 + (log_ns - first_log) / 1e9 / options.rate - time.monotonic()
             if delay > 0:
                 await asyncio.sleep(delay)  # pacing the replay, not synchronization
-        while options.no_drop and link.scheduler.no_drop_queued >= high:
-            await asyncio.sleep(_DRAIN_POLL_S)  # backpressure from the bounded FIFO
+        if options.no_drop:
+            await _wait_for_room(link, high, high_bytes)
+        _check_refused(link)
         remote = _remap(topic, options.remap)
         frame = decoder.frame(type_name, cdr, remote, seq, options.no_drop)
         link.offer(remote, frame, priority=1.0, no_drop=options.no_drop)
@@ -183,9 +227,36 @@ async def _play(path: Path, options: ReplayOptions, link: RobotLink,
         result.topics[remote] = result.topics.get(remote, 0) + 1
 
 
+async def _wait_for_room(link: RobotLink, high: int, high_bytes: int) -> None:
+    """Wait while the no_drop messages held (queued or unacknowledged) fill half the
+    FIFO's message or byte bound: past either bound the link would drop them. Fails
+    when the link makes no progress for ``_DRAIN_TIMEOUT_S``."""
+    held = link.scheduler.no_drop_held
+    deadline = time.monotonic() + _DRAIN_TIMEOUT_S
+    while held[0] >= high or held[1] >= high_bytes:
+        _check_refused(link)
+        if time.monotonic() > deadline:
+            raise _stuck(link, held[0])
+        await asyncio.sleep(_DRAIN_POLL_S)  # backpressure from the bounded FIFO
+        now = link.scheduler.no_drop_held
+        if now[0] < held[0]:
+            deadline = time.monotonic() + _DRAIN_TIMEOUT_S  # progress: acks came back
+        held = now
+
+
+def _stuck(link: RobotLink, queued: int) -> FleetError:
+    stats = link.stats()
+    why = (f"last close: {stats['last_close']}" if stats["connects"] else
+           "never connected")
+    return FleetError(f"replay: {queued} message(s) still queued after "
+                      f"{_DRAIN_TIMEOUT_S:.0f} s (server {link.config.server_url}, {why})",
+                      exit_code=ExitCode.RUNTIME)
+
+
 async def _drain(link: RobotLink, runner: asyncio.Task[None]) -> None:
     deadline = time.monotonic() + _DRAIN_TIMEOUT_S
     while True:
+        _check_refused(link)
         stats = link.stats()
         if (stats["no_drop_queued"] == 0 and stats["no_drop_unacked"] == 0
                 and stats["in_flight_frames"] == 0 and stats["connects"] > 0):
@@ -194,10 +265,7 @@ async def _drain(link: RobotLink, runner: asyncio.Task[None]) -> None:
             runner.result()  # the link's own failure, if any
             raise FleetError("replay: the link stopped before every message was sent")
         if time.monotonic() > deadline:
-            raise FleetError(f"replay: {stats['no_drop_queued']} message(s) still queued "
-                             f"after {_DRAIN_TIMEOUT_S:.0f} s (server {link.config.server_url}"
-                             f", last close: {stats['last_close']})",
-                             exit_code=ExitCode.RUNTIME)
+            raise _stuck(link, stats["no_drop_queued"])
         await asyncio.sleep(_DRAIN_POLL_S)  # polling the link's counters with a deadline
 
 
@@ -217,6 +285,8 @@ def _result_text(result: ReplayResult) -> str:
     lines += [f"  {topic}: {n}" for topic, n in sorted(result.topics.items())]
     lines += [f"  skipped {n} {t or '<no schema>'} (no usable schema)"
               for t, n in sorted(result.skipped.items())]
+    if result.dropped:
+        lines.append(f"  dropped {result.dropped} stale message(s) (--latest-only)")
     return "\n".join(lines)
 
 

@@ -603,6 +603,14 @@ class Scheduler:
         return len(self._qn)
 
     @property
+    def no_drop_held(self) -> tuple[int, int]:
+        """(messages, bytes) of no_drop held against the FIFO's bounds: queued in Q_n plus
+        sent and not yet acknowledged (what ``no_drop_queue_messages`` and
+        ``no_drop_queue_bytes`` limit)."""
+        return (len(self._qn) + self._unacked_no_drop,
+                self._qn_bytes + self._unacked_no_drop_bytes)
+
+    @property
     def in_flight_frames(self) -> int:
         """Frames sent and not yet acknowledged."""
         return self._sent_frames_total - self._acked_frames_total

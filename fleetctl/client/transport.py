@@ -83,6 +83,7 @@ logger = logging.getLogger("fleetctl.client.link")
 
 SESSION_HEADER = "X-Fleetctl-Session"  # fleetctl.server.sessions.SESSION_HEADER
 PATH_RTT_DIALS = 5  # the dials whose SYN round trips give the path's (RobotLink._path_rtt_s)
+_MAX_REFUSED_TOPICS = 1024  # topics kept of the server's unauthorized_send errors
 
 Clock = Callable[[], float]
 
@@ -257,6 +258,9 @@ class RobotLink:
         self._url_index = 0  # the current replica: the next dial tries it first
         self._connected_index: int | None = None  # the replica of the last connection
         self._server_errors: Counter[str] = Counter()
+        # Topics the server refused to take from us (its unauthorized_send, once per topic
+        # and connection); bounded like the server's own memo of them.
+        self._refused_topics: set[str] = set()
         self._last_close: str | None = None
         self._identities: list[str] = []
         self._subscribed: set[str] = set()  # confirmed by the server on this connection
@@ -337,8 +341,10 @@ class RobotLink:
                                      published_s=published_s, fresh_since_s=fresh_since_s):
             n = self._scheduler.no_drop_overflow
             if n == 1 or n % 1000 == 0:
-                logger.warning("no_drop queue full (%d messages): dropped a message on %s "
-                               "(%d dropped so far)", self.config.limits.no_drop_queue_messages,
+                bounds = self._scheduler.config
+                logger.warning("no_drop queue full (%d messages or %d bytes): dropped a "
+                               "message on %s (%d dropped so far)",
+                               bounds.no_drop_queue_messages, bounds.no_drop_queue_bytes,
                                remote_topic, n)
         if self._holding_wakes:
             self._held_wake = True
@@ -478,11 +484,18 @@ class RobotLink:
         snap["session_mailbox_frames"] = self._counters["session_mailbox_frames"]
         snap["last_close"] = self._last_close
         snap["server_errors"] = dict(self._server_errors)
+        snap["refused_topics"] = sorted(self._refused_topics)
         snap["identities"] = list(self._identities)
         snap["subscribed"] = sorted(self._subscribed)
         snap["received"] = self._receiver.stats()
         snap["standby"] = None if self._standby is None else self._standby.stats()
         return snap
+
+    @property
+    def last_close(self) -> str | None:
+        """How the last connection ended (``"4401 bad token"``, ``"link timeout"``, ...);
+        None while no connection has ended."""
+        return self._last_close
 
     @property
     def scheduler(self) -> Scheduler:
@@ -1062,6 +1075,10 @@ class RobotLink:
         elif kind == "error":
             code = str(event.get("code"))
             self._server_errors[code] += 1
+            topic = event.get("topic")
+            if (code == "unauthorized_send" and isinstance(topic, str)
+                    and len(self._refused_topics) < _MAX_REFUSED_TOPICS):
+                self._refused_topics.add(topic)
             logger.warning("server error %s on %s: %s", code, event.get("topic"),
                            event.get("message"))
         else:

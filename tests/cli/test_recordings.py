@@ -15,7 +15,7 @@ from mcap.reader import make_reader
 
 from fleetctl.cli.main import main
 from fleetctl.cli.replay import ReplayOptions, replay
-from fleetctl.errors import ExitCode
+from fleetctl.errors import ExitCode, FleetError
 from fleetctl.server.app import RelayServer
 from fleetctl.server.config import ServerConfig
 from fleetctl.server.recording import files
@@ -23,6 +23,7 @@ from fleetctl.server.recording.mcapfile import McapFile
 from fleetctl.wire.codec import default_codec
 from tests.server.conftest import (  # noqa: F401
     ALICE_TOKEN,
+    BOB_TOKEN,
     auth_map,
     client,
     make_server,
@@ -172,6 +173,69 @@ async def test_replay_faster_than_real_time(
         received = srv.metrics.messages_in.get("/husky1/chat", 0)
     assert result.messages == 20 and received == 20
     assert result.duration_s < 1.9
+
+
+async def test_replay_of_large_messages_drops_none(
+        make_server: Callable[..., RelayServer], tmp_path: Path) -> None:  # noqa: F811
+    """A replay waited only on the no_drop FIFO's message bound, never its byte bound
+    (64 MiB): a real 3-minute recording of the demo robot (240 kB clouds) replayed at
+    --rate 0 lost 5000 of its 8381 messages and still said "replayed 8381 messages"."""
+    registry = default_codec().registry
+    payload = "x" * 1_000_000
+    out = McapFile(tmp_path / "big.mcap", registry, 1 << 20)
+    cdr = bytes(registry.typestore.serialize_cdr(registry.get(STRING).cls(payload), STRING))
+    n = 72  # 72 MB: past the 64 MiB byte bound, far under the 10000-message one
+    for i in range(n):
+        out.write("/husky1/big", STRING, cdr, T0 + i * 1_000_000, i + 1)
+    out.close()
+    async with make_server() as srv:
+        result = await replay(tmp_path / "big.mcap",
+                              ReplayOptions(srv.url, rate=None, token=ALICE_TOKEN))
+        received_bytes = srv.metrics.bytes_in.get("/husky1/big", 0)
+    assert result.messages == n and result.dropped == 0
+    assert received_bytes >= n * len(payload)  # every message reached the server
+
+
+async def test_replay_refused_by_the_send_rules_is_an_error(
+        make_server: Callable[..., RelayServer], tmp_path: Path) -> None:  # noqa: F811
+    """bob may only receive /husky1/.*: the replay said "replayed 5 messages", exit 0,
+    while the server had refused every one of them."""
+    write_recording(tmp_path / "rec.mcap", 5, step_ns=1_000_000)
+    async with make_server() as srv:
+        with pytest.raises(FleetError) as caught:
+            await replay(tmp_path / "rec.mcap", ReplayOptions(srv.url, rate=None,
+                                                              token=BOB_TOKEN))
+    assert str(caught.value) == ("replay: the server refused 1 topic(s), no send permission "
+                                 "for this identity: /husky1/chat (give it send rules, or "
+                                 "--remap to topics it may send)")
+
+
+async def test_replay_with_a_refused_token_stops_at_once(
+        make_server: Callable[..., RelayServer], tmp_path: Path) -> None:  # noqa: F811
+    """A bad token was retried for 30 s, then reported as messages "still queued"."""
+    write_recording(tmp_path / "rec.mcap", 5, step_ns=1_000_000)
+    async with make_server() as srv:
+        url, started = srv.url, time.monotonic()
+        with pytest.raises(FleetError) as caught:
+            await replay(tmp_path / "rec.mcap", ReplayOptions(url, rate=None,
+                                                              token="not-a-token"))
+    assert caught.value.exit_code == ExitCode.CONFIG
+    assert str(caught.value) == (f"replay: the server {url} refused this identity: "
+                                 "4401 bad token (check --token-file)")
+    assert time.monotonic() - started < 20  # not the 30 s drain deadline
+
+
+async def test_replay_of_a_recording_without_messages_is_an_error(
+        make_server: Callable[..., RelayServer], tmp_path: Path) -> None:  # noqa: F811
+    """An empty (or cut) recording "replayed 0 messages", exit 0; a directory was "no
+    such recording file"."""
+    write_recording(tmp_path / "empty.mcap", 0)
+    async with make_server() as srv:
+        options = ReplayOptions(srv.url, rate=None, token=ALICE_TOKEN)
+        with pytest.raises(FleetError, match=r"empty\.mcap: no message to replay"):
+            await replay(tmp_path / "empty.mcap", options)
+        with pytest.raises(FleetError, match="is a directory, not a recording file"):
+            await replay(tmp_path, options)
 
 
 def test_replay_errors_name_the_file_and_option(tmp_path: Path,

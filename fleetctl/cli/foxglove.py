@@ -14,7 +14,7 @@ from pathlib import Path
 
 import typer
 
-from fleetctl.cli.output import OutputFormat, emit, output_option
+from fleetctl.cli.output import OutputFormat, emit, output_option, progress_line
 from fleetctl.cli.recordings import Remote
 from fleetctl.cli.tokenfile import read_token_file
 from fleetctl.errors import ConfigError, FleetError
@@ -75,6 +75,9 @@ def register(app: typer.Typer) -> None:
                              output: OutputFormat = output_option()) -> None:
         """Print a one-time URL for Foxglove / Lichtblick ("Open connection")."""
         result = foxglove_url(Remote(server, read_token_file(token_file), ca_file))
-        emit(result, output, lambda: f"{result.url}\n(valid once, for "
-                                     f"{result.expires_in_s:.0f} s: paste it into Foxglove "
-                                     "or Lichtblick, Open connection -> Foxglove WebSocket)")
+        # stdout is the URL alone (URL=$(fleetctl foxglove-url ...) works); the how-to
+        # goes to stderr.
+        emit(result, output, lambda: result.url)
+        if output is not OutputFormat.JSON:
+            progress_line(f"valid once, for {result.expires_in_s:.0f} s: paste it into "
+                          "Foxglove or Lichtblick, Open connection -> Foxglove WebSocket")

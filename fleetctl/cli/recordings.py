@@ -95,6 +95,18 @@ class RemoteRecording:
     server: str = ""
 
 
+def _unreachable(reason: object) -> str:
+    """Why a request failed, in the user's terms: a TLS handshake with a plain port, or a
+    certificate not trusted, is not "cannot reach it"."""
+    if isinstance(reason, ssl.SSLCertVerificationError):
+        return (f"its certificate is not trusted ({reason.verify_message}): give the CA "
+                "that signed it with --ca-file")
+    if isinstance(reason, ssl.SSLError):
+        return ("no TLS server answered there (a plain ws:// or http:// port? use the TLS "
+                f"port, e.g. the web listener): {reason}")
+    return f"cannot reach it: {reason}"
+
+
 @dataclass(frozen=True)
 class Remote:
     """How to reach a server's ``/recordings``.
@@ -147,7 +159,7 @@ class Remote:
             raise FleetError(f"{self.url}: GET {path}: {exc.code} {detail}") from None
         except (urllib.error.URLError, OSError) as exc:
             reason = getattr(exc, "reason", exc)
-            raise FleetError(f"--server {self.url}: cannot reach it: {reason}") from None
+            raise FleetError(f"--server {self.url}: {_unreachable(reason)}") from None
 
 
 def list_remote(remote: Remote) -> list[RemoteRecording]:

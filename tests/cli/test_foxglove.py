@@ -35,8 +35,34 @@ async def test_prints_a_url_foxglove_connects_with(
             viewer = Viewer(ws)
             await viewer.until(lambda: viewer.server_info is not None)
         assert await asyncio.to_thread(main, args) == 0
-        assert "Open connection" in capsys.readouterr().out
+        # stdout is the URL alone, so URL=$(fleetctl foxglove-url ...) works; it had the
+        # how-to on a second line, which then went into the URL.
+        printed = capsys.readouterr()
+        assert printed.out.startswith(f"wss://127.0.0.1:{srv.web_port}/?ticket=")
+        assert printed.out.count("\n") == 1 and " " not in printed.out.strip()
+        assert "Open connection" in printed.err
         # Plain http: refused before the token leaves the machine.
         assert main(["foxglove-url", "--server", f"http://127.0.0.1:{srv.port}/",
                      "--token-file", str(token_file)]) == ExitCode.CONFIG
         assert "TLS only" in capsys.readouterr().err
+
+
+async def test_tls_failures_say_what_is_wrong(
+        make_server: Callable[..., RelayServer], web_config: object,  # noqa: F811
+        tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """https:// to the plain relay port, and a self-signed certificate without --ca-file,
+    both said "cannot reach it", though the server was reached."""
+    token_file = tmp_path / "token"
+    token_file.write_text(ALICE_TOKEN + "\n")
+    async with make_server(web=web_config) as srv:
+        for port, expected in (
+                (srv.port, "no TLS server answered there (a plain ws:// or http:// port? use "
+                           "the TLS port, e.g. the web listener): "),
+                (srv.web_port, "its certificate is not trusted (self-signed certificate): give "
+                               "the CA that signed it with --ca-file")):
+            url = f"https://127.0.0.1:{port}/"
+            args = ["foxglove-url", "--server", url, "--token-file", str(token_file)]
+            assert await asyncio.to_thread(main, args) == ExitCode.FAILURE
+            err = capsys.readouterr().err
+            assert err.startswith(f"fleetctl: error: --server {url}: {expected}"), err
+            assert err.count("\n") == 1

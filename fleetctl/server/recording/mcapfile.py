@@ -67,7 +67,7 @@ class McapFile:
         return self._stream.tell() + self._unflushed_bytes
 
     def write(self, topic: str, type_name: str, cdr: bytes, time_ns: int, seq: int,
-              latched: bool = False) -> None:
+              latched: bool = False, publish_time_ns: int | None = None) -> None:
         """Append one message.
 
         Args:
@@ -77,6 +77,8 @@ class McapFile:
             time_ns: Log and publish time, ns since the epoch.
             seq: The sender's sequence number (kept modulo 2**32, MCAP's field width).
             latched: The topic is latched (its channel's QoS says transient_local).
+            publish_time_ns: Publish time when it differs from *time_ns* (a latched
+                message written again at the start of a new file); None: *time_ns*.
 
         Raises:
             WireError: The type has no schema in the registry.
@@ -85,7 +87,8 @@ class McapFile:
         channel = self._channels.get((topic, type_name))
         if channel is None:
             channel = self._channel(topic, type_name, latched)
-        self._writer.add_message(channel, log_time=time_ns, data=cdr, publish_time=time_ns,
+        published = time_ns if publish_time_ns is None else publish_time_ns
+        self._writer.add_message(channel, log_time=time_ns, data=cdr, publish_time=published,
                                  sequence=seq & 0xFFFFFFFF)
         self._unflushed_bytes += len(cdr) + _MESSAGE_OVERHEAD_BYTES
         self.messages += 1

@@ -12,6 +12,13 @@ most one WARNING per reason per :data:`LOG_INTERVAL_S`):
 - ``incomplete``: fragments of messages that never completed (superseded, timed out, over
   the reassembly bounds; counted by :class:`FrameTranscoder`).
 
+Latched topics (a map, ``/tf_static``) are published once: the last message of each is
+kept and written again at the start of every new file (log time = the file's first
+message, publish time = the original), so a rotated file opened or replayed alone still
+has its map and its static TF. Kept: at most :data:`MAX_LATCHED_TOPICS` topics and a
+quarter of ``max_file_bytes`` (so the copies never fill a new file); a latched message
+past that is recorded as usual but not repeated (one WARNING per topic).
+
 Disk: before a new file starts, and at every flush tick, closed files past
 ``max_age_s`` or past ``max_total_bytes - max_file_bytes`` (so that a full current file
 still fits) are deleted, oldest first, counted by reason.
@@ -24,7 +31,7 @@ import logging
 import time
 from collections.abc import Callable
 from pathlib import Path
-from typing import Any
+from typing import Any, NamedTuple
 
 from fleetctl.server.recording import files
 from fleetctl.server.recording.config import RecordingConfig
@@ -38,6 +45,16 @@ log = logging.getLogger("fleetctl.server.recording")
 LOG_INTERVAL_S = 10.0
 WRITER_DROP_REASONS = ("too_big", "malformed", "write_error", "incomplete")
 DELETE_REASONS = ("max_total_bytes", "max_age")
+MAX_LATCHED_TOPICS = 256
+
+
+class _Latched(NamedTuple):
+    """The last message of a latched topic, for the start of the next file."""
+
+    type_name: str
+    cdr: bytes
+    publish_ns: int
+    seq: int
 
 
 class WriterStats:
@@ -110,6 +127,8 @@ class RecordingWriter:
         self._file_started_s = 0.0
         self._last_flush_s = clock()
         self.disk_bytes = 0  # .mcap bytes in the directory, as of the last bounds check
+        self._latched: dict[str, _Latched] = {}
+        self._not_kept: set[str] = set()  # latched topics warned about (bounded as above)
 
     @property
     def current_path(self) -> Path | None:
@@ -150,16 +169,37 @@ class RecordingWriter:
         if size > self.config.max_file_bytes:
             self.stats.drop("too_big", f"{size} bytes on {meta.topic}")
             return
+        time_ns = meta.publish_time_ns or wall_ns
         try:
-            current = self._writable(size)
-            current.write(meta.topic, out.type, out.cdr, meta.publish_time_ns or wall_ns,
-                          meta.seq, meta.latched)
+            current = self._writable(size, meta.topic, time_ns)
+            current.write(meta.topic, out.type, out.cdr, time_ns, meta.seq, meta.latched)
         except (OSError, WireError) as exc:
             self.stats.drop("write_error", f"{self.current_path}: {exc}")
             self._abandon()
             return
         self.stats.messages += 1
         self.stats.bytes += size
+        if meta.latched:
+            self._keep_latched(meta.topic, _Latched(out.type, out.cdr, time_ns, meta.seq))
+
+    def _keep_latched(self, topic: str, message: _Latched) -> None:
+        kept = {t: m for t, m in self._latched.items() if t != topic}
+        held = sum(len(m.cdr) for m in kept.values()) + len(message.cdr)
+        if len(kept) < MAX_LATCHED_TOPICS and held <= self.config.max_file_bytes // 4:
+            self._latched = {**kept, topic: message}
+            return
+        self._latched = kept
+        if topic not in self._not_kept and len(self._not_kept) < MAX_LATCHED_TOPICS:
+            self._not_kept.add(topic)
+            log.warning("recording: latched %s (%d bytes) is not repeated in new files: "
+                        "over the bound of %d topics or %d bytes", topic, len(message.cdr),
+                        MAX_LATCHED_TOPICS, self.config.max_file_bytes // 4)
+
+    def _write_latched(self, into: McapFile, except_topic: str, time_ns: int) -> None:
+        for topic, m in self._latched.items():
+            if topic != except_topic:  # its new message comes next
+                into.write(topic, m.type_name, m.cdr, time_ns, m.seq, True,
+                           publish_time_ns=m.publish_ns)
 
     def tick(self) -> None:
         """Flush the current file, rotate it when old, apply the bounds; each at most
@@ -208,9 +248,11 @@ class RecordingWriter:
             log.warning("recording: deleted %s (%d bytes) to hold %s", f.name, f.size_bytes,
                         reason)
 
-    def _writable(self, nbytes: int) -> McapFile:
-        """The file to write *nbytes* more into: the current one, or a new one when the
-        current would pass ``max_file_bytes`` or is older than the rotation period."""
+    def _writable(self, nbytes: int, topic: str, time_ns: int) -> McapFile:
+        """The file to write *nbytes* more into (a message on *topic* at *time_ns*): the
+        current one, or a new one, which starts with the latched topics' last messages,
+        when the current would pass ``max_file_bytes`` or is older than the rotation
+        period."""
         current = self._file
         if current is not None and current.messages and (
                 current.size_bytes + nbytes > self.config.max_file_bytes
@@ -226,6 +268,7 @@ class RecordingWriter:
             self.stats.files_opened += 1
             log.info("recording into %s", path)
             self.enforce_bounds()
+            self._write_latched(current, topic, time_ns)
         return current
 
     def _abandon(self) -> None:

@@ -4,6 +4,8 @@ from __future__ import annotations
 
 from pathlib import Path
 
+from mcap.reader import make_reader
+
 from fleetctl.server.recording import files
 from fleetctl.server.recording.config import RecordingConfig
 from fleetctl.server.recording.writer import RecordingWriter
@@ -96,3 +98,62 @@ def test_fragments_of_messages_that_never_complete_are_counted(tmp_path: Path) -
     w.close()
     snap = w.stats.snapshot()
     assert snap["dropped"]["incomplete"] == 1 and snap["messages"] == 1
+
+
+def latched_frame(text: str, seq: int, topic: str) -> bytes:
+    codec = default_codec()
+    return codec.encode(codec.registry.get(STRING).cls(text), STRING, topic, latched=True,
+                        publish_time_ns=1_700_000_000_000_000_000 + seq, seq=seq)
+
+
+def test_every_new_file_starts_with_the_latched_topics(tmp_path: Path) -> None:
+    """A rotated file had no map and no /tf_static (published once, at the robot's start):
+    opened or replayed alone it showed no map and a TF tree without its static frames."""
+    clock = Clock()
+    w = writer(tmp_path, clock, max_file_duration_s=10.0)
+    w.record(1, latched_frame("the map", 1, "/r/map"), 0, clock.now)
+    w.record(1, latched_frame("static tf", 2, "/r/tf_static"), 0, clock.now)
+    w.record(1, frame("a", 3), 0, clock.now)
+    clock.now += 11
+    w.record(1, frame("b", 4), 0, clock.now)  # a new file: the map and static TF first
+    clock.now += 11
+    w.record(1, latched_frame("map v2", 5, "/r/map"), 0, clock.now)  # new file, new map
+    w.close()
+    found = files.scan(tmp_path)
+    assert len(found) == 3
+    contents = [[(ch.topic, bytes(m.data), m.log_time, m.publish_time)
+                 for _s, ch, m in files.read_messages(f.path)] for f in found]
+    codec = default_codec()
+
+    def cdr(text: str) -> bytes:
+        return bytes(codec.registry.typestore.serialize_cdr(
+            codec.registry.get(STRING).cls(text), STRING))
+
+    t0 = 1_700_000_000_000_000_000
+    assert [c[:2] for c in contents[1]] == [
+        ("/r/map", cdr("the map")), ("/r/tf_static", cdr("static tf")), ("/r/chat", cdr("b"))]
+    # The copies are logged when the file starts (a player does not open the file hours
+    # before its data) and keep their original publish time.
+    assert [c[2:] for c in contents[1]] == [(t0 + 4, t0 + 1), (t0 + 4, t0 + 2), (t0 + 4,) * 2]
+    # A file opened by a latched message holds its new value once, not the old one too.
+    assert [c[:2] for c in contents[2]] == [
+        ("/r/tf_static", cdr("static tf")), ("/r/map", cdr("map v2"))]
+    with (found[1].path).open("rb") as stream:
+        summary = make_reader(stream).get_summary()
+    assert summary is not None
+    qos = {ch.topic: ch.metadata["offered_qos_profiles"] for ch in summary.channels.values()}
+    assert "transient_local" in qos["/r/map"] and "volatile" in qos["/r/chat"]
+
+
+def test_latched_copies_stay_within_a_quarter_of_a_file(tmp_path: Path) -> None:
+    clock = Clock()
+    w = writer(tmp_path, clock, max_file_duration_s=10.0, max_file_bytes=8192,
+               max_total_bytes=1 << 20, chunk_bytes=512)
+    w.record(1, latched_frame("m" * 3000, 1, "/r/map"), 0, clock.now)  # > 8192 / 4
+    w.record(1, latched_frame("s" * 100, 2, "/r/tf_static"), 0, clock.now)
+    clock.now += 11
+    w.record(1, frame("b", 3), 0, clock.now)
+    w.close()
+    second = files.scan(tmp_path)[1]
+    assert [ch.topic for _s, ch, _m in files.read_messages(second.path)] == [
+        "/r/tf_static", "/r/chat"]

@@ -50,12 +50,14 @@ def _demo(
 def _sim_robot(
     name: str = typer.Argument(..., help="Robot name (used in logs and events)."),
     phase_rad: float = typer.Option(0.0, "--phase-rad", help="Start angle on the circle (rad)."),
+    camera_hz: float = typer.Option(0.0, "--camera-hz", min=0.0, max=60.0,
+                                    help="Rate of the raw camera /camera/image_raw (0: off)."),
 ) -> None:
     """Run one simulated robot (real rclpy publishers) until Ctrl-C / SIGTERM."""
     _require_rclpy()
     from fleetctl.client.ros.sim import SimConfig, run_sim
 
-    run_sim(SimConfig(name=name, phase_rad=phase_rad))
+    run_sim(SimConfig(name=name, phase_rad=phase_rad, raw_camera_hz=camera_hz))
 
 
 def _require_rclpy() -> None:

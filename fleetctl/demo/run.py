@@ -23,7 +23,7 @@ from pathlib import Path
 from types import FrameType
 from typing import Any
 
-from fleetctl.demo.fleet import DemoFleet, create_demo_fleet
+from fleetctl.demo.fleet import CAMERA_HZ, DemoFleet, create_demo_fleet
 from fleetctl.demo.supervisor import ProcessSpec, Supervisor
 from fleetctl.errors import ExitCode, FleetError
 from fleetctl.waiting import wait_until
@@ -184,7 +184,8 @@ def _start_components(
         phase = 2 * math.pi * i / len(fleet.robots)
         supervisor.start(ProcessSpec(
             f"{robot.name}-sim",
-            _fleetctl("sim-robot", robot.name, "--phase-rad", f"{phase:.4f}"),
+            _fleetctl("sim-robot", robot.name, "--phase-rad", f"{phase:.4f}",
+                      "--camera-hz", f"{CAMERA_HZ:g}"),
             logs / f"{robot.name}-sim.log", env))
         supervisor.start(ProcessSpec(
             f"{robot.name}-client", _fleetctl("client", "--config", str(robot.client_config)),

@@ -46,6 +46,19 @@ def test_client_configs_load_with_the_client_loader(tmp_path: Path) -> None:
     assert config.status.battery_topic == "/battery"
 
 
+def test_the_demo_shows_its_camera_as_video_and_a_viewer_cloud(tmp_path: Path) -> None:
+    """The demo's Video panel said "no video yet: ... fleet.yaml has a video: section"
+    (the demo has no fleet.yaml) and its 3D scene had no cloud unless the Cloud panel was
+    on: the camera now goes out as H.264 and the cloud also as a viewer cloud."""
+    fleet = create_demo_fleet(tmp_path, 1, port=9999, base_domain_id=30)
+    remote = {spec.remote_topic: spec
+              for spec in load_client_config(fleet.robots[0].client_config).publish}
+    camera = remote["/robot1/camera/image_raw"]
+    assert camera.type == "sensor_msgs/msg/Image"
+    assert camera.video is not None and camera.video.codec == "h264"
+    assert remote["/robot1/points"].viewer_cloud is not None
+
+
 def test_files_are_private_and_tokens_stay_out_of_repr(tmp_path: Path) -> None:
     fleet = create_demo_fleet(tmp_path, 1, port=1, base_domain_id=20)
     mode = stat.S_IMODE((tmp_path / "server" / "auth.yaml").stat().st_mode)

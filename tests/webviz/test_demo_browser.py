@@ -25,6 +25,7 @@ from tests.webviz.test_browser import (
     SCREENSHOTS,
     TIMEOUT_MS,
     check_sensor_panels,
+    pixels,
     sign_in,
     wait_js,
     watch_errors,
@@ -93,7 +94,7 @@ async def check_robot_views(page: Any) -> None:
     await check_sensor_panels(page, "robot1", beams=720, camera_min_fraction=0.5)
     # The sim publishes its pose in "map": the goal must go out in that frame.
     await wait_js(page, "fleetviz.frameId === 'map'")
-    # The robot's pose arrow and path on the (empty) grid: measured about 115 pixels.
+    # The room map, the robot's pose arrow and path (the map panel is never blank).
     assert drawn_pixels(await page.locator("#map-canvas").screenshot(), MAP_BG) > 20
     await page.locator("#health tbody tr", has_text="/robot1/scan").wait_for(timeout=TIMEOUT_MS)
     # Link health counts messages, not fragments: each 240 kB cloud arrives in ~15 frames,
@@ -106,6 +107,13 @@ async def check_robot_views(page: Any) -> None:
     # clouds drawn above were inflated by Chromium's DecompressionStream.
     await wait_js(page, "fleetviz.conn.stats.decompressed >= 3")
     assert await page.evaluate("fleetviz.conn.stats.unsupported") == 0
+    # The sim's raw camera arrives as H.264 (the client encodes it) and WebCodecs decodes
+    # it; the Video panel said "no video yet" in the demo before.
+    await page.check("#show-video")
+    video = "fleetviz.views.video.stats['/robot1/camera/image_raw']"
+    await wait_js(page, f"{video} && {video}.shown >= 3")
+    assert await page.evaluate(f"{video}.errors") == 0
+    assert await pixels(page, "#video-canvas") > 10_000
     assert not await page.is_visible("#command-denied")
 
 

@@ -39,6 +39,8 @@ MEDIA: dict[str, dict[str, Any]] = {
     "/camera/image_raw": {"video": {"codec": "h264", "max_bitrate_kbps": 1000}},
     "/points": {"viewer_cloud": {"resolution_m": 0.05}},
 }
+# The largest ROS_DOMAIN_ID ROS 2 allows (its DDS port arithmetic, on Linux).
+MAX_ROS_DOMAIN_ID = 232
 # Rate (Hz) of the sims' raw camera: a real camera runs 15-30 Hz; 10 keeps two robots'
 # synthetic pictures and H.264 encoders at about a fifth of one core.
 CAMERA_HZ = 10.0
@@ -207,8 +209,9 @@ def create_demo_fleet(
     """
     if not 1 <= robot_count <= 250:
         raise ValueError(f"robot count must be 1 to 250, got {robot_count}")
-    if base_domain_id < 0 or base_domain_id + robot_count - 1 > 232:
-        raise ValueError(f"ROS domain ids {base_domain_id}..+{robot_count} are outside 0-232")
+    if base_domain_id < 0 or base_domain_id + robot_count - 1 > MAX_ROS_DOMAIN_ID:
+        raise ValueError(f"ROS domain ids {base_domain_id}..+{robot_count} are outside "
+                         f"0-{MAX_ROS_DOMAIN_ID}")
     port = port or free_port(host)
     robots = tuple(
         DemoRobot(

@@ -23,7 +23,7 @@ from pathlib import Path
 from types import FrameType
 from typing import Any
 
-from fleetctl.demo.fleet import CAMERA_HZ, DemoFleet, create_demo_fleet
+from fleetctl.demo.fleet import CAMERA_HZ, MAX_ROS_DOMAIN_ID, DemoFleet, create_demo_fleet
 from fleetctl.demo.supervisor import ProcessSpec, Supervisor
 from fleetctl.errors import ExitCode, FleetError
 from fleetctl.waiting import wait_until
@@ -227,8 +227,15 @@ def run_demo(options: DemoOptions, out: Callable[[str], None]) -> DemoResult:
         out: prints one line for the user.
 
     Raises:
-        FleetError: a component failed to start or died (the message quotes its log).
+        FleetError: a component failed to start or died (the message quotes its log);
+            the options give a robot a ROS domain id past 232 (exit 3).
     """
+    last_domain = options.base_domain_id + options.robots - 1
+    if last_domain > MAX_ROS_DOMAIN_ID:
+        raise FleetError(f"--base-domain-id {options.base_domain_id} with --robots "
+                         f"{options.robots}: robot{options.robots} would get ROS_DOMAIN_ID "
+                         f"{last_domain}; ROS 2 allows 0-{MAX_ROS_DOMAIN_ID}",
+                         exit_code=ExitCode.CONFIG)
     root = options.workdir or Path(tempfile.mkdtemp(prefix="fleetctl-demo-"))
     try:
         fleet = create_demo_fleet(root, options.robots, port=options.port,

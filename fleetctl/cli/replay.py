@@ -16,11 +16,13 @@ import contextlib
 import math
 import re
 import time
-from collections.abc import Iterator
+from collections.abc import Iterator, Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import NamedTuple
 
 import typer
+import yaml
 from rosbags.typesys import get_types_from_msg
 from websockets.exceptions import InvalidURI
 from websockets.uri import parse_uri
@@ -114,10 +116,13 @@ class _Decoder:
             return False
         return True
 
-    def frame(self, type_name: str, cdr: bytes, topic: str, seq: int, no_drop: bool) -> bytes:
-        msg = self.registry.typestore.deserialize_cdr(cdr, type_name)
-        return self.codec.encode(msg, type_name, topic, no_drop=no_drop,
-                                 publish_time_ns=time.time_ns(), seq=seq)
+    def frame(self, rec: _Recorded, topic: str, no_drop: bool) -> bytes:
+        msg = self.registry.typestore.deserialize_cdr(rec.cdr, rec.type_name)
+        # A latched topic (a map, /tf_static) is sent latched, so the relay keeps it for
+        # pages and robots that come later, as it does for a live robot's.
+        return self.codec.encode(msg, rec.type_name, topic, no_drop=no_drop,
+                                 publish_time_ns=time.time_ns(), seq=rec.seq,
+                                 latched=rec.latched)
 
 
 def _remap(topic: str, remap: tuple[tuple[str, str], ...]) -> str:
@@ -127,12 +132,39 @@ def _remap(topic: str, remap: tuple[tuple[str, str], ...]) -> str:
     return topic
 
 
-def _messages(path: Path) -> Iterator[tuple[str, str, bytes | None, int, bytes, int]]:
-    """(topic, type, schema data, log time ns, cdr, sequence) in file order."""
+class _Recorded(NamedTuple):
+    topic: str
+    type_name: str
+    schema: bytes | None
+    log_ns: int
+    cdr: bytes
+    seq: int
+    latched: bool
+
+
+def _messages(path: Path) -> Iterator[_Recorded]:
+    """The file's messages in file order."""
+    latched: dict[int, bool] = {}
     for schema, channel, message in files.read_messages(path):
-        type_name = schema.name if schema is not None else ""
-        yield (channel.topic, type_name, schema.data if schema is not None else None,
-               message.log_time, message.data, message.sequence)
+        if channel.id not in latched:
+            latched[channel.id] = is_latched(channel.metadata)
+        yield _Recorded(channel.topic, schema.name if schema is not None else "",
+                        schema.data if schema is not None else None, message.log_time,
+                        message.data, message.sequence, latched[channel.id])
+
+
+def is_latched(metadata: Mapping[str, str]) -> bool:
+    """Whether a channel's rosbag2 ``offered_qos_profiles`` say ``transient_local`` (as
+    the server's recordings and ``ros2 bag record`` write them; rosbag2 before Iron wrote
+    the enum's number, 1)."""
+    try:
+        profiles = yaml.safe_load(metadata.get("offered_qos_profiles", "") or "[]")
+    except yaml.YAMLError:
+        return False
+    if not isinstance(profiles, list):
+        return False
+    return any(isinstance(p, dict) and p.get("durability") in ("transient_local", 1)
+               for p in profiles)
 
 
 async def replay(path: Path, options: ReplayOptions) -> ReplayResult:
@@ -208,20 +240,20 @@ async def _play(path: Path, options: ReplayOptions, link: RobotLink,
     high_bytes = int(bounds.no_drop_queue_bytes * _QUEUE_HIGH_FRACTION)
     first_log: int | None = None
     t0 = time.monotonic()
-    for topic, type_name, schema, log_ns, cdr, seq in _messages(path):
-        if not decoder.usable(type_name, schema):
-            result.skipped[type_name] = result.skipped.get(type_name, 0) + 1
+    for rec in _messages(path):
+        if not decoder.usable(rec.type_name, rec.schema):
+            result.skipped[rec.type_name] = result.skipped.get(rec.type_name, 0) + 1
             continue
-        first_log = log_ns if first_log is None else first_log
+        first_log = rec.log_ns if first_log is None else first_log
         if options.rate is not None:
-            delay = t0 + (log_ns - first_log) / 1e9 / options.rate - time.monotonic()
+            delay = t0 + (rec.log_ns - first_log) / 1e9 / options.rate - time.monotonic()
             if delay > 0:
                 await asyncio.sleep(delay)  # pacing the replay, not synchronization
         if options.no_drop:
             await _wait_for_room(link, high, high_bytes)
         _check_refused(link)
-        remote = _remap(topic, options.remap)
-        frame = decoder.frame(type_name, cdr, remote, seq, options.no_drop)
+        remote = _remap(rec.topic, options.remap)
+        frame = decoder.frame(rec, remote, options.no_drop)
         link.offer(remote, frame, priority=1.0, no_drop=options.no_drop)
         result.messages += 1
         result.topics[remote] = result.topics.get(remote, 0) + 1

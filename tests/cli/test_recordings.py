@@ -14,7 +14,7 @@ import pytest
 from mcap.reader import make_reader
 
 from fleetctl.cli.main import main
-from fleetctl.cli.replay import ReplayOptions, replay
+from fleetctl.cli.replay import ReplayOptions, is_latched, replay
 from fleetctl.errors import ExitCode, FleetError
 from fleetctl.server.app import RelayServer
 from fleetctl.server.config import ServerConfig
@@ -236,6 +236,45 @@ async def test_replay_of_a_recording_without_messages_is_an_error(
             await replay(tmp_path / "empty.mcap", options)
         with pytest.raises(FleetError, match="is a directory, not a recording file"):
             await replay(tmp_path, options)
+
+
+async def test_replay_sends_latched_topics_latched_for_late_viewers(
+        make_server: Callable[..., RelayServer], tmp_path: Path) -> None:  # noqa: F811
+    """A replayed map (transient_local in the recording) went out as a plain frame: a page
+    opened after it passed never got the map, nor the static TF."""
+    registry = default_codec().registry
+    out = McapFile(tmp_path / "rec.mcap", registry, 1024)
+    cls = registry.get(STRING).cls
+    for i, (topic, latched) in enumerate((("/husky1/map", True), ("/husky1/chat", False))):
+        out.write(topic, STRING, bytes(registry.typestore.serialize_cdr(cls(topic), STRING)),
+                  T0 + i, i + 1, latched)
+    out.close()
+    async with make_server() as srv:
+        await replay(tmp_path / "rec.mcap", ReplayOptions(srv.url, rate=None,
+                                                          token=ALICE_TOKEN))
+        async with client(srv, token=ALICE_TOKEN) as late:  # after the replay ended
+            assert (await subscribe(late, "/husky1/.*"))["type"] == "subscribed"
+            frame = await asyncio.wait_for(next_binary(late), 5.0)
+    meta, _ = default_codec().decode(frame)
+    assert (meta.topic, meta.latched, decode_text(frame)) == ("/husky1/map", True,
+                                                              "/husky1/map")
+
+
+async def next_binary(ws: Any) -> bytes:
+    while True:
+        frame = await ws.recv()
+        if isinstance(frame, bytes):
+            return frame
+
+
+@pytest.mark.parametrize(("qos", "latched"), [
+    ("- history: keep_last\n  depth: 1\n  durability: transient_local\n", True),
+    ("- history: 1\n  depth: 1\n  reliability: 1\n  durability: 1\n", True),  # Humble
+    ("- history: keep_last\n  durability: volatile\n", False),
+    ("", False), ("[unclosed", False), ("just text", False),
+])
+def test_latched_channels_are_read_from_the_rosbag2_qos(qos: str, latched: bool) -> None:
+    assert is_latched({"offered_qos_profiles": qos}) is latched
 
 
 def test_replay_errors_name_the_file_and_option(tmp_path: Path,

@@ -28,6 +28,8 @@ def _demo(
     startup_timeout: float = typer.Option(60.0, "--startup-timeout", min=1.0,
                                           help="Seconds every component gets to become healthy."),
     no_webviz: bool = typer.Option(False, "--no-webviz", help="Do not start the webviz."),
+    record: bool = typer.Option(False, "--record", help="Record every robot topic as MCAP "
+                                "(server/recordings in the workdir, at most 1 GiB)."),
 ) -> None:
     """Run a server, simulated robots with their clients, and the webviz on this machine."""
     from fleetctl.demo.fleet import free_port
@@ -43,6 +45,7 @@ def _demo(
         workdir=workdir,
         startup_timeout_s=startup_timeout,
         webviz=not no_webviz,
+        record=record,
     )
     run_demo(options, typer.echo)
 

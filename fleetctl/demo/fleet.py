@@ -181,19 +181,35 @@ def client_config(robot: DemoRobot, ws_url: str) -> Any:
     }
 
 
-def server_config(port: int, host: str) -> Any:
-    """The demo's ``server.yaml`` (design.md section 4) as plain data."""
-    return {
+# What ``demo --record`` records (every robot topic) and its disk bounds: the demo's two
+# robots write about 2 MB/s (mostly clouds), so files rotate every half minute and the
+# directory stays under 1 GiB however long the demo runs.
+RECORDING: dict[str, Any] = {
+    "directory": "recordings",
+    "rules": [{"topic": "/.*"}],
+    "max_file_bytes": 64 * 1024 * 1024,
+    "max_total_bytes": 1024 * 1024 * 1024,
+}
+
+
+def server_config(port: int, host: str, *, record: bool = False) -> Any:
+    """The demo's ``server.yaml`` (design.md section 4) as plain data; with *record*, a
+    ``recording:`` section (docs/server.md) into ``server/recordings``."""
+    config: dict[str, Any] = {
         "listen_host": host,
         "listen_port": port,
         "auth_map": "auth.yaml",
         "database": "fleet.db",
         "no_drop_topics": [".*/events"],
     }
+    if record:
+        config["recording"] = dict(RECORDING)
+    return config
 
 
 def create_demo_fleet(
-    root: Path, robot_count: int, *, port: int, base_domain_id: int, host: str = "127.0.0.1"
+    root: Path, robot_count: int, *, port: int, base_domain_id: int, host: str = "127.0.0.1",
+    record: bool = False,
 ) -> DemoFleet:
     """Write a demo fleet under *root* (created if missing).
 
@@ -203,6 +219,7 @@ def create_demo_fleet(
         port: server port; 0 picks a free one.
         base_domain_id: ``ROS_DOMAIN_ID`` of the first robot; robot i gets base + i.
         host: loopback address the server listens on.
+        record: the server records every robot topic into ``server/recordings``.
 
     Raises:
         ValueError: *robot_count* or the domain ids are out of range.
@@ -231,7 +248,7 @@ def create_demo_fleet(
         viewer_token=secrets.token_urlsafe(18),
         operator_token=secrets.token_urlsafe(18),
     )
-    _write_yaml(fleet.server_config, server_config(port, host))
+    _write_yaml(fleet.server_config, server_config(port, host, record=record))
     _write_yaml(
         root / "server" / "auth.yaml", auth_map(robots, fleet.viewer_token, fleet.operator_token)
     )

@@ -46,6 +46,7 @@ class DemoOptions:
         workdir: directory for the fleet's files and logs; None makes a temporary one.
         startup_timeout_s: how long (s) every component gets to become healthy.
         webviz: start ``fleetctl webviz`` when that command exists.
+        record: the server records every robot topic (MCAP, ``server/recordings``).
     """
 
     robots: int = 2
@@ -56,6 +57,7 @@ class DemoOptions:
     workdir: Path | None = None
     startup_timeout_s: float = 60.0
     webviz: bool = True
+    record: bool = False
 
 
 @dataclass(frozen=True)
@@ -202,7 +204,8 @@ def _start_components(
     return url
 
 
-def _summary(fleet: DemoFleet, webviz_url: str | None, logs: Path) -> list[str]:
+def _summary(fleet: DemoFleet, webviz_url: str | None, logs: Path,
+             record: bool = False) -> list[str]:
     lines = [
         f"fleetctl demo: {len(fleet.robots)} simulated robots, files in {fleet.root}",
         f"  server     {fleet.ws_url}  (health {fleet.http_url}/healthz, "
@@ -216,6 +219,9 @@ def _summary(fleet: DemoFleet, webviz_url: str | None, logs: Path) -> list[str]:
     lines.append(f"  viewer token   (receive all):         {fleet.viewer_token}")
     lines.append(f"  operator token (also send goal poses): {fleet.operator_token}")
     lines.append(f"  logs       {logs}")
+    if record:
+        lines.append(f"  recording  {fleet.server_config.parent / 'recordings'}  (fleetctl "
+                     f"recordings list --config {fleet.server_config})")
     return lines
 
 
@@ -239,7 +245,8 @@ def run_demo(options: DemoOptions, out: Callable[[str], None]) -> DemoResult:
     root = options.workdir or Path(tempfile.mkdtemp(prefix="fleetctl-demo-"))
     try:
         fleet = create_demo_fleet(root, options.robots, port=options.port,
-                                  base_domain_id=options.base_domain_id)
+                                  base_domain_id=options.base_domain_id,
+                                  record=options.record)
     except OSError as exc:  # e.g. --workdir is a regular file, or not writable
         raise FleetError(f"--workdir {root}: cannot write the demo's files: "
                          f"{exc.strerror or exc}", exit_code=ExitCode.CONFIG) from None
@@ -260,7 +267,7 @@ def run_demo(options: DemoOptions, out: Callable[[str], None]) -> DemoResult:
 
             wait_until(all_online, options.startup_timeout_s, poll_s=0.2,
                        describe=f"robots {sorted(wanted)} online in {fleet.http_url}/robots")
-            for line in _summary(fleet, webviz_url, logs):
+            for line in _summary(fleet, webviz_url, logs, options.record):
                 out(line)
             out("fleetctl demo: all components healthy; Ctrl-C stops everything")
             stopped_by = _watch(guard, options.duration_s)

@@ -83,3 +83,17 @@ def test_server_files_load_with_the_server_loaders(tmp_path: Path) -> None:
     assert [i.name for i in auth.match_address(ipaddress.ip_address("127.0.1.3"))] == ["robot2"]
     assert auth.match_token(fleet.operator_token) is not None
     assert auth.match_token("not-a-token") is None
+
+
+def test_record_adds_a_bounded_recording_the_server_loads(tmp_path: Path) -> None:
+    """The demo had no way to record: its server.yaml is written at every start, so a
+    team trying recording and replay had to build a fleet of their own first."""
+    from fleetctl.server.config import load_server_config
+
+    plain = create_demo_fleet(tmp_path / "a", 1, port=4321, base_domain_id=20)
+    assert load_server_config(plain.server_config).recording is None
+    fleet = create_demo_fleet(tmp_path / "b", 2, port=4321, base_domain_id=20, record=True)
+    recording = load_server_config(fleet.server_config).recording
+    assert recording is not None
+    assert recording.directory == tmp_path / "b" / "server" / "recordings"
+    assert recording.max_total_bytes == 1 << 30 and recording.max_file_bytes == 64 << 20

@@ -59,7 +59,8 @@ _PUBLISH_KEYS = frozenset(
 # "none" or a codec of fleetctl.wire.compression (names as in CompressionCodec).
 COMPRESSIONS = ("none", "zstd", "deflate")
 _SUBSCRIBE_KEYS = frozenset({"remote_topic", "type", "local_topic"})
-_STATUS_KEYS = frozenset({"battery_topic", "period_s"})
+_STATUS_KEYS = frozenset({"battery_topic", "period_s", "location"})
+_MAX_LOCATION_CHARS = 200  # a place name for the robot list, not a document
 _LIMIT_KEYS = frozenset({"max_fragment_bytes", "no_drop_queue_messages", "reconnect_min_s",
                          "reconnect_max_s", "scheduler", "outage_dial_interval_s",
                          "standby_connection", "dial_ahead_of_messages"})
@@ -134,10 +135,13 @@ class StatusSpec:
     Attributes:
         battery_topic: Local ``sensor_msgs/msg/BatteryState`` topic, or None.
         period_s: Seconds between status messages.
+        location: Where the robot is, as people name it (``"warehouse A, aisle 3"``):
+            the status's ``location``, shown in the page's robot list; ``""``: not said.
     """
 
     battery_topic: str | None = None
     period_s: float = 1.0
+    location: str = ""
 
 
 @dataclass(frozen=True)
@@ -466,7 +470,16 @@ def _status(ctx: _Ctx, value: object) -> StatusSpec:
     return StatusSpec(
         battery_topic=_topic(ctx, entry, "status", "battery_topic", required=False),
         period_s=1.0 if period is None else period,
+        location=_location(ctx, entry),
     )
+
+
+def _location(ctx: _Ctx, entry: Mapping[str, Any]) -> str:
+    value = _str(ctx, entry, "status", "location") or ""
+    if len(value) > _MAX_LOCATION_CHARS or not value.isprintable():
+        raise ctx.error("status", "location", f"must be one line of at most "
+                        f"{_MAX_LOCATION_CHARS} printable characters, got {value[:40]!r}")
+    return value
 
 
 def _check_tf_topics(ctx: _Ctx, publish: tuple[PublishSpec, ...], robot_name: str) -> None:

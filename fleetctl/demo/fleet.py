@@ -175,7 +175,8 @@ def client_config(robot: DemoRobot, ws_url: str) -> Any:
             }
             for topic, type_name in DEFAULT_SUBSCRIBE
         ],
-        "status": {"battery_topic": "/battery", "period_s": 1.0},
+        "status": {"battery_topic": "/battery", "period_s": 1.0,
+                   "location": "demo room (simulated, 10 x 8 m)"},
         # /tf throttled per frame pair, /tf_static latched (tf2_web_republisher's defaults).
         "tf": {},
     }

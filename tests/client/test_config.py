@@ -167,6 +167,10 @@ def test_token_file_is_read_relative_and_never_shown(tmp_path: Path) -> None:
     (minimal(limits={"dial_ahead_of_messages": 1}),
      "limits: dial_ahead_of_messages: must be true or false, got 1"),
     ([1, 2], "document: must be a mapping"),
+    (minimal(status={"location": "a\nb"}),
+     "status: location: must be one line of at most 200 printable characters, got 'a\\nb'"),
+    (minimal(status={"location": "x" * 201}), "status: location: must be one line"),
+    (minimal(status={"location": 3}), "status: location: "),
 ])
 def test_bad_field_names_file_entry_and_field(data: Any, expected: str) -> None:
     with pytest.raises(ConfigError) as info:
@@ -327,3 +331,11 @@ def test_a_bad_subscribe_regex_is_one_error_line_and_no_re2_log(
     with pytest.raises(ConfigError, match="neither a topic nor a valid RE2 regex"):
         load_client_config(path)
     assert "((" not in capfd.readouterr().err
+
+
+def test_status_location_is_read() -> None:
+    """The page's robot list has a Location column that no fleetctl robot could fill."""
+    cfg = parse_client_config(minimal(status={"location": "warehouse A, aisle 3"}),
+                              source="client.yaml")
+    assert cfg.status.location == "warehouse A, aisle 3"
+    assert parse_client_config(minimal(), source="client.yaml").status.location == ""

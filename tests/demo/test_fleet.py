@@ -44,6 +44,7 @@ def test_client_configs_load_with_the_client_loader(tmp_path: Path) -> None:
     assert {s.compression for s in config.publish} == {"none", "deflate"}
     assert {s.local_topic for s in config.subscribe} == {"/goal_pose", "/initialpose"}
     assert config.status.battery_topic == "/battery"
+    assert config.status.location == "demo room (simulated, 10 x 8 m)"  # the Location column
 
 
 def test_the_demo_shows_its_camera_as_video_and_a_viewer_cloud(tmp_path: Path) -> None:

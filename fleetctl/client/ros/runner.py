@@ -55,11 +55,13 @@ def build_registry() -> TypeRegistry:
     return registry
 
 
-def status_encoder(codec: Codec, robot_name: str) -> Callable[[float | None], bytes]:
+def status_encoder(codec: Codec, robot_name: str,
+                   location: str = "") -> Callable[[float | None], bytes]:
     """``encode(battery) -> frame`` of this robot's RobofleetStatus (design.md section 1).
 
-    The battery is a fraction in [0, 1], or None (sent as -1: unknown). Each frame gets
-    the next sequence number, starting at the wall clock in microseconds.
+    The battery is a fraction in [0, 1], or None (sent as -1: unknown); *location* is
+    client.yaml's ``status.location``. Each frame gets the next sequence number, starting
+    at the wall clock in microseconds.
     """
     seq = itertools.count(time.time_ns() // 1000)
 
@@ -67,7 +69,7 @@ def status_encoder(codec: Codec, robot_name: str) -> Callable[[float | None], by
         return encode_status(
             robot_name, status="OK", is_ok=True,
             battery_level=UNKNOWN_BATTERY if battery is None else battery,
-            publish_time_ns=time.time_ns(), seq=next(seq), codec=codec,
+            location=location, publish_time_ns=time.time_ns(), seq=next(seq), codec=codec,
         )
 
     return encode
@@ -122,7 +124,8 @@ async def _serve(config: ClientConfig, context: Context) -> dict[str, Any]:
     wakeups = load_wakeups()
     intake = None if wakeups is None else LoopIntake(loop, wakeups, link)
     bridge = Bridge(config, codec, codec.registry.typestore, _port(link, config.status_topic),
-                    status_encoder(codec, config.robot_name), context=context, intake=intake)
+                    status_encoder(codec, config.robot_name, config.status.location),
+                    context=context, intake=intake)
     executor = NodeExecutor(bridge, context)
     stop = asyncio.Event()
     spinner = threading.Thread(target=_spin, args=(executor, loop, stop), name="rclpy-executor",

@@ -322,3 +322,12 @@ def test_a_subscribe_entry_onto_a_sent_topic_is_refused(codec: Codec) -> None:
                    status_encoder(codec, "r1"), context=context)
     finally:
         context.try_shutdown()
+
+
+def test_status_frames_carry_the_configured_location() -> None:
+    """status.location reaches the RobofleetStatus the page's robot list shows."""
+    codec = Codec(TypeRegistry.default())
+    encode = status_encoder(codec, "r1", "warehouse A, aisle 3")
+    status = decode_status(encode(0.5), codec=codec)
+    assert (status.location, status.battery_level) == ("warehouse A, aisle 3", 0.5)
+    assert decode_status(status_encoder(codec, "r1")(None), codec=codec).location == ""

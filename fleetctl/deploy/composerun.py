@@ -47,6 +47,7 @@ from fleetctl.deploy.images import image_tag
 from fleetctl.deploy.replicas import check_count
 from fleetctl.errors import ConfigError, ConflictError, EnvironmentMissing, FleetError
 from fleetctl.smallfile import MAX_CONFIG_BYTES, read_small_text
+from fleetctl.wire.control import known_battery
 from fleetctl.yamlfile import safe_load
 
 Progress = Callable[[str], None]
@@ -279,7 +280,7 @@ class StatusReport:
         return {
             "healthy": self.healthy,
             "services": [s.__dict__ for s in self.services],
-            "robots": self.robots,
+            "robots": None if self.robots is None else [_robot_json(r) for r in self.robots],
             "robots_error": self.robots_error or None,
             "tunnel": None if self.tunnel is None else [t.__dict__ for t in self.tunnel],
             "tunnel_note": self.tunnel_note or None,
@@ -294,9 +295,10 @@ class StatusReport:
         if self.robots is None:
             lines.append(f"robots: unknown ({self.robots_error})")
         else:
-            lines.append(f"{'ROBOT':<24} {'ONLINE':<7} LAST SEEN")
+            lines.append(f"{'ROBOT':<24} {'ONLINE':<7} {'BATTERY':<8} LAST SEEN")
             lines += [f"{r.get('name', '?')!s:<24} {'yes' if r.get('online') else 'no':<7} "
-                      f"{_ago(r.get('last_seen_s'))}" for r in self.robots] or ["(no robots yet)"]
+                      f"{_battery(r.get('battery_level')):<8} {_ago(r.get('last_seen_s'))}"
+                      for r in self.robots] or ["(no robots yet)"]
         lines.append("")
         if self.tunnel is None:
             lines.append(f"tunnel: {self.tunnel_note}")
@@ -306,6 +308,30 @@ class StatusReport:
                 "never" if t.handshake_age_s is None else f"{t.handshake_age_s:.0f} s ago")
                 for t in self.tunnel] or ["(no peers)"]
         return "\n".join(lines)
+
+
+def _robot_json(robot: dict[str, Any]) -> dict[str, Any]:
+    """A robot of the server's ``/robots`` with an unknown battery as ``None`` (a server
+    older than this fleetctl reports the robot's -1 as is)."""
+    if "battery_level" not in robot:
+        return robot
+    return {**robot, "battery_level": _battery_level(robot["battery_level"])}
+
+
+def _battery_level(value: object) -> float | None:
+    """The battery fraction of a ``/robots`` entry; ``None`` when unknown or not a number."""
+    if isinstance(value, bool) or not isinstance(value, int | float):
+        return None
+    return known_battery(float(value))
+
+
+def _battery(value: object) -> str:
+    """``80%`` for a fraction 0..1 (a robot that reports 0..100 is shown as is, as the
+    page does); ``-`` when unknown."""
+    level = _battery_level(value)
+    if level is None:
+        return "-"
+    return f"{round(level * 100 if level <= 1 else level)}%"
 
 
 def _ago(stamp: object, now: float | None = None) -> str:

@@ -17,6 +17,7 @@ from pathlib import Path
 from typing import Any
 
 from fleetctl.errors import ConfigError
+from fleetctl.wire.control import known_battery
 
 _SCHEMA = """
 CREATE TABLE IF NOT EXISTS robots (
@@ -47,7 +48,8 @@ class RobotRecord:
         name: First path segment of its topics.
         first_seen_s / last_seen_s: Wall clock, seconds since the epoch.
         status / is_ok / battery_level / location: Last ``RobofleetStatus`` (``None`` if
-            never received); battery_level is a fraction 0..1 as the robot reports it.
+            never received); battery_level is a fraction 0..1 as the robot reports it,
+            ``None`` also when the robot reported it unknown (-1).
         status_time_s: Wall clock when that status arrived.
     """
 
@@ -104,7 +106,8 @@ class RobotRegistry:
         for row in self._db.execute(f"SELECT {', '.join(_COLUMNS)} FROM robots"):
             rec = RobotRecord(
                 name=row[0], first_seen_s=row[1], last_seen_s=row[2], status=row[3],
-                is_ok=None if row[4] is None else bool(row[4]), battery_level=row[5],
+                is_ok=None if row[4] is None else bool(row[4]),
+                battery_level=known_battery(row[5]),
                 location=row[6], status_time_s=row[7],
             )
             self._robots[rec.name] = rec
@@ -143,12 +146,14 @@ class RobotRegistry:
     def set_status(
         self, name: str, status: str, is_ok: bool, battery_level: float, location: str
     ) -> None:
-        """Record a ``RobofleetStatus`` of robot *name* (call :meth:`seen` first)."""
+        """Record a ``RobofleetStatus`` of robot *name* (call :meth:`seen` first); a
+        *battery_level* that means unknown (-1) is recorded as ``None``."""
         rec = self._robots.get(name)
         if rec is None:
             return
         self._robots[name] = replace(
-            rec, status=status, is_ok=is_ok, battery_level=battery_level, location=location,
+            rec, status=status, is_ok=is_ok, battery_level=known_battery(battery_level),
+            location=location,
             status_time_s=self._clock(),
         )
         self._dirty.add(name)

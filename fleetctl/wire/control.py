@@ -10,6 +10,7 @@
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 from fleetctl.wire.codec import Codec, default_codec
@@ -22,6 +23,20 @@ ACTION_UNSUBSCRIBE = 0
 ACTION_SUBSCRIBE = 1
 KEYFRAME_REQUEST_TYPE = "fleetctl_msgs/msg/KeyframeRequest"
 KEYFRAME_REQUESTS_TOPIC = "/keyframe_requests"
+# RobofleetStatus.battery_level has no null: a robot that does not know its battery (no
+# battery topic configured or heard) sends this.
+UNKNOWN_BATTERY = -1.0
+
+
+def known_battery(level: float | None) -> float | None:
+    """Return *level*, or ``None`` when it means "unknown" (negative, NaN, infinite).
+
+    What ``/robots``, ``fleetctl status`` and the page show for a robot without a battery
+    topic: ``None`` (JSON null, a dash), never a level of -1 (-100 %).
+    """
+    if level is None or not math.isfinite(level) or level < 0:
+        return None
+    return level
 
 
 @dataclass(frozen=True, slots=True)
@@ -47,7 +62,9 @@ class Status:
         topic: The topic it came on.
         status: Free-form status text.
         is_ok: The robot considers itself healthy.
-        battery_level: Battery charge as reported (fraction 0..1 by convention).
+        battery_level: Battery charge as reported (fraction 0..1 by convention;
+            :data:`UNKNOWN_BATTERY` when the robot does not know it, see
+            :func:`known_battery`).
         location: Free-form location text.
         publish_time_ns: Metadata publish time, ns since the epoch (0 if unset).
     """

@@ -349,3 +349,17 @@ def test_logs_names_the_services_when_one_is_unknown(fleet: Path) -> None:
     assert composerun.deployed_services(fleet) == []
     compose_file.write_text("services: {1: {}, server: {}}\n")
     assert composerun.deployed_services(fleet) == ["1", "server"]
+
+
+def test_status_shows_an_unknown_battery_as_null_and_a_dash() -> None:
+    """/robots of a server older than this fleetctl still says -1 for 'no battery topic'."""
+    robots = [{"name": "husky1", "online": True, "battery_level": -1.0, "last_seen_s": None},
+              {"name": "jackal2", "online": True, "battery_level": 0.8, "last_seen_s": None},
+              {"name": "rover3", "online": False, "battery_level": None}]
+    report = composerun.StatusReport((), robots)
+    assert [r["battery_level"] for r in report.to_json()["robots"]] == [None, 0.8, None]
+    lines = report.render_text().splitlines()
+    header = next(i for i, line in enumerate(lines) if line.startswith("ROBOT"))
+    assert lines[header].split() == ["ROBOT", "ONLINE", "BATTERY", "LAST", "SEEN"]
+    assert [line.split()[:3] for line in lines[header + 1:header + 4]] == [
+        ["husky1", "yes", "-"], ["jackal2", "yes", "80%"], ["rover3", "no", "-"]]

@@ -289,3 +289,16 @@ async def test_restart_keeps_registry(make_server: Callable[..., RelayServer]) -
         (robot_json,) = json.loads(body)["robots"]
         assert robot_json["name"] == "husky1" and robot_json["status"] == "charging"
         assert robot_json["battery_level"] == 0.25 and robot_json["online"] is False
+
+
+async def test_robots_reports_an_unknown_battery_as_null(
+    make_server: Callable[..., RelayServer],
+) -> None:
+    """A robot without a battery topic sends -1 (the wire has no null): /robots says null."""
+    async with make_server() as srv, client(srv, source="127.0.0.2") as robot:
+        await robot.send(encode_status("husky1", status="OK", is_ok=True, battery_level=-1.0))
+        await wait_for(lambda: srv.registry.get("husky1") is not None
+                       and srv.registry.get("husky1").status == "OK")  # type: ignore[union-attr]
+        status, body = await http_get(srv.port, "/robots")
+        (robot_json,) = json.loads(body)["robots"]
+        assert status == 200 and robot_json["battery_level"] is None

@@ -60,3 +60,22 @@ def test_a_database_path_that_is_no_database_is_a_config_error(tmp_path: Path,
         path.mkdir()
     with pytest.raises(ConfigError, match=r"fleet\.db: field 'database' of the server config"):
         RobotRegistry(path, 5.0)
+
+
+def test_a_battery_the_robot_does_not_know_is_none(tmp_path: Path) -> None:
+    """The client sends -1 for a robot without a battery topic: unknown, not -100 %."""
+    db = tmp_path / "fleet.db"
+    reg = RobotRegistry(db, offline_after_s=5.0, clock=Clock())
+    for name, level in (("husky1", -1.0), ("husky2", float("nan")), ("husky3", 0.0)):
+        reg.seen(name)
+        reg.set_status(name, "OK", True, level, "")
+    assert [r["battery_level"] for r in reg.as_json()] == [None, None, 0.0]
+    reg.flush()
+    reg.close()
+    # A row written as -1 by an older server reads back as unknown too.
+    import sqlite3
+    with sqlite3.connect(db) as con:
+        con.execute("UPDATE robots SET battery_level = -1 WHERE name = 'husky3'")
+    again = RobotRegistry(db, offline_after_s=5.0, clock=Clock())
+    assert [r["battery_level"] for r in again.as_json()] == [None, None, None]
+    again.close()

@@ -12,6 +12,7 @@ from fleetctl.wire.control import (
     decode_subscription,
     encode_status,
     encode_subscription,
+    known_battery,
 )
 from fleetctl.wire.errors import WireError
 from fleetctl.wire.metadata import read_metadata
@@ -69,3 +70,9 @@ def test_keyframe_request_round_trip() -> None:
         decode_keyframe_request(encode_keyframe_request(""))
     with pytest.raises(WireError):
         decode_keyframe_request(encode_subscription("/x"))
+
+
+def test_a_negative_or_nan_battery_is_unknown() -> None:
+    assert known_battery(-1.0) is None and known_battery(float("nan")) is None
+    assert known_battery(float("inf")) is None and known_battery(None) is None
+    assert known_battery(0.0) == 0.0 and known_battery(0.5) == 0.5 and known_battery(87.0) == 87.0

@@ -35,13 +35,12 @@ from fleetctl.client.ros.executor import NodeExecutor
 from fleetctl.client.ros.intake import LoopIntake, load_wakeups
 from fleetctl.client.transport import RobotLink
 from fleetctl.wire.codec import Codec
-from fleetctl.wire.control import encode_status
+from fleetctl.wire.control import UNKNOWN_BATTERY, encode_status
 from fleetctl.wire.registry import TypeRegistry
 
 log = logging.getLogger(__name__)
 
 STATUS_PRIORITY = 8.0  # small and what the fleet view shows first: ahead of sensor data
-UNKNOWN_BATTERY = -1.0  # battery_level sent when no battery topic is configured or heard
 _EXECUTOR_JOIN_S = 5.0
 
 

@@ -135,7 +135,8 @@ def up(fleet_dir: Path, options: Options, progress: Progress = print,
     adds, removes or recreates what changed. With *robots_only* (a live update after
     ``add-robot`` & co.) only the simulated robots are started, recreated or removed; the
     server and replicas are left as they run even if their image was rebuilt since, so an
-    ``add-user`` never restarts the relay behind the operator's back.
+    ``add-user`` never restarts the relay behind the operator's back; and nothing is
+    printed (no *progress*, compose's output captured and quoted only if it fails).
 
     Raises:
         ConfigError: the fleet directory is incomplete (the message names file and field).
@@ -151,14 +152,18 @@ def up(fleet_dir: Path, options: Options, progress: Progress = print,
         hostports.published_ports(render(plan)),
         hostports.held_by_fleet(runner, plan.project, plan.compose_file.resolve()),
         port_probe or hostports.bind_error)
-    progress(f"wireguard: {plan.wireguard_note}")
+    # A live update is one line of the command that changed the fleet (its note), so it
+    # says nothing here and keeps compose's output unless compose fails (check quotes it).
+    if not robots_only:
+        progress(f"wireguard: {plan.wireguard_note}")
     path = write_files(plan)
     sims = len(plan.robots) if options.sim else 0
     what = ("server" if options.replicas == 1 else
             f"{options.replicas} relay replicas on 3 NATS nodes")
-    progress(f"compose file {path}; {what} + {sims} simulated robot(s)")
+    if not robots_only:
+        progress(f"compose file {path}; {what} + {sims} simulated robot(s)")
     check(runner(compose_argv(plan.fleet_dir, plan.project, *_up_args(plan, robots_only),
-                              runner=runner), None, False), "compose up")
+                              runner=runner), None, robots_only), "compose up")
     urls: tuple[tuple[str, ...], tuple[str, ...]] = ((), ())
     if options.replicas > 1:
         from fleetctl.deploy import composereplicas

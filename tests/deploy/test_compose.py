@@ -271,6 +271,29 @@ def test_live_sync_reloads_peers_and_adds_simulated_robots(fleet: Path) -> None:
     assert "server" not in live_up[live_up.index("up"):]
 
 
+def test_live_sync_prints_nothing_but_its_note(fleet: Path) -> None:
+    """operator.md: a change to a running fleet adds one note line, not compose's chatter
+    (`compose file ...`, `robot-husky1_1 is up-to-date`) after every add-user."""
+    captured: list[bool] = []
+
+    class Recording(FakeDocker):
+        def __call__(self, argv: Sequence[str], stdin: bytes | None,
+                     capture: bool) -> Completed:
+            if list(argv[:2]) == ["docker", "compose"] and "up" in argv:
+                captured.append(capture)
+            return super().__call__(argv, stdin, capture)
+
+    docker = Recording()
+    composerun.up(fleet, _opts(fleet, wireguard="off", sim=True), progress=lambda _: None,
+                  runner=docker)
+    docker.server_running = True
+    ops.add_user(fleet, "bob@example.org", "viewer")
+    printed: list[str] = []
+    note = live.sync_running(fleet, printed.append, runner=docker)
+    assert note is not None and "simulated robots updated" in note
+    assert printed == [] and captured == [False, True]
+
+
 def test_live_sync_after_the_last_robot_goes_leaves_the_server_alone(fleet: Path) -> None:
     docker = FakeDocker()
     composerun.up(fleet, _opts(fleet, wireguard="off", sim=True), progress=lambda _: None,

@@ -22,25 +22,27 @@ _COMMAND_MODULES = (
     "fleetctl.cli.client",  # client
     "fleetctl.cli.webviz",  # webviz
     "fleetctl.cli.demo",  # demo
+    "fleetctl.cli.deploy",  # build, up, down, status, logs
     "fleetctl.cli.foxglove",  # foxglove-url
-    "fleetctl.cli.schema",  # schema export
     "fleetctl.cli.recordings",  # recordings list, recordings fetch
     "fleetctl.cli.replay",  # replay
-    "fleetctl.cli.deploy",  # build, up, down, status, logs
+    "fleetctl.cli.schema",  # schema export
     "fleetctl.cli.e2e",  # e2e
 )
 
 
-# `fleetctl --help` groups commands by what an operator is doing.
-_SETUP, _RUN, _DEPLOY, _TEST = "Set up a fleet", "Run one component", "Deploy", "Test"
-_DATA = "Recordings"
+# `fleetctl --help` groups commands by what an operator is doing. foxglove-url, recordings
+# and replay talk to a fleet that runs (with a user's token); schema is for whoever writes a
+# decoder of the wire format, as e2e is for whoever checks the product.
+_SETUP, _RUN, _DEPLOY = "Set up a fleet", "Run one component", "Deploy"
+_USE, _DEVELOP = "Use a running fleet", "Develop and test"
 _PANELS = {
     **dict.fromkeys(("init", "set-endpoint", "add-robot", "remove-robot", "add-user",
-                     "remove-user", "list", "list-fleet", "render", "export", "schema"), _SETUP),
-    **dict.fromkeys(("server", "client", "webviz", "demo", "foxglove-url"), _RUN),
+                     "remove-user", "list", "list-fleet", "render", "export"), _SETUP),
+    **dict.fromkeys(("server", "client", "webviz", "demo"), _RUN),
     **dict.fromkeys(("build", "up", "down", "status", "logs"), _DEPLOY),
-    "e2e": _TEST,
-    **dict.fromkeys(("recordings", "replay"), _DATA),
+    **dict.fromkeys(("foxglove-url", "recordings", "replay"), _USE),
+    **dict.fromkeys(("schema", "e2e"), _DEVELOP),
 }
 
 

@@ -64,6 +64,24 @@ def test_every_top_level_command_is_in_a_help_panel() -> None:
     assert unpanelled == []
 
 
+def test_help_panels_hold_what_a_user_looks_for_there(capsys: pytest.CaptureFixture[str]) -> None:
+    """schema sat in "Set up a fleet" and foxglove-url in "Run one component"."""
+    assert cli_main.main(["-h"]) == 0
+    panels: dict[str, list[str]] = {}
+    title = ""
+    for line in capsys.readouterr().out.splitlines():
+        if line.startswith("╭─ "):
+            title = line.strip("╭─ ").split(" ─")[0]
+        elif line.startswith("│ ") and line[2:3].isalpha():
+            panels.setdefault(title, []).append(line.split()[1])
+    assert list(panels) == ["Set up a fleet", "Run one component", "Deploy",
+                            "Use a running fleet", "Develop and test"]
+    assert sorted(panels["Use a running fleet"]) == ["foxglove-url", "recordings", "replay"]
+    assert sorted(panels["Develop and test"]) == ["e2e", "schema"]
+    assert "schema" not in panels["Set up a fleet"]
+    assert "foxglove-url" not in panels["Run one component"]
+
+
 def test_help_lines_that_the_source_breaks_fit_an_80_column_terminal() -> None:
     # The help keeps the source's line breaks; a broken line longer than the terminal is
     # wrapped again, which leaves a one-word line after it. A one-line paragraph is free

@@ -48,7 +48,7 @@ import yaml
 from fleetctl import __version__
 from fleetctl.deploy.files import FileWrite, write_file
 from fleetctl.deploy.images import image_tag
-from fleetctl.errors import ConfigError, EnvironmentMissing, FleetError
+from fleetctl.errors import ConfigError, EnvironmentMissing, ExitCode, FleetError
 from fleetctl.smallfile import MAX_PEM_BYTES, MAX_SECRET_BYTES, read_small_text
 from fleetctl.yamlfile import read_yaml
 
@@ -221,17 +221,27 @@ TUN_DEVICE = Path("/dev/net/tun")
 _COMPOSE_PATH_SPECIAL = ":$"
 
 
+def check_wireguard_choice(requested: str) -> None:
+    """Refuse a ``--wireguard`` that is not auto, on or off.
+
+    Raises:
+        FleetError: exit 2, a usage error like any bad option value.
+    """
+    if requested not in ("auto", "on", "off"):
+        raise FleetError(f"--wireguard must be auto, on or off, not {requested!r}",
+                         exit_code=ExitCode.USAGE)
+
+
 def wireguard_wanted(requested: str, tun: Path = TUN_DEVICE) -> bool:
     """Whether to run WireGuard, from ``--wireguard auto|on|off`` and whether *tun* exists.
 
     ``fleetctl up`` and ``fleetctl e2e`` decide the same way and word the reason their own.
 
     Raises:
-        FleetError: *requested* is not auto, on or off.
+        FleetError: *requested* is not auto, on or off (exit 2, a usage error).
         EnvironmentMissing: ``on`` without a TUN device.
     """
-    if requested not in ("auto", "on", "off"):
-        raise FleetError(f"--wireguard must be auto, on or off, not {requested!r}")
+    check_wireguard_choice(requested)
     if requested == "off":
         return False
     if tun.exists():

@@ -28,6 +28,7 @@ from fleetctl.deploy.compose import (
     WG_INTERFACE,
     ComposePlan,
     Options,
+    check_wireguard_choice,
     plan_for,
     project_name,
     read_robots,
@@ -449,6 +450,7 @@ def default_options(fleet_dir: Path, **chosen: Any) -> Options:
 
     Raises:
         ConfigError: a bad ``--bind`` or ``--project``, naming the option.
+        FleetError: ``--wireguard`` is not auto, on or off (exit 2).
     """
     project = chosen.pop("project", None) or project_name(fleet_dir)
     if not _PROJECT.fullmatch(project):
@@ -461,4 +463,5 @@ def default_options(fleet_dir: Path, **chosen: Any) -> Options:
         raise ConfigError(f"--bind {bind!r}: expected an IP address of this host, e.g. "
                           "127.0.0.1 or 0.0.0.0") from None
     check_count(chosen.get("replicas", 1))
+    check_wireguard_choice(chosen.get("wireguard", "auto"))
     return Options(project=project, **chosen)

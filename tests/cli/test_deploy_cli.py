@@ -90,3 +90,13 @@ def test_what_would_stop_the_recording_stops_up_before_it_deploys(
     assert main(["up", "--replicas", "2"]) == 3
     assert "client.yaml was edited by hand" in capsys.readouterr().err
     assert deployed == [] and load_fleet(fleet).relay_replicas == 1
+
+
+def test_a_bad_wireguard_mode_is_a_usage_error(
+        fleet: Path, deployed: list[composerun.Options],
+        capsys: pytest.CaptureFixture[str]) -> None:
+    """Exit 2 like every other bad option value (an unknown role, a port out of range)."""
+    assert main(["up", "--wireguard", "maybe"]) == 2
+    assert capsys.readouterr().err == (
+        "fleetctl: error: --wireguard must be auto, on or off, not 'maybe'\n")
+    assert deployed == []

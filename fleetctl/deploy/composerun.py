@@ -44,6 +44,7 @@ from fleetctl.deploy.dockercli import (
     image_exists,
     subprocess_runner,
 )
+from fleetctl.deploy.fleet import require_fleet_dir
 from fleetctl.deploy.images import image_tag
 from fleetctl.deploy.replicas import check_count
 from fleetctl.errors import ConfigError, ConflictError, EnvironmentMissing, FleetError
@@ -191,8 +192,10 @@ def existing_options(fleet_dir: Path, project: str | None = None) -> Options:
     """The options of the deployment ``up`` started in *fleet_dir*.
 
     Raises:
+        ConfigError: *fleet_dir* does not exist or is not a directory.
         FleetError: nothing was started there.
     """
+    require_fleet_dir(fleet_dir)
     options = saved_options(fleet_dir)
     if options is None:
         raise FleetError(f"{fleet_dir.resolve() / '.compose'}: no deployment here; "

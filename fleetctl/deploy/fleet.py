@@ -505,6 +505,18 @@ def fleet_file(fleet_dir: Path) -> Path:
     return fleet_dir / FLEET_FILE
 
 
+def require_fleet_dir(fleet_dir: Path) -> None:
+    """Refuse a fleet directory that is not one.
+
+    Raises:
+        ConfigError: *fleet_dir* does not exist or is not a directory.
+    """
+    if not fleet_dir.is_dir():
+        what = "exists and is not a directory" if os.path.lexists(fleet_dir) else "does not exist"
+        raise ConfigError(f"fleet directory {fleet_dir} {what} "
+                          "(create one with 'fleetctl init', or set --fleet / FLEET_DIR)")
+
+
 def load_fleet(fleet_dir: Path) -> Fleet:
     """Load and validate ``fleet_dir/fleet.yaml``.
 
@@ -512,14 +524,14 @@ def load_fleet(fleet_dir: Path) -> Fleet:
         ConfigError: the directory or file is missing, or the file is malformed or invalid;
             the message names the file, the line and the field.
     """
-    if not fleet_dir.is_dir():
-        what = "exists and is not a directory" if os.path.lexists(fleet_dir) else "does not exist"
-        raise ConfigError(f"fleet directory {fleet_dir} {what} "
-                          "(create one with 'fleetctl init', or set --fleet / FLEET_DIR)")
+    require_fleet_dir(fleet_dir)
     path = fleet_file(fleet_dir)
     try:
         text = read_small_text(path)
     except FileNotFoundError:
+        if path.is_symlink():
+            raise ConfigError(f"{path}: is a symbolic link to {os.readlink(path)}, which does "
+                              "not exist") from None
         raise ConfigError(f"{path}: not found: {fleet_dir} is not a fleet directory "
                           "(create one with 'fleetctl init')") from None
     except OSError as exc:

@@ -626,3 +626,27 @@ def test_export_lists_the_tarball_by_its_name(fleet: Path, cli: Cli, tmp_path: P
     assert out.splitlines()[1:] == ["  create b.tar.gz"]
     out, _ = cli("export", "husky1", "--out", "bundle")
     assert "  create wg0.conf" in out.splitlines()
+
+
+@pytest.mark.parametrize("args", [["list"], ["render"], ["add-robot", "r2"]])
+def test_a_fleet_yaml_linked_to_nothing_is_named_a_dangling_link(cli: Cli,
+                                                                 args: list[str]) -> None:
+    """It was 'not found: FLEET is not a fleet directory' though fleet.yaml is right there."""
+    cli.fleet.mkdir()
+    (cli.fleet / "fleet.yaml").symlink_to(cli.fleet.parent / "gone.yaml")
+    _, err = cli(*args, code=ExitCode.CONFIG)
+    assert err == (f"fleetctl: error: {cli.fleet / 'fleet.yaml'}: is a symbolic link to "
+                   f"{cli.fleet.parent / 'gone.yaml'}, which does not exist\n")
+
+
+@pytest.mark.parametrize("args", [["status"], ["logs"], ["down"]])
+def test_deploy_commands_name_a_missing_fleet_directory(
+        cli: Cli, args: list[str], monkeypatch: pytest.MonkeyPatch) -> None:
+    """They said '/nowhere/.compose: no deployment here; run `fleetctl up` first' (exit 1)
+    for a fleet directory that is not there, as if `up` could run in it."""
+    from fleetctl.cli import deploy as deploy_cli
+
+    monkeypatch.setattr(deploy_cli, "require_docker", lambda: None)
+    _, err = cli(*args, code=ExitCode.CONFIG)
+    assert err.startswith(f"fleetctl: error: fleet directory {cli.fleet} does not exist")
+    assert len(err.splitlines()) == 1

@@ -33,6 +33,20 @@ def ros2_type_name(type_name: str) -> str:
     return f"{package}/msg/{name}"
 
 
+# ROS 2 Jazzy message packages fleetctl uses that have no ros-jazzy-* wheel on PyPI: telling
+# a pip user to install one sent them after a wheel that does not exist.
+_NO_PYPI_WHEEL = frozenset({"tf2_msgs", "foxglove_msgs"})
+
+
+def _install_hint(package: str) -> str:
+    """Where *package* comes from: its PyPI wheel, or apt / scripts/ros_msgs.sh."""
+    debian = f"ros-jazzy-{package.replace('_', '-')}"
+    if package in _NO_PYPI_WHEEL:
+        return (f"PyPI has no wheel for it: apt install {debian} where ROS comes from apt, "
+                "or build it into the venv with scripts/ros_msgs.sh from fleetctl's source")
+    return f"install the ROS wheel for {package}, e.g. {debian}"
+
+
 def message_class(type_name: str) -> Any:
     """The rclpy message class of *type_name*.
 
@@ -44,10 +58,8 @@ def message_class(type_name: str) -> Any:
     try:
         module = importlib.import_module(f"{package}.msg")
     except ImportError as exc:
-        raise ConfigError(
-            f"message type {type_name!r}: Python package {package}.msg is not installed "
-            f"(install the ROS wheel for {package}, e.g. ros-jazzy-{package.replace('_', '-')})"
-        ) from exc
+        raise ConfigError(f"message type {type_name!r}: Python package {package}.msg is not "
+                          f"installed ({_install_hint(package)})") from exc
     cls = getattr(module, name, None)
     if cls is None:
         raise ConfigError(f"message type {type_name!r}: {package}.msg has no message {name!r}")

@@ -128,7 +128,6 @@ def start_tf(node: Node, spec: TfSpec, robot_name: str, typestore: Any,
     try:
         msg_class = message_class(TF_TYPE)
     except ConfigError as exc:
-        log.warning("tf: the tf2_msgs package is not installed: %s; TF is not sent "
-                    "(apt install ros-jazzy-tf2-msgs, or scripts/ros_msgs.sh in a venv)", exc)
+        log.warning("tf: the tf2_msgs package is not installed: %s; TF is not sent", exc)
         return None
     return TfRepublisher(node, spec, robot_name, typestore, send, msg_class)

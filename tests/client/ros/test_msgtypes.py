@@ -41,6 +41,22 @@ def test_missing_package_names_the_wheel() -> None:
         message_class("no_such_msgs/msg/Thing")
 
 
+@pytest.mark.parametrize("package", ["tf2_msgs", "foxglove_msgs"])
+def test_a_package_pypi_has_no_wheel_for_names_apt_and_ros_msgs(
+        package: str, monkeypatch: pytest.MonkeyPatch) -> None:
+    """The hint was 'install the ROS wheel for tf2_msgs, e.g. ros-jazzy-tf2-msgs', which
+    pip cannot find: only apt and scripts/ros_msgs.sh provide these."""
+    import sys
+
+    monkeypatch.setitem(sys.modules, f"{package}.msg", None)  # as where it is not installed
+    with pytest.raises(ConfigError) as info:
+        message_class(f"{package}/msg/Thing")
+    message = str(info.value)
+    debian = f"ros-jazzy-{package.replace('_', '-')}"
+    assert "PyPI has no wheel" in message and f"apt install {debian}" in message
+    assert "scripts/ros_msgs.sh" in message and "install the ROS wheel" not in message
+
+
 @pytest.mark.ros
 def test_missing_message_in_an_installed_package() -> None:
     pytest.importorskip("std_msgs")

@@ -10,17 +10,20 @@ from pathlib import Path
 
 import typer
 
+from fleetctl.cli.output import PORT_OR_ANY, AsciiInt
 from fleetctl.errors import EnvironmentMissing
 
 
 def _demo(
-    robots: int = typer.Option(2, "--robots", "-n", min=1, max=100, help="Simulated robots."),
-    port: int = typer.Option(8080, "--port", min=0, max=65535,
+    robots: int = typer.Option(2, "--robots", "-n", parser=AsciiInt(1, 100),
+                               help="Simulated robots (1..100)."),
+    port: int = typer.Option(8080, "--port", parser=PORT_OR_ANY,
                              help="Server port (0: pick a free one)."),
-    webviz_port: int = typer.Option(8000, "--webviz-port", min=0, max=65535,
+    webviz_port: int = typer.Option(8000, "--webviz-port", parser=PORT_OR_ANY,
                                     help="Webviz port (0: pick a free one)."),
-    base_domain_id: int = typer.Option(20, "--base-domain-id", min=0, max=232,
-                                       help="ROS_DOMAIN_ID of robot 1; robot i uses base+i-1."),
+    base_domain_id: int = typer.Option(20, "--base-domain-id", parser=AsciiInt(0, 232),
+                                       help="ROS_DOMAIN_ID of robot 1 (0..232); robot i "
+                                       "uses base+i-1."),
     duration: float | None = typer.Option(None, "--duration", min=0.0,
                                           help="Stop after S seconds (default: until Ctrl-C)."),
     workdir: Path | None = typer.Option(None, "--workdir",

@@ -15,6 +15,8 @@ from typing import Any
 import typer
 
 from fleetctl.cli.output import (
+    PORT,
+    AsciiInt,
     OutputFormat,
     changes_text,
     emit,
@@ -80,12 +82,13 @@ def up(
         DEFAULT_BIND, "--bind", help="Host address the HTTPS and WireGuard ports are "
         "published on (127.0.0.1: this host only)."),
     https_port: int | None = typer.Option(
-        None, "--https-port", min=1, max=65535,
+        None, "--https-port", parser=PORT,
         help="Host port of the page + WebSocket (default: the fleet's https_port)."),
     project: str | None = typer.Option(None, "--project", help="Compose project name."),
     replicas: int | None = typer.Option(
-        None, "--replicas", min=1, max=MAX_REPLICAS,
-        help="Relay replicas on a 3-node NATS cluster (robots fail over between them); "
+        None, "--replicas", parser=AsciiInt(1, MAX_REPLICAS),
+        help=f"Relay replicas, 1..{MAX_REPLICAS}, on a 3-node NATS cluster (robots fail over "
+        "between them); "
         "1: one server, no NATS. Recorded in fleet.yaml (relay_replicas), which robots' "
         "client.yaml follow; default: fleet.yaml's (1 when not set)."),
     output: OutputFormat = output_option(),

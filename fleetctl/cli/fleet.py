@@ -10,13 +10,14 @@ of it is brought up to date (:func:`fleetctl.deploy.live.sync_running`).
 
 from __future__ import annotations
 
-import re
 from pathlib import Path
 from typing import Any
 
 import typer
 
 from fleetctl.cli.output import (
+    PORT,
+    AsciiInt,
     OutputFormat,
     changes_text,
     emit,
@@ -39,32 +40,6 @@ from fleetctl.deploy.fleet import (
 )
 
 _DRY_RUN_HELP = "Show what would be written, write nothing."
-
-
-class AsciiInt:
-    """Parse an integer option of ASCII digits in ``[low, high]`` (``int()`` and click's
-    INT also take other scripts' digits, e.g. full-width ones)."""
-
-    def __init__(self, low: int, high: int) -> None:
-        self.low, self.high = low, high
-        self.__name__ = "integer"  # how click names the type in messages
-
-    def __call__(self, value: str | int) -> int:
-        """Return the integer.
-
-        Raises:
-            typer.BadParameter: not ASCII digits, or out of range (usage, exit code 2).
-        """
-        if isinstance(value, int):
-            return value
-        if not re.fullmatch(r"[0-9]{1,9}", value):
-            raise typer.BadParameter(f"{value[:40]!r} is not an integer (ASCII digits)")
-        if not self.low <= int(value) <= self.high:
-            raise typer.BadParameter(f"{value} is not in {self.low}..{self.high}")
-        return int(value)
-
-
-_PORT = AsciiInt(1, 65535)
 
 
 def _dry_run_option() -> Any:
@@ -106,12 +81,12 @@ def init(
     subnet: str = typer.Option(DEFAULT_SUBNET, "--subnet", help="VPN subnet (CIDR)."),
     server_ip: str | None = typer.Option(
         None, "--server-ip", help="Server's VPN address (default: first host of the subnet)."),
-    server_port: int = typer.Option(DEFAULT_SERVER_PORT, "--server-port", parser=_PORT,
+    server_port: int = typer.Option(DEFAULT_SERVER_PORT, "--server-port", parser=PORT,
                                     help="TCP port of the fleet server's WebSocket."),
     wireguard_port: int | None = typer.Option(
-        None, "--wireguard-port", parser=_PORT,
+        None, "--wireguard-port", parser=PORT,
         help="UDP port WireGuard listens on (default: the endpoint's port, else 51820)."),
-    https_port: int = typer.Option(DEFAULT_HTTPS_PORT, "--https-port", parser=_PORT,
+    https_port: int = typer.Option(DEFAULT_HTTPS_PORT, "--https-port", parser=PORT,
                                    help="TCP port of the HTTPS listener (web page, wss://)."),
     name: str | None = typer.Option(
         None, "--name", help="Fleet name: up to 63 ASCII letters, digits, '.', '_', '-' "

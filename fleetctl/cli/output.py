@@ -12,6 +12,7 @@ import dataclasses
 import enum
 import ipaddress
 import json
+import re
 from collections.abc import Callable, Mapping, Sequence
 from pathlib import Path
 from typing import Any
@@ -27,6 +28,33 @@ class OutputFormat(enum.Enum):
 
     TEXT = "text"
     JSON = "json"
+
+
+class AsciiInt:
+    """Parse an integer option of ASCII digits in ``[low, high]`` (``int()`` and click's
+    INT also take other scripts' digits, e.g. full-width ones)."""
+
+    def __init__(self, low: int, high: int) -> None:
+        self.low, self.high = low, high
+        self.__name__ = "integer"  # how click names the type in messages
+
+    def __call__(self, value: str | int) -> int:
+        """Return the integer.
+
+        Raises:
+            typer.BadParameter: not ASCII digits, or out of range (usage, exit code 2).
+        """
+        if isinstance(value, int):
+            return value
+        if not re.fullmatch(r"[0-9]{1,9}", value):
+            raise typer.BadParameter(f"{value[:40]!r} is not an integer (ASCII digits)")
+        if not self.low <= int(value) <= self.high:
+            raise typer.BadParameter(f"{value} is not in {self.low}..{self.high}")
+        return int(value)
+
+
+PORT = AsciiInt(1, 65535)
+PORT_OR_ANY = AsciiInt(0, 65535)  # 0: any free port
 
 
 def output_option() -> Any:

@@ -11,6 +11,7 @@ from urllib.parse import urlsplit
 
 import typer
 
+from fleetctl.cli.output import PORT_OR_ANY
 from fleetctl.errors import ConfigError
 from fleetctl.webviz.config import DEBIAN_JS_DIR, WebvizConfig
 from fleetctl.webviz.run import run_webviz
@@ -74,7 +75,7 @@ def register(app: typer.Typer) -> None:
         host: str = typer.Option("127.0.0.1", "--host",
                                  help="Address to listen on: an IP address or a host name."),
         port: int = typer.Option(
-            8000, "--port", min=0, max=65535, help="TCP port (0: any free port)."
+            8000, "--port", parser=PORT_OR_ANY, help="TCP port (0: any free port)."
         ),
         vendor_dir: Path = typer.Option(
             DEBIAN_JS_DIR,

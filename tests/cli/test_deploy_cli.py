@@ -100,3 +100,31 @@ def test_a_bad_wireguard_mode_is_a_usage_error(
     assert capsys.readouterr().err == (
         "fleetctl: error: --wireguard must be auto, on or off, not 'maybe'\n")
     assert deployed == []
+
+
+@pytest.mark.parametrize(("args", "option"), [
+    (["up", "--https-port", "8_443"], "--https-port"),
+    (["up", "--https-port", "\uff18\uff14\uff14\uff13"], "--https-port"),  # full-width 8443
+    (["up", "--https-port", "70000"], "--https-port"),
+    (["up", "--replicas", "\uff12"], "--replicas"),
+    (["up", "--replicas", "9"], "--replicas"),
+    (["webviz", "--port", "8_000"], "--port"),
+    (["demo", "--port", "\uff18\uff10\uff18\uff10"], "--port"),
+    (["demo", "--webviz-port", "65536"], "--webviz-port"),
+    (["demo", "--robots", "1_0"], "--robots"),
+    (["demo", "--base-domain-id", "233"], "--base-domain-id"),
+])
+def test_integer_options_are_ascii_digits_in_range_everywhere(
+        fleet: Path, deployed: list[composerun.Options], args: list[str], option: str,
+        capsys: pytest.CaptureFixture[str], monkeypatch: pytest.MonkeyPatch) -> None:
+    """operator.md: an option that is not ASCII digits, or out of range, is exit 2 naming
+    it. init's ports were; up/webviz/demo used click's int, which takes 8_443 and
+    full-width digits (up then deployed on port 8443)."""
+    started: list[object] = []  # were the value taken, webviz and demo would run for good
+    monkeypatch.setattr("fleetctl.cli.webviz.run_webviz", lambda *a, **k: started.append(a))
+    monkeypatch.setattr("fleetctl.demo.run.run_demo", lambda *a, **k: started.append(a) or 0)
+    assert main(args) == 2
+    err = " ".join(capsys.readouterr().err.replace("\u2502", " ").split())  # the box's text
+    assert f"Invalid value for '{option}'" in err
+    assert "is not an integer (ASCII digits)" in err or " is not in " in err
+    assert deployed == [] and started == []

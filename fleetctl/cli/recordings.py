@@ -99,8 +99,10 @@ def _unreachable(reason: object) -> str:
     """Why a request failed, in the user's terms: a TLS handshake with a plain port, or a
     certificate not trusted, is not "cannot reach it"."""
     if isinstance(reason, ssl.SSLCertVerificationError):
+        # The usual first try against `fleetctl up`: its certificate is self-signed.
         return (f"its certificate is not trusted ({reason.verify_message}): give the CA "
-                "that signed it with --ca-file")
+                "that signed it with --ca-file (a fleet's own self-signed certificate is "
+                "FLEET/server/tls/cert.pem)")
     if isinstance(reason, ssl.SSLError):
         return ("no TLS server answered there (a plain ws:// or http:// port? use the TLS "
                 f"port, e.g. the web listener): {reason}")

@@ -66,3 +66,20 @@ async def test_tls_failures_say_what_is_wrong(
             err = capsys.readouterr().err
             assert err.startswith(f"fleetctl: error: --server {url}: {expected}"), err
             assert err.count("\n") == 1
+
+
+async def test_an_untrusted_certificate_names_ca_file(
+        make_server: Callable[..., RelayServer], web_config: object,  # noqa: F811
+        tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """Against a fleet's self-signed certificate without --ca-file the message was
+    '[SSL: CERTIFICATE_VERIFY_FAILED] certificate verify failed: ... (_ssl.c:1006)'."""
+    token_file = tmp_path / "token"
+    token_file.write_text(ALICE_TOKEN + "\n")
+    async with make_server(web=web_config) as srv:
+        for args in (["foxglove-url"], ["recordings", "list"]):
+            assert await asyncio.to_thread(main, [
+                *args, "--server", f"https://127.0.0.1:{srv.web_port}/",
+                "--token-file", str(token_file)]) == ExitCode.FAILURE
+            err = capsys.readouterr().err
+            assert err.count("\n") == 1 and "its certificate is not trusted" in err
+            assert "--ca-file" in err and "server/tls/cert.pem" in err

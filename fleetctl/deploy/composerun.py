@@ -115,8 +115,18 @@ def _check_not_changed(fleet_dir: Path, wanted: Options, runner: Runner) -> None
         old, new = getattr(running, name), getattr(wanted, name)
         if old != new:
             raise ConflictError(
-                f"{fleet_dir / '.compose/state.json'}: the fleet runs with {name}={old!r}, "
-                f"not {new!r}; run `fleetctl down` first (data is kept)")
+                f"{fleet_dir / '.compose/state.json'}: the fleet runs "
+                f"{_as_option(name, old)}, not {_as_option(name, new)}; give `up` the same "
+                "options, or run `fleetctl down` first (data is kept)")
+
+
+def _as_option(name: str, value: object) -> str:
+    """``up``'s option *name* set to *value* as the operator typed it: ``with --sim``,
+    ``without --sim``, ``with --https-port 8443`` (not ``sim=False``)."""
+    flag = "--" + name.replace("_", "-")
+    if value is False or value is None:
+        return f"without {flag}"
+    return f"with {flag}" if value is True else f"with {flag} {value}"
 
 
 def _require_images(plan: ComposePlan, runner: Runner) -> None:

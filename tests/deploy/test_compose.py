@@ -238,9 +238,13 @@ def test_up_refuses_to_change_the_mode_of_a_running_fleet(fleet: Path) -> None:
     composerun.up(fleet, _opts(fleet, wireguard="off"), progress=lambda _: None, runner=docker)
     before = (fleet / ".compose" / "docker-compose.yml").read_text()
     docker.server_running = True
-    with pytest.raises(ConflictError, match=r"runs with sim=False, not True.*fleetctl down"):
+    # In the options the operator typed (it said "runs with sim=False, not True").
+    with pytest.raises(ConflictError, match=r"runs without --sim, not with --sim;.*same options"
+                                            r".*fleetctl down"):
         composerun.up(fleet, _opts(fleet, wireguard="off", sim=True), progress=lambda _: None,
                       runner=docker)
+    with pytest.raises(ConflictError, match=r"with --wireguard off, not with --wireguard auto"):
+        composerun.up(fleet, _opts(fleet), progress=lambda _: None, runner=docker)
     assert (fleet / ".compose" / "docker-compose.yml").read_text() == before
 
 

@@ -132,9 +132,15 @@ def check_out_path(path: Path) -> None:
     """Refuse an ``--out`` that is the wrong kind of thing already.
 
     Raises:
+        ConfigError: the directory *path* would be made in does not exist.
         ConflictError: a directory bundle onto an existing non-directory, or a tarball
             onto an existing directory (or other non-file).
     """
+    parent = path.absolute().parent
+    if not parent.is_dir():
+        # Not made like `mkdir -p`: a typo in the path would leave the robot's private key
+        # in a directory tree nobody meant to make.
+        raise ConfigError(f"--out {path}: directory {parent} does not exist")
     try:
         st = path.lstat()
     except FileNotFoundError:

@@ -443,9 +443,12 @@ def test_export_out_errors(fleet: Path, cli: Cli, tmp_path: Path,
     (tmp_path / "afile").write_text("mine\n")
     _, err = cli("export", "husky1", "--out", str(tmp_path / "afile"), code=ExitCode.CONFLICT)
     assert "--out" in err and "exists and is not a directory" in err
-    _, err = cli("export", "husky1", "--out", "/proc/fleetctl-nope/b",
+    _, err = cli("export", "husky1", "--out", "/proc/fleetctl-nope/b", code=ExitCode.CONFIG)
+    assert err == ("fleetctl: error: --out /proc/fleetctl-nope/b: directory /proc/fleetctl-nope "
+                   "does not exist\n")
+    _, err = cli("export", "husky1", "--out", "/proc/fleetctl-nope.tgz",
                  code=ExitCode.ENVIRONMENT)
-    assert err.startswith("fleetctl: error: --out /proc/fleetctl-nope/b: ")
+    assert err.startswith("fleetctl: error: --out /proc/fleetctl-nope.tgz: ")
     assert len(err.strip().splitlines()) == 1
     cli("export", "husky1", "--out", str(tmp_path / "b.tgz"))
     assert (tmp_path / "b.tgz").is_file()
@@ -622,6 +625,7 @@ def test_export_lists_the_tarball_by_its_name(fleet: Path, cli: Cli, tmp_path: P
     out, _ = cli("export", "husky1", "--out", "b.tgz", "--dry-run")
     assert out.splitlines() == ["dry run: would write the bundle of 'husky1': b.tgz",
                                 "  would create b.tgz"]
+    (tmp_path / "sub").mkdir()
     out, _ = cli("export", "husky1", "--out", str(tmp_path / "sub" / "b.tar.gz"))
     assert out.splitlines()[1:] == ["  create b.tar.gz"]
     out, _ = cli("export", "husky1", "--out", "bundle")

@@ -87,6 +87,8 @@ def test_bundle_directory_files_and_modes(exported: Path, wheel: Path) -> None:
 
 def test_bundle_tarball_modes_and_reproducible(fleet_dir: Path, tmp_path: Path,
                                                wheel: Path) -> None:
+    (tmp_path / "a").mkdir()
+    (tmp_path / "b").mkdir()
     first = export_robot(fleet_dir, "husky1", tmp_path / "a" / "husky1.tar.gz", wheel=wheel)
     second = export_robot(fleet_dir, "husky1", tmp_path / "b" / "husky1.tar.gz", wheel=wheel)
     assert first.path.read_bytes() == second.path.read_bytes()

@@ -106,7 +106,7 @@ def test_export_tarball_suffixes(fleet_dir: Path, tmp_path: Path, suffix: str) -
 
 
 def test_export_out_errors_change_nothing(fleet_dir: Path, tmp_path: Path) -> None:
-    from fleetctl.errors import ConflictError
+    from fleetctl.errors import ConfigError, ConflictError
 
     wheel = fake_wheel(tmp_path)
     afile = tmp_path / "afile"
@@ -119,6 +119,11 @@ def test_export_out_errors_change_nothing(fleet_dir: Path, tmp_path: Path) -> No
     with pytest.raises(ConflictError, match="is not a regular file"):
         export_robot(fleet_dir, "husky1", adir, wheel=wheel)
     with pytest.raises(FleetError) as info:
-        export_robot(fleet_dir, "husky1", Path("/proc/fleetctl-nope/b"), wheel=wheel)
-    assert str(info.value).startswith("--out /proc/fleetctl-nope/b: ")
+        export_robot(fleet_dir, "husky1", Path("/proc/fleetctl-nope.tgz"), wheel=wheel)
+    assert str(info.value).startswith("--out /proc/fleetctl-nope.tgz: ")
     assert info.value.exit_code is ExitCode.ENVIRONMENT and "\n" not in str(info.value)
+    for missing in (tmp_path / "no" / "such" / "b.tgz", tmp_path / "nodir" / "bundle"):
+        with pytest.raises(ConfigError, match=rf"^--out {missing}: directory {missing.parent} "
+                                              "does not exist$"):
+            export_robot(fleet_dir, "husky1", missing, wheel=wheel)
+    assert not (tmp_path / "no").exists() and not (tmp_path / "nodir").exists()

@@ -31,7 +31,7 @@ from fleetctl.deploy.dockercli import require_docker
 from fleetctl.deploy.fleet import load_fleet
 from fleetctl.deploy.operations import Outcome
 from fleetctl.deploy.replicas import MAX_REPLICAS
-from fleetctl.errors import FleetError
+from fleetctl.errors import ExitCode, FleetError
 
 
 def _project_option() -> Any:
@@ -156,10 +156,17 @@ def status(
     project: str | None = _project_option(),
     output: OutputFormat = output_option(),
 ) -> None:
-    """Show each container (state, health, restarts), each robot and each tunnel peer."""
+    """Show each container (state, health, restarts), each robot and each tunnel peer.
+
+    Exit 1 when a service is not running and healthy (after the report), so that a script
+    or a monitoring check can act on it as on ``systemctl is-active``.
+    """
     require_docker()
     report = composerun.status(fleet, composerun.existing_options(fleet, project))
     emit(report.to_json(), output, report.render_text)
+    if not report.healthy:
+        raise FleetError("the fleet is not healthy: " + "; ".join(report.problems()),
+                         exit_code=ExitCode.FAILURE)
 
 
 def logs(

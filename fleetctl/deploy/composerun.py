@@ -291,8 +291,16 @@ class StatusReport:
     @property
     def healthy(self) -> bool:
         """Every service runs and is healthy (or has no check)."""
-        return bool(self.services) and all(
-            s.state == "running" and s.health in ("healthy", "none") for s in self.services)
+        return bool(self.services) and not self.problems()
+
+    def problems(self) -> list[str]:
+        """What keeps the fleet from being healthy, one phrase per service."""
+        if not self.services:
+            return ["no containers: the fleet is not running"]
+        return [f"{s.service} {s.state}" + (f" ({s.health})" if s.health != "none" else "")
+                + (f", {s.restarts} restarts" if s.restarts else "")
+                for s in self.services
+                if s.state != "running" or s.health not in ("healthy", "none")]
 
     def to_json(self) -> dict[str, Any]:
         """A JSON-ready dict."""

@@ -128,3 +128,34 @@ def test_integer_options_are_ascii_digits_in_range_everywhere(
     assert f"Invalid value for '{option}'" in err
     assert "is not an integer (ASCII digits)" in err or " is not in " in err
     assert deployed == [] and started == []
+
+
+def test_status_exits_1_after_its_report_when_the_fleet_is_not_healthy(
+        fleet: Path, monkeypatch: pytest.MonkeyPatch,
+        capsys: pytest.CaptureFixture[str]) -> None:
+    """A script or a monitoring check reads the exit status; it was 0 however the fleet
+    was (a crash-looping server included)."""
+    reports = iter([
+        composerun.StatusReport((composerun.ServiceState("server", "running", "healthy", 0),
+                                 composerun.ServiceState("robot-husky1", "running", "none", 0)),
+                                []),
+        composerun.StatusReport((composerun.ServiceState("server", "restarting", "starting", 3),
+                                 composerun.ServiceState("robot-husky1", "running", "none", 0)),
+                                None, "the server does not answer"),
+        composerun.StatusReport((), None, "no server container"),
+    ])
+    monkeypatch.setattr(deploy_cli, "require_docker", lambda: None)
+    monkeypatch.setattr(composerun, "existing_options", lambda *_: None)
+    monkeypatch.setattr(composerun, "status", lambda *_: next(reports))
+    assert main(["status"]) == 0
+    capsys.readouterr()
+    assert main(["status", "-o", "json"]) == 1
+    out, err = capsys.readouterr()
+    assert json.loads(out)["healthy"] is False  # the report is still there, whole
+    assert err == ("fleetctl: error: the fleet is not healthy: server restarting (starting), "
+                   "3 restarts\n")
+    assert main(["status"]) == 1
+    out, err = capsys.readouterr()
+    assert "(no containers: the fleet is not running)" in out
+    assert err == ("fleetctl: error: the fleet is not healthy: no containers: the fleet is "
+                   "not running\n")

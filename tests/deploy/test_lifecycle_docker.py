@@ -67,15 +67,19 @@ class Operator:
         self.work = work
         self.env = {**os.environ, "FLEET_DIR": str(fleet)}
 
-    def run(self, *args: str, ok: bool = True, timeout_s: float = 600) -> str:
+    def run(self, *args: str, ok: bool = True, timeout_s: float = 600,
+            ok_codes: tuple[int, ...] = (0,)) -> str:
         res = subprocess.run([FLEETCTL, *args], cwd=self.work, env=self.env, text=True,
                              capture_output=True, timeout=timeout_s, check=False)
         if ok:
-            assert res.returncode == 0, f"fleetctl {' '.join(args)}:\n{res.stdout}\n{res.stderr}"
+            assert res.returncode in ok_codes, (
+                f"fleetctl {' '.join(args)}: exit {res.returncode}\n{res.stdout}\n{res.stderr}")
         return res.stdout
 
     def json(self, *args: str) -> Any:
-        return json.loads(self.run(*args, "-o", "json"))
+        # `status` reports a fleet still starting (exit 1: not healthy yet) in full too.
+        codes = (0, 1) if args[:1] == ("status",) else (0,)
+        return json.loads(self.run(*args, "-o", "json", ok_codes=codes))
 
 
 def wait_until(what: str, check: Callable[[], bool], timeout_s: float) -> float:

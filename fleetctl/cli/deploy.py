@@ -158,8 +158,8 @@ def status(
 ) -> None:
     """Show each container (state, health, restarts), each robot and each tunnel peer.
 
-    Exit 1 when a service is not running and healthy (after the report), so that a script
-    or a monitoring check can act on it as on ``systemctl is-active``.
+    Exits 1 after the report when a service is not running and healthy, so
+    that a script or a monitoring check can act on it.
     """
     require_docker()
     report = composerun.status(fleet, composerun.existing_options(fleet, project))

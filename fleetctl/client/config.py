@@ -60,7 +60,7 @@ _PUBLISH_KEYS = frozenset(
 COMPRESSIONS = ("none", "zstd", "deflate")
 _SUBSCRIBE_KEYS = frozenset({"remote_topic", "type", "local_topic"})
 _STATUS_KEYS = frozenset({"battery_topic", "period_s", "location"})
-_MAX_LOCATION_CHARS = 200  # a place name for the robot list, not a document
+MAX_LOCATION_CHARS = 200  # a place name for the robot list, not a document
 _LIMIT_KEYS = frozenset({"max_fragment_bytes", "no_drop_queue_messages", "reconnect_min_s",
                          "reconnect_max_s", "scheduler", "outage_dial_interval_s",
                          "standby_connection", "dial_ahead_of_messages"})
@@ -474,11 +474,20 @@ def _status(ctx: _Ctx, value: object) -> StatusSpec:
     )
 
 
+def location_problem(value: str) -> str | None:
+    """What is wrong with *value* as a robot's status location, or None (also used for
+    fleet.yaml's ``robots[].location``, which becomes this)."""
+    if len(value) > MAX_LOCATION_CHARS or not value.isprintable():
+        return (f"must be one line of at most {MAX_LOCATION_CHARS} printable characters, "
+                f"got {value[:40]!r}")
+    return None
+
+
 def _location(ctx: _Ctx, entry: Mapping[str, Any]) -> str:
     value = _str(ctx, entry, "status", "location") or ""
-    if len(value) > _MAX_LOCATION_CHARS or not value.isprintable():
-        raise ctx.error("status", "location", f"must be one line of at most "
-                        f"{_MAX_LOCATION_CHARS} printable characters, got {value[:40]!r}")
+    problem = location_problem(value)
+    if problem is not None:
+        raise ctx.error("status", "location", problem)
     return value
 
 

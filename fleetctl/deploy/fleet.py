@@ -17,7 +17,7 @@ from pathlib import Path
 import re2
 import yaml
 
-from fleetctl.client.config import TfSpec
+from fleetctl.client.config import TfSpec, location_problem
 from fleetctl.deploy.topics import (
     DEFAULT_PUBLISH,
     PublishTopic,
@@ -123,6 +123,8 @@ class Robot:
             default set :data:`~fleetctl.deploy.topics.DEFAULT_PUBLISH`.
         subscribe: fleet topics it receives and republishes, beyond its command topics.
         battery_topic: its local ``sensor_msgs/msg/BatteryState`` topic, or ``None``.
+        location: where it is, as people name it (its status's ``location``, the page's
+            Location column); ``""``: not said.
         tf: its TF republisher (local ``/tf`` and ``/tf_static`` sent throttled as
             ``/<name>/tf`` and latched ``/<name>/tf_static``); ``None``: no TF.
         ros_domain_id: the ``ROS_DOMAIN_ID`` its ROS 2 graph uses (0..232).
@@ -141,6 +143,7 @@ class Robot:
     publish: tuple[PublishTopic, ...] | None = None
     subscribe: tuple[SubscribeTopic, ...] = ()
     battery_topic: str | None = None
+    location: str = ""
     tf: TfSpec | None = None
 
     @property
@@ -373,6 +376,9 @@ def _check_robot_topics(robot: Robot, path: FieldPath) -> None:
     check_subscribe(robot.subscribe, taken, (*path, "subscribe"))
     if robot.battery_topic is not None:
         check_topic(robot.battery_topic, (*path, "battery_topic"))
+    problem = location_problem(robot.location)
+    if problem is not None:
+        raise FleetInvalid((*path, "location"), problem)
     _check_ros_environment(robot, path)
 
 
@@ -609,7 +615,7 @@ def _build_robot(doc: Document, node: yaml.Node, path: FieldPath) -> Robot:
     f = doc.mapping(node, path, ["name", "ip"],
                     ["mtu_bytes", "command_topics", "extra_send", "extra_receive",
                      "ros_domain_id", "rmw_implementation", "publish", "subscribe",
-                     "battery_topic", "tf"])
+                     "battery_topic", "location", "tf"])
     cmds = DEFAULT_COMMAND_TOPICS
     if "command_topics" in f:
         cpath = (*path, "command_topics")
@@ -634,6 +640,7 @@ def _build_robot(doc: Document, node: yaml.Node, path: FieldPath) -> Robot:
                    if "subscribe" in f else ()),
         battery_topic=(doc.optional_string(f["battery_topic"], (*path, "battery_topic"))
                        if "battery_topic" in f else None),
+        location=doc.string(f["location"], (*path, "location")) if "location" in f else "",
         tf=build_tf(doc, f, path),
     )
 
@@ -709,6 +716,8 @@ def _dump_robot(robot: Robot) -> dict[str, object]:
         out["publish"] = dump_publish(robot.publish)
     out["subscribe"] = dump_subscribe(robot.subscribe)
     out["battery_topic"] = robot.battery_topic
+    if robot.location:  # absent: not said, and older fleets keep their bytes
+        out["location"] = robot.location
     if robot.tf is not None:  # absent: no TF, and older fleets keep their bytes
         out["tf"] = dump_tf(robot.tf)
     return out

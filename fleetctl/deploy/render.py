@@ -353,6 +353,7 @@ def client_config(fleet: Fleet, robot: Robot) -> str:
         publish=robot.publish_topics,
         subscribe=subscribe,
         battery_topic=robot.battery_topic,
+        location=robot.location,
         tf=robot.tf,
     )
 

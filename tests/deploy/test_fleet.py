@@ -141,6 +141,7 @@ TOPICS = GOOD.replace("    extra_receive: [\"/husky1/scan\"]\n", """\
     battery_topic: /battery_state
     ros_domain_id: 7
     rmw_implementation: rmw_cyclonedds_cpp
+    location: warehouse A
 """)
 
 
@@ -152,6 +153,7 @@ def test_topics_and_ros_fields_round_trip() -> None:
     assert jackal.publish[1].priority == 1.0 and jackal.publish[2].compression == "zstd"
     assert jackal.battery_topic == "/battery_state"
     assert (jackal.ros_domain_id, jackal.rmw_implementation) == (7, "rmw_cyclonedds_cpp")
+    assert (jackal.location, fleet.robots[0].location) == ("warehouse A", "")
     assert fleet.robots[0].publish is None  # the default set, kept as "absent"
     assert len(fleet.robots[0].publish_topics) == len(DEFAULT_PUBLISH)
     again = parse_fleet(Path("fleet.yaml"), dump_fleet(fleet))
@@ -250,6 +252,11 @@ def test_require_endpoint(tmp_path: Path) -> None:
          "/f/fleet.yaml:19: robots[1].ros_domain_id: must be between 0 and 232, got 233"),
         ("rmw_implementation: rmw_cyclonedds_cpp", "rmw_implementation: rmw_fast",
          "/f/fleet.yaml:20: robots[1].rmw_implementation: unknown RMW implementation 'rmw_fast'"),
+        ("location: warehouse A", "location: \"a\\nb\"",
+         "/f/fleet.yaml:21: robots[1].location: must be one line of at most 200 printable "
+         "characters, got 'a\\nb'"),
+        ("location: warehouse A", "location: 7",
+         "/f/fleet.yaml:21: robots[1].location: expected a string"),
         ("server_ip: 10.8.0.1\n", "server_ip: 10.8.0.1\nhttps_port: 8080\n",
          "/f/fleet.yaml:6: https_port: 8080 is also server_port"),
         ("server_ip: 10.8.0.1\n", "server_ip: 10.8.0.1\ntls: {cert: a.pem}\n",

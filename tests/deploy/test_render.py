@@ -258,6 +258,7 @@ MAPPER = """\
   subscribe:
     - {remote_topic: /husky1/map, type: nav_msgs/msg/OccupancyGrid, local_topic: /peer_map}
   battery_topic: /battery_state
+  location: "yard: north # gate 'B'"
 """
 
 
@@ -283,6 +284,7 @@ def test_custom_topics_render_and_load_in_the_client(fleet_dir: Path) -> None:
     assert cfg.publish[0].rate_limit_hz == 0.5 and cfg.publish[2].no_drop
     assert [s.local_topic for s in cfg.subscribe] == ["/goal_pose", "/initialpose", "/peer_map"]
     assert cfg.status.battery_topic == "/battery_state"
+    assert cfg.status.location == "yard: north # gate 'B'"  # YAML-escaped, read back whole
     # Listing the topic in subscribe is what lets the robot receive it.
     auth = yaml.safe_load((fleet_dir / "server/auth.yaml").read_text())
     mapper = next(i for i in auth["identities"] if i["name"] == "mapper")

@@ -58,7 +58,7 @@ CONTEXTS: dict[str, dict[str, Any]] = {
         "fleet_name": "campus", "robot_name": "husky1",
         # Two relay replicas: the list form, each URL a value of its own.
         "server_urls": ["ws://10.8.0.1:8080/", "ws://10.8.0.1:8081/"],
-        "bind_address": "10.8.0.2", "battery_topic": "/battery",
+        "bind_address": "10.8.0.2", "battery_topic": "/battery", "location": "yard 3",
         "publish": [{"topic": "/odom", "type": "nav_msgs/msg/Odometry", "priority": 4.0,
                      "rate_limit_hz": 10.0, "no_drop": False, "compression": "none",
                      "video": None, "viewer_cloud": None},

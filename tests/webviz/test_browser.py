@@ -120,6 +120,15 @@ async def check_robot_views(page: Any) -> None:
     assert not await page.is_visible("#command-denied")
 
 
+async def wait_map_still(page: Any) -> None:
+    """Until the map canvas has stayed in place for 0.5 s (bounded: 15 s)."""
+    await page.wait_for_function(
+        "() => { const r = document.querySelector('#map-canvas').getBoundingClientRect();"
+        " const k = [r.x, r.y, r.width, r.height].join(); const w = (window.__mapBox ??="
+        " {k: '', n: 0}); if (w.k === k) w.n++; else { w.k = k; w.n = 0; }"
+        " return w.n >= 5; }", polling=100, timeout=15_000)
+
+
 async def drag_goal(page: Any) -> None:
     """Press at x=+4 m, y=0 (map centred on the origin, 40 px/m, 640 px wide), drag up.
 
@@ -131,11 +140,7 @@ async def drag_goal(page: Any) -> None:
     map reaches nothing (a CI run sent no goal at all)."""
     await page.click("#tool-goal")
     await page.locator("#map-canvas").scroll_into_view_if_needed()
-    await page.wait_for_function(
-        "() => { const r = document.querySelector('#map-canvas').getBoundingClientRect();"
-        " const k = [r.x, r.y, r.width, r.height].join(); const w = (window.__mapBox ??="
-        " {k: '', n: 0}); if (w.k === k) w.n++; else { w.k = k; w.n = 0; }"
-        " return w.n >= 5; }", polling=100, timeout=15_000)
+    await wait_map_still(page)
     canvas = page.locator("#map-canvas")
     box = await canvas.bounding_box()
     x, y = box["width"] * 0.75, box["height"] * 0.5

@@ -28,6 +28,7 @@ from tests.webviz.test_browser import (
     pixels,
     sign_in,
     wait_js,
+    wait_map_still,
     watch_errors,
 )
 from tests.webviz.test_ros_goal import next_json
@@ -63,13 +64,20 @@ async def drag_goal_at(page: Any, x_m: float, y_m: float) -> None:
     )
     assert view == [MAP_PX_PER_M, 0, 0, 640, 480], view
     await page.click("#tool-goal")
-    box = await page.locator("#map-canvas").bounding_box()
+    canvas = page.locator("#map-canvas")
+    await canvas.scroll_into_view_if_needed()
+    await wait_map_still(page)
+    box = await canvas.bounding_box()
     fx = 0.5 + x_m * MAP_PX_PER_M / 640
     fy = 0.5 - y_m * MAP_PX_PER_M / 480
-    x0, y0 = box["x"] + box["width"] * fx, box["y"] + box["height"] * fy
-    await page.mouse.move(x0, y0)
+    # Each position relative to the canvas where it is at that moment (``hover``), as
+    # tests/webviz/test_browser.py's drag_goal: a CI run's press landed 1 m off (y = 1.0
+    # for 2.0) when a panel above the map changed height between the aim and the press.
+    x, y = box["width"] * fx, box["height"] * fy
+    await canvas.hover(position={"x": x, "y": y})
     await page.mouse.down()
-    await page.mouse.move(x0, y0 - box["height"] * 0.1, steps=5)
+    for step in range(1, 6):
+        await canvas.hover(position={"x": x, "y": y - box["height"] * 0.02 * step})
     await page.mouse.up()
 
 

@@ -11,6 +11,7 @@ from pathlib import Path
 import typer
 
 from fleetctl.cli.output import PORT_OR_ANY, AsciiInt
+from fleetctl.deploy.fleet import MAX_ROS_DOMAIN_ID
 from fleetctl.errors import EnvironmentMissing
 
 
@@ -21,9 +22,9 @@ def _demo(
                              help="Server port (0: pick a free one)."),
     webviz_port: int = typer.Option(8000, "--webviz-port", parser=PORT_OR_ANY,
                                     help="Webviz port (0: pick a free one)."),
-    base_domain_id: int = typer.Option(20, "--base-domain-id", parser=AsciiInt(0, 232),
-                                       help="ROS_DOMAIN_ID of robot 1 (0..232); robot i "
-                                       "uses base+i-1."),
+    base_domain_id: int = typer.Option(
+        20, "--base-domain-id", parser=AsciiInt(0, MAX_ROS_DOMAIN_ID),
+        help=f"ROS_DOMAIN_ID of robot 1 (0..{MAX_ROS_DOMAIN_ID}); robot i uses base+i-1."),
     duration: float | None = typer.Option(None, "--duration", min=0.0,
                                           help="Stop after S seconds (default: until Ctrl-C)."),
     workdir: Path | None = typer.Option(None, "--workdir",

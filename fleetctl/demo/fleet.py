@@ -15,6 +15,7 @@ from typing import Any
 
 import yaml
 
+from fleetctl.deploy.fleet import MAX_ROS_DOMAIN_ID
 from fleetctl.tokens import hash_token
 
 # (local topic, type, priority, rate limit in Hz or None, no_drop, compression):
@@ -39,8 +40,6 @@ MEDIA: dict[str, dict[str, Any]] = {
     "/camera/image_raw": {"video": {"codec": "h264", "max_bitrate_kbps": 1000}},
     "/points": {"viewer_cloud": {"resolution_m": 0.05}},
 }
-# The largest ROS_DOMAIN_ID ROS 2 allows (its DDS port arithmetic, on Linux).
-MAX_ROS_DOMAIN_ID = 232
 # Rate (Hz) of the sims' raw camera: a real camera runs 15-30 Hz; 10 keeps two robots'
 # synthetic pictures and H.264 encoders at about a fifth of one core.
 CAMERA_HZ = 10.0

@@ -23,8 +23,9 @@ from pathlib import Path
 from types import FrameType
 from typing import Any
 
-from fleetctl.demo.fleet import CAMERA_HZ, MAX_ROS_DOMAIN_ID, DemoFleet, create_demo_fleet
+from fleetctl.demo.fleet import CAMERA_HZ, DemoFleet, create_demo_fleet
 from fleetctl.demo.supervisor import ProcessSpec, Supervisor
+from fleetctl.deploy.fleet import MAX_ROS_DOMAIN_ID
 from fleetctl.errors import ExitCode, FleetError
 from fleetctl.waiting import wait_until
 

@@ -291,7 +291,7 @@ class StatusReport:
     @property
     def healthy(self) -> bool:
         """Every service runs and is healthy (or has no check)."""
-        return bool(self.services) and not self.problems()
+        return not self.problems()
 
     def problems(self) -> list[str]:
         """What keeps the fleet from being healthy, one phrase per service."""

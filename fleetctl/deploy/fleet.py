@@ -14,7 +14,6 @@ from dataclasses import dataclass
 from ipaddress import IPv4Address, IPv4Network
 from pathlib import Path
 
-import re2
 import yaml
 
 from fleetctl.client.config import TfSpec, location_problem
@@ -36,6 +35,7 @@ from fleetctl.deploy.topics import (
 )
 from fleetctl.deploy.yamlnodes import Document, FieldPath, FleetInvalid
 from fleetctl.errors import ConfigError
+from fleetctl.server.regex import BadRegex, compile_full
 from fleetctl.smallfile import read_small_text
 
 __all__ = ["FleetInvalid"]  # defined beside Document, raised and re-exported here
@@ -78,8 +78,6 @@ _FLEET_NAME = re.compile(r"[A-Za-z0-9][A-Za-z0-9._-]*")
 _PORT = re.compile(r"[1-9][0-9]{0,4}")
 _SHA256 = re.compile(r"[0-9a-f]{64}")
 _HOST = re.compile(r"[A-Za-z0-9]([A-Za-z0-9.-]*[A-Za-z0-9])?|\[[0-9A-Fa-f:.]+\]")
-_RE2_OPTIONS = re2.Options()
-_RE2_OPTIONS.log_errors = False  # we report bad regexes ourselves
 
 
 class Role(enum.Enum):
@@ -281,13 +279,15 @@ def check_email(email: str) -> None:
 
 
 def check_regex(pattern: str, path: FieldPath) -> None:
-    """Raise :class:`FleetInvalid` unless *pattern* compiles as RE2."""
+    """Raise :class:`FleetInvalid` unless the relay accepts *pattern*.
+
+    The relay's own compiler decides (RE2, its length bound, UTF-8 text): a pattern that
+    passed a separate check here could render into an auth.yaml the server refuses at start.
+    """
     try:
-        re2.compile(pattern, _RE2_OPTIONS)
-    except re2.error as exc:
-        raise FleetInvalid(path, f"not a valid RE2 regex {pattern!r}: {exc}") from None
-    except UnicodeEncodeError:  # a lone surrogate ("\ud800"): RE2 takes UTF-8
-        raise FleetInvalid(path, f"not a valid RE2 regex {pattern!r}: not UTF-8 text") from None
+        compile_full(pattern)
+    except BadRegex as exc:
+        raise FleetInvalid(path, f"not a valid RE2 regex {shown(pattern)}: {exc}") from None
 
 
 def parse_endpoint(endpoint: str) -> tuple[str, int]:

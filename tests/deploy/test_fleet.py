@@ -75,6 +75,11 @@ def test_good_fleet_round_trips() -> None:
         ("    extra_receive: [\"/husky1/scan\"]\n", "    extra_receive: [\"\\ud800\"]\n",
          "/f/fleet.yaml:11: robots[1].extra_receive[0]: not a valid RE2 regex '\\ud800': "
          "not UTF-8 text"),
+        # The relay's own bound on a pattern: a longer one rendered into an auth.yaml the
+        # server then refused at start.
+        ("    extra_receive: [\"/husky1/scan\"]\n",
+         "    extra_receive: [\"/" + "a" * 4096 + "\"]\n",
+         "/f/fleet.yaml:11: robots[1].extra_receive[0]: not a valid RE2 regex '/aaaa"),
         ("endpoint: vpn.example.com:51820\n", "endpoint: vpn.example.com\n",
          "/f/fleet.yaml:3: endpoint: expected HOST:PORT"),
         ("version: 1\n", "version: 2\n", "/f/fleet.yaml:1: version: unsupported version 2"),

@@ -1,9 +1,10 @@
 """``fleetctl recordings``: list and fetch the server's MCAP recordings.
 
-Two ways to reach them: ``--server URL`` (``GET /recordings`` on the relay port, with a
-Bearer token from ``--token-file``: the files whose every topic the token may receive;
-the operator on the server host without a token sees all), or the recording directory
-itself on the server host (``--config server.yaml`` or ``--dir``).
+Two ways to reach them: ``--server URL`` (``GET /recordings`` on the relay port or the
+HTTPS port, with a Bearer token from ``--token-file``: the files whose every topic the
+token may receive; on the relay port the operator on the server host without a token sees
+all), or the recording directory itself on the server host (``--config server.yaml`` or
+``--dir``).
 
 Replicas record what their own senders sent (each file name carries the replica's name),
 so a fleet's recordings are sharded: ``--server`` given once per replica lists them all
@@ -368,8 +369,8 @@ def _list_text(found: list[Recording], directory: Path) -> str:
 _CONFIG = typer.Option(None, "--config", "-c", help="server.yaml (its recording.directory).")
 _DIR = typer.Option(None, "--dir", "-d", help="The recording directory (instead of --config).")
 _SERVER = typer.Option(None, "--server", "-s", help="ws(s):// or http(s):// URL of the relay "
-                       "port: ask the server (instead of --config/--dir); once per replica "
-                       "for a fleet of replicas.")
+                       "port or the HTTPS port (`fleetctl up`'s): ask the server (instead of "
+                       "--config/--dir); once per replica for a fleet of replicas.")
 _TOKEN = typer.Option(None, "--token-file", help="File holding a Bearer token (--server).")
 _CA = typer.Option(None, "--ca-file", help="CA bundle for a wss:// server (--server).")
 

@@ -60,6 +60,8 @@ FLEET_ETC = "/etc/fleetctl/fleet"  # FLEET/server, live (auth.yaml, wireguard/wg
 SECRETS_ETC = "/etc/fleetctl/secrets"  # handed to the server user by the entrypoint
 SECRETS_RUN = "/run/fleetctl/secrets"
 ROBOT_ETC = "/etc/fleetctl/robot"
+SERVER_DATA = "/var/lib/fleetctl"  # a named volume: the database and the recordings
+RECORDINGS_DIR = f"{SERVER_DATA}/recordings"
 SERVER_WG_CONF = f"{FLEET_ETC}/wireguard/wg0.conf"
 WG_INTERFACE = "wg0"  # the entrypoint names the interface after the config file
 DEFAULT_BIND = "0.0.0.0"
@@ -382,7 +384,7 @@ def _server_service(plan: ComposePlan) -> dict[str, Any]:
             f"{plan.compose_dir / 'server'}:{RUN_ETC}:ro",
             f"{plan.fleet_dir / 'server'}:{FLEET_ETC}:ro",
             f"{plan.compose_dir / 'secrets'}:{SECRETS_ETC}:ro",
-            "server-data:/var/lib/fleetctl",
+            f"server-data:{SERVER_DATA}",
         ],
         "environment": {
             "FLEETCTL_HEALTH": f"http://127.0.0.1:{plan.server_port}/healthz",
@@ -485,7 +487,10 @@ def container_server_config(plan: ComposePlan) -> dict[str, Any]:
     cfg = _read_mapping(plan.fleet_dir / "server" / "server.yaml", "server config")
     # Plain ws:// only inside the tunnel (and loopback, for the health check and status).
     cfg["listen_host"] = [plan.server_ip, "127.0.0.1"] if plan.wireguard else "0.0.0.0"
-    cfg["database"] = "/var/lib/fleetctl/fleet.db"
+    cfg["database"] = f"{SERVER_DATA}/fleet.db"
+    if isinstance(cfg.get("recording"), dict):
+        # On the data volume beside the database: recordings outlive `down` and a new image.
+        cfg["recording"] = {**cfg["recording"], "directory": RECORDINGS_DIR}
     auth = Path(str(cfg.get("auth_map") or "auth.yaml"))
     if auth.is_absolute() or ".." in auth.parts:
         raise ConfigError(f"{plan.fleet_dir / 'server/server.yaml'}: field auth_map: must be "
@@ -495,6 +500,11 @@ def container_server_config(plan: ComposePlan) -> dict[str, Any]:
     cfg["web"] = {**cfg["web"], "listen_host": "0.0.0.0", "tls_cert": f"{RUN_ETC}/tls-cert.pem",
                   "tls_key": f"{SECRETS_RUN}/tls.key"}
     return cfg
+
+
+def server_config_text(plan: ComposePlan) -> str:
+    """``FLEET/.compose/server/server.yaml`` as :func:`write_files` writes it."""
+    return yaml.safe_dump(container_server_config(plan), sort_keys=False)
 
 
 def robot_wireguard(plan: ComposePlan, robot: RobotEntry) -> str:
@@ -515,8 +525,7 @@ def write_files(plan: ComposePlan) -> Path:
         sub.mkdir(parents=True, exist_ok=True)
         os.chmod(sub, 0o700)  # copies of private keys live below
     (out / "server").mkdir(exist_ok=True)
-    _write(out / "server" / "server.yaml", yaml.safe_dump(container_server_config(plan),
-                                                            sort_keys=False))
+    _write(out / "server" / "server.yaml", server_config_text(plan))
     _write(out / "server" / "tls-cert.pem", read_small_text(plan.tls_cert, MAX_PEM_BYTES))
     _write(out / "secrets" / "tls.key", read_small_text(plan.tls_key, MAX_PEM_BYTES),
            secret=True)

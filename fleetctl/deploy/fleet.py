@@ -17,6 +17,12 @@ from pathlib import Path
 import yaml
 
 from fleetctl.client.config import TfSpec, location_problem
+from fleetctl.deploy.fleetrecording import (
+    FleetRecording,
+    build_recording,
+    check_recording,
+    dump_recording,
+)
 from fleetctl.deploy.topics import (
     DEFAULT_PUBLISH,
     PublishTopic,
@@ -201,6 +207,7 @@ class Fleet:
             it): replica *i* listens on ``server_port`` + *i* and ``https_port`` + *i*, and
             every robot's ``client.yaml`` lists every replica's URL, so that a bundle
             exported from it fails over between them (docs/deploy.md).
+        recording: what the server records (fleet.yaml ``recording:``); ``None``: nothing.
     """
 
     name: str
@@ -214,6 +221,7 @@ class Fleet:
     https_port: int = DEFAULT_HTTPS_PORT
     tls: TlsFiles | None = None
     relay_replicas: int = 1
+    recording: FleetRecording | None = None
 
     def robot(self, name: str) -> Robot | None:
         """Return the robot called *name*, or ``None``."""
@@ -421,6 +429,8 @@ def validate(fleet: Fleet) -> None:
     _check_replica_ports(fleet)
     if fleet.tls is not None:
         _check_tls_paths(fleet.tls)
+    if fleet.recording is not None:
+        check_recording(fleet.recording)
     if fleet.subnet.num_addresses < 4:
         raise FleetInvalid(("subnet",), f"{fleet.subnet} is too small (at most /30)")
     _check_host_ip(fleet, fleet.server_ip, ("server_ip",))
@@ -575,7 +585,7 @@ def parse_fleet(path: Path, text: str, fleet_dir: Path | None = None) -> Fleet:
 def _build_fleet(doc: Document) -> Fleet:
     f = doc.mapping(doc.root, (), ["version", "name", "subnet", "server_ip"],
                     ["endpoint", "server_port", "wireguard_port", "https_port", "tls", "robots",
-                     "users", "relay_replicas"])
+                     "users", "relay_replicas", "recording"])
     version = doc.integer(f["version"], ("version",), 1, 1_000_000)
     if version != FORMAT_VERSION:
         raise FleetInvalid(("version",), f"unsupported version {version} "
@@ -599,6 +609,7 @@ def _build_fleet(doc: Document) -> Fleet:
         tls=_build_tls(doc, f["tls"]) if "tls" in f and not doc.is_null(f["tls"]) else None,
         relay_replicas=(doc.integer(f["relay_replicas"], ("relay_replicas",), 1,
                                     MAX_RELAY_REPLICAS) if "relay_replicas" in f else 1),
+        recording=build_recording(doc, f["recording"]) if "recording" in f else None,
     )
 
 
@@ -693,6 +704,8 @@ def dump_fleet(fleet: Fleet) -> str:
         "tls": {"cert": fleet.tls.cert, "key": fleet.tls.key} if fleet.tls else None,
         # Only when set: a fleet with one relay keeps the bytes it had before the field.
         **({"relay_replicas": fleet.relay_replicas} if fleet.relay_replicas != 1 else {}),
+        # Only when set, as relay_replicas.
+        **({"recording": dump_recording(fleet.recording)} if fleet.recording else {}),
         "robots": [_dump_robot(r) for r in fleet.robots],
         "users": [{"email": u.email, "role": u.role.value, "token_sha256": u.token_sha256}
                   for u in fleet.users],

@@ -9,9 +9,10 @@ After ``add-robot``, ``remove-robot``, ``add-user``, ``remove-user``, ``render``
 - **WireGuard peers**: ``wg syncconf`` in the server container from the live
   ``FLEET/server/wireguard/wg0.conf``: new peers are added, removed ones dropped, and the
   sessions of unchanged peers are untouched (unlike ``wg setconf`` or a restart).
-- **TLS certificate** (``set-endpoint`` makes a new self-signed one for the new name): the
-  container's copy is refreshed and the server restarted, as it loads the certificate at
-  start; robots reconnect by themselves.
+- **TLS certificate** (``set-endpoint`` makes a new self-signed one for the new name) and
+  **server.yaml** (``render`` after fleet.yaml's ``recording:`` section changed): the
+  container's copies are refreshed and the server restarted, as it loads both at start;
+  robots reconnect by themselves.
 - **simulated robots** (a deployment started with ``--sim``): the compose file is
   re-rendered and ``up`` creates the new robot's container (or removes a removed one's);
   the server and the other robots are not recreated, as their definitions did not change.
@@ -29,12 +30,13 @@ from fleetctl.deploy.compose import (
     ComposePlan,
     plan_for,
     saved_options,
+    server_config_text,
     write_files,
 )
 from fleetctl.deploy.dockercli import Runner, check, subprocess_runner
 from fleetctl.deploy.replicas import replica_names
 from fleetctl.errors import FleetError
-from fleetctl.smallfile import MAX_PEM_BYTES, read_small
+from fleetctl.smallfile import MAX_CONFIG_BYTES, MAX_PEM_BYTES, read_small
 
 
 def sync_running(fleet_dir: Path, progress: Callable[[str], None],
@@ -62,9 +64,13 @@ def sync_running(fleet_dir: Path, progress: Callable[[str], None],
               "wg syncconf in the server container")
         done.append("WireGuard peers synced")
     plan = plan_for(fleet_dir, options)
-    if _certificate_changed(plan):
-        # The server loads its certificate at start: a new one (set-endpoint regenerates the
-        # self-signed one for the new name) needs a restart; robots reconnect on their own.
+    changed = [what for what, yes in (("TLS certificate", _certificate_changed(plan)),
+                                      ("server.yaml", _server_config_changed(plan))) if yes]
+    if changed:
+        # The server loads its certificate and server.yaml at start: a new one (set-endpoint
+        # regenerates the self-signed certificate for the new name; render a server.yaml
+        # with fleet.yaml's new recording section) needs a restart; robots reconnect on
+        # their own.
         write_files(plan)
         # With replicas the server container is the tunnel and network they live in:
         # restart the replicas, which load the certificate, not it.
@@ -72,7 +78,7 @@ def sync_running(fleet_dir: Path, progress: Callable[[str], None],
             cid = composerun.container_id(fleet_dir, options.project, name, runner)
             if cid is not None:
                 check(runner(["docker", "restart", cid], None, True), f"restart of {name}")
-        done.append("server restarted with the new TLS certificate")
+        done.append(f"server restarted with the new {' and '.join(changed)}")
     if options.sim:
         try:
             composerun.up(fleet_dir, options, progress=progress, runner=runner,
@@ -89,6 +95,16 @@ def _certificate_changed(plan: ComposePlan) -> bool:
     try:
         return (read_small(deployed, MAX_PEM_BYTES)
                 != read_small(plan.tls_cert, MAX_PEM_BYTES))
+    except OSError:
+        return True
+
+
+def _server_config_changed(plan: ComposePlan) -> bool:
+    """Whether the server.yaml the deployment runs with differs from the fleet's now (the
+    replicas' configs are made from the same one, with ports the deployment fixes)."""
+    deployed = plan.compose_dir / "server" / "server.yaml"
+    try:
+        return read_small(deployed, MAX_CONFIG_BYTES) != server_config_text(plan).encode()
     except OSError:
         return True
 

@@ -381,7 +381,7 @@ def server_config(fleet: Fleet, fleet_dir: Path) -> str:
     cert, key = tls_paths(fleet, fleet_dir)
     return render_template("server/server.yaml.j2", fleet_name=fleet.name,
                            listen_port=fleet.server_port, https_port=fleet.https_port,
-                           tls_cert=cert, tls_key=key)
+                           tls_cert=cert, tls_key=key, recording=fleet.recording)
 
 
 # A robot's generated files, relative to robots/NAME/ (remove-robot tells them from an

@@ -388,17 +388,26 @@ class RelayServer:
                               "WebSocket upgrades, /healthz, /metrics, /robots and "
                               "/recordings\n")
 
-    def _web_request(self, connection: ServerConnection, request: Request) -> Response | None:
-        # The web listener: the page and /healthz; /metrics and /robots stay on the relay
-        # port (often not exposed to the internet).
+    def _web_request(self, connection: ServerConnection, request: Request,
+                     ) -> Response | Awaitable[Response] | None:
+        # The web listener: the page, /healthz and /recordings; /metrics and /robots stay
+        # on the relay port (often not exposed to the internet).
         try:
             parsed = self._read(connection, request, by_address=False)
         except BadRequest as exc:
             return endpoints.text(http.HTTPStatus.BAD_REQUEST, f"{exc}\n")
         if wants_websocket(request):
             return None
-        if request.path.split("?", 1)[0] == TICKET_PATH:
+        path = request.path.split("?", 1)[0]
+        if path == TICKET_PATH:
             return self._ticket(parsed, request, by_address=False)
+        if path == RECORDINGS_PATH or path.startswith(RECORDINGS_PATH + "/"):
+            # People fetch recordings here (`fleetctl up` publishes only this port), with
+            # a Bearer token: no loopback privilege on the port a reverse proxy on the
+            # same host would make every caller's.
+            if not parsed.identities:
+                return _unauthorized(path, parsed.bad_token, token_only=True)
+            return self._recordings(parsed, path, request)
         assert self._page is not None and self.config.web is not None
         return page_response(self._page, request, self.config.web.replica_ports)
 
@@ -672,11 +681,16 @@ class RelayServer:
         ]
 
 
-def _unauthorized(path: str, bad_token: bool) -> Response:
-    """401 for a caller that :func:`endpoints.robots_allowed` refused, saying why."""
-    why = ("the Bearer token matches no user or robot of this fleet" if bad_token else
-           "needs a fleet identity (a robot's or user's address, or a Bearer token) or a "
-           "loopback caller")
+def _unauthorized(path: str, bad_token: bool, token_only: bool = False) -> Response:
+    """401 for a caller that :func:`endpoints.robots_allowed` refused, saying why
+    (*token_only*: on the web listener, where only a Bearer token identifies a caller)."""
+    if bad_token:
+        why = "the Bearer token matches no user or robot of this fleet"
+    elif token_only:
+        why = "needs a Bearer token of this fleet (Authorization: Bearer TOKEN)"
+    else:
+        why = ("needs a fleet identity (a robot's or user's address, or a Bearer token) or a "
+               "loopback caller")
     return endpoints.text(http.HTTPStatus.UNAUTHORIZED, f"GET {path}: {why}\n")
 
 

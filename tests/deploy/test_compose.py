@@ -97,6 +97,24 @@ def test_wireguard_mode_publishes_udp_and_rewrites_the_endpoint(fleet: Path) -> 
     assert stat.S_IMODE(plan.compose_dir.stat().st_mode) == 0o700
 
 
+def test_recordings_go_to_the_data_volume_of_each_relay(fleet: Path) -> None:
+    from fleetctl.deploy import composereplicas
+
+    path = fleet / "fleet.yaml"
+    path.write_text(path.read_text() + 'recording:\n  topics: ["/.*/map"]\n')
+    ops.render_fleet(fleet)
+    plan = compose.plan_for(fleet, _opts(fleet, wireguard="off"))
+    cfg = compose.container_server_config(plan)
+    # On the named volume beside the database, so that `down` and a new image keep them.
+    assert cfg["recording"]["directory"] == "/var/lib/fleetctl/recordings"
+    assert cfg["recording"]["rules"] == [{"topic": "/.*/map"}]
+    assert "server-data:/var/lib/fleetctl" in compose.render(plan)["services"]["server"][
+        "volumes"]
+    replicated = compose.plan_for(fleet, _opts(fleet, wireguard="off", replicas=2))
+    relay = composereplicas.relay_config(replicated, 1, "relay-2")
+    assert relay["recording"]["directory"] == "/var/lib/fleetctl/recordings"
+
+
 def test_robot_config_without_endpoint_gets_one_inside_compose(fleet: Path) -> None:
     plan = compose.plan_for(fleet, _opts(fleet, wireguard="off", sim=True))
     robot = plan.robots[0]
@@ -323,6 +341,22 @@ def test_live_sync_restarts_the_server_only_for_a_new_certificate(fleet: Path) -
     assert sum(c[:2] == ["docker", "restart"] for c in docker.calls) == 1
     deployed = fleet / ".compose" / "server" / "tls-cert.pem"
     assert deployed.read_bytes() == (fleet / "server" / "tls" / "cert.pem").read_bytes()
+
+
+def test_live_sync_restarts_the_server_for_a_new_server_yaml(fleet: Path) -> None:
+    docker = FakeDocker()
+    composerun.up(fleet, _opts(fleet, wireguard="off"), progress=lambda _: None, runner=docker)
+    docker.server_running = True
+    path = fleet / "fleet.yaml"
+    path.write_text(path.read_text() + 'recording:\n  topics: ["/.*/map"]\n')
+    ops.render_fleet(fleet)
+    note = live.sync_running(fleet, lambda _: None, runner=docker)
+    assert note is not None and "restarted with the new server.yaml" in note
+    assert sum(c[:2] == ["docker", "restart"] for c in docker.calls) == 1
+    deployed = yaml.safe_load((fleet / ".compose" / "server" / "server.yaml").read_text())
+    assert deployed["recording"]["directory"] == "/var/lib/fleetctl/recordings"
+    live.sync_running(fleet, lambda _: None, runner=docker)  # nothing new: no restart
+    assert sum(c[:2] == ["docker", "restart"] for c in docker.calls) == 1
 
 
 def test_bind_and_project_are_checked_before_they_reach_compose(fleet: Path) -> None:

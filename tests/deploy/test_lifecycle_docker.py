@@ -2,9 +2,11 @@
 
 `init` -> `add-robot` x2 -> `up --sim` -> both robots online over the tunnel -> Chromium opens
 the one published HTTPS port, signs in with a token, sees both robots and a live scan ->
+the recording fleet.yaml asks for, listed with `recordings --server` on the HTTPS port ->
 `add-robot` a third on the running fleet: it comes online and the other two never reconnect
 -> `remove-user`: the token is refused within 2 s with no restart -> restart the server
-container: the registry keeps the robots -> `down` -> `up`: the registry is still there ->
+container: the registry keeps the robots -> `down` -> `up`: the registry and the
+recordings are still there ->
 `down --delete-data`: the volume is gone.
 
 Every step is the `fleetctl` command line a user types (a subprocess); docker compose runs
@@ -106,6 +108,19 @@ def deployment(tmp_path: Path) -> Iterator[tuple[Operator, Path, str]]:
     finally:
         if (fleet / ".compose" / "state.json").is_file():
             op.run("down", "--delete-data", ok=False)
+
+
+def _token_file(op: Operator, fleet: Path, email: str) -> Path:
+    """A new viewer's token in a 0600 file beside the fleet, for --token-file."""
+    path = fleet.parent / f"{email}.token"
+    path.touch(mode=0o600)
+    path.write_text(op.json("add-user", email, "--role", "viewer")["token"] + "\n")
+    return path
+
+
+def _recorded(op: Operator, listing: list[str]) -> set[str]:
+    """Every topic of every recording `fleetctl recordings list` shows."""
+    return {topic for rec in op.json(*listing) for topic in rec["topics"]}
 
 
 def robots(op: Operator) -> dict[str, dict[str, Any]]:
@@ -241,6 +256,11 @@ def test_the_fleet_life_cycle_on_the_real_images(
     op.run("add-robot", "husky1")
     op.run("add-robot", "jackal2")
     token = op.json("add-user", "alice@example.com", "--role", "viewer")["token"]
+    # Recording, as docs/deploy.md says: a section in fleet.yaml, then `render`.
+    fleet_yaml = fleet / "fleet.yaml"
+    fleet_yaml.write_text(fleet_yaml.read_text() + 'recording:\n  topics: ["/.*/odom"]\n')
+    op.run("render")
+    recorder = _token_file(op, fleet, "rec@example.com")
     up = ["up", "--sim", "--wireguard", "on", "--bind", "127.0.0.1", "--https-port", str(https),
           "--project", project]
     op.run(*up)
@@ -253,6 +273,11 @@ def test_the_fleet_life_cycle_on_the_real_images(
 
     url = f"https://127.0.0.1:{https}/"
     asyncio.run(browse(url, token))
+    listing = ["recordings", "list", "--server", url, "--token-file", str(recorder),
+               "--ca-file", str(fleet / "server" / "tls" / "cert.pem")]
+    wait_until("both robots' odometry in a recording on the HTTPS port",
+               lambda: _recorded(op, listing) >= {"/husky1/odom", "/jackal2/odom"},
+               ONLINE_TIMEOUT_S)
 
     # Neither adding a robot nor removing a user disturbs the robots already running:
     # their tunnels are not reset (the server's WireGuard counters go on) and the server
@@ -284,10 +309,14 @@ def test_the_fleet_life_cycle_on_the_real_images(
                    check=True)
     wait_until("registry after a server restart", lambda: set(robots(op)) >= set(first_seen),
                ONLINE_TIMEOUT_S)
+    recorded_before = op.json(*listing)
     op.run("down")
     op.run(*up)
     kept = robots(op)
     assert {n: kept[n]["first_seen_s"] for n in first_seen} == first_seen
+    # The recordings are on the data volume: the files of before `down` are all still
+    # listed (the one open then closed at the server's stop, complete).
+    assert {r["name"] for r in recorded_before} <= {r["name"] for r in op.json(*listing)}
     op.run("down", "--delete-data")
     volumes = subprocess.run(["docker", "volume", "ls", "-q", "--filter",
                               f"name={project}_server-data"], capture_output=True, text=True,

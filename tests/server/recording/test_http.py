@@ -13,12 +13,14 @@ from mcap.reader import make_reader
 from fleetctl.cli.recordings import Remote, fetch_remote, list_remote
 from fleetctl.errors import FleetError
 from fleetctl.server.app import RelayServer
+from fleetctl.server.config import WebConfig
 from fleetctl.server.recording import files
 from fleetctl.server.recording.config import RecordingConfig, RecordingRule
 from fleetctl.server.recording.http import MAX_RANGE_BYTES
 from fleetctl.server.recording.mcapfile import McapFile
 from fleetctl.wire import samples
 from fleetctl.wire.codec import default_codec
+from tests.server.certs import self_signed
 from tests.server.conftest import ALICE_TOKEN, BOB_TOKEN, client, wait_for
 from tests.support import string_frame
 
@@ -108,3 +110,33 @@ async def test_a_server_without_recording_says_so(
     async with make_server() as srv:
         with pytest.raises(FleetError, match="records nothing"):
             await asyncio.to_thread(list_remote, Remote(srv.url))
+
+
+async def test_the_web_listener_serves_recordings_to_token_holders(
+        make_server: Callable[..., RelayServer], tmp_path: Path) -> None:
+    # `fleetctl up` publishes only the HTTPS port: people list and fetch there, with a
+    # token; no loopback privilege on it (a reverse proxy on the host is loopback too).
+    config = RecordingConfig(tmp_path / "rec", (RecordingRule(".*"),), flush_interval_s=0.05)
+    cert, key = self_signed(tmp_path / "tls")
+    web = WebConfig(tls_cert=cert, tls_key=key, listen_host="127.0.0.1", listen_port=0)
+    async with make_server(recording=config, web=web) as srv, \
+            client(srv, source="127.0.0.2") as husky1:
+        recorder = srv.recorder
+        assert recorder is not None
+        for i in range(5):
+            await husky1.send(string_frame("/husky1/chat", f"one {i}", seq=i + 1))
+        await wait_for(lambda: recorder.snapshot()["messages"] == 5, DEADLINE_S)
+        url = f"https://127.0.0.1:{srv.web_port}"
+        [seen] = await asyncio.to_thread(list_remote, Remote(url, BOB_TOKEN, cert))
+        assert seen.topics == ["/husky1/chat"]
+        await wait_for(lambda: len(list(files.read_messages(tmp_path / "rec" / seen.name)))
+                       == 5, DEADLINE_S)
+        fetched = await asyncio.to_thread(fetch_remote, Remote(url, ALICE_TOKEN, cert),
+                                          seen.name, tmp_path)
+        assert fetched.messages == 5
+        with pytest.raises(FleetError, match=r"401.*needs a Bearer token"):
+            await asyncio.to_thread(list_remote, Remote(url, None, cert))
+        with pytest.raises(FleetError, match=r"401.*matches no user"):
+            await asyncio.to_thread(list_remote, Remote(url, "not-a-token", cert))
+        with pytest.raises(FleetError, match=r"not trusted.*--ca-file"):
+            await asyncio.to_thread(list_remote, Remote(url, ALICE_TOKEN))

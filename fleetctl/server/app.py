@@ -133,6 +133,8 @@ class RelayServer:
                          Recorder(recording, max_message_bytes=config.limits.max_frame_bytes))
         self.core = RelayCore(config, auth, self.registry, self.metrics,
                               recorder=self.recorder)
+        if self.recorder is not None:
+            self.recorder.latched_source = self.core.latched.local_messages
         if config.cluster is not None:  # the only place that knows about replicas
             from fleetctl.server.cluster.natsfanout import NatsFanout
             from fleetctl.server.cluster.remoteinterest import RemoteInterest

@@ -142,6 +142,13 @@ class LatchedStore:
             out.append(stored.frames)
         return out
 
+    def local_messages(self) -> list[tuple[SenderKey, str, list[bytes]]]:
+        """``(sender, topic, frames)`` of every stored message a sender sent to this relay
+        (not those shared by other replicas), oldest update first."""
+        return [(sender, topic, entry.stored.frames)
+                for (sender, topic), entry in self._entries.items()
+                if entry.stored is not None and not entry.stored.remote]
+
     def put(self, sender: SenderKey, topic: str, frame: bytes,
             fragment: FragmentHeader | None) -> None:
         """Take one latched frame the relay accepted from *sender*.

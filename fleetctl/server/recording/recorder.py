@@ -23,7 +23,9 @@ Bounds, each counted and logged (at most one WARNING per reason per ten seconds)
   the disk bounds (:mod:`fleetctl.server.recording.writer`);
 - a worker that dies is logged and restarted (:data:`RESTART_MIN_S` ...
   :data:`RESTART_MAX_S`); frames meanwhile are dropped (``worker_exited``), and the
-  counters carry on from the dead worker's.
+  counters carry on from the dead worker's. The new worker's file starts with the
+  relay's latched messages (:attr:`Recorder.latched_source`), as every rotated file does:
+  a robot sends its map once, so without them the new file would have none.
 """
 
 from __future__ import annotations
@@ -57,6 +59,10 @@ log = logging.getLogger("fleetctl.server.recording")
 RECORDER_DROP_REASONS = ("queue_full", "worker_exited")
 DROP_REASONS = (*RECORDER_DROP_REASONS, *WRITER_DROP_REASONS)
 
+# The connection id of latched messages handed to a restarted worker (the relay's are
+# counted from 1 and never get this far): their fragments reassemble apart from a live
+# sender's.
+LATCHED_SENDER = 0xFFFFFFFF
 RESTART_MIN_S = 1.0
 RESTART_MAX_S = 60.0
 """A dead worker is restarted after 1 s, then 2, 4... up to 60 s while it keeps dying
@@ -117,6 +123,10 @@ class Recorder:
         self.disk_bytes = 0  # as the worker last reported (no directory scan on the loop)
         self._process: subprocess.Popen[bytes] | None = None
         self._reports: threading.Thread | None = None
+        # The relay's latched messages, ``(sender identities, topic, frames)``: given to
+        # a restarted worker (set by the relay; ``None``: none).
+        self.latched_source: Callable[[], list[tuple[tuple[str, ...], str,
+                                                     list[bytes]]]] | None = None
 
     # -- event loop side ------------------------------------------------------------
 
@@ -124,8 +134,10 @@ class Recorder:
         """Queue *frame* (accepted on *topic* from connection *sender* with *perms*) if
         a rule says to record it. Never blocks; a full queue drops the frame (counted).
         Call on the event loop's thread."""
-        if not self.rules.matches(topic, perms):
-            return
+        if self.rules.matches(topic, perms):
+            self._queue(sender, frame)
+
+    def _queue(self, sender: int, frame: bytes) -> None:
         n = HEADER.size + len(frame)
         if self._dead or self._closed or self._queued_bytes + n > self.config.queue_bytes:
             self._drop("worker_exited" if self._dead or self._closed else "queue_full")
@@ -395,6 +407,17 @@ class Recorder:
             with self._lock:
                 self._dead = False  # so that _worker_gone counts and schedules again
             self._worker_gone(f"cannot start it: {exc}", None)
+            return
+        self._queue_latched()
+
+    def _queue_latched(self) -> None:
+        """Queue the relay's latched messages a rule records, for the new worker's file."""
+        if self.latched_source is None:
+            return
+        for names, topic, frames in self.latched_source():
+            if self.rules.matches_names(topic, frozenset(names)):
+                for frame in frames:
+                    self._queue(LATCHED_SENDER, frame)
 
 
 def _add_stats(a: dict[str, Any], b: dict[str, Any]) -> dict[str, Any]:

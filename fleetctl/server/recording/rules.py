@@ -39,6 +39,10 @@ class RecordingRules:
             self._cache[key] = cached
         return cached
 
+    def matches_names(self, topic: str, names: frozenset[str]) -> bool:
+        """Whether a frame on *topic* sent by identities *names* is recorded (uncached)."""
+        return self._decide(topic, names)
+
     def _decide(self, topic: str, names: frozenset[str]) -> bool:
         return any(regex.matches(topic) and (not who or bool(who & names))
                    for regex, who in self._rules)

@@ -297,6 +297,34 @@ async def test_a_dead_worker_is_logged_counted_and_restarted(
     assert read_with_mcap(new.path)[-3:] == expected_rows(sent[3:])
 
 
+async def test_a_restarted_worker_starts_its_file_with_the_latched_map(
+        make_server: Callable[..., RelayServer], tmp_path: Path) -> None:
+    # A robot sends its map once (latched): a worker restart must not leave the new file,
+    # and so every file after it, without one until the robot resends it.
+    sent = mixed_messages()
+    topic, _, _, frame = sent[-1]  # compressed and fragmented, as a robot sends a map
+    map_frames = fragments.split(
+        compress(frame, codec=CompressionCodec.ZSTD, topic=topic, no_drop=False),
+        topic=topic, message_id=7, max_fragment_bytes=256, no_drop=False)
+    assert len(map_frames) > 1
+    async with make_server(recording=recording(tmp_path)) as srv, \
+            client(srv, source=ROBOT) as robot:
+        recorder = srv.recorder
+        assert recorder is not None and recorder.worker_pid is not None
+        for frame in map_frames:
+            await robot.send(frame)
+        await wait_for(lambda: recorder.snapshot()["messages"] == 1, DEADLINE_S)
+        first_pid = recorder.worker_pid
+        os.kill(first_pid, signal.SIGKILL)
+        await wait_for(lambda: recorder.worker_pid not in (None, first_pid), DEADLINE_S)
+        await robot.send(sent[0][3])  # a chat line after the restart
+        await wait_for(lambda: recorder.snapshot()["messages"] >= 3, DEADLINE_S)
+    new = files.scan(tmp_path / "rec")[-1]
+    assert files.is_complete(new.path)
+    # Both, each with its own publish time as its log time (the map's is the later).
+    assert sorted(read_with_mcap(new.path)) == sorted(expected_rows([sent[-1], sent[0]]))
+
+
 async def test_frames_the_relay_refuses_are_never_recorded(
         make_server: Callable[..., RelayServer], tmp_path: Path) -> None:
     config = recording(tmp_path, rules=(RecordingRule(".*"),))

@@ -17,7 +17,10 @@ kept and written again at the start of every new file (log time = the file's fir
 message, publish time = the original), so a rotated file opened or replayed alone still
 has its map and its static TF. Kept: at most :data:`MAX_LATCHED_TOPICS` topics and a
 quarter of ``max_file_bytes`` (so the copies never fill a new file); a latched message
-past that is recorded as usual but not repeated (one WARNING per topic).
+past that is recorded as usual but not repeated (one WARNING per topic). Video topics
+(``CompressedVideo``) likewise: a new file starts with each one's frames since its last
+keyframe (:mod:`fleetctl.server.recording.gop`, another quarter of ``max_file_bytes``), so
+its camera is decodable from the file's first moment, not from the next keyframe.
 
 Disk: before a new file starts, and at every flush tick, closed files past
 ``max_age_s`` or past ``max_total_bytes - max_file_bytes`` (so that a full current file
@@ -35,6 +38,7 @@ from typing import Any, NamedTuple
 
 from fleetctl.server.recording import files
 from fleetctl.server.recording.config import RecordingConfig
+from fleetctl.server.recording.gop import VIDEO_TYPE, GopFrame, GopKeeper
 from fleetctl.server.recording.mcapfile import McapFile
 from fleetctl.wire.codec import Codec
 from fleetctl.wire.errors import WireError
@@ -129,6 +133,8 @@ class RecordingWriter:
         self.disk_bytes = 0  # .mcap bytes in the directory, as of the last bounds check
         self._latched: dict[str, _Latched] = {}
         self._not_kept: set[str] = set()  # latched topics warned about (bounded as above)
+        self._gops = GopKeeper(config.max_file_bytes // 4,
+                               codec.registry.typestore.deserialize_cdr)
 
     @property
     def current_path(self) -> Path | None:
@@ -170,8 +176,9 @@ class RecordingWriter:
             self.stats.drop("too_big", f"{size} bytes on {meta.topic}")
             return
         time_ns = meta.publish_time_ns or wall_ns
+        keyframe = self._gops.keyframe(out.type, out.cdr)
         try:
-            current = self._writable(size, meta.topic, time_ns)
+            current = self._writable(size, meta.topic, time_ns, keyframe)
             current.write(meta.topic, out.type, out.cdr, time_ns, meta.seq, meta.latched)
         except (OSError, WireError) as exc:
             self.stats.drop("write_error", f"{self.current_path}: {exc}")
@@ -181,6 +188,8 @@ class RecordingWriter:
         self.stats.bytes += size
         if meta.latched:
             self._keep_latched(meta.topic, _Latched(out.type, out.cdr, time_ns, meta.seq))
+        if keyframe is not None:
+            self._gops.add(meta.topic, GopFrame(out.cdr, time_ns, meta.seq), keyframe)
 
     def _keep_latched(self, topic: str, message: _Latched) -> None:
         kept = {t: m for t, m in self._latched.items() if t != topic}
@@ -248,11 +257,13 @@ class RecordingWriter:
             log.warning("recording: deleted %s (%d bytes) to hold %s", f.name, f.size_bytes,
                         reason)
 
-    def _writable(self, nbytes: int, topic: str, time_ns: int) -> McapFile:
-        """The file to write *nbytes* more into (a message on *topic* at *time_ns*): the
-        current one, or a new one, which starts with the latched topics' last messages,
-        when the current would pass ``max_file_bytes`` or is older than the rotation
-        period."""
+    def _writable(self, nbytes: int, topic: str, time_ns: int,
+                  keyframe: bool | None = None) -> McapFile:
+        """The file to write *nbytes* more into (a message on *topic* at *time_ns*; a
+        video keyframe or delta frame, or ``None``): the current one, or a new one, which
+        starts with the latched topics' last messages and the video topics' frames since
+        their last keyframes, when the current would pass ``max_file_bytes`` or is older
+        than the rotation period."""
         current = self._file
         if current is not None and current.messages and (
                 current.size_bytes + nbytes > self.config.max_file_bytes
@@ -269,6 +280,10 @@ class RecordingWriter:
             log.info("recording into %s", path)
             self.enforce_bounds()
             self._write_latched(current, topic, time_ns)
+            # A keyframe opening the file makes its own topic's group useless.
+            for video, frame in self._gops.groups(skip=topic if keyframe else None):
+                current.write(video, VIDEO_TYPE, frame.cdr, time_ns, frame.seq, False,
+                              publish_time_ns=frame.publish_ns)
         return current
 
     def _abandon(self) -> None:

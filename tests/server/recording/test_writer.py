@@ -4,6 +4,8 @@ from __future__ import annotations
 
 from pathlib import Path
 
+import numpy as np
+import pytest
 from mcap.reader import make_reader
 
 from fleetctl.server.recording import files
@@ -157,3 +159,101 @@ def test_latched_copies_stay_within_a_quarter_of_a_file(tmp_path: Path) -> None:
     second = files.scan(tmp_path)[1]
     assert [ch.topic for _s, ch, _m in files.read_messages(second.path)] == [
         "/r/tf_static", "/r/chat"]
+
+
+VIDEO = "foxglove_msgs/msg/CompressedVideo"
+# H.264 Annex B access units: SPS + IDR slice (a keyframe), one non-IDR slice (a delta).
+KEY_H264 = b"\x00\x00\x00\x01\x67\x42\x00\x1e" + b"\x00\x00\x00\x01\x65\x88\x84"
+DELTA_H264 = b"\x00\x00\x00\x01\x41\x9a\x02"
+
+
+def video_frame(seq: int, key: bool, pad: int = 0, topic: str = "/r/camera") -> bytes:
+    codec = default_codec()
+    store = codec.registry.typestore
+    msg = store.types[VIDEO](
+        timestamp=store.types["builtin_interfaces/msg/Time"](sec=seq, nanosec=0),
+        frame_id="camera", format="h264",
+        data=np.frombuffer((KEY_H264 if key else DELTA_H264) + b"\x00" * pad, dtype=np.uint8))
+    return codec.encode(msg, VIDEO, topic, publish_time_ns=1_700_000_000_000_000_000 + seq,
+                        seq=seq)
+
+
+def _video_seqs(path: Path) -> list[tuple[int, int, int]]:
+    """(sequence, log time offset, publish time offset) of each video message, in order."""
+    t0 = 1_700_000_000_000_000_000
+    return [(m.sequence, m.log_time - t0, m.publish_time - t0)
+            for _s, ch, m in files.read_messages(path) if ch.topic == "/r/camera"]
+
+
+def test_every_new_file_starts_with_the_video_since_its_last_keyframe(tmp_path: Path) -> None:
+    """A file that started between two keyframes could not show the camera until the
+    next one (2 s by default): every frame before it needed frames of the old file."""
+    clock = Clock()
+    w = writer(tmp_path, clock, max_file_duration_s=10.0)
+    for seq, key in ((1, True), (2, False), (3, True), (4, False), (5, False)):
+        w.record(1, video_frame(seq, key), 0, clock.now)
+    clock.now += 11
+    w.record(1, video_frame(6, False), 0, clock.now)  # a new file, opened by a delta frame
+    w.record(1, video_frame(7, False), 0, clock.now)
+    clock.now += 11
+    w.record(1, video_frame(8, True), 0, clock.now)  # a new file, opened by a keyframe
+    w.close()
+    first, second, third = files.scan(tmp_path)
+    assert [s for s, _, _ in _video_seqs(first.path)] == [1, 2, 3, 4, 5]
+    # The group from keyframe 3, logged when the file starts, with its publish times.
+    assert _video_seqs(second.path) == [(3, 6, 3), (4, 6, 4), (5, 6, 5), (6, 6, 6),
+                                        (7, 7, 7)]
+    # Opened by a keyframe: the old group would only come before it, undecodable to none.
+    assert _video_seqs(third.path) == [(8, 8, 8)]
+
+
+def test_video_copies_stay_within_a_quarter_of_a_file(tmp_path: Path) -> None:
+    clock = Clock()
+    w = writer(tmp_path, clock, max_file_duration_s=10.0, max_file_bytes=16384,
+               max_total_bytes=1 << 20, chunk_bytes=512)
+    w.record(1, video_frame(1, True, pad=3000), 0, clock.now)
+    w.record(1, video_frame(2, False, pad=3000), 0, clock.now)  # 6 KB > 16384 / 4
+    w.record(1, video_frame(3, False), 0, clock.now)
+    clock.now += 11
+    w.record(1, video_frame(4, False), 0, clock.now)
+    w.record(1, video_frame(5, True), 0, clock.now)
+    clock.now += 11
+    w.record(1, video_frame(6, False), 0, clock.now)
+    w.close()
+    _, second, third = files.scan(tmp_path)
+    # The group outgrew its share: dropped until the next keyframe, kept again from it.
+    assert [s for s, _, _ in _video_seqs(second.path)] == [4, 5]
+    assert [s for s, _, _ in _video_seqs(third.path)] == [5, 6]
+
+
+def test_a_rotated_file_decodes_a_real_camera_from_its_first_frame(tmp_path: Path) -> None:
+    av = pytest.importorskip("av")
+    del av
+    from fleetctl.client.video import VideoDecoder, VideoEncoder
+
+    encoder = VideoEncoder("h264", 64, 48, fps=10.0, keyframe_interval_s=1.0)
+    clock = Clock()
+    w = writer(tmp_path, clock, max_file_duration_s=10.0)
+    codec, rng = default_codec(), np.random.default_rng(7)
+    store = codec.registry.typestore
+    for i in range(20):  # keyframes at 0 and 1 s: the rotation comes half a second after
+        if i == 15:
+            clock.now += 11
+        image = rng.integers(0, 255, (48, 64, 3), dtype=np.uint8)
+        (encoded,) = encoder.encode(image, i / 10.0)
+        msg = store.types[VIDEO](
+            timestamp=store.types["builtin_interfaces/msg/Time"](sec=i, nanosec=0),
+            frame_id="camera", format="h264",
+            data=np.frombuffer(encoded.data, dtype=np.uint8))
+        w.record(1, codec.encode(msg, VIDEO, "/r/camera", seq=i + 1,
+                                 publish_time_ns=1_700_000_000_000_000_000 + i), 0, clock.now)
+    w.close()
+    second = files.scan(tmp_path)[1]
+    decoder = VideoDecoder("h264")
+    shown = []
+    for _schema, _channel, record in files.read_messages(second.path):
+        video = store.deserialize_cdr(bytes(record.data), VIDEO)
+        shown.append(decoder.decode(video.data.tobytes(), record.sequence) is not None)
+    # The group from the 1 s keyframe (frames 10-14 of the old file), then the new frames:
+    # every one decodes, the first included.
+    assert len(shown) == 5 + 5 and all(shown), shown

@@ -29,6 +29,7 @@ from fleetctl.deploy.compose import (
     ComposePlan,
     Options,
     check_wireguard_choice,
+    container_server_config,
     plan_for,
     project_name,
     read_robots,
@@ -67,6 +68,7 @@ class UpResult:
     replicas: int = 1
     robot_urls: tuple[str, ...] = ()  # with replicas: every replica, for robots' server_url
     page_urls: tuple[str, ...] = ()
+    recording_topics: tuple[str, ...] = ()  # fleet.yaml's recording: what the server records
 
 
 def compose_command(runner: Runner = subprocess_runner) -> list[str]:
@@ -182,8 +184,11 @@ def up(fleet_dir: Path, options: Options, progress: Progress = print,
 
         urls = (tuple(composereplicas.robot_urls(plan)),
                 tuple(composereplicas.page_urls(plan)))
+    recording = container_server_config(plan).get("recording")
+    topics = tuple(str(rule["topic"]) for rule in recording["rules"]) if recording else ()
     return UpResult(path, plan.wireguard_note, plan.url,
-                    tuple(r.name for r in plan.robots), options.sim, options.replicas, *urls)
+                    tuple(r.name for r in plan.robots), options.sim, options.replicas, *urls,
+                    recording_topics=topics)
 
 
 def _up_args(plan: ComposePlan, robots_only: bool) -> list[str]:

@@ -113,6 +113,10 @@ def test_recordings_go_to_the_data_volume_of_each_relay(fleet: Path) -> None:
     replicated = compose.plan_for(fleet, _opts(fleet, wireguard="off", replicas=2))
     relay = composereplicas.relay_config(replicated, 1, "relay-2")
     assert relay["recording"]["directory"] == "/var/lib/fleetctl/recordings"
+    # `up` says what it records.
+    result = composerun.up(fleet, _opts(fleet, wireguard="off"), progress=lambda _: None,
+                           runner=FakeDocker())
+    assert result.recording_topics == ("/.*/map",)
 
 
 def test_robot_config_without_endpoint_gets_one_inside_compose(fleet: Path) -> None:

@@ -263,7 +263,7 @@ def test_the_fleet_life_cycle_on_the_real_images(
     recorder = _token_file(op, fleet, "rec@example.com")
     up = ["up", "--sim", "--wireguard", "on", "--bind", "127.0.0.1", "--https-port", str(https),
           "--project", project]
-    op.run(*up)
+    assert "recording: /.*/odom into the server's data volume" in op.run(*up)
     took = wait_until("husky1 and jackal2 online", lambda: online(op, {"husky1", "jackal2"}),
                       ONLINE_TIMEOUT_S)
     print(f"robots online {took:.1f} s after `up` returned")

@@ -120,6 +120,38 @@ async def check_robot_views(page: Any) -> None:
     assert not await page.is_visible("#command-denied")
 
 
+# Fills the scene's problem list and its TF tree as a busy robot's would, reads where the
+# map is after each, and puts both back (one task: the page's own updates cannot run
+# between).
+_MAP_BOX_WHILE_LISTS_GROW = """() => {
+  const box = () => JSON.stringify(document.querySelector('#map-canvas').getBoundingClientRect());
+  const items = (n, text) => Array.from({length: n}, (_, i) =>
+    Object.assign(document.createElement('li'), {textContent: `${text} ${i}`}));
+  const problems = document.querySelector('#scene-problems');
+  const tree = document.querySelector('#tf-tree');
+  const saved = [problems.hidden, [...problems.childNodes], [...tree.childNodes]];
+  problems.replaceChildren(); problems.hidden = true;
+  const before = box();
+  problems.replaceChildren(...items(1, 'a problem')); problems.hidden = false;
+  const one = box();
+  problems.replaceChildren(...items(12, 'a problem'));
+  const many = box();
+  tree.replaceChildren(...items(120, 'frame'));
+  const tall = box();
+  problems.hidden = saved[0]; problems.replaceChildren(...saved[1]);
+  tree.replaceChildren(...saved[2]);
+  return [before, one, many, tall];
+}"""
+
+
+async def check_map_holds_still_while_the_scene_lists_change(page: Any) -> None:
+    """The map stays where it is when the scene's problem list appears or grows and when
+    its TF tree grows (they are above it): an operator aiming a goal would otherwise
+    press on another point of the map."""
+    boxes = await page.evaluate(_MAP_BOX_WHILE_LISTS_GROW)
+    assert len(set(boxes)) == 1, boxes
+
+
 async def wait_map_still(page: Any) -> None:
     """Until the map canvas has stayed in place for 0.5 s (bounded: 15 s)."""
     await page.wait_for_function(
@@ -189,6 +221,7 @@ async def test_operator_sees_fleet_and_robot_and_sends_a_goal(
         await sign_in(page, web.url, OPERATOR_TOKEN)
         await check_overview(page)
         await check_robot_views(page)
+        await check_map_holds_still_while_the_scene_lists_change(page)
 
         await drag_goal(page)
         frame = await next_frame_of(fleet.robots[0], "geometry_msgs/msg/PoseStamped", 10)

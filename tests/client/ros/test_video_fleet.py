@@ -217,17 +217,33 @@ async def viewer(url: str, topic: str, codec: str) -> AsyncIterator[Viewer]:
                 await task
 
 
-async def until(predicate: Any, timeout_s: float, what: str) -> None:
+async def until(predicate: Any, timeout_s: float, what: str,
+                seen: Any = lambda: "") -> None:
+    """Poll *predicate* until true; fail after *timeout_s* with *what* and ``seen()``."""
     deadline = time.monotonic() + timeout_s
     while not predicate():
-        assert time.monotonic() < deadline, f"timed out waiting for {what}"
+        assert time.monotonic() < deadline, f"timed out waiting for {what}; {seen()}"
         await asyncio.sleep(0.02)
+
+
+def _where_frames_went(fleet: Fleet, view: Viewer) -> str:
+    """What each stage saw, for a timeout: the viewer's frames, the client's last stats
+    (frames from ROS, encoded, sent, dropped)."""
+    keys = sum(key for _, _, key in view.received)
+    stats = list(fleet.client.lines.queue)
+    video = stats[-1].get("video", {}).get("/cam1/camera") if stats else None
+    return (f"viewer received {len(view.received)} frames ({keys} keyframes), decoded "
+            f"{len(view.shown)}, asked for {view.asked_while_starting} keyframes; client's "
+            f"last video stats: {video}; client stats: {stats[-1] if stats else None}")
 
 
 def test_viewer_decodes_the_cameras_video(fleet: Fleet) -> None:
     async def scenario() -> Viewer:
         async with viewer(fleet.url, "/cam1/camera", "h264") as view:
-            await until(lambda: len(view.shown) >= 20, STARTUP_S, "20 decoded frames")
+            # ~2 s on an idle machine; a loaded one (CI, every test before this one) has
+            # taken far longer to carry 921 KB camera frames over DDS.
+            await until(lambda: len(view.shown) >= 20, 2 * STARTUP_S, "20 decoded frames",
+                        lambda: _where_frames_went(fleet, view))
             return view
 
     view = asyncio.run(scenario())

@@ -4,10 +4,10 @@
 the one published HTTPS port, signs in with a token, sees both robots and a live scan ->
 the recording fleet.yaml asks for, listed with `recordings --server` on the HTTPS port ->
 `add-robot` a third on the running fleet: it comes online and the other two never reconnect
--> `remove-user`: the token is refused within 2 s with no restart -> restart the server
-container: the registry keeps the robots -> `down` -> `up`: the registry and the
-recordings are still there ->
-`down --delete-data`: the volume is gone.
+-> `remove-user`: the token is refused within 2 s with no restart -> record more topics
+(fleet.yaml, `render`: the server restarts with them): the registry keeps the robots ->
+`down` -> `up`: the registry and the recordings are still there -> `down --delete-data`:
+the volume is gone.
 
 Every step is the `fleetctl` command line a user types (a subprocess); docker compose runs
 the containers. Waits are conditions with deadlines.
@@ -31,6 +31,7 @@ from pathlib import Path
 from typing import Any
 
 import pytest
+import yaml
 from websockets.asyncio.client import connect
 from websockets.exceptions import ConnectionClosed, InvalidStatus
 
@@ -138,6 +139,13 @@ def server_container(project: str) -> str:
                            f"label=com.docker.compose.project={project}", "--filter",
                            "label=com.docker.compose.service=server"],
                           capture_output=True, text=True, check=True).stdout.split()[0]
+
+
+def server_started_at(project: str) -> str:
+    """When the server container's process last started (a restart changes it)."""
+    return subprocess.run(["docker", "inspect", "-f", "{{.State.StartedAt}}",
+                           server_container(project)], capture_output=True, text=True,
+                          check=True).stdout.strip()
 
 
 def server_log(project: str) -> str:
@@ -305,9 +313,18 @@ def test_the_fleet_life_cycle_on_the_real_images(
     assert online(op, set(robots_now))
 
     first_seen = {n: r["first_seen_s"] for n, r in robots(op).items()}
-    subprocess.run(["docker", "restart", server_container(project)], capture_output=True,
-                   check=True)
+    # A server restart as an operator causes one: recording more topics is a fleet.yaml
+    # edit and `render`, which restarts the running server with its new server.yaml.
+    data = yaml.safe_load(fleet_yaml.read_text())  # fleetctl has rewritten it since
+    data["recording"]["topics"] = ["/.*/(odom|status)"]
+    fleet_yaml.write_text(yaml.safe_dump(data, sort_keys=False))
+    started = server_started_at(project)
+    assert "server restarted with the new server.yaml" in op.run("render")
+    assert server_started_at(project) != started
     wait_until("registry after a server restart", lambda: set(robots(op)) >= set(first_seen),
+               ONLINE_TIMEOUT_S)
+    wait_until("the status topics in a recording after the restart",
+               lambda: _recorded(op, listing) >= {"/husky1/status", "/rover3/status"},
                ONLINE_TIMEOUT_S)
     recorded_before = op.json(*listing)
     op.run("down")

@@ -2,8 +2,10 @@
 
 `init` -> `add-robot` -> `up --sim --replicas 2` -> the simulated robot is online and a
 viewer signed in on replica 2 receives its topics (they cross NATS: the robot lists
-replica 1 first) -> `docker kill` replica 1 -> the robot fails over to replica 2, the
-viewer keeps receiving without reconnecting, `status` still lists the robot online ->
+replica 1 first), and relay-1 records it (fleet.yaml's recording, listed on the HTTPS ports)
+-> `docker kill` replica 1 -> the robot fails over to replica 2, the
+viewer keeps receiving without reconnecting, `status` still lists the robot online, relay-2
+records it ->
 `down --delete-data` removes every volume (replicas' databases, NATS stores).
 """
 
@@ -28,6 +30,7 @@ from tests.deploy.test_lifecycle_docker import (
     ONLINE_TIMEOUT_S,
     Operator,
     _free_port,
+    _token_file,
     deployment,  # noqa: F401 (the fixture)
     online,
     wait_until,
@@ -87,6 +90,10 @@ def test_a_robot_fails_over_between_replicas_deployed_by_up(
     op.run("init", str(fleet), "--endpoint", f"127.0.0.1:{udp}")
     op.run("add-robot", "husky1")
     token = op.json("add-user", "alice@example.com", "--role", "viewer")["token"]
+    fleet_yaml = fleet / "fleet.yaml"
+    fleet_yaml.write_text(fleet_yaml.read_text() + 'recording:\n  topics: ["/.*/odom"]\n')
+    op.run("render")
+    recorder = _token_file(op, fleet, "rec@example.com")
     out = op.run("up", "--sim", "--wireguard", "on", "--replicas", "2", "--bind", "127.0.0.1",
                  "--https-port", str(https), "--project", project)
     assert "server_url: [ws://10.8.0.1:8080/, ws://10.8.0.1:8081/]" in out, out
@@ -99,6 +106,17 @@ def test_a_robot_fails_over_between_replicas_deployed_by_up(
     services = {s["service"]: s for s in op.json("status")["services"]}
     assert {"server", "relay-1", "relay-2", "nats-1", "nats-2", "nats-3",
             "robot-husky1"} <= set(services)
+    # Each replica records what its own senders sent, into its own volume, and serves it
+    # on its own HTTPS port: husky1 is on relay-1 (listed first in its client.yaml).
+    def listing(*ports: int) -> list[str]:
+        servers = [arg for port in ports for arg in ("--server", f"https://127.0.0.1:{port}/")]
+        return ["recordings", "list", *servers, "--token-file", str(recorder),
+                "--ca-file", str(fleet / "server" / "tls" / "cert.pem")]
+
+    wait_until("husky1's odometry recorded by relay-1",
+               lambda: any(r["name"].startswith("fleet_relay-1_") and "/husky1/odom"
+                           in r["topics"] for r in op.json(*listing(https, https + 1))),
+               ONLINE_TIMEOUT_S)
     relay1 = container(project, "relay-1")
 
     def kill() -> None:
@@ -108,6 +126,10 @@ def test_a_robot_fails_over_between_replicas_deployed_by_up(
     print(f"relay-1 killed: husky1's topics back on relay-2 after {figures['gap_s']:.2f} s")
     assert figures["gap_s"] < FAILOVER_TIMEOUT_S
     wait_until("husky1 online through relay-2", lambda: online(op, {"husky1"}),
+               ONLINE_TIMEOUT_S)
+    wait_until("husky1's odometry recorded by relay-2 after the failover",
+               lambda: any(r["name"].startswith("fleet_relay-2_") and "/husky1/odom"
+                           in r["topics"] for r in op.json(*listing(https + 1))),
                ONLINE_TIMEOUT_S)
     # The robot's session and the no_drop stream work under up's NATS permissions.
     logs = subprocess.run(["docker", "logs", container(project, "relay-2")],

@@ -48,6 +48,7 @@ from fleetctl.deploy.dockercli import (
 from fleetctl.deploy.fleet import require_fleet_dir
 from fleetctl.deploy.images import image_tag
 from fleetctl.deploy.replicas import check_count
+from fleetctl.deploy.statusrecordings import RecordingSummary, server_recordings
 from fleetctl.errors import ConfigError, ConflictError, EnvironmentMissing, FleetError
 from fleetctl.smallfile import MAX_CONFIG_BYTES, read_small_text
 from fleetctl.wire.control import known_battery
@@ -292,6 +293,8 @@ class StatusReport:
     tunnel: tuple[TunnelPeer, ...] | None = None
     tunnel_note: str = ""
     extra: dict[str, Any] = field(default_factory=dict)
+    recordings: RecordingSummary | None = None
+    recordings_note: str = ""
 
     @property
     def healthy(self) -> bool:
@@ -316,6 +319,9 @@ class StatusReport:
             "robots_error": self.robots_error or None,
             "tunnel": None if self.tunnel is None else [t.__dict__ for t in self.tunnel],
             "tunnel_note": self.tunnel_note or None,
+            "recordings": (None if self.recordings is None else
+                           {**self.recordings.__dict__, "writing": list(self.recordings.writing)}),
+            "recordings_note": self.recordings_note or None,
         }
 
     def render_text(self) -> str:
@@ -339,6 +345,8 @@ class StatusReport:
             lines += [f"{t.robot:<24} {t.address:<16} " + (
                 "never" if t.handshake_age_s is None else f"{t.handshake_age_s:.0f} s ago")
                 for t in self.tunnel] or ["(no peers)"]
+        lines += ["", self.recordings.text() if self.recordings is not None
+                  else f"recording: {self.recordings_note or 'unknown'}"]
         return "\n".join(lines)
 
 
@@ -391,8 +399,9 @@ def status(fleet_dir: Path, options: Options,
     server_id = container_id(fleet_dir, options.project, "server", runner)
     robots, error = _server_robots(server_id, runner)
     tunnel, note = _tunnel(fleet_dir, server_id, runner)
+    recordings, recordings_note = server_recordings(server_id, runner)
     return StatusReport(tuple(sorted(services, key=lambda s: s.service)), robots, error,
-                        tunnel, note)
+                        tunnel, note, recordings=recordings, recordings_note=recordings_note)
 
 
 def _inspect(cid: str, runner: Runner) -> dict[str, Any] | None:

@@ -286,6 +286,8 @@ def test_the_fleet_life_cycle_on_the_real_images(
     wait_until("both robots' odometry in a recording on the HTTPS port",
                lambda: _recorded(op, listing) >= {"/husky1/odom", "/jackal2/odom"},
                ONLINE_TIMEOUT_S)
+    recording = op.json("status")["recordings"]
+    assert recording["files"] >= 1 and len(recording["writing"]) == 1, recording
 
     # Neither adding a robot nor removing a user disturbs the robots already running:
     # their tunnels are not reset (the server's WireGuard counters go on) and the server

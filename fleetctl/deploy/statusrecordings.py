@@ -1,0 +1,75 @@
+"""``fleetctl status``'s recording line: what the deployed server has recorded.
+
+Asked from inside the server container, as ``/robots`` is: ``GET /recordings`` answers a
+loopback caller without a token and lists every file. With replicas the server container
+is their shared network namespace and ``FLEETCTL_HEALTH`` names each replica's health URL:
+each replica is asked, since each records its own senders' frames into its own volume.
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass
+from typing import Any
+
+from fleetctl.deploy.dockercli import Runner
+
+# Prints {"recordings": [...]} with every answering replica's files, {"off": true} when
+# none records, or exits non-zero naming why no replica answered.
+_SNIPPET = (
+    "import json,os,sys,urllib.error,urllib.request\n"
+    "files,off,err=[],0,None\n"
+    "urls=os.environ['FLEETCTL_HEALTH'].split()\n"
+    "for h in urls:\n"
+    "    try:\n"
+    "        files+=json.load(urllib.request.urlopen(h.rsplit('/',1)[0]+'/recordings',"
+    "timeout=3))['recordings']\n"
+    "    except urllib.error.HTTPError as e:\n"
+    "        off+=e.code==404; err=e\n"
+    "    except (OSError,ValueError,KeyError) as e: err=e\n"
+    "if off==len(urls): print(json.dumps({'off':True}))\n"
+    "elif err is not None and not files: sys.exit(f'no replica answered: {err}')\n"
+    "else: print(json.dumps({'recordings':files}))\n"
+)
+
+
+@dataclass(frozen=True)
+class RecordingSummary:
+    """The deployed server's recordings.
+
+    Attributes:
+        files: Recording files (every replica's).
+        bytes: Their size together.
+        writing: Names of the files being written now.
+    """
+
+    files: int
+    bytes: int
+    writing: tuple[str, ...]
+
+    def text(self) -> str:
+        """One line for the status report."""
+        now = f", writing {', '.join(self.writing)}" if self.writing else ""
+        return f"recording: {self.files} file(s), {self.bytes / 1e6:.1f} MB{now}"
+
+
+def server_recordings(server_id: str | None,
+                      runner: Runner) -> tuple[RecordingSummary | None, str]:
+    """``(summary, note)``: the summary, or ``None`` and why (``off`` when the fleet
+    records nothing, fleet.yaml having no ``recording:`` section)."""
+    if server_id is None:
+        return None, "unknown (the server container is not running)"
+    res = runner(["docker", "exec", "--user", "fleetctl", server_id, "python3", "-c",
+                  _SNIPPET], None, True)
+    if res.returncode != 0:
+        last = (res.stderr.strip().splitlines() or ["the server did not answer"])[-1]
+        return None, f"unknown ({last})"
+    try:
+        data: Any = json.loads(res.stdout)
+        if data.get("off"):
+            return None, "off (no recording section in fleet.yaml)"
+        files = data["recordings"]
+        return RecordingSummary(len(files), sum(int(f["bytes"]) for f in files),
+                                tuple(f["name"] for f in files if not f["complete"])), ""
+    except (ValueError, KeyError, TypeError, AttributeError):
+        return None, "unknown (the server's /recordings is not a recordings list)"

@@ -1,0 +1,67 @@
+"""``fleetctl status``'s recording line: the snippet it runs in the server container, run
+here against real relays (the ``docker exec`` prefix stripped, ``FLEETCTL_HEALTH`` as the
+container sets it)."""
+
+from __future__ import annotations
+
+import asyncio
+import os
+import subprocess
+import sys
+from collections.abc import Callable, Sequence
+from pathlib import Path
+
+from fleetctl.deploy.dockercli import Completed, Runner
+from fleetctl.deploy.statusrecordings import RecordingSummary, server_recordings
+from fleetctl.server.app import RelayServer
+from fleetctl.server.recording.config import RecordingConfig, RecordingRule
+from tests.server.conftest import client, make_server, wait_for  # noqa: F401 (fixture)
+from tests.support import string_frame
+
+DEADLINE_S = 30.0
+
+
+def in_container(health_urls: list[str]) -> Runner:
+    """Runs ``docker exec --user fleetctl ID python3 -c ...`` as the container would."""
+
+    def run(argv: Sequence[str], stdin: bytes | None, capture: bool) -> Completed:
+        assert list(argv[:5]) == ["docker", "exec", "--user", "fleetctl", "server-id"]
+        command = [sys.executable if argv[5] == "python3" else argv[5], *argv[6:]]
+        res = subprocess.run(command, capture_output=True, text=True, timeout=30, check=False,
+                             env={**os.environ, "FLEETCTL_HEALTH": " ".join(health_urls)})
+        return Completed(list(argv), res.returncode, res.stdout, res.stderr)
+
+    return run
+
+
+def health(srv: RelayServer) -> str:
+    return f"http://127.0.0.1:{srv.port}/healthz"
+
+
+async def test_every_replicas_recordings_are_summed(
+        make_server: Callable[..., RelayServer], tmp_path: Path) -> None:  # noqa: F811
+    config = RecordingConfig(tmp_path / "rec", (RecordingRule(".*"),), flush_interval_s=0.05)
+    async with make_server(recording=config) as srv, \
+            make_server(database=tmp_path / "plain.db") as plain, \
+            client(srv, source="127.0.0.2") as husky1:
+        recorder = srv.recorder
+        assert recorder is not None
+        await husky1.send(string_frame("/husky1/chat", "hello", seq=1))
+        await wait_for(lambda: recorder.snapshot()["messages"] == 1, DEADLINE_S)
+        summary, note = await asyncio.to_thread(
+            server_recordings, "server-id", in_container([health(srv), health(plain)]))
+        assert note == ""
+        assert isinstance(summary, RecordingSummary) and summary.files == 1
+        assert summary.writing == (Path(str(recorder.current_path)).name,)
+        assert summary.text().startswith("recording: 1 file(s), ")
+        # A fleet without a recording section: every relay says it records nothing.
+        assert await asyncio.to_thread(server_recordings, "server-id",
+                                       in_container([health(plain)])) == (
+            None, "off (no recording section in fleet.yaml)")
+        stopped = [health(srv), health(plain)]
+    # No relay answers (both stopped): unknown, and why.
+    summary, note = await asyncio.to_thread(server_recordings, "server-id",
+                                            in_container(stopped))
+    assert summary is None and note.startswith("unknown (no replica answered:")
+    assert server_recordings(None, in_container([])) == (
+        None, "unknown (the server container is not running)")

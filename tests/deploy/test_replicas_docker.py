@@ -117,6 +117,7 @@ def test_a_robot_fails_over_between_replicas_deployed_by_up(
                lambda: any(r["name"].startswith("fleet_relay-1_") and "/husky1/odom"
                            in r["topics"] for r in op.json(*listing(https, https + 1))),
                ONLINE_TIMEOUT_S)
+    assert op.json("status")["recordings"]["files"] >= 1  # asked of every replica
     relay1 = container(project, "relay-1")
 
     def kill() -> None:

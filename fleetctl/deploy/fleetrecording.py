@@ -5,7 +5,8 @@ Example::
     recording:
       topics: ["/.*/(map|odom|tf|tf_static)", "/husky1/.*"]   # RE2, full match
       max_total_bytes: 10737418240    # the oldest files go past this (default 10 GiB)
-      max_file_bytes: 268435456       # a file is rotated before this (default 256 MiB)
+      max_file_bytes: 268435456       # a file is rotated before this (default 256 MiB,
+                                      # or half of max_total_bytes when that is less)
       max_age_s: 604800               # files older than this go; omitted: no age bound
 
 It renders into server.yaml's ``recording:`` section (docs/server.md, "Recording") with
@@ -70,11 +71,15 @@ def build_recording(doc: Document, node: yaml.Node) -> FleetRecording | None:
         return doc.integer(f[key], (*path, key), low, high) if key in f else None
 
     total = integer("max_total_bytes", 2 * MIN_FILE_BYTES, MAX_BYTES)
+    total = DEFAULT_MAX_TOTAL_BYTES if total is None else total
     per_file = integer("max_file_bytes", MIN_FILE_BYTES, MAX_BYTES)
     return FleetRecording(
         topics=topics,
-        max_total_bytes=DEFAULT_MAX_TOTAL_BYTES if total is None else total,
-        max_file_bytes=DEFAULT_MAX_FILE_BYTES if per_file is None else per_file,
+        max_total_bytes=total,
+        # Unsaid, it follows a small total (a 100 MB budget: 50 MB files), rather than
+        # refusing a default the operator never wrote.
+        max_file_bytes=min(DEFAULT_MAX_FILE_BYTES, total // 2) if per_file is None
+        else per_file,
         max_age_s=integer("max_age_s", MIN_AGE_S, MAX_AGE_S),
     )
 

@@ -41,6 +41,10 @@ def test_section_is_read_with_defaults_and_written_back() -> None:
     assert bounded.recording == FleetRecording(("/.*/map", "/husky1/.*"), 4194304, 2097152,
                                                86400)
     assert parse_fleet(Path("fleet.yaml"), dump_fleet(bounded)) == bounded
+    # A small budget without a file size: files of half the budget, not an error about a
+    # default the operator never wrote.
+    small = parse_fleet(Path("fleet.yaml"), GOOD + SECTION + "  max_total_bytes: 104857600\n")
+    assert small.recording is not None and small.recording.max_file_bytes == 52428800
 
 
 @pytest.mark.parametrize(

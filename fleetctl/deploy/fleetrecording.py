@@ -98,6 +98,10 @@ def check_recording(recording: FleetRecording) -> None:
         raise FleetInvalid((*path, "topics"), f"{len(recording.topics)} patterns; at most "
                            f"{MAX_TOPICS} (one pattern can list many topics: /a|/b)")
     for i, topic in enumerate(recording.topics):
+        if not topic:
+            # It would match only the empty topic, which no frame has; the server refuses it.
+            raise FleetInvalid((*path, "topics", i), "empty pattern: give an RE2 regex of "
+                               "topics (e.g. /husky1/.*)")
         try:
             compile_full(topic)
         except BadRegex as exc:

@@ -56,6 +56,8 @@ def test_section_is_read_with_defaults_and_written_back() -> None:
          "/f/fleet.yaml:{2}: recording: missing required field 'topics'"),
         ('recording:\n  topics: ["("]\n',
          "/f/fleet.yaml:{2}: recording.topics[0]: not a valid RE2 regex '('"),
+        ('recording:\n  topics: ["/a", ""]\n',
+         "/f/fleet.yaml:{2}: recording.topics[1]: empty pattern"),
         ('recording:\n  topics: ["/' + "a" * 4096 + '"]\n',
          "/f/fleet.yaml:{2}: recording.topics[0]: not a valid RE2 regex '/aaa"),
         ('recording:\n  topics: [".*"]\n  max_file_bytes: 8388608\n  max_total_bytes: 8388608\n',
@@ -71,7 +73,7 @@ def test_section_is_read_with_defaults_and_written_back() -> None:
         ("recording:\n  topics:\n" + '    - "/a"\n' * 65,
          "/f/fleet.yaml:{3}: recording.topics: 65 patterns; at most 64"),
     ],
-    ids=["no-topics", "topics-missing", "bad-regex", "long-regex", "file-over-half",
+    ids=["no-topics", "topics-missing", "bad-regex", "empty-regex", "long-regex", "file-over-half",
          "file-too-small", "age-not-integer", "directory-not-a-field", "topics-not-a-list",
          "too-many-topics"],
 )

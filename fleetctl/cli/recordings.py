@@ -96,9 +96,9 @@ class RemoteRecording:
     server: str = ""
 
 
-def _unreachable(reason: object) -> str:
-    """Why a request failed, in the user's terms: a TLS handshake with a plain port, or a
-    certificate not trusted, is not "cannot reach it"."""
+def _unreachable(reason: object, scheme: str = "https") -> str:
+    """Why a request failed, in the user's terms: a TLS handshake with a plain port, a
+    plain request to a TLS port, or a certificate not trusted, is not "cannot reach it"."""
     if isinstance(reason, ssl.SSLCertVerificationError):
         # The usual first try against `fleetctl up`: its certificate is self-signed.
         return (f"its certificate is not trusted ({reason.verify_message}): give the CA "
@@ -107,6 +107,11 @@ def _unreachable(reason: object) -> str:
     if isinstance(reason, ssl.SSLError):
         return ("no TLS server answered there (a plain ws:// or http:// port? use the TLS "
                 f"port, e.g. the web listener): {reason}")
+    if scheme == "http" and isinstance(reason, ConnectionResetError):
+        # http.client.RemoteDisconnected is one: a TLS listener (`fleetctl up`'s HTTPS
+        # port) hangs up on a plain request without a word.
+        return (f"the server closed the connection without an answer (a TLS port? use "
+                f"https:// or wss://): {reason}")
     return f"cannot reach it: {reason}"
 
 
@@ -159,10 +164,13 @@ class Remote:
                 return resp.status, dict(resp.headers), resp.read()
         except urllib.error.HTTPError as exc:
             detail = exc.read().decode("utf-8", "replace").strip()
+            if exc.code == 401 and self.token is None:
+                detail += " (give it with --token-file FILE)"
             raise FleetError(f"{self.url}: GET {path}: {exc.code} {detail}") from None
         except (urllib.error.URLError, OSError) as exc:
             reason = getattr(exc, "reason", exc)
-            raise FleetError(f"--server {self.url}: {_unreachable(reason)}") from None
+            raise FleetError(f"--server {self.url}: "
+                             f"{_unreachable(reason, parts.scheme)}") from None
 
 
 def list_remote(remote: Remote) -> list[RemoteRecording]:

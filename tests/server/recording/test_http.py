@@ -134,8 +134,13 @@ async def test_the_web_listener_serves_recordings_to_token_holders(
         fetched = await asyncio.to_thread(fetch_remote, Remote(url, ALICE_TOKEN, cert),
                                           seen.name, tmp_path)
         assert fetched.messages == 5
-        with pytest.raises(FleetError, match=r"401.*needs a Bearer token"):
+        with pytest.raises(FleetError, match=r"401.*needs a Bearer token.*--token-file"):
             await asyncio.to_thread(list_remote, Remote(url, None, cert))
+        # Plain http:// to the TLS port: the server hangs up; it said "cannot reach it".
+        for plain in (f"http://127.0.0.1:{srv.web_port}", f"ws://127.0.0.1:{srv.web_port}"):
+            with pytest.raises(FleetError, match=r"closed the connection without an answer "
+                               r"\(a TLS port\? use https:// or wss://\)"):
+                await asyncio.to_thread(list_remote, Remote(plain, ALICE_TOKEN, cert))
         with pytest.raises(FleetError, match=r"401.*matches no user"):
             await asyncio.to_thread(list_remote, Remote(url, "not-a-token", cert))
         with pytest.raises(FleetError, match=r"not trusted.*--ca-file"):

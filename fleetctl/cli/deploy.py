@@ -125,8 +125,7 @@ def up(
             lines += [f"replicas: {result.replicas} (pages: {' '.join(result.page_urls)})"]
         if result.recording_topics:
             lines += [f"recording: {' '.join(result.recording_topics)} into the server's "
-                      f"data volume (fleetctl recordings list --server {result.url} "
-                      "--token-file FILE)"]
+                      f"data volume ({result.recordings_command})"]
         if recorded_now is not None:
             lists = (f"every replica: server_url: [{', '.join(result.robot_urls)}]"
                      if count > 1 else "the one server")

@@ -70,6 +70,7 @@ class UpResult:
     robot_urls: tuple[str, ...] = ()  # with replicas: every replica, for robots' server_url
     page_urls: tuple[str, ...] = ()
     recording_topics: tuple[str, ...] = ()  # fleet.yaml's recording: what the server records
+    recordings_command: str = ""  # how to list them (every replica, the CA when self-signed)
 
 
 def compose_command(runner: Runner = subprocess_runner) -> list[str]:
@@ -189,7 +190,19 @@ def up(fleet_dir: Path, options: Options, progress: Progress = print,
     topics = tuple(str(rule["topic"]) for rule in recording["rules"]) if recording else ()
     return UpResult(path, plan.wireguard_note, plan.url,
                     tuple(r.name for r in plan.robots), options.sim, options.replicas, *urls,
-                    recording_topics=topics)
+                    recording_topics=topics,
+                    recordings_command=recordings_command(plan, urls[1]) if topics else "")
+
+
+def recordings_command(plan: ComposePlan, page_urls: tuple[str, ...]) -> str:
+    """The ``fleetctl recordings list`` line that works against this deployment: every
+    replica's HTTPS port (each records its own senders' frames) and, with the fleet's own
+    self-signed certificate, ``--ca-file`` (without it the command fails on the
+    certificate)."""
+    servers = " ".join(f"--server {url}" for url in page_urls or (plan.url,))
+    self_signed = plan.fleet_dir / "server" / "tls" / "cert.pem"
+    ca = f" --ca-file {self_signed}" if plan.tls_cert == self_signed else ""
+    return f"fleetctl recordings list {servers} --token-file FILE{ca}"
 
 
 def _up_args(plan: ComposePlan, robots_only: bool) -> list[str]:

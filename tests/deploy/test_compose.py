@@ -117,6 +117,16 @@ def test_recordings_go_to_the_data_volume_of_each_relay(fleet: Path) -> None:
     result = composerun.up(fleet, _opts(fleet, wireguard="off"), progress=lambda _: None,
                            runner=FakeDocker())
     assert result.recording_topics == ("/.*/map",)
+    # ... and how to list them: the line printed lacked --ca-file, so as printed it failed
+    # on the fleet's self-signed certificate; with replicas it named only the first.
+    cert = fleet.resolve() / "server" / "tls" / "cert.pem"
+    assert result.recordings_command == (
+        f"fleetctl recordings list --server {result.url} --token-file FILE --ca-file {cert}")
+    two = compose.plan_for(fleet, _opts(fleet, wireguard="off", replicas=2))
+    servers = composereplicas.page_urls(two)
+    assert composerun.recordings_command(two, tuple(servers)) == (
+        f"fleetctl recordings list --server {servers[0]} --server {servers[1]} "
+        f"--token-file FILE --ca-file {cert}")
 
 
 def test_robot_config_without_endpoint_gets_one_inside_compose(fleet: Path) -> None:

@@ -304,7 +304,8 @@ def recording_dir(config: Path | None, directory: Path | None) -> Path:
             raise ConfigError(f"--dir {directory}: {what}")
         return directory
     if config is None:
-        raise ConfigError("give --config server.yaml or --dir DIR")
+        raise ConfigError("give --server URL (the HTTPS port, with --token-file and "
+                          "--ca-file), --config server.yaml or --dir DIR")
     recording = load_server_config(config).recording
     if recording is None:
         raise ConfigError(f"{config}: field 'recording' is not set: the server records "

@@ -113,6 +113,11 @@ def test_config_dir_and_server_are_one_or_the_other(
         assert capsys.readouterr().err == (f"fleetctl: error: {named} given: use one of "
                                            "--config, --dir and --server\n")
     assert not (tmp_path / "out").exists()
+    # None of them (a --token-file alone): the message named only --config and --dir.
+    assert main(["recordings", *command, "--token-file", str(config)]) == ExitCode.CONFIG
+    assert capsys.readouterr().err == ("fleetctl: error: give --server URL (the HTTPS port, "
+                                       "with --token-file and --ca-file), --config "
+                                       "server.yaml or --dir DIR\n")
 
 
 def test_fetch_writes_a_complete_copy_of_an_open_file(

@@ -10,6 +10,7 @@ from __future__ import annotations
 import ipaddress
 import json
 import re
+import shlex
 import shutil
 import subprocess
 import time
@@ -201,7 +202,7 @@ def recordings_command(plan: ComposePlan, page_urls: tuple[str, ...]) -> str:
     certificate)."""
     servers = " ".join(f"--server {url}" for url in page_urls or (plan.url,))
     self_signed = plan.fleet_dir / "server" / "tls" / "cert.pem"
-    ca = f" --ca-file {self_signed}" if plan.tls_cert == self_signed else ""
+    ca = f" --ca-file {shlex.quote(str(self_signed))}" if plan.tls_cert == self_signed else ""
     return f"fleetctl recordings list {servers} --token-file FILE{ca}"
 
 

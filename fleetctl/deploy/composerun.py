@@ -49,7 +49,7 @@ from fleetctl.deploy.dockercli import (
 from fleetctl.deploy.fleet import require_fleet_dir
 from fleetctl.deploy.images import image_tag
 from fleetctl.deploy.replicas import check_count
-from fleetctl.deploy.statusrecordings import RecordingSummary, server_recordings
+from fleetctl.deploy.statusrecordings import RecordingSummary, exec_error, server_recordings
 from fleetctl.errors import ConfigError, ConflictError, EnvironmentMissing, FleetError
 from fleetctl.smallfile import MAX_CONFIG_BYTES, read_small_text
 from fleetctl.wire.control import known_battery
@@ -447,7 +447,7 @@ def _server_robots(server_id: str | None,
     res = runner(["docker", "exec", "--user", "fleetctl", server_id, "python3", "-c",
                   _ROBOTS_SNIPPET], None, True)
     if res.returncode != 0:
-        return None, (res.stderr.strip().splitlines() or ["server did not answer"])[-1]
+        return None, exec_error(res.stderr, server_id)
     try:
         data = json.loads(res.stdout)
     except json.JSONDecodeError:

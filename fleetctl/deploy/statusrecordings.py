@@ -9,6 +9,7 @@ each replica is asked, since each records its own senders' frames into its own v
 from __future__ import annotations
 
 import json
+import re
 from dataclasses import dataclass
 from typing import Any
 
@@ -53,6 +54,15 @@ class RecordingSummary:
         return f"recording: {self.files} file(s), {self.bytes / 1e6:.1f} MB{now}"
 
 
+def exec_error(stderr: str, container: str) -> str:
+    """The last line of a failed ``docker exec`` in *container* (``docker ps``'s short
+    id), Docker's 64-character form of the id ("Container <id> is restarting") shortened
+    to it."""
+    last = (stderr.strip().splitlines() or ["the server did not answer"])[-1]
+    short = container[:12]
+    return re.sub(rf"\b{re.escape(short)}[0-9a-f]{{52}}\b", short, last)
+
+
 def server_recordings(server_id: str | None,
                       runner: Runner) -> tuple[RecordingSummary | None, str]:
     """``(summary, note)``: the summary, or ``None`` and why (``off`` when the fleet
@@ -62,8 +72,7 @@ def server_recordings(server_id: str | None,
     res = runner(["docker", "exec", "--user", "fleetctl", server_id, "python3", "-c",
                   _SNIPPET], None, True)
     if res.returncode != 0:
-        last = (res.stderr.strip().splitlines() or ["the server did not answer"])[-1]
-        return None, f"unknown ({last})"
+        return None, f"unknown ({exec_error(res.stderr, server_id)})"
     try:
         data: Any = json.loads(res.stdout)
         if data.get("off"):

@@ -12,7 +12,7 @@ from collections.abc import Callable, Sequence
 from pathlib import Path
 
 from fleetctl.deploy.dockercli import Completed, Runner
-from fleetctl.deploy.statusrecordings import RecordingSummary, server_recordings
+from fleetctl.deploy.statusrecordings import RecordingSummary, exec_error, server_recordings
 from fleetctl.server.app import RelayServer
 from fleetctl.server.recording.config import RecordingConfig, RecordingRule
 from tests.server.conftest import client, make_server, wait_for  # noqa: F401 (fixture)
@@ -65,3 +65,11 @@ async def test_every_replicas_recordings_are_summed(
     assert summary is None and note.startswith("unknown (no replica answered:")
     assert server_recordings(None, in_container([])) == (
         None, "unknown (the server container is not running)")
+
+
+def test_a_failed_exec_names_the_container_as_docker_ps_does() -> None:
+    full = "3f2a" + "0" * 60  # Docker's message; `docker ps -q` gave the first 12
+    said = f"Error response from daemon: Container {full} is restarting, wait until it runs\n"
+    assert exec_error(said, full[:12]) == ("Error response from daemon: Container "
+                                           "3f2a00000000 is restarting, wait until it runs")
+    assert exec_error("", full[:12]) == "the server did not answer"

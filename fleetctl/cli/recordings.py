@@ -148,6 +148,10 @@ class Remote:
         if parts.scheme not in ("http", "https") or not parts.hostname:
             raise ConfigError(f"--server {self.url}: expected a ws://, wss://, http:// or "
                               "https:// URL with a host")
+        if parts.query or parts.fragment or base.endswith(("?", "#")):
+            # The paths are appended to the URL: a query would swallow them.
+            raise ConfigError(f"--server {self.url}: give the server's URL without a ?query "
+                              "or #fragment (e.g. https://HOST:8443/)")
         request = urllib.request.Request(base + path)
         if self.token is not None:
             request.add_header("Authorization", f"Bearer {self.token}")

@@ -345,6 +345,8 @@ def test_replay_command_line_with_a_token_file(
     ("https://h:99999/", "not a URL: Port out of range"),
     ("x", "expected a ws://, wss://, http:// or https:// URL with a host"),
     ("https://", "expected a ws://, wss://, http:// or https:// URL with a host"),
+    ("https://h:8443/?x=1", "give the server's URL without a ?query or #fragment"),
+    ("https://h:8443/#top", "give the server's URL without a ?query or #fragment"),
 ])
 def test_a_bad_server_url_is_one_line(tmp_path: Path, capsys: pytest.CaptureFixture[str],
                                       url: str, expected: str) -> None:

@@ -79,6 +79,9 @@ CONTEXTS: dict[str, dict[str, Any]] = {
     "server/server.yaml.j2": {
         "fleet_name": "campus", "listen_port": 8080, "https_port": 8443,
         "tls_cert": "tls/cert.pem", "tls_key": "../keys/tls.key",
+        # fleet.yaml's recording section (a FleetRecording; its fields by name).
+        "recording": {"topics": ["/.*/map", "/husky1/.*"], "max_file_bytes": 268435456,
+                      "max_total_bytes": 10737418240, "max_age_s": 604800},
     },
     "robot/fleetctl-client.service.j2": {
         "description": "fleetctl robot client of husky1 (fleet campus)", "interface": "fleet0",

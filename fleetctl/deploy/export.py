@@ -26,11 +26,12 @@ from fleetctl.deploy.files import (
     Plan,
     WriteFailed,
 )
-from fleetctl.deploy.fleet import fleet_file, load_fleet, require_endpoint, shown
+from fleetctl.deploy.fleet import fleet_file, load_fleet, require_endpoint
 from fleetctl.deploy.keystore import load_robot_keys, load_server_key
 from fleetctl.deploy.operations import ExportResult, finish_plan
 from fleetctl.deploy.render import FleetKeys
 from fleetctl.deploy.selfwheel import fleetctl_wheel
+from fleetctl.deploy.yamlnodes import shown
 from fleetctl.errors import ConfigError, ConflictError
 
 TARBALL_SUFFIXES = (".tar.gz", ".tgz")

@@ -31,6 +31,7 @@ from fleetctl.deploy.topics import (
     build_subscribe,
     build_tf,
     check_publish,
+    check_regex,
     check_subscribe,
     check_tf,
     check_topic,
@@ -39,9 +40,8 @@ from fleetctl.deploy.topics import (
     dump_subscribe,
     dump_tf,
 )
-from fleetctl.deploy.yamlnodes import Document, FieldPath, FleetInvalid
+from fleetctl.deploy.yamlnodes import Document, FieldPath, FleetInvalid, shown
 from fleetctl.errors import ConfigError
-from fleetctl.server.regex import BadRegex, compile_full
 from fleetctl.smallfile import read_small_text
 
 __all__ = ["FleetInvalid"]  # defined beside Document, raised and re-exported here
@@ -235,11 +235,6 @@ class Fleet:
 # --- validation ------------------------------------------------------------------------
 
 
-def shown(value: str, limit: int = 40) -> str:
-    """Return ``repr(value)``, cut to about *limit* characters (for one-line errors)."""
-    return repr(value) if len(value) <= limit else repr(value[:limit]) + "..."
-
-
 def check_robot_name(name: str) -> None:
     """Raise :class:`FleetInvalid` unless *name* is a valid ROS namespace segment of at
     most :data:`MAX_NAME_CHARS` characters."""
@@ -284,18 +279,6 @@ def check_email(email: str) -> None:
             and " " not in email):
         raise FleetInvalid(("email",), f"{shown(email)} is not an email address (one '@', "
                            "printable, no spaces)")
-
-
-def check_regex(pattern: str, path: FieldPath) -> None:
-    """Raise :class:`FleetInvalid` unless the relay accepts *pattern*.
-
-    The relay's own compiler decides (RE2, its length bound, UTF-8 text): a pattern that
-    passed a separate check here could render into an auth.yaml the server refuses at start.
-    """
-    try:
-        compile_full(pattern)
-    except BadRegex as exc:
-        raise FleetInvalid(path, f"not a valid RE2 regex {shown(pattern)}: {exc}") from None
 
 
 def parse_endpoint(endpoint: str) -> tuple[str, int]:

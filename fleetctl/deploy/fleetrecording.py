@@ -25,8 +25,8 @@ from dataclasses import dataclass
 
 import yaml
 
+from fleetctl.deploy.topics import check_regex
 from fleetctl.deploy.yamlnodes import Document, FieldPath, FleetInvalid
-from fleetctl.server.regex import BadRegex, compile_full
 
 MIB = 1024 * 1024
 DEFAULT_MAX_TOTAL_BYTES = 10 * 1024 * MIB
@@ -102,12 +102,7 @@ def check_recording(recording: FleetRecording) -> None:
             # It would match only the empty topic, which no frame has; the server refuses it.
             raise FleetInvalid((*path, "topics", i), "empty pattern: give an RE2 regex of "
                                "topics (e.g. /husky1/.*)")
-        try:
-            compile_full(topic)
-        except BadRegex as exc:
-            shown = repr(topic) if len(topic) <= 40 else repr(topic[:40]) + "..."
-            raise FleetInvalid((*path, "topics", i),
-                               f"not a valid RE2 regex {shown}: {exc}") from None
+        check_regex(topic, (*path, "topics", i))
     bounds = (("max_total_bytes", recording.max_total_bytes, 2 * MIN_FILE_BYTES, MAX_BYTES),
               ("max_file_bytes", recording.max_file_bytes, MIN_FILE_BYTES, MAX_BYTES))
     for key, value, low, high in bounds:

@@ -28,7 +28,8 @@ from fleetctl.client.config import (
     VideoSpec,
     ViewerCloudSpec,
 )
-from fleetctl.deploy.yamlnodes import Document, FieldPath, FleetInvalid
+from fleetctl.deploy.yamlnodes import Document, FieldPath, FleetInvalid, shown
+from fleetctl.server.regex import BadRegex, compile_full
 
 # As fleetctl.client.config: absolute, tokens of [A-Za-z0-9_] separated by single slashes.
 TOPIC = re.compile(r"(/[A-Za-z_][A-Za-z0-9_]*)+")
@@ -138,6 +139,18 @@ def check_type(name: str, path: FieldPath) -> None:
     if normalized not in _known_types():
         raise FleetInvalid(path, f"unknown ROS type {name!r} (not in the ROS 2 Jazzy type "
                                  "store nor fleetctl's shipped types)")
+
+
+def check_regex(pattern: str, path: FieldPath) -> None:
+    """Raise :class:`FleetInvalid` unless the relay accepts *pattern*.
+
+    The relay's own compiler decides (RE2, its length bound, UTF-8 text): a pattern that
+    passed a separate check here could render into an auth.yaml the server refuses at start.
+    """
+    try:
+        compile_full(pattern)
+    except BadRegex as exc:
+        raise FleetInvalid(path, f"not a valid RE2 regex {shown(pattern)}: {exc}") from None
 
 
 def check_topic(topic: str, path: FieldPath) -> None:

@@ -23,6 +23,11 @@ _BOOL = "tag:yaml.org,2002:bool"
 _DECIMAL = re.compile(r"[-+]?(0|[1-9][0-9]{0,29})")
 
 
+def shown(value: str, limit: int = 40) -> str:
+    """Return ``repr(value)``, cut to about *limit* characters (for one-line errors)."""
+    return repr(value) if len(value) <= limit else repr(value[:limit]) + "..."
+
+
 class FleetInvalid(Exception):
     """A semantic error in a fleet, with the field path it concerns.
 

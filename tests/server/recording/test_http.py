@@ -6,6 +6,7 @@ from __future__ import annotations
 import asyncio
 from collections.abc import Callable
 from pathlib import Path
+from typing import Any
 
 import pytest
 from mcap.reader import make_reader
@@ -18,6 +19,7 @@ from fleetctl.server.recording import files
 from fleetctl.server.recording.config import RecordingConfig, RecordingRule
 from fleetctl.server.recording.http import MAX_RANGE_BYTES
 from fleetctl.server.recording.mcapfile import McapFile
+from fleetctl.server.recording.recorder import Recorder
 from fleetctl.wire import samples
 from fleetctl.wire.codec import default_codec
 from tests.server.certs import self_signed
@@ -29,17 +31,23 @@ DEADLINE_S = 30.0
 IMAGE = "sensor_msgs/msg/CompressedImage"
 
 
+async def send_chat(srv: RelayServer, robot: Any, n: int) -> Recorder:
+    """*n* chat lines from *robot* on /husky1/chat, once the recorder has them all."""
+    recorder = srv.recorder
+    assert recorder is not None
+    for i in range(n):
+        await robot.send(string_frame("/husky1/chat", f"one {i}", seq=i + 1))
+    await wait_for(lambda: recorder.snapshot()["messages"] == n, DEADLINE_S)
+    return recorder
+
+
 async def test_listing_and_fetching_follow_the_receive_rules(
         make_server: Callable[..., RelayServer], tmp_path: Path) -> None:
     config = RecordingConfig(tmp_path / "rec", (RecordingRule(".*"),), flush_interval_s=0.05)
     async with make_server(recording=config) as srv, \
             client(srv, source="127.0.0.2") as husky1, \
             client(srv, source="127.0.0.3") as husky2:
-        recorder = srv.recorder
-        assert recorder is not None
-        for i in range(20):
-            await husky1.send(string_frame("/husky1/chat", f"one {i}", seq=i + 1))
-        await wait_for(lambda: recorder.snapshot()["messages"] == 20, DEADLINE_S)
+        recorder = await send_chat(srv, husky1, 20)
         await wait_for(lambda: recorder.current_topics == ["/husky1/chat"], DEADLINE_S)
         url = srv.url
         operator, alice, bob = (Remote(url), Remote(url, ALICE_TOKEN),
@@ -121,11 +129,7 @@ async def test_the_web_listener_serves_recordings_to_token_holders(
     web = WebConfig(tls_cert=cert, tls_key=key, listen_host="127.0.0.1", listen_port=0)
     async with make_server(recording=config, web=web) as srv, \
             client(srv, source="127.0.0.2") as husky1:
-        recorder = srv.recorder
-        assert recorder is not None
-        for i in range(5):
-            await husky1.send(string_frame("/husky1/chat", f"one {i}", seq=i + 1))
-        await wait_for(lambda: recorder.snapshot()["messages"] == 5, DEADLINE_S)
+        await send_chat(srv, husky1, 5)
         url = f"https://127.0.0.1:{srv.web_port}"
         [seen] = await asyncio.to_thread(list_remote, Remote(url, BOB_TOKEN, cert))
         assert seen.topics == ["/husky1/chat"]

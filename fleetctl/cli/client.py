@@ -8,7 +8,9 @@ from pathlib import Path
 
 import typer
 
-from fleetctl.errors import ConfigError, EnvironmentMissing
+from fleetctl.errors import ConfigError, EnvironmentMissing, ExitCode, FleetError
+
+_LOG_LEVELS = ("DEBUG", "INFO", "WARNING", "ERROR")
 
 
 def _client(
@@ -20,6 +22,9 @@ def _client(
     """Run the robot client: local ROS 2 topics to the fleet server and back."""
     from fleetctl.client.config import load_client_config
 
+    if log_level.upper() not in _LOG_LEVELS:  # logging's ValueError was a traceback
+        raise FleetError(f"--log-level: unknown level {log_level!r}; use one of "
+                         f"{', '.join(_LOG_LEVELS)}", exit_code=ExitCode.USAGE)
     logging.basicConfig(level=log_level.upper(),
                         format="%(asctime)s %(levelname)s %(name)s: %(message)s")
     loaded = load_client_config(config)  # before rclpy: a bad file fails fast, named

@@ -33,6 +33,7 @@ from fleetctl.client.mediaconfig import (
     viewer_cloud_spec,
 )
 from fleetctl.client.serverurls import parse_server_urls
+from fleetctl.errors import ConfigError
 from fleetctl.smallfile import MAX_SECRET_BYTES, read_small_text
 from fleetctl.yamlfile import read_yaml
 
@@ -260,6 +261,9 @@ def parse_client_config(
         ConfigError: An entry is invalid; the message names source, entry and field.
     """
     ctx = _Ctx(source)
+    if data is None:  # yaml.safe_load of an empty file; "got NoneType" said nothing
+        raise ConfigError(f"{source}: the file is empty (a client config needs at least "
+                          "server_url and robot_name)")
     top = _mapping(ctx, data, "", "document", _TOP_KEYS)
     server_url, *failover_urls = parse_server_urls(ctx, top)
     robot_name = _str(ctx, top, "", "robot_name", required=True)

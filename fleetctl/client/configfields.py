@@ -8,6 +8,7 @@ reader takes the :class:`Ctx` of the document, ``where`` (the entry, e.g.
 
 from __future__ import annotations
 
+import difflib
 import math
 from collections.abc import Callable, Mapping
 from typing import Any
@@ -40,7 +41,11 @@ def mapping(
         raise ctx.error(where, name, f"must be a mapping, got {type(value).__name__}")
     unknown = sorted(str(k) for k in value if k not in allowed)
     if unknown:
-        raise ctx.error(where, unknown[0], f"unknown field (allowed: {', '.join(sorted(allowed))})")
+        # A typo (``publsh``, ``typ``) gets the field it most likely meant.
+        close = difflib.get_close_matches(unknown[0], sorted(allowed), n=1, cutoff=0.75)
+        hint = f"did you mean {close[0]}? " if close else ""
+        raise ctx.error(where, unknown[0],
+                        f"unknown field ({hint}allowed: {', '.join(sorted(allowed))})")
     return value
 
 

@@ -40,8 +40,9 @@ class LinkTuning:
         tune_malloc: Raise glibc's malloc thresholds when :meth:`RobotLink.run` starts
             (process-wide; see :mod:`fleetctl.client.memory`).
         bind_reminder_interval_s: While ``bind_address`` is on no interface (the tunnel is
-            down), the failed attempts are logged at DEBUG, with a WARNING reminder at most
-            this often, seconds (the first one explains).
+            down), or the server cannot be reached for the same reason, the failed
+            attempts are logged at DEBUG, with a WARNING reminder at most this often,
+            seconds (the first one explains).
         path_poll_s: While an early dial is under way, or a dead path is redialled, how
             often the kernel's TCP state is read again, seconds. Otherwise it is read when
             the path could first be declared dead (data in flight) or right after a

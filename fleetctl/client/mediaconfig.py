@@ -126,6 +126,9 @@ def tf_spec(ctx: Ctx, value: object) -> TfSpec | None:
     """
     if value is None:
         return None
+    if isinstance(value, bool):  # `tf: true` reads naturally but is not the syntax
+        raise ctx.error("", "tf", f"must be a mapping, got {str(value).lower()} "
+                        "(tf: {} turns TF on with the defaults; leave it out for no TF)")
     entry = mapping(ctx, value, "tf", "entry", _TF_KEYS)
     d = TfSpec()
     trans = number(ctx, entry, "tf", "translation_delta_m", d.translation_delta_m,

@@ -298,6 +298,12 @@ class RobotLink:
         self._unbound_since_s: float | None = None
         self._unbound_warned_s = 0.0
         self._unbound_attempts = 0
+        # While the server cannot be reached: since when, the last WARNING, attempts, and
+        # the (url, reason) last warned about (a new reason is warned about at once).
+        self._unreachable_since_s: float | None = None
+        self._unreachable_warned_s = 0.0
+        self._unreachable_attempts = 0
+        self._unreachable_reason = ("", "")
 
     # -- the API used by the ROS node -----------------------------------------------------
 
@@ -688,13 +694,48 @@ class RobotLink:
                 self._log_unbound(delay)
             else:
                 self._log_bound_again()
-                # The token is never logged: only the URL and the reason.
-                logger.warning("cannot connect to %s: %s; retrying in %.2f s",
-                               self.url, exc or type(exc).__name__, delay)
+                self._log_unreachable(str(exc) or type(exc).__name__, delay)
             await self._wait_stop(delay)
             return None
         self._log_bound_again()
+        self._log_reachable_again()
         return ws
+
+    def _log_unreachable(self, reason: str, delay_s: float) -> None:
+        """Log a connect that failed (refused, timed out, a failed upgrade): explain once
+        per outage and reason, then remind every ``bind_reminder_interval_s``; the
+        attempts in between go to DEBUG. A robot started before its server (or through a
+        long server outage) logged a WARNING every few seconds for as long as it lasted.
+        The token is never logged: only the URL and the reason."""
+        now = self._clock()
+        self._unreachable_attempts += 1
+        if self._unreachable_since_s is None:
+            self._unreachable_since_s = now
+        if self._unreachable_reason != (self.url, reason):
+            self._unreachable_reason = (self.url, reason)
+            self._unreachable_warned_s = now
+            logger.warning("cannot connect to %s: %s; retrying every %g s or less, quietly "
+                           "(a reminder every %g s)", self.url, reason,
+                           self.config.limits.reconnect_max_s,
+                           self.tuning.bind_reminder_interval_s)
+        elif now - self._unreachable_warned_s >= self.tuning.bind_reminder_interval_s:
+            self._unreachable_warned_s = now
+            logger.warning("still cannot connect to %s after %.0f s (%d attempts): %s",
+                           self.url, now - self._unreachable_since_s,
+                           self._unreachable_attempts, reason)
+        else:
+            logger.debug("cannot connect to %s: %s; retrying in %.2f s", self.url, reason,
+                         delay_s)
+
+    def _log_reachable_again(self) -> None:
+        """End an outage of the server (a connection was opened), if one ran."""
+        if self._unreachable_since_s is None:
+            return
+        logger.info("reached %s after %.0f s (%d attempts failed)", self.url,
+                    self._clock() - self._unreachable_since_s, self._unreachable_attempts)
+        self._unreachable_since_s = None
+        self._unreachable_attempts = 0
+        self._unreachable_reason = ("", "")
 
     def _log_unbound(self, delay_s: float) -> None:
         """Log a connect that failed with EADDRNOTAVAIL: ``bind_address`` is on no

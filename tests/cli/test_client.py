@@ -45,3 +45,13 @@ def test_uninstalled_message_type_is_a_config_error(tmp_path: Path,
     assert main(["client", "--config", str(config)]) == ExitCode.CONFIG
     err = capsys.readouterr().err
     assert "publish[0] (/diag): type:" in err and "diagnostic_msgs" in err
+
+
+def test_unknown_log_level_is_a_usage_error(tmp_path: Path,
+                                            capsys: pytest.CaptureFixture[str]) -> None:
+    config = tmp_path / "client.yaml"
+    config.write_text("server_url: ws://127.0.0.1:1/\nrobot_name: r\n")
+    assert main(["client", "--config", str(config), "--log-level", "LOUD"]) == ExitCode.USAGE
+    err = capsys.readouterr().err
+    assert "--log-level: unknown level 'LOUD'; use one of DEBUG, INFO, WARNING, ERROR" in err
+    assert "Traceback" not in err

@@ -167,6 +167,13 @@ def test_token_file_is_read_relative_and_never_shown(tmp_path: Path) -> None:
     (minimal(limits={"dial_ahead_of_messages": 1}),
      "limits: dial_ahead_of_messages: must be true or false, got 1"),
     ([1, 2], "document: must be a mapping"),
+    (None, "client.yaml: the file is empty (a client config needs at least server_url and "
+           "robot_name)"),  # was "document: must be a mapping, got NoneType"
+    ({**minimal(), "publsh": []}, "publsh: unknown field (did you mean publish? allowed: "),
+    (minimal(publish=[{"topic": "/a", "typ": "std_msgs/msg/String"}]),
+     "publish[0] (/a): typ: unknown field (did you mean type? allowed: "),
+    (minimal(tf=True), "client.yaml: tf: must be a mapping, got true (tf: {} turns TF on "
+                       "with the defaults; leave it out for no TF)"),
     (minimal(status={"location": "a\nb"}),
      "status: location: must be one line of at most 200 printable characters, got 'a\\nb'"),
     (minimal(status={"location": "x" * 201}), "status: location: must be one line"),

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import asyncio
 import logging
+import socket
 from pathlib import Path
 
 import pytest
@@ -470,6 +471,52 @@ async def test_a_new_outage_is_explained_again(tmp_path: Path,
         await wait_until(lambda: any("cannot connect to" in m for m in _warnings(caplog)))
         link.config = cfg
         await wait_until(lambda: sum("cannot bind" in m for m in _warnings(caplog)) == 2)
+
+
+def _free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return int(s.getsockname()[1])
+
+
+async def test_a_server_down_at_start_is_explained_once_then_reminded(
+    tmp_path: Path, caplog: pytest.LogCaptureFixture
+) -> None:
+    # A robot started before its server: one WARNING saying the link keeps trying, a
+    # reminder every 30 s, the attempts in between at DEBUG (it was a WARNING per attempt,
+    # every 5 s, for as long as the server was down), and one INFO when it is reached.
+    port = _free_port()
+    limits = {"reconnect_min_s": 0.01, "reconnect_max_s": 0.02}
+    cfg = robot_config(url_of(port), tmp_path, limits=limits)
+    clock = ManualClock()
+    caplog.set_level(logging.DEBUG, "fleetctl.client.link")
+    link = RobotLink(cfg, on_frame=lambda f: None, clock=clock,
+                     tuning=LinkTuning(bind_reminder_interval_s=30.0, open_timeout_s=1.0))
+    async with running(link):
+        await wait_until(lambda: link.stats()["connect_failures"] >= 20)
+        warnings = _warnings(caplog)
+        assert len(warnings) == 1, warnings
+        assert warnings[0].startswith(f"cannot connect to {url_of(port)}: ")
+        assert "retrying every 0.02 s or less, quietly (a reminder every 30 s)" in warnings[0]
+
+        clock.now_s += 29.0  # not yet a reminder
+        failures = link.stats()["connect_failures"]
+        await wait_until(lambda: link.stats()["connect_failures"] >= failures + 5)
+        assert len(_warnings(caplog)) == 1
+
+        clock.now_s += 2.0  # 31 s into the outage: one reminder, then quiet again
+        failures = link.stats()["connect_failures"]
+        await wait_until(lambda: link.stats()["connect_failures"] >= failures + 5)
+        warnings = _warnings(caplog)
+        assert len(warnings) == 2, warnings
+        assert warnings[1].startswith(f"still cannot connect to {url_of(port)} after 31 s (")
+
+        async with make_server(tmp_path, port):
+            await wait_until(lambda: link.stats()["connected"])
+            assert any(r.levelno == logging.INFO
+                       and r.getMessage().startswith(f"reached {url_of(port)} after 31 s (")
+                       for r in caplog.records)
+            assert len(_warnings(caplog)) == 2
 
 
 async def test_held_offers_are_written_in_the_callers_turn(

@@ -289,8 +289,8 @@ class RelayServer:
                 cast(str, host_list(hosts)),
                 port,
                 # The gate argument goes to RelayConnection; websockets' annotation is a type.
-                create_connection=cast(Any, functools.partial(RelayConnection,
-                                                              gate=self.gate)),
+                create_connection=cast(Any, functools.partial(
+                    RelayConnection, gate=self.gate, metrics=self.metrics)),
                 process_request=self._web_request if web else self._process_request,
                 process_response=respond,
                 select_subprotocol=self.foxglove.select_subprotocol,

@@ -33,16 +33,28 @@ from collections.abc import Callable
 from typing import Any
 
 from websockets.asyncio.server import ServerConnection
+from websockets.frames import CloseCode, Frame, Opcode
+from websockets.protocol import State
 
 from fleetctl.batched_connection import BatchedWritesConnection
 from fleetctl.frame_sink import FrameSink
 from fleetctl.server.admission import UnauthenticatedGate
 from fleetctl.server.heldpongs import HeldPongs
+from fleetctl.server.metrics import Metrics
 from fleetctl.server.writethrough import WriteThrough
 
 # Why 8 KiB: before authentication a client may send only its token frame (at most 4096
 # characters of JSON); frames or fragmented messages past this close with 1009.
 PRE_AUTH_MAX_FRAME_BYTES = 8 * 1024
+# Frames one fragmented message may have (before authentication, after). Why: websockets
+# bounds a message's payload bytes (max_size), not its frames, and it keeps every frame of
+# a message until the last one comes: empty continuation frames cost nothing against
+# max_size and ~100 bytes of Python each (a client sending them at line rate grew the
+# relay by 60 MB in 6 s, authenticated or not). No client of ours fragments messages at
+# the WebSocket level (fleetctl fragments are messages of their own; browsers send one
+# frame per message).
+PRE_AUTH_MAX_MESSAGE_FRAMES = 64
+MAX_MESSAGE_FRAMES = 4096
 log = logging.getLogger("fleetctl.server")
 ABORT_AFTER_S = 1.0
 # Throttling a client over its control request rate (see RelayConnection.throttle): why
@@ -84,9 +96,15 @@ class RelayConnection(FrameSink, BatchedWritesConnection, ServerConnection):
     """Server connection with a synchronous binary-frame sink and batched writes."""
 
     def __init__(self, *args: Any, gate: UnauthenticatedGate | None = None,
-                 **kwargs: Any) -> None:
+                 metrics: Metrics | None = None, **kwargs: Any) -> None:
         super().__init__(*args, **kwargs)
         self._gate = gate
+        self._metrics = metrics
+        self._max_message_frames = PRE_AUTH_MAX_MESSAGE_FRAMES
+        self._message_frames = 0  # frames of the fragmented message being received
+        self._held_pong: Frame | None = None  # see _send_frame
+        self._pong_paused = False  # not read because of a held pong (no identity yet)
+        self._protocol_send_frame: Callable[[Frame], None] | None = None
         self._slot: str | None = None  # address holding an unauthenticated slot
         self._strikes = 0  # throttles in a row (see throttle)
         self.on_lost: Callable[[], None] | None = None
@@ -132,9 +150,76 @@ class RelayConnection(FrameSink, BatchedWritesConnection, ServerConnection):
         if self.held_pongs is not None and not self.pending_messages:
             self.held_pongs.settle()
 
+    def process_event(self, event: Any) -> None:
+        """Count the frames of a fragmented message; past the bound, close with 1009."""
+        if isinstance(event, Frame):
+            opcode = event.opcode
+            if opcode is Opcode.CONT:
+                self._message_frames += 1
+                if self._message_frames > self._max_message_frames:
+                    self._too_many_frames()
+                    return  # not assembled: the message is refused whole
+            elif opcode is Opcode.TEXT or opcode is Opcode.BINARY:
+                self._message_frames = 1
+        super().process_event(event)
+
+    def _too_many_frames(self) -> None:
+        protocol = self.protocol
+        if protocol.state is not State.OPEN:
+            return  # failed already; the rest of this read is discarded
+        reason = f"a message in more than {self._max_message_frames} frames"
+        peer = self.transport.get_extra_info("peername")
+        log.warning("connection from %s closed 1009: %s", peer[0] if peer else "?", reason)
+        if self._metrics is not None:
+            self._metrics.count_close(CloseCode.MESSAGE_TOO_BIG)
+        # Not read any further: a peer that sends this would go on sending.
+        self.abort_with(CloseCode.MESSAGE_TOO_BIG, reason)
+
+    def _send_frame(self, frame: Frame) -> None:
+        """The protocol's ``send_frame``, except that a pong is held while the transport is
+        above its write limit (the peer does not read what it is sent), and a newer one
+        replaces it: RFC 6455 5.5.3 lets an endpoint answer only the latest of several
+        pings, and a pong acknowledges earlier pings too. Why: websockets answers every
+        ping as it parses it, outside any flow control, so a client pinging without
+        reading made the relay buffer 40 MB of pongs in 8 s, before authentication too.
+        The held pong goes when the transport drains (:meth:`resume_writing`).
+
+        A connection without an identity that pings faster than it reads is not read
+        until then either (no client of ours does that before its token frame)."""
+        send = self._protocol_send_frame
+        assert send is not None
+        if frame.opcode is not Opcode.PONG or not self.paused:
+            send(frame)
+            return
+        if self._held_pong is not None and self._metrics is not None:
+            self._metrics.pongs_coalesced += 1
+        self._held_pong = frame
+        if self._slot is not None and not self._pong_paused:
+            self._pong_paused = True
+            self.transport.pause_reading()
+
+    def resume_writing(self) -> None:
+        """Below the write limit again: send the pong held meanwhile (see _send_frame)."""
+        super().resume_writing()
+        pong, self._held_pong = self._held_pong, None
+        if pong is None or self.protocol.state is not State.OPEN:
+            return
+        assert self._protocol_send_frame is not None
+        self._protocol_send_frame(pong)
+        self.send_data()  # asyncio lets resume_writing write (the buffer may grow again)
+        if self._pong_paused:
+            self._pong_paused = False
+            if not self.transport.is_closing():
+                self.transport.resume_reading()
+
     def connection_made(self, transport: asyncio.BaseTransport) -> None:
         """Take an unauthenticated slot, or abort the connection when there is none."""
         super().connection_made(transport)
+        protocol = self.protocol
+        self._protocol_send_frame = protocol.send_frame
+        # An instance attribute, which Protocol.recv_frame calls (as HeldPongs does, which
+        # wraps this one in a cluster).
+        protocol.send_frame = self._send_frame  # type: ignore[method-assign]
         limit_unsent(transport)
         if self._gate is None:
             return
@@ -153,8 +238,10 @@ class RelayConnection(FrameSink, BatchedWritesConnection, ServerConnection):
         self.transport.abort()
 
     def authenticated(self, max_size: int) -> None:
-        """The connection has an identity: frames up to *max_size* bytes, slot given back."""
+        """The connection has an identity: frames up to *max_size* bytes, messages of up
+        to :data:`MAX_MESSAGE_FRAMES` frames, slot given back."""
         self.protocol.max_size = max_size
+        self._max_message_frames = MAX_MESSAGE_FRAMES
         self._release()
 
     def abort_with(self, code: int, reason: str) -> None:

@@ -32,6 +32,8 @@ class Metrics:
     auth_reloads: int = 0
     auth_reload_failures: int = 0
     connections_refused: dict[str, int] = field(default_factory=dict)
+    # Pongs replaced by a newer one while the peer did not read (RelayConnection).
+    pongs_coalesced: int = 0
     # The latched store (fleetctl.server.latched): events by name, and two gauges it sets.
     latched_events: dict[str, int] = field(default_factory=dict)
     latched_bytes: int = 0
@@ -127,6 +129,9 @@ class Metrics:
         _labelled(out, "fleetctl_connections_refused_total", "counter",
                   "Connections aborted at accept: unauthenticated connections at their "
                   "cap (total, per_address).", "cap", self.connections_refused)
+        _scalar(out, "fleetctl_pongs_coalesced_total", "counter",
+                "Pongs not sent because the peer did not read: the answer to its later "
+                "ping replaced them (RFC 6455 5.5.3).", self.pongs_coalesced)
         self._render_latched(out)
         closes = {str(k): v for k, v in self.closes.items()}
         _labelled(out, "fleetctl_closes_total", "counter",

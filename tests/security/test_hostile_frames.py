@@ -1,0 +1,144 @@
+"""Frames a hostile or broken client sends that websockets accepts but that cost the relay
+memory outside its bounds: pings it never reads the pongs of, messages cut into endless
+continuation frames (docs/security.md, "Limits")."""
+
+from __future__ import annotations
+
+import asyncio
+import json
+import socket
+import struct
+from collections.abc import Callable
+
+from fleetctl.server.app import RelayServer
+from fleetctl.server.connection import MAX_MESSAGE_FRAMES, PRE_AUTH_MAX_MESSAGE_FRAMES
+from tests.security.conftest import RawClient
+from tests.server.conftest import ALICE_TOKEN, client, next_binary, subscribe, wait_for
+from tests.support import decode_text, string_frame
+
+PING, PONG, CONT, TEXT, BINARY = 0x9, 0xA, 0x0, 0x1, 0x2
+PINGS = 40_000  # 5 MB of pongs: more than the kernel buffers of a loopback connection
+
+
+def frame(opcode: int, payload: bytes, fin: bool = True) -> bytes:
+    """A client frame with a zero masking key (legal, RFC 6455 5.3, and cheap to build)."""
+    first = (0x80 if fin else 0) | opcode
+    n = len(payload)
+    if n < 126:
+        head = struct.pack("!BB", first, 0x80 | n)
+    elif n < 65536:
+        head = struct.pack("!BBH", first, 0x80 | 126, n)
+    else:
+        head = struct.pack("!BBQ", first, 0x80 | 127, n)
+    return head + b"\0\0\0\0" + payload
+
+
+async def small_window_client(port: int, source: str) -> RawClient:
+    """A raw client whose kernel receive buffer is tiny, so that what it does not read
+    stays on the server's side."""
+    sock = socket.socket(socket.AF_INET, socket.SOCK_STREAM)
+    sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 4096)  # before connect: no autotune
+    sock.setblocking(False)
+    sock.bind((source, 0))
+    await asyncio.get_running_loop().sock_connect(sock, ("127.0.0.1", port))
+    reader, writer = await asyncio.open_connection(sock=sock, limit=4096)
+    return RawClient(reader, writer)
+
+
+async def pongs_until(raw: RawClient, last: bytes) -> int:
+    """Read until the pong carrying *last*; return how many pongs came."""
+    count = 0
+    while (got := await raw.next_frame()) is not None:
+        opcode, payload = got
+        count += opcode == PONG
+        if opcode == PONG and payload == last:
+            return count
+    raise AssertionError("the server hung up before answering the last ping")
+
+
+def ping_flood() -> tuple[bytes, bytes]:
+    """*PINGS* pings of 125 bytes, and the payload of the last one."""
+    last = b"last".ljust(125, b".")
+    body = b"".join(frame(PING, b"%0125d" % i) for i in range(PINGS - 1))
+    return body + frame(PING, last), last
+
+
+async def test_pings_of_a_client_that_does_not_read_cost_one_pong(
+    server: RelayServer,
+) -> None:
+    raw = await small_window_client(server.port, "127.0.0.1")
+    assert await raw.request(f"Authorization: Bearer {ALICE_TOKEN}\r\n".encode()) == 101
+    flood, last = ping_flood()
+    raw.writer.write(flood)  # the server reads all of it (authenticated: a robot's rate)
+    await wait_for(lambda: server.metrics.pongs_coalesced > PINGS // 2, 20)
+    # Without the bound every ping's pong waited in the relay's write buffer (5 MB here);
+    # now what the kernel took, then the latest pong, which still answers the last ping.
+    pongs = await asyncio.wait_for(pongs_until(raw, last), 20)
+    assert pongs < PINGS // 4
+    assert pongs + server.metrics.pongs_coalesced >= PINGS - 1
+    assert "fleetctl_pongs_coalesced_total" in server.metrics.render()
+    raw.close()
+
+
+async def test_an_unauthenticated_ping_flood_is_not_read_until_its_pongs_are(
+    server: RelayServer,
+) -> None:
+    raw = await small_window_client(server.port, "127.0.0.9")  # no identity
+    assert await raw.request() == 101
+    flood, last = ping_flood()
+    raw.writer.write(flood)
+    assert server._server is not None
+    connections = server._server.connections
+
+    def paused() -> bool:
+        return any(not c.transport.is_reading() for c in connections)
+
+    await wait_for(paused)  # holding a pong, it stops reading the pings behind it
+    assert server.metrics.pongs_coalesced > 0
+    # Reading again, the client gets the answer to its last ping and may authenticate.
+    await asyncio.wait_for(pongs_until(raw, last), 20)
+    raw.writer.write(frame(TEXT, json.dumps({"token": ALICE_TOKEN}).encode()))
+    while (got := await raw.next_frame()) is not None and got[0] != TEXT:
+        pass
+    assert got is not None and json.loads(got[1])["type"] == "welcome"
+    raw.close()
+
+
+async def test_a_message_in_too_many_continuation_frames_is_refused(
+    server: RelayServer,
+) -> None:
+    # Empty continuation frames cost nothing against max_size, ~100 bytes each in the
+    # relay while it assembles the message.
+    raw = await RawClient.open(server.port, source="127.0.0.9")  # no identity
+    assert await raw.request() == 101
+    raw.writer.write(frame(BINARY, b"", fin=False)
+                     + frame(CONT, b"", fin=False) * PRE_AUTH_MAX_MESSAGE_FRAMES)
+    assert await raw.close_code() == 1009
+    assert await raw.reader.read() == b""  # cut: a peer sending this goes on sending
+    raw.close()
+
+    raw = await RawClient.open(server.port, source="127.0.0.9")
+    assert await raw.request(f"Authorization: Bearer {ALICE_TOKEN}\r\n".encode()) == 101
+    raw.writer.write(frame(BINARY, b"", fin=False)
+                     + frame(CONT, b"", fin=False) * MAX_MESSAGE_FRAMES)
+    assert await raw.close_code() == 1009
+    raw.close()
+    await wait_for(lambda: server.metrics.closes.get(1009) == 2)
+    await wait_for(lambda: not server.core.peers and server.gate.open == 0)
+
+
+async def test_a_message_in_many_frames_within_the_bound_is_relayed(
+    make_server: Callable[..., RelayServer],
+) -> None:
+    async with make_server() as srv, client(srv, token=ALICE_TOKEN) as viewer:
+        assert (await subscribe(viewer, "/husky1/chat"))["type"] == "subscribed"
+        raw = await RawClient.open(srv.port, source="127.0.0.2")  # husky1
+        assert await raw.request() == 101
+        message = string_frame("/husky1/chat", "x" * 3000)
+        parts = [message[i:i + 1] for i in range(MAX_MESSAGE_FRAMES - 1)]
+        parts.append(message[MAX_MESSAGE_FRAMES - 1:])
+        raw.writer.write(frame(BINARY, parts[0], fin=False)
+                         + b"".join(frame(CONT, p, fin=False) for p in parts[1:-1])
+                         + frame(CONT, parts[-1]))
+        assert decode_text(await next_binary(viewer)) == "x" * 3000
+        raw.close()

@@ -59,6 +59,12 @@ from fleetctl.errors import ConfigError
 from fleetctl.wire.compression import LATCHED_DEFLATE_LEVEL, CompressionCodec, compress
 
 log = logging.getLogger(__name__)
+_LOG_EVERY = 1000  # a repeated problem on received frames: logged first and every 1000th
+
+
+def _sampled(count: int) -> bool:
+    """Whether the *count*-th occurrence of a per-frame problem is logged."""
+    return count == 1 or count % _LOG_EVERY == 0
 
 # Commands republished locally (goal poses): reliable, like RViz's tools publish them.
 COMMAND_QOS = QoSProfile(
@@ -272,6 +278,7 @@ class Bridge(Node):
             start_parameter_services=False,
             parameter_overrides=[Parameter("start_type_description_service", value=False)])
         self.stats = BridgeStats()
+        self._mismatches: dict[tuple[str, str], int] = {}  # (topic, type) -> frames dropped
         self._config = config
         self._codec = codec
         self._typestore = typestore
@@ -510,7 +517,10 @@ class Bridge(Node):
             meta, msg = self._codec.decode(frame)
         except Exception as exc:
             self.stats.decode_errors += 1
-            log.warning("dropping undecodable frame from the server: %s", exc)
+            if _sampled(self.stats.decode_errors):  # every frame of a broken sender
+                log.warning("dropping undecodable frame from the server (%d so far; logged "
+                            "first and every %dth): %s", self.stats.decode_errors,
+                            _LOG_EVERY, exc)
             return
         if meta.type == KEYFRAME_REQUEST_TYPE:  # a viewer of one of our video topics
             self._on_keyframe_request(str(msg.topic))
@@ -521,12 +531,18 @@ class Bridge(Node):
             return
         if meta.type != route.spec.type:
             self.stats.type_mismatch += 1
-            log.warning(
-                "dropping %s on %s: subscribe entry expects %s",
-                meta.type,
-                meta.topic,
-                route.spec.type,
-            )
+            # Once per (topic, type), then every 1000th: a wrong type in client.yaml made a
+            # WARNING for every message, 10 a second per 10 Hz topic, for ever.
+            key = (meta.topic, meta.type)
+            seen = self._mismatches.get(key, 0) + 1
+            self._mismatches[key] = seen
+            if _sampled(seen):
+                log.warning(
+                    "dropping %s on %s: subscribe entry %s expects %s; set its type to %s in "
+                    "the client config if that is what it sends (%d dropped so far; logged "
+                    "first and every %dth)",
+                    meta.type, meta.topic, route.spec.remote_topic, route.spec.type,
+                    meta.type, seen, _LOG_EVERY)
             return
         publisher = route.publisher_for(meta.topic, latched=meta.latched)
         if publisher is None:

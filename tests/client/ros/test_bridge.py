@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import logging
 import math
 import threading
 import time
@@ -263,6 +264,30 @@ def test_bad_frames_are_counted_never_raised(setup: tuple[Bridge, Node, FakePort
     assert bridge.stats.type_mismatch == 1
     assert bridge.stats.unmatched == 1
     assert bridge.stats.published_local == 0
+
+
+def test_a_wrong_subscribe_type_is_logged_once_not_per_message(
+        setup: tuple[Bridge, Node, FakePort], codec: Codec,
+        caplog: pytest.LogCaptureFixture) -> None:
+    # A wrong type in client.yaml logged a WARNING for every message received (10 a
+    # second for a 10 Hz topic, for as long as the client ran).
+    bridge, _, _ = setup
+    string = codec.registry.typestore.types["std_msgs/msg/String"](data="x")
+    frame = codec.encode(string, "std_msgs/msg/String", "/r1/goal_pose")
+    caplog.set_level(logging.WARNING, "fleetctl.client.ros.bridge")
+    for _ in range(1500):
+        bridge.deliver(frame)
+    bridge.deliver(b"\x00\x01garbage")
+    bridge.deliver(b"\x00\x02garbage")
+    assert bridge.stats.type_mismatch == 1500
+    warnings = [r.getMessage() for r in caplog.records if r.levelno == logging.WARNING]
+    assert warnings[0] == (
+        "dropping std_msgs/msg/String on /r1/goal_pose: subscribe entry /r1/goal_pose expects "
+        "geometry_msgs/msg/PoseStamped; set its type to std_msgs/msg/String in the client "
+        "config if that is what it sends (1 dropped so far; logged first and every 1000th)")
+    assert "(1000 dropped so far;" in warnings[1]
+    assert len(warnings) == 3, warnings  # + the first undecodable frame, not the second
+    assert warnings[2].startswith("dropping undecodable frame from the server (1 so far;")
 
 
 def test_status_carries_the_battery(setup: tuple[Bridge, Node, FakePort], codec: Codec) -> None:

@@ -12,8 +12,21 @@ from typing import Any
 
 import re2
 
+# Why a memory budget: RE2's default (8 MiB per regex, for the program and the DFA cache
+# that fills as it matches) let a 21-character subscription (".{1000}.{1000}.{1000}") cost
+# the relay 0.8 MB and 11-20 ms of compiling on the event loop; 250 distinct ones from one
+# token grew the relay by 100 MB. Topic patterns need a few KiB (a 4 KiB alternation of
+# 200 robots' topics: 1,230 instructions); past the budget RE2 refuses the pattern
+# ("pattern too large"), and a DFA out of budget falls back to the NFA (still linear).
+MAX_REGEX_MEMORY_BYTES = 256 * 1024
+# What a pattern costs in the subscription quotas (docs/security.md): its UTF-8 bytes, or
+# this many per instruction of its compiled program when that is more, so that a short
+# pattern with a large program cannot be held thousands of times within the byte quotas.
+QUOTA_BYTES_PER_INSTRUCTION = 4
+
 _OPTIONS = re2.Options()
 _OPTIONS.log_errors = False
+_OPTIONS.max_mem = MAX_REGEX_MEMORY_BYTES
 
 # Why a ceiling: a client chooses subscription regexes, and each compiled RE2 program costs
 # memory; 4 KiB is far more than any topic pattern needs.
@@ -34,16 +47,26 @@ class FullMatch:
     Attributes:
         pattern: The source text.
         literal: The topic itself when the pattern has no metacharacters, else ``None``
-            (lets callers check a literal topic without running the regex).
+            (lets callers check a literal topic without running the regex; a literal is
+            not compiled).
+        cost: Bytes the pattern counts for in the subscription quotas: its UTF-8 bytes,
+            or :data:`QUOTA_BYTES_PER_INSTRUCTION` per instruction of its RE2 program
+            when that is more.
     """
 
-    __slots__ = ("_regex", "literal", "pattern")
+    __slots__ = ("_regex", "cost", "literal", "pattern")
 
     def __init__(self, pattern: str) -> None:
         if len(pattern) > MAX_PATTERN_CHARS:
             raise BadRegex(f"pattern longer than {MAX_PATTERN_CHARS} characters")
+        self.pattern = pattern
+        self.literal = pattern if _LITERAL.fullmatch(pattern) else None
+        self.cost = len(pattern.encode("utf-8", "surrogatepass"))
+        if self.literal is not None:  # compared with ==: no program to build or keep
+            self._regex: Any = None
+            return
         try:
-            self._regex: Any = re2.compile(pattern, options=_OPTIONS)
+            self._regex = re2.compile(pattern, options=_OPTIONS)
         except re2.error as exc:
             detail = exc.args[0] if exc.args else "invalid"
             if isinstance(detail, bytes):
@@ -51,8 +74,7 @@ class FullMatch:
             raise BadRegex(str(detail)) from None
         except UnicodeEncodeError:  # a lone surrogate ("\ud800" in YAML or JSON): RE2 takes UTF-8
             raise BadRegex("not UTF-8 text (a lone surrogate code point)") from None
-        self.pattern = pattern
-        self.literal = pattern if _LITERAL.fullmatch(pattern) else None
+        self.cost = max(self.cost, QUOTA_BYTES_PER_INSTRUCTION * self._regex.programsize)
 
     def matches(self, topic: str) -> bool:
         """Return whether *topic* matches the pattern from its first to its last character."""

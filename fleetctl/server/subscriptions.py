@@ -51,7 +51,7 @@ class _Entry:
 
     perms: Permissions
     subs: dict[str, FullMatch] = field(default_factory=dict)
-    nbytes: int = 0  # UTF-8 bytes of the patterns
+    nbytes: int = 0  # quota bytes of the patterns (FullMatch.cost)
     keys: tuple[str, ...] = ()  # identity names the bytes are charged to
 
 
@@ -88,12 +88,12 @@ class SubscriptionMap(Generic[C]):
         return list(entry.subs) if entry else []
 
     def pattern_bytes(self, conn: C) -> int:
-        """UTF-8 bytes of *conn*'s patterns."""
+        """Quota bytes of *conn*'s patterns (:attr:`FullMatch.cost`)."""
         entry = self._subs.get(conn)
         return entry.nbytes if entry else 0
 
     def key_bytes(self, key: str) -> int:
-        """UTF-8 bytes of the patterns charged to *key*."""
+        """Quota bytes of the patterns charged to *key*."""
         return self._key_bytes.get(key, 0)
 
     def subscribe(self, conn: C, perms: Permissions, pattern: str,
@@ -125,6 +125,8 @@ class SubscriptionMap(Generic[C]):
             compiled = compile_full(pattern)
         except BadRegex as exc:
             raise Refusal("bad_regex", f"bad RE2 regex {pattern!r:.200}: {exc}") from None
+        size = compiled.cost  # its text, or its program when that is larger
+        self._check_quota(entry, size)
         refusal = _refusal(perms, pattern, compiled)
         if refusal is not None:
             raise refusal
@@ -203,7 +205,7 @@ class SubscriptionMap(Generic[C]):
         compiled = entry.subs.pop(pattern, None)
         if compiled is None:
             return False
-        self._charge(entry, -len(pattern.encode("utf-8", "surrogatepass")))
+        self._charge(entry, -compiled.cost)
         self._watch(pattern, -1)
         rest = entry.subs.values()
         for topic, found in self._cache.items():
@@ -231,7 +233,7 @@ class SubscriptionMap(Generic[C]):
             if reason is not None:
                 refused.append((pattern, reason))
                 del entry.subs[pattern]
-                self._charge(entry, -len(pattern.encode("utf-8", "surrogatepass")))
+                self._charge(entry, -compiled.cost)
                 self._watch(pattern, -1)
         entry.perms = perms
         self._cache.clear()

@@ -20,6 +20,7 @@ import datetime as dt
 import json
 import os
 import ssl
+import tempfile
 import urllib.error
 import urllib.parse
 import urllib.request
@@ -237,17 +238,25 @@ def fetch_remote(remote: Remote, name: str, target: Path) -> Fetched:
     """Download recording *name* in ranges, then write a complete copy to *target* (a
     directory: ``target/name``).
 
+    The download goes to a temp file with a random name (``mkstemp``: ``O_EXCL``, so a
+    link planted beside the target is never opened), and the finished file is linked to
+    *target*, which never replaces anything there.
+
     Raises:
-        FleetError: Bad name, the server refused, or the download failed.
+        FleetError: Bad name (exit 2), the server refused, the download failed, or the
+            target cannot be written (exit 5).
         ConflictError: The target file exists.
     """
     _check_name(name)
-    target = target / name if target.is_dir() else target
-    if target.exists():
-        raise ConflictError(f"{target}: already exists")
-    part = target.with_name(target.name + ".part")
+    target = _target_file(target, name)
     try:
-        with part.open("wb") as out:
+        fd, temp = tempfile.mkstemp(prefix=f".{target.name}.", suffix=".part",
+                                    dir=target.parent)
+    except OSError as exc:
+        raise _cannot_write(target, exc) from None
+    part = Path(temp)
+    try:
+        with os.fdopen(fd, "wb") as out:
             offset, total = 0, None
             while total is None or offset < total:
                 _status, headers, body = remote.get(f"/recordings/{name}",
@@ -259,19 +268,56 @@ def fetch_remote(remote: Remote, name: str, target: Path) -> Fetched:
                 offset += len(body)
         source = f"{remote.url.rstrip('/')}/recordings/{name}"
         if files.is_complete(part):
-            part.rename(target)
+            part.chmod(_new_file_mode())  # as the copy of an open file gets (mkstemp: 0600)
+            _link_new(part, target)
             return Fetched(source, target, files.describe(target)["messages"])
         return Fetched(source, target, files.export(part, target))
     except OSError as exc:
-        raise FleetError(f"{target}: cannot write: {exc.strerror or exc}") from None
+        raise _cannot_write(target, exc) from None
     finally:
         part.unlink(missing_ok=True)
+
+
+def _target_file(target: Path, name: str) -> Path:
+    """``target/name`` for a directory *target*; refuses one that exists (a link too).
+
+    Raises:
+        ConflictError: It exists (a dangling symbolic link included).
+    """
+    target = target / name if target.is_dir() else target
+    if os.path.lexists(target):
+        raise ConflictError(f"{target}: already exists")
+    return target
+
+
+def _link_new(source: Path, target: Path) -> None:
+    """Give *source* the name *target* too, never replacing what is there."""
+    try:
+        os.link(source, target, follow_symlinks=False)
+    except FileExistsError:
+        raise ConflictError(f"{target}: already exists") from None
+    except OSError:  # no hard links on this file system: a rename, after the check
+        if os.path.lexists(target):
+            raise ConflictError(f"{target}: already exists") from None
+        source.rename(target)
+
+
+def _new_file_mode() -> int:
+    """The mode ``open()`` gives a new file under the current umask."""
+    mask = os.umask(0o077)
+    os.umask(mask)
+    return 0o666 & ~mask
+
+
+def _cannot_write(target: Path, exc: OSError) -> FleetError:
+    return FleetError(f"{target}: cannot write: {exc.strerror or exc}",
+                      exit_code=ExitCode.ENVIRONMENT)
 
 
 def _check_name(name: str) -> None:
     if "/" in name or name in ("", ".", ".."):
         raise FleetError(f"recording name {name!r}: give a file name from "
-                         "`fleetctl recordings list`")
+                         "`fleetctl recordings list`", exit_code=ExitCode.USAGE)
 
 
 def check_one_source(config: Path | None, directory: Path | None,
@@ -344,10 +390,7 @@ def fetch(directory: Path, name: str, target: Path) -> Fetched:
     source = directory / name
     if not source.is_file():
         raise FleetError(f"{source}: no such recording (see `fleetctl recordings list`)")
-    if target.is_dir():
-        target = target / name
-    if target.exists():
-        raise ConflictError(f"{target}: already exists")
+    target = _target_file(target, name)
     return Fetched(str(source), target, files.export(source, target))
 
 

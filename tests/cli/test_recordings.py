@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import asyncio
 import json
+import os
+import stat
 import threading
 import time
 from collections.abc import Callable
@@ -14,11 +16,13 @@ import pytest
 from mcap.reader import make_reader
 
 from fleetctl.cli.main import main
+from fleetctl.cli.recordings import Remote, fetch_remote
 from fleetctl.cli.replay import ReplayOptions, is_latched, replay
 from fleetctl.errors import ExitCode, FleetError
 from fleetctl.server.app import RelayServer
 from fleetctl.server.config import ServerConfig
 from fleetctl.server.recording import files
+from fleetctl.server.recording.config import RecordingConfig, RecordingRule
 from fleetctl.server.recording.mcapfile import McapFile
 from fleetctl.wire.codec import default_codec
 from tests.server.conftest import (  # noqa: F401
@@ -143,6 +147,47 @@ def test_fetch_writes_a_complete_copy_of_an_open_file(
     assert "no such recording" in capsys.readouterr().err
     assert main(["recordings", "fetch", "../x.mcap", "-d", str(rec)]) != 0
     still_open.close()
+
+
+async def test_fetch_from_a_server_never_writes_through_a_planted_link(
+        make_server: Callable[..., RelayServer], tmp_path: Path,  # noqa: F811
+        capsys: pytest.CaptureFixture[str]) -> None:
+    """The download went to TARGET.part opened with "wb": a symbolic link planted there
+    (a shared download directory) had the recording written into the file it points to."""
+    rec, out = tmp_path / "rec", tmp_path / "out"
+    rec.mkdir()
+    out.mkdir()
+    write_recording(rec / "fleet_a.mcap", 5)
+    victim = tmp_path / "victim"
+    victim.write_text("precious")
+    (out / "fleet_a.mcap.part").symlink_to(victim)
+    (out / "fleet_b.mcap").symlink_to(tmp_path / "nowhere")  # dangling: "exists" all the same
+    config = RecordingConfig(rec, (RecordingRule("/nothing"),))
+    async with make_server(recording=config) as srv:
+        fetched = await asyncio.to_thread(fetch_remote, Remote(srv.url, ALICE_TOKEN),
+                                          "fleet_a.mcap", out)
+        assert victim.read_text() == "precious"
+        assert fetched.target == out / "fleet_a.mcap" and fetched.messages == 5
+        assert (out / "fleet_a.mcap").read_bytes() == (rec / "fleet_a.mcap").read_bytes()
+        mask = os.umask(0o022)
+        os.umask(mask)
+        assert stat.S_IMODE((out / "fleet_a.mcap").stat().st_mode) == 0o666 & ~mask
+        assert sorted(p.name for p in out.iterdir()) == [
+            "fleet_a.mcap", "fleet_a.mcap.part", "fleet_b.mcap"]  # no temp file left
+        token = tmp_path / "alice.token"
+        token.write_text(ALICE_TOKEN)
+        token.chmod(0o600)
+        remote = ["--server", srv.url, "--token-file", str(token)]
+        # Exit codes as the fleet commands': conflict 4, a bad name 2, cannot write 5.
+        assert main(["recordings", "fetch", "fleet_a.mcap", *remote, "--to",
+                     str(out / "fleet_b.mcap")]) == ExitCode.CONFLICT
+        assert "fleet_b.mcap: already exists" in capsys.readouterr().err
+        assert main(["recordings", "fetch", "../fleet_a.mcap", *remote]) == ExitCode.USAGE
+        assert main(["recordings", "fetch", "fleet_a.mcap", *remote, "--to",
+                     str(tmp_path / "no" / "such.mcap")]) == ExitCode.ENVIRONMENT
+        assert capsys.readouterr().err.endswith(
+            "such.mcap: cannot write: No such file or directory\n")
+    assert not (tmp_path / "no").exists()
 
 
 async def test_replay_plays_a_recording_live_in_real_time(

@@ -290,7 +290,8 @@ class RelayServer:
                 port,
                 # The gate argument goes to RelayConnection; websockets' annotation is a type.
                 create_connection=cast(Any, functools.partial(
-                    RelayConnection, gate=self.gate, metrics=self.metrics)),
+                    RelayConnection, gate=self.gate, metrics=self.metrics,
+                    known=None if web else self._address_identity)),
                 process_request=self._web_request if web else self._process_request,
                 process_response=respond,
                 select_subprotocol=self.foxglove.select_subprotocol,
@@ -308,6 +309,11 @@ class RelayServer:
             field = _listen_field(exc, prefix)
             raise ListenError(f"field {field!r}: cannot listen on {hosts_text(hosts)}:{port}: "
                               f"{exc.strerror or exc}") from None
+
+    def _address_identity(self, address: str) -> bool:
+        """Whether a TCP peer's address is an ``ip``/``cidr`` identity of the auth map in
+        force (on the relay port, such a connection is authenticated by its address)."""
+        return bool(self.core.auth.match_address(parse_address(address)))
 
     async def __aenter__(self) -> RelayServer:
         await self.start()

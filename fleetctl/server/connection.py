@@ -96,9 +96,11 @@ class RelayConnection(FrameSink, BatchedWritesConnection, ServerConnection):
     """Server connection with a synchronous binary-frame sink and batched writes."""
 
     def __init__(self, *args: Any, gate: UnauthenticatedGate | None = None,
-                 metrics: Metrics | None = None, **kwargs: Any) -> None:
+                 metrics: Metrics | None = None,
+                 known: Callable[[str], bool] | None = None, **kwargs: Any) -> None:
         super().__init__(*args, **kwargs)
         self._gate = gate
+        self._known = known
         self._metrics = metrics
         self._max_message_frames = PRE_AUTH_MAX_MESSAGE_FRAMES
         self._message_frames = 0  # frames of the fragmented message being received
@@ -225,10 +227,15 @@ class RelayConnection(FrameSink, BatchedWritesConnection, ServerConnection):
             return
         peer = transport.get_extra_info("peername")
         address = str(peer[0]) if peer else "?"
+        self.protocol.max_size = PRE_AUTH_MAX_FRAME_BYTES
+        if self._known is not None and self._known(address):
+            # An address identity (a robot over WireGuard): authenticated by its address
+            # at the upgrade, so it takes no slot, and a flood of strangers filling every
+            # slot cannot keep the fleet's robots out.
+            return
         refused = self._gate.admit(address)
         if refused is None:
             self._slot = address
-            self.protocol.max_size = PRE_AUTH_MAX_FRAME_BYTES
             return
         count = self._gate.refused[refused]
         if count % _LOG_EVERY == 1:

@@ -103,3 +103,22 @@ def test_gate_and_bucket_arithmetic() -> None:
     assert [bucket.take() for _ in range(4)] == [True, True, True, False]
     now[0] += 0.5
     assert [bucket.take(), bucket.take()] == [True, False]
+
+
+async def test_robots_by_address_take_no_unauthenticated_slot(
+    make_server: Callable[..., RelayServer],
+) -> None:
+    # Strangers holding every slot (half-sent requests) used to keep the fleet's robots,
+    # authenticated by their WireGuard address, out too.
+    limits = ServerLimits(max_unauthenticated_per_address=2,
+                          max_unauthenticated_connections=2)
+    async with make_server(limits=limits) as srv:
+        held = [await RawClient.open(srv.port, source="127.0.0.9") for _ in range(2)]
+        await wait_for(lambda: srv.gate.open == 2)
+        stranger = await RawClient.open(srv.port, source="127.0.0.10")
+        assert await stranger.reader.read() == b""  # aborted at accept: the total cap
+        async with client(srv, source="127.0.0.2") as robot:  # husky1's address
+            assert (await next_json(robot, "welcome"))["identities"] == ["husky1"]
+            assert srv.gate.open == 2
+        for raw in held:
+            raw.close()

@@ -40,6 +40,7 @@ from fleetctl.deploy.compose import (
     write_files,
 )
 from fleetctl.deploy.dockercli import (
+    CONFIG_FILES_LABEL,
     Runner,
     check,
     fleet_filters,
@@ -226,6 +227,8 @@ def existing_options(fleet_dir: Path, project: str | None = None) -> Options:
         FleetError: nothing was started there.
     """
     require_fleet_dir(fleet_dir)
+    if project is not None:
+        check_project(project)
     options = saved_options(fleet_dir)
     if options is None:
         raise FleetError(f"{fleet_dir.resolve() / '.compose'}: no deployment here; "
@@ -240,12 +243,45 @@ def down(fleet_dir: Path, options: Options, *, delete_data: bool = False,
     Raises:
         FleetError: compose failed.
     """
+    _check_project_is_ours(fleet_dir, options.project, delete_data, runner)
     args = ["down", "--remove-orphans", *(["-v"] if delete_data else [])]
     what = "containers, networks and the server's data" if delete_data else \
         "containers and networks (the server's data volume is kept)"
     progress(f"stopping {options.project}: removing {what}")
     check(runner(compose_argv(fleet_dir, options.project, *args, runner=runner), None, False),
           "compose down")
+
+
+def _check_project_is_ours(fleet_dir: Path, project: str, delete_data: bool,
+                           runner: Runner) -> None:
+    """Refuse a ``--project`` that is not this fleet's deployment.
+
+    ``compose -p P -f OURS down`` stops every container of project P, whichever file
+    made it, and with ``-v`` deletes P's volumes: another fleet's data. P is this
+    fleet's when ``up`` recorded it here, when it is the directory's default name (made
+    from its path), or when its containers came from this fleet's compose file.
+
+    Raises:
+        ConflictError: P's containers came from another compose file; or, with
+            *delete_data*, nothing shows P is this fleet's.
+    """
+    recorded = saved_options(fleet_dir)
+    if project in (recorded.project if recorded else None, project_name(fleet_dir)):
+        return
+    ours = str(fleet_dir.resolve() / COMPOSE_DIR / COMPOSE_FILE)
+    res = runner(["docker", "ps", "-a", "--filter", f"label=com.docker.compose.project={project}",
+                  "--format", f'{{{{.Label "{CONFIG_FILES_LABEL}"}}}}'], None, True)
+    made_from = {line.strip() for line in res.stdout.splitlines() if line.strip()} \
+        if res.returncode == 0 else set()
+    if others := sorted(made_from - {ours}):
+        raise ConflictError(f"--project {project}: its containers were made from {others[0]}, "
+                            f"not from this fleet's {ours}: run `fleetctl down` with --fleet "
+                            "set to that fleet's directory")
+    if delete_data and not made_from:
+        last = f" (it was last deployed as {recorded.project})" if recorded else ""
+        raise ConflictError(f"--project {project}: no container shows it is this fleet's "
+                            f"deployment{last}, so its volumes are not deleted: run "
+                            "`fleetctl down --delete-data` without --project")
 
 
 def deployed_services(fleet_dir: Path) -> list[str]:
@@ -490,6 +526,18 @@ def _peer_names(fleet_dir: Path) -> dict[str, str]:
 _PROJECT = re.compile(r"[a-z0-9][a-z0-9_-]{0,62}")
 
 
+def check_project(project: str) -> None:
+    """Refuse a ``--project`` outside Compose's project-name alphabet (Compose would
+    quietly change it: ``Bad/Name`` is project ``badname``, maybe another fleet's).
+
+    Raises:
+        ConfigError: naming the option.
+    """
+    if not _PROJECT.fullmatch(project):
+        raise ConfigError(f"--project {project!r}: expected 1-63 of a-z 0-9 _ - "
+                          "(starting with a letter or digit)")
+
+
 def default_options(fleet_dir: Path, **chosen: Any) -> Options:
     """Options for ``up`` with the default project name of *fleet_dir*.
 
@@ -502,9 +550,7 @@ def default_options(fleet_dir: Path, **chosen: Any) -> Options:
         FleetError: ``--wireguard`` is not auto, on or off (exit 2).
     """
     project = chosen.pop("project", None) or project_name(fleet_dir)
-    if not _PROJECT.fullmatch(project):
-        raise ConfigError(f"--project {project!r}: expected 1-63 of a-z 0-9 _ - "
-                          "(starting with a letter or digit)")
+    check_project(project)
     bind = chosen.get("bind", DEFAULT_BIND)
     try:
         ipaddress.ip_address(bind)

@@ -258,6 +258,65 @@ def test_down_keeps_the_data_volume_unless_asked(fleet: Path) -> None:
     assert "down" in delete and "-v" in delete
 
 
+class OtherFleets(FakeDocker):
+    """`docker ps -a` of a project answers which compose files made its containers."""
+
+    def __init__(self, made_from: dict[str, list[str]]) -> None:
+        super().__init__()
+        self.made_from = made_from
+
+    def __call__(self, argv: Sequence[str], stdin: bytes | None, capture: bool) -> Completed:
+        argv = list(argv)
+        if argv[:3] == ["docker", "ps", "-a"]:
+            self.calls.append(argv)
+            project = argv[argv.index("--filter") + 1].rpartition("=")[2]
+            return Completed(tuple(argv), 0, "".join(f + "\n" for f in
+                                                     self.made_from.get(project, [])), "")
+        return super().__call__(argv, stdin, capture)
+
+
+def test_down_with_another_fleets_project_is_refused(fleet: Path, tmp_path: Path) -> None:
+    """`compose -p P -f OURS down -v` stops every container of project P and deletes P's
+    volumes, whichever fleet made them: `down --project P` from the wrong fleet directory
+    took another fleet down, and with --delete-data its data."""
+    ours = str(fleet.resolve() / ".compose" / "docker-compose.yml")
+    theirs = str(tmp_path / "other" / ".compose" / "docker-compose.yml")
+    docker = OtherFleets({"theirs": [theirs, theirs], "mine": [ours], "gone": []})
+    composerun.up(fleet, _opts(fleet, wireguard="off"), progress=lambda _: None, runner=docker)
+    recorded = composerun.existing_options(fleet)
+    for project, delete_data in (("theirs", False), ("theirs", True), ("gone", True)):
+        before = len(docker.compose_calls())
+        with pytest.raises(ConflictError, match=f"--project {project}: ") as err:
+            composerun.down(fleet, replace(recorded, project=project), delete_data=delete_data,
+                            progress=lambda _: None, runner=docker)
+        assert (theirs in str(err.value)) == (project == "theirs")
+        assert len(docker.compose_calls()) == before  # compose never ran
+    # What up recorded, containers this fleet's file made, and a project with no container
+    # left (nothing to delete but the containers compose finds: none) go down.
+    for project, delete_data in ((recorded.project, True), ("mine", True), ("gone", False)):
+        composerun.down(fleet, replace(recorded, project=project), delete_data=delete_data,
+                        progress=lambda _: None, runner=docker)
+        assert docker.compose_calls()[-1][docker.compose_calls()[-1].index("-p") + 1] == project
+
+
+@pytest.mark.parametrize("command", ["down", "status", "logs"])
+def test_a_project_name_compose_would_change_is_refused_everywhere(
+        fleet: Path, command: str, capsys: pytest.CaptureFixture[str],
+        monkeypatch: pytest.MonkeyPatch) -> None:
+    """Only `up` checked --project: `down --project Bad/Name` ran compose, which made it
+    project `badname` (maybe another fleet's)."""
+    composerun.up(fleet, _opts(fleet, wireguard="off"), progress=lambda _: None,
+                  runner=FakeDocker())
+    monkeypatch.setattr("fleetctl.cli.deploy.require_docker", lambda: None)
+    ran: list[object] = []
+    for name in ("down", "status", "logs"):
+        monkeypatch.setattr(composerun, name, lambda *a, _n=name, **k: ran.append(_n))
+    assert main([command, "--fleet", str(fleet), "--project", "Bad/Name"]) == 3
+    assert capsys.readouterr().err == ("fleetctl: error: --project 'Bad/Name': expected 1-63 "
+                                       "of a-z 0-9 _ - (starting with a letter or digit)\n")
+    assert ran == []
+
+
 def test_up_needs_the_images(fleet: Path) -> None:
     with pytest.raises(EnvironmentMissing, match=r"fleetctl/server:.* not found.*fleetctl build"):
         composerun.up(fleet, _opts(fleet, wireguard="off"), progress=lambda _: None,

@@ -31,7 +31,9 @@ from fleetctl.server.recording.recorder import Recorder
 
 MAX_RANGE_BYTES = 4 * 1024 * 1024
 RECORDINGS_PATH = "/recordings"
-_RANGE = re.compile(r"bytes=(\d+)-(\d*)")
+# At most 18 digits: a file offset fits, and int() of a longer header (it may be 8 KiB)
+# would raise ValueError past 4300 digits, a 500 with a traceback line per request.
+_RANGE = re.compile(r"bytes=(\d{1,18})-(\d{0,18})")
 _MAX_CACHED = 4096
 
 
@@ -66,6 +68,9 @@ class RecordingsEndpoint:
                          "only Range: bytes=<start>-[<end>] is supported\n")
         start = int(match.group(1))
         end = int(match.group(2)) + 1 if match.group(2) else start + MAX_RANGE_BYTES
+        if end <= start:  # "bytes=5-2": no bytes to send (a negative read was a 500)
+            return _text(http.HTTPStatus.REQUESTED_RANGE_NOT_SATISFIABLE,
+                         f"the range {match.group(0)} ends before it starts\n")
         return await loop.run_in_executor(None, self._read, name, perms, start,
                                           min(end, start + MAX_RANGE_BYTES))
 

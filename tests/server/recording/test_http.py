@@ -111,6 +111,10 @@ async def test_large_files_come_in_ranges(
         for bad in ("/recordings/../auth.yaml", "/recordings/x.txt", "/recordings/nope.mcap"):
             with pytest.raises(FleetError, match="404"):
                 await asyncio.to_thread(remote.get, bad)
+        # Ranges that cannot be served are 416, not a 500 from int() or a negative read.
+        for bad_range in ("bytes=5-2", f"bytes={'9' * 5000}-", f"bytes=0-{'9' * 5000}"):
+            with pytest.raises(FleetError, match="416"):
+                await asyncio.to_thread(remote.get, "/recordings/fleet_big.mcap", bad_range)
 
 
 async def test_a_server_without_recording_says_so(

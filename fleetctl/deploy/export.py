@@ -32,9 +32,13 @@ from fleetctl.deploy.operations import ExportResult, finish_plan
 from fleetctl.deploy.render import FleetKeys
 from fleetctl.deploy.selfwheel import fleetctl_wheel
 from fleetctl.deploy.yamlnodes import shown
-from fleetctl.errors import ConfigError, ConflictError
+from fleetctl.errors import ConfigError, ConflictError, ExitCode, FleetError
 
 TARBALL_SUFFIXES = (".tar.gz", ".tgz")
+# Archive names export does not write: a new --out ending in one is refused, not made a
+# directory called husky1.zip.
+OTHER_ARCHIVE_SUFFIXES = (".tar", ".zip", ".tar.xz", ".txz", ".tar.bz2", ".tbz2", ".tbz",
+                          ".tar.zst", ".tzst", ".tar.lz", ".7z", ".gz", ".xz", ".bz2", ".zst")
 
 
 def default_bundle_path(name: str) -> Path:
@@ -125,14 +129,18 @@ def export_robot(fleet_dir: Path, name: str, out: Path | None = None, *,
 
 
 def tarball_suffix(path: Path) -> str | None:
-    """Return the tarball suffix *path* ends in (``.tar.gz``, ``.tgz``), else ``None``."""
-    return next((s for s in TARBALL_SUFFIXES if path.name.endswith(s)), None)
+    """Return the tarball suffix *path* ends in (``.tar.gz``, ``.tgz``, in any case, as
+    written), else ``None``."""
+    return next((path.name[-len(s):] for s in TARBALL_SUFFIXES
+                 if path.name.lower().endswith(s)), None)
 
 
 def check_out_path(path: Path) -> None:
     """Refuse an ``--out`` that is the wrong kind of thing already.
 
     Raises:
+        FleetError: (usage, exit 2) a new *path* named as an archive export does not
+            write (``.zip``, ``.tar``, ``.tar.xz``, ...).
         ConfigError: the directory *path* would be made in does not exist.
         ConflictError: a directory bundle onto an existing non-directory, or a tarball
             onto an existing directory (or other non-file).
@@ -145,6 +153,13 @@ def check_out_path(path: Path) -> None:
     try:
         st = path.lstat()
     except FileNotFoundError:
+        other = next((s for s in OTHER_ARCHIVE_SUFFIXES if path.name.lower().endswith(s)),
+                     None)
+        if other is not None and tarball_suffix(path) is None:
+            raise FleetError(f"--out {path}: export writes a directory or a .tar.gz / .tgz "
+                             f"tarball, not a {other} archive (it would have been a "
+                             f"directory named {path.name})",
+                             exit_code=ExitCode.USAGE) from None
         return
     except OSError as exc:
         raise ConfigError(f"--out {path}: {exc.strerror}") from None

@@ -94,8 +94,9 @@ def test_export_keeps_an_existing_directory_mode(fleet_dir: Path, tmp_path: Path
     assert stat.S_IMODE(new.stat().st_mode) == 0o700
 
 
-@pytest.mark.parametrize("suffix", [".tar.gz", ".tgz"])
+@pytest.mark.parametrize("suffix", [".tar.gz", ".tgz", ".TGZ", ".Tar.Gz"])
 def test_export_tarball_suffixes(fleet_dir: Path, tmp_path: Path, suffix: str) -> None:
+    """Any case: `husky1.TGZ` was a directory of that name."""
     import tarfile
 
     out = export_robot(fleet_dir, "husky1", tmp_path / f"husky1{suffix}",
@@ -103,6 +104,22 @@ def test_export_tarball_suffixes(fleet_dir: Path, tmp_path: Path, suffix: str) -
     assert out.is_file()
     with tarfile.open(out) as tar:
         assert "husky1/wg0.conf" in tar.getnames()
+
+
+@pytest.mark.parametrize("name", ["husky1.zip", "husky1.tar", "husky1.tar.xz", "b.tar.bz2",
+                                  "b.ZIP", "b.tar.zst", "b.gz"])
+def test_export_refuses_an_archive_it_does_not_write(
+        fleet_dir: Path, tmp_path: Path, name: str) -> None:
+    """`--out husky1.zip` made a directory called husky1.zip holding the private key."""
+    with pytest.raises(FleetError, match=rf"^--out .*{name}: export writes a directory or a "
+                       r"\.tar\.gz / \.tgz tarball, not a \.") as info:
+        export_robot(fleet_dir, "husky1", tmp_path / name, wheel=fake_wheel(tmp_path))
+    assert info.value.exit_code is ExitCode.USAGE
+    assert not (tmp_path / name).exists()
+    # An existing directory of that name is a directory the caller chose.
+    (tmp_path / name).mkdir()
+    export_robot(fleet_dir, "husky1", tmp_path / name, wheel=fake_wheel(tmp_path))
+    assert (tmp_path / name / "wg0.conf").is_file()
 
 
 def test_export_out_errors_change_nothing(fleet_dir: Path, tmp_path: Path) -> None:

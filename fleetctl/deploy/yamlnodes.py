@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import copy
 import math
 import re
 from collections.abc import Iterable
@@ -50,6 +51,28 @@ def format_path(path: FieldPath) -> str:
     return out or "(document)"
 
 
+class _AliasLineLoader(yaml.SafeLoader):
+    """A SafeLoader whose aliases carry their own line.
+
+    ``yaml.compose`` gives an alias the very node of its anchor, start mark and all, so
+    an error in a value written ``*name`` named the anchor's line. Here each alias is a
+    shallow copy of that node (same tag, same value, children shared) marked where the
+    alias is written; what is inside it is still reported where it is written, at the
+    anchor.
+    """
+
+    def compose_node(self, parent: yaml.Node | None, index: int) -> yaml.Node | None:
+        if not self.check_event(yaml.AliasEvent):
+            return super().compose_node(parent, index)
+        event = self.peek_event()  # type: ignore[no-untyped-call]
+        node = super().compose_node(parent, index)
+        if node is None:
+            return None
+        twin = copy.copy(node)
+        twin.start_mark, twin.end_mark = event.start_mark, event.end_mark
+        return twin
+
+
 class Document:
     """One YAML file's node tree, with error helpers that name file, line and field.
 
@@ -61,7 +84,7 @@ class Document:
         self.path = path
         self.lines: dict[FieldPath, int] = {}
         try:
-            root = yaml.compose(text, Loader=yaml.SafeLoader)
+            root = yaml.compose(text, Loader=_AliasLineLoader)
         except yaml.YAMLError as exc:
             raise yaml_error(path, exc) from None
         except RecursionError:  # PyYAML's composer recurses per level: "[[[[..."

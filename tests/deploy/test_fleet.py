@@ -118,6 +118,26 @@ def test_yaml_syntax_error_names_line() -> None:
     assert "not valid YAML" in message
 
 
+def test_an_alias_is_reported_at_its_own_line() -> None:
+    """A value written `*name` was reported at its anchor's line (compose gives an alias
+    the anchor's node), pointing at the one place that was right."""
+    text = GOOD.replace("server_ip: 10.8.0.1\n", "server_ip: 10.8.0.1\nserver_port: &p 80\n")
+    text = text.replace("    ip: 10.8.0.3\n", "    ip: 10.8.0.3\n    mtu_bytes: *p\n")
+    line = text.splitlines().index("    mtu_bytes: *p") + 1
+    assert _error(text) == (f"/f/fleet.yaml:{line}: robots[1].mtu_bytes: must be between "
+                            "576 and 9000, got 80")
+    # An alias of a collection: the alias's line for the field, the anchor's for what is
+    # written inside it; aliases that are fine still read as their anchor's value.
+    text = GOOD.replace('    extra_receive: ["/husky1/scan"]\n',
+                        '    extra_receive: *rx\n').replace(
+        "    ip: 10.8.0.2\n", "    ip: 10.8.0.2\n    extra_send: &rx [5]\n")
+    lines = text.splitlines()
+    assert _error(text) == (f"/f/fleet.yaml:{lines.index('    extra_send: &rx [5]') + 1}: "
+                            "robots[0].extra_send[0]: expected a string")
+    fleet = parse_fleet(Path("/f/fleet.yaml"), text.replace("[5]", '["/husky1/x"]'))
+    assert fleet.robots[1].extra_receive == fleet.robots[0].extra_send == ("/husky1/x",)
+
+
 def test_deep_nesting_is_an_error_not_a_recursion_crash() -> None:
     text = "version: 1\nname: x\nrobots: " + "[" * 2000 + "]" * 2000 + "\n"
     assert _error(text) == "/f/fleet.yaml: not valid YAML: nested too deeply"

@@ -381,15 +381,25 @@ class RelayCore:
             peer.token_digests.add(identity.token_sha256)
         self.authenticate(peer, [identity])
 
-    def subscribe(self, peer: Peer, pattern: str) -> bool:
+    def subscribe(self, peer: Peer, pattern: str, *, charge: bool = True) -> bool:
         """Subscribe an authenticated *peer* to *pattern* as a ``/subscriptions`` frame
         would (control rate, limits, receive rules, latched messages), for adapters of
         other protocols (Foxglove). A refusal is answered with an error frame.
 
+        Args:
+            charge: Spend a control request (``False``: the caller spent it, see
+                :meth:`allow_control`).
+
         Returns:
             Whether the subscription is in place.
         """
-        return self._allow(peer) and self._subscribe(peer, pattern)
+        return (not charge or self._allow(peer)) and self._subscribe(peer, pattern)
+
+    def allow_control(self, peer: Peer) -> bool:
+        """Spend one control request of *peer* (adapters: one per item of a request);
+        ``False``: over the rate, the connection is throttled (see :meth:`_allow`) and
+        what it sent meanwhile is to be discarded (:meth:`discard`)."""
+        return self._allow(peer)
 
     def unsubscribe(self, peer: Peer, pattern: str) -> None:
         """Drop *peer*'s subscription *pattern* (no answer; unknown patterns are ignored)."""

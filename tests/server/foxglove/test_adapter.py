@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import json
 import logging
 from collections.abc import AsyncIterator, Callable
 from typing import Any
@@ -285,3 +286,22 @@ async def test_auth_reload_rechooses_the_channels(fx_server: RelayServer) -> Non
         fx_server.core.reload_auth(auth_map(raw))
         await viewer.until(lambda: viewer.channel("/husky2/scan") is not None)
         assert viewer.channel("/husky1/scan") is None
+
+
+async def test_each_item_of_a_request_is_a_control_request(fx_server: RelayServer) -> None:
+    # A request carries up to 1024 items: 600 requests of refused channels and client
+    # channels held the event loop for 13 s (other clients' frames 1.4 s late).
+    port = fx_server.web_port
+    async with open_viewer(port, await ticket(port, ALICE_TOKEN)) as ws:
+        viewer = Viewer(ws)
+        await viewer.until(lambda: viewer.server_info is not None)
+        channels = [{"id": i, "topic": f"/husky1/x{i}", "encoding": "cdr",
+                     "schemaName": "std_msgs/msg/String"} for i in range(1024)]
+        await ws.send(json.dumps({"op": "advertise", "channels": channels}))
+        await viewer.until(lambda: any("rate_limited" in s["message"]
+                                       for s in viewer.statuses))
+        limits = fx_server.config.limits
+        burst = max(limits.max_subscriptions_per_connection, 64)
+        # The burst's channels were taken silently, the rest refused with one status.
+        assert len(viewer.statuses) == 1 and burst < len(channels)
+        assert fx_server.metrics.errors["rate_limited"] == 1

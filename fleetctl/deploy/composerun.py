@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import ipaddress
 import json
+import os
 import re
 import shlex
 import shutil
@@ -223,7 +224,8 @@ def existing_options(fleet_dir: Path, project: str | None = None) -> Options:
     """The options of the deployment ``up`` started in *fleet_dir*.
 
     Raises:
-        ConfigError: *fleet_dir* does not exist or is not a directory.
+        ConfigError: *fleet_dir* does not exist, is not a directory or has no
+            ``fleet.yaml`` (nor a deployment), or *project* is not a project name.
         FleetError: nothing was started there.
     """
     require_fleet_dir(fleet_dir)
@@ -231,6 +233,11 @@ def existing_options(fleet_dir: Path, project: str | None = None) -> Options:
         check_project(project)
     options = saved_options(fleet_dir)
     if options is None:
+        if not os.path.lexists(fleet_dir / "fleet.yaml"):
+            # Exit 3 as for every other command pointed at a directory that is no fleet.
+            raise ConfigError(f"{fleet_dir / 'fleet.yaml'}: not found: {fleet_dir} is not a "
+                              "fleet directory (create one with 'fleetctl init', or set "
+                              "--fleet / FLEET_DIR)")
         raise FleetError(f"{fleet_dir.resolve() / '.compose'}: no deployment here; "
                          "run `fleetctl up` first (or set --fleet / FLEET_DIR)")
     return replace(options, project=project) if project else options
@@ -296,17 +303,27 @@ def deployed_services(fleet_dir: Path) -> list[str]:
     return sorted(map(str, services)) if isinstance(services, dict) else []
 
 
-def logs(fleet_dir: Path, options: Options, services: Sequence[str], *, follow: bool) -> int:
+def logs(fleet_dir: Path, options: Options, services: Sequence[str], *, follow: bool,
+         runner: Runner = subprocess_runner) -> int:
     """Print the logs (following when *follow*); returns compose's exit code.
 
     Raises:
         ConfigError: a named service is not one of the deployment's.
+        FleetError: the fleet has no containers (never started, or `down` removed them
+            with their logs); compose printed only "Attaching to" and exited 0.
     """
     known = deployed_services(fleet_dir)
     unknown = [name for name in services if known and name not in known]
     if unknown:
         raise ConfigError(f"logs: no service {', '.join(map(repr, unknown))} in this fleet's "
                           f"deployment; its services: {', '.join(known)}")
+    compose_file = fleet_dir.resolve() / COMPOSE_DIR / COMPOSE_FILE
+    res = runner(["docker", "ps", "-a", "-q", *fleet_filters(options.project, compose_file)],
+                 None, True)
+    if res.returncode == 0 and not res.stdout.strip():
+        raise FleetError(f"logs: {options.project} has no containers: the fleet is not "
+                         "running (`fleetctl down` removes the containers and their logs; "
+                         "`fleetctl up` starts it)")
     args = ["logs", "--no-color", *(["--follow"] if follow else []), *services]
     return subprocess.run(compose_argv(fleet_dir, options.project, *args), check=False).returncode
 

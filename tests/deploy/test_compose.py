@@ -167,8 +167,10 @@ def test_compose_v1_accepts_the_file(fleet: Path) -> None:
 def test_bad_fleet_dirs_are_named(tmp_path: Path, fleet: Path) -> None:
     with pytest.raises(ConfigError, match=r"fleet\.yaml: missing"):
         compose.plan_for(tmp_path)
-    with pytest.raises(FleetError, match="run `fleetctl up"):
+    with pytest.raises(ConfigError, match="is not a fleet directory"):
         composerun.existing_options(tmp_path)
+    with pytest.raises(FleetError, match="no deployment here; run `fleetctl up"):
+        composerun.existing_options(fleet)
     (fleet / "robots" / "husky1" / "wireguard" / "wg0.conf").write_text("[Interface]\n")
     with pytest.raises(ConfigError, match=r"wg0.conf: field Address: missing"):
         compose.plan_for(fleet, _opts(fleet, wireguard="off"))
@@ -315,6 +317,40 @@ def test_a_project_name_compose_would_change_is_refused_everywhere(
     assert capsys.readouterr().err == ("fleetctl: error: --project 'Bad/Name': expected 1-63 "
                                        "of a-z 0-9 _ - (starting with a letter or digit)\n")
     assert ran == []
+
+
+def test_logs_of_a_fleet_without_containers_says_so(
+        fleet: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """After `down`, compose printed "Attaching to" and exited 0: no word of why."""
+    docker = FakeDocker()
+    composerun.up(fleet, _opts(fleet, wireguard="off"), progress=lambda _: None, runner=docker)
+    ran: list[object] = []
+    monkeypatch.setattr(composerun.subprocess, "run", lambda *a, **k: ran.append(a))
+    options = composerun.existing_options(fleet)
+    with pytest.raises(FleetError, match=r"^logs: fleetctlyard\w+ has no containers: the "
+                                         r"fleet is not running \(`fleetctl down` removes"):
+        composerun.logs(fleet, options, [], follow=False, runner=docker)
+    assert ran == []
+    ps = docker.calls[-1]
+    assert ps[:4] == ["docker", "ps", "-a", "-q"] and f"label=com.docker.compose.project.config_" \
+        f"files={fleet.resolve()}/.compose/docker-compose.yml" in ps
+    docker.server_running = True  # a container, running or stopped: compose shows its logs
+    monkeypatch.setattr(composerun.subprocess, "run",
+                        lambda *a, **k: ran.append(a) or subprocess.CompletedProcess(a, 0))
+    assert composerun.logs(fleet, options, ["server"], follow=False, runner=docker) == 0
+    assert list(ran[-1][0])[-3:] == ["logs", "--no-color", "server"]  # type: ignore[index]
+
+
+@pytest.mark.parametrize("command", ["down", "status", "logs"])
+def test_deploy_commands_in_a_directory_that_is_no_fleet_exit_3(
+        tmp_path: Path, command: str, capsys: pytest.CaptureFixture[str],
+        monkeypatch: pytest.MonkeyPatch) -> None:
+    """As `up`, `list` and every other command: it was exit 1, "no deployment here"."""
+    monkeypatch.setattr("fleetctl.cli.deploy.require_docker", lambda: None)
+    assert main([command, "--fleet", str(tmp_path)]) == 3
+    assert capsys.readouterr().err == (
+        f"fleetctl: error: {tmp_path}/fleet.yaml: not found: {tmp_path} is not a fleet "
+        "directory (create one with 'fleetctl init', or set --fleet / FLEET_DIR)\n")
 
 
 def test_up_needs_the_images(fleet: Path) -> None:

@@ -34,13 +34,21 @@ class FrameSink:
             it (it then takes the ``recv()`` path). None: every frame takes that path.
         pending_messages: Messages handed to the ``recv()`` path and not yet marked
             handled.
+        max_message_frames: Frames one fragmented message may have while
+            :attr:`frame_sink` is set (``None``: any number); the continuation frame past
+            it is dropped and :meth:`too_many_frames` called. Why: websockets bounds a
+            message's bytes, not its frames, and keeps every frame until the last one
+            (empty continuation frames cost ~100 bytes each and nothing against
+            ``max_size``). Counted off the fast path: complete frames never reach it.
     """
 
     def __init__(self, *args: Any, **kwargs: Any) -> None:
         super().__init__(*args, **kwargs)
         self.frame_sink: Callable[[bytes], bool] | None = None
         self.pending_messages = 0
+        self.max_message_frames: int | None = None
         self._fragmenting = False
+        self._message_frames = 0  # frames of the fragmented message being received
 
     def process_event(self, event: Any) -> None:
         """Route complete binary frames to :attr:`frame_sink`, the rest as usual."""
@@ -58,11 +66,22 @@ class FrameSink:
                     return
             if opcode is Opcode.TEXT or opcode is Opcode.BINARY:
                 self._fragmenting = not event.fin
-            elif opcode is Opcode.CONT and event.fin:
-                self._fragmenting = False
+                self._message_frames = 1
+            elif opcode is Opcode.CONT:
+                self._message_frames += 1
+                limit = self.max_message_frames
+                if limit is not None and self._message_frames > limit:
+                    self.too_many_frames()
+                    return  # not assembled: the message is refused whole
+                if event.fin:
+                    self._fragmenting = False
             if event.fin and opcode in _DATA:
                 self.pending_messages += 1
         super().process_event(event)  # type: ignore[misc]  # the connection's own
+
+    def too_many_frames(self) -> None:
+        """A fragmented message passed :attr:`max_message_frames` (called for each frame
+        past it); subclasses close the connection."""
 
     def message_handled(self) -> None:
         """Mark one message from ``recv()`` as handled (see :attr:`pending_messages`)."""

@@ -102,8 +102,7 @@ class RelayConnection(FrameSink, BatchedWritesConnection, ServerConnection):
         self._gate = gate
         self._known = known
         self._metrics = metrics
-        self._max_message_frames = PRE_AUTH_MAX_MESSAGE_FRAMES
-        self._message_frames = 0  # frames of the fragmented message being received
+        self.max_message_frames = PRE_AUTH_MAX_MESSAGE_FRAMES
         self._held_pong: Frame | None = None  # see _send_frame
         self._pong_paused = False  # not read because of a held pong (no identity yet)
         self._protocol_send_frame: Callable[[Frame], None] | None = None
@@ -152,24 +151,12 @@ class RelayConnection(FrameSink, BatchedWritesConnection, ServerConnection):
         if self.held_pongs is not None and not self.pending_messages:
             self.held_pongs.settle()
 
-    def process_event(self, event: Any) -> None:
-        """Count the frames of a fragmented message; past the bound, close with 1009."""
-        if isinstance(event, Frame):
-            opcode = event.opcode
-            if opcode is Opcode.CONT:
-                self._message_frames += 1
-                if self._message_frames > self._max_message_frames:
-                    self._too_many_frames()
-                    return  # not assembled: the message is refused whole
-            elif opcode is Opcode.TEXT or opcode is Opcode.BINARY:
-                self._message_frames = 1
-        super().process_event(event)
-
-    def _too_many_frames(self) -> None:
+    def too_many_frames(self) -> None:
+        """Close with 1009 (see :attr:`FrameSink.max_message_frames`)."""
         protocol = self.protocol
         if protocol.state is not State.OPEN:
             return  # failed already; the rest of this read is discarded
-        reason = f"a message in more than {self._max_message_frames} frames"
+        reason = f"a message in more than {self.max_message_frames} frames"
         peer = self.transport.get_extra_info("peername")
         log.warning("connection from %s closed 1009: %s", peer[0] if peer else "?", reason)
         if self._metrics is not None:
@@ -248,7 +235,7 @@ class RelayConnection(FrameSink, BatchedWritesConnection, ServerConnection):
         """The connection has an identity: frames up to *max_size* bytes, messages of up
         to :data:`MAX_MESSAGE_FRAMES` frames, slot given back."""
         self.protocol.max_size = max_size
-        self._max_message_frames = MAX_MESSAGE_FRAMES
+        self.max_message_frames = MAX_MESSAGE_FRAMES
         self._release()
 
     def abort_with(self, code: int, reason: str) -> None:

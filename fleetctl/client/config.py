@@ -271,9 +271,11 @@ def parse_client_config(
     if not _ROBOT_NAME_RE.match(robot_name):
         raise ctx.error("", "robot_name", f"must match [A-Za-z][A-Za-z0-9_]*, got {robot_name!r}")
     publish = _publish_list(ctx, top.get("publish"), robot_name)
+    subscribe = _subscribe_list(ctx, top.get("subscribe"))
     tf = tf_spec(ctx, top.get("tf"))
     if tf is not None:
-        _check_tf_topics(ctx, publish, robot_name)
+        _check_tf_topics(ctx, publish, subscribe, robot_name)
+    _check_loops(ctx, publish, subscribe)
     return ClientConfig(
         server_url=server_url,
         failover_urls=tuple(failover_urls),
@@ -281,7 +283,7 @@ def parse_client_config(
         bind_address=_bind_address(ctx, top),
         token=_token(ctx, top, base_dir or Path.cwd()),
         publish=publish,
-        subscribe=_subscribe_list(ctx, top.get("subscribe")),
+        subscribe=subscribe,
         status=_status(ctx, top.get("status")),
         limits=_limits(ctx, top.get("limits")),
         tf=tf,
@@ -495,7 +497,8 @@ def _location(ctx: _Ctx, entry: Mapping[str, Any]) -> str:
     return value
 
 
-def _check_tf_topics(ctx: _Ctx, publish: tuple[PublishSpec, ...], robot_name: str) -> None:
+def _check_tf_topics(ctx: _Ctx, publish: tuple[PublishSpec, ...],
+                     subscribe: tuple[SubscribeSpec, ...], robot_name: str) -> None:
     # The republisher owns these two remote topics; a publish entry sending them too would
     # interleave raw and throttled TF on one topic.
     owned = set(tf_remote_topics(robot_name))
@@ -503,6 +506,39 @@ def _check_tf_topics(ctx: _Ctx, publish: tuple[PublishSpec, ...], robot_name: st
         if spec.remote_topic in owned:
             reason = f"{spec.remote_topic} is sent by the tf section; remove this entry or tf"
             raise ctx.error(f"publish[{i}] ({spec.topic})", "remote_topic", reason)
+    # ... and reads local /tf and /tf_static: another robot's TF republished there would
+    # go out again as this robot's own (docs/robot.md said so; nothing refused it).
+    for i, sub in enumerate(subscribe):
+        if sub.local_topic in ("/tf", "/tf_static"):
+            reason = (f"{sub.local_topic} is read by the tf section, which would send what "
+                      f"arrives there as {robot_name}'s own TF; republish it under a topic of "
+                      f"its own (e.g. {sub.local_topic}_{_remote_robot(sub.remote_topic)})")
+            raise ctx.error(f"subscribe[{i}] ({sub.remote_topic})", "local_topic", reason)
+
+
+def _remote_robot(remote_topic: str) -> str:
+    """The first name of a remote topic (``/husky1/tf`` -> ``husky1``), for a hint."""
+    first = remote_topic.strip("/").split("/")[0]
+    return first if _ROBOT_NAME_RE.match(first) else "remote"
+
+
+def _check_loops(ctx: _Ctx, publish: tuple[PublishSpec, ...],
+                 subscribe: tuple[SubscribeSpec, ...]) -> None:
+    """A subscribe entry that republishes this robot's own published topic onto the local
+    topic it is published from: every message would come back and go out again, for ever
+    (the relay delivers a sender's frames to its own subscriptions)."""
+    from fleetctl.server.regex import compile_full
+
+    for i, sub in enumerate(subscribe):
+        if sub.local_topic is None:
+            continue
+        receives = compile_full(sub.remote_topic)
+        for j, pub in enumerate(publish):
+            if pub.topic == sub.local_topic and receives.matches(pub.remote_topic):
+                reason = (f"{sub.local_topic} is publish[{j}]'s topic, sent as "
+                          f"{pub.remote_topic}, which this entry receives: every message would "
+                          "loop back to the fleet; give it another local_topic")
+                raise ctx.error(f"subscribe[{i}] ({sub.remote_topic})", "local_topic", reason)
 
 
 def _limits(ctx: _Ctx, value: object) -> ClientLimits:

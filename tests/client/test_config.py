@@ -172,6 +172,25 @@ def test_token_file_is_read_relative_and_never_shown(tmp_path: Path) -> None:
     ({**minimal(), "publsh": []}, "publsh: unknown field (did you mean publish? allowed: "),
     (minimal(publish=[{"topic": "/a", "typ": "std_msgs/msg/String"}]),
      "publish[0] (/a): typ: unknown field (did you mean type? allowed: "),
+    (minimal(tf={}, subscribe=[{"remote_topic": "/husky1/tf_static", "local_topic": "/tf_static",
+                                "type": "tf2_msgs/msg/TFMessage"}]),
+     "client.yaml: subscribe[0] (/husky1/tf_static): local_topic: /tf_static is read by the tf "
+     "section, which would send what arrives there as r1's own TF; republish it under a topic "
+     "of its own (e.g. /tf_static_husky1)"),  # docs said refused; it was accepted
+    (minimal(tf={}, subscribe=[{"remote_topic": "/.*/tf", "local_topic": "/tf",
+                                "type": "tf2_msgs/msg/TFMessage"}]),
+     "subscribe[0] (/.*/tf): local_topic: /tf is read by the tf section"),
+    (minimal(publish=[{"topic": "/chatter", "type": "std_msgs/msg/String"}],
+             subscribe=[{"remote_topic": "/r1/chatter", "local_topic": "/chatter",
+                         "type": "std_msgs/msg/String"}]),
+     "client.yaml: subscribe[0] (/r1/chatter): local_topic: /chatter is publish[0]'s topic, "
+     "sent as /r1/chatter, which this entry receives: every message would loop back to the "
+     "fleet; give it another local_topic"),
+    (minimal(publish=[{"topic": "/a", "type": "std_msgs/msg/String"},
+                      {"topic": "/chatter", "type": "std_msgs/msg/String"}],
+             subscribe=[{"remote_topic": "/r1/.*", "local_topic": "/chatter",
+                         "type": "std_msgs/msg/String"}]),
+     "subscribe[0] (/r1/.*): local_topic: /chatter is publish[1]'s topic"),
     (minimal(tf=True), "client.yaml: tf: must be a mapping, got true (tf: {} turns TF on "
                        "with the defaults; leave it out for no TF)"),
     (minimal(status={"location": "a\nb"}),

@@ -46,7 +46,7 @@ from typing import Any
 import yaml
 
 from fleetctl import __version__
-from fleetctl.deploy.files import FileWrite, write_file
+from fleetctl.deploy.files import FileWrite, refuse_linked_directories, write_file
 from fleetctl.deploy.images import image_tag
 from fleetctl.errors import ConfigError, EnvironmentMissing, ExitCode, FleetError
 from fleetctl.smallfile import MAX_PEM_BYTES, MAX_SECRET_BYTES, read_small_text
@@ -522,6 +522,7 @@ def write_files(plan: ComposePlan) -> Path:
     """Write the compose file, state and container-side files under ``FLEET/.compose``."""
     out = plan.compose_dir
     for sub in (out, out / "secrets"):
+        refuse_linked_directories(plan.fleet_dir, sub)  # chmod and the key copy follow one
         sub.mkdir(parents=True, exist_ok=True)
         os.chmod(sub, 0o700)  # copies of private keys live below
     (out / "server").mkdir(exist_ok=True)
@@ -546,7 +547,9 @@ def write_files(plan: ComposePlan) -> Path:
 def _write(path: Path, text: str, *, secret: bool = False) -> None:
     # Atomic, mode set at creation, never through a symlink planted in .compose/.
     mode = 0o600 if secret else 0o644
-    write_file(FileWrite(path, text.encode(), mode, 0o700 if secret else None))
+    fleet_dir = next(p.parent for p in path.parents if p.name == COMPOSE_DIR)
+    write_file(FileWrite(path, text.encode(), mode, 0o700 if secret else None),
+               root=fleet_dir)
 
 
 def saved_options(fleet_dir: Path) -> Options | None:

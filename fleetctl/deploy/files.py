@@ -88,6 +88,9 @@ class Plan:
     deletes: list[Path] = field(default_factory=list)
     directories: dict[Path, int] = field(default_factory=dict)
     new_directories: dict[Path, int] = field(default_factory=dict)
+    # The directory the plan writes in (the fleet directory, a bundle): a symbolic link
+    # below it, on the way to a file, is refused (see refuse_linked_directories).
+    root: Path | None = None
 
     def directory(self, path: Path, mode: int) -> None:
         """Make sure *path* exists with exactly *mode* (e.g. 0o700 above secret dirs).
@@ -114,8 +117,22 @@ class Plan:
         """Add a deletion of a file or a whole directory tree (missing is fine)."""
         self.deletes.append(path)
 
+    def check_directories(self) -> None:
+        """Refuse a symbolic link below :attr:`root` on the way to a file or directory of
+        the plan (what :meth:`preview` and :meth:`apply` do first).
+
+        Raises:
+            ConfigError: naming the link.
+        """
+        if self.root is None:
+            return
+        for path in (*(w.path.parent for w in self.writes), *self.directories,
+                     *self.new_directories, *(p.parent for p in self.deletes)):
+            refuse_linked_directories(self.root, path)
+
     def preview(self) -> list[Change]:
         """Return what :meth:`apply` would do, touching nothing."""
+        self.check_directories()
         changes = [Change(p, ChangeKind.DELETE) for p in self.deletes if _exists(p)]
         changes += [Change(w.path, _write_kind(w)) for w in self.writes]
         return changes
@@ -127,6 +144,7 @@ class Plan:
             WriteFailed: a file or directory could not be written (disk full, permission
                 denied, ...): naming it; everything done so far has been undone.
         """
+        self.check_directories()
         tx = _Transaction()
         try:
             changes = tx.run(self)
@@ -138,6 +156,29 @@ class Plan:
             raise
         tx.finish()
         return changes
+
+
+def refuse_linked_directories(root: Path, directory: Path) -> None:
+    """Refuse *directory* when it, or a directory between *root* and it, is a symbolic
+    link: a file written there would land wherever the link points (a robot's private key
+    in someone else's directory), and forcing 0700 on it would change the mode of a
+    directory fleetctl does not own. *root* itself may be a link (a fleet directory
+    reached through one); a *directory* outside *root* is not checked.
+
+    Raises:
+        ConfigError: naming the link and where it points.
+    """
+    try:
+        parts = directory.relative_to(root).parts
+    except ValueError:
+        return
+    current = root
+    for part in parts:
+        current = current / part
+        if current.is_symlink():
+            raise ConfigError(f"{current} is a symbolic link (to {os.readlink(current)}), "
+                              "which fleetctl never writes through: make it a directory of "
+                              "its own (or remove it and let fleetctl make it)")
 
 
 class WriteFailed(FleetError):
@@ -349,7 +390,7 @@ def ensure_dir(path: Path, mode: int | None) -> None:
         path.chmod(mode)
 
 
-def write_file(w: FileWrite) -> ChangeKind:
+def write_file(w: FileWrite, root: Path | None = None) -> ChangeKind:
     """Write one file atomically unless it already has the right bytes and mode.
 
     The temp file is created with a random name, exclusively, without following links,
@@ -357,9 +398,10 @@ def write_file(w: FileWrite) -> ChangeKind:
     the target, so a reader sees the old file or the new one, never half.
 
     Raises:
+        ConfigError: a directory below *root* on the way to it is a symbolic link.
         WriteFailed: it could not be written (nothing changed).
     """
-    return Plan(writes=[w]).apply()[0].kind
+    return Plan(writes=[w], root=root).apply()[0].kind
 
 
 # --- generated-file stamps -------------------------------------------------------------

@@ -277,7 +277,14 @@ def _endpoint_warning(fleet: Fleet, fleet_dir: Path) -> tuple[str, ...]:
 
 def finish_plan(plan: Plan, fleet_dir: Path, dry_run: bool,
                 warnings: tuple[str, ...] = ()) -> Outcome:
-    """Apply *plan* (or only preview it when *dry_run*) and return the outcome."""
+    """Apply *plan* (or only preview it when *dry_run*) and return the outcome.
+
+    Raises:
+        ConfigError: a directory below *fleet_dir* the plan writes in is a symbolic link.
+        WriteFailed: a file could not be written (nothing was changed).
+    """
+    if plan.root is None:
+        plan.root = fleet_dir
     changes = plan.preview() if dry_run else plan.apply()
     return Outcome(fleet_dir, tuple(changes), dry_run, warnings)
 

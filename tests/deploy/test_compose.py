@@ -353,6 +353,29 @@ def test_deploy_commands_in_a_directory_that_is_no_fleet_exit_3(
         "directory (create one with 'fleetctl init', or set --fleet / FLEET_DIR)\n")
 
 
+@pytest.mark.parametrize("linked", [".compose", ".compose/secrets", ".compose/robots/husky1"])
+def test_up_never_writes_secrets_through_a_linked_directory(
+        fleet: Path, tmp_path: Path, linked: str) -> None:
+    """A link at FLEET/.compose/secrets had `up` copy the TLS private key into the
+    directory it points to, and chmod that directory 0700."""
+    # With WireGuard (no TUN device needed to write the files): robots' wg0.conf too.
+    plan = replace(compose.plan_for(fleet, _opts(fleet, wireguard="off", sim=True)),
+                   wireguard=True)
+    compose.write_files(plan)
+    elsewhere = tmp_path / "elsewhere"
+    shutil.move(fleet / linked, elsewhere)
+    for p in (elsewhere, *elsewhere.rglob("*")):
+        if p.is_file():
+            p.unlink()
+    elsewhere.chmod(0o755)
+    (fleet / linked).symlink_to(elsewhere)
+    with pytest.raises(ConfigError, match=rf"^{re.escape(str(fleet.resolve() / linked))} is a "
+                                          r"symbolic link \(to .*\), which fleetctl never"):
+        compose.write_files(plan)
+    assert not [p for p in elsewhere.rglob("*") if p.is_file()]
+    assert stat.S_IMODE(elsewhere.stat().st_mode) == 0o755
+
+
 def test_up_needs_the_images(fleet: Path) -> None:
     with pytest.raises(EnvironmentMissing, match=r"fleetctl/server:.* not found.*fleetctl build"):
         composerun.up(fleet, _opts(fleet, wireguard="off"), progress=lambda _: None,

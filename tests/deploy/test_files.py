@@ -10,7 +10,7 @@ import pytest
 
 from fleetctl.deploy import files
 from fleetctl.deploy import operations as ops
-from fleetctl.errors import FleetError
+from fleetctl.errors import ConfigError, FleetError
 
 
 def test_a_file_where_a_directory_belongs_is_one_error_and_changes_nothing(
@@ -47,3 +47,60 @@ def test_a_write_that_fails_names_the_file_not_its_temp(
     # endpoint), as the operator knows it.
     assert Path(named) == fleet_dir / "server/tls/cert.pem"
     assert (fleet_dir / "fleet.yaml").read_bytes() == before
+
+
+def _tree(root: Path) -> dict[str, bytes | str]:
+    """Every path below *root*: a file's bytes, a link's target, a directory's mode."""
+    out: dict[str, bytes | str] = {}
+    for p in sorted(root.rglob("*")):
+        key = str(p.relative_to(root))
+        if p.is_symlink():
+            out[key] = f"-> {p.readlink()}"
+        elif p.is_dir():
+            out[key] = oct(p.stat().st_mode)
+        else:
+            out[key] = p.read_bytes()
+    return out
+
+
+_CHANGES = {
+    "set-endpoint": lambda f: ops.set_endpoint(f, "vpn2.example.org:51820"),
+    "add-robot": lambda f: ops.add_robot(f, "jackal2"),
+    "render --dry-run": lambda f: ops.render_fleet(f, dry_run=True),
+    "remove-robot": lambda f: ops.remove_robot(f, "husky1"),
+}
+
+
+@pytest.mark.parametrize(("linked", "change"), [
+    ("robots/husky1/wireguard", "set-endpoint"), ("robots/husky1/wireguard", "render --dry-run"),
+    ("robots/husky1", "set-endpoint"), ("robots", "remove-robot"), ("robots", "add-robot"),
+    ("keys/robots", "add-robot"), ("keys/robots", "remove-robot"), ("keys", "set-endpoint"),
+    ("server/wireguard", "add-robot"), ("server", "render --dry-run")])
+def test_a_directory_that_is_a_link_is_never_written_through(
+        tmp_path: Path, linked: str, change: str) -> None:
+    """A link at robots/NAME/wireguard had set-endpoint write the robot's private key into
+    the directory it points to (and force 0700 on it)."""
+    fleet_dir = tmp_path / "f"
+    ops.create_fleet(fleet_dir, endpoint="vpn.example.org:51820")
+    ops.add_robot(fleet_dir, "husky1")
+    elsewhere = tmp_path / "elsewhere"
+    shutil.move(fleet_dir / linked, elsewhere)
+    elsewhere.chmod(0o755)
+    (fleet_dir / linked).symlink_to(elsewhere)
+    before, outside = _tree(fleet_dir), _tree(elsewhere)
+    with pytest.raises(ConfigError) as info:
+        _CHANGES[change](fleet_dir)
+    assert str(info.value).startswith(
+        f"{fleet_dir / linked} is a symbolic link (to {elsewhere}), which fleetctl never "
+        "writes through: make it a directory of its own")
+    assert info.value.exit_code == 3
+    assert _tree(fleet_dir) == before and _tree(elsewhere) == outside
+    assert oct(elsewhere.stat().st_mode) == oct(0o40755)
+
+
+def test_a_fleet_directory_reached_through_a_link_is_fine(tmp_path: Path) -> None:
+    real = tmp_path / "real"
+    ops.create_fleet(real, endpoint="vpn.example.org:51820")
+    (tmp_path / "link").symlink_to(real)
+    ops.add_robot(tmp_path / "link", "husky1")
+    assert (real / "robots/husky1/wireguard/wg0.conf").is_file()

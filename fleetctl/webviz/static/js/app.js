@@ -32,6 +32,7 @@ class App {
     this.poseSeenMs = 0;
     this.frameId = "map";
     this.keyframeRequests = { sent: 0, failed: 0, last: null };
+    this.seenTypes = new Map(); // topic -> type of the last message of the open robot
   }
 
   signIn(token) {
@@ -114,6 +115,7 @@ class App {
       return;
     }
     if (!this.robot || !meta.topic.startsWith(`/${this.robot}/`)) return;
+    this.seenTypes.set(meta.topic, meta.type);
     const v = this.views;
     v.scene.update(meta, msg); // the 3D scene draws what it can place through TF
     switch (meta.type) {
@@ -185,9 +187,10 @@ class App {
     };
     this.views.map.reset();
     if (this.shownRobot !== name) {
-      // Another robot: its TF tree and video streams are not this one's.
-      this.views.scene.reset();
-      this.views.video.reset();
+      // Another robot: nothing the last one showed is this one's (its camera frame, scan,
+      // cloud and odometry stayed on the next robot's page until that one sent its own).
+      for (const v of Object.values(this.views)) if (v !== this.views.map) v.reset?.();
+      this.seenTypes.clear();
       this.shownRobot = name;
     }
     this.commandStatus("");
@@ -241,7 +244,24 @@ class App {
       : "";
   }
 
+  /** A tool button: the map waits for a press and drag (the button again cancels). */
+  armTool(kind) {
+    const map = this.views.map;
+    const label = kind === "goal" ? GOAL.label : INITIAL.label;
+    if (map.tool === kind) {
+      map.setTool(null);
+      this.commandStatus(`${label[0].toUpperCase()}${label.slice(1)}: cancelled.`);
+    } else {
+      map.setTool(kind);
+      this.commandStatus(`${label[0].toUpperCase()}${label.slice(1)}: press on the map where it is, drag toward the heading and release.`);
+    }
+    $("#tool-goal").classList.toggle("active", map.tool === "goal");
+    $("#tool-initial").classList.toggle("active", map.tool === "initialpose");
+  }
+
   async sendPose(kind, x, y, yaw) {
+    $("#tool-goal").classList.remove("active");
+    $("#tool-initial").classList.remove("active");
     const cmd = kind === "goal" ? GOAL : INITIAL;
     const topic = `/${this.robot}${cmd.suffix}`;
     if (!this.conn.rules.canSend(topic)) {
@@ -250,6 +270,7 @@ class App {
     const msg = kind === "goal" ? goalMessage(x, y, yaw, this.frameId) : initialPoseMessage(x, y, yaw, this.frameId);
     try {
       const size = await this.conn.sendMessage(cmd.type, topic, msg, { noDrop: true });
+      this.views.map.markSent(kind, x, y, yaw);
       this.commandStatus(`Sent ${cmd.label} x=${x.toFixed(2)} m y=${y.toFixed(2)} m yaw=${((yaw * 180) / Math.PI).toFixed(0)}° to ${topic} (${size} bytes).`);
     } catch (err) {
       this.commandStatus(`Not sent: ${err.message}`, true);
@@ -274,12 +295,53 @@ class App {
     el.classList.toggle("bad", bad);
   }
 
+  /**
+   * A panel that has drawn nothing says over its canvas which topic it waits for, or what
+   * arrived there instead: a robot whose camera is /cam/jpeg got a blank black panel.
+   */
+  waitingNote(p) {
+    if (!p.draws) return "";
+    const topics = p.topics.map((t) => `/${this.robot}${t}`);
+    if (topics.some((t) => this.seenTypes.get(t) === p.draws)) return "";
+    const other = topics.find((t) => this.seenTypes.has(t));
+    if (other) {
+      const type = this.seenTypes.get(other);
+      return type === VIDEO_TYPE
+        ? `${other} arrives as video (${type}): see the Video panel.`
+        : `${other} arrives as ${type}; this panel draws ${p.draws}.`;
+    }
+    const local = topics[0].slice(this.robot.length + 1);
+    return this.paused
+      ? "Paused."
+      : `Nothing on ${topics.join(", ")} (${p.draws}) yet. The robot's ${local} is shown here; ` +
+        `another topic needs remote_topic: ${topics[0]} in its publish entry.`;
+  }
+
+  /** The Video panel's line while it has no stream: its topics, or what came there instead. */
+  videoHint() {
+    const topics = PANELS.find((p) => p.id === "video").topics.map((t) => `/${this.robot}${t}`);
+    const raw = topics.find((t) => this.seenTypes.has(t) && this.seenTypes.get(t) !== VIDEO_TYPE);
+    if (raw) {
+      return `${raw} arrives as ${this.seenTypes.get(raw)}, not as video: add video: {codec: h264} ` +
+        "to its publish entry (fleet.yaml, or the robot's client.yaml) to see it here";
+    }
+    return `no video yet on ${topics.slice(0, -1).join(", ")} or ${topics[topics.length - 1]}: ` +
+      "a robot sends a camera as video when its publish entry has a video: section " +
+      "(fleet.yaml, or the robot's client.yaml; docs/operator.md)";
+  }
+
   /** A panel whose topic arrives in a form the page cannot decode says so, and how to fix it. */
   renderNotes() {
     if (!this.robot || !this.conn) return;
+    if (this.views) this.views.video.idleHint = this.videoHint();
     for (const p of PANELS) {
-      const notes = p.topics.map((t) => this.conn.unsupported.get(`/${this.robot}${t}`)).filter(Boolean);
       const panel = $(`#panel-${p.id}`);
+      const wait = panel.querySelector(".panel-wait");
+      if (wait) {
+        wait.textContent = this.waitingNote(p);
+        wait.hidden = !wait.textContent;
+      }
+      const notes = p.topics.map((t) => this.conn.unsupported.get(`/${this.robot}${t}`)).filter(Boolean);
       let note = panel.querySelector(".panel-note");
       if (!note && notes.length) {
         note = document.createElement("p");
@@ -348,8 +410,8 @@ async function main() {
     location.reload();
   });
   $("#pause").addEventListener("click", () => app.togglePause());
-  $("#tool-goal").addEventListener("click", () => app.views.map.setTool("goal"));
-  $("#tool-initial").addEventListener("click", () => app.views.map.setTool("initialpose"));
+  $("#tool-goal").addEventListener("click", () => app.armTool("goal"));
+  $("#tool-initial").addEventListener("click", () => app.armTool("initialpose"));
   for (const p of PANELS) {
     $(`#show-${p.id}`).addEventListener("change", (e) => app.togglePanel(p.id, e.target.checked));
   }

@@ -74,6 +74,14 @@ export class CloudView {
     this.latest = msg;
   }
 
+  /** Another robot's page: blank what the last one showed. */
+  reset() {
+    this.latest = null;
+    delete this.canvas.dataset.points;
+    if (this.mode === "webgl") this.drawThree(new Float32Array(0), 0);
+    else if (this.mode === "canvas") this.drawCanvas(new Float32Array(0), 0);
+  }
+
   render() {
     const msg = this.latest;
     if (!msg || this.mode === "pending") return;

@@ -30,6 +30,15 @@ export class GpsView {
     this.latest = msg;
   }
 
+  /** Another robot's page: its track is not the last one's. */
+  reset() {
+    this.latest = null;
+    this.track = [];
+    this.readout.textContent = "no fix yet";
+    this.line?.setLatLngs([]);
+    if (this.map?.hasLayer(this.dot)) this.dot.remove();
+  }
+
   render() {
     const msg = this.latest;
     if (!msg) return;

@@ -6,6 +6,7 @@ import { MarkerStore, arrow } from "./markers.js";
 import { yawOf } from "./odom.js";
 
 const MAX_PATH = 2000; // pose history points kept (oldest dropped)
+const JUMP_M = 1.0; // a pose this far from the last one is a jump, not driving
 
 export class MapView {
   /**
@@ -25,6 +26,8 @@ export class MapView {
     this.markers = new MarkerStore();
     this.tool = null;
     this.drag = null;
+    this.pan = null; // a drag without a tool moves the view
+    this.sent = []; // the last goal and initial pose sent from this page, drawn until reset
     this.dirty = true;
     canvas.addEventListener("pointerdown", (e) => this.down(e));
     canvas.addEventListener("pointermove", (e) => this.move(e));
@@ -43,6 +46,7 @@ export class MapView {
     this.plan = null;
     this.grid = null;
     this.markers = new MarkerStore();
+    this.sent = [];
     this.dirty = true;
   }
 
@@ -59,11 +63,23 @@ export class MapView {
 
   setTool(tool) {
     this.tool = tool;
-    this.canvas.style.cursor = tool ? "crosshair" : "default";
+    this.canvas.style.cursor = tool ? "crosshair" : "grab";
+    this.canvas.dataset.tool = tool ?? "";
+  }
+
+  /** Remember a pose sent from this page, drawn as an arrow where it was aimed. */
+  markSent(kind, x, y, yaw) {
+    this.sent = [...this.sent.filter((p) => p.kind !== kind), { kind, x, y, yaw }];
+    this.dirty = true;
   }
 
   down(e) {
-    if (!this.tool) return;
+    if (!this.tool) {
+      // No tool: drag to pan (a map whose origin is far from 0, 0 was out of reach).
+      this.canvas.setPointerCapture?.(e.pointerId);
+      this.pan = { x: e.clientX, y: e.clientY };
+      return;
+    }
     this.canvas.setPointerCapture?.(e.pointerId);
     const w = this.eventWorld(e);
     this.drag = { start: w, end: w };
@@ -71,12 +87,21 @@ export class MapView {
   }
 
   move(e) {
+    if (this.pan) {
+      const r = this.canvas.getBoundingClientRect();
+      const k = this.canvas.width / r.width / this.scale; // m per CSS px
+      this.center = { x: this.center.x - (e.clientX - this.pan.x) * k, y: this.center.y + (e.clientY - this.pan.y) * k };
+      this.pan = { x: e.clientX, y: e.clientY };
+      this.dirty = true;
+      return;
+    }
     if (!this.drag) return;
     this.drag.end = this.eventWorld(e);
     this.dirty = true;
   }
 
   up(e) {
+    this.pan = null;
     if (!this.drag) return;
     const { start } = this.drag;
     const end = this.eventWorld(e);
@@ -92,7 +117,11 @@ export class MapView {
   updatePose(pose) {
     this.pose = { x: pose.position.x, y: pose.position.y, yaw: yawOf(pose.orientation) };
     const last = this.path[this.path.length - 1];
-    if (!last || Math.hypot(last.x - this.pose.x, last.y - this.pose.y) > 0.05) {
+    const step = last ? Math.hypot(last.x - this.pose.x, last.y - this.pose.y) : Infinity;
+    if (step > 0.05) {
+      // A jump (an initial pose, a relocalization) starts a new piece of path: a straight
+      // line across the map from the old place was drawn as if the robot had driven it.
+      if (last && step > JUMP_M) this.path.push(null);
       this.path.push({ x: this.pose.x, y: this.pose.y });
       if (this.path.length > MAX_PATH) this.path.shift();
     }
@@ -151,6 +180,15 @@ export class MapView {
       ctx.lineWidth = 3;
       arrow(ctx, x, y, x + 22 * Math.cos(this.pose.yaw), y - 22 * Math.sin(this.pose.yaw), 9);
     }
+    for (const p of this.sent) {
+      const [x, y] = this.toPx(p.x, p.y);
+      ctx.fillStyle = ctx.strokeStyle = p.kind === "goal" ? "#ef5350" : "#ab47bc";
+      ctx.lineWidth = 2;
+      ctx.beginPath();
+      ctx.arc(x, y, 5, 0, 2 * Math.PI);
+      ctx.stroke();
+      arrow(ctx, x, y, x + 26 * Math.cos(p.yaw), y - 26 * Math.sin(p.yaw), 9);
+    }
     if (this.drag) {
       const [x0, y0] = this.toPx(this.drag.start.x, this.drag.start.y);
       const [x1, y1] = this.toPx(this.drag.end.x, this.drag.end.y);
@@ -186,11 +224,17 @@ export class MapView {
     ctx.strokeStyle = color;
     ctx.lineWidth = 2;
     ctx.beginPath();
-    points.forEach((p, i) => {
+    let pen = false; // null in a path: a jump, lift the pen
+    for (const p of points) {
+      if (!p) {
+        pen = false;
+        continue;
+      }
       const [x, y] = this.toPx(p.x, p.y);
-      if (i === 0) ctx.moveTo(x, y);
-      else ctx.lineTo(x, y);
-    });
+      if (pen) ctx.lineTo(x, y);
+      else ctx.moveTo(x, y);
+      pen = true;
+    }
     ctx.stroke();
   }
 }

@@ -14,6 +14,12 @@ export class OdomView {
     this.latest = msg;
   }
 
+  /** Another robot's page: its odometry is not the last one's. */
+  reset() {
+    this.latest = null;
+    this.el.textContent = "no odometry yet";
+  }
+
   render() {
     const msg = this.latest;
     if (!msg) return;

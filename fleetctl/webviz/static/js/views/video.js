@@ -268,7 +268,7 @@ export class VideoView {
     const el = this.statusEl;
     if (!s) {
       // Nothing came: say where video comes from, so an operator knows what to change.
-      el.textContent = webCodecsMissing() ??
+      el.textContent = webCodecsMissing() ?? this.idleHint ??
         "no video yet: a robot sends a camera as video when the camera's publish entry " +
         "in fleet.yaml has a video: section (docs/operator.md)";
       el.classList.toggle("bad", !!webCodecsMissing());

@@ -1,0 +1,252 @@
+"""What the robot page's panels say and show when a robot team's topics are not the page's
+(a real relay, scripted WebSocket robots, headless Chromium): a panel that has drawn
+nothing names the topic it waits for, a robot switch clears the last robot's pictures, the
+scan is scaled to what it sees with labelled rings, and a phone's page is no wider than
+its screen."""
+
+from __future__ import annotations
+
+import io
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pytest
+from PIL import Image
+
+from fleetctl.wire.control import encode_status, encode_subscription
+from tests.webviz.conftest import webviz_server
+from tests.webviz.fleet import OPERATOR_TOKEN
+from tests.webviz.pixels import colored_pixels
+from tests.webviz.samples import header, pose_values, scan_values
+from tests.webviz.scripted import scripted_fleet
+from tests.webviz.test_browser import TIMEOUT_MS, pixels, sign_in, wait_js, watch_errors
+
+pytestmark = pytest.mark.browser
+
+SCAN = "sensor_msgs/msg/LaserScan"
+JPEG = "sensor_msgs/msg/CompressedImage"
+IMAGE = "sensor_msgs/msg/Image"
+ODOM = "nav_msgs/msg/Odometry"
+
+
+def jpeg_values() -> dict[str, Any]:
+    buf = io.BytesIO()
+    Image.new("RGB", (64, 48), (200, 40, 40)).save(buf, "JPEG")
+    return {"header": header("camera"), "format": "jpeg",
+            "data": np.frombuffer(buf.getvalue(), dtype=np.uint8)}
+
+
+def raw_image_values() -> dict[str, Any]:
+    return {"header": header("camera"), "height": 16, "width": 16, "encoding": "rgb8",
+            "is_bigendian": 0, "step": 48, "data": np.full(16 * 48, 90, dtype=np.uint8)}
+
+
+def odom_values() -> dict[str, Any]:
+    return {"header": header("odom"), "child_frame_id": "base_link",
+            "pose": {"pose": pose_values(1.0, 2.0, 0.0)},
+            "twist": {"twist": {"linear": {"x": 0.4}}}}
+
+
+def scan_of(radius_m: float, range_max: float = 30.0) -> dict[str, Any]:
+    return {**scan_values(radius_m=radius_m), "range_max": range_max}
+
+
+def note(panel: str) -> str:
+    return f"#panel-{panel} .panel-wait"
+
+
+async def test_empty_panels_name_their_topic_and_a_robot_switch_clears_them(
+    tmp_path: Path, browser: Any, webviz_factory: list[Any]
+) -> None:
+    # r1: a camera and a scan where the page looks, a raw camera where the Video panel
+    # looks (not sent as video), no cloud; r2: only odometry. Before, r1's cloud panel was
+    # a black box, the Video panel said only "no video yet", and r2's page went on showing
+    # r1's camera frame and scan.
+    async with scripted_fleet(tmp_path, ("r1", "r2")) as relay:
+        r1, r2 = relay.robots["r1"], relay.robots["r2"]
+        web = webviz_server(relay.url).start()
+        webviz_factory.append(web)
+        page = await browser.new_page(viewport={"width": 1280, "height": 800})
+        problems = watch_errors(page)
+        await sign_in(page, web.url, OPERATOR_TOKEN)
+        r1.repeat(lambda: [r1.encode(JPEG, "/camera/image/compressed", jpeg_values()),
+                           r1.encode(SCAN, "/scan", scan_of(3.0)),
+                           r1.encode(IMAGE, "/camera/image_raw", raw_image_values())])
+        r2.repeat(lambda: [r2.encode(ODOM, "/odom", odom_values())])
+        await page.goto(web.url + "#/robot/r1")
+        await wait_js(page, "Number(document.querySelector('#camera-canvas').dataset.frames"
+                            " || 0) >= 1 && document.querySelector('#scan-canvas').dataset.beams")
+        await page.locator(note("cloud"), has_text=(
+            "Nothing on /r1/points (sensor_msgs/msg/PointCloud2) yet. The robot's /points is "
+            "shown here; another topic needs remote_topic: /r1/points in its publish entry."
+        )).wait_for(timeout=TIMEOUT_MS)
+        await page.locator("#video-status", has_text=(
+            "/r1/camera/image_raw arrives as sensor_msgs/msg/Image, not as video: add video: "
+            "{codec: h264} to its publish entry")).wait_for(timeout=TIMEOUT_MS)
+        await page.locator(note("odom"), has_text="Nothing on /r1/odom").wait_for(
+            timeout=TIMEOUT_MS)
+        assert await page.is_hidden(note("camera")) and await page.is_hidden(note("scan"))
+        assert await pixels(page, "#camera-canvas") > 1000
+        # The note lies over the canvas: the panel is as tall with it as without it.
+        shown = (await page.locator("#panel-cloud").bounding_box())["height"]
+        await page.locator(note("cloud")).evaluate("e => e.hidden = true")
+        assert (await page.locator("#panel-cloud").bounding_box())["height"] == shown
+
+        await page.goto(web.url + "#/robot/r2")
+        await page.locator(note("camera"), has_text="Nothing on /r2/camera/image/compressed"
+                           ).wait_for(timeout=TIMEOUT_MS)
+        await page.locator(note("scan"), has_text="Nothing on /r2/scan").wait_for(
+            timeout=TIMEOUT_MS)
+        await page.locator("#odom-text", has_text="0.40 m/s").wait_for(timeout=TIMEOUT_MS)
+        await page.locator(note("odom")).wait_for(state="hidden", timeout=TIMEOUT_MS)
+        await page.locator("#video-status", has_text=(
+            "no video yet on /r2/camera/image_raw, /r2/camera/image or /r2/camera/video")
+        ).wait_for(timeout=TIMEOUT_MS)
+        # r1's picture and scan are gone (r1 keeps publishing; this page no longer asks):
+        # every pixel of both canvases is the background.
+        blank = ("sel => { const c = document.querySelector(sel);"
+                 " const d = c.getContext('2d').getImageData(0, 0, c.width, c.height).data;"
+                 " let n = 0; for (let i = 0; i < d.length; i += 4)"
+                 "   if (d[i] !== 16 || d[i + 1] !== 20 || d[i + 2] !== 24) n++;"
+                 " return n; }")
+        assert await page.evaluate(blank, "#camera-canvas") == 0
+        assert await page.evaluate(blank, "#scan-canvas") == 0
+        assert not problems, problems
+
+
+async def test_the_scan_is_scaled_to_its_returns_with_labelled_rings(
+    tmp_path: Path, browser: Any, webviz_factory: list[Any]
+) -> None:
+    # A 30 m lidar in a 3 m room was drawn at range_max: a fifth of the panel, rings at
+    # 1, 7, 13, 19, 25 m without a label.
+    async with scripted_fleet(tmp_path) as relay:
+        r1 = relay.robots["r1"]
+        web = webviz_server(relay.url).start()
+        webviz_factory.append(web)
+        page = await browser.new_page(viewport={"width": 1280, "height": 800})
+        problems = watch_errors(page)
+        await sign_in(page, web.url, OPERATOR_TOKEN)
+        await page.goto(web.url + "#/robot/r1")
+        await wait_js(page, "fleetviz.conn.active.has('/r1/scan')")
+        radius = [3.0]
+        r1.repeat(lambda: [r1.encode(SCAN, "/scan", scan_of(radius[0]))], period_s=0.05)
+        extent = "document.querySelector('#scan-canvas').dataset.extentM"
+        await wait_js(page, f"{extent} === '5'")  # 3.5 m farthest return, 10 % margin
+        assert await page.get_attribute("#scan-canvas", "data-ring-step-m") == "1"
+        shot = await page.locator("#scan-canvas").screenshot()
+        assert pixels_far_out(shot) > 50  # the returns reach far into the panel
+        radius[0] = 12.0  # a door opens: the scale grows at once
+        await wait_js(page, f"{extent} === '15'")
+        assert await page.get_attribute("#scan-canvas", "data-ring-step-m") == "5"
+        radius[0] = 3.0  # and shrinks back only after a run of small scans
+        await wait_js(page, f"{extent} === '5'")
+        assert not problems, problems
+
+
+def pixels_far_out(png: bytes) -> int:
+    """Scan-coloured pixels more than a third of the panel's half width from its centre."""
+    img = np.asarray(Image.open(io.BytesIO(png)).convert("RGB")).astype(int)
+    h, w, _ = img.shape
+    orange = (abs(img[..., 0] - 255) < 40) & (abs(img[..., 1] - 157) < 40) & (img[..., 2] < 90)
+    yy, xx = np.mgrid[0:h, 0:w]
+    far = np.hypot(yy - h / 2, xx - w / 2) > min(w, h) / 6
+    return int((orange & far).sum())
+
+
+async def test_a_phone_sized_page_is_no_wider_than_the_screen(
+    tmp_path: Path, browser: Any, webviz_factory: list[Any]
+) -> None:
+    # At 390 px the overview and link health tables made the page 540-570 px wide, and the
+    # 3D scene beside its TF tree was 195 px wide with the tree cut off.
+    name = "warehouse_robot_north_07"
+    async with scripted_fleet(tmp_path, (name,)) as relay:
+        robot = relay.robots[name]
+        web = webviz_server(relay.url).start()
+        webviz_factory.append(web)
+        page = await browser.new_page(viewport={"width": 390, "height": 844})
+        problems = watch_errors(page)
+        await sign_in(page, web.url, OPERATOR_TOKEN)
+        robot.repeat(lambda: [
+            encode_status(name, status="docking at charger 3", is_ok=True, battery_level=0.5,
+                          location="north hall, aisle 12", codec=relay.codec),
+            robot.encode(SCAN, "/scan", scan_of(3.0)),
+            robot.encode(JPEG, "/camera/image/compressed", jpeg_values())])
+        await page.locator(f'#robots tr[data-robot="{name}"] td.state', has_text="online"
+                           ).wait_for(timeout=TIMEOUT_MS)
+        await wait_js(page, "document.querySelector('#robots').textContent.includes('msg/s')")
+        width = "document.documentElement.scrollWidth"
+        assert await page.evaluate(width) <= 390
+        await page.goto(web.url + f"#/robot/{name}")
+        await page.locator("#health tbody tr", has_text=f"/{name}/camera/image/compressed"
+                           ).wait_for(timeout=TIMEOUT_MS)
+        assert await page.evaluate(width) <= 390
+        scene = await page.locator("#scene-canvas").bounding_box()
+        tree = await page.locator(".scene-side").bounding_box()
+        assert scene["width"] > 300 and tree["width"] > 300  # stacked, each full width
+        assert tree["y"] >= scene["y"] + scene["height"]
+        assert not problems, problems
+
+
+GOAL = "geometry_msgs/msg/PoseStamped"
+GOAL_RGB = (239, 83, 80)  # #ef5350, the goal arrow
+
+
+async def test_the_map_marks_the_sent_goal_breaks_the_path_at_a_jump_and_pans(
+    tmp_path: Path, browser: Any, webviz_factory: list[Any]
+) -> None:
+    # After a goal was sent the map showed nothing of it, an initial pose drew a straight
+    # path line across the map from the old place, and a map far from 0, 0 was out of reach
+    # (no pan); the tool buttons did not show that they were armed.
+    async with scripted_fleet(tmp_path) as relay:
+        r1 = relay.robots["r1"]
+        web = webviz_server(relay.url).start()
+        webviz_factory.append(web)
+        page = await browser.new_page(viewport={"width": 1280, "height": 800})
+        problems = watch_errors(page)
+        await sign_in(page, web.url, OPERATOR_TOKEN)
+        assert r1.ws is not None
+        await r1.ws.send(encode_subscription("/r1/goal_pose", codec=relay.codec))
+        await page.goto(web.url + "#/robot/r1")
+        await wait_js(page, "fleetviz.conn.active.has('/r1/odom')")
+        x = [0.0]
+        r1.repeat(lambda: [r1.encode(ODOM, "/odom", {
+            **odom_values(), "pose": {"pose": pose_values(x[0], 0.0, 0.0)}})])
+        path = "fleetviz.views.map.path"
+        await wait_js(page, f"{path}.length >= 1")
+        for step in (0.5, 1.0, 4.0):  # driving, driving, then a jump of 3 m
+            x[0] = step
+            await wait_js(page, f"{path}.some(p => p && p.x === {step})")
+        assert await page.evaluate(f"{path}.map(p => p && p.x)") == [0.0, 0.5, 1.0, None, 4.0]
+
+        await page.click("#tool-goal")
+        await page.locator("#command-status", has_text="press on the map").wait_for(
+            timeout=TIMEOUT_MS)
+        assert "active" in (await page.get_attribute("#tool-goal", "class") or "")
+        canvas = page.locator("#map-canvas")
+        await canvas.scroll_into_view_if_needed()
+        box = await canvas.bounding_box()
+        cx, cy = box["width"] * 0.25, box["height"] * 0.5  # world (-4, 0) at 40 px/m
+        await canvas.hover(position={"x": cx, "y": cy})
+        await page.mouse.down()
+        await canvas.hover(position={"x": cx, "y": cy - 30})
+        await page.mouse.up()
+        goal = relay.codec.decode(await r1.next_frame(GOAL, 10.0))[1]
+        assert abs(goal.pose.position.x + 4.0) < 0.1 and abs(goal.pose.position.y) < 0.1
+        await page.locator("#command-status", has_text="Sent navigation goal").wait_for(
+            timeout=TIMEOUT_MS)
+        assert "active" not in (await page.get_attribute("#tool-goal", "class") or "")
+        await wait_js(page, "fleetviz.views.map.sent.length === 1")
+        assert colored_pixels(await canvas.screenshot(), GOAL_RGB) > 30  # its arrow stays
+
+        # No tool: a drag pans the view (100 CSS px to the left = the view moves right).
+        before = await page.evaluate("fleetviz.views.map.center.x")
+        await canvas.hover(position={"x": box["width"] * 0.6, "y": box["height"] * 0.5})
+        await page.mouse.down()
+        await canvas.hover(position={"x": box["width"] * 0.6 - 100, "y": box["height"] * 0.5})
+        await page.mouse.up()
+        moved_m = await page.evaluate("fleetviz.views.map.center.x") - before
+        expect_m = 100 * 640 / box["width"] / 40
+        assert abs(moved_m - expect_m) < 0.05, (moved_m, expect_m)
+        assert await page.evaluate("fleetviz.views.map.sent.length") == 1  # no goal sent
+        assert not problems, problems

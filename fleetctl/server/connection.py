@@ -64,6 +64,14 @@ MIN_THROTTLE_S = 0.05
 MAX_THROTTLE_S = 1.0
 THROTTLE_MEMORY_S = 5.0
 THROTTLED_READ_BYTES = 4096  # a peer that does not read our close frame is cut off after this
+# Bytes read from a connection per event loop round (asyncio's default: 256 KiB). Why
+# less: the frames of one read are relayed before the loop serves another connection, so
+# a robot sending small frames as fast as it can held every other connection's frames
+# for the time its 256 KiB took (~2,400 frames: 60-90 ms on a loaded 2-core host).
+# With a robot flooding 50-byte frames beside a 200 Hz robot/viewer pair (2026-12-06,
+# host loaded by other work), the pair's p50 was 158-164 ms with 256 KiB reads and
+# 21-22 ms with 64 KiB; the flood's own rate did not change (15-18k frames/s).
+READ_BYTES = 64 * 1024
 _LOG_EVERY = 1000  # refusals are logged first, then every 1000th (counted in metrics)
 
 
@@ -210,6 +218,7 @@ class RelayConnection(FrameSink, BatchedWritesConnection, ServerConnection):
         # wraps this one in a cluster).
         protocol.send_frame = self._send_frame  # type: ignore[method-assign]
         limit_unsent(transport)
+        self._set_read_bytes(None)
         if self._gate is None:
             return
         peer = transport.get_extra_info("peername")
@@ -284,11 +293,7 @@ class RelayConnection(FrameSink, BatchedWritesConnection, ServerConnection):
         # TLS transport has no such knob and relies on the pauses alone.
         transport = self.transport
         if hasattr(type(transport), "max_size"):
-            if nbytes is None:
-                with contextlib.suppress(AttributeError):
-                    del transport.max_size  # type: ignore[attr-defined]
-            else:
-                transport.max_size = nbytes  # type: ignore[attr-defined]
+            transport.max_size = READ_BYTES if nbytes is None else nbytes  # type: ignore[attr-defined]
 
     def _release(self) -> None:
         slot, self._slot = self._slot, None

@@ -142,10 +142,27 @@ class _Recorded(NamedTuple):
     latched: bool
 
 
+class _Corrupt(FleetError):
+    """The recording's data is damaged at some point (a chunk that does not decompress)."""
+
+
 def _messages(path: Path) -> Iterator[_Recorded]:
-    """The file's messages in file order."""
+    """The file's messages in file order.
+
+    Raises:
+        _Corrupt: A record cannot be read (what came before it was yielded).
+    """
     latched: dict[int, bool] = {}
-    for schema, channel, message in files.read_messages(path):
+    records = files.read_messages(path)
+    while True:
+        try:
+            schema, channel, message = next(records)
+        except StopIteration:
+            return
+        except FleetError:
+            raise
+        except Exception as exc:  # zstd/lz4 on a damaged chunk: was a traceback
+            raise _Corrupt(f"{type(exc).__name__}: {exc}") from None
         if channel.id not in latched:
             latched[channel.id] = is_latched(channel.metadata)
         yield _Recorded(channel.topic, schema.name if schema is not None else "",
@@ -186,17 +203,27 @@ async def replay(path: Path, options: ReplayOptions) -> ReplayResult:
     runner = asyncio.create_task(link.run())
     result = ReplayResult(path)
     started = time.monotonic()
+    corrupt: str | None = None
     try:
-        await _play(path, options, link, result)
-        if result.messages == 0:
+        try:
+            await _play(path, options, link, result)
+        except _Corrupt as exc:
+            corrupt = str(exc)  # what was read before the damage is still delivered
+        if result.messages == 0 and corrupt is None:
             raise FleetError(_nothing_to_replay(path, result))
-        await _drain(link, runner)
+        if result.messages:
+            await _drain(link, runner)
     finally:
         await link.stop()
         with contextlib.suppress(asyncio.CancelledError):
             await runner
         result.duration_s = time.monotonic() - started
     _check_delivered(link, result, options)
+    if corrupt is not None:
+        done = (f"the {result.messages} message(s) before it were replayed"
+                if result.messages else "nothing before it to replay")
+        raise FleetError(f"{path}: damaged data, the rest of the file cannot be read "
+                         f"({corrupt}); {done}")
     return result
 
 

@@ -416,6 +416,7 @@ def validate(fleet: Fleet) -> None:
         check_recording(fleet.recording)
     if fleet.subnet.num_addresses < 4:
         raise FleetInvalid(("subnet",), f"{fleet.subnet} is too small (at most /30)")
+    _check_subnet_range(fleet.subnet)
     _check_host_ip(fleet, fleet.server_ip, ("server_ip",))
     seen: dict[object, str] = {}
     for i, robot in enumerate(fleet.robots):
@@ -423,6 +424,25 @@ def validate(fleet: Fleet) -> None:
     emails: set[str] = set()
     for i, user in enumerate(fleet.users):
         _check_user(i, user, emails)
+
+
+# Each robot routes the whole fleet subnet through its tunnel (AllowedIPs): a larger one
+# would take routes the robot needs (0.0.0.0/0 took all of its traffic, its default route
+# included, which docs/operator.md promises never happens).
+MIN_SUBNET_PREFIX = 8
+_NOT_UNICAST = (IPv4Network("0.0.0.0/8"), IPv4Network("224.0.0.0/4"),
+                IPv4Network("240.0.0.0/4"))
+
+
+def _check_subnet_range(subnet: IPv4Network) -> None:
+    if subnet.prefixlen < MIN_SUBNET_PREFIX:
+        raise FleetInvalid(("subnet",), f"{subnet} is too large (at least /{MIN_SUBNET_PREFIX}):"
+                           " every robot routes the fleet subnet through its tunnel, and "
+                           "this one would take its other routes; use a private range such "
+                           "as 10.8.0.0/24")
+    if bad := next((n for n in _NOT_UNICAST if subnet.overlaps(n)), None):
+        raise FleetInvalid(("subnet",), f"{subnet} is in {bad}, not unicast addresses an "
+                           "interface can have; use a private range such as 10.8.0.0/24")
 
 
 def _check_replica_ports(fleet: Fleet) -> None:

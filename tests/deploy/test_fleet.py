@@ -112,6 +112,31 @@ def test_semantic_errors_name_file_line_field(old: str, new: str, expected: str)
     assert _error(GOOD.replace(old, new, 1)).startswith(expected)
 
 
+@pytest.mark.parametrize(("subnet", "server_ip", "why"), [
+    ("0.0.0.0/0", "0.0.0.1", "is too large (at least /8): every robot routes"),
+    ("10.0.0.0/7", "10.0.0.1", "is too large (at least /8)"),
+    ("0.0.0.0/24", "0.0.0.1", "is in 0.0.0.0/8, not unicast"),
+    ("224.0.0.0/24", "224.0.0.1", "is in 224.0.0.0/4, not unicast"),
+    ("240.0.0.0/24", "240.0.0.1", "is in 240.0.0.0/4, not unicast"),
+])
+def test_a_subnet_robots_could_not_route_alone_is_refused(subnet: str, server_ip: str,
+                                                          why: str) -> None:
+    """0.0.0.0/0 was accepted: every robot's wg0.conf then had AllowedIPs = 0.0.0.0/0 and
+    sent all of its traffic (its default route) into the tunnel."""
+    text = GOOD.replace("subnet: 10.8.0.0/24", f"subnet: {subnet}").replace(
+        "server_ip: 10.8.0.1", f"server_ip: {server_ip}")
+    assert _error(text).startswith(f"/f/fleet.yaml:4: subnet: {subnet} {why}")
+
+
+def test_the_largest_and_the_demo_subnets_are_fine() -> None:
+    for subnet, server_ip, robots in (("10.0.0.0/8", "10.0.0.1", ("10.0.0.2", "10.0.0.3")),
+                                      ("127.0.1.0/24", "127.0.1.1",
+                                       ("127.0.1.2", "127.0.1.3"))):
+        text = GOOD.replace("10.8.0.0/24", subnet).replace("10.8.0.1", server_ip).replace(
+            "10.8.0.2", robots[0]).replace("10.8.0.3", robots[1])
+        assert str(parse_fleet(Path("/f/fleet.yaml"), text).subnet) == subnet
+
+
 def test_yaml_syntax_error_names_line() -> None:
     message = _error(GOOD.replace("  - name: husky1\n", "  - name: husky1\n bad: [\n"))
     assert message.startswith("/f/fleet.yaml:")

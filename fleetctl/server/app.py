@@ -72,6 +72,9 @@ WRITE_LIMIT_BYTES = 16 * 1024
 # Bytes the writer takes from the scheduler per transport write.
 WRITE_BATCH_BYTES = 64 * 1024
 REGISTRY_FLUSH_PERIOD_S = 1.0
+# The opening handshake's bound (websockets' default): a client that has not completed
+# its request by then (one byte a second) is cut, with one log line.
+OPEN_TIMEOUT_S = 10.0
 
 
 class ListenError(Exception):
@@ -296,6 +299,7 @@ class RelayServer:
                 process_response=respond,
                 select_subprotocol=self.foxglove.select_subprotocol,
                 max_size=self.config.limits.max_frame_bytes,
+                open_timeout=OPEN_TIMEOUT_S,
                 max_queue=16,
                 write_limit=WRITE_LIMIT_BYTES,
                 ssl=ssl_context,

@@ -111,6 +111,7 @@ class RelayConnection(FrameSink, BatchedWritesConnection, ServerConnection):
         self._known = known
         self._metrics = metrics
         self.max_message_frames = PRE_AUTH_MAX_MESSAGE_FRAMES
+        self._request_bytes = 0  # bytes received before the request was complete
         self._held_pong: Frame | None = None  # see _send_frame
         self._pong_paused = False  # not read because of a held pong (no identity yet)
         self._protocol_send_frame: Callable[[Frame], None] | None = None
@@ -135,6 +136,8 @@ class RelayConnection(FrameSink, BatchedWritesConnection, ServerConnection):
         """websockets' ``data_received`` with the frames relayed before this connection's
         own output (pongs) is written: relayed frames are written first (see
         :mod:`fleetctl.server.writethrough`), a pong a few microseconds later."""
+        if self.request is None:  # the opening handshake: see connection_lost
+            self._request_bytes += len(data)
         through = self.write_through
         collecting = through is not None and through.begin()
         protocol = self.protocol
@@ -302,6 +305,15 @@ class RelayConnection(FrameSink, BatchedWritesConnection, ServerConnection):
 
     def connection_lost(self, exc: Exception | None) -> None:
         """Give back the slot; run :attr:`on_lost` once the TCP connection is gone."""
+        if (self.request is None and self._request_bytes
+                and self.protocol.handshake_exc is None):
+            # Cut by websockets' open_timeout with a request still incomplete (a slowloris
+            # client, a stalled proxy), which websockets does not log. A peer that sent
+            # nothing (a port scan, a refused connection) still logs nothing.
+            peer = self.transport.get_extra_info("peername")
+            log.info("opening handshake failed: connection from %s cut with an incomplete "
+                     "request (%d bytes in the handshake timeout)",
+                     peer[0] if peer else "?", self._request_bytes)
         self._release()
         super().connection_lost(exc)
         on_lost, self.on_lost = self.on_lost, None

@@ -3,11 +3,14 @@ nothing it keeps, and no traceback."""
 
 from __future__ import annotations
 
+import asyncio
 import json
 import logging
+from collections.abc import Callable
 
 import pytest
 
+from fleetctl.server import app
 from fleetctl.server.app import RelayServer
 from fleetctl.tokens import hash_token, is_wellformed_token
 from tests.security.conftest import RawClient
@@ -109,3 +112,24 @@ def test_token_rule() -> None:
         assert not is_wellformed_token(bad)
     with pytest.raises(UnicodeEncodeError):
         hash_token("\ud800")  # writers' rule unchanged: callers check first
+
+
+async def test_a_request_sent_too_slowly_is_cut_with_one_line(
+    make_server: Callable[..., RelayServer], monkeypatch: pytest.MonkeyPatch,
+    caplog: pytest.LogCaptureFixture,
+) -> None:
+    # Slowloris: websockets cuts an incomplete request at its open_timeout and logs
+    # nothing; the cut is now one line (docs/security.md: every refusal says why).
+    monkeypatch.setattr(app, "OPEN_TIMEOUT_S", 0.3)
+    caplog.set_level(logging.INFO)
+    async with make_server() as srv:
+        raw = await RawClient.open(srv.port, source="127.0.0.9")
+        raw.writer.write(b"GET / HTTP/1.1\r\nHost: x\r\nUpgr")  # and then nothing
+        assert await asyncio.wait_for(raw.reader.read(), 5) == b""
+        await wait_for(lambda: srv.gate.open == 0)
+        silent = await RawClient.open(srv.port, source="127.0.0.9")  # a port scan
+        assert await asyncio.wait_for(silent.reader.read(), 5) == b""
+        await wait_for(lambda: srv.gate.open == 0)
+    lines = [r.getMessage() for r in caplog.records if "incomplete request" in r.getMessage()]
+    assert lines == ["opening handshake failed: connection from 127.0.0.9 cut with an "
+                     "incomplete request (29 bytes in the handshake timeout)"]

@@ -48,6 +48,10 @@ class LinkTuning:
             the path could first be declared dead (data in flight) or right after a
             write that follows an idle spell: no periodic wake-ups (each cost the robot
             about 0.2 ms of CPU, 0.45 % of a core at 20 per second).
+        takeover_backoff_s: After the server closed the session with 4409 (another
+            client connected with the same ``robot_name``), the wait before connecting
+            again, doubled at each takeover in a row up to 12 times this, seconds: two
+            clients of one robot took the session from each other ten times a second.
         path_idle_poll_s: With nothing in flight, the longest wait between two reads (it
             is also how often the pong backstop is checked), seconds.
         dead_ack_gap_s: With data unacknowledged, no ACK for at least this long (and for
@@ -87,6 +91,7 @@ class LinkTuning:
     write_limit_bytes: int = 1024 * 1024
     tune_malloc: bool = True
     bind_reminder_interval_s: float = 30.0
+    takeover_backoff_s: float = 5.0
     path_poll_s: float = 0.05
     path_idle_poll_s: float = 0.5
     dead_ack_gap_s: float = 0.15

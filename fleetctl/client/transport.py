@@ -304,6 +304,8 @@ class RobotLink:
         self._unreachable_warned_s = 0.0
         self._unreachable_attempts = 0
         self._unreachable_reason = ("", "")
+        self._takeovers = 0  # sessions in a row another client of this robot took over
+        self._ended_by_takeover = False  # the last session was closed with 4409
 
     # -- the API used by the ROS node -----------------------------------------------------
 
@@ -454,6 +456,10 @@ class RobotLink:
                 ended = await self._session(ws)
                 attempt = 0 if ended.acked else attempt + 1  # a pong: start backoff over
                 ready = ended.ready
+                if self._ended_by_takeover and not self._stop.is_set():
+                    await self._wait_stop(self._taken_over())
+                    continue
+                self._takeovers = 0
                 # After a dead path the dialer paces itself (and a socket may be ready):
                 # a backoff would only delay the first SYN after the link returns.
                 if not self._stop.is_set() and not ended.path_dead:
@@ -465,6 +471,23 @@ class RobotLink:
                 await self._standby.close()
             self._running = False
             self._stopped.set()
+
+    def _taken_over(self) -> float:
+        """The session went to a newer connection of the same ``robot_name`` (4409): not
+        this process's (it abandons its own old connections first), so another client of
+        this robot. Say so, and wait longer at each takeover in a row before taking the
+        session back (reconnecting at once made the two clients take it from each other
+        ten times a second, each losing what was in flight)."""
+        self._takeovers += 1
+        base = self.tuning.takeover_backoff_s
+        delay: float = min(base * 2.0 ** (self._takeovers - 1), 12 * base)
+        delay *= self._rng.uniform(0.8, 1.0)
+        logger.error("another client connected to %s as robot %s and took this session over "
+                     "(%d time(s) in a row): is a second fleetctl client running with this "
+                     "robot_name (the service and one started by hand, two robots with one "
+                     "client.yaml)? connecting again in %.0f s", self.url,
+                     self.config.robot_name, self._takeovers, delay)
+        return delay
 
     async def stop(self) -> None:
         """Unsubscribe, close the connection, and return once :meth:`run` has returned."""
@@ -803,6 +826,7 @@ class RobotLink:
                         (ready_s - dialed_s) * 1e3)
         tasks: list[asyncio.Task[None]] = []
         ended = _Ended(acked=False)
+        self._ended_by_takeover = False
         ws.frame_sink = self._sink
         try:
             # When activating, {"type": "activate"} went first (Standby.activate): the
@@ -867,6 +891,7 @@ class RobotLink:
             rcvd = exc.rcvd
             self._last_close = (f"{rcvd.code} {rcvd.reason}".strip() if rcvd is not None
                                 else "no close frame")
+            self._ended_by_takeover = rcvd is not None and rcvd.code == 4409
             level = logging.ERROR if rcvd is not None and rcvd.code in (4401, 4403) else (
                 logging.WARNING)
             logger.log(level, "connection to %s closed: %s", self.url,

@@ -519,6 +519,33 @@ async def test_a_server_down_at_start_is_explained_once_then_reminded(
             assert len(_warnings(caplog)) == 2
 
 
+async def test_two_clients_of_one_robot_say_so_and_back_off(
+    server: RelayServer, tmp_path: Path, caplog: pytest.LogCaptureFixture
+) -> None:
+    # The same client.yaml run twice (the service and a run by hand): each connection took
+    # the session from the other at once, 37 times in 6 s, each close a WARNING "4409".
+    cfg = robot_config(server.url, tmp_path)
+    tuning = LinkTuning(keepalive_interval_s=0.1, link_timeout_s=0.6, open_timeout_s=1.0,
+                        takeover_backoff_s=0.5)
+    caplog.set_level(logging.ERROR, "fleetctl.client.link")
+    first, second = (RobotLink(cfg, on_frame=lambda f: None, tuning=tuning) for _ in range(2))
+
+    def errors() -> list[str]:
+        return [r.getMessage() for r in caplog.records if r.levelno == logging.ERROR]
+
+    async with running(first):
+        await wait_until(lambda: first.stats()["connected"])
+        async with running(second):
+            await wait_until(lambda: any("(3 time(s) in a row)" in m for m in errors()))
+            # Waits of 0.4-0.5, 0.8-1 and 1.6-2 s between takeovers: a handful of
+            # connections in all, not one every 0.1 s.
+            assert first.stats()["connects"] + second.stats()["connects"] <= 8
+    said = errors()[0]
+    assert said.startswith(f"another client connected to {server.url} as robot r1 and took "
+                           "this session over (1 time(s) in a row): is a second fleetctl "
+                           "client running with this robot_name")
+
+
 async def test_held_offers_are_written_in_the_callers_turn(
     server: RelayServer, tmp_path: Path
 ) -> None:

@@ -332,6 +332,12 @@ def _check_robot(fleet: Fleet, i: int, robot: Robot, seen: dict[object, str]) ->
         raise FleetInvalid((*path, "name"), str(exc)) from None
     if ("name", robot.name) in seen:
         raise FleetInvalid((*path, "name"), f"duplicate robot name {robot.name!r}", conflict=True)
+    if (other_name := seen.get(("name-case", robot.name.lower()))) is not None:
+        # keys/robots/NAME.key, robots/NAME/: one file on a case-insensitive file system
+        # (macOS, Windows), where one robot's keys would replace the other's.
+        raise FleetInvalid((*path, "name"), f"robot name {robot.name!r} differs from robot "
+                           f"{other_name!r} only in case: their files would be the same on "
+                           "a case-insensitive file system", conflict=True)
     _check_host_ip(fleet, robot.ip, (*path, "ip"))
     if robot.ip == fleet.server_ip:
         raise FleetInvalid((*path, "ip"), f"{robot.ip} is the server's address", conflict=True)
@@ -340,6 +346,7 @@ def _check_robot(fleet: Fleet, i: int, robot: Robot, seen: dict[object, str]) ->
         raise FleetInvalid((*path, "ip"), f"{robot.ip} is already used by robot {other!r}",
                            conflict=True)
     seen[("name", robot.name)] = seen[("ip", robot.ip)] = robot.name
+    seen[("name-case", robot.name.lower())] = robot.name
     _check_robot_topics(robot, path)
 
 
@@ -392,6 +399,11 @@ def _check_user(i: int, user: User, seen: set[str]) -> None:
     if user.email in seen:
         raise FleetInvalid((*path, "email"), f"duplicate user {shown(user.email)}",
                            conflict=True)
+    if other := next((e for e in seen if e.casefold() == user.email.casefold()), None):
+        # Mail does not tell them apart: one person, two tokens, and `remove-user` of one
+        # spelling leaves the other working.
+        raise FleetInvalid((*path, "email"), f"user {shown(user.email)} differs from user "
+                           f"{shown(other)} only in case", conflict=True)
     seen.add(user.email)
     if not _SHA256.fullmatch(user.token_sha256):
         raise FleetInvalid((*path, "token_sha256"), "expected 64 lowercase hex digits")

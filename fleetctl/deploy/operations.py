@@ -591,7 +591,10 @@ def remove_user(fleet_dir: Path, email: str, *, dry_run: bool = False) -> UserRe
     fleet = load_fleet(fleet_dir)
     user = fleet.user(email)
     if user is None:
-        raise ConfigError(f"user {email!r} is not in {fleet_file(fleet_dir)}")
+        near = next((u.email for u in fleet.users if u.email.casefold() == email.casefold()),
+                    None)
+        hint = f" (there is {near!r})" if near else ""
+        raise ConfigError(f"user {email!r} is not in {fleet_file(fleet_dir)}{hint}")
     new = replace(fleet, users=tuple(u for u in fleet.users if u.email != email))
     plan = Plan()
     _plan_tls(plan, fleet_dir, new)

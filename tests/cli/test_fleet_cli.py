@@ -213,6 +213,31 @@ def test_duplicate_and_remove_user(fleet: Path, cli: Cli) -> None:
     assert "is not in" in err
 
 
+def test_names_that_differ_only_in_case_are_duplicates(fleet: Path, cli: Cli) -> None:
+    """Bob@Example.com beside bob@example.com was a second user (one person, two tokens;
+    remove-user of one spelling left the other working), and robot Husky1 beside husky1
+    had key files that are one file on a case-insensitive file system."""
+    cli("add-user", "bob@example.com", "--role", "viewer")
+    before = _snapshot(fleet)
+    _, err = cli("add-user", "Bob@Example.COM", "--role", "admin", code=ExitCode.CONFLICT)
+    assert err == ("fleetctl: error: user 'Bob@Example.COM': email: user 'Bob@Example.COM' "
+                   "differs from user 'bob@example.com' only in case\n")
+    _, err = cli("add-robot", "Husky1", code=ExitCode.CONFLICT)
+    assert err == ("fleetctl: error: robot 'Husky1': name: robot name 'Husky1' differs from "
+                   "robot 'husky1' only in case: their files would be the same on a "
+                   "case-insensitive file system\n")
+    _, err = cli("remove-user", "BOB@example.com", code=ExitCode.CONFIG)
+    assert err.endswith("fleet.yaml (there is 'bob@example.com')\n")
+    assert _snapshot(fleet) == before
+    # The same in a fleet.yaml edited by hand.
+    text = (fleet / "fleet.yaml").read_text()
+    (fleet / "fleet.yaml").write_text(text.replace("users:\n", "users:\n- email: BOB@example.com"
+                                                   "\n  role: viewer\n  token_sha256: "
+                                                   + "ab" * 32 + "\n"))
+    _, err = cli("render", code=ExitCode.CONFIG)  # as every problem of a hand-edited file
+    assert "users[1].email: user 'bob@example.com' differs from user 'BOB@example.com'" in err
+
+
 def test_list_json(fleet: Path, cli: Cli) -> None:
     cli("add-user", "v@example.com", "--role", "viewer")
     out, _ = cli("list", "--output", "json")

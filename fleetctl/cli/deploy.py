@@ -144,8 +144,9 @@ def up(
 def down(
     fleet: Path = fleet_option(),
     delete_data: bool = typer.Option(
-        False, "--delete-data", help="Also delete the server's data volume (robot registry, "
-        "sessions). Without it, data is kept for the next `up`."),
+        False, "--delete-data", help="Also delete the fleet's data volumes: robot registry, "
+        "sessions and the server's MCAP recordings (every replica's, and NATS's). Without it, "
+        "data is kept for the next `up`."),
     project: str | None = _project_option(),
 ) -> None:
     """Stop the fleet: remove its containers and networks, keep its data."""

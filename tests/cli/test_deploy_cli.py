@@ -159,3 +159,11 @@ def test_status_exits_1_after_its_report_when_the_fleet_is_not_healthy(
     assert "(no containers: the fleet is not running)" in out
     assert err == ("fleetctl: error: the fleet is not healthy: no containers: the fleet is "
                    "not running\n")
+
+
+def test_down_help_says_delete_data_deletes_the_recordings(
+        capsys: pytest.CaptureFixture[str]) -> None:
+    """It named the registry and sessions only; the recordings live in the same volume."""
+    assert main(["down", "-h"]) == 0
+    text = " ".join(capsys.readouterr().out.replace("\u2502", " ").split())
+    assert "robot registry, sessions and the server's MCAP recordings" in text

@@ -59,6 +59,7 @@ from fleetctl.errors import ConfigError
 from fleetctl.wire.compression import LATCHED_DEFLATE_LEVEL, CompressionCodec, compress
 
 log = logging.getLogger(__name__)
+BATTERY_TYPE = "sensor_msgs/msg/BatteryState"
 _LOG_EVERY = 1000  # a repeated problem on received frames: logged first and every 1000th
 
 
@@ -288,6 +289,7 @@ class Bridge(Node):
         self._seq: dict[str, int] = {}
         self._seq_lock = threading.Lock()  # callbacks run on the executor's and the loop's thread
         self._battery: float | None = None
+        self._battery_warned: set[str] = set()  # other types on the battery topic, said
         self.inputs: list[AdaptiveSubscription] = []
         self.latched = LatchedFrames[PublishSpec]()
         # <remote_topic>/viewer beside clouds with viewer_cloud: (fleetctl.client.viewercloud)
@@ -493,8 +495,22 @@ class Bridge(Node):
         if percentage == percentage:
             self._battery = min(max(percentage, 0.0), 1.0)
 
+    def _check_battery_publishers(self) -> None:
+        """While no battery level came, name a publisher of ``status.battery_topic`` that
+        sends another type (once per type): the page showed no battery, the log nothing."""
+        topic = self._config.status.battery_topic
+        if topic is None or self._battery is not None:
+            return
+        for info in self.get_publishers_info_by_topic(topic):
+            other = info.topic_type
+            if other != BATTERY_TYPE and other not in self._battery_warned:
+                self._battery_warned.add(other)
+                log.warning("%s (status: battery_topic): a publisher sends %s, not %s: the "
+                            "battery level stays unknown", topic, other, BATTERY_TYPE)
+
     def send_status(self) -> None:
         """Send one RobofleetStatus (battery from the configured topic, if any)."""
+        self._check_battery_publishers()
         try:
             frame = self._encode_status(self._battery)
         except Exception as exc:

@@ -4,6 +4,9 @@ from __future__ import annotations
 
 import logging
 import math
+import os
+import subprocess
+import sys
 import threading
 import time
 from collections.abc import Callable, Iterator
@@ -307,6 +310,36 @@ def test_status_carries_the_battery(setup: tuple[Bridge, Node, FakePort], codec:
         return decode_status(last, codec=codec).battery_level == pytest.approx(0.625)
 
     wait_for(battery_seen)
+
+
+def test_a_battery_topic_of_another_type_is_named_once(
+        setup: tuple[Bridge, Node, FakePort], caplog: pytest.LogCaptureFixture) -> None:
+    # status: battery_topic pointing at a topic of another type left the battery unknown
+    # on the page without a word in the log.
+    from sensor_msgs.msg import LaserScan
+
+    _bridge, _peer, fake = setup
+    caplog.set_level(logging.WARNING, "fleetctl.client.ros.bridge")
+    # Another process: Fast DDS refuses a second type for a topic within one process.
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "tests.client.ros.rosproc", "latch", "/battery",
+         "sensor_msgs/msg/LaserScan", serialize_message(LaserScan()).hex()],
+        env={**os.environ, "ROS_DOMAIN_ID": str(DOMAIN_ID)}, stdout=subprocess.DEVNULL)
+
+    def said() -> list[str]:
+        return [r.getMessage() for r in caplog.records if "battery_topic" in r.getMessage()]
+
+    try:
+        wait_for(said, 20.0)
+        with fake.lock:
+            sent = len(fake.status)
+        wait_for(lambda: len(fake.status) >= sent + 3)  # three more periods: said once
+    finally:
+        proc.kill()
+        proc.wait(10)
+    assert said() == ["/battery (status: battery_topic): a publisher sends "
+                      "sensor_msgs/msg/LaserScan, not sensor_msgs/msg/BatteryState: the "
+                      "battery level stays unknown"]
 
 
 def test_local_subscriptions_follow_their_publishers_reliability(

@@ -11,6 +11,7 @@ from __future__ import annotations
 import contextlib
 import fcntl
 import os
+import stat
 from collections.abc import Iterator
 from dataclasses import dataclass, replace
 from ipaddress import IPv4Address
@@ -18,7 +19,14 @@ from pathlib import Path
 
 from fleetctl.client.mediaconfig import TfSpec
 from fleetctl.deploy import keystore, tls
-from fleetctl.deploy.files import Change, Plan, WriteFailed, is_untouched
+from fleetctl.deploy.files import (
+    PUBLIC_FILE_MODE,
+    Change,
+    FileWrite,
+    Plan,
+    WriteFailed,
+    is_untouched,
+)
 from fleetctl.deploy.fleet import (
     DEFAULT_COMMAND_TOPICS,
     DEFAULT_HTTPS_PORT,
@@ -238,9 +246,20 @@ def _plan_fleet(plan: Plan, fleet_dir: Path, fleet: Fleet, keys: FleetKeys, *,
                 f"{path} is a symbolic link (to {os.readlink(path)}): fleetctl replaces "
                 "fleet.yaml whole and would replace the link, not the file it points to; "
                 "point FLEET_DIR at a directory where fleet.yaml is the file itself")
-        plan.write(path, text)
+        plan.writes.append(FileWrite(path, text.encode(), _fleet_file_mode(path)))
     plan_artifacts(plan, fleet_dir, fleet_artifacts(fleet, keys, fleet_dir), force=force)
     return plan
+
+
+def _fleet_file_mode(path: Path) -> int:
+    """fleet.yaml's mode: 0644 when new; an existing one keeps the mode its owner gave it
+    (0600, 0640: a command that writes it back made it 0644, readable by all), less any
+    write permission for group and others (anyone could add a robot) and exec bits."""
+    try:
+        mode = stat.S_IMODE(path.lstat().st_mode)
+    except OSError:
+        return PUBLIC_FILE_MODE
+    return mode & 0o644
 
 
 def _plan_tls(plan: Plan, fleet_dir: Path, fleet: Fleet, *, refresh: bool = False) -> bool:

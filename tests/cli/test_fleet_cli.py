@@ -5,6 +5,7 @@ from __future__ import annotations
 import hashlib
 import json
 import os
+import stat
 from collections.abc import Callable
 from pathlib import Path
 
@@ -236,6 +237,17 @@ def test_names_that_differ_only_in_case_are_duplicates(fleet: Path, cli: Cli) ->
                                                    + "ab" * 32 + "\n"))
     _, err = cli("render", code=ExitCode.CONFIG)  # as every problem of a hand-edited file
     assert "users[1].email: user 'bob@example.com' differs from user 'BOB@example.com'" in err
+
+
+def test_fleet_yaml_keeps_the_mode_its_owner_gave_it(fleet: Path, cli: Cli) -> None:
+    """A fleet.yaml made 0600 by its owner came back 0644 (readable by all) from the next
+    command that wrote it; a group- or world-writable one stays so no longer."""
+    path = fleet / "fleet.yaml"
+    assert stat.S_IMODE(path.stat().st_mode) == 0o644
+    for given, kept in ((0o600, 0o600), (0o640, 0o640), (0o666, 0o644), (0o775, 0o644)):
+        path.chmod(given)
+        cli("add-user", f"u{given:o}@example.com", "--role", "viewer")
+        assert stat.S_IMODE(path.stat().st_mode) == kept, oct(given)
 
 
 def test_list_json(fleet: Path, cli: Cli) -> None:

@@ -7,6 +7,7 @@ its screen."""
 from __future__ import annotations
 
 import io
+import time
 from pathlib import Path
 from typing import Any
 
@@ -17,6 +18,7 @@ from PIL import Image
 from fleetctl.wire.control import encode_status, encode_subscription
 from tests.webviz.conftest import webviz_server
 from tests.webviz.fleet import OPERATOR_TOKEN
+from tests.webviz.msgs import make
 from tests.webviz.pixels import colored_pixels
 from tests.webviz.samples import header, pose_values, scan_values
 from tests.webviz.scripted import scripted_fleet
@@ -249,4 +251,38 @@ async def test_the_map_marks_the_sent_goal_breaks_the_path_at_a_jump_and_pans(
         expect_m = 100 * 640 / box["width"] / 40
         assert abs(moved_m - expect_m) < 0.05, (moved_m, expect_m)
         assert await page.evaluate("fleetviz.views.map.sent.length") == 1  # no goal sent
+        assert not problems, problems
+
+
+async def test_old_data_is_said_without_moving_the_page(
+    tmp_path: Path, browser: Any, webviz_factory: list[Any]
+) -> None:
+    # Everything shown at once on a slow machine put the page 3.7 s behind the robots, and
+    # only the link health table (at the bottom) said so.
+    async with scripted_fleet(tmp_path) as relay:
+        r1 = relay.robots["r1"]
+        web = webviz_server(relay.url).start()
+        webviz_factory.append(web)
+        page = await browser.new_page(viewport={"width": 1280, "height": 800})
+        problems = watch_errors(page)
+        await sign_in(page, web.url, OPERATOR_TOKEN)
+        await page.goto(web.url + "#/robot/r1")
+        await wait_js(page, "fleetviz.conn.active.has('/r1/scan')")
+        age_s = [3.0]
+        seq = [0]
+
+        def late_scan() -> list[bytes]:
+            seq[0] += 1
+            msg = make(relay.codec.registry, SCAN, scan_of(3.0))
+            return [relay.codec.encode(msg, SCAN, "/r1/scan", seq=seq[0],
+                                       publish_time_ns=time.time_ns() - int(age_s[0] * 1e9))]
+
+        r1.repeat(late_scan, period_s=0.05)
+        map_box = await page.locator("#map-canvas").bounding_box()
+        await page.locator("#behind-note", has_text=(
+            "r1's messages arrive 3.0 s after they were published (by its clock)")).wait_for(
+            timeout=TIMEOUT_MS)
+        assert await page.locator("#map-canvas").bounding_box() == map_box  # nothing moved
+        age_s[0] = 0.0  # caught up: the note goes once the 5 s window has only new samples
+        await page.locator("#behind-note").wait_for(state="hidden", timeout=TIMEOUT_MS)
         assert not problems, problems

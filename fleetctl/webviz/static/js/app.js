@@ -18,6 +18,7 @@ const $ = (sel) => document.querySelector(sel);
 const ROBOTS_POLL_MS = 2000;
 const STATUS_TYPE = "amrl_msgs/msg/RobofleetStatus";
 const VIDEO_TYPE = "foxglove_msgs/msg/CompressedVideo";
+const BEHIND_MS = 1000; // median latency above which the page says its data is old
 // The control topic a viewer asks a video's publisher for a keyframe on (docs/server.md).
 export const KEYFRAME_REQUEST = { type: "fleetctl_msgs/msg/KeyframeRequest", topic: "/keyframe_requests" };
 
@@ -161,6 +162,7 @@ class App {
     const next = m ? decodeURIComponent(m[1]) : null;
     if (this.robot && this.robot !== next) this.setSubscriptions(this.robot, new Set());
     this.robot = next;
+    if (!next) $("#behind-note").hidden = true;
     $("#overview").hidden = !!next;
     $("#robot").hidden = !next;
     if (next) this.openRobot(next);
@@ -355,6 +357,24 @@ class App {
     }
   }
 
+  /**
+   * Say when what the page shows is old: the median of the topics' latencies (5 s each).
+   * In the 3D scene, video, cloud and camera at once on a slow machine the page fell
+   * 3.7 s behind the robots with nothing but the health table saying so.
+   */
+  renderBehind(rows) {
+    const lat = rows.map((r) => r.latencyMs).filter(Number.isFinite).sort((a, b) => a - b);
+    const behindMs = lat.length ? lat[lat.length >> 1] : 0;
+    const note = $("#behind-note");
+    note.hidden = !(behindMs > BEHIND_MS) || this.paused;
+    note.dataset.behindMs = String(Math.round(behindMs));
+    if (!note.hidden) {
+      note.textContent = `${this.robot}'s messages arrive ${(behindMs / 1000).toFixed(1)} s after they were ` +
+        "published (by its clock): the link or this browser cannot keep up, or the robot's clock is off. " +
+        "Hiding panels you do not need helps with the first two.";
+    }
+  }
+
   renderHealth() {
     if (!this.conn) return;
     if (!this.robot) return this.renderOverview();
@@ -362,6 +382,7 @@ class App {
     this.views?.scene.renderLists();
     this.views?.video.renderStatus();
     const rows = this.conn.health.rows(`/${this.robot}/`);
+    this.renderBehind(rows);
     $("#health tbody").innerHTML = rows.map((r) =>
       `<tr><td>${r.topic}</td><td>${r.rateHz.toFixed(1)}</td><td>${Number.isFinite(r.latencyMs) ? r.latencyMs.toFixed(0) : "–"}</td><td>${r.drops}</td><td>${r.received}</td></tr>`).join("");
     const s = this.conn.stats;

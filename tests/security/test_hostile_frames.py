@@ -142,3 +142,26 @@ async def test_a_message_in_many_frames_within_the_bound_is_relayed(
                          + frame(CONT, parts[-1]))
         assert decode_text(await next_binary(viewer)) == "x" * 3000
         raw.close()
+
+
+async def test_a_client_closed_for_bad_input_is_not_read_any_further(
+    server: RelayServer,
+) -> None:
+    # A client that goes on sending after the server's close frame (and never answers
+    # it) used to be read, every frame parsed, through websockets' 10 s close timeout.
+    garbage = frame(BINARY, b"\0" * 40)
+    raw = await RawClient.open(server.port, source="127.0.0.9")  # no identity
+    assert await raw.request() == 101
+    raw.writer.write(garbage * 100)
+    assert await raw.close_code() == 4403
+    assert await asyncio.wait_for(raw.reader.read(), 3) == b""  # cut, not waited on
+    raw.close()
+
+    raw = await RawClient.open(server.port, source="127.0.0.9")
+    assert await raw.request(f"Authorization: Bearer {ALICE_TOKEN}\r\n".encode()) == 101
+    in_a_row = server.config.limits.max_malformed_in_row
+    raw.writer.write(garbage * (in_a_row + 100))
+    assert await raw.close_code() == 1007
+    assert await asyncio.wait_for(raw.reader.read(), 3) == b""
+    raw.close()
+    await wait_for(lambda: not server.core.peers and server.gate.open == 0)

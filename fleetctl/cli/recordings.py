@@ -171,7 +171,10 @@ class Remote:
             detail = exc.read().decode("utf-8", "replace").strip()
             if exc.code == 401 and self.token is None:
                 detail += " (give it with --token-file FILE)"
-            raise FleetError(f"{self.url}: GET {path}: {exc.code} {detail}") from None
+            # A token the fleet refuses is the caller's to fix (exit 3, as `replay`).
+            code = ExitCode.CONFIG if exc.code in (401, 403) else None
+            raise FleetError(f"{self.url}: GET {path}: {exc.code} {detail}",
+                             exit_code=code) from None
         except (urllib.error.URLError, OSError) as exc:
             reason = getattr(exc, "reason", exc)
             raise FleetError(f"--server {self.url}: "

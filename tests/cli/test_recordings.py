@@ -183,6 +183,13 @@ async def test_fetch_from_a_server_never_writes_through_a_planted_link(
                      str(out / "fleet_b.mcap")]) == ExitCode.CONFLICT
         assert "fleet_b.mcap: already exists" in capsys.readouterr().err
         assert main(["recordings", "fetch", "../fleet_a.mcap", *remote]) == ExitCode.USAGE
+        # A token the fleet refuses: exit 3, as `replay` (it was 1, "failed").
+        token.write_text("not-a-token")
+        # (In a thread: the server answers on this test's event loop.)
+        assert await asyncio.to_thread(main, ["recordings", "list", *remote]) == \
+            ExitCode.CONFIG
+        assert "401" in capsys.readouterr().err
+        token.write_text(ALICE_TOKEN)
         assert main(["recordings", "fetch", "fleet_a.mcap", *remote, "--to",
                      str(tmp_path / "no" / "such.mcap")]) == ExitCode.ENVIRONMENT
         assert capsys.readouterr().err.endswith(

@@ -227,6 +227,20 @@ def test_readme_blocks(exported: Path) -> None:
     assert args[args.index("-v") + 1] == "/robot/client.yaml:/etc/fleetctl/robot/client.yaml:ro"
 
 
+def test_wg0_conf_starts_the_tunnel_the_way_the_readme_does(exported: Path) -> None:
+    """Its own comment said `wg-quick up ./wg0.conf`: interface wg0, which the README says
+    the robot may use already, and not the fleet0 the client's unit waits for."""
+    from fleetctl.deploy.bundle import WIREGUARD_INTERFACE
+
+    comments = "\n".join(line for line in (exported / "wg0.conf").read_text().splitlines()
+                         if line.startswith("#"))
+    assert "wg-quick up ./wg0.conf" not in comments
+    assert f"/etc/wireguard/{WIREGUARD_INTERFACE}.conf" in comments
+    assert f"systemctl enable --now wg-quick@{WIREGUARD_INTERFACE}" in comments
+    readme = (exported / "README.md").read_text()
+    assert f"systemctl enable --now wg-quick@{WIREGUARD_INTERFACE}" in readme
+
+
 def test_free_text_is_escaped_per_format() -> None:
     from fleetctl.deploy.render import render_template
 

@@ -369,9 +369,8 @@ class App {
     note.hidden = !(behindMs > BEHIND_MS) || this.paused;
     note.dataset.behindMs = String(Math.round(behindMs));
     if (!note.hidden) {
-      note.textContent = `${this.robot}'s messages arrive ${(behindMs / 1000).toFixed(1)} s after they were ` +
-        "published (by its clock): the link or this browser cannot keep up, or the robot's clock is off. " +
-        "Hiding panels you do not need helps with the first two.";
+      note.textContent = `${this.robot}'s data here is ${(behindMs / 1000).toFixed(1)} s old ` +
+        "(the link or this browser cannot keep up, or the robot's clock is off): hide panels you do not need.";
     }
   }
 

@@ -359,10 +359,21 @@ def recording_dir(config: Path | None, directory: Path | None) -> Path:
     if config is None:
         raise ConfigError("give --server URL (the HTTPS port, with --token-file and "
                           "--ca-file), --config server.yaml or --dir DIR")
-    recording = load_server_config(config).recording
+    server = load_server_config(config)
+    recording = server.recording
     if recording is None:
         raise ConfigError(f"{config}: field 'recording' is not set: the server records "
                           "nothing")
+    fleet_dir = config.resolve().parent.parent
+    if (not recording.directory.exists() and config.resolve().parent.name == "server"
+            and (fleet_dir / ".compose" / "state.json").is_file()):
+        # A fleet's own server.yaml, deployed with `fleetctl up`: its server records into
+        # its data volume, and this directory never fills ("no recordings" said otherwise).
+        port = server.web.listen_port if server.web is not None else 8443
+        raise ConfigError(f"--config {config}: this fleet runs with `fleetctl up`, whose "
+                          f"server records into its data volume, not {recording.directory}: "
+                          f"ask it with --server https://HOST:{port}/ --token-file FILE "
+                          f"--ca-file {fleet_dir / 'server' / 'tls' / 'cert.pem'}")
     return recording.directory
 
 

@@ -87,6 +87,32 @@ def test_list_reads_the_directory_from_server_yaml(tmp_path: Path,
     assert main(["recordings", "list"]) == ExitCode.CONFIG
 
 
+def test_list_with_a_deployed_fleets_server_yaml_says_where_the_recordings_are(
+        tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """On the server host, `--config FLEET/server/server.yaml` said `no recordings in
+    FLEET/server/recordings`: under `fleetctl up` they are in the data volume."""
+    from fleetctl.deploy import operations as ops
+
+    fleet = tmp_path / "yard"
+    ops.create_fleet(fleet, https_port=9443)
+    with (fleet / "fleet.yaml").open("a") as f:
+        f.write("recording:\n  topics: ['/.*/odom']\n")
+    ops.render_fleet(fleet)
+    config = fleet / "server" / "server.yaml"
+    assert main(["recordings", "list", "-c", str(config)]) == 0  # run from the directory
+    assert "no recordings in" in capsys.readouterr().out
+    (fleet / ".compose").mkdir()
+    (fleet / ".compose" / "state.json").write_text("{}\n")  # what `fleetctl up` leaves
+    assert main(["recordings", "list", "-c", str(config)]) == ExitCode.CONFIG
+    assert capsys.readouterr().err == (
+        f"fleetctl: error: --config {config}: this fleet runs with `fleetctl up`, whose server "
+        f"records into its data volume, not {fleet / 'server' / 'recordings'}: ask it with "
+        f"--server https://HOST:9443/ --token-file FILE --ca-file "
+        f"{fleet / 'server' / 'tls' / 'cert.pem'}\n")
+    (fleet / "server" / "recordings").mkdir()  # a server once run from the directory itself
+    assert main(["recordings", "list", "-c", str(config)]) == 0
+
+
 @pytest.mark.parametrize("fmt", ["text", "json"])
 def test_list_of_a_directory_that_is_not_there_is_an_error(
         tmp_path: Path, capsys: pytest.CaptureFixture[str], fmt: str) -> None:

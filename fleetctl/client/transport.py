@@ -306,6 +306,8 @@ class RobotLink:
         self._unreachable_reason = ("", "")
         self._takeovers = 0  # sessions in a row another client of this robot took over
         self._ended_by_takeover = False  # the last session was closed with 4409
+        self._refused_code: int | None = None  # the last 4401/4403 explained, and when
+        self._refused_warned_s = 0.0
 
     # -- the API used by the ROS node -----------------------------------------------------
 
@@ -838,13 +840,18 @@ class RobotLink:
             stop = asyncio.create_task(self._stop.wait())
             done, _ = await asyncio.wait([*tasks, stop], return_when=asyncio.FIRST_COMPLETED)
             stop.cancel()
+            logged: BaseException | None = None
             for task in done:
                 if task is stop or task.cancelled():
                     continue
                 # A clean close (1000/1001, e.g. a server restart) ends the receive loop
-                # without an exception: report it like the others.
+                # without an exception: report it like the others, once (the send and
+                # receive loops both ending with one close logged it twice).
                 exc = task.exception()
-                self._log_session_end(exc or _close_exc(ws))
+                end = exc or _close_exc(ws)
+                if not (isinstance(end, ConnectionClosed) and isinstance(logged, ConnectionClosed)):
+                    self._log_session_end(end)
+                    logged = end
                 if isinstance(exc, (LinkDead, PathDead, PathStale)):
                     ended = _Ended(False, True, exc.dialed if isinstance(exc, PathDead) else None)
             if self._stop.is_set():
@@ -886,16 +893,37 @@ class RobotLink:
             logger.info("dropped %d held latest-only messages: stale after the outage",
                         dropped)
 
+    def _log_refused(self, code: int) -> None:
+        """The server refused this client's identity (4401 bad token, 4403 no identity):
+        explain once with what to check, then remind every ``bind_reminder_interval_s``
+        (the auth map reloads live, so the link keeps retrying; three lines per attempt
+        were logged before)."""
+        now = self._clock()
+        if self._refused_code == code and (
+                now - self._refused_warned_s < self.tuning.bind_reminder_interval_s):
+            logger.debug("connection to %s closed: %s", self.url, self._last_close)
+            return
+        hint = (f"the server knows no such token: check token_file ({self.config.robot_name}'s "
+                "token from fleetctl add-robot) against the server's auth map"
+                if code == 4401 else
+                "no identity of the server's auth map matches this client's token or source "
+                "address (bind_address): add one, or fix those")
+        logger.error("connection to %s closed: %s: %s; retrying every %g s or less "
+                     "(the server reloads its auth map live), a reminder every %g s",
+                     self.url, self._last_close, hint, self.config.limits.reconnect_max_s,
+                     self.tuning.bind_reminder_interval_s)
+        self._refused_code, self._refused_warned_s = code, now
+
     def _log_session_end(self, exc: BaseException | None) -> None:
         if isinstance(exc, ConnectionClosed):
             rcvd = exc.rcvd
             self._last_close = (f"{rcvd.code} {rcvd.reason}".strip() if rcvd is not None
                                 else "no close frame")
             self._ended_by_takeover = rcvd is not None and rcvd.code == 4409
-            level = logging.ERROR if rcvd is not None and rcvd.code in (4401, 4403) else (
-                logging.WARNING)
-            logger.log(level, "connection to %s closed: %s", self.url,
-                       self._last_close)
+            if rcvd is not None and rcvd.code in (4401, 4403):
+                self._log_refused(rcvd.code)
+            else:
+                logger.warning("connection to %s closed: %s", self.url, self._last_close)
         elif isinstance(exc, LinkDead):
             self._counters["link_timeouts"] += 1
             self._last_close = "link timeout"
@@ -1132,6 +1160,7 @@ class RobotLink:
         if kind == "welcome":
             self._identities = [str(i) for i in event.get("identities", [])]
             logger.info("authenticated as %s", ", ".join(self._identities) or "(nobody)")
+            self._refused_code = None  # a later refusal is explained again
         elif kind in ("subscribed", "unsubscribed"):
             pattern = str(event.get("topic_regex"))
             if kind == "subscribed":
@@ -1145,8 +1174,12 @@ class RobotLink:
             if (code == "unauthorized_send" and isinstance(topic, str)
                     and len(self._refused_topics) < _MAX_REFUSED_TOPICS):
                 self._refused_topics.add(topic)
-            logger.warning("server error %s on %s: %s", code, event.get("topic"),
-                           event.get("message"))
+            if code == "bad_token":  # the 4401 close that follows says it, with a hint
+                logger.debug("server error bad_token: %s", event.get("message"))
+            elif isinstance(topic, str):
+                logger.warning("server error %s on %s: %s", code, topic, event.get("message"))
+            else:  # "on None" was printed for errors about no topic
+                logger.warning("server error %s: %s", code, event.get("message"))
         else:
             logger.debug("server: %.200s", text)
         return []

@@ -15,9 +15,27 @@ test("seq gaps count as drops; rate and latency over the window", () => {
   const [row] = h.rows("/r/", now + 400);
   assert.equal(row.drops, 2);
   assert.equal(row.received, 4);
-  assert.equal(row.rateHz, 4 / 5);
+  assert.equal(row.rateHz, 4); // younger than the window and than 1 s: 4 messages, at most 4/s
   assert.equal(row.latencyMs, 20);
   assert.deepEqual(h.rows("/other/", now), []);
+});
+
+test("a young topic's rate is over the time seen, then over the window", () => {
+  // A 1 Hz status read 0.2, 0.4, 0.6 ... msg/s for the page's first five seconds.
+  const h = new LinkHealth();
+  const now = 1_700_000_000_000;
+  const rate = (t) => h.rows("/r/", now + t)[0].rateHz;
+  const rec = (t) => h.record({ topic: "/r/status", seq: BigInt(t / 1000 + 1), publish_time_ns: 0n }, 10, now + t);
+  rec(0);
+  assert.equal(rate(500), 1 / 5); // one message: no rate yet but the window's
+  rec(1000);
+  assert.equal(rate(1000), 1);
+  rec(2000);
+  assert.equal(rate(2000), 1);
+  assert.equal(rate(2500), 0.8); // it decays if the topic stops
+  for (let t = 3000; t <= 9000; t += 1000) rec(t);
+  assert.equal(rate(9000), 6 / 5); // the window is full: the 6 messages of [4, 9] s
+  assert.equal(rate(20000), 0);
 });
 
 test("a latched message the server kept starts no sequence", () => {

@@ -22,6 +22,7 @@ export class TopicHealth {
    * @param {number} nowMs browser wall clock (ms since epoch)
    */
   record(meta, size, nowMs) {
+    this.firstMs ??= nowMs;
     this.received++;
     this.bytes += size;
     const seq = BigInt(meta.seq);
@@ -46,8 +47,16 @@ export class TopicHealth {
   summary(nowMs) {
     const recent = this.samples.filter((s) => nowMs - s.t <= WINDOW_S * 1000);
     const lat = recent.map((s) => s.latencyMs).filter((x) => Number.isFinite(x)).sort((a, b) => a - b);
+    // While the topic is younger than the window, its rate is over the time seen so far:
+    // a 1 Hz status read 0.2, 0.4, 0.6 ... msg/s for the first five seconds of a page.
+    let rateHz = recent.length / WINDOW_S;
+    const first = this.samples[0];
+    if (recent.length >= 2 && first === recent[0] && this.firstMs === first.t) {
+      const spanMs = Math.max(nowMs - first.t, recent[recent.length - 1].t - first.t);
+      if (spanMs > 0) rateHz = Math.min((recent.length - 1) / (spanMs / 1000), recent.length);
+    }
     return {
-      rateHz: recent.length / WINDOW_S,
+      rateHz,
       latencyMs: lat.length ? lat[Math.floor(lat.length / 2)] : NaN,
       drops: this.gaps,
       received: this.received,

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import functools
 import re as std_re
+from collections.abc import Iterable
 from typing import Any
 
 import re2
@@ -97,3 +98,55 @@ def compile_full(pattern: str) -> FullMatch:
         BadRegex: RE2 rejects the pattern.
     """
     return FullMatch(pattern)
+
+
+# A connection's patterns joined into one alternation (AnyOf) may use more memory than
+# one pattern; past this RE2 refuses the join and each pattern is tried in turn.
+MAX_JOINED_MEMORY_BYTES = 1024 * 1024
+_JOINED_OPTIONS = re2.Options()
+_JOINED_OPTIONS.log_errors = False
+_JOINED_OPTIONS.max_mem = MAX_JOINED_MEMORY_BYTES
+
+
+class AnyOf:
+    """Whether any of several full-match patterns matches a topic, in one RE2 call.
+
+    Why: google-re2's Python binding costs 6-10 us per call whatever the pattern, and a
+    topic the relay has not routed yet is checked against every subscription of every
+    connection: 2,400 pattern subscriptions made each new topic cost 17-52 ms. Literal
+    topics are looked up in a set; the regexes are joined into one alternation
+    ``(?:p1)|(?:p2)|...`` (RE2 scopes flags such as ``(?i)`` to their group); a join RE2
+    refuses (too large, or a pattern whose text cannot be wrapped, such as an open
+    ``\\Q``) falls back to one call per pattern. Same answers as the patterns' own
+    :meth:`FullMatch.matches`.
+    """
+
+    __slots__ = ("_each", "_joined", "_literals")
+
+    def __init__(self, patterns: Iterable[FullMatch]) -> None:
+        patterns = list(patterns)
+        self._literals: frozenset[str] = frozenset(
+            p.literal for p in patterns if p.literal is not None)
+        regexes = [p for p in patterns if p.literal is None]
+        self._joined: Any = None
+        self._each: tuple[FullMatch, ...] = ()
+        if len(regexes) == 1:
+            self._each = (regexes[0],)
+        elif regexes:
+            text = "|".join(f"(?:{p.pattern})" for p in regexes)
+            try:
+                self._joined = re2.compile(text, options=_JOINED_OPTIONS)
+            except (re2.error, UnicodeEncodeError):
+                self._each = tuple(regexes)
+
+    def matches(self, topic: str) -> bool:
+        """Whether any of the patterns matches *topic* from its first to last character."""
+        if topic in self._literals:
+            return True
+        joined = self._joined
+        if joined is not None:
+            try:
+                return joined.fullmatch(topic) is not None
+            except UnicodeEncodeError:  # a lone surrogate: no UTF-8 topic, so none it could be
+                return False
+        return any(p.matches(topic) for p in self._each)

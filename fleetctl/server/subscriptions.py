@@ -7,9 +7,11 @@ matches *and* who may receive the topic) is cached per topic, so the steady stat
 dict lookup per frame.
 
 A subscription change updates only the changed connection's place in each cached answer
-(one regex match per cached topic), never the whole cache: one client toggling
-subscriptions must not make every topic be matched again against every pattern of every
-connection (docs/security.md). Only a permission change (auth map reload) clears it.
+(one regex match per cached topic; a literal topic: one lookup), never the whole cache:
+one client toggling subscriptions must not make every topic be matched again against every
+pattern of every connection (docs/security.md). Only a permission change (auth map reload)
+clears it. A topic not cached yet costs one RE2 call per connection (its subscriptions
+joined, :class:`~fleetctl.server.regex.AnyOf`), not one per subscription.
 """
 
 from __future__ import annotations
@@ -19,7 +21,7 @@ from dataclasses import dataclass, field
 from typing import Generic, TypeVar
 
 from fleetctl.server.permissions import Permissions
-from fleetctl.server.regex import BadRegex, FullMatch, compile_full
+from fleetctl.server.regex import AnyOf, BadRegex, FullMatch, compile_full
 
 C = TypeVar("C", bound=Hashable)
 
@@ -53,6 +55,14 @@ class _Entry:
     subs: dict[str, FullMatch] = field(default_factory=dict)
     nbytes: int = 0  # quota bytes of the patterns (FullMatch.cost)
     keys: tuple[str, ...] = ()  # identity names the bytes are charged to
+    joined: AnyOf | None = None  # all of subs in one matcher; None: build it when asked
+
+    def any_matches(self, topic: str) -> bool:
+        """Whether any of the subscriptions matches *topic* (one RE2 call, see AnyOf)."""
+        joined = self.joined
+        if joined is None:
+            joined = self.joined = AnyOf(self.subs.values())
+        return joined.matches(topic)
 
 
 class SubscriptionMap(Generic[C]):
@@ -131,12 +141,22 @@ class SubscriptionMap(Generic[C]):
         if refusal is not None:
             raise refusal
         entry.subs[pattern] = compiled
+        entry.joined = None
         self._charge(entry, size)
         self._watch(pattern, 1)
-        for topic, found in self._cache.items():  # only this connection's place changes
+        for topic, found in self._places(compiled):  # only this connection's place changes
             if conn not in found and compiled.matches(topic) and perms.may_receive(topic):
                 self._cache[topic] = (*found, conn)
         return True
+
+    def _places(self, compiled: FullMatch) -> list[tuple[str, tuple[C, ...]]]:
+        """The cached answers *compiled* can change: a literal topic's alone (one dict
+        lookup, where a pattern is matched against every cached topic)."""
+        literal = compiled.literal
+        if literal is None:
+            return list(self._cache.items())
+        found = self._cache.get(literal)
+        return [] if found is None else [(literal, found)]
 
     def newly_matched(self, conn: C, pattern: str, topics: Iterable[str]) -> list[str]:
         """The *topics* that *conn* receives through *pattern* and through none of its
@@ -205,12 +225,11 @@ class SubscriptionMap(Generic[C]):
         compiled = entry.subs.pop(pattern, None)
         if compiled is None:
             return False
+        entry.joined = None
         self._charge(entry, -compiled.cost)
         self._watch(pattern, -1)
-        rest = entry.subs.values()
-        for topic, found in self._cache.items():
-            if (conn in found and compiled.matches(topic)
-                    and not any(m.matches(topic) for m in rest)):
+        for topic, found in self._places(compiled):
+            if conn in found and compiled.matches(topic) and not entry.any_matches(topic):
                 self._cache[topic] = tuple(c for c in found if c != conn)
         return True
 
@@ -233,6 +252,7 @@ class SubscriptionMap(Generic[C]):
             if reason is not None:
                 refused.append((pattern, reason))
                 del entry.subs[pattern]
+                entry.joined = None
                 self._charge(entry, -compiled.cost)
                 self._watch(pattern, -1)
         entry.perms = perms
@@ -255,11 +275,11 @@ class SubscriptionMap(Generic[C]):
         """Return the connections that get a frame on *topic* (Algorithm 3 lines 15-16)."""
         found = self._cache.get(topic)
         if found is None:
+            # One RE2 call per connection, not one per subscription (see AnyOf).
             found = tuple(
                 conn
                 for conn, entry in self._subs.items()
-                if any(m.matches(topic) for m in entry.subs.values())
-                and entry.perms.may_receive(topic)
+                if entry.subs and entry.any_matches(topic) and entry.perms.may_receive(topic)
             )
             if len(self._cache) >= MAX_CACHED_TOPICS:
                 self._cache.clear()

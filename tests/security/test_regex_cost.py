@@ -3,9 +3,17 @@ memory and counted by its program in the pattern quotas (docs/security.md, "Limi
 
 from __future__ import annotations
 
+import pytest
+
 from fleetctl.server.app import RelayServer
-from fleetctl.server.regex import QUOTA_BYTES_PER_INSTRUCTION, compile_full
-from tests.server.conftest import ALICE_TOKEN, client, next_json, subscribe
+from fleetctl.server.regex import (
+    QUOTA_BYTES_PER_INSTRUCTION,
+    AnyOf,
+    FullMatch,
+    compile_full,
+)
+from tests.server.conftest import ALICE_TOKEN, client, next_binary, next_json, subscribe
+from tests.support import decode_text, string_frame
 
 
 async def test_a_pattern_over_the_regex_memory_budget_is_a_bad_regex(
@@ -42,3 +50,54 @@ async def test_short_patterns_with_large_programs_count_by_their_program(
             assert (await subscribe(ws, f"/husky{i}/scan"))["type"] == "subscribed"
         for pattern in ("/husky1/.*", ".*/(scan|odom|tf)", "(?i)/HUSKY[0-9]+/map"):
             assert (await subscribe(ws, pattern))["type"] == "subscribed"
+
+
+async def test_a_new_topic_costs_one_regex_call_per_connection(
+    server: RelayServer, monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    # google-re2's binding costs 6-10 us a call: a topic matched against each of 2,400
+    # pattern subscriptions in turn cost 17-52 ms, and a sender may use a new topic in
+    # every frame.
+    calls = [0]
+    real = FullMatch.matches
+    ours = {f"/husky1/(x{i}|y)[0-9]+" for i in range(60)} | {"/husky1/lit", "/husky1/t3"}
+
+    def counted(self: FullMatch, topic: str) -> bool:
+        calls[0] += self.pattern in ours  # the subscriptions, not the identities' rules
+        return real(self, topic)
+
+    async with client(server, token=ALICE_TOKEN) as viewer, \
+            client(server, source="127.0.0.2") as robot:
+        await next_json(viewer, "welcome")
+        await next_json(robot, "welcome")
+        for pattern in sorted(ours - {"/husky1/t3"}):
+            assert (await subscribe(viewer, pattern))["type"] == "subscribed"
+        monkeypatch.setattr(FullMatch, "matches", counted)
+        for i in range(20):  # new topics, none of them for the viewer
+            await robot.send(string_frame(f"/husky1/t{i}", "x"))
+        await robot.send(string_frame("/husky1/x7123", "for the viewer"))
+        await robot.send(string_frame("/husky1/lit", "literal"))
+        assert decode_text(await next_binary(viewer)) == "for the viewer"
+        assert decode_text(await next_binary(viewer)) == "literal"
+        assert calls[0] == 0  # one joined regex per connection, not 61 calls a topic
+        # A subscription changes the join; a literal one touches one cached topic only.
+        assert (await subscribe(viewer, "/husky1/t3"))["type"] == "subscribed"
+        assert calls[0] == 1
+        await robot.send(string_frame("/husky1/t3", "now yours"))
+        assert decode_text(await next_binary(viewer)) == "now yours"
+
+
+def test_joined_patterns_answer_as_each_pattern_would() -> None:
+    # Flags scoped to their group, anchors, an open \Q (not joinable: tried one by one),
+    # literals, non-ASCII text and a lone surrogate.
+    patterns = [compile_full(p) for p in (r"\Qa.b", "(?i)/HUSKY1/.*", "/a/b", "x|y", "(a)(b)",
+                                          r"/p/\d+", ".*z", "/é/.*", "(?s).", "^/a$")]
+    topics = ["a.b", "/husky1/scan", "/a/b", "x", "y", "ab", "/p/12", "/é/x", "\n", "/a",
+              "\ud800", "", "zz"]
+    for n in range(1, len(patterns) + 1):
+        for start in range(len(patterns)):
+            chosen = (patterns * 2)[start:start + n]
+            joined = AnyOf(chosen)
+            for topic in topics:
+                assert joined.matches(topic) == any(p.matches(topic) for p in chosen), \
+                    (topic, [p.pattern for p in chosen])

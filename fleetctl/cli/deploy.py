@@ -27,7 +27,7 @@ from fleetctl.cli.output import (
 from fleetctl.deploy import composerun, images
 from fleetctl.deploy import operations as ops
 from fleetctl.deploy.compose import DEFAULT_BIND
-from fleetctl.deploy.dockercli import require_docker
+from fleetctl.deploy.dockercli import require_docker_engine
 from fleetctl.deploy.fleet import load_fleet
 from fleetctl.deploy.operations import Outcome
 from fleetctl.deploy.replicas import MAX_REPLICAS
@@ -37,6 +37,12 @@ from fleetctl.errors import ExitCode, FleetError
 def _project_option() -> Any:
     return typer.Option(None, "--project", help="Compose project name "
                         "(default: the one `up` used, else fleetctl + the directory's name).")
+
+
+def require_docker() -> None:
+    """The docker command and an engine that answers: every command here needs both, and
+    without the engine compose (v1) printed a Python traceback before fleetctl's line."""
+    require_docker_engine()
 
 
 def _progress(line: str) -> None:

@@ -104,6 +104,31 @@ def require_docker(which: Callable[[str], str | None] = shutil.which) -> str:
     return path
 
 
+def docker_unreachable(runner: Runner = subprocess_runner) -> str | None:
+    """Why the Docker engine cannot be asked anything (no docker command, no daemon at
+    ``DOCKER_HOST``), in one line, or ``None`` when it answers."""
+    try:
+        res = runner(["docker", "version", "--format", "{{.Server.Version}}"], None, True)
+    except EnvironmentMissing as exc:
+        return str(exc)
+    if res.returncode == 0:
+        return None
+    lines = (res.stderr or res.stdout).strip().splitlines()
+    return lines[-1].strip() if lines else f"docker version exited {res.returncode}"
+
+
+def require_docker_engine(runner: Runner = subprocess_runner) -> None:
+    """Refuse to go on when the Docker engine does not answer: compose (v1) then printed
+    a Python traceback of its own before fleetctl's one line.
+
+    Raises:
+        EnvironmentMissing: naming why (exit 5).
+    """
+    require_docker()
+    if (why := docker_unreachable(runner)) is not None:
+        raise EnvironmentMissing(f"cannot reach the Docker engine: {why}")
+
+
 def check(result: Completed, what: str) -> Completed:
     """Raise a :class:`FleetError` naming *what* failed when *result* is non-zero."""
     if result.returncode != 0:

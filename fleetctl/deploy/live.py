@@ -33,7 +33,7 @@ from fleetctl.deploy.compose import (
     server_config_text,
     write_files,
 )
-from fleetctl.deploy.dockercli import Runner, check, subprocess_runner
+from fleetctl.deploy.dockercli import Runner, check, docker_unreachable, subprocess_runner
 from fleetctl.deploy.replicas import replica_names
 from fleetctl.errors import FleetError
 from fleetctl.smallfile import MAX_CONFIG_BYTES, MAX_PEM_BYTES, read_small
@@ -54,6 +54,14 @@ def sync_running(fleet_dir: Path, progress: Callable[[str], None],
     options = saved_options(fleet_dir)
     if options is None:
         return None
+    if (unasked := docker_unreachable(runner)) is not None:
+        # The change is made; only whether a deployment runs is unknown. It was silent
+        # (docker ps failing read as "not running") or, without a docker command, an
+        # exit 5 after the change, as if the command had failed.
+        return (f"warning: a deployment of this fleet was started here, but Docker cannot "
+                f"be asked whether it runs ({unasked}): if it does, run `fleetctl up` with "
+                "its options once Docker answers (auth.yaml reaches a running server by "
+                "itself)")
     server = composerun.container_id(fleet_dir, options.project, "server", runner)
     if server is None:
         return None

@@ -376,6 +376,46 @@ def test_up_never_writes_secrets_through_a_linked_directory(
     assert stat.S_IMODE(elsewhere.stat().st_mode) == 0o755
 
 
+@pytest.mark.skipif(shutil.which("docker") is None, reason="needs the docker CLI")
+@pytest.mark.parametrize("command", [["down"], ["up"], ["status"], ["logs"],
+                                     ["down", "--delete-data"]])
+def test_deploy_commands_without_a_docker_engine_are_one_line(
+        fleet: Path, tmp_path: Path, command: list[str], capsys: pytest.CaptureFixture[str],
+        monkeypatch: pytest.MonkeyPatch) -> None:
+    """`down` with no engine at DOCKER_HOST printed compose v1's Python traceback (60 lines)
+    before fleetctl's own `compose down failed`."""
+    composerun.up(fleet, _opts(fleet, wireguard="off"), progress=lambda _: None,
+                  runner=FakeDocker())
+    socket = tmp_path / "no-engine.sock"
+    monkeypatch.setenv("DOCKER_HOST", f"unix://{socket}")
+    assert main([*command, "--fleet", str(fleet)]) == 5
+    out, err = capsys.readouterr()
+    assert err.startswith("fleetctl: error: cannot reach the Docker engine: Cannot connect to "
+                          f"the Docker daemon at unix://{socket}")
+    assert err.count("\n") == 1 and "Traceback" not in out + err
+
+
+@pytest.mark.skipif(shutil.which("docker") is None, reason="needs the docker CLI")
+def test_a_change_with_no_docker_engine_says_the_deployment_was_not_checked(
+        fleet: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """add-robot & co. with no engine at DOCKER_HOST said nothing (a failing `docker ps` read
+    as "not running"), and with no docker command at all exited 5 after making the
+    change, as if it had failed."""
+    composerun.up(fleet, _opts(fleet, wireguard="off"), progress=lambda _: None,
+                  runner=FakeDocker())
+    ops.add_robot(fleet, "rover3")
+    monkeypatch.setenv("DOCKER_HOST", f"unix://{tmp_path / 'no-engine.sock'}")
+    note = live.sync_running(fleet, lambda _: None)
+    assert note is not None and note.startswith(
+        "warning: a deployment of this fleet was started here, but Docker cannot be asked "
+        "whether it runs (Cannot connect to the Docker daemon at unix://")
+    assert note.endswith("run `fleetctl up` with its options once Docker answers (auth.yaml "
+                         "reaches a running server by itself)")
+    monkeypatch.setenv("PATH", str(tmp_path))  # no docker command at all
+    note = live.sync_running(fleet, lambda _: None)
+    assert note is not None and "(docker: command not found)" in note
+
+
 def test_up_needs_the_images(fleet: Path) -> None:
     with pytest.raises(EnvironmentMissing, match=r"fleetctl/server:.* not found.*fleetctl build"):
         composerun.up(fleet, _opts(fleet, wireguard="off"), progress=lambda _: None,

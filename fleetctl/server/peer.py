@@ -93,6 +93,7 @@ class Peer:
         self.store_mark = 0
         self.malformed_in_row = 0
         self.over_limit_subscriptions = 0
+        self.new_topics_refused = False  # told once (RelayCore._new_topic)
         self.robots: set[str] = set()
         self.topic_robot: dict[str, str | None] = {}
         self.refused_topics: set[str] = set()

@@ -271,6 +271,10 @@ class SubscriptionMap(Generic[C]):
             if conn in found:
                 self._cache[topic] = tuple(c for c in found if c != conn)
 
+    def routes(self, topic: str) -> bool:
+        """Whether the receivers of *topic* are cached (a frame on it costs a lookup)."""
+        return topic in self._cache
+
     def receivers(self, topic: str) -> tuple[C, ...]:
         """Return the connections that get a frame on *topic* (Algorithm 3 lines 15-16)."""
         found = self._cache.get(topic)

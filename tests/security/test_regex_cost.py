@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import pytest
 
+from fleetctl.server import relay
 from fleetctl.server.app import RelayServer
 from fleetctl.server.regex import (
     QUOTA_BYTES_PER_INSTRUCTION,
@@ -101,3 +102,25 @@ def test_joined_patterns_answer_as_each_pattern_would() -> None:
             for topic in topics:
                 assert joined.matches(topic) == any(p.matches(topic) for p in chosen), \
                     (topic, [p.pattern for p in chosen])
+
+
+async def test_new_topics_are_rate_limited_per_identity_set(
+    server: RelayServer, monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    # A sender inventing a topic per frame cost ~10x a frame each (a regex call per
+    # subscribed connection, new permission, metrics and catalog entries).
+    monkeypatch.setattr(relay, "NEW_TOPICS_BURST", 20)
+    monkeypatch.setattr(relay, "NEW_TOPICS_PER_S", 0.001)
+    async with client(server, token=ALICE_TOKEN) as viewer, \
+            client(server, source="127.0.0.2") as robot:
+        await next_json(viewer, "welcome")
+        await next_json(robot, "welcome")
+        assert (await subscribe(viewer, "/husky1/.*"))["type"] == "subscribed"
+        for i in range(50):
+            await robot.send(string_frame(f"/husky1/t{i}", f"{i}"))
+        error = await next_json(robot, "error")
+        assert error["code"] == "rate_limited" and error["topic"] == "/husky1/t20"
+        await robot.send(string_frame("/husky1/t3", "known topic"))  # routed already
+        got = [decode_text(await next_binary(viewer)) for _ in range(21)]
+        assert got == [str(i) for i in range(20)] + ["known topic"]
+        assert server.metrics.errors["new_topic_rate"] == 30

@@ -21,6 +21,7 @@ from fleetctl.client.mediaconfig import TfSpec
 from fleetctl.deploy import keystore, tls
 from fleetctl.deploy.files import (
     PUBLIC_FILE_MODE,
+    SECRET_DIR_MODE,
     Change,
     FileWrite,
     Plan,
@@ -209,6 +210,11 @@ def _load_keys(fleet_dir: Path, fleet: Fleet, source: KeySource, plan: Plan) -> 
     config (and the bundle exported from it) holds the keys the robot may be using, and new
     ones would cut it off without a word (a fleet directory restored without ``keys/``).
     """
+    for directory in (fleet_dir / keystore.KEYS_DIR, fleet_dir / keystore.KEYS_DIR / "robots"):
+        # 0700 again if it was opened up (docs: fleetctl forces the mode of the directories
+        # it owns); it was forced only when a key was written into it.
+        if directory.is_dir() and not directory.is_symlink():
+            plan.directory(directory, SECRET_DIR_MODE)
     robots: dict[str, RobotKeys] = {}
     for robot in fleet.robots:
         keys = keystore.load_robot_keys(fleet_dir, robot.name)

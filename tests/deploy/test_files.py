@@ -104,3 +104,20 @@ def test_a_fleet_directory_reached_through_a_link_is_fine(tmp_path: Path) -> Non
     (tmp_path / "link").symlink_to(real)
     ops.add_robot(tmp_path / "link", "husky1")
     assert (real / "robots/husky1/wireguard/wg0.conf").is_file()
+
+
+@pytest.mark.parametrize("directory", ["keys", "keys/robots"])
+def test_key_directories_are_0700_again_after_any_change(tmp_path: Path,
+                                                         directory: str) -> None:
+    """docs/operator.md: fleetctl forces 0700 on keys/; a keys/ opened to 0755 stayed so
+    through render and add-user (only writing a key into it forced the mode)."""
+    fleet_dir = tmp_path / "f"
+    ops.create_fleet(fleet_dir, endpoint="vpn.example.org:51820")
+    ops.add_robot(fleet_dir, "husky1")
+    for change in (lambda: ops.render_fleet(fleet_dir),
+                   lambda: ops.add_user(fleet_dir, "bob@example.org", "viewer")):
+        (fleet_dir / directory).chmod(0o755)
+        ops.render_fleet(fleet_dir, dry_run=True)
+        assert (fleet_dir / directory).stat().st_mode & 0o777 == 0o755  # a preview
+        change()
+        assert (fleet_dir / directory).stat().st_mode & 0o777 == 0o700

@@ -71,7 +71,11 @@ async def test_empty_panels_name_their_topic_and_a_robot_switch_clears_them(
         webviz_factory.append(web)
         page = await browser.new_page(viewport={"width": 1280, "height": 800})
         problems = watch_errors(page)
+        await page.goto(web.url)
+        await page.locator("#token").wait_for(timeout=TIMEOUT_MS)
+        assert await page.is_hidden("#signout")  # nobody to sign out yet
         await sign_in(page, web.url, OPERATOR_TOKEN)
+        assert await page.is_visible("#signout")
         r1.repeat(lambda: [r1.encode(JPEG, "/camera/image/compressed", jpeg_values()),
                            r1.encode(SCAN, "/scan", scan_of(3.0)),
                            r1.encode(IMAGE, "/camera/image_raw", raw_image_values())])

@@ -53,6 +53,7 @@ class App {
     conn.start();
     $("#signin").hidden = true;
     $("#main").hidden = false;
+    $("#signout").hidden = false; // before a sign-in it signed nobody out
     clearInterval(this.poll);
     this.poll = setInterval(() => conn.listRobots(), ROBOTS_POLL_MS);
     this.route();

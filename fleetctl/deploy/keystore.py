@@ -12,6 +12,7 @@ Public keys are always derived from private keys, never stored, so they cannot d
 
 from __future__ import annotations
 
+import os
 import stat
 from dataclasses import dataclass
 from pathlib import Path
@@ -82,7 +83,14 @@ def load_server_key(fleet_dir: Path) -> Secret:
     Raises:
         ConfigError: naming the file if it is missing or malformed.
     """
-    return _read_key(server_key_path(fleet_dir))
+    path = server_key_path(fleet_dir)
+    if not os.path.lexists(path):
+        # Never made again by itself: every robot's wg0.conf (and bundle) names its public
+        # key, and a new one would cut them all off.
+        raise ConfigError(f"{path}: key file not found: restore it from a backup of the "
+                          "fleet directory (a new server key would cut off every robot "
+                          "already deployed; `fleetctl init --force` makes a new fleet)")
+    return _read_key(path)
 
 
 def load_robot_keys(fleet_dir: Path, name: str) -> RobotKeys | None:

@@ -121,3 +121,21 @@ def test_key_directories_are_0700_again_after_any_change(tmp_path: Path,
         assert (fleet_dir / directory).stat().st_mode & 0o777 == 0o755  # a preview
         change()
         assert (fleet_dir / directory).stat().st_mode & 0o777 == 0o700
+
+
+def test_a_missing_server_key_says_how_to_recover(tmp_path: Path) -> None:
+    """It said `keys/server.key: key file not found` and no more: the one key that must
+    never be made again in place (every robot's config names it)."""
+    fleet_dir = tmp_path / "f"
+    ops.create_fleet(fleet_dir, endpoint="vpn.example.org:51820")
+    ops.add_robot(fleet_dir, "husky1")
+    (fleet_dir / "keys" / "server.key").unlink()
+    before = _tree(fleet_dir)
+    for change in (lambda: ops.render_fleet(fleet_dir), lambda: ops.add_robot(fleet_dir, "j2")):
+        with pytest.raises(ConfigError) as info:
+            change()
+        assert str(info.value) == (
+            f"{fleet_dir}/keys/server.key: key file not found: restore it from a backup of "
+            "the fleet directory (a new server key would cut off every robot already "
+            "deployed; `fleetctl init --force` makes a new fleet)")
+    assert _tree(fleet_dir) == before

@@ -5,6 +5,7 @@ from __future__ import annotations
 import json
 import logging
 from pathlib import Path
+from typing import Any
 
 import typer
 
@@ -38,15 +39,25 @@ def _client(
         stats = run_client(loaded)
     except ConfigError as exc:  # e.g. a message type whose ROS package is not installed
         raise ConfigError(f"{config}: {exc}") from exc
-    bridge = stats.get("bridge", {})
-    # One line an operator can read in the robot's journal after a stop.
-    logging.getLogger("fleetctl.client").info(
-        "client stopped: %s local messages in, %s sent, %s rate limited, %s frames published "
-        "locally, %s reconnects, %s no_drop overflow",
-        bridge.get("local_in"), bridge.get("sent"), bridge.get("rate_limited"),
-        bridge.get("published_local"), stats.get("reconnects"), stats.get("no_drop_overflow"))
+    logging.getLogger("fleetctl.client").info("%s", stop_line(stats))
     if print_stats:
         typer.echo(json.dumps(stats, default=str))
+
+
+def stop_line(stats: dict[str, Any]) -> str:
+    """One line an operator can read in the robot's journal after a stop. "N sent" counted
+    what was handed to the link, also when no server was ever reached: the messages the
+    server acknowledged are said beside it."""
+    bridge = stats.get("bridge", {})
+    topics = stats.get("topics", {})
+    acked = sum(int(t.get("acked", 0)) for t in topics.values() if isinstance(t, dict))
+    return (f"client stopped: {bridge.get('local_in')} local messages in, "
+            f"{bridge.get('sent')} handed to the link, {acked} acknowledged by the server "
+            "(status included), "
+            f"{bridge.get('rate_limited')} rate limited, {bridge.get('published_local')} "
+            f"frames published locally, {stats.get('connects', 0)} connections "
+            f"({stats.get('reconnects')} reconnects), {stats.get('no_drop_overflow')} no_drop "
+            "overflow")
 
 
 def register(app: typer.Typer) -> None:

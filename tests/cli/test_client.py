@@ -55,3 +55,21 @@ def test_unknown_log_level_is_a_usage_error(tmp_path: Path,
     err = capsys.readouterr().err
     assert "--log-level: unknown level 'LOUD'; use one of DEBUG, INFO, WARNING, ERROR" in err
     assert "Traceback" not in err
+
+
+def test_the_stop_line_says_what_the_server_acknowledged() -> None:
+    # "133 sent" was printed for a client that never reached its server.
+    from fleetctl.cli.client import stop_line
+
+    never = {"bridge": {"local_in": 133, "sent": 133, "rate_limited": 0, "published_local": 0},
+             "topics": {"/r/chatter": {"acked": 0, "sent_frames": 0}}, "connects": 0,
+             "reconnects": 0, "no_drop_overflow": 113}
+    assert stop_line(never) == (
+        "client stopped: 133 local messages in, 133 handed to the link, 0 acknowledged by the "
+        "server (status included), 0 rate limited, 0 frames published locally, 0 connections "
+        "(0 reconnects), "
+        "113 no_drop overflow")
+    reached = {**never, "topics": {"/r/a": {"acked": 100}, "/r/b": {"acked": 20}},
+               "connects": 2, "reconnects": 1}
+    assert "120 acknowledged by the server" in stop_line(reached)
+    assert "2 connections (1 reconnects)" in stop_line(reached)

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import logging
+import os
 from pathlib import Path
 from typing import Any
 
@@ -12,6 +13,7 @@ import typer
 from fleetctl.errors import ConfigError, EnvironmentMissing, ExitCode, FleetError
 
 _LOG_LEVELS = ("DEBUG", "INFO", "WARNING", "ERROR")
+MAX_DOMAIN_ID = 232  # Fast DDS's port arithmetic (ROS 2 docs: 0-232 on Linux)
 
 
 def _client(
@@ -29,6 +31,7 @@ def _client(
     logging.basicConfig(level=log_level.upper(),
                         format="%(asctime)s %(levelname)s %(name)s: %(message)s")
     loaded = load_client_config(config)  # before rclpy: a bad file fails fast, named
+    _check_domain_id()
     try:
         from fleetctl.client.ros.runner import run_client
     except ImportError as exc:
@@ -42,6 +45,19 @@ def _client(
     logging.getLogger("fleetctl.client").info("%s", stop_line(stats))
     if print_stats:
         typer.echo(json.dumps(stats, default=str))
+
+
+def _check_domain_id() -> None:
+    """``ROS_DOMAIN_ID`` as rcl and Fast DDS take it: 300 made the client exit 1 with only
+    Fast DDS's "port number is too high" lines, ``abc`` with an rclpy traceback."""
+    raw = os.environ.get("ROS_DOMAIN_ID", "").strip()
+    if not raw:
+        return  # unset or empty: domain 0
+    value = int(raw) if raw.isdigit() else -1
+    if not 0 <= value <= MAX_DOMAIN_ID:
+        raise ConfigError(f"ROS_DOMAIN_ID={raw!r} (environment): must be an integer from 0 to "
+                          f"{MAX_DOMAIN_ID}, the robot's ROS 2 domain (fleetctl.env, "
+                          "robots[].ros_domain_id in fleet.yaml)")
 
 
 def stop_line(stats: dict[str, Any]) -> str:

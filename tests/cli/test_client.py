@@ -73,3 +73,17 @@ def test_the_stop_line_says_what_the_server_acknowledged() -> None:
                "connects": 2, "reconnects": 1}
     assert "120 acknowledged by the server" in stop_line(reached)
     assert "2 connections (1 reconnects)" in stop_line(reached)
+
+
+@pytest.mark.parametrize("value", ["300", "abc", "-1", "1.5"])
+def test_a_bad_ros_domain_id_is_one_line(value: str, tmp_path: Path,
+                                         capsys: pytest.CaptureFixture[str],
+                                         monkeypatch: pytest.MonkeyPatch) -> None:
+    # 300: exit 1 with only Fast DDS's "port number is too high"; abc: an rclpy traceback.
+    monkeypatch.setenv("ROS_DOMAIN_ID", value)
+    config = tmp_path / "client.yaml"
+    config.write_text("server_url: ws://127.0.0.1:1/\nrobot_name: r\n")
+    assert main(["client", "--config", str(config)]) == ExitCode.CONFIG
+    err = capsys.readouterr().err
+    assert f"ROS_DOMAIN_ID={value!r} (environment): must be an integer from 0 to 232" in err
+    assert "Traceback" not in err

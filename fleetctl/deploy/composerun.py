@@ -466,7 +466,8 @@ def status(fleet_dir: Path, options: Options,
     server_id = container_id(fleet_dir, options.project, "server", runner)
     robots, error = _server_robots(server_id, runner)
     tunnel, note = _tunnel(fleet_dir, server_id, runner)
-    recordings, recordings_note = server_recordings(server_id, runner)
+    recordings, recordings_note = server_recordings(
+        server_id, runner, fleet_dir.resolve() / COMPOSE_DIR / "server" / "server.yaml")
     return StatusReport(tuple(sorted(services, key=lambda s: s.service)), robots, error,
                         tunnel, note, recordings=recordings, recordings_note=recordings_note)
 

@@ -11,9 +11,14 @@ from __future__ import annotations
 import json
 import re
 from dataclasses import dataclass
+from pathlib import Path
 from typing import Any
 
+import yaml
+
 from fleetctl.deploy.dockercli import Runner
+from fleetctl.smallfile import MAX_CONFIG_BYTES, read_small_text
+from fleetctl.yamlfile import safe_load
 
 # Prints {"recordings": [...]} with every answering replica's files, {"off": true} when
 # none records, or exits non-zero naming why no replica answered.
@@ -32,6 +37,19 @@ _SNIPPET = (
     "elif err is not None and not files: sys.exit(f'no replica answered: {err}')\n"
     "else: print(json.dumps({'recordings':files}))\n"
 )
+
+
+OFF_NOTE = "off (no recording section in fleet.yaml)"
+
+
+def _records_nothing(config: Path) -> bool:
+    """True when *config* (a server.yaml) certainly has no recording section; an unreadable
+    or odd one is left to the server to answer."""
+    try:
+        document = safe_load(read_small_text(config, MAX_CONFIG_BYTES))
+    except (OSError, UnicodeDecodeError, yaml.YAMLError, RecursionError):
+        return False
+    return isinstance(document, dict) and document.get("recording") is None
 
 
 @dataclass(frozen=True)
@@ -63,12 +81,22 @@ def exec_error(stderr: str, container: str) -> str:
     return re.sub(rf"\b{re.escape(short)}[0-9a-f]{{52}}\b", short, last)
 
 
-def server_recordings(server_id: str | None,
-                      runner: Runner) -> tuple[RecordingSummary | None, str]:
+def server_recordings(server_id: str | None, runner: Runner,
+                      deployed_config: Path | None = None,
+                      ) -> tuple[RecordingSummary | None, str]:
     """``(summary, note)``: the summary, or ``None`` and why (``off`` when the fleet
-    records nothing, fleet.yaml having no ``recording:`` section)."""
+    records nothing, fleet.yaml having no ``recording:`` section).
+
+    *deployed_config* is the server.yaml the running server loaded
+    (``FLEET/.compose/server/server.yaml``; a change restarts the server with it): without
+    a ``recording`` section in it the server is not asked, as each ``GET /recordings`` it
+    answers 404 is a "connection rejected (404 Not Found)" line in its log, one per
+    ``status`` (a monitoring check running it every minute filled the log).
+    """
     if server_id is None:
         return None, "unknown (the server container is not running)"
+    if deployed_config is not None and _records_nothing(deployed_config):
+        return None, OFF_NOTE
     res = runner(["docker", "exec", "--user", "fleetctl", server_id, "python3", "-c",
                   _SNIPPET], None, True)
     if res.returncode != 0:
@@ -76,7 +104,7 @@ def server_recordings(server_id: str | None,
     try:
         data: Any = json.loads(res.stdout)
         if data.get("off"):
-            return None, "off (no recording section in fleet.yaml)"
+            return None, OFF_NOTE
         files = data["recordings"]
         return RecordingSummary(len(files), sum(int(f["bytes"]) for f in files),
                                 tuple(f["name"] for f in files if not f["complete"])), ""

@@ -73,3 +73,27 @@ def test_a_failed_exec_names_the_container_as_docker_ps_does() -> None:
     assert exec_error(said, full[:12]) == ("Error response from daemon: Container "
                                            "3f2a00000000 is restarting, wait until it runs")
     assert exec_error("", full[:12]) == "the server did not answer"
+
+
+def test_a_server_config_without_recording_is_off_without_asking(tmp_path: Path) -> None:
+    """Each `status` asked GET /recordings of a server that records nothing, and each 404
+    was a "connection rejected (404 Not Found)" line in the server's log."""
+    asked: list[Sequence[str]] = []
+
+    def runner(argv: Sequence[str], stdin: bytes | None, capture: bool) -> Completed:
+        asked.append(argv)
+        return Completed(tuple(argv), 0, '{"off": true}', "")
+
+    config = tmp_path / "server.yaml"
+    config.write_text("listen_port: 8080\nrecording: null\n")
+    assert server_recordings("server-id", runner, config) == (
+        None, "off (no recording section in fleet.yaml)")
+    config.write_text("listen_port: 8080\n")
+    assert server_recordings("server-id", runner, config)[1].startswith("off (")
+    assert asked == []
+    # One that records, or one that cannot be read: the server is asked.
+    for text in ("recording:\n  directory: /var/lib/fleetctl/recordings\n", "[not: closed"):
+        config.write_text(text)
+        assert server_recordings("server-id", runner, config)[1].startswith("off (")
+    server_recordings("server-id", runner, tmp_path / "missing.yaml")
+    assert len(asked) == 3

@@ -531,7 +531,10 @@ class RelayServer:
             if peer.perms is None:
                 return False  # not authenticated yet: keep order with the token frame
             if not peer.closing:
-                core.on_binary(peer, frame)
+                try:
+                    core.on_binary(peer, frame)
+                except Exception as exc:  # as _handle: the frame's, not the connection's
+                    self._not_handled(peer, exc)
             return True
 
         connection.frame_sink = sink
@@ -633,9 +636,15 @@ class RelayServer:
             else:
                 self.core.on_binary(peer, message)
         except Exception as exc:
-            log.exception("%s: frame not handled", peer.label)
-            self.core.send_error(peer, "malformed_frame", None,
-                                 f"the server could not handle this frame ({type(exc).__name__})")
+            self._not_handled(peer, exc)
+
+    def _not_handled(self, peer: Peer, exc: Exception) -> None:
+        """A bug a frame triggered: one log line with the traceback, one error frame.
+        Without this, a frame taken in ``data_received`` (the sink) that raised made
+        asyncio drop the whole connection ("protocol.data_received() call failed")."""
+        log.error("%s: frame not handled", peer.label, exc_info=exc)
+        self.core.send_error(peer, "malformed_frame", None,
+                             f"the server could not handle this frame ({type(exc).__name__})")
 
     async def _write_loop(
         self, connection: RelayConnection, peer: Peer, writer: ConnectionWriter

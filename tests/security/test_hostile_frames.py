@@ -9,11 +9,22 @@ import json
 import socket
 import struct
 from collections.abc import Callable
+from typing import Any
+
+import pytest
 
 from fleetctl.server.app import RelayServer
 from fleetctl.server.connection import MAX_MESSAGE_FRAMES, PRE_AUTH_MAX_MESSAGE_FRAMES
+from fleetctl.server.relay import RelayCore
 from tests.security.conftest import RawClient
-from tests.server.conftest import ALICE_TOKEN, client, next_binary, subscribe, wait_for
+from tests.server.conftest import (
+    ALICE_TOKEN,
+    client,
+    next_binary,
+    next_json,
+    subscribe,
+    wait_for,
+)
 from tests.support import decode_text, string_frame
 
 PING, PONG, CONT, TEXT, BINARY = 0x9, 0xA, 0x0, 0x1, 0x2
@@ -165,3 +176,28 @@ async def test_a_client_closed_for_bad_input_is_not_read_any_further(
     assert await asyncio.wait_for(raw.reader.read(), 3) == b""
     raw.close()
     await wait_for(lambda: not server.core.peers and server.gate.open == 0)
+
+
+async def test_a_frame_that_trips_a_bug_costs_the_frame_not_the_connection(
+    server: RelayServer, monkeypatch: pytest.MonkeyPatch, caplog: pytest.LogCaptureFixture,
+) -> None:
+    # Complete binary frames are handled inside data_received: an exception there made
+    # asyncio drop the connection ("protocol.data_received() call failed").
+    real = RelayCore._note_robot
+
+    def buggy(self: RelayCore, peer: Any, topic: str, type_name: str, frame: bytes) -> None:
+        if topic == "/husky1/boom":
+            raise ValueError("a bug")
+        real(self, peer, topic, type_name, frame)
+
+    monkeypatch.setattr(RelayCore, "_note_robot", buggy)
+    async with client(server, token=ALICE_TOKEN) as viewer, \
+            client(server, source="127.0.0.2") as robot:
+        assert (await subscribe(viewer, "/husky1/chat"))["type"] == "subscribed"
+        await robot.send(string_frame("/husky1/boom", "x"))
+        error = await next_json(robot, "error")
+        assert error["code"] == "malformed_frame" and "ValueError" in error["message"]
+        await robot.send(string_frame("/husky1/chat", "still here"))
+        assert decode_text(await next_binary(viewer)) == "still here"
+    traced = [r.getMessage() for r in caplog.records if r.exc_info]
+    assert len(traced) == 1 and traced[0].endswith("[husky1@127.0.0.2]: frame not handled")

@@ -158,7 +158,7 @@ class FoxgloveAdapter:
             if peer.perms is None:
                 return False  # not authenticated yet: the reader takes it, in order
             if not peer.closing:
-                viewer.on_binary(frame)
+                self._handle(viewer, frame)  # a bug costs a Status, not the connection
             return True
 
         connection.frame_sink = sink

@@ -362,6 +362,11 @@ class StatusReport:
     extra: dict[str, Any] = field(default_factory=dict)
     recordings: RecordingSummary | None = None
     recordings_note: str = ""
+    # The robots of the fleet directory; the server's registry keeps removed ones.
+    fleet_robots: frozenset[str] | None = None
+
+    def _removed(self, robot: dict[str, Any]) -> bool:
+        return self.fleet_robots is not None and robot.get("name") not in self.fleet_robots
 
     @property
     def healthy(self) -> bool:
@@ -382,7 +387,8 @@ class StatusReport:
         return {
             "healthy": self.healthy,
             "services": [s.__dict__ for s in self.services],
-            "robots": None if self.robots is None else [_robot_json(r) for r in self.robots],
+            "robots": None if self.robots is None else [
+                {**_robot_json(r), "in_fleet": not self._removed(r)} for r in self.robots],
             "robots_error": self.robots_error or None,
             "tunnel": None if self.tunnel is None else [t.__dict__ for t in self.tunnel],
             "tunnel_note": self.tunnel_note or None,
@@ -403,6 +409,7 @@ class StatusReport:
             lines.append(f"{'ROBOT':<24} {'ONLINE':<7} {'BATTERY':<8} LAST SEEN")
             lines += [f"{r.get('name', '?')!s:<24} {'yes' if r.get('online') else 'no':<7} "
                       f"{_battery(r.get('battery_level')):<8} {_ago(r.get('last_seen_s'))}"
+                      + ("  (not in fleet.yaml: removed)" if self._removed(r) else "")
                       for r in self.robots] or ["(no robots yet)"]
         lines.append("")
         if self.tunnel is None:
@@ -469,7 +476,17 @@ def status(fleet_dir: Path, options: Options,
     recordings, recordings_note = server_recordings(
         server_id, runner, fleet_dir.resolve() / COMPOSE_DIR / "server" / "server.yaml")
     return StatusReport(tuple(sorted(services, key=lambda s: s.service)), robots, error,
-                        tunnel, note, recordings=recordings, recordings_note=recordings_note)
+                        tunnel, note, recordings=recordings, recordings_note=recordings_note,
+                        fleet_robots=_fleet_robot_names(fleet_dir))
+
+
+def _fleet_robot_names(fleet_dir: Path) -> frozenset[str] | None:
+    """The robots of the fleet directory (those with a ``robots/NAME/client.yaml``), or
+    ``None`` when it cannot be read."""
+    try:
+        return frozenset(p.parent.name for p in (fleet_dir / "robots").glob("*/client.yaml"))
+    except OSError:
+        return None
 
 
 def _inspect(cid: str, runner: Runner) -> dict[str, Any] | None:

@@ -596,3 +596,20 @@ def test_status_shows_an_unknown_battery_as_null_and_a_dash() -> None:
     assert lines[header].split() == ["ROBOT", "ONLINE", "BATTERY", "LAST", "SEEN"]
     assert [line.split()[:3] for line in lines[header + 1:header + 4]] == [
         ["husky1", "yes", "-"], ["jackal2", "yes", "80%"], ["rover3", "no", "-"]]
+
+
+def test_status_marks_a_robot_the_fleet_no_longer_has(fleet: Path) -> None:
+    """The server's registry keeps a removed robot: `status` showed it offline for good,
+    like a robot that is down."""
+    ops.add_robot(fleet, "rover3")
+    ops.remove_robot(fleet, "rover3")
+    robots = [{"name": "husky1", "online": True, "last_seen_s": None},
+              {"name": "rover3", "online": False, "last_seen_s": None}]
+    report = composerun.StatusReport((), robots,
+                                     fleet_robots=composerun._fleet_robot_names(fleet))
+    assert report.fleet_robots == {"husky1", "jackal2"}
+    assert [r["in_fleet"] for r in report.to_json()["robots"]] == [True, False]
+    text = report.render_text()
+    assert "rover3" in text and text.split("rover3", 1)[1].splitlines()[0].endswith(
+        "-  (not in fleet.yaml: removed)")
+    assert "removed" not in text.split("husky1", 1)[1].splitlines()[0]

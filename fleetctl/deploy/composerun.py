@@ -459,8 +459,11 @@ def status(fleet_dir: Path, options: Options,
            runner: Runner = subprocess_runner) -> StatusReport:
     """Each container's state, health and restarts; robots as the server reports them;
     the server's WireGuard peers and their last handshakes."""
-    res = runner(["docker", "ps", "-aq", "--filter",
-                  f"label=com.docker.compose.project={options.project}"], None, True)
+    # Only the containers this fleet's compose file made: `status --project P` of another
+    # fleet's project showed that fleet's containers as this one's.
+    compose_file = fleet_dir.resolve() / COMPOSE_DIR / COMPOSE_FILE
+    res = runner(["docker", "ps", "-aq", *fleet_filters(options.project, compose_file)],
+                 None, True)
     services = []
     for cid in check(res, "docker ps").stdout.split():
         info = _inspect(cid, runner)

@@ -613,3 +613,16 @@ def test_status_marks_a_robot_the_fleet_no_longer_has(fleet: Path) -> None:
     assert "rover3" in text and text.split("rover3", 1)[1].splitlines()[0].endswith(
         "-  (not in fleet.yaml: removed)")
     assert "removed" not in text.split("husky1", 1)[1].splitlines()[0]
+
+
+def test_status_asks_only_for_this_fleets_containers(fleet: Path) -> None:
+    """`status --project P` listed every container of project P, another fleet's too."""
+    docker = FakeDocker()
+    composerun.up(fleet, _opts(fleet, wireguard="off"), progress=lambda _: None, runner=docker)
+    before = len(docker.calls)
+    composerun.status(fleet, composerun.existing_options(fleet, "theirs"), runner=docker)
+    mine = (f"label=com.docker.compose.project.config_files={fleet.resolve()}"
+            "/.compose/docker-compose.yml")
+    listings = [c for c in docker.calls[before:] if c[:2] == ["docker", "ps"]]
+    assert listings and all(mine in c and "label=com.docker.compose.project=theirs" in c
+                            for c in listings)

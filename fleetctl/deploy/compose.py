@@ -47,6 +47,7 @@ import yaml
 
 from fleetctl import __version__
 from fleetctl.deploy.files import FileWrite, refuse_linked_directories, write_file
+from fleetctl.deploy.fleet import MAX_RELAY_REPLICAS
 from fleetctl.deploy.images import image_tag
 from fleetctl.errors import ConfigError, EnvironmentMissing, ExitCode, FleetError
 from fleetctl.smallfile import MAX_PEM_BYTES, MAX_SECRET_BYTES, read_small_text
@@ -563,7 +564,39 @@ def saved_options(fleet_dir: Path) -> Options | None:
         return None
     try:
         data = json.loads(read_small_text(path))
-        return Options(**data)
+        options = Options(**data)
+        _check_state(options)
+        return options
     except (OSError, ValueError, TypeError) as exc:
         raise ConfigError(f"{path}: unreadable deployment state ({exc}); "
                           "remove it and run `fleetctl up` again") from None
+
+
+def _check_state(options: Options) -> None:
+    """What ``up`` checked before it saved them: the project and bind address reach the
+    compose command line and the image tag; a state file edited or damaged since is not
+    passed on (Compose made ``Bad/Name`` project ``badname``).
+
+    Raises:
+        ValueError: naming the field.
+    """
+    def valid(name: str, ok: bool) -> None:
+        if not ok:
+            raise ValueError(f"{name}: {getattr(options, name)!r}")
+
+    valid("project", isinstance(options.project, str)
+          and re.fullmatch(r"[a-z0-9][a-z0-9_-]{0,62}", options.project) is not None)
+    valid("wireguard", options.wireguard in ("auto", "on", "off"))
+    valid("sim", isinstance(options.sim, bool))
+    try:
+        ipaddress.ip_address(options.bind)
+        bind_ok = isinstance(options.bind, str)
+    except ValueError:
+        bind_ok = False
+    valid("bind", bind_ok)
+    valid("https_port", options.https_port is None or (
+        type(options.https_port) is int and 1 <= options.https_port <= 65535))
+    valid("version", isinstance(options.version, str)
+          and re.fullmatch(r"[A-Za-z0-9][A-Za-z0-9_.+-]{0,127}", options.version) is not None)
+    valid("replicas", type(options.replicas) is int
+          and 1 <= options.replicas <= MAX_RELAY_REPLICAS)

@@ -4,6 +4,7 @@
 from __future__ import annotations
 
 import errno
+import json
 import re
 import shutil
 import stat
@@ -202,6 +203,24 @@ def test_a_corrupt_state_file_is_named(fleet: Path) -> None:
     (fleet / ".compose").mkdir()
     (fleet / ".compose" / "state.json").write_text("{not json")
     with pytest.raises(ConfigError, match=r"state.json: unreadable deployment state"):
+        composerun.existing_options(fleet)
+
+
+@pytest.mark.parametrize(("field", "value"), [
+    ("project", "Bad/Name"), ("project", 5), ("wireguard", "maybe"), ("sim", "yes"),
+    ("bind", "0.0.0.0:8443:8443"), ("bind", 7), ("https_port", 0), ("https_port", True),
+    ("version", "1.0; rm -rf /"), ("replicas", 9)])
+def test_a_state_file_with_values_up_never_saves_is_named(
+        fleet: Path, field: str, value: object) -> None:
+    """down/status/logs passed state.json's project and bind on as they were: a damaged or
+    edited one gave Compose `-p Bad/Name` (its project `badname`, maybe another fleet's)."""
+    composerun.up(fleet, _opts(fleet, wireguard="off"), progress=lambda _: None,
+                  runner=FakeDocker())
+    state = fleet / ".compose" / "state.json"
+    data = json.loads(state.read_text())
+    state.write_text(json.dumps({**data, field: value}))
+    with pytest.raises(ConfigError, match=rf"state.json: unreadable deployment state "
+                                          rf"\({field}: "):
         composerun.existing_options(fleet)
 
 

@@ -10,9 +10,11 @@ installs their own.
 
 from __future__ import annotations
 
+import contextlib
 import datetime
 import errno
 import ipaddress
+import stat
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
@@ -120,8 +122,17 @@ def check_operator_files(cert_path: Path, key_path: Path) -> None:
         cert = x509.load_pem_x509_certificate(_read(cert_path, "cert"))
     except ValueError:
         raise FleetInvalid(("tls", "cert"), f"{cert_path}: not a PEM certificate") from None
+    key_pem = _read(key_path, "key")
+    with contextlib.suppress(OSError):  # _read just read it: a race at most
+        mode = stat.S_IMODE(key_path.stat().st_mode)
+        if mode & 0o007:
+            # As ssh refuses such a private key; group read stays allowed, as Debian's
+            # ssl-cert group keeps server keys 0640.
+            raise FleetInvalid(("tls", "key"), f"{key_path}: readable or writable by others "
+                               f"(mode {mode:04o}): `chmod o-rwx` it if nobody else could "
+                               "read it, otherwise replace the key")
     try:
-        key = serialization.load_pem_private_key(_read(key_path, "key"), password=None)
+        key = serialization.load_pem_private_key(key_pem, password=None)
     except (ValueError, TypeError):
         raise FleetInvalid(("tls", "key"), f"{key_path}: not an unencrypted PEM private "
                            "key") from None

@@ -76,6 +76,7 @@ def _operator_files(tmp_path: Path) -> tuple[Path, Path]:
     cert.parent.mkdir()
     cert.write_bytes(made.cert_pem)
     key.write_text(made.key_pem.reveal())
+    key.chmod(0o640)  # a server key as Debian keeps it (group ssl-cert)
     return cert, key
 
 
@@ -112,6 +113,9 @@ def test_operator_files_go_to_server_yaml_as_absolute_paths(tmp_path: Path) -> N
          r"fleet\.yaml:\d+: tls\.key: .*key\.pem: not a regular file"),
         (lambda c, k: c.write_bytes(c.read_bytes() + b"\n" * MAX_PEM_BYTES),
          r"fleet\.yaml:\d+: tls\.cert: .*cert\.pem: larger than 1048576 bytes"),
+        # Accepted at 0644: a private key anyone on the host could read.
+        (lambda c, k: k.chmod(0o644), r"fleet\.yaml:\d+: tls\.key: .*key\.pem: readable or "
+         r"writable by others \(mode 0644\): `chmod o-rwx` it"),
     ],
 )
 def test_bad_operator_files_change_nothing(tmp_path: Path, break_it: object,

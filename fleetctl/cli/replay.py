@@ -142,27 +142,14 @@ class _Recorded(NamedTuple):
     latched: bool
 
 
-class _Corrupt(FleetError):
-    """The recording's data is damaged at some point (a chunk that does not decompress)."""
-
-
 def _messages(path: Path) -> Iterator[_Recorded]:
     """The file's messages in file order.
 
     Raises:
-        _Corrupt: A record cannot be read (what came before it was yielded).
+        files.DamagedRecording: A record cannot be read (what came before it was yielded).
     """
     latched: dict[int, bool] = {}
-    records = files.read_messages(path)
-    while True:
-        try:
-            schema, channel, message = next(records)
-        except StopIteration:
-            return
-        except FleetError:
-            raise
-        except Exception as exc:  # zstd/lz4 on a damaged chunk: was a traceback
-            raise _Corrupt(f"{type(exc).__name__}: {exc}") from None
+    for schema, channel, message in files.read_messages(path):
         if channel.id not in latched:
             latched[channel.id] = is_latched(channel.metadata)
         yield _Recorded(channel.topic, schema.name if schema is not None else "",
@@ -207,7 +194,7 @@ async def replay(path: Path, options: ReplayOptions) -> ReplayResult:
     try:
         try:
             await _play(path, options, link, result)
-        except _Corrupt as exc:
+        except files.DamagedRecording as exc:
             corrupt = str(exc)  # what was read before the damage is still delivered
         if result.messages == 0 and corrupt is None:
             raise FleetError(_nothing_to_replay(path, result))

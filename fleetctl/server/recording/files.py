@@ -18,6 +18,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+import zstandard
 from mcap.exceptions import InvalidMagic, McapError
 from mcap.reader import make_reader
 from mcap.records import Channel, Footer, Message, Schema
@@ -100,6 +101,16 @@ def is_complete(path: Path) -> bool:
         return stream.read() == _TAIL_MAGIC
 
 
+class DamagedRecording(FleetError):
+    """A record of the file cannot be decoded (a chunk that does not decompress); the
+    message says why. The messages before it were read."""
+
+
+# What mcap's chunk decompression raises on damaged data: zstandard's error, and lz4's
+# RuntimeError ("LZ4F_... failed"). A cut-short chunk raises the EOF/struct errors instead.
+_DECOMPRESS_ERRORS = (zstandard.ZstdError, RuntimeError)
+
+
 def read_messages(path: Path) -> Iterator[tuple[Schema | None, Channel, Message]]:
     """Every message of *path* in file order, complete or not.
 
@@ -107,6 +118,8 @@ def read_messages(path: Path) -> Iterator[tuple[Schema | None, Channel, Message]
     record; the partial record after it, if any, is ignored.
 
     Raises:
+        DamagedRecording: A chunk cannot be decompressed (what came before it was
+            yielded).
         FleetError: *path* cannot be read or is not MCAP.
     """
     schemas: dict[int, Schema] = {}
@@ -143,6 +156,10 @@ def _tolerant_records(stream: Any) -> Iterator[Any]:
         return  # the end of what was written so far (an empty file: nothing yet)
     except (EOFError, ValueError, IndexError, KeyError, AttributeError, struct.error):
         return  # a record cut short by the end of the data (zstd frame, struct unpack)
+    except _DECOMPRESS_ERRORS as exc:  # damage, not an end: was a zstandard traceback
+        raise DamagedRecording(f"{getattr(stream, 'name', '?')}: damaged data, the rest of "
+                               f"the file cannot be read ({type(exc).__name__}: {exc})"
+                               ) from None
 
 
 def describe(path: Path) -> dict[str, Any]:

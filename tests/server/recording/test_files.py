@@ -8,6 +8,7 @@ import pytest
 
 from fleetctl.errors import FleetError
 from fleetctl.server.recording import files
+from tests.server.recording.damaged import damaged_recording
 
 MAGIC = b"\x89MCAP0\r\n"
 
@@ -38,3 +39,27 @@ def test_scan_of_a_file_is_named(tmp_path: Path) -> None:
     with pytest.raises(FleetError, match=r"afile: not a directory"):
         files.scan(tmp_path / "afile")
     assert files.scan(tmp_path / "missing") == []
+
+
+def test_a_damaged_chunk_is_named_after_the_messages_before_it(tmp_path: Path) -> None:
+    # A chunk that does not decompress is damage, not the end of what was written: it was
+    # zstandard's traceback from `recordings list` on an unfinished file.
+    path = tmp_path / "rec.mcap"
+    first = damaged_recording(path)
+    read = []
+    with pytest.raises(files.DamagedRecording) as caught:
+        for _schema, _channel, message in files.read_messages(path):
+            read.append(message.sequence)
+    assert read == list(range(first))
+    assert str(caught.value).startswith(
+        f"{path}: damaged data, the rest of the file cannot be read (ZstdError: ")
+
+
+def test_an_unfinished_damaged_file_is_one_error_from_describe(tmp_path: Path) -> None:
+    path = tmp_path / "rec.mcap"
+    damaged_recording(path)
+    data = path.read_bytes()
+    path.write_bytes(data[: len(data) // 2])  # no summary, no footer: read record by record
+    assert not files.is_complete(path)
+    with pytest.raises(FleetError, match="damaged data"):
+        files.describe(path)

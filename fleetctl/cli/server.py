@@ -8,7 +8,7 @@ from pathlib import Path
 
 import typer
 
-from fleetctl.errors import ConfigError
+from fleetctl.errors import ConfigError, ExitCode, FleetError
 
 CONFIG_HELP = """Run the relay server: WebSocket + HTTP, optionally the web page over HTTPS.
 
@@ -76,7 +76,7 @@ def register(app: typer.Typer) -> None:
     @app.command("server", help=CONFIG_HELP)
     def server(
         config: Path = typer.Option(..., "--config", "-c", help="Path of server.yaml."),
-        log_level: str = typer.Option("info", "--log-level", help="debug, info, warning."),
+        log_level: str = typer.Option("info", "--log-level", help="debug, info, warning or error."),
     ) -> None:
         from fleetctl.server.app import ListenError, RelayServer, run_server
         from fleetctl.server.cluster.config import ClusterStartError
@@ -84,7 +84,9 @@ def register(app: typer.Typer) -> None:
 
         level = getattr(logging, log_level.upper(), None)
         if not isinstance(level, int):
-            raise ConfigError(f"--log-level: unknown level {log_level!r}")
+            # A usage error (2), as the client's: was 3, the code of a bad config file.
+            raise FleetError(f"--log-level: unknown level {log_level!r}; use one of debug, "
+                             "info, warning, error", exit_code=ExitCode.USAGE)
         logging.basicConfig(level=level, format="%(asctime)s %(levelname)s %(name)s %(message)s")
         cfg = load_server_config(config)
 

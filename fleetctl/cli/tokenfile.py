@@ -6,7 +6,10 @@ a file holding it instead (what ``fleetctl add-user`` writes, 0600).
 
 from __future__ import annotations
 
+import os
 import re
+import stat
+import sys
 from pathlib import Path
 
 from fleetctl.errors import ConfigError
@@ -38,4 +41,21 @@ def read_token_file(token_file: Path | None) -> str | None:
         # non-ASCII character cannot go (http.client raised ValueError on it).
         raise ConfigError(f"--token-file {token_file}: the token must be one line of "
                           "printable ASCII without spaces")
+    _warn_if_others_may_read(token_file)
     return token
+
+
+def _warn_if_others_may_read(token_file: Path) -> None:
+    """A warning on stderr when users other than the owner may read *token_file*.
+
+    Not refused, unlike the fleet's keys: people write token files themselves (a shell
+    redirect under the usual umask makes them 0644), and a command that worked yesterday
+    should not stop; the warning says how to close it.
+    """
+    try:
+        mode = os.stat(token_file).st_mode
+    except OSError:
+        return
+    if mode & (stat.S_IRGRP | stat.S_IROTH):
+        print(f"warning: --token-file {token_file}: other users may read it (mode "
+              f"{stat.S_IMODE(mode):04o}); chmod 600 it", file=sys.stderr)

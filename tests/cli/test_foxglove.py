@@ -22,6 +22,7 @@ async def test_prints_a_url_foxglove_connects_with(
         tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     token_file = tmp_path / "token"
     token_file.write_text(ALICE_TOKEN + "\n")
+    token_file.chmod(0o600)  # else a warning comes first on stderr
     async with make_server(web=web_config) as srv:
         assert srv.config.web is not None
         args = ["foxglove-url", "--server", f"https://127.0.0.1:{srv.web_port}/",
@@ -54,6 +55,7 @@ async def test_tls_failures_say_what_is_wrong(
     both said "cannot reach it", though the server was reached."""
     token_file = tmp_path / "token"
     token_file.write_text(ALICE_TOKEN + "\n")
+    token_file.chmod(0o600)  # else a warning comes first on stderr
     async with make_server(web=web_config) as srv:
         for port, expected in (
                 (srv.port, "no TLS server answered there (a plain ws:// or http:// port? use "
@@ -75,6 +77,7 @@ async def test_an_untrusted_certificate_names_ca_file(
     '[SSL: CERTIFICATE_VERIFY_FAILED] certificate verify failed: ... (_ssl.c:1006)'."""
     token_file = tmp_path / "token"
     token_file.write_text(ALICE_TOKEN + "\n")
+    token_file.chmod(0o600)  # else a warning comes first on stderr
     async with make_server(web=web_config) as srv:
         for args in (["foxglove-url"], ["recordings", "list"]):
             assert await asyncio.to_thread(main, [

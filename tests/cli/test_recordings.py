@@ -449,6 +449,7 @@ def test_a_bad_ca_file_is_one_line(tmp_path: Path, capsys: pytest.CaptureFixture
                                    content: str | None, why: str) -> None:
     token, ca = tmp_path / "token", tmp_path / "ca.pem"
     token.write_text("t0ken\n")
+    token.chmod(0o600)  # else a warning comes first on stderr
     if content is not None:
         ca.write_text(content)
     for command in (["recordings", "list"], ["foxglove-url"]):

@@ -33,6 +33,15 @@ def test_bad_config_names_file_and_field(tmp_path: Path, capsys: object) -> None
     assert "auth.yaml" in capsys.readouterr().err  # type: ignore[attr-defined]
 
 
+def test_an_unknown_log_level_is_a_usage_error(tmp_path: Path, capsys: object) -> None:
+    # Exit 2 as the client's (it was 3, the code of a bad config file), before the config
+    # is read.
+    assert main(["server", "--config", str(tmp_path / "none.yaml"), "--log-level", "LOUD"]) == 2
+    err = capsys.readouterr().err  # type: ignore[attr-defined]
+    assert "--log-level: unknown level 'LOUD'; use one of debug, info, warning, error" in err
+    assert "Traceback" not in err
+
+
 def test_runs_serves_health_and_stops_on_sigterm(tmp_path: Path) -> None:
     (tmp_path / "auth.yaml").write_text("version: 1\nidentities: []\n")
     cfg = tmp_path / "server.yaml"

@@ -20,6 +20,20 @@ def test_the_token_is_stripped(tmp_path: Path) -> None:
     assert read_token_file(f) == "abc-123"
 
 
+@pytest.mark.parametrize(("mode", "warned"), [(0o600, False), (0o400, False), (0o640, True),
+                                              (0o644, True)])
+def test_a_token_file_others_may_read_is_warned_of(
+        tmp_path: Path, capsys: pytest.CaptureFixture[str], mode: int, warned: bool) -> None:
+    f = tmp_path / "t"
+    f.write_text("abc-123\n")
+    f.chmod(mode)
+    assert read_token_file(f) == "abc-123"
+    err = capsys.readouterr().err
+    assert (f"warning: --token-file {f}: other users may read it (mode {mode:04o}); "
+            "chmod 600 it" in err) is warned
+    assert "abc-123" not in err
+
+
 @pytest.mark.parametrize(("content", "why"), [
     (None, "cannot read: No such file or directory"),
     (b"\n \n", "the file is empty"),

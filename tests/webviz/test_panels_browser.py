@@ -6,8 +6,10 @@ its screen."""
 
 from __future__ import annotations
 
+import contextlib
 import io
 import time
+from collections.abc import AsyncIterator
 from pathlib import Path
 from typing import Any
 
@@ -21,7 +23,7 @@ from tests.webviz.fleet import OPERATOR_TOKEN
 from tests.webviz.msgs import make
 from tests.webviz.pixels import colored_pixels
 from tests.webviz.samples import header, pose_values, scan_values
-from tests.webviz.scripted import scripted_fleet
+from tests.webviz.scripted import Relay, scripted_fleet
 from tests.webviz.test_browser import TIMEOUT_MS, pixels, sign_in, wait_js, watch_errors
 
 pytestmark = pytest.mark.browser
@@ -58,6 +60,19 @@ def note(panel: str) -> str:
     return f"#panel-{panel} .panel-wait"
 
 
+@contextlib.asynccontextmanager
+async def fleet_page(tmp_path: Path, browser: Any, webviz_factory: list[Any],
+                     names: tuple[str, ...] = ("r1",), viewport: tuple[int, int] = (1280, 800),
+                     ) -> AsyncIterator[tuple[Relay, Any, Any, list[str]]]:
+    """A scripted fleet of *names*, its page server and a new browser page (not signed
+    in yet); yields the relay, the page server, the page and the page's problems."""
+    async with scripted_fleet(tmp_path, names) as relay:
+        web = webviz_server(relay.url).start()
+        webviz_factory.append(web)
+        page = await browser.new_page(viewport={"width": viewport[0], "height": viewport[1]})
+        yield relay, web, page, watch_errors(page)
+
+
 async def test_empty_panels_name_their_topic_and_a_robot_switch_clears_them(
     tmp_path: Path, browser: Any, webviz_factory: list[Any]
 ) -> None:
@@ -65,12 +80,9 @@ async def test_empty_panels_name_their_topic_and_a_robot_switch_clears_them(
     # looks (not sent as video), no cloud; r2: only odometry. Before, r1's cloud panel was
     # a black box, the Video panel said only "no video yet", and r2's page went on showing
     # r1's camera frame and scan.
-    async with scripted_fleet(tmp_path, ("r1", "r2")) as relay:
+    async with fleet_page(tmp_path, browser, webviz_factory, ("r1", "r2")) as (
+            relay, web, page, problems):
         r1, r2 = relay.robots["r1"], relay.robots["r2"]
-        web = webviz_server(relay.url).start()
-        webviz_factory.append(web)
-        page = await browser.new_page(viewport={"width": 1280, "height": 800})
-        problems = watch_errors(page)
         await page.goto(web.url)
         await page.locator("#token").wait_for(timeout=TIMEOUT_MS)
         assert await page.is_hidden("#signout")  # nobody to sign out yet
@@ -126,12 +138,8 @@ async def test_the_scan_is_scaled_to_its_returns_with_labelled_rings(
 ) -> None:
     # A 30 m lidar in a 3 m room was drawn at range_max: a fifth of the panel, rings at
     # 1, 7, 13, 19, 25 m without a label.
-    async with scripted_fleet(tmp_path) as relay:
+    async with fleet_page(tmp_path, browser, webviz_factory) as (relay, web, page, problems):
         r1 = relay.robots["r1"]
-        web = webviz_server(relay.url).start()
-        webviz_factory.append(web)
-        page = await browser.new_page(viewport={"width": 1280, "height": 800})
-        problems = watch_errors(page)
         await sign_in(page, web.url, OPERATOR_TOKEN)
         await page.goto(web.url + "#/robot/r1")
         await wait_js(page, "fleetviz.conn.active.has('/r1/scan')")
@@ -166,12 +174,9 @@ async def test_a_phone_sized_page_is_no_wider_than_the_screen(
     # At 390 px the overview and link health tables made the page 540-570 px wide, and the
     # 3D scene beside its TF tree was 195 px wide with the tree cut off.
     name = "warehouse_robot_north_07"
-    async with scripted_fleet(tmp_path, (name,)) as relay:
+    async with fleet_page(tmp_path, browser, webviz_factory, (name,), viewport=(390, 844)) as (
+            relay, web, page, problems):
         robot = relay.robots[name]
-        web = webviz_server(relay.url).start()
-        webviz_factory.append(web)
-        page = await browser.new_page(viewport={"width": 390, "height": 844})
-        problems = watch_errors(page)
         await sign_in(page, web.url, OPERATOR_TOKEN)
         robot.repeat(lambda: [
             encode_status(name, status="docking at charger 3", is_ok=True, battery_level=0.5,
@@ -204,12 +209,8 @@ async def test_the_map_marks_the_sent_goal_breaks_the_path_at_a_jump_and_pans(
     # After a goal was sent the map showed nothing of it, an initial pose drew a straight
     # path line across the map from the old place, and a map far from 0, 0 was out of reach
     # (no pan); the tool buttons did not show that they were armed.
-    async with scripted_fleet(tmp_path) as relay:
+    async with fleet_page(tmp_path, browser, webviz_factory) as (relay, web, page, problems):
         r1 = relay.robots["r1"]
-        web = webviz_server(relay.url).start()
-        webviz_factory.append(web)
-        page = await browser.new_page(viewport={"width": 1280, "height": 800})
-        problems = watch_errors(page)
         await sign_in(page, web.url, OPERATOR_TOKEN)
         assert r1.ws is not None
         await r1.ws.send(encode_subscription("/r1/goal_pose", codec=relay.codec))
@@ -263,12 +264,8 @@ async def test_old_data_is_said_without_moving_the_page(
 ) -> None:
     # Everything shown at once on a slow machine put the page 3.7 s behind the robots, and
     # only the link health table (at the bottom) said so.
-    async with scripted_fleet(tmp_path) as relay:
+    async with fleet_page(tmp_path, browser, webviz_factory) as (relay, web, page, problems):
         r1 = relay.robots["r1"]
-        web = webviz_server(relay.url).start()
-        webviz_factory.append(web)
-        page = await browser.new_page(viewport={"width": 1280, "height": 800})
-        problems = watch_errors(page)
         await sign_in(page, web.url, OPERATOR_TOKEN)
         await page.goto(web.url + "#/robot/r1")
         await wait_js(page, "fleetviz.conn.active.has('/r1/scan')")

@@ -445,16 +445,7 @@ async def test_bind_address_on_no_interface_is_explained_once_then_reminded(
         assert "wg show" in warnings[0] and "wg-quick@fleet0" in warnings[0]
         assert not any("cannot connect to" in m for m in warnings)
 
-        clock.now_s += 29.0  # not yet a reminder
-        failures = link.stats()["connect_failures"]
-        await wait_until(lambda: link.stats()["connect_failures"] >= failures + 5)
-        assert len(_warnings(caplog)) == 1
-
-        clock.now_s += 2.0  # 31 s into the outage: one reminder, then quiet again
-        failures = link.stats()["connect_failures"]
-        await wait_until(lambda: link.stats()["connect_failures"] >= failures + 5)
-        warnings = _warnings(caplog)
-        assert len(warnings) == 2, warnings
+        warnings = await _thirty_one_seconds_on(link, clock, caplog)
         assert warnings[1].startswith("still cannot bind 192.0.2.7: the tunnel has been down "
                                       "for 31 s")
 
@@ -478,6 +469,22 @@ async def test_a_new_outage_is_explained_again(tmp_path: Path,
         await wait_until(lambda: any("cannot connect to" in m for m in _warnings(caplog)))
         link.config = cfg
         await wait_until(lambda: sum("cannot bind" in m for m in _warnings(caplog)) == 2)
+
+
+async def _thirty_one_seconds_on(link: RobotLink, clock: ManualClock,
+                                 caplog: pytest.LogCaptureFixture) -> list[str]:
+    """Move *clock* 29 s into an outage (no reminder yet), then 2 s more (one reminder),
+    waiting for five more failed attempts after each; returns the warnings logged."""
+    clock.now_s += 29.0
+    failures = link.stats()["connect_failures"]
+    await wait_until(lambda: link.stats()["connect_failures"] >= failures + 5)
+    assert len(_warnings(caplog)) == 1
+    clock.now_s += 2.0
+    failures = link.stats()["connect_failures"]
+    await wait_until(lambda: link.stats()["connect_failures"] >= failures + 5)
+    warnings = _warnings(caplog)
+    assert len(warnings) == 2, warnings
+    return warnings
 
 
 def _free_port() -> int:
@@ -506,16 +513,7 @@ async def test_a_server_down_at_start_is_explained_once_then_reminded(
         assert warnings[0].startswith(f"cannot connect to {url_of(port)}: ")
         assert "retrying every 0.02 s or less, quietly (a reminder every 30 s)" in warnings[0]
 
-        clock.now_s += 29.0  # not yet a reminder
-        failures = link.stats()["connect_failures"]
-        await wait_until(lambda: link.stats()["connect_failures"] >= failures + 5)
-        assert len(_warnings(caplog)) == 1
-
-        clock.now_s += 2.0  # 31 s into the outage: one reminder, then quiet again
-        failures = link.stats()["connect_failures"]
-        await wait_until(lambda: link.stats()["connect_failures"] >= failures + 5)
-        warnings = _warnings(caplog)
-        assert len(warnings) == 2, warnings
+        warnings = await _thirty_one_seconds_on(link, clock, caplog)
         assert warnings[1].startswith(f"still cannot connect to {url_of(port)} after 31 s (")
 
         async with make_server(tmp_path, port):

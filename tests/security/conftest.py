@@ -11,6 +11,17 @@ import struct
 from tests.server.conftest import make_server, server  # noqa: F401  (fixtures)
 
 
+def frame_head(opcode: int, n: int, fin: bool = True) -> bytes:
+    """A masked client frame's first bytes, up to its masking key, for an *n*-byte
+    payload (RFC 6455 5.2: FIN, opcode, MASK bit and the 7, 16 or 64-bit length)."""
+    first = (0x80 if fin else 0) | opcode
+    if n < 126:
+        return struct.pack("!BB", first, 0x80 | n)
+    if n < 65536:
+        return struct.pack("!BBH", first, 0x80 | 126, n)
+    return struct.pack("!BBQ", first, 0x80 | 127, n)
+
+
 class RawClient:
     """A hand-written WebSocket client: arbitrary header bytes, frames parsed by hand."""
 
@@ -41,16 +52,8 @@ class RawClient:
     async def send_frame(self, opcode: int, payload: bytes, fin: bool = True) -> None:
         """Send one masked frame (RFC 6455 5.2)."""
         mask = os.urandom(4)
-        first = (0x80 if fin else 0) | opcode
-        n = len(payload)
-        if n < 126:
-            head = struct.pack("!BB", first, 0x80 | n)
-        elif n < 65536:
-            head = struct.pack("!BBH", first, 0x80 | 126, n)
-        else:
-            head = struct.pack("!BBQ", first, 0x80 | 127, n)
         masked = bytes(b ^ mask[i % 4] for i, b in enumerate(payload))
-        self.writer.write(head + mask + masked)
+        self.writer.write(frame_head(opcode, len(payload), fin) + mask + masked)
         await self.writer.drain()
 
     async def next_frame(self) -> tuple[int, bytes] | None:

@@ -7,7 +7,6 @@ from __future__ import annotations
 import asyncio
 import json
 import socket
-import struct
 from collections.abc import Callable
 from typing import Any
 
@@ -16,7 +15,7 @@ import pytest
 from fleetctl.server.app import RelayServer
 from fleetctl.server.connection import MAX_MESSAGE_FRAMES, PRE_AUTH_MAX_MESSAGE_FRAMES
 from fleetctl.server.relay import RelayCore
-from tests.security.conftest import RawClient
+from tests.security.conftest import RawClient, frame_head
 from tests.server.conftest import (
     ALICE_TOKEN,
     client,
@@ -33,15 +32,7 @@ PINGS = 40_000  # 5 MB of pongs: more than the kernel buffers of a loopback conn
 
 def frame(opcode: int, payload: bytes, fin: bool = True) -> bytes:
     """A client frame with a zero masking key (legal, RFC 6455 5.3, and cheap to build)."""
-    first = (0x80 if fin else 0) | opcode
-    n = len(payload)
-    if n < 126:
-        head = struct.pack("!BB", first, 0x80 | n)
-    elif n < 65536:
-        head = struct.pack("!BBH", first, 0x80 | 126, n)
-    else:
-        head = struct.pack("!BBQ", first, 0x80 | 127, n)
-    return head + b"\0\0\0\0" + payload
+    return frame_head(opcode, len(payload), fin) + b"\0\0\0\0" + payload
 
 
 async def small_window_client(port: int, source: str) -> RawClient:

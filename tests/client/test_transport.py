@@ -6,6 +6,7 @@ import asyncio
 import logging
 import socket
 from pathlib import Path
+from typing import Any
 
 import pytest
 
@@ -430,12 +431,8 @@ async def test_bind_address_on_no_interface_is_explained_once_then_reminded(
 ) -> None:
     # 192.0.2.0/24 (TEST-NET-1) is on no interface here: bind() fails with EADDRNOTAVAIL,
     # as the robot's WireGuard address does while its tunnel is down.
-    limits = {"reconnect_min_s": 0.01, "reconnect_max_s": 0.02}
-    cfg = robot_config(server.url, tmp_path, bind_address="192.0.2.7", limits=limits)
-    clock = ManualClock()
-    caplog.set_level(logging.DEBUG, "fleetctl.client.link")
-    link = RobotLink(cfg, on_frame=lambda f: None, clock=clock,
-                     tuning=LinkTuning(bind_reminder_interval_s=30.0, open_timeout_s=1.0))
+    link, clock = _reminding_link(server.url, tmp_path, caplog, bind_address="192.0.2.7")
+    cfg = link.config
     async with running(link):
         await wait_until(lambda: link.stats()["connect_failures"] >= 20)
         warnings = _warnings(caplog)
@@ -471,6 +468,19 @@ async def test_a_new_outage_is_explained_again(tmp_path: Path,
         await wait_until(lambda: sum("cannot bind" in m for m in _warnings(caplog)) == 2)
 
 
+def _reminding_link(url: str, tmp_path: Path, caplog: pytest.LogCaptureFixture,
+                    **config: Any) -> tuple[RobotLink, ManualClock]:
+    """A link to *url* on a manual clock that retries every 0.01-0.02 s and reminds every
+    30 s of an outage, its log captured from DEBUG; *config* goes to robot_config."""
+    cfg = robot_config(url, tmp_path, limits={"reconnect_min_s": 0.01, "reconnect_max_s": 0.02},
+                       **config)
+    clock = ManualClock()
+    caplog.set_level(logging.DEBUG, "fleetctl.client.link")
+    link = RobotLink(cfg, on_frame=lambda f: None, clock=clock,
+                     tuning=LinkTuning(bind_reminder_interval_s=30.0, open_timeout_s=1.0))
+    return link, clock
+
+
 async def _thirty_one_seconds_on(link: RobotLink, clock: ManualClock,
                                  caplog: pytest.LogCaptureFixture) -> list[str]:
     """Move *clock* 29 s into an outage (no reminder yet), then 2 s more (one reminder),
@@ -500,12 +510,7 @@ async def test_a_server_down_at_start_is_explained_once_then_reminded(
     # reminder every 30 s, the attempts in between at DEBUG (it was a WARNING per attempt,
     # every 5 s, for as long as the server was down), and one INFO when it is reached.
     port = _free_port()
-    limits = {"reconnect_min_s": 0.01, "reconnect_max_s": 0.02}
-    cfg = robot_config(url_of(port), tmp_path, limits=limits)
-    clock = ManualClock()
-    caplog.set_level(logging.DEBUG, "fleetctl.client.link")
-    link = RobotLink(cfg, on_frame=lambda f: None, clock=clock,
-                     tuning=LinkTuning(bind_reminder_interval_s=30.0, open_timeout_s=1.0))
+    link, clock = _reminding_link(url_of(port), tmp_path, caplog)
     async with running(link):
         await wait_until(lambda: link.stats()["connect_failures"] >= 20)
         warnings = _warnings(caplog)

@@ -48,6 +48,14 @@ async def sign_in(page: Any, url: str, token: str) -> None:
     await wait_js(page, "document.querySelector('#conn-state').textContent === 'open'")
 
 
+async def open_robot_page(page: Any, url: str, topics: list[str], robot: str = "r1") -> None:
+    """Sign in as an operator, open *robot*'s page and wait until the server confirmed
+    the page's subscriptions to *topics*."""
+    await sign_in(page, url, OPERATOR_TOKEN)
+    await page.goto(url + f"#/robot/{robot}")
+    await wait_js(page, " && ".join(f"fleetviz.conn.active.has('{t}')" for t in topics))
+
+
 async def next_frame_of(robot: WsRobot, type_name: str, timeout_s: float) -> bytes:
     deadline = time.monotonic() + timeout_s
     while True:

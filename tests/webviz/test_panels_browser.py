@@ -24,7 +24,14 @@ from tests.webviz.msgs import make
 from tests.webviz.pixels import colored_pixels
 from tests.webviz.samples import header, pose_values, scan_values
 from tests.webviz.scripted import Relay, scripted_fleet
-from tests.webviz.test_browser import TIMEOUT_MS, pixels, sign_in, wait_js, watch_errors
+from tests.webviz.test_browser import (
+    TIMEOUT_MS,
+    open_robot_page,
+    pixels,
+    sign_in,
+    wait_js,
+    watch_errors,
+)
 
 pytestmark = pytest.mark.browser
 
@@ -140,9 +147,7 @@ async def test_the_scan_is_scaled_to_its_returns_with_labelled_rings(
     # 1, 7, 13, 19, 25 m without a label.
     async with fleet_page(tmp_path, browser, webviz_factory) as (relay, web, page, problems):
         r1 = relay.robots["r1"]
-        await sign_in(page, web.url, OPERATOR_TOKEN)
-        await page.goto(web.url + "#/robot/r1")
-        await wait_js(page, "fleetviz.conn.active.has('/r1/scan')")
+        await open_robot_page(page, web.url, ["/r1/scan"])
         radius = [3.0]
         r1.repeat(lambda: [r1.encode(SCAN, "/scan", scan_of(radius[0]))], period_s=0.05)
         extent = "document.querySelector('#scan-canvas').dataset.extentM"
@@ -266,9 +271,7 @@ async def test_old_data_is_said_without_moving_the_page(
     # only the link health table (at the bottom) said so.
     async with fleet_page(tmp_path, browser, webviz_factory) as (relay, web, page, problems):
         r1 = relay.robots["r1"]
-        await sign_in(page, web.url, OPERATOR_TOKEN)
-        await page.goto(web.url + "#/robot/r1")
-        await wait_js(page, "fleetviz.conn.active.has('/r1/scan')")
+        await open_robot_page(page, web.url, ["/r1/scan"])
         age_s = [3.0]
         seq = [0]
 

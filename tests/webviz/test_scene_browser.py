@@ -15,7 +15,6 @@ from fleetctl.client.viewercloud import VIEWER_CLOUD_TYPE
 from fleetctl.client.viewercloud import encode as encode_viewer
 from fleetctl.wire.compression import CompressionCodec, compress
 from tests.webviz.conftest import webviz_server
-from tests.webviz.fleet import OPERATOR_TOKEN
 from tests.webviz.msgs import make
 from tests.webviz.pixels import colored_pixels
 from tests.webviz.samples import cloud_values, header, pose_values
@@ -29,7 +28,13 @@ from tests.webviz.scripted import (
     scripted_fleet,
     tf_values,
 )
-from tests.webviz.test_browser import SCREENSHOTS, TIMEOUT_MS, sign_in, wait_js, watch_errors
+from tests.webviz.test_browser import (
+    SCREENSHOTS,
+    TIMEOUT_MS,
+    open_robot_page,
+    wait_js,
+    watch_errors,
+)
 from tests.webviz.video import encode
 
 pytestmark = pytest.mark.browser
@@ -41,13 +46,6 @@ SCAN_RGB = (255, 157, 46)  # #ff9d2e, the scene's scan colour
 DYNAMIC: list[Transform] = [("map", "odom", (10.0, 0.0, 0.0), math.pi / 2),
                             ("odom", "base_link", (1.0, 0.0, 0.0), 0.0)]
 STATIC: list[Transform] = [("base_link", "base_scan", (0.2, 0.0, 0.3), math.pi)]
-
-
-async def open_robot_page(page: Any, url: str, topics: list[str]) -> None:
-    """Sign in, open r1's page and wait until the server confirmed *topics*."""
-    await sign_in(page, url, OPERATOR_TOKEN)
-    await page.goto(url + "#/robot/r1")
-    await wait_js(page, " && ".join(f"fleetviz.conn.active.has('{t}')" for t in topics))
 
 
 def placement_js(key: str) -> str:

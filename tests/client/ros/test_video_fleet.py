@@ -269,6 +269,10 @@ def _server_routes_keyframe_requests() -> bool:
     return any("KeyframeRequest" in path.read_text(encoding="utf-8") for path in sources)
 
 
+# How long the robot may take to answer a keyframe request (seconds).
+ANSWER_S = 15.0
+
+
 def test_viewer_keyframe_request_reaches_the_robot_through_the_server(fleet: Fleet) -> None:
     if not _server_routes_keyframe_requests():
         pytest.skip("the server does not route /keyframe_requests yet (helper LATCH's part)")
@@ -285,13 +289,15 @@ def test_viewer_keyframe_request_reaches_the_robot_through_the_server(fleet: Fle
             asked = time.monotonic()
             await view.request_keyframe()
             shown = len(view.shown)
-            await until(lambda: len(view.shown) > shown, 5.0, "a keyframe after the request")
+            await until(lambda: len(view.shown) > shown, ANSWER_S, "a keyframe after the request")
             return view, asked, view.received[-1][0]
 
     view, asked, _ = asyncio.run(scenario())
     after = [(t, key) for t, _, key in view.received if t >= asked]
     first_key_s = next(t for t, key in after if key)
-    assert first_key_s - asked < 2.0  # periodic keyframes on this topic: every 600 s
+    # Periodic keyframes on this topic come every 600 s: one within ANSWER_S answers the
+    # request. Not 2 s: a CI machine busy encoding the 15 Hz 921 KB camera took 2.85 s.
+    assert first_key_s - asked < ANSWER_S
 
 
 # -- the client side of a request, with a real Bridge and no server ---------------------

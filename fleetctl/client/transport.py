@@ -70,6 +70,7 @@ from fleetctl.client.config import ClientConfig
 from fleetctl.client.dialer import DialTimeout, dial_first
 from fleetctl.client.linktuning import LinkTuning
 from fleetctl.client.memory import tune_malloc
+from fleetctl.client.outagelog import OutageLog, Say
 from fleetctl.client.receiver import Receiver
 from fleetctl.client.scheduler import Scheduler, SchedulerConfig, TopicFeedback
 from fleetctl.client.standby import STANDBY_HEADER, Standby, keep_mapping_alive
@@ -295,15 +296,9 @@ class RobotLink:
         # None when the next session is not an activation.
         self._activated_s: float | None = None
         # While bind_address is on no interface: since when, the last WARNING, attempts.
-        self._unbound_since_s: float | None = None
-        self._unbound_warned_s = 0.0
-        self._unbound_attempts = 0
-        # While the server cannot be reached: since when, the last WARNING, attempts, and
-        # the (url, reason) last warned about (a new reason is warned about at once).
-        self._unreachable_since_s: float | None = None
-        self._unreachable_warned_s = 0.0
-        self._unreachable_attempts = 0
-        self._unreachable_reason = ("", "")
+        self._unbound = OutageLog(self.tuning.bind_reminder_interval_s)
+        # The server not reachable; a new (url, reason) is explained at once.
+        self._unreachable = OutageLog(self.tuning.bind_reminder_interval_s)
         self._takeovers = 0  # sessions in a row another client of this robot took over
         self._ended_by_takeover = False  # the last session was closed with 4409
         self._refused_code: int | None = None  # the last 4401/4403 explained, and when
@@ -732,66 +727,55 @@ class RobotLink:
         attempts in between go to DEBUG. A robot started before its server (or through a
         long server outage) logged a WARNING every few seconds for as long as it lasted.
         The token is never logged: only the URL and the reason."""
+        outage = self._unreachable
         now = self._clock()
-        self._unreachable_attempts += 1
-        if self._unreachable_since_s is None:
-            self._unreachable_since_s = now
-        if self._unreachable_reason != (self.url, reason):
-            self._unreachable_reason = (self.url, reason)
-            self._unreachable_warned_s = now
+        say = outage.failed(now, (self.url, reason))
+        if say is Say.EXPLAIN:
             logger.warning("cannot connect to %s: %s; retrying every %g s or less, quietly "
                            "(a reminder every %g s)", self.url, reason,
                            self.config.limits.reconnect_max_s,
                            self.tuning.bind_reminder_interval_s)
-        elif now - self._unreachable_warned_s >= self.tuning.bind_reminder_interval_s:
-            self._unreachable_warned_s = now
+        elif say is Say.REMIND:
+            assert outage.since_s is not None
             logger.warning("still cannot connect to %s after %.0f s (%d attempts): %s",
-                           self.url, now - self._unreachable_since_s,
-                           self._unreachable_attempts, reason)
+                           self.url, now - outage.since_s, outage.attempts, reason)
         else:
             logger.debug("cannot connect to %s: %s; retrying in %.2f s", self.url, reason,
                          delay_s)
 
     def _log_reachable_again(self) -> None:
         """End an outage of the server (a connection was opened), if one ran."""
-        if self._unreachable_since_s is None:
-            return
-        logger.info("reached %s after %.0f s (%d attempts failed)", self.url,
-                    self._clock() - self._unreachable_since_s, self._unreachable_attempts)
-        self._unreachable_since_s = None
-        self._unreachable_attempts = 0
-        self._unreachable_reason = ("", "")
+        ended = self._unreachable.ended(self._clock())
+        if ended is not None:
+            logger.info("reached %s after %.0f s (%d attempts failed)", self.url, *ended)
 
     def _log_unbound(self, delay_s: float) -> None:
         """Log a connect that failed with EADDRNOTAVAIL: ``bind_address`` is on no
         interface, i.e. the WireGuard tunnel is down. Explain once per outage, then remind
         every ``bind_reminder_interval_s``; the attempts in between go to DEBUG."""
+        outage = self._unbound
         now = self._clock()
-        self._unbound_attempts += 1
         address = self.config.bind_address
-        if self._unbound_since_s is None:
-            self._unbound_since_s = self._unbound_warned_s = now
+        say = outage.failed(now, "unbound")  # one reason: explained once per outage
+        if say is Say.EXPLAIN:
             logger.warning(
                 "cannot bind %s (bind_address in the client config): it is on no interface: "
                 "the WireGuard tunnel is down? %s; retrying every %.0f s or less, quietly",
                 address, TUNNEL_HINT, self.config.limits.reconnect_max_s)
-        elif now - self._unbound_warned_s >= self.tuning.bind_reminder_interval_s:
-            self._unbound_warned_s = now
+        elif say is Say.REMIND:
+            assert outage.since_s is not None
             logger.warning("still cannot bind %s: the tunnel has been down for %.0f s "
-                           "(%d attempts); %s", address, now - self._unbound_since_s,
-                           self._unbound_attempts, TUNNEL_HINT)
+                           "(%d attempts); %s", address, now - outage.since_s,
+                           outage.attempts, TUNNEL_HINT)
         else:
             logger.debug("cannot bind %s (tunnel down); retrying in %.2f s", address, delay_s)
 
     def _log_bound_again(self) -> None:
         """End an outage of ``bind_address`` (it is on an interface again), if one ran."""
-        if self._unbound_since_s is None:
-            return
-        logger.info("%s is on an interface again after %.0f s (%d attempts failed)",
-                    self.config.bind_address, self._clock() - self._unbound_since_s,
-                    self._unbound_attempts)
-        self._unbound_since_s = None
-        self._unbound_attempts = 0
+        ended = self._unbound.ended(self._clock())
+        if ended is not None:
+            logger.info("%s is on an interface again after %.0f s (%d attempts failed)",
+                        self.config.bind_address, *ended)
 
     async def _session(self, ws: LinkConnection) -> _Ended:
         """Run one connection until it fails or stop()."""

@@ -364,16 +364,20 @@ def recording_dir(config: Path | None, directory: Path | None) -> Path:
     if recording is None:
         raise ConfigError(f"{config}: field 'recording' is not set: the server records "
                           "nothing")
+    from fleetctl.deploy.compose import COMPOSE_DIR, STATE_FILE
+    from fleetctl.deploy.fleet import DEFAULT_HTTPS_PORT
+    from fleetctl.deploy.tls import CERT_RELPATH
+
     fleet_dir = config.resolve().parent.parent
     if (not recording.directory.exists() and config.resolve().parent.name == "server"
-            and (fleet_dir / ".compose" / "state.json").is_file()):
+            and (fleet_dir / COMPOSE_DIR / STATE_FILE).is_file()):
         # A fleet's own server.yaml, deployed with `fleetctl up`: its server records into
         # its data volume, and this directory never fills ("no recordings" said otherwise).
-        port = server.web.listen_port if server.web is not None else 8443
+        port = server.web.listen_port if server.web is not None else DEFAULT_HTTPS_PORT
         raise ConfigError(f"--config {config}: this fleet runs with `fleetctl up`, whose "
                           f"server records into its data volume, not {recording.directory}: "
                           f"ask it with --server https://HOST:{port}/ --token-file FILE "
-                          f"--ca-file {fleet_dir / 'server' / 'tls' / 'cert.pem'}")
+                          f"--ca-file {fleet_dir / CERT_RELPATH}")
     return recording.directory
 
 

@@ -27,6 +27,7 @@ from fleetctl.deploy.compose import (
     COMPOSE_DIR,
     COMPOSE_FILE,
     DEFAULT_BIND,
+    STATE_FILE,
     WG_INTERFACE,
     ComposePlan,
     Options,
@@ -52,6 +53,7 @@ from fleetctl.deploy.fleet import require_fleet_dir
 from fleetctl.deploy.images import image_tag
 from fleetctl.deploy.replicas import check_count
 from fleetctl.deploy.statusrecordings import RecordingSummary, exec_error, server_recordings
+from fleetctl.deploy.tls import CERT_RELPATH
 from fleetctl.errors import ConfigError, ConflictError, EnvironmentMissing, FleetError
 from fleetctl.smallfile import MAX_CONFIG_BYTES, read_small_text
 from fleetctl.wire.control import known_battery
@@ -122,7 +124,7 @@ def _check_not_changed(fleet_dir: Path, wanted: Options, runner: Runner) -> None
         old, new = getattr(running, name), getattr(wanted, name)
         if old != new:
             raise ConflictError(
-                f"{fleet_dir / '.compose/state.json'}: the fleet runs "
+                f"{fleet_dir / COMPOSE_DIR / STATE_FILE}: the fleet runs "
                 f"{_as_option(name, old)}, not {_as_option(name, new)}; give `up` the same "
                 "options, or run `fleetctl down` first (data is kept)")
 
@@ -203,7 +205,7 @@ def recordings_command(plan: ComposePlan, page_urls: tuple[str, ...]) -> str:
     self-signed certificate, ``--ca-file`` (without it the command fails on the
     certificate)."""
     servers = " ".join(f"--server {url}" for url in page_urls or (plan.url,))
-    self_signed = plan.fleet_dir / "server" / "tls" / "cert.pem"
+    self_signed = plan.fleet_dir / CERT_RELPATH
     ca = f" --ca-file {shlex.quote(str(self_signed))}" if plan.tls_cert == self_signed else ""
     return f"fleetctl recordings list {servers} --token-file FILE{ca}"
 

@@ -1,8 +1,9 @@
-"""When to log a connect that failed again: explain once, remind now and then, quiet between.
+"""When to log a problem that repeats: a connect that failed again, a bad frame again.
 
 One :class:`OutageLog` per kind of outage the link reports (``bind_address`` on no
 interface, the server not reachable), so that a robot started hours before its tunnel or
-its server logs a few lines, not a WARNING per attempt.
+its server logs a few lines, not a WARNING per attempt; :func:`sampled` for problems
+counted per message.
 """
 
 from __future__ import annotations
@@ -53,3 +54,12 @@ class OutageLog:
         ended = (now_s - self.since_s, self.attempts)
         self.since_s, self.attempts, self._reason = None, 0, None
         return ended
+
+
+LOG_EVERY = 1000
+
+
+def sampled(count: int) -> bool:
+    """Whether the *count*-th occurrence of a per-message problem is logged: the first
+    and every :data:`LOG_EVERY`-th (a broken sender must not write a line per message)."""
+    return count == 1 or count % LOG_EVERY == 0

@@ -70,7 +70,7 @@ from fleetctl.client.config import ClientConfig
 from fleetctl.client.dialer import DialTimeout, dial_first
 from fleetctl.client.linktuning import LinkTuning
 from fleetctl.client.memory import tune_malloc
-from fleetctl.client.outagelog import OutageLog, Say
+from fleetctl.client.outagelog import OutageLog, Say, sampled
 from fleetctl.client.receiver import Receiver
 from fleetctl.client.scheduler import Scheduler, SchedulerConfig, TopicFeedback
 from fleetctl.client.standby import STANDBY_HEADER, Standby, keep_mapping_alive
@@ -345,7 +345,7 @@ class RobotLink:
                                      no_drop=no_drop, keyframe=keyframe,
                                      published_s=published_s, fresh_since_s=fresh_since_s):
             n = self._scheduler.no_drop_overflow
-            if n == 1 or n % 1000 == 0:
+            if sampled(n):
                 bounds = self._scheduler.config
                 logger.warning("no_drop queue full (%d messages or %d bytes): dropped a "
                                "message on %s (%d dropped so far)",

@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from fleetctl.client.outagelog import OutageLog, Say
+from fleetctl.client.outagelog import OutageLog, Say, sampled
 
 
 def test_an_outage_is_explained_once_then_reminded() -> None:
@@ -23,3 +23,7 @@ def test_a_new_reason_is_explained_at_once_in_the_same_outage() -> None:
     assert log.failed(1.0, ("ws://a/", "timed out")) is Say.EXPLAIN
     assert log.failed(2.0, ("ws://a/", "timed out")) is Say.QUIET
     assert log.ended(3.0) == (3.0, 3)  # the outage runs from its first failure
+
+
+def test_a_per_message_problem_is_logged_first_and_every_thousandth() -> None:
+    assert [n for n in range(1, 3002) if sampled(n)] == [1, 1000, 2000, 3000]

@@ -46,6 +46,7 @@ from rclpy.qos import (
 
 from fleetctl.client.config import ClientConfig, PublishSpec, SubscribeSpec
 from fleetctl.client.latched import LatchedFrames
+from fleetctl.client.outagelog import LOG_EVERY, sampled
 from fleetctl.client.ros import qos
 from fleetctl.client.ros.intake import LoopIntake, MessageCallback
 from fleetctl.client.ros.msgtypes import message_class
@@ -60,12 +61,6 @@ from fleetctl.wire.compression import LATCHED_DEFLATE_LEVEL, CompressionCodec, c
 
 log = logging.getLogger(__name__)
 BATTERY_TYPE = "sensor_msgs/msg/BatteryState"
-_LOG_EVERY = 1000  # a repeated problem on received frames: logged first and every 1000th
-
-
-def _sampled(count: int) -> bool:
-    """Whether the *count*-th occurrence of a per-frame problem is logged."""
-    return count == 1 or count % _LOG_EVERY == 0
 
 # Commands republished locally (goal poses): reliable, like RViz's tools publish them.
 COMMAND_QOS = QoSProfile(
@@ -533,10 +528,10 @@ class Bridge(Node):
             meta, msg = self._codec.decode(frame)
         except Exception as exc:
             self.stats.decode_errors += 1
-            if _sampled(self.stats.decode_errors):  # every frame of a broken sender
+            if sampled(self.stats.decode_errors):  # every frame of a broken sender
                 log.warning("dropping undecodable frame from the server (%d so far; logged "
                             "first and every %dth): %s", self.stats.decode_errors,
-                            _LOG_EVERY, exc)
+                            LOG_EVERY, exc)
             return
         if meta.type == KEYFRAME_REQUEST_TYPE:  # a viewer of one of our video topics
             self._on_keyframe_request(str(msg.topic))
@@ -552,13 +547,13 @@ class Bridge(Node):
             key = (meta.topic, meta.type)
             seen = self._mismatches.get(key, 0) + 1
             self._mismatches[key] = seen
-            if _sampled(seen):
+            if sampled(seen):
                 log.warning(
                     "dropping %s on %s: subscribe entry %s expects %s; set its type to %s in "
                     "the client config if that is what it sends (%d dropped so far; logged "
                     "first and every %dth)",
                     meta.type, meta.topic, route.spec.remote_topic, route.spec.type,
-                    meta.type, seen, _LOG_EVERY)
+                    meta.type, seen, LOG_EVERY)
             return
         publisher = route.publisher_for(meta.topic, latched=meta.latched)
         if publisher is None:

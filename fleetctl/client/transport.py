@@ -301,8 +301,7 @@ class RobotLink:
         self._unreachable = OutageLog(self.tuning.bind_reminder_interval_s)
         self._takeovers = 0  # sessions in a row another client of this robot took over
         self._ended_by_takeover = False  # the last session was closed with 4409
-        self._refused_code: int | None = None  # the last 4401/4403 explained, and when
-        self._refused_warned_s = 0.0
+        self._refused = OutageLog(self.tuning.bind_reminder_interval_s)  # 4401/4403 closes
 
     # -- the API used by the ROS node -----------------------------------------------------
 
@@ -882,9 +881,7 @@ class RobotLink:
         explain once with what to check, then remind every ``bind_reminder_interval_s``
         (the auth map reloads live, so the link keeps retrying; three lines per attempt
         were logged before)."""
-        now = self._clock()
-        if self._refused_code == code and (
-                now - self._refused_warned_s < self.tuning.bind_reminder_interval_s):
+        if self._refused.failed(self._clock(), code) is Say.QUIET:
             logger.debug("connection to %s closed: %s", self.url, self._last_close)
             return
         hint = (f"the server knows no such token: check token_file ({self.config.robot_name}'s "
@@ -896,7 +893,6 @@ class RobotLink:
                      "(the server reloads its auth map live), a reminder every %g s",
                      self.url, self._last_close, hint, self.config.limits.reconnect_max_s,
                      self.tuning.bind_reminder_interval_s)
-        self._refused_code, self._refused_warned_s = code, now
 
     def _log_session_end(self, exc: BaseException | None) -> None:
         if isinstance(exc, ConnectionClosed):
@@ -1144,7 +1140,7 @@ class RobotLink:
         if kind == "welcome":
             self._identities = [str(i) for i in event.get("identities", [])]
             logger.info("authenticated as %s", ", ".join(self._identities) or "(nobody)")
-            self._refused_code = None  # a later refusal is explained again
+            self._refused.ended(self._clock())  # a later refusal is explained again
         elif kind in ("subscribed", "unsubscribed"):
             pattern = str(event.get("topic_regex"))
             if kind == "subscribed":

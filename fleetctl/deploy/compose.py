@@ -224,13 +224,18 @@ TUN_DEVICE = Path("/dev/net/tun")
 _COMPOSE_PATH_SPECIAL = ":$"
 
 
+# Compose's project-name alphabet (it changes other names quietly: Bad/Name -> badname).
+PROJECT_NAME = re.compile(r"[a-z0-9][a-z0-9_-]{0,62}")
+WIREGUARD_CHOICES = ("auto", "on", "off")
+
+
 def check_wireguard_choice(requested: str) -> None:
     """Refuse a ``--wireguard`` that is not auto, on or off.
 
     Raises:
         FleetError: exit 2, a usage error like any bad option value.
     """
-    if requested not in ("auto", "on", "off"):
+    if requested not in WIREGUARD_CHOICES:
         raise FleetError(f"--wireguard must be auto, on or off, not {requested!r}",
                          exit_code=ExitCode.USAGE)
 
@@ -585,8 +590,8 @@ def _check_state(options: Options) -> None:
             raise ValueError(f"{name}: {getattr(options, name)!r}")
 
     valid("project", isinstance(options.project, str)
-          and re.fullmatch(r"[a-z0-9][a-z0-9_-]{0,62}", options.project) is not None)
-    valid("wireguard", options.wireguard in ("auto", "on", "off"))
+          and PROJECT_NAME.fullmatch(options.project) is not None)
+    valid("wireguard", options.wireguard in WIREGUARD_CHOICES)
     valid("sim", isinstance(options.sim, bool))
     try:
         ipaddress.ip_address(options.bind)

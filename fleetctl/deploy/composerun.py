@@ -10,7 +10,6 @@ from __future__ import annotations
 import ipaddress
 import json
 import os
-import re
 import shlex
 import shutil
 import subprocess
@@ -27,6 +26,7 @@ from fleetctl.deploy.compose import (
     COMPOSE_DIR,
     COMPOSE_FILE,
     DEFAULT_BIND,
+    PROJECT_NAME,
     STATE_FILE,
     WG_INTERFACE,
     ComposePlan,
@@ -563,9 +563,6 @@ def _peer_names(fleet_dir: Path) -> dict[str, str]:
         return {}
 
 
-_PROJECT = re.compile(r"[a-z0-9][a-z0-9_-]{0,62}")
-
-
 def check_project(project: str) -> None:
     """Refuse a ``--project`` outside Compose's project-name alphabet (Compose would
     quietly change it: ``Bad/Name`` is project ``badname``, maybe another fleet's).
@@ -573,7 +570,7 @@ def check_project(project: str) -> None:
     Raises:
         ConfigError: naming the option.
     """
-    if not _PROJECT.fullmatch(project):
+    if not PROJECT_NAME.fullmatch(project):
         raise ConfigError(f"--project {project!r}: expected 1-63 of a-z 0-9 _ - "
                           "(starting with a letter or digit)")
 

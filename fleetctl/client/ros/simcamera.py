@@ -80,17 +80,18 @@ class SimCamera:
 
 
 def main(argv: list[str]) -> None:
-    """``python -m fleetctl.client.ros.simcamera [TOPIC] [RATE_HZ]``: run until SIGINT or
-    SIGTERM (``ROS_DOMAIN_ID`` from the environment)."""
+    """``python -m fleetctl.client.ros.simcamera [TOPIC] [RATE_HZ] [WIDTHxHEIGHT]``: run
+    until SIGINT or SIGTERM (``ROS_DOMAIN_ID`` from the environment)."""
     import rclpy
     from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
     from rclpy.utilities import try_shutdown
 
     topic = argv[0] if argv else "/camera/image_raw"
     rate_hz = float(argv[1]) if len(argv) > 1 else 30.0
+    width, height = _size(argv[2]) if len(argv) > 2 else (640, 480)
     rclpy.init()
     node = Node("fleetctl_sim_camera")
-    SimCamera(node, topic, rate_hz)
+    SimCamera(node, topic, rate_hz, width, height)
     executor: Any = SingleThreadedExecutor()
     executor.add_node(node)
     try:
@@ -101,6 +102,14 @@ def main(argv: list[str]) -> None:
         executor.shutdown()
         node.destroy_node()
         try_shutdown()
+
+
+def _size(text: str) -> tuple[int, int]:
+    """``WIDTHxHEIGHT`` as two positive ints (SystemExit naming the argument otherwise)."""
+    width, sep, height = text.lower().partition("x")
+    if not (sep and width.isdigit() and height.isdigit() and int(width) > 0 < int(height)):
+        raise SystemExit(f"simcamera: size {text!r} is not WIDTHxHEIGHT (e.g. 320x240)")
+    return int(width), int(height)
 
 
 if __name__ == "__main__":

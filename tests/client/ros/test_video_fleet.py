@@ -2,7 +2,7 @@
 and a WebSocket viewer that decodes the CompressedVideo frames.
 
 - The robot ``cam1`` (source 127.0.1.5, ROS domain 61) runs ``fleetctl client`` with two
-  video entries on the simulated camera's ``/camera/image_raw`` (15 Hz, rgb8 640x480 with
+  video entries on the simulated camera's ``/camera/image_raw`` (15 Hz, rgb8 320x240 with
   motion, texture and noise: :mod:`fleetctl.client.ros.simcamera`): ``/cam1/camera``
   (a keyframe every second) and ``/cam1/camera_slow`` (every 600 s, so that only a
   request makes one).
@@ -16,6 +16,9 @@ import asyncio
 import contextlib
 import hashlib
 import json
+import os
+import signal
+import subprocess
 import sys
 import threading
 import time
@@ -42,6 +45,7 @@ OPERATOR_TOKEN = "operator-token-for-video-tests"
 STARTUP_S = 30.0
 REPO = Path(__file__).resolve().parents[3]
 VIDEO_TYPE = "foxglove_msgs/msg/CompressedVideo"
+CAMERA_SIZE = "320x240"
 
 
 @dataclass
@@ -101,8 +105,11 @@ def fleet(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Fleet]:
         client = JsonProc(fleetctl_argv("client", "--config", str(root / "cam1.yaml"),
                                         "--print-stats"), env, root / "client.log")
         procs.append(client)
+        # 320x240 (230 KB a frame), not a driver's 640x480: what is tested is the path
+        # (encode, relay, decode, keyframe requests), and two CI machines ran it at 0.1-0.3
+        # frames/s with 921 KB frames (two encoders and DDS on two loaded cores).
         camera = JsonProc([sys.executable, "-m", "fleetctl.client.ros.simcamera",
-                           "/camera/image_raw", "15"], env, root / "camera.log")
+                           "/camera/image_raw", "15", CAMERA_SIZE], env, root / "camera.log")
         procs.append(camera)
         wait_until(lambda: "cam1" in online_robots(f"http://127.0.0.1:{port}"), STARTUP_S,
                    describe="cam1 online")
@@ -116,7 +123,7 @@ def fleet(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Fleet]:
         codes = {proc: proc.stop() for proc in reversed(procs)}
     client = procs[1]
     assert codes[client] == 0, client.stderr_tail()  # SIGTERM: a clean shutdown
-    stats = list(client.lines.queue)[-1]
+    stats = [*client.received, *client.lines.queue][-1]  # a timeout's report may have taken it
     video = stats["video"]["/cam1/camera"]
     assert video["frames_sent"] > 0 and video["errors"] == 0
 
@@ -235,14 +242,35 @@ def _where_frames_went(fleet: Fleet, view: Viewer) -> str:
                   if line.startswith("fleetctl_messages_in_total") and "/cam1/" in line]
     return (f"viewer received {len(view.received)} frames ({keys} keyframes), decoded "
             f"{len(view.shown)}, asked for {view.asked_while_starting} keyframes; the relay "
-            f"counted {counts}; client log:\n{fleet.client.stderr_tail()}")
+            f"counted {counts}; {_client_video_stats(fleet)}; load {os.getloadavg()}, "
+            f"busiest processes:\n{_busiest_processes()}\nclient log:\n"
+            f"{fleet.client.stderr_tail()}")
+
+
+def _client_video_stats(fleet: Fleet) -> str:
+    """The client's counts of camera frames in, replaced, skipped and sent. It prints its
+    stats only when it stops: this stops it (the next test of the module then fails too)."""
+    fleet.client.signal(signal.SIGTERM)
+    try:
+        stats = fleet.client.wait_for(lambda line: "video" in line, 15.0, "the client's stats")
+    except AssertionError as exc:
+        return f"no client stats ({exc})"
+    return (f"the client (stopped to print them) counted video {stats['video']} and local "
+            f"camera messages in {stats['bridge'].get('local_in')}")
+
+
+def _busiest_processes() -> str:
+    """``ps``'s ten busiest processes: whether something beside the test took the CPU."""
+    out = subprocess.run(["ps", "-eo", "pcpu,rss,etimes,args", "--sort=-pcpu"],
+                         capture_output=True, text=True, check=False).stdout
+    return "\n".join(line[:160] for line in out.splitlines()[:11])
 
 
 def test_viewer_decodes_the_cameras_video(fleet: Fleet) -> None:
     async def scenario() -> Viewer:
         async with viewer(fleet.url, "/cam1/camera", "h264") as view:
             # ~2 s on an idle machine; a loaded one (CI, every test before this one) has
-            # taken far longer to carry 921 KB camera frames over DDS.
+            # taken far longer.
             await until(lambda: len(view.shown) >= 20, 2 * STARTUP_S, "20 decoded frames",
                         lambda: _where_frames_went(fleet, view))
             return view
@@ -251,7 +279,7 @@ def test_viewer_decodes_the_cameras_video(fleet: Fleet) -> None:
     seqs = [seq for seq, _, _ in view.shown]
     _, first_key, picture = view.shown[0]
     assert first_key, "a late viewer starts at a keyframe"
-    assert picture.shape == (480, 640, 3) and 20 < float(picture.mean()) < 235
+    assert picture.shape == (240, 320, 3) and 20 < float(picture.mean()) < 235
     # Nothing shown after a gap unless from a keyframe.
     for (prev, _, _), (seq, key, _) in zip(view.shown, view.shown[1:], strict=False):
         assert seq == prev + 1 or key, (prev, seq)
@@ -296,7 +324,7 @@ def test_viewer_keyframe_request_reaches_the_robot_through_the_server(fleet: Fle
     after = [(t, key) for t, _, key in view.received if t >= asked]
     first_key_s = next(t for t, key in after if key)
     # Periodic keyframes on this topic come every 600 s: one within ANSWER_S answers the
-    # request. Not 2 s: a CI machine busy encoding the 15 Hz 921 KB camera took 2.85 s.
+    # request. Not 2 s: a CI machine busy encoding a 15 Hz 921 KB camera took 2.85 s.
     assert first_key_s - asked < ANSWER_S
 
 

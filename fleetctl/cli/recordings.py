@@ -33,7 +33,7 @@ import typer
 from fleetctl.cli.output import OutputFormat, emit, output_option, table
 from fleetctl.cli.tokenfile import read_token_file
 from fleetctl.errors import ConfigError, ConflictError, ExitCode, FleetError
-from fleetctl.server.config import load_server_config
+from fleetctl.server.config import ServerConfig, load_server_config
 from fleetctl.server.recording import files
 
 
@@ -365,20 +365,33 @@ def recording_dir(config: Path | None, directory: Path | None) -> Path:
         raise ConfigError(f"{config}: field 'recording' is not set: the server records "
                           "nothing")
     from fleetctl.deploy.compose import COMPOSE_DIR, STATE_FILE
-    from fleetctl.deploy.fleet import DEFAULT_HTTPS_PORT
-    from fleetctl.deploy.tls import CERT_RELPATH
 
     fleet_dir = config.resolve().parent.parent
     if (not recording.directory.exists() and config.resolve().parent.name == "server"
             and (fleet_dir / COMPOSE_DIR / STATE_FILE).is_file()):
         # A fleet's own server.yaml, deployed with `fleetctl up`: its server records into
         # its data volume, and this directory never fills ("no recordings" said otherwise).
-        port = server.web.listen_port if server.web is not None else DEFAULT_HTTPS_PORT
         raise ConfigError(f"--config {config}: this fleet runs with `fleetctl up`, whose "
                           f"server records into its data volume, not {recording.directory}: "
-                          f"ask it with --server https://HOST:{port}/ --token-file FILE "
-                          f"--ca-file {fleet_dir / CERT_RELPATH}")
+                          f"ask it with {_deployed_options(fleet_dir, server)}")
     return recording.directory
+
+
+def _deployed_options(fleet_dir: Path, server: ServerConfig) -> str:
+    """``--server URL --token-file FILE --ca-file CERT`` for the fleet's deployment, with
+    the URL ``fleetctl up`` printed (the endpoint's host, the published port); a generic
+    ``https://HOST:PORT/`` when its state cannot be read."""
+    from fleetctl.deploy.composerun import deployed_recordings_options
+
+    try:
+        return deployed_recordings_options(fleet_dir)
+    except FleetError:
+        from fleetctl.deploy.fleet import DEFAULT_HTTPS_PORT
+        from fleetctl.deploy.tls import CERT_RELPATH
+
+        port = server.web.listen_port if server.web is not None else DEFAULT_HTTPS_PORT
+        return (f"--server https://HOST:{port}/ --token-file FILE "
+                f"--ca-file {fleet_dir / CERT_RELPATH}")
 
 
 def list_recordings(directory: Path) -> list[Recording]:

@@ -47,7 +47,7 @@ import yaml
 
 from fleetctl import __version__
 from fleetctl.deploy.files import FileWrite, refuse_linked_directories, write_file
-from fleetctl.deploy.fleet import MAX_RELAY_REPLICAS
+from fleetctl.deploy.fleet import MAX_RELAY_REPLICAS, load_fleet, parse_endpoint
 from fleetctl.deploy.images import image_tag
 from fleetctl.errors import ConfigError, EnvironmentMissing, ExitCode, FleetError
 from fleetctl.smallfile import MAX_PEM_BYTES, MAX_SECRET_BYTES, read_small_text
@@ -139,6 +139,7 @@ class ComposePlan:
     wireguard_port: int = 51820
     fleet_subnet: str = "10.8.0.0/24"
     server_ip: str = "10.8.0.1"
+    endpoint_host: str | None = None
 
     @property
     def project(self) -> str:
@@ -158,16 +159,16 @@ class ComposePlan:
 
     @property
     def url(self) -> str:
-        """The page's URL on the server host."""
+        """The page's URL as people open it (see :meth:`page_url`)."""
         return self.page_url(self.published_https_port)
 
     def page_url(self, port: int) -> str:
-        """The page's URL on the server host at *port* (an IPv6 bind address in
-        brackets)."""
-        host = "localhost" if self.options.bind in ("0.0.0.0", "::") else self.options.bind
-        if ":" in host:
-            host = f"[{host}]"
-        return f"https://{host}:{port}/"
+        """The page's URL at *port*: on the fleet's endpoint host when the port is
+        published on every address (the name robots and browsers reach the server host by,
+        and one the self-signed certificate carries), else on the ``--bind`` address (the
+        only one it is published on; IPv6 in brackets); ``localhost`` when neither names
+        the host."""
+        return f"https://{page_host(self.options.bind, self.endpoint_host)}:{port}/"
 
     @property
     def compose_dir(self) -> Path:
@@ -178,6 +179,18 @@ class ComposePlan:
     def compose_file(self) -> Path:
         """The generated compose file."""
         return self.compose_dir / COMPOSE_FILE
+
+
+def page_host(bind: str, endpoint_host: str | None) -> str:
+    """The host part of the page's URL for ports published on *bind*.
+
+    Args:
+        bind: ``up --bind``: a wildcard (``0.0.0.0``, ``::``) or one address.
+        endpoint_host: fleet.yaml's endpoint host (``[v6]`` in brackets); ``None``: not set.
+    """
+    if bind not in ("0.0.0.0", "::"):
+        return f"[{bind}]" if ":" in bind else bind
+    return endpoint_host or "localhost"
 
 
 # --- reading the fleet directory --------------------------------------------------------
@@ -349,7 +362,15 @@ def plan_for(fleet_dir: Path, options: Options | None = None) -> ComposePlan:
         tls_cert=cert, tls_key=key,
         wireguard_port=int(wg_port) if wg_port and wg_port.isdigit() else 51820,
         server_ip=str(iface.ip), fleet_subnet=str(iface.network),
+        endpoint_host=_endpoint_host(fleet_dir),
     )
+
+
+def _endpoint_host(fleet_dir: Path) -> str | None:
+    """fleet.yaml's endpoint host (checked as every command checks fleet.yaml), or
+    ``None`` when no endpoint is set."""
+    endpoint = load_fleet(fleet_dir).endpoint
+    return parse_endpoint(endpoint)[0] if endpoint else None
 
 
 # --- rendering -------------------------------------------------------------------------

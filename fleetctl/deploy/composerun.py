@@ -189,8 +189,7 @@ def up(fleet_dir: Path, options: Options, progress: Progress = print,
     if options.replicas > 1:
         from fleetctl.deploy import composereplicas
 
-        urls = (tuple(composereplicas.robot_urls(plan)),
-                tuple(composereplicas.page_urls(plan)))
+        urls = (tuple(composereplicas.robot_urls(plan)), _page_urls(plan))
     recording = container_server_config(plan).get("recording")
     topics = tuple(str(rule["topic"]) for rule in recording["rules"]) if recording else ()
     return UpResult(path, plan.wireguard_note, plan.url,
@@ -199,15 +198,40 @@ def up(fleet_dir: Path, options: Options, progress: Progress = print,
                     recordings_command=recordings_command(plan, urls[1]) if topics else "")
 
 
+def _page_urls(plan: ComposePlan) -> tuple[str, ...]:
+    """Every replica's page with replicas; ``()`` for one server (its page is ``plan.url``)."""
+    if plan.options.replicas == 1:
+        return ()
+    from fleetctl.deploy import composereplicas
+
+    return tuple(composereplicas.page_urls(plan))
+
+
 def recordings_command(plan: ComposePlan, page_urls: tuple[str, ...]) -> str:
-    """The ``fleetctl recordings list`` line that works against this deployment: every
-    replica's HTTPS port (each records its own senders' frames) and, with the fleet's own
-    self-signed certificate, ``--ca-file`` (without it the command fails on the
-    certificate)."""
+    """The ``fleetctl recordings list`` line that works against this deployment."""
+    return f"fleetctl recordings list {recordings_options(plan, page_urls)}"
+
+
+def recordings_options(plan: ComposePlan, page_urls: tuple[str, ...]) -> str:
+    """``fleetctl recordings``' options for this deployment: every replica's HTTPS port
+    (each records its own senders' frames) on the host people reach the page by
+    (:meth:`ComposePlan.page_url`) and, with the fleet's own self-signed certificate,
+    ``--ca-file`` (without it the command fails on the certificate)."""
     servers = " ".join(f"--server {url}" for url in page_urls or (plan.url,))
     self_signed = plan.fleet_dir / CERT_RELPATH
     ca = f" --ca-file {shlex.quote(str(self_signed))}" if plan.tls_cert == self_signed else ""
-    return f"fleetctl recordings list {servers} --token-file FILE{ca}"
+    return f"{servers} --token-file FILE{ca}"
+
+
+def deployed_recordings_options(fleet_dir: Path) -> str:
+    """:func:`recordings_options` of the deployment ``up`` last started in *fleet_dir*.
+
+    Raises:
+        FleetError: there is none, or the fleet directory or its state cannot be read
+            (:func:`existing_options`, :func:`plan_for`).
+    """
+    plan = plan_for(fleet_dir, existing_options(fleet_dir))
+    return recordings_options(plan, _page_urls(plan))
 
 
 def _up_args(plan: ComposePlan, robots_only: bool) -> list[str]:

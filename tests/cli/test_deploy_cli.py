@@ -167,3 +167,63 @@ def test_down_help_says_delete_data_deletes_the_recordings(
     assert main(["down", "-h"]) == 0
     text = " ".join(capsys.readouterr().out.replace("\u2502", " ").split())
     assert "robot registry, sessions and the server's MCAP recordings" in text
+
+
+# A stand-in `docker` on PATH for the real `fleetctl up` below: the engine answers, the
+# images exist, compose succeeds, nothing runs (tests/deploy/test_lifecycle_docker.py runs
+# the real engine).
+_STAND_IN_DOCKER = """#!/bin/sh
+[ "$1" = version ] && echo 24.0.0
+exit 0
+"""
+
+
+def _free_tcp_port() -> int:
+    """A port `up`'s host-port check finds free (it binds it itself before compose runs)."""
+    import socket
+
+    with socket.socket() as s:
+        s.bind(("0.0.0.0", 0))
+        return int(s.getsockname()[1])
+
+
+@pytest.mark.parametrize(("endpoint", "host"), [("fleet.example.org:51820", "fleet.example.org"),
+                                                (None, "localhost")])
+def test_up_and_the_recordings_hint_name_the_endpoints_host(
+        tmp_path: Path, endpoint: str | None, host: str) -> None:
+    """`up` printed https://localhost:PORT/ (and the same in its `recordings list` line)
+    in a fleet whose fleet.yaml names the server host: the page's URL is on the endpoint's
+    host, localhost only without one; `recordings list --config` of the deployed fleet
+    said `--server https://HOST:PORT/` with the container's port, not `up --https-port`'s."""
+    import os
+    import subprocess
+    import sys
+
+    bin_dir = tmp_path / "bin"
+    bin_dir.mkdir()
+    (bin_dir / "docker").write_text(_STAND_IN_DOCKER)
+    (bin_dir / "docker").chmod(0o755)
+    fleet = tmp_path / "yard"
+    env = {**os.environ, "PATH": f"{bin_dir}{os.pathsep}{os.environ['PATH']}",
+           "FLEET_DIR": str(fleet)}
+
+    def fleetctl(*args: str, code: int = 0) -> subprocess.CompletedProcess[str]:
+        done = subprocess.run([sys.executable, "-m", "fleetctl.cli.main", *args], env=env,
+                              cwd=tmp_path, capture_output=True, text=True, timeout=120,
+                              check=False)
+        assert done.returncode == code, done.stderr
+        return done
+
+    fleetctl("init", str(fleet), *(["--endpoint", endpoint] if endpoint else []))
+    with (fleet / "fleet.yaml").open("a") as f:
+        f.write("recording:\n  topics: ['/.*/odom']\n")
+    fleetctl("render")
+    port = _free_tcp_port()
+    out = fleetctl("up", "--wireguard", "off", "--https-port", str(port)).stdout
+    url = f"https://{host}:{port}/"
+    cert = fleet.resolve() / "server" / "tls" / "cert.pem"
+    assert f"fleet is up: open {url} and sign in" in out
+    assert f"(fleetctl recordings list --server {url} --token-file FILE --ca-file {cert})" in out
+    config = fleet / "server" / "server.yaml"
+    err = fleetctl("recordings", "list", "--config", str(config), code=3).stderr
+    assert err.endswith(f"ask it with --server {url} --token-file FILE --ca-file {cert}\n")

@@ -102,7 +102,9 @@ def test_list_with_a_deployed_fleets_server_yaml_says_where_the_recordings_are(
     assert main(["recordings", "list", "-c", str(config)]) == 0  # run from the directory
     assert "no recordings in" in capsys.readouterr().out
     (fleet / ".compose").mkdir()
-    (fleet / ".compose" / "state.json").write_text("{}\n")  # what `fleetctl up` leaves
+    # A state file fleetctl cannot read (a damaged one): the hint is generic. With the
+    # state `up` leaves, it names the deployment's URL (tests/cli/test_deploy_cli.py).
+    (fleet / ".compose" / "state.json").write_text("{}\n")
     assert main(["recordings", "list", "-c", str(config)]) == ExitCode.CONFIG
     assert capsys.readouterr().err == (
         f"fleetctl: error: --config {config}: this fleet runs with `fleetctl up`, whose server "

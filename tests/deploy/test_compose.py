@@ -47,7 +47,29 @@ def test_plan_reads_robots_addresses_and_the_https_listener(fleet: Path) -> None
     # Same directory name elsewhere: another project, never the same containers.
     assert compose.project_name(fleet.parent / "other" / "yard") != plan.project
     assert plan.tls_cert.is_file() and plan.tls_key.is_file()
-    assert plan.url == "https://localhost:8443/"
+    assert plan.url == "https://fleet.example:8443/"  # the endpoint's host
+
+
+@pytest.mark.parametrize(("endpoint", "bind", "url"), [
+    ("fleet.example:51820", "0.0.0.0", "https://fleet.example:8443/"),
+    ("fleet.example:51820", "::", "https://fleet.example:8443/"),
+    ("203.0.113.7:4500", "0.0.0.0", "https://203.0.113.7:8443/"),
+    ("[2001:db8::5]:51820", "0.0.0.0", "https://[2001:db8::5]:8443/"),
+    (None, "0.0.0.0", "https://localhost:8443/"),
+    # Published on one address only: the endpoint's host would not reach it.
+    ("fleet.example:51820", "127.0.0.1", "https://127.0.0.1:8443/"),
+    ("fleet.example:51820", "::1", "https://[::1]:8443/"),
+])
+def test_the_page_url_is_on_the_host_people_reach(
+        tmp_path: Path, endpoint: str | None, bind: str, url: str) -> None:
+    """`up` printed https://localhost:PORT/ in a fleet whose endpoint names the server
+    host: the URL to open (and to give `recordings --server`) from any other machine is
+    on the endpoint's host, which the self-signed certificate also carries."""
+    fleet_dir = tmp_path / "yard"
+    assert main(["init", str(fleet_dir),
+                 *(["--endpoint", endpoint] if endpoint else [])]) == 0
+    plan = compose.plan_for(fleet_dir, _opts(fleet_dir, wireguard="off", bind=bind))
+    assert plan.url == url
 
 
 def test_without_sim_only_the_server_runs_and_publishes_one_https_port(fleet: Path) -> None:

@@ -130,7 +130,9 @@ def test_page_urls_of_every_replica(fleet: Path) -> None:
     assert composereplicas.page_urls(plan(fleet, wireguard="off", bind="::1",
                                           https_port=9443)) == [
         "https://[::1]:9443/", "https://[::1]:9444/", "https://[::1]:9445/"]
-    assert composereplicas.page_urls(plan(fleet, wireguard="off"))[0] == "https://localhost:8443/"
+    assert composereplicas.page_urls(plan(fleet, wireguard="off")) == [
+        "https://fleet.example:8443/", "https://fleet.example:8444/",
+        "https://fleet.example:8445/"]  # the endpoint's host
 
 
 def test_one_replica_is_todays_single_server(fleet: Path) -> None:

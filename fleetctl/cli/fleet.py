@@ -38,6 +38,7 @@ from fleetctl.deploy.fleet import (
     MIN_MTU_BYTES,
     Fleet,
 )
+from fleetctl.errors import ConfigError
 
 _DRY_RUN_HELP = "Show what would be written, write nothing."
 
@@ -207,21 +208,36 @@ def list_fleet(
     fleet: Path = fleet_option(),
     output: OutputFormat = output_option(),
 ) -> None:
-    """List the fleet's robots and users."""
+    """List the fleet's robots and users.
+
+    A key or TLS file that cannot be read does not hide the rest:
+    all else is listed, then one error line names the file (exit 3).
+    """
     info = ops.describe_fleet(fleet)
     f = info.fleet
+
+    def robot_key(name: str) -> str:
+        if name in info.unreadable_robot_keys:
+            return "(key files unreadable: see the error)"
+        return info.robot_public_keys.get(name, "(no keys yet)")
 
     def text() -> str:
         robots = table(["ROBOT", "IP", "MTU", "COMMAND TOPICS", "PUBLIC KEY"], [
             (r.name, r.ip, r.mtu_bytes, ",".join(c.topic for c in r.command_topics) or "-",
-             info.robot_public_keys.get(r.name, "(no keys yet)")) for r in f.robots])
+             robot_key(r.name)) for r in f.robots])
         users = table(["USER", "ROLE"], [(u.email, u.role.value) for u in f.users])
+        server_key = info.server_public_key or "(key file unreadable: see the error)"
         return (f"fleet {f.name!r}: subnet {f.subnet}, server {f.server_ip}:{f.server_port}, "
                 f"WireGuard {_endpoint_text(f)}, HTTPS port {f.https_port}\n"
-                f"server public key: {info.server_public_key}\n\n"
+                f"server public key: {server_key}\n\n"
                 f"{robots if f.robots else '(no robots)'}\n\n{users if f.users else '(no users)'}")
 
     emit(info, output, text)
+    if len(info.problems) == 1:
+        raise ConfigError(info.problems[0])
+    if info.problems:  # still one line: numbered, as each may hold a ';' of its own
+        raise ConfigError(f"{len(info.problems)} problems: " + " ".join(
+            f"[{i}] {problem}" for i, problem in enumerate(info.problems, 1)))
 
 
 def render(

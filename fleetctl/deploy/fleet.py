@@ -548,8 +548,14 @@ def require_fleet_dir(fleet_dir: Path) -> None:
                           "(create one with 'fleetctl init', or set --fleet / FLEET_DIR)")
 
 
-def load_fleet(fleet_dir: Path) -> Fleet:
+def load_fleet(fleet_dir: Path, file_problems: list[str] | None = None) -> Fleet:
     """Load and validate ``fleet_dir/fleet.yaml``.
+
+    Args:
+        fleet_dir: The fleet directory.
+        file_problems: When given, a file fleet.yaml points at (``tls``) that is missing or
+            bad is appended to it (the error's one line) instead of raised: for ``list``,
+            which shows what it can.
 
     Raises:
         ConfigError: the directory or file is missing, or the file is malformed or invalid;
@@ -569,10 +575,11 @@ def load_fleet(fleet_dir: Path) -> Fleet:
         raise ConfigError(f"{path}: cannot read: {exc.strerror or exc}") from None
     except UnicodeDecodeError:
         raise ConfigError(f"{path}: cannot read: not UTF-8 text") from None
-    return parse_fleet(path, text, fleet_dir)
+    return parse_fleet(path, text, fleet_dir, file_problems)
 
 
-def parse_fleet(path: Path, text: str, fleet_dir: Path | None = None) -> Fleet:
+def parse_fleet(path: Path, text: str, fleet_dir: Path | None = None,
+                file_problems: list[str] | None = None) -> Fleet:
     """Parse and validate fleet.yaml text.
 
     Args:
@@ -580,6 +587,7 @@ def parse_fleet(path: Path, text: str, fleet_dir: Path | None = None) -> Fleet:
         text: its content.
         fleet_dir: when given, files fleet.yaml points at (``tls``) are checked too,
             relative to this directory; ``None`` checks the text alone.
+        file_problems: see :func:`load_fleet`.
 
     Raises:
         ConfigError: ``FILE:LINE: FIELD: problem``.
@@ -588,12 +596,18 @@ def parse_fleet(path: Path, text: str, fleet_dir: Path | None = None) -> Fleet:
     try:
         fleet = _build_fleet(doc)
         validate(fleet)
-        if fleet_dir is not None and fleet.tls is not None:
-            from fleetctl.deploy.tls import check_operator_files
-
-            check_operator_files(*fleet.tls.paths(fleet_dir))
     except FleetInvalid as exc:
         raise doc.error(exc.path, str(exc)) from None
+    if fleet_dir is not None and fleet.tls is not None:
+        from fleetctl.deploy.tls import check_operator_files
+
+        try:
+            check_operator_files(*fleet.tls.paths(fleet_dir))
+        except FleetInvalid as exc:
+            error = doc.error(exc.path, str(exc))
+            if file_problems is None:
+                raise error from None
+            file_problems.append(str(error))
     return fleet
 
 

@@ -143,12 +143,25 @@ class UserResult:
 
 @dataclass(frozen=True)
 class FleetInfo:
-    """Result of :func:`describe_fleet`: the fleet and its public keys (never private ones)."""
+    """Result of :func:`describe_fleet`: the fleet and its public keys (never private ones).
+
+    Attributes:
+        fleet_dir: The fleet directory.
+        fleet: Its fleet.yaml.
+        server_public_key: ``None``: its key file could not be read (see *problems*).
+        robot_public_keys: By robot name; a robot that is not here has no keys yet, or
+            ones that could not be read (its name is in *unreadable_robot_keys*).
+        unreadable_robot_keys: Robots whose key files are missing or bad.
+        problems: One line per file that could not be read (naming it and what to do),
+            in the order found; empty when everything was read.
+    """
 
     fleet_dir: Path
     fleet: Fleet
-    server_public_key: str
+    server_public_key: str | None
     robot_public_keys: dict[str, str]
+    unreadable_robot_keys: tuple[str, ...] = ()
+    problems: tuple[str, ...] = ()
 
 
 @dataclass(frozen=True)
@@ -217,21 +230,37 @@ def _load_keys(fleet_dir: Path, fleet: Fleet, source: KeySource, plan: Plan) -> 
             plan.directory(directory, SECRET_DIR_MODE)
     robots: dict[str, RobotKeys] = {}
     for robot in fleet.robots:
-        keys = keystore.load_robot_keys(fleet_dir, robot.name)
+        keys = _existing_robot_keys(fleet_dir, robot.name)
         if keys is None:
-            generated = fleet_dir / "robots" / robot.name / ROBOT_WIREGUARD_FILE
-            if os.path.lexists(generated):
-                key_path, psk_path = keystore.robot_key_paths(fleet_dir, robot.name)
-                raise ConfigError(
-                    f"{key_path} and {psk_path.name}: not found, but {generated} was made "
-                    f"from them and robot {robot.name!r} may be using them: restore them "
-                    f"from a backup, or, to give the robot new keys, delete {generated}, "
-                    f"run `fleetctl render` and install a new `fleetctl export "
-                    f"{robot.name}` on the robot")
             keys = keystore.new_robot_keys(source)
             keystore.plan_robot_keys(plan, fleet_dir, robot.name, keys)
         robots[robot.name] = keys
     return FleetKeys(keystore.load_server_key(fleet_dir), robots)
+
+
+def _existing_robot_keys(fleet_dir: Path, name: str) -> RobotKeys | None:
+    """Robot *name*'s keys; ``None`` when it has none yet (none were ever made for it).
+
+    Raises:
+        ConfigError: a key file is bad, one of the pair is missing, or both are while its
+            ``wg0.conf`` made from them is there.
+    """
+    key_path, psk_path = keystore.robot_key_paths(fleet_dir, name)
+    generated = fleet_dir / "robots" / name / ROBOT_WIREGUARD_FILE
+    renew = (f"run `fleetctl render` and install a new `fleetctl export {name}` on the "
+             "robot")
+    for missing, pair in ((key_path, psk_path), (psk_path, key_path)):
+        if not os.path.lexists(missing) and os.path.lexists(pair):
+            raise ConfigError(f"{missing}: key file not found (its pair {pair.name} is "
+                              "there): restore it from a backup, or, to give the robot new "
+                              f"keys, delete {pair} and {generated}, {renew}")
+    keys = keystore.load_robot_keys(fleet_dir, name)
+    if keys is None and os.path.lexists(generated):
+        raise ConfigError(
+            f"{key_path} and {psk_path.name}: not found, but {generated} was made "
+            f"from them and robot {name!r} may be using them: restore them "
+            f"from a backup, or, to give the robot new keys, delete {generated}, {renew}")
+    return keys
 
 
 def _plan_fleet(plan: Plan, fleet_dir: Path, fleet: Fleet, keys: FleetKeys, *,
@@ -704,17 +733,30 @@ def set_relay_replicas(fleet_dir: Path, count: int, *, dry_run: bool = False,
 def describe_fleet(fleet_dir: Path) -> FleetInfo:
     """Return the fleet with its public keys (robots without keys yet have none listed).
 
+    Everything fleet.yaml says is returned even when a file beside it cannot be read (a
+    key file, the operator's TLS files): those are in ``problems``, one line each, for the
+    caller to report after the listing.
+
     Raises:
-        ConfigError: the fleet directory, fleet.yaml or a key file is missing or malformed.
+        ConfigError: the fleet directory or fleet.yaml is missing or malformed.
     """
-    fleet = load_fleet(fleet_dir)
+    problems: list[str] = []
+    fleet = load_fleet(fleet_dir, problems)
     pubs: dict[str, str] = {}
+    unreadable: list[str] = []
     for robot in fleet.robots:
-        rk = keystore.load_robot_keys(fleet_dir, robot.name)
-        if rk is not None:
-            pubs[robot.name] = public_key(rk.private_key, f"key of robot {robot.name}")
-    server_pub = public_key(keystore.load_server_key(fleet_dir), "server key")
-    return FleetInfo(fleet_dir, fleet, server_pub, pubs)
+        try:
+            if (rk := _existing_robot_keys(fleet_dir, robot.name)) is not None:
+                pubs[robot.name] = public_key(rk.private_key, f"key of robot {robot.name}")
+        except ConfigError as exc:
+            unreadable.append(robot.name)
+            problems.append(str(exc))
+    server_pub: str | None = None
+    try:
+        server_pub = public_key(keystore.load_server_key(fleet_dir), "server key")
+    except ConfigError as exc:
+        problems.insert(0, str(exc))  # the fleet's own key first: every robot needs it
+    return FleetInfo(fleet_dir, fleet, server_pub, pubs, tuple(unreadable), tuple(problems))
 
 
 def server_public_key(fleet_dir: Path) -> str:

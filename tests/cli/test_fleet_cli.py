@@ -5,6 +5,7 @@ from __future__ import annotations
 import hashlib
 import json
 import os
+import re
 import stat
 from collections.abc import Callable
 from pathlib import Path
@@ -691,3 +692,51 @@ def test_deploy_commands_name_a_missing_fleet_directory(
     _, err = cli(*args, code=ExitCode.CONFIG)
     assert err.startswith(f"fleetctl: error: fleet directory {cli.fleet} does not exist")
     assert len(err.splitlines()) == 1
+
+
+@pytest.mark.parametrize("output", ["text", "json"])
+def test_list_shows_what_it_can_and_names_the_files_it_cannot_read(
+        fleet: Path, cli: Cli, tmp_path: Path, output: str) -> None:
+    """An operator's pass: with keys/server.key gone (a fleet directory restored without
+    it) `list` printed one error and nothing else, though fleet.yaml, which it lists, was
+    all there. It lists everything, marks the public keys it cannot show, then names each
+    file on one error line (exit 3, as the error was)."""
+    cli("add-robot", "r2")
+    cli("add-user", "a@example.com", "--role", "viewer")
+    husky_pub = json.loads(cli("list", "-o", "json")[0])["robot_public_keys"]["husky1"]
+    # The operator's own certificate, its key since deleted.
+    (tmp_path / "cert.pem").write_bytes((fleet / "server/tls/cert.pem").read_bytes())
+    path = fleet / "fleet.yaml"
+    assert "\ntls: null\n" in path.read_text()
+    tls = f"tls: {{cert: {tmp_path / 'cert.pem'}, key: {tmp_path / 'gone.key'}}}"
+    path.write_text(path.read_text().replace("\ntls: null\n", f"\n{tls}\n"))
+    (fleet / "keys/server.key").unlink()
+    (fleet / "keys/robots/r2.psk").unlink()
+    out, err = cli("list", "-o", output, code=ExitCode.CONFIG)
+    assert len(err.splitlines()) == 1
+    assert err.startswith("fleetctl: error: 3 problems: [1] ")
+    problems = re.split(r" \[\d\] ", err.removeprefix("fleetctl: error: 3 problems: [1] "
+                                                      ).rstrip("\n"))
+    assert problems[0].startswith(f"{fleet}/keys/server.key: key file not found: restore it")
+    assert problems[1].startswith(f"{fleet}/fleet.yaml:") and "tls.key: " in problems[1]
+    assert str(tmp_path / "gone.key") in problems[1]
+    assert problems[2] == (
+        f"{fleet}/keys/robots/r2.psk: key file not found (its pair r2.key is there): "
+        f"restore it from a backup, or, to give the robot new keys, delete "
+        f"{fleet}/keys/robots/r2.key and {fleet}/robots/r2/wireguard/wg0.conf, run "
+        "`fleetctl render` and install a new `fleetctl export r2` on the robot")
+    if output == "json":
+        info = json.loads(out)
+        assert [r["name"] for r in info["fleet"]["robots"]] == ["husky1", "r2"]
+        assert [u["email"] for u in info["fleet"]["users"]] == ["a@example.com"]
+        assert info["server_public_key"] is None
+        assert info["robot_public_keys"] == {"husky1": husky_pub}
+        assert info["unreadable_robot_keys"] == ["r2"] and info["problems"] == problems
+    else:
+        assert "server public key: (key file unreadable: see the error)" in out
+        assert husky_pub in out and "a@example.com  viewer" in out
+        assert [line.split()[-1] for line in out.splitlines() if line.startswith("r2 ")] == [
+            "error)"]
+    (fleet / "keys/robots/r2.key").unlink()  # both gone, its wg0.conf still there
+    _, err = cli("list", code=ExitCode.CONFIG)
+    assert f"{fleet}/keys/robots/r2.key and r2.psk: not found, but " in err

@@ -134,8 +134,19 @@ class Plan:
         """Return what :meth:`apply` would do, touching nothing."""
         self.check_directories()
         changes = [Change(p, ChangeKind.DELETE) for p in self.deletes if _exists(p)]
-        changes += [Change(w.path, _write_kind(w)) for w in self.writes]
+        changes += [Change(w.path, kind) for w, kind in zip(self.writes, self.write_kinds(),
+                                                            strict=True)]
         return changes
+
+    def write_kinds(self) -> list[ChangeKind]:
+        """What each write does, in order: a file under (or at) a path the plan deletes is
+        created anew whatever is there now, since the deletion comes first (``init
+        --force`` deletes ``server/`` and writes ``server/server.yaml`` again: judged
+        against the old file it was "unchanged", so it was never written and the
+        deletion took it)."""
+        deleted = [p for p in self.deletes if _exists(p)]
+        return [ChangeKind.CREATE if any(w.path.is_relative_to(d) for d in deleted)
+                else _write_kind(w) for w in self.writes]
 
     def apply(self) -> list[Change]:
         """Delete, then write, all or nothing; return what was done, in order.
@@ -242,7 +253,7 @@ class _Transaction:
 
     def run(self, plan: Plan) -> list[Change]:
         changes = [Change(p, ChangeKind.DELETE) for p in plan.deletes if _exists(p)]
-        kinds = [_write_kind(w) for w in plan.writes]
+        kinds = plan.write_kinds()
         for change in changes:
             self._move_aside(change.path)
         for path, mode in plan.directories.items():

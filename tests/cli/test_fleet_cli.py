@@ -740,3 +740,46 @@ def test_list_shows_what_it_can_and_names_the_files_it_cannot_read(
     (fleet / "keys/robots/r2.key").unlink()  # both gone, its wg0.conf still there
     _, err = cli("list", code=ExitCode.CONFIG)
     assert f"{fleet}/keys/robots/r2.key and r2.psk: not found, but " in err
+
+
+def _files(root: Path) -> dict[str, tuple[int, int, bytes]]:
+    """Every file under *root*: (inode, mtime in ns, bytes), by path relative to *root*."""
+    return {str(p.relative_to(root)): (p.stat().st_ino, p.stat().st_mtime_ns, p.read_bytes())
+            for p in root.rglob("*") if p.is_file()}
+
+
+def test_init_force_dry_run_says_what_the_real_run_then_does(fleet: Path, cli: Cli) -> None:
+    """An operator's pass: `init --force --dry-run` said `1 file(s) already up to date`
+    (server/server.yaml, judged against the file about to be deleted with server/); the
+    real run said the same, never wrote it, and deleting server/ took it: the new fleet
+    had no server.yaml. Both now report it created, and the report is what happens on
+    disk: created and updated files are new, deleted ones gone, the rest untouched."""
+    cli("add-user", "a@example.com", "--role", "viewer")
+    args = ("init", str(fleet), "--force", "--endpoint", "vpn.example.com:51820", "-o", "json")
+
+    def changes(out: str) -> list[tuple[str, str]]:
+        return [(str(Path(c["path"]).relative_to(fleet)), c["kind"])
+                for c in json.loads(out)["outcome"]["changes"]]
+
+    preview = changes(cli(*args, "--dry-run")[0])
+    before = _files(fleet)
+    done = changes(cli(*args)[0])
+    after = _files(fleet)
+    assert preview == done
+    assert ("server/server.yaml", "create") in done
+    deleted = [path for path, kind in done if kind == "delete"]
+    written = {path for path, kind in done if kind in ("create", "update")}
+    assert sorted(deleted) == ["keys", "robots", "server"]
+    assert written <= set(after)
+    for path, now in after.items():
+        if path in written:
+            assert now != before.get(path), path  # a new file (or new bytes)
+        else:
+            assert now == before[path], path  # untouched: same inode, mtime and bytes
+            assert not any(Path(path).is_relative_to(d) for d in deleted), path
+    gone = {path for path in before
+            if any(Path(path).is_relative_to(d) for d in deleted)} - written
+    assert gone and not gone & set(after)
+    # The fleet it made is whole: `render` finds every file up to date.
+    out, _ = cli("render", "--dry-run")
+    assert [line for line in out.splitlines()[1:] if "would" in line] == []

@@ -139,3 +139,27 @@ def test_a_missing_server_key_says_how_to_recover(tmp_path: Path) -> None:
             "the fleet directory (a new server key would cut off every robot already "
             "deployed; `fleetctl init --force` makes a new fleet)")
     assert _tree(fleet_dir) == before
+
+
+def test_a_write_under_a_deleted_directory_is_a_creation(tmp_path: Path) -> None:
+    """A file the plan deletes (with its directory) and writes again with the same bytes
+    was judged `unchanged` against the old one: never written, and the deletion took it
+    (`init --force` lost server/server.yaml). Preview and apply agree that it is created."""
+    root = tmp_path / "f"
+    (root / "server").mkdir(parents=True)
+    (root / "server" / "server.yaml").write_bytes(b"same\n")
+    (root / "server" / "server.yaml").chmod(0o644)
+    (root / "server" / "old.yaml").write_bytes(b"old\n")
+
+    def plan() -> files.Plan:
+        p = files.Plan(root=root)
+        p.delete(root / "server")
+        p.write(root / "server" / "server.yaml", b"same\n")
+        return p
+
+    expected = [files.Change(root / "server", files.ChangeKind.DELETE),
+                files.Change(root / "server" / "server.yaml", files.ChangeKind.CREATE)]
+    assert plan().preview() == expected
+    assert plan().apply() == expected
+    assert sorted(p.name for p in (root / "server").iterdir()) == ["server.yaml"]
+    assert (root / "server" / "server.yaml").read_bytes() == b"same\n"

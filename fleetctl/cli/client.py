@@ -2,9 +2,13 @@
 
 from __future__ import annotations
 
+import contextlib
 import json
 import logging
 import os
+import re
+import sys
+from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
@@ -32,6 +36,7 @@ def _client(
                         format="%(asctime)s %(levelname)s %(name)s: %(message)s")
     loaded = load_client_config(config)  # before rclpy: a bad file fails fast, named
     _check_domain_id()
+    _check_rmw_implementation()  # before rclpy's import, where rcl exits 102
     try:
         from fleetctl.client.ros.runner import run_client
     except ImportError as exc:
@@ -58,6 +63,49 @@ def _check_domain_id() -> None:
         raise ConfigError(f"ROS_DOMAIN_ID={raw!r} (environment): must be an integer from 0 to "
                           f"{MAX_DOMAIN_ID}, the robot's ROS 2 domain (fleetctl.env, "
                           "robots[].ros_domain_id in fleet.yaml)")
+
+
+# Where an ament prefix registers each RMW implementation it installs (ament index
+# resource type "rmw_typesupport"; rmw_implementation_cmake's
+# get_available_rmw_implementations lists them, less rmw_implementation itself).
+RMW_RESOURCE_DIR = Path("share", "ament_index", "resource_index", "rmw_typesupport")
+_NOT_AN_RMW = "rmw_implementation"  # the dispatcher that loads the chosen one
+_RMW_NAME = re.compile(r"rmw_[a-z0-9_]+")
+
+
+def installed_rmw_implementations(environ: Mapping[str, str] = os.environ,
+                                  python_prefix: str = sys.prefix) -> list[str]:
+    """The RMW implementations installed for this process, sorted: the ament index's
+    ``rmw_typesupport`` resources under every prefix of ``AMENT_PREFIX_PATH`` (apt's ROS
+    once its setup file is sourced) and under *python_prefix* (where the PyPI wheels of
+    the ``ros`` extra install theirs, with no ``AMENT_PREFIX_PATH``). Reads only
+    directory listings: importing rclpy to ask would run rcl's check, which exits."""
+    prefixes = [p for p in environ.get("AMENT_PREFIX_PATH", "").split(os.pathsep) if p]
+    names: set[str] = set()
+    for prefix in (*prefixes, python_prefix):
+        with contextlib.suppress(OSError):  # a prefix without RMWs, or not there
+            names.update(f.name for f in (Path(prefix) / RMW_RESOURCE_DIR).iterdir()
+                         if not f.name.startswith("."))
+    names.discard(_NOT_AN_RMW)
+    return sorted(names)
+
+
+def _check_rmw_implementation(environ: Mapping[str, str] = os.environ) -> None:
+    """``RMW_IMPLEMENTATION`` naming an RMW that is not installed: rcl exited 102 at
+    rclpy's import with its own "Expected RMW implementation identifier" line. Unset or
+    empty is rcl's default; when no RMW is registered at all, rclpy's import says what is
+    missing."""
+    value = environ.get("RMW_IMPLEMENTATION", "")
+    installed = installed_rmw_implementations(environ)
+    if not value or not installed or value in installed:
+        return
+    distro = environ.get("ROS_DISTRO", "") if environ.get("ROS_DISTRO", "").isalpha() else ""
+    package = (f" (apt: ros-{distro or 'jazzy'}-{value.replace('_', '-')})"
+               if _RMW_NAME.fullmatch(value) else "")
+    raise ConfigError(f"RMW_IMPLEMENTATION={value!r} (environment): not installed here; "
+                      f"installed: {', '.join(installed)}. Install it{package} or choose an "
+                      "installed one (fleetctl.env; robots[].rmw_implementation in "
+                      "fleet.yaml, then `fleetctl export`)")
 
 
 def stop_line(stats: dict[str, Any]) -> str:

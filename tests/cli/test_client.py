@@ -3,12 +3,15 @@
 from __future__ import annotations
 
 import importlib.util
+import os
+import subprocess
+import sys
 from pathlib import Path
 
 import pytest
 
 from fleetctl.cli.main import main
-from fleetctl.errors import ExitCode
+from fleetctl.errors import ConfigError, ExitCode
 
 
 def test_invalid_config_names_file_entry_and_field(tmp_path: Path,
@@ -87,3 +90,72 @@ def test_a_bad_ros_domain_id_is_one_line(value: str, tmp_path: Path,
     err = capsys.readouterr().err
     assert f"ROS_DOMAIN_ID={value!r} (environment): must be an integer from 0 to 232" in err
     assert "Traceback" not in err
+
+
+def _client_process(config: Path, **env: str) -> subprocess.CompletedProcess[str]:
+    """`fleetctl client` as a robot's service runs it: its own process and environment."""
+    clean = {k: v for k, v in os.environ.items()
+             if k not in ("RMW_IMPLEMENTATION", "ROS_DOMAIN_ID", "AMENT_PREFIX_PATH")}
+    return subprocess.run([sys.executable, "-m", "fleetctl.cli.main", "client", "--config",
+                           str(config)], env={**clean, **env}, capture_output=True,
+                          text=True, timeout=120, check=False)
+
+
+@pytest.mark.ros
+def test_an_rmw_that_is_not_installed_is_one_line_naming_the_installed_ones(
+        tmp_path: Path) -> None:
+    """An operator's pass: RMW_IMPLEMENTATION naming an RMW that is not installed made
+    the client exit 102 from rcl at rclpy's import, with rcl's own text ("Expected RMW
+    implementation identifier of ... but instead found ...", a C source path). Now it is
+    a config error (exit 3, as a bad ROS_DOMAIN_ID) naming the variable, its value and
+    what is installed, found as rmw_implementation finds them (the ament index)."""
+    pytest.importorskip("rclpy")  # the ros extra: an RMW registered in the ament index
+    # Another prefix on AMENT_PREFIX_PATH (apt's ROS, an overlay) registers one more.
+    overlay = tmp_path / "overlay"
+    (overlay / "share/ament_index/resource_index/rmw_typesupport").mkdir(parents=True)
+    (overlay / "share/ament_index/resource_index/rmw_typesupport/rmw_overlay_cpp").touch()
+    config = tmp_path / "client.yaml"
+    config.write_text("server_url: ws://127.0.0.1:1/\nrobot_name: r\n")
+    done = _client_process(config, RMW_IMPLEMENTATION="rmw_cyclonedds_nope_cpp",
+                           AMENT_PREFIX_PATH=str(overlay), ROS_DISTRO="jazzy")
+    assert done.returncode == ExitCode.CONFIG, done.stderr
+    from fleetctl.cli.client import installed_rmw_implementations
+
+    installed = installed_rmw_implementations({})
+    assert "rmw_fastrtps_cpp" in installed  # the ros extra's
+    listed = ", ".join(sorted([*installed, "rmw_overlay_cpp"]))
+    assert done.stderr == (
+        "fleetctl: error: RMW_IMPLEMENTATION='rmw_cyclonedds_nope_cpp' (environment): not "
+        f"installed here; installed: {listed}. Install it (apt: "
+        "ros-jazzy-rmw-cyclonedds-nope-cpp) or choose an installed one (fleetctl.env; "
+        "robots[].rmw_implementation in fleet.yaml, then `fleetctl export`)\n")
+    assert done.stdout == ""
+    # A value no RMW could have: quoted, on the same one line, no package to suggest.
+    done = _client_process(config, RMW_IMPLEMENTATION="rmw\nfoo")
+    assert done.returncode == ExitCode.CONFIG and len(done.stderr.splitlines()) == 1
+    assert done.stderr.startswith("fleetctl: error: RMW_IMPLEMENTATION='rmw\\nfoo' "
+                                  "(environment): not installed here; installed: ")
+
+
+def test_the_installed_rmws_come_from_every_ament_prefix(tmp_path: Path) -> None:
+    from fleetctl.cli.client import _check_rmw_implementation, installed_rmw_implementations
+
+    def prefix(name: str, *rmws: str) -> Path:
+        index = tmp_path / name / "share/ament_index/resource_index/rmw_typesupport"
+        index.mkdir(parents=True)
+        for rmw in rmws:
+            (index / rmw).touch()
+        return tmp_path / name
+
+    apt = prefix("opt", "rmw_fastrtps_cpp", "rmw_cyclonedds_cpp", "rmw_implementation")
+    venv = prefix("venv", "rmw_fastrtps_cpp", "rmw_zenoh_cpp")
+    env = {"AMENT_PREFIX_PATH": f"{apt}{os.pathsep}{tmp_path / 'gone'}"}
+    assert installed_rmw_implementations(env, str(venv)) == [
+        "rmw_cyclonedds_cpp", "rmw_fastrtps_cpp", "rmw_zenoh_cpp"]
+    assert installed_rmw_implementations({}, str(tmp_path / "bare")) == []
+    _check_rmw_implementation({"RMW_IMPLEMENTATION": "rmw_cyclonedds_cpp", **env})
+    _check_rmw_implementation({"RMW_IMPLEMENTATION": "", **env})  # rcl's default
+    with pytest.raises(ConfigError, match=r"RMW_IMPLEMENTATION='rmw_connextdds' "
+                       r"\(environment\): not installed here; installed: rmw_cyclonedds_cpp"):
+        _check_rmw_implementation({"RMW_IMPLEMENTATION": "rmw_connextdds",
+                                   "AMENT_PREFIX_PATH": str(apt)})

@@ -6,7 +6,8 @@ Pure bookkeeping, no I/O, injected clocks; the relay and the asyncio layer ask a
 - :class:`TokenBucket`: control requests of one connection (subscribe/unsubscribe, token
   frames, ``list_robots``); each costs the relay work outside its hot path.
 - :class:`UnauthenticatedGate`: connections that have no identity yet (from accept to
-  authentication), server-wide and per source address: before authentication the
+  authentication), server-wide and per source address (an IPv6 /64 counts as one
+  address, :func:`~fleetctl.server.addressgroup.address_group`): before authentication the
   server cannot tell a robot from an attacker, so each such connection gets a small frame
   bound and a slot under these caps.
 - :class:`IdentityConnections`: authenticated connections per identity name.
@@ -16,6 +17,8 @@ from __future__ import annotations
 
 import time
 from collections.abc import Callable, Iterable
+
+from fleetctl.server.addressgroup import address_group
 
 
 class TokenBucket:
@@ -57,17 +60,22 @@ class UnauthenticatedGate:
 
     Args:
         max_total: Slots server-wide.
-        max_per_address: Slots per source address (a key given as text).
-        exempt: Whether an address has no per-address cap (a trusted proxy).
+        max_per_address: Slots per source address, counted by *group*.
+        exempt: Whether an address has no per-address cap (a trusted proxy); its
+            connections count only toward *max_total*.
         refused: Where refusals are counted by cap (e.g. the server's metrics).
+        group: The key an address is counted under (default: an IPv6 /64 is one
+            address, an IPv4-mapped IPv6 address its IPv4 address).
     """
 
     def __init__(self, max_total: int, max_per_address: int,
                  exempt: Callable[[str], bool] = lambda _a: False,
-                 refused: dict[str, int] | None = None) -> None:
+                 refused: dict[str, int] | None = None,
+                 group: Callable[[str], str] = address_group) -> None:
         self.max_total = max_total
         self.max_per_address = max_per_address
         self._exempt = exempt
+        self._group = group
         self._by_address: dict[str, int] = {}
         self.open = 0
         self.refused = refused if refused is not None else {}
@@ -83,26 +91,34 @@ class UnauthenticatedGate:
             :attr:`refused`).
         """
         reason: str | None = None
+        key = None if self._exempt(address) else self._group(address)
         if self.open >= self.max_total:
             reason = "total"
-        elif (self._by_address.get(address, 0) >= self.max_per_address
-              and not self._exempt(address)):
+        elif key is not None and self._by_address.get(key, 0) >= self.max_per_address:
             reason = "per_address"
         if reason is not None:
             self.refused[reason] += 1
             return reason
         self.open += 1
-        self._by_address[address] = self._by_address.get(address, 0) + 1
+        if key is not None:
+            self._by_address[key] = self._by_address.get(key, 0) + 1
         return None
 
     def release(self, address: str) -> None:
-        """Give back the slot of a connection that authenticated or closed."""
+        """Give back the slot of a connection from *address* that authenticated or closed."""
         self.open -= 1
-        left = self._by_address.get(address, 0) - 1
+        if self._exempt(address):
+            return
+        key = self._group(address)
+        left = self._by_address.get(key, 0) - 1
         if left > 0:
-            self._by_address[address] = left
+            self._by_address[key] = left
         else:
-            self._by_address.pop(address, None)
+            self._by_address.pop(key, None)
+
+    def held(self, address: str) -> int:
+        """Slots held now by *address*'s group (0 for an exempt address)."""
+        return 0 if self._exempt(address) else self._by_address.get(self._group(address), 0)
 
 
 class IdentityConnections:

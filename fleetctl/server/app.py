@@ -387,7 +387,7 @@ class RelayServer:
         if path == "/healthz":
             return endpoints.text(http.HTTPStatus.OK, "ok\n")
         if wants_websocket(request):
-            return None
+            return _http10_upgrade(connection)
         if path == TICKET_PATH:
             return self._ticket(parsed, request, by_address=True)
         if path == "/metrics":
@@ -409,7 +409,7 @@ class RelayServer:
         except BadRequest as exc:
             return endpoints.text(http.HTTPStatus.BAD_REQUEST, f"{exc}\n")
         if wants_websocket(request):
-            return None
+            return _http10_upgrade(connection)
         path = request.path.split("?", 1)[0]
         if path == TICKET_PATH:
             return self._ticket(parsed, request, by_address=False)
@@ -728,6 +728,16 @@ def _unauthorized(path: str, bad_token: bool, token_only: bool = False) -> Respo
         why = ("needs a fleet identity (a robot's or user's address, or a Bearer token) or a "
                "loopback caller")
     return endpoints.text(http.HTTPStatus.UNAUTHORIZED, f"GET {path}: {why}\n")
+
+
+def _http10_upgrade(connection: ServerConnection) -> Response | None:
+    """400 for a WebSocket upgrade sent as HTTP/1.0 (RFC 6455 4.1 needs HTTP/1.1; the
+    server reads HTTP/1.0 for its plain GETs only, :mod:`fleetctl.server.http10`), else
+    ``None``: go on with the handshake."""
+    if not cast(RelayConnection, connection).http10:
+        return None
+    return endpoints.text(http.HTTPStatus.BAD_REQUEST,
+                          "a WebSocket upgrade needs HTTP/1.1 (RFC 6455 4.1)\n")
 
 
 def _on_pong(outbound: OutboundScheduler, mark: int, waiter: asyncio.Future[float]) -> None:

@@ -40,6 +40,7 @@ from fleetctl.batched_connection import BatchedWritesConnection
 from fleetctl.frame_sink import FrameSink
 from fleetctl.server.admission import UnauthenticatedGate
 from fleetctl.server.heldpongs import HeldPongs
+from fleetctl.server.http10 import RequestLine
 from fleetctl.server.metrics import Metrics
 from fleetctl.server.writethrough import WriteThrough
 
@@ -112,6 +113,7 @@ class RelayConnection(FrameSink, BatchedWritesConnection, ServerConnection):
         self._metrics = metrics
         self.max_message_frames = PRE_AUTH_MAX_MESSAGE_FRAMES
         self._request_bytes = 0  # bytes received before the request was complete
+        self._request_line = RequestLine()  # an HTTP/1.0 health check is read as HTTP/1.1
         self._held_pong: Frame | None = None  # see _send_frame
         self._pong_paused = False  # not read because of a held pong (no identity yet)
         self._protocol_send_frame: Callable[[Frame], None] | None = None
@@ -126,6 +128,11 @@ class RelayConnection(FrameSink, BatchedWritesConnection, ServerConnection):
         # of that handling (fleetctl.server.writethrough).
         self.write_through: WriteThrough | None = None
 
+    @property
+    def http10(self) -> bool:
+        """Whether the request came as HTTP/1.0 (see :mod:`fleetctl.server.http10`)."""
+        return self._request_line.http10
+
     def message_handled(self) -> None:
         """Mark one message from ``recv()`` as handled; pongs held behind it may go."""
         super().message_handled()
@@ -138,6 +145,9 @@ class RelayConnection(FrameSink, BatchedWritesConnection, ServerConnection):
         :mod:`fleetctl.server.writethrough`), a pong a few microseconds later."""
         if self.request is None:  # the opening handshake: see connection_lost
             self._request_bytes += len(data)
+            data = self._request_line.feed(data)
+            if not data:
+                return  # the request line is incomplete: nothing to parse yet
         through = self.write_through
         collecting = through is not None and through.begin()
         protocol = self.protocol

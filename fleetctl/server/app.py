@@ -17,6 +17,7 @@ import errno
 import functools
 import http
 import logging
+import math
 import signal
 import socket
 import ssl
@@ -113,6 +114,9 @@ class _Request(NamedTuple):
     bad_token: bool
     auth: AuthMap
     refusal: str | None = None  # why a Foxglove ticket was refused
+    # > 0: the request's address is over its failed-login budget and the request needs a
+    # token (it carries one, or has no other identity): refused with 429, token unhashed
+    retry_after_s: float = 0.0
 
 
 class RelayServer:
@@ -364,11 +368,18 @@ class RelayServer:
         auth = self.core.auth
         foxglove = self.foxglove.wanted(request)  # people: address identities do not apply
         identities = auth.match_address(upgrade.address) if by_address and not foxglove else []
+        wait_s = self._login_wait_s(upgrade, bool(identities), request)
+        if wait_s > 0:  # before hashing anything: the address is over its budget
+            parsed = _Request(upgrade, identities, False, auth, retry_after_s=wait_s)
+            cast(RelayConnection, connection).relay_request = parsed
+            return parsed
         bad = False
         if upgrade.token is not None:
             found = auth.match_token(upgrade.token)  # None for anything not a token
             bad = found is None
             identities = identities if found is None else [*identities, found]
+            if bad:
+                self._login_failed(upgrade, request)
         refusal = None
         if foxglove and wants_websocket(request):
             ticket, refusal = self.foxglove.redeem(request, self._secure(by_address), auth)
@@ -376,6 +387,36 @@ class RelayServer:
         parsed = _Request(upgrade, identities, bad, auth, refusal)
         cast(RelayConnection, connection).relay_request = parsed
         return parsed
+
+    def _login_wait_s(self, upgrade: Upgrade, by_address: bool, request: Request) -> float:
+        """Seconds a request must wait for its address's failed-login budget, when it
+        needs a token: it carries one, or it is an upgrade with no address identity
+        (which can only authenticate by a token frame). 0: it goes on. A robot known by
+        its address, the operator on loopback without a token and ``/healthz`` never
+        wait."""
+        if upgrade.token is None and (by_address or not wants_websocket(request)):
+            return 0.0
+        if request.path.split("?", 1)[0] == "/healthz":
+            return 0.0
+        wait_s = self.core.logins.retry_after_s(_text(upgrade.address))
+        if wait_s > 0:
+            self.core.logins.refused()
+            self.metrics.count_error("login_throttled")
+            self._log_login(upgrade, "request refused (429), token unhashed")
+        return wait_s
+
+    def _login_failed(self, upgrade: Upgrade, request: Request) -> None:
+        self.core.logins.failed(_text(upgrade.address))
+        upgrading = wants_websocket(request)
+        if not upgrading:  # an upgrade's is counted with its error frame (login_refused)
+            self.metrics.count_error("bad_token")
+        kind = "WebSocket upgrade" if upgrading else "GET"
+        self._log_login(upgrade, f"failed login (bad Bearer token on a {kind})")
+
+    def _log_login(self, upgrade: Upgrade, what: str) -> None:
+        line = self.core.logins.log_line(_text(upgrade.address), what)
+        if line is not None:
+            log.warning("%s", line)
 
     def _process_request(self, connection: ServerConnection, request: Request,
                          ) -> Response | Awaitable[Response] | None:
@@ -386,6 +427,8 @@ class RelayServer:
         path = request.path.split("?", 1)[0]
         if path == "/healthz":
             return endpoints.text(http.HTTPStatus.OK, "ok\n")
+        if parsed.retry_after_s > 0:
+            return _too_many_logins(parsed.retry_after_s)
         if wants_websocket(request):
             return _http10_upgrade(connection)
         if path == TICKET_PATH:
@@ -408,6 +451,8 @@ class RelayServer:
             parsed = self._read(connection, request, by_address=False)
         except BadRequest as exc:
             return endpoints.text(http.HTTPStatus.BAD_REQUEST, f"{exc}\n")
+        if parsed.retry_after_s > 0:
+            return _too_many_logins(parsed.retry_after_s)
         if wants_websocket(request):
             return _http10_upgrade(connection)
         path = request.path.split("?", 1)[0]
@@ -466,10 +511,20 @@ class RelayServer:
                     *self.core.fanout.metric_families(),
                     ("fleetctl_standby_connections", "gauge", "Robots' standby connections "
                      "open (authenticated, one per session at most).", "",
-                     {"": float(len(self.core.standbys))})]
+                     {"": float(len(self.core.standbys))}),
+                    *self._login_families()]
         text = self.metrics.render(self._gauges(), self.core.session_gauges(), families)
         return endpoints.response(http.HTTPStatus.OK, text.encode("utf-8", "backslashreplace"),
                                   endpoints.PROMETHEUS_CONTENT_TYPE)
+
+    def _login_families(self) -> list[tuple[str, str, str, str, dict[str, float]]]:
+        logins = self.core.logins
+        return [("fleetctl_failed_login_addresses", "gauge", "Client addresses (IPv4, IPv6 "
+                 f"/64) whose failed logins are remembered (at most {logins.max_addresses}).",
+                 "", {"": float(len(logins))}),
+                ("fleetctl_failed_login_evictions_total", "counter", "Addresses forgotten "
+                 "while they still held failed logins, to keep the table within its bound.",
+                 "", {"": float(logins.evicted)})]
 
     def _process_response(
         self, connection: ServerConnection, request: Request, response: Response,
@@ -590,8 +645,9 @@ class RelayServer:
             return
         writer = asyncio.create_task(self._write_loop(connection, peer, state.writer))
         try:
-            if bad_token:
-                self.core.on_token(peer, "")
+            if bad_token:  # counted and logged when the request was read
+                self.core.login_refused(peer, protocol.CLOSE_BAD_TOKEN, "bad_token",
+                                        "unknown token", None)
             elif identities:
                 self.core.authenticate(peer, identities)
             else:
@@ -730,6 +786,16 @@ def _unauthorized(path: str, bad_token: bool, token_only: bool = False) -> Respo
     return endpoints.text(http.HTTPStatus.UNAUTHORIZED, f"GET {path}: {why}\n")
 
 
+def _too_many_logins(retry_after_s: float) -> Response:
+    """429 for a request whose address is over its failed-login budget (its token was
+    not looked at), with ``Retry-After`` in whole seconds (RFC 9110 10.2.3)."""
+    seconds = max(1, math.ceil(retry_after_s))
+    response = endpoints.text(http.HTTPStatus.TOO_MANY_REQUESTS, "too many failed logins "
+                              f"from this address: retry in {seconds} s\n")
+    response.headers["Retry-After"] = str(seconds)
+    return response
+
+
 def _http10_upgrade(connection: ServerConnection) -> Response | None:
     """400 for a WebSocket upgrade sent as HTTP/1.0 (RFC 6455 4.1 needs HTTP/1.1; the
     server reads HTTP/1.0 for its plain GETs only, :mod:`fleetctl.server.http10`), else
@@ -738,6 +804,10 @@ def _http10_upgrade(connection: ServerConnection) -> Response | None:
         return None
     return endpoints.text(http.HTTPStatus.BAD_REQUEST,
                           "a WebSocket upgrade needs HTTP/1.1 (RFC 6455 4.1)\n")
+
+
+def _text(address: object | None) -> str | None:
+    return None if address is None else str(address)
 
 
 def _on_pong(outbound: OutboundScheduler, mark: int, waiter: asyncio.Future[float]) -> None:

@@ -18,6 +18,7 @@ CLOSE_NO_IDENTITY = 4403
 CLOSE_SESSION_TAKEN_OVER = 4409  # a newer connection attached to the same session
 CLOSE_SUBSCRIPTION_FLOOD = 4429  # refused control requests past the flood bound
 CLOSE_TOO_MANY = 4429  # the identity is at max_connections_per_identity
+CLOSE_LOGINS_THROTTLED = 4429  # a token from an address over its failed-login budget
 CLOSE_GOING_AWAY = 1001  # server shutdown
 
 # Why: client text frames are tiny JSON requests; refuse to parse anything large.
@@ -36,6 +37,7 @@ ERROR_CODES = (
     "keyframe_refused",
     "standby",  # a binary frame on a standby connection (discarded)
     "not_standby",  # {"type": "activate"} on a connection that is not a standby
+    "login_throttled",  # a token refused unhashed: too many failed logins from the address
 )
 
 

@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import json
 import logging
+import math
 import sqlite3
 import time
 from collections.abc import Callable
@@ -25,6 +26,7 @@ from fleetctl.server.config import ServerConfig
 from fleetctl.server.fanout import Fanout, LocalFanout
 from fleetctl.server.keyframes import VIDEO_TYPE, KeyframeRouter
 from fleetctl.server.latched import LatchedStore
+from fleetctl.server.loginbudget import FailedLogins
 from fleetctl.server.metrics import Metrics
 from fleetctl.server.outbound import OutboundScheduler
 from fleetctl.server.peer import Peer
@@ -119,6 +121,8 @@ class RelayCore:
         self._buckets: dict[tuple[str, ...], TokenBucket] = {}
         self._topic_buckets: dict[tuple[str, ...], TokenBucket] = {}  # NEW_TOPICS_PER_S
         self._clock = clock
+        # Failed logins per client address: past the budget, tokens are refused unhashed.
+        self.logins = FailedLogins(clock=clock)
         self.peers: dict[int, Peer] = {}
         # Robots' standby connections (X-Fleetctl-Standby), at most one per session key:
         # a newer one closes the older. An entry leaves when its peer closes or activates.
@@ -376,11 +380,18 @@ class RelayCore:
         *session* (the token frame's ``session`` field) names the connection's session;
         it is taken only before the connection has a session or subscriptions (else 4400).
         """
+        wait_s = self.logins.retry_after_s(peer.address)
+        if wait_s > 0:  # refused before hashing: the address is over its budget
+            self.logins.refused()
+            self.login_refused(peer, protocol.CLOSE_LOGINS_THROTTLED, "login_throttled",
+                               f"too many failed logins from this address: retry in "
+                               f"{math.ceil(wait_s)} s", "token refused unhashed")
+            return
         identity = self.auth.match_token(token)  # None for anything not a token
         if identity is None:
-            self.metrics.count_error("bad_token")
-            peer.outbound.push_control(protocol.error("bad_token", None, "unknown token"))
-            self.close_with(peer, protocol.CLOSE_BAD_TOKEN, "bad token")
+            self.logins.failed(peer.address)
+            self.login_refused(peer, protocol.CLOSE_BAD_TOKEN, "bad_token", "unknown token",
+                               "failed login (bad token frame)")
             return
         if session is not None and session != peer.session_name:
             if not isinstance(session, str):
@@ -393,6 +404,21 @@ class RelayCore:
         if identity.token_sha256 is not None:  # the hash of *token*: matched by it
             peer.token_digests.add(identity.token_sha256)
         self.authenticate(peer, [identity])
+
+    def login_refused(self, peer: Peer, close: int, code: str, message: str,
+                      what: str | None) -> None:
+        """Close *peer* for a token that failed (``bad_token``, 4401) or was refused
+        unhashed (``login_throttled``, 4429): an error frame, the close, counted; logged
+        only when :meth:`FailedLogins.log_line` says so (not two lines per attempt;
+        *what* ``None``: the caller logged it)."""
+        self.send_error(peer, code, None, message)
+        line = None if what is None else self.logins.log_line(peer.address,
+                                                               f"{what} on {peer.label}")
+        if line is not None:
+            log.warning("%s", line)
+        if not peer.closing:
+            self.metrics.count_close(close)
+        peer.close(close, message)
 
     def subscribe(self, peer: Peer, pattern: str, *, charge: bool = True) -> bool:
         """Subscribe an authenticated *peer* to *pattern* as a ``/subscriptions`` frame

@@ -49,16 +49,18 @@ def page_response(page: WebPage, request: Request,
 
 
 class QuietSuccess(logging.Filter):
-    """Drop websockets' ``connection rejected (2xx ...)`` lines.
+    """Drop websockets' ``connection rejected (2xx ...)`` and ``(429 ...)`` lines.
 
     websockets logs every response that is not a WebSocket upgrade as a rejection, at
     INFO: a health check every 5 s, each file of the page. Those are answers, not
-    rejections; real ones (401, 403, 404, ...) stay in the log.
+    rejections; real ones (401, 403, 404, ...) stay in the log. A 429 (an address over
+    its failed-login budget, :mod:`fleetctl.server.loginbudget`) has its own sampled
+    line: a script retrying flat out would otherwise write one line per attempt.
     """
 
     def filter(self, record: logging.LogRecord) -> bool:
-        """Return ``False`` for a successful plain-HTTP answer."""
+        """Return ``False`` for a successful plain-HTTP answer or a 429."""
         if record.msg != "connection rejected (%d %s)" or not isinstance(record.args, tuple):
             return True
         status = record.args[0] if record.args else None
-        return not (isinstance(status, int) and 200 <= status < 300)
+        return not (isinstance(status, int) and (200 <= status < 300 or status == 429))

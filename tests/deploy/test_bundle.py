@@ -117,7 +117,7 @@ def test_env_file_from_fleet_yaml(fleet_dir: Path, tmp_path: Path, wheel: Path) 
 def test_env_file_default_is_fast_dds_over_udp(exported: Path) -> None:
     env = _assignments((exported / "fleetctl.env").read_text())
     assert env == {"ROS_DOMAIN_ID": "0", "RMW_IMPLEMENTATION": "rmw_fastrtps_cpp",
-                   "FASTDDS_BUILTIN_TRANSPORTS": "UDPv4"}
+                   "FASTDDS_BUILTIN_TRANSPORTS": "UDPv4?sockets_size=4194304"}
 
 
 def _assignments(text: str) -> dict[str, str]:
@@ -127,10 +127,11 @@ def _assignments(text: str) -> dict[str, str]:
 
 def test_env_file_reads_the_same_in_sh(exported: Path) -> None:
     out = subprocess.run(
-        ["sh", "-c", 'set -a; . "$1"; set +a; echo "$ROS_DOMAIN_ID/$RMW_IMPLEMENTATION"',
-         "sh", str(exported / "fleetctl.env")],
+        ["sh", "-c", 'set -a; . "$1"; set +a; echo "$ROS_DOMAIN_ID/$RMW_IMPLEMENTATION"; '
+         'echo "$FASTDDS_BUILTIN_TRANSPORTS"', "sh", str(exported / "fleetctl.env")],
         capture_output=True, text=True, check=True).stdout
-    assert out == "0/rmw_fastrtps_cpp\n"
+    # The '?' of Fast DDS's option is no glob in an assignment.
+    assert out == "0/rmw_fastrtps_cpp\nUDPv4?sockets_size=4194304\n"
 
 
 def test_systemd_unit(exported: Path) -> None:

@@ -48,6 +48,7 @@ from fleetctl.client.config import ClientConfig, PublishSpec, SubscribeSpec
 from fleetctl.client.latched import LatchedFrames
 from fleetctl.client.outagelog import LOG_EVERY, sampled
 from fleetctl.client.ros import qos
+from fleetctl.client.ros.ddsbuffers import LargeMessageCheck
 from fleetctl.client.ros.intake import LoopIntake, MessageCallback
 from fleetctl.client.ros.msgtypes import message_class
 from fleetctl.client.ros.qos import AdaptiveSubscription
@@ -291,6 +292,7 @@ class Bridge(Node):
         self.viewer_clouds = ViewerClouds(
             self.send_message, codec.registry.get(VIEWER_CLOUD_TYPE).cls)
         self._connects_seen = 0
+        self.large_messages = LargeMessageCheck()
         for i, spec in enumerate(config.publish):
             cls = _entry_class(f"publish[{i}] ({spec.topic})", spec.type)
             self.inputs.append(AdaptiveSubscription(
@@ -356,6 +358,7 @@ class Bridge(Node):
         *published_ns*: its source timestamp (0: not known), for the link.
         """
         self.stats.local_in += 1
+        self.large_messages.seen(spec.topic, len(cdr))
         if not self._port.admit(spec.remote_topic):
             self.stats.rate_limited += 1
             return

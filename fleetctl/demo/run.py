@@ -23,6 +23,7 @@ from pathlib import Path
 from types import FrameType
 from typing import Any
 
+from fleetctl.client.ros.ddsbuffers import CLIENT_FASTDDS_TRANSPORTS
 from fleetctl.demo.fleet import CAMERA_HZ, DemoFleet, create_demo_fleet
 from fleetctl.demo.supervisor import ProcessSpec, Supervisor
 from fleetctl.deploy.fleet import MAX_ROS_DOMAIN_ID
@@ -190,9 +191,12 @@ def _start_components(
             _fleetctl("sim-robot", robot.name, "--phase-rad", f"{phase:.4f}",
                       "--camera-hz", f"{CAMERA_HZ:g}"),
             logs / f"{robot.name}-sim.log", env))
+        # The client's DDS as on a robot (fleetctl.env): UDP with a 4 MiB buffer, which
+        # the sim's 921 KB camera images need on a loaded machine (docs/robot.md).
         supervisor.start(ProcessSpec(
             f"{robot.name}-client", _fleetctl("client", "--config", str(robot.client_config)),
-            logs / f"{robot.name}-client.log", env))
+            logs / f"{robot.name}-client.log",
+            {**env, "FASTDDS_BUILTIN_TRANSPORTS": CLIENT_FASTDDS_TRANSPORTS}))
     if not (options.webviz and _webviz_available()):
         return None
     supervisor.start(ProcessSpec(

@@ -17,6 +17,7 @@ from pathlib import Path
 import pytest
 import yaml
 
+from fleetctl.client.ros.ddsbuffers import CLIENT_FASTDDS_TRANSPORTS
 from fleetctl.deploy import bundle
 from fleetctl.deploy.export import export_robot
 from fleetctl.deploy.fleet import load_fleet
@@ -117,7 +118,7 @@ def test_env_file_from_fleet_yaml(fleet_dir: Path, tmp_path: Path, wheel: Path) 
 def test_env_file_default_is_fast_dds_over_udp(exported: Path) -> None:
     env = _assignments((exported / "fleetctl.env").read_text())
     assert env == {"ROS_DOMAIN_ID": "0", "RMW_IMPLEMENTATION": "rmw_fastrtps_cpp",
-                   "FASTDDS_BUILTIN_TRANSPORTS": "UDPv4?sockets_size=4194304"}
+                   "FASTDDS_BUILTIN_TRANSPORTS": CLIENT_FASTDDS_TRANSPORTS}
 
 
 def _assignments(text: str) -> dict[str, str]:

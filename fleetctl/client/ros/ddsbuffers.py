@@ -21,12 +21,18 @@ import re
 from collections.abc import Callable, Mapping
 from pathlib import Path
 
-__all__ = ["WANTED_BUFFER_BYTES", "LargeMessageCheck", "receive_buffer_bytes"]
+__all__ = ["CLIENT_FASTDDS_TRANSPORTS", "WANTED_BUFFER_BYTES", "LargeMessageCheck",
+           "receive_buffer_bytes"]
 
 log = logging.getLogger(__name__)
 
 # What the robot bundle asks for (fleetctl.env) and what docs/robot.md tells to allow.
 WANTED_BUFFER_BYTES = 4 * 1024 * 1024
+# The client's Fast DDS transports where it runs beside a robot's nodes (fleetctl.env's
+# FASTDDS_BUILTIN_TRANSPORTS, the demo's clients): UDP only, since shared memory fails
+# silently across users and containers, with the buffer above. ("DEFAULT?sockets_size"
+# was tried: it kept losing 70 % of a loaded 640x480 camera.)
+CLIENT_FASTDDS_TRANSPORTS = f"UDPv4?sockets_size={WANTED_BUFFER_BYTES}"
 # Fast DDS carries a sample this large through shared memory when that transport is on.
 FASTDDS_SHM_SEGMENT_BYTES = 512 * 1024
 # Past this a sample over UDP is several fragments that must all fit the buffer at once.

@@ -25,7 +25,8 @@ from fleetctl.deploy.fleet import load_fleet
 # The blocks the README must carry; test_bundle_docker.py runs the ROBOT_BLOCKS.
 README_BLOCKS = (
     "packages", "tunnel-config", "tunnel-service", "tunnel-quick", "tunnel-check", "venv",
-    "venv-check", "ros-wheels", "install-files", "client-service", "client-check",
+    "venv-check", "ros-wheels", "install-files", "socket-buffer", "client-service",
+    "client-check",
     "client-foreground", "image-load", "container-run",
 )
 _BLOCK = re.compile(r"<!-- block: ([a-z0-9-]+) -->\n```sh\n(.*?)```\n", re.S)
@@ -219,6 +220,7 @@ def test_readme_blocks(exported: Path) -> None:
     assert "source /opt/ros/jazzy/setup.bash" in blocks["venv-check"]
     assert "'ros-jazzy-rclpy[fastrtps]>=7,<8'" in blocks["ros-wheels"]
     assert "journalctl -u fleetctl-client" in blocks["client-check"]
+    assert "net.core.rmem_max=4194304" in blocks["socket-buffer"]
     assert "docker load -i fleetctl-client-0.1.0.tar.gz" in blocks["image-load"]
     # The README must not say what the issue complained about.
     assert "pip install 'fleetctl[ros]'" not in readme

@@ -4,7 +4,7 @@ Usage::
 
     .venv/bin/python benchmarks/subscription_churn.py [--seconds 3] [--rounds 3]
         [--rate-hz 1000] [--churners 8] [--server-cpu 0] [--client-cpu 1] [--churn-cpu 2]
-        [--json]
+        [--cached-topics 16000] [--churn-kind pattern] [--held 0] [--json]
 
 Project issue 14, item 2. Three processes: the relay (:class:`RelayServer`, defaults,
 pinned to one core), the churning token (its own process and core) and the honest side
@@ -20,6 +20,14 @@ client core unless ``--churn-cpu`` says otherwise). Each round measures two phas
   holding a named session and as many 4 KiB patterns as the server takes, send
   subscribe/unsubscribe pairs as fast as TCP lets them, reconnecting whenever the server
   closes them (4429), so the token churns as fast as the server lets it.
+
+``--cached-topics N`` first has publishers send one frame on each of N distinct topics
+(``/fill/r<i // 40>/t<i>``: 40 topics per robot), so the relay's receiver cache holds N
+topics while the rounds run (docs/security.md, "The cost of a regex against many topics";
+several publisher identities, as the new-topic rate allows each 4096 at once).
+``--churn-kind pattern`` makes the toggled subscription a regex (``/t<i>/x.*``) instead of
+a literal topic; ``--held N`` is how many 4 KiB patterns each churner tries to hold (255:
+as many as the server takes).
 
 Printed per phase: frames received / sent, latency p50 and p99, the join time, and what
 the server answered the churners (changes applied vs refused). The bar: in ``churn`` the
@@ -44,6 +52,10 @@ from typing import Any
 
 TOPIC = "/bench/telemetry"
 PUBLISHER, HONEST, ATTACKER = "publisher-token", "honest-token", "attacker-token"
+FILLERS = 5  # identities that fill the cache: 4000 new topics each (the burst is 4096)
+FILL_PER_IDENTITY = 4000
+FILL_DONE = "/fill/done"
+MAX_CACHED = FILLERS * FILL_PER_IDENTITY
 
 
 def _pin(cpu: int) -> None:
@@ -55,8 +67,9 @@ def _auth_yaml(path: Path) -> None:
     from fleetctl.tokens import hash_token
 
     lines = ["version: 1", "identities:"]
+    fillers = [(f"filler{k}", f"filler-token-{k}", "send") for k in range(FILLERS)]
     for name, token, op in (("publisher", PUBLISHER, "send"), ("honest", HONEST, "receive"),
-                            ("attacker", ATTACKER, "receive")):
+                            ("attacker", ATTACKER, "receive"), *fillers):
         lines += [f"  - name: {name}", f"    token_sha256: {hash_token(token)}",
                   "    rules:", f"      - {{topic: '.*', op: {op}}}"]
     path.write_text("\n".join(lines) + "\n")
@@ -84,7 +97,8 @@ def run_server(cpu: int, directory: str, ports: Any) -> None:
 # -- the churning token -----------------------------------------------------------------
 
 
-def run_churn(cpu: int, port: int, churners: int, stop: Any, results: Any) -> None:
+def run_churn(cpu: int, port: int, churners: int, stop: Any, results: Any,
+              kind: str = "literal", held_count: int = 255) -> None:
     """*churners* connections of the attacker token toggling subscriptions flat out.
 
     Niced: on a small machine it shares a core with the honest clients, and the figure
@@ -100,8 +114,9 @@ def run_churn(cpu: int, port: int, churners: int, stop: Any, results: Any) -> No
         from fleetctl.wire.control import encode_subscription
 
         held = [encode_subscription(f"/held{index}_{i}/(" + "a|" * 2040 + "b)")
-                for i in range(255)]
-        toggle = [encode_subscription(f"/t{index}/x", s) for s in (True, False)]
+                for i in range(held_count)]
+        toggled = f"/t{index}/x" + (".*" if kind == "pattern" else "")
+        toggle = [encode_subscription(toggled, s) for s in (True, False)]
         while not stop.is_set():
             counts["connects"] += 1
             with contextlib.suppress(Exception):
@@ -115,6 +130,9 @@ def run_churn(cpu: int, port: int, churners: int, stop: Any, results: Any) -> No
                     while not stop.is_set() and not reader.done():
                         await ws.send(toggle[0])
                         await ws.send(toggle[1])
+                        # send() yields only once TCP pushes back: without this the
+                        # reader never ran (answers uncounted) until the buffers filled
+                        await asyncio.sleep(0)
                     reader.cancel()
 
     async def main() -> None:
@@ -138,6 +156,38 @@ async def _count(ws: Any, counts: dict[str, int]) -> None:
                     counts[kind] += 1
                 elif kind == "error":
                     counts["refused"] += 1
+
+
+# -- filling the receiver cache ----------------------------------------------------------
+
+
+async def fill_cache(port: int, count: int) -> float:
+    """One frame on each of *count* new topics, then a marker the honest token waits for
+    (frames of one connection are handled in order); returns the seconds it took."""
+    from websockets.asyncio.client import connect
+
+    from fleetctl.wire.codec import default_codec
+    from fleetctl.wire.control import encode_subscription
+
+    codec = default_codec()
+    cls = codec.registry.get("std_msgs/msg/String").cls
+    url = f"ws://127.0.0.1:{port}/"
+    started = time.perf_counter()
+    async with connect(url, additional_headers={"Authorization": f"Bearer {HONEST}"}) as sub:
+        await sub.send(encode_subscription(FILL_DONE))
+        while not (isinstance(m := await sub.recv(), str) and "subscribed" in m):
+            pass
+        for k, first in enumerate(range(0, count, FILL_PER_IDENTITY)):
+            async with connect(url, additional_headers={
+                    "Authorization": f"Bearer filler-token-{k}"}) as pub:
+                for i in range(first, min(count, first + FILL_PER_IDENTITY)):
+                    await pub.send(codec.encode(cls("x"), "std_msgs/msg/String",
+                                                f"/fill/r{i // 40}/t{i}"))
+                await pub.send(codec.encode(cls("done"), "std_msgs/msg/String", FILL_DONE,
+                                            no_drop=True))
+                while not isinstance(await sub.recv(), bytes):
+                    pass
+    return time.perf_counter() - started
 
 
 # -- the honest side ----------------------------------------------------------------------
@@ -212,13 +262,20 @@ def one_round(port: int, args: argparse.Namespace) -> dict[str, Any]:
     quiet = asyncio.run(measure(port, args.seconds, args.rate_hz))
     stop, results = mp.Event(), mp.Queue()
     churn = mp.Process(target=run_churn, args=(args.churn_cpu, port, args.churners, stop,
-                                               results))
+                                               results, args.churn_kind, args.held))
     churn.start()
-    time.sleep(1.0)  # let the churners connect and load their patterns (warm-up)
-    loud = asyncio.run(measure(port, args.seconds, args.rate_hz))
-    stop.set()
-    counts = results.get(timeout=30)
-    churn.join(timeout=10)
+    try:
+        time.sleep(1.0)  # let the churners connect and load their patterns (warm-up)
+        try:
+            loud = asyncio.run(measure(port, args.seconds, args.rate_hz))
+        except TimeoutError:  # the relay did not even complete a handshake in 10 s
+            nan = float("nan")
+            loud = {"sent": 0, "received": 0, "fraction": 0.0, "p50_ms": nan,
+                    "p99_ms": nan, "join_ms": nan, "stalled": True}
+    finally:
+        stop.set()
+        counts = results.get(timeout=60)
+        churn.join(timeout=10)
     return {"quiet": quiet, "churn": loud, "churner": counts}
 
 
@@ -232,8 +289,19 @@ def main() -> None:
     parser.add_argument("--client-cpu", type=int, default=1)
     parser.add_argument("--churn-cpu", type=int, default=-1,
                         help="core of the churning process (default: the client core)")
+    parser.add_argument("--cached-topics", type=int, default=0,
+                        help=f"topics in the receiver cache during the rounds (at most "
+                             f"{MAX_CACHED})")
+    parser.add_argument("--churn-kind", choices=("literal", "pattern"), default="literal",
+                        help="what the churners toggle: a literal topic or a regex")
+    parser.add_argument("--held", type=int, default=255,
+                        help="4 KiB patterns each churner tries to hold (0-255)")
     parser.add_argument("--json", action="store_true")
     args = parser.parse_args()
+    if not 0 <= args.cached_topics <= MAX_CACHED:
+        parser.error(f"--cached-topics: 0 to {MAX_CACHED}")
+    if not 0 <= args.held <= 255:
+        parser.error("--held: 0 to 255")
     if args.churn_cpu < 0:
         args.churn_cpu = args.client_cpu
     with tempfile.TemporaryDirectory() as directory:
@@ -243,6 +311,10 @@ def main() -> None:
         server.start()
         try:
             port = ports.get(timeout=30)
+            if args.cached_topics:
+                _pin(args.client_cpu)
+                took = asyncio.run(fill_cache(port, args.cached_topics))
+                print(f"{args.cached_topics} topics cached in {took:.1f} s", file=sys.stderr)
             rounds = [one_round(port, args) for _ in range(args.rounds)]
         finally:
             server.terminate()
@@ -262,13 +334,16 @@ def report(rounds: list[dict[str, Any]], args: argparse.Namespace) -> None:
         print()
         return
     print(f"{args.rate_hz:g} Hz for {args.seconds:g} s per phase, {args.churners} churning "
-          f"connections of one token, {args.rounds} rounds")
+          f"connections of one token toggling a {args.churn_kind} (holding up to "
+          f"{args.held} patterns), {args.cached_topics} topics cached, {args.rounds} rounds")
     print(f"{'round':>5} {'phase':>6} {'frames':>14} {'p50 ms':>8} {'p99 ms':>8} "
           f"{'join ms':>8}  churner")
     for i, r in enumerate(rounds, 1):
         for phase in ("quiet", "churn"):
             m = r[phase]
             extra = json.dumps(r["churner"]) if phase == "churn" else ""
+            if m.get("stalled"):
+                extra = "STALLED: the honest client's handshake timed out (10 s) " + extra
             print(f"{i:>5} {phase:>6} {m['received']:>6}/{m['sent']:<6} {m['p50_ms']:>8.2f} "
                   f"{m['p99_ms']:>8.2f} {m['join_ms']:>8.1f}  {extra}")
     q, c = summary["quiet"], summary["churn"]

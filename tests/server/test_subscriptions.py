@@ -1,10 +1,13 @@
 from __future__ import annotations
 
+import contextlib
 import ipaddress
+import random
 
 import pytest
 
-from fleetctl.server.permissions import PermissionsPool
+from fleetctl.server.permissions import Permissions, PermissionsPool
+from fleetctl.server.regex import compile_full
 from fleetctl.server.subscriptions import Refusal, SubscriptionMap
 from tests.server.conftest import BOB_TOKEN, auth_map
 
@@ -48,3 +51,95 @@ def test_cache_invalidated_on_change_and_limits() -> None:
     assert subs.receivers("/husky1/b") == ("bob",)
     subs.remove("bob")
     assert subs.receivers("/husky1/b") == () and len(subs) == 0
+
+
+def _reference(subs: SubscriptionMap[str], perms: dict[str, Permissions],
+               topic: str) -> set[str]:
+    """Who receives *topic*, asked from scratch (no cache): the answer to match."""
+    return {conn for conn in perms if any(compile_full(p).matches(topic)
+                                          for p in subs.patterns(conn))
+            and perms[conn].may_receive(topic)}
+
+
+def test_lazy_cache_matches_a_fresh_answer_under_churn() -> None:
+    """Pattern changes update cached answers on their topic's next frame; whatever the
+    order of changes and frames, the answer is the one asked from scratch."""
+    rng = random.Random(7)
+    perms: dict[str, Permissions] = {"bob": BOB, "husky": HUSKY, "bob2": BOB}
+    patterns = ["/husky1/.*", "/husky1/a.*", "/husky1/(a|b)", "/husky1/goal_pose",
+                "/husky1/b", ".*", "/husky2/.*"]
+    topics = ["/husky1/a", "/husky1/b", "/husky1/ab", "/husky1/goal_pose", "/husky2/x"]
+    subs: SubscriptionMap[str] = SubscriptionMap(16)
+    for _ in range(3000):
+        conn = rng.choice(list(perms))
+        pattern = rng.choice(patterns)
+        action = rng.random()
+        if action < 0.35:
+            with contextlib.suppress(Refusal):  # e.g. a literal husky may not receive
+                subs.subscribe(conn, perms[conn], pattern)
+        elif action < 0.7:
+            subs.unsubscribe(conn, pattern)
+        elif action < 0.75:
+            subs.remove(conn)
+        else:
+            topic = rng.choice(topics)
+            assert set(subs.receivers(topic)) == _reference(subs, perms, topic), topic
+            assert len(set(subs.receivers(topic))) == len(subs.receivers(topic))
+
+
+def test_forgotten_changes_recompute_whole(monkeypatch: pytest.MonkeyPatch) -> None:
+    """Past MAX_PENDING_CHANGES changed connections an old answer is asked again whole."""
+    import fleetctl.server.subscriptions as module
+
+    monkeypatch.setattr(module, "MAX_PENDING_CHANGES", 2)
+    subs: SubscriptionMap[str] = SubscriptionMap(8)
+    assert subs.receivers("/husky1/a") == ()
+    for conn in ("c1", "c2", "c3", "c4"):  # c1 and c2 are forgotten as changes
+        subs.subscribe(conn, BOB, "/husky1/.*")
+    assert set(subs.receivers("/husky1/a")) == {"c1", "c2", "c3", "c4"}
+    subs.unsubscribe("c1", "/husky1/.*")
+    subs.subscribe("c5", BOB, "/husky1/a")  # a literal: the answer changes at once
+    assert set(subs.receivers("/husky1/a")) == {"c2", "c3", "c4", "c5"}
+
+
+class _Calls:
+    """Counts the regex calls of the subscription map: a pattern's own
+    (``FullMatch``) and a connection's joined ones (``AnyOf``, which may call the first)."""
+
+    def __init__(self, monkeypatch: pytest.MonkeyPatch) -> None:
+        from fleetctl.server import regex
+
+        self.by: dict[str, int] = {"FullMatch": 0, "AnyOf": 0}
+        for cls in (regex.FullMatch, regex.AnyOf):
+            original = cls.matches
+
+            def counted(obj: object, topic: str, _original: object = original,
+                        _name: str = cls.__name__) -> bool:
+                self.by[_name] += 1
+                return _original(obj, topic)  # type: ignore[operator,no-any-return]
+
+            monkeypatch.setattr(cls, "matches", counted)
+
+
+def test_pattern_change_costs_no_regex_call_per_cached_topic(
+        monkeypatch: pytest.MonkeyPatch) -> None:
+    """A subscribe/unsubscribe of a pattern with 16,000 topics cached makes no RE2 call;
+    a frame afterwards costs one call per changed connection on its own topic."""
+    subs: SubscriptionMap[str] = SubscriptionMap(8)
+    subs.subscribe("viewer", BOB, "/husky1/t1.*")
+    topics = [f"/husky1/t{i}" for i in range(16000)]
+    for topic in topics:
+        subs.receivers(topic)
+        BOB.may_receive(topic)  # (the receive rules' answers are cached per topic too)
+    calls = _Calls(monkeypatch)
+    for _ in range(50):
+        subs.subscribe("churner", BOB, "/husky1/t2.*")
+        subs.unsubscribe("churner", "/husky1/t2.*")
+    subs.subscribe("churner", BOB, "/husky1/t2.*")
+    assert calls.by == {"FullMatch": 0, "AnyOf": 0}
+    assert set(subs.receivers("/husky1/t25")) == {"churner"}
+    assert set(subs.receivers("/husky1/t150")) == {"viewer"}
+    # The churner asked once on each topic (its one pattern), the viewer kept its place.
+    assert calls.by == {"FullMatch": 2, "AnyOf": 2}
+    assert subs.receivers("/husky1/t25") == ("churner",)
+    assert calls.by == {"FullMatch": 2, "AnyOf": 2}  # cached again: no call

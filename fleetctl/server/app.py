@@ -647,7 +647,7 @@ class RelayServer:
         try:
             if bad_token:  # counted and logged when the request was read
                 self.core.login_refused(peer, protocol.CLOSE_BAD_TOKEN, "bad_token",
-                                        "unknown token", None)
+                                        "unknown token", "bad token", None)
             elif identities:
                 self.core.authenticate(peer, identities)
             else:

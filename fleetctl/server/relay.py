@@ -383,15 +383,16 @@ class RelayCore:
         wait_s = self.logins.retry_after_s(peer.address)
         if wait_s > 0:  # refused before hashing: the address is over its budget
             self.logins.refused()
+            message = (f"too many failed logins from this address: retry in "
+                       f"{math.ceil(wait_s)} s")
             self.login_refused(peer, protocol.CLOSE_LOGINS_THROTTLED, "login_throttled",
-                               f"too many failed logins from this address: retry in "
-                               f"{math.ceil(wait_s)} s", "token refused unhashed")
+                               message, message, "token refused unhashed")
             return
         identity = self.auth.match_token(token)  # None for anything not a token
         if identity is None:
             self.logins.failed(peer.address)
             self.login_refused(peer, protocol.CLOSE_BAD_TOKEN, "bad_token", "unknown token",
-                               "failed login (bad token frame)")
+                               "bad token", "failed login (bad token frame)")
             return
         if session is not None and session != peer.session_name:
             if not isinstance(session, str):
@@ -405,12 +406,13 @@ class RelayCore:
             peer.token_digests.add(identity.token_sha256)
         self.authenticate(peer, [identity])
 
-    def login_refused(self, peer: Peer, close: int, code: str, message: str,
+    def login_refused(self, peer: Peer, close: int, code: str, message: str, reason: str,
                       what: str | None) -> None:
         """Close *peer* for a token that failed (``bad_token``, 4401) or was refused
-        unhashed (``login_throttled``, 4429): an error frame, the close, counted; logged
-        only when :meth:`FailedLogins.log_line` says so (not two lines per attempt;
-        *what* ``None``: the caller logged it)."""
+        unhashed (``login_throttled``, 4429): an error frame (*code*, *message*), the
+        close (*close*, *reason*), counted; logged only when
+        :meth:`FailedLogins.log_line` says so (not two lines per attempt; *what*
+        ``None``: the caller logged it)."""
         self.send_error(peer, code, None, message)
         line = None if what is None else self.logins.log_line(peer.address,
                                                                f"{what} on {peer.label}")
@@ -418,7 +420,7 @@ class RelayCore:
             log.warning("%s", line)
         if not peer.closing:
             self.metrics.count_close(close)
-        peer.close(close, message)
+        peer.close(close, reason)
 
     def subscribe(self, peer: Peer, pattern: str, *, charge: bool = True) -> bool:
         """Subscribe an authenticated *peer* to *pattern* as a ``/subscriptions`` frame

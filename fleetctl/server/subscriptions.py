@@ -11,10 +11,10 @@ literal topic's answer is updated at once (one lookup); a pattern change only re
 that its connection changed (a version number), and each cached answer is brought up to
 date on its topic's next frame by asking again only the connections that changed since
 that answer was made (one RE2 call each). Why: matching a pattern against every cached
-topic on the event loop cost 8 us a topic, 130 ms for 16,000 topics, and a churn of 19
-pattern changes a second (within the control rate) put a 200 Hz pair's p99 at 356 ms
-(docs/security.md). Now a change costs nothing until a frame comes, and then only on
-topics in use. Only a permission change (auth map reload) clears the cache. A topic not
+topic on the event loop cost 19-21 ms a change with 16,000 topics cached, and one token
+churning patterns at the control rate stalled the relay (a new client's handshake timed
+out after 10 s; docs/security.md). Now a change costs ~8 us, and the catching up is done
+only on topics in use. An auth map reload clears the cache. A topic not
 cached yet costs one RE2 call per connection (its subscriptions joined,
 :class:`~fleetctl.server.regex.AnyOf`), not one per subscription.
 """

@@ -104,3 +104,33 @@ def fleetctl_argv(*args: str) -> list[str]:
     """The command line of ``fleetctl ARGS`` with this interpreter."""
     return [sys.executable, "-m", "fleetctl.cli.main", *args]
 
+
+
+@contextlib.contextmanager
+def spun_bridge(context: Any, publish: dict[str, Any],
+                send_video: Callable[[Any, bytes, bool], None] | None = None) -> Any:
+    """A real :class:`Bridge` of robot ``r1`` with the one *publish* entry, spun on its own
+    thread in *context*, whose link drops what it is handed (``send_video`` gets video)."""
+    from fleetctl.client.config import parse_client_config
+    from fleetctl.client.ros.bridge import Bridge, LinkPort
+    from fleetctl.client.ros.executor import NodeExecutor
+    from fleetctl.client.ros.runner import status_encoder
+    from fleetctl.wire.codec import Codec
+    from fleetctl.wire.registry import TypeRegistry
+
+    codec = Codec(TypeRegistry.default())
+    port = LinkPort(admit=lambda topic: True, send=lambda spec, frame, published_ns: None,
+                    send_status=lambda frame: None, send_video=send_video)
+    config = parse_client_config({"server_url": "ws://127.0.0.1:1/", "robot_name": "r1",
+                                  "publish": [publish]}, source="test.yaml")
+    bridge = Bridge(config, codec, codec.registry.typestore, port,
+                    status_encoder(codec, "r1"), context=context)
+    executor = NodeExecutor(bridge, context)
+    thread = threading.Thread(target=executor.spin, daemon=True)
+    thread.start()
+    try:
+        yield bridge
+    finally:
+        executor.shutdown()
+        thread.join(5)
+        bridge.destroy_node()

@@ -36,7 +36,7 @@ pytest.importorskip("rclpy")
 from fleetctl.demo.fleet import free_port
 from fleetctl.demo.run import http_ok, online_robots
 from fleetctl.waiting import wait_until
-from tests.client.ros.harness import JsonProc, fleetctl_argv
+from tests.client.ros.harness import JsonProc, fleetctl_argv, spun_bridge
 
 pytestmark = [pytest.mark.ros, pytest.mark.slow]
 DOMAIN_ID = 62  # the in-process bridge test (this file's range: 61-62)
@@ -333,16 +333,9 @@ def test_viewer_keyframe_request_reaches_the_robot_through_the_server(fleet: Fle
 
 @pytest.fixture
 def bridge_and_camera(ros: tuple[Any, Any]) -> Iterator[tuple[Any, Any, list[Any]]]:
-    from fleetctl.client.config import parse_client_config
-    from fleetctl.client.ros.bridge import Bridge, LinkPort
-    from fleetctl.client.ros.executor import NodeExecutor
-    from fleetctl.client.ros.runner import status_encoder
     from fleetctl.client.ros.simcamera import CAMERA_QOS, SimCamera
-    from fleetctl.wire.codec import Codec
-    from fleetctl.wire.registry import TypeRegistry
 
     context, peer = ros
-    codec = Codec(TypeRegistry.default())
     sent: list[tuple[bytes, bool]] = []
     lock = threading.Lock()
 
@@ -350,26 +343,12 @@ def bridge_and_camera(ros: tuple[Any, Any]) -> Iterator[tuple[Any, Any, list[Any
         with lock:
             sent.append((frame, keyframe))
 
-    port = LinkPort(admit=lambda topic: True, send=lambda spec, frame, published_ns: None,
-                    send_status=lambda frame: None, send_video=send_video)
-    config = parse_client_config({
-        "server_url": "ws://127.0.0.1:1/", "robot_name": "r1",
-        "publish": [{"topic": "/camera/image_raw", "type": "sensor_msgs/msg/Image",
-                     "video": {"codec": "h264", "keyframe_interval_s": 600.0}}]},
-        source="test.yaml")
-    bridge = Bridge(config, codec, codec.registry.typestore, port,
-                    status_encoder(codec, "r1"), context=context)
-    executor = NodeExecutor(bridge, context)
-    thread = threading.Thread(target=executor.spin, daemon=True)
-    thread.start()
-    assert CAMERA_QOS.depth == 1
-    camera = SimCamera(peer, "/camera/image_raw", 15.0, 320, 240)
-    try:
+    camera_entry = {"topic": "/camera/image_raw", "type": "sensor_msgs/msg/Image",
+                    "video": {"codec": "h264", "keyframe_interval_s": 600.0}}
+    with spun_bridge(context, camera_entry, send_video) as bridge:
+        assert CAMERA_QOS.depth == 1
+        camera = SimCamera(peer, "/camera/image_raw", 15.0, 320, 240)
         yield bridge, camera, sent
-    finally:
-        executor.shutdown()
-        thread.join(5)
-        bridge.destroy_node()
 
 
 def test_keyframe_request_frame_makes_the_next_frame_a_keyframe(

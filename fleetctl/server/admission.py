@@ -40,12 +40,21 @@ class TokenBucket:
         self._tokens = burst
         self._last_s = clock()
 
-    def take(self) -> bool:
-        """Spend one token; return ``False`` (nothing spent) when the bucket is empty."""
+    def level(self) -> float:
+        """The tokens in the bucket now (refilled up to *burst*)."""
         now = self._clock()
         self._tokens = min(self.burst, self._tokens + (now - self._last_s) * self.rate_per_s)
         self._last_s = now
-        if self._tokens < 1.0:
+        return self._tokens
+
+    def spend(self) -> None:
+        """Spend one token, or what is left when less than one is: for a cost that was
+        incurred anyway (a failed login), which must not be refused."""
+        self._tokens = max(0.0, self.level() - 1.0)
+
+    def take(self) -> bool:
+        """Spend one token; return ``False`` (nothing spent) when the bucket is empty."""
+        if self.level() < 1.0:
             return False
         self._tokens -= 1.0
         return True

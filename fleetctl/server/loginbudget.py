@@ -28,6 +28,7 @@ import time
 from collections.abc import Callable
 
 from fleetctl.server.addressgroup import address_group
+from fleetctl.server.admission import TokenBucket
 from fleetctl.server.identity import parse_address
 
 # Why these: an operator's page or CLI with a stale token retries with backoff and stays
@@ -41,16 +42,6 @@ MAX_ADDRESSES = 4096
 LOG_INTERVAL_S = 10.0
 # Addresses without a budget (see above); an IPv4-mapped ::ffff:127.0.0.1 is 127.0.0.1.
 UNLIMITED = frozenset({ipaddress.ip_address("127.0.0.1"), ipaddress.ip_address("::1")})
-
-
-class _Budget:
-    """What one address may still fail: *tokens* as of *at_s* (the bucket)."""
-
-    __slots__ = ("at_s", "tokens")
-
-    def __init__(self, tokens: float, at_s: float) -> None:
-        self.tokens = tokens
-        self.at_s = at_s
 
 
 class FailedLogins:
@@ -77,8 +68,8 @@ class FailedLogins:
         self.interval_s = FAILURE_INTERVAL_S if interval_s is None else interval_s
         self.max_addresses = MAX_ADDRESSES if max_addresses is None else max_addresses
         self._clock = clock
-        # address group -> budget, least recently failing first
-        self._table: dict[str, _Budget] = {}
+        # address group -> what it may still fail, least recently failing first
+        self._table: dict[str, TokenBucket] = {}
         self.failures = 0
         self.refusals = 0
         self.evicted = 0
@@ -95,10 +86,9 @@ class FailedLogins:
             return 0.0
         assert address is not None
         budget = self._table.get(address_group(address))
-        if budget is None:
+        if budget is None or budget.level() >= 1.0:
             return 0.0
-        tokens = self._refill(budget)
-        return 0.0 if tokens >= 1.0 else (1.0 - tokens) * self.interval_s
+        return budget.wait_s()
 
     def refused(self) -> None:
         """Count one token refused unhashed (its address was over its budget)."""
@@ -115,9 +105,9 @@ class FailedLogins:
         key = address_group(address)
         budget = self._table.pop(key, None)  # re-inserted last: least recent stays first
         if budget is None:
-            budget = _Budget(self.burst, self._clock())
+            budget = TokenBucket(1.0 / self.interval_s, self.burst, self._clock)
             self._make_room()
-        budget.tokens = max(0.0, self._refill(budget) - 1.0)
+        budget.spend()
         self._table[key] = budget
 
     def log_line(self, address: str | None, what: str) -> str | None:
@@ -139,20 +129,14 @@ class FailedLogins:
                 f"logins, {refusals} tokens refused unhashed ({self._over()} addresses "
                 "over their budget)")
 
-    def _refill(self, budget: _Budget) -> float:
-        now = self._clock()
-        budget.tokens = min(self.burst, budget.tokens + (now - budget.at_s) / self.interval_s)
-        budget.at_s = now
-        return budget.tokens
-
     def _make_room(self) -> None:
         while len(self._table) >= self.max_addresses:
             oldest = next(iter(self._table))
-            if self._refill(self._table.pop(oldest)) < self.burst:
+            if self._table.pop(oldest).level() < self.burst:
                 self.evicted += 1  # it still held failures: its budget is lost
 
     def _over(self) -> int:
-        return sum(1 for b in self._table.values() if self._refill(b) < 1.0)
+        return sum(1 for b in self._table.values() if b.level() < 1.0)
 
 
 def _unlimited(address: str | None) -> bool:

@@ -85,3 +85,14 @@ def test_the_hosts_own_loopback_address_has_no_budget() -> None:
     assert len(logins) == 0 and logins.failures == 8
     logins.failed("127.0.0.9")  # another loopback address stands for another host in tests
     assert logins.retry_after_s("127.0.0.9") == 100.0
+
+
+def test_a_failure_past_the_budget_still_costs_what_is_left() -> None:
+    # (A GET of /healthz is answered whatever its token: a bad one still counts.)
+    clock = Clock()
+    logins = FailedLogins(burst=1, interval_s=2.0, clock=clock)
+    logins.failed("203.0.113.9")
+    clock.now += 1.0
+    assert logins.retry_after_s("203.0.113.9") == 1.0
+    logins.failed("203.0.113.9")  # half a token left: spent, the wait starts again
+    assert logins.retry_after_s("203.0.113.9") == 2.0

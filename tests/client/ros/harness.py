@@ -113,7 +113,6 @@ def spun_bridge(context: Any, publish: dict[str, Any],
     thread in *context*, whose link drops what it is handed (``send_video`` gets video)."""
     from fleetctl.client.config import parse_client_config
     from fleetctl.client.ros.bridge import Bridge, LinkPort
-    from fleetctl.client.ros.executor import NodeExecutor
     from fleetctl.client.ros.runner import status_encoder
     from fleetctl.wire.codec import Codec
     from fleetctl.wire.registry import TypeRegistry
@@ -125,12 +124,23 @@ def spun_bridge(context: Any, publish: dict[str, Any],
                                   "publish": [publish]}, source="test.yaml")
     bridge = Bridge(config, codec, codec.registry.typestore, port,
                     status_encoder(codec, "r1"), context=context)
-    executor = NodeExecutor(bridge, context)
-    thread = threading.Thread(target=executor.spin, daemon=True)
-    thread.start()
     try:
-        yield bridge
+        with spinning(bridge, context):
+            yield bridge
+    finally:
+        bridge.destroy_node()
+
+
+@contextlib.contextmanager
+def spinning(node: Any, context: Any) -> Any:
+    """The client's executor spinning *node* in a thread (yielded), stopped on exit."""
+    from fleetctl.client.ros.executor import NodeExecutor
+
+    executor = NodeExecutor(node, context)
+    spinner = threading.Thread(target=executor.spin, daemon=True)
+    spinner.start()
+    try:
+        yield executor
     finally:
         executor.shutdown()
-        thread.join(5)
-        bridge.destroy_node()
+        spinner.join(5)

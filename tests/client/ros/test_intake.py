@@ -23,6 +23,7 @@ from fleetctl.client.ros import intake as intake_module  # noqa: E402
 from fleetctl.client.ros.executor import NodeExecutor  # noqa: E402
 from fleetctl.client.ros.intake import LoopIntake, LoopServed, Wakeups, load_wakeups  # noqa: E402
 from fleetctl.client.ros.qos import AdaptiveSubscription  # noqa: E402
+from tests.client.ros.harness import spinning  # noqa: E402
 from tests.support import wait_until  # noqa: E402
 
 pytestmark = pytest.mark.ros
@@ -60,14 +61,8 @@ async def nodes() -> AsyncIterator[Nodes]:
 @contextlib.contextmanager
 def executor_spinning(nodes: Nodes) -> Iterator[NodeExecutor]:
     """The client's executor spinning the node under test in a thread, stopped on exit."""
-    executor = NodeExecutor(nodes.node, nodes.context)
-    spinner = threading.Thread(target=executor.spin, daemon=True)
-    spinner.start()
-    try:
+    with spinning(nodes.node, nodes.context) as executor:
         yield executor
-    finally:
-        executor.shutdown()
-        spinner.join(5)
 
 
 def wakeups() -> Wakeups:

@@ -62,13 +62,14 @@ from dataclasses import dataclass
 from typing import Any, NamedTuple
 
 from websockets.asyncio.client import ClientConnection, connect
-from websockets.exceptions import ConnectionClosed, InvalidHandshake, InvalidURI
+from websockets.exceptions import ConnectionClosed, InvalidHandshake, InvalidStatus, InvalidURI
 from websockets.uri import parse_uri
 
 from fleetctl.batched_connection import BatchedWritesConnection
 from fleetctl.client.config import ClientConfig
 from fleetctl.client.dialer import DialTimeout, dial_first
 from fleetctl.client.linktuning import LinkTuning
+from fleetctl.client.loginthrottle import EXPLANATION, LoginThrottled, from_close, from_response
 from fleetctl.client.memory import tune_malloc
 from fleetctl.client.outagelog import OutageLog, Say, sampled
 from fleetctl.client.receiver import Receiver
@@ -302,6 +303,14 @@ class RobotLink:
         self._takeovers = 0  # sessions in a row another client of this robot took over
         self._ended_by_takeover = False  # the last session was closed with 4409
         self._refused = OutageLog(self.tuning.bind_reminder_interval_s)  # 4401/4403 closes
+        # Tokens refused unhashed, too many failed logins from this address (429 at the
+        # upgrade, 4429 login_throttled): explained once a spell, which a welcome ends.
+        self._throttled = OutageLog(self.tuning.bind_reminder_interval_s)
+        self._throttle: LoginThrottled | None = None  # the last, until a welcome
+        self._throttled_at_s: float | None = None  # when, until the next attempt starts
+        self._throttle_waited_s: float | None = None  # from the last to the next attempt
+        self._session_throttle: LoginThrottled | None = None  # the session ended so
+        self._last_error_code: str | None = None  # of this connection's last error frame
 
     # -- the API used by the ROS node -----------------------------------------------------
 
@@ -459,7 +468,11 @@ class RobotLink:
                 # After a dead path the dialer paces itself (and a socket may be ready):
                 # a backoff would only delay the first SYN after the link returns.
                 if not self._stop.is_set() and not ended.path_dead:
-                    await self._wait_stop(self._backoff(attempt))
+                    delay = self._backoff(attempt)
+                    throttle, self._session_throttle = self._session_throttle, None
+                    if throttle is not None:
+                        delay = self._throttled_wait_s(throttle, delay)
+                    await self._wait_stop(delay)
         finally:
             if ready is not None:
                 ready.sock.close()  # stopped before the upgrade ran on it
@@ -503,6 +516,10 @@ class RobotLink:
         snap["dead_paths"] = self._counters["dead_paths"]
         snap["stale_paths"] = self._counters["stale_paths"]
         snap["connect_failures"] = self._counters["connect_failures"]
+        snap["login_throttled"] = self._counters["login_throttled"]
+        snap["login_retry_after_s"] = (None if self._throttle is None
+                                       else self._throttle.retry_after_s)
+        snap["login_throttled_waited_s"] = self._throttle_waited_s
         snap["failovers"] = self._counters["failovers"]
         snap["server_url"] = self.url
         snap["session_resumes"] = self._counters["session_resumes"]
@@ -515,6 +532,13 @@ class RobotLink:
         snap["received"] = self._receiver.stats()
         snap["standby"] = None if self._standby is None else self._standby.stats()
         return snap
+
+    @property
+    def login_throttle(self) -> LoginThrottled | None:
+        """The server's last refusal of this client's token for too many failed logins
+        from its address (429, 4429 ``login_throttled``); ``None`` when there was none
+        since the last authenticated connection."""
+        return self._throttle
 
     @property
     def last_close(self) -> str | None:
@@ -691,6 +715,9 @@ class RobotLink:
 
     async def _connect(self, attempt: int,
                        ready: Dialed | None = None) -> LinkConnection | None:
+        if self._throttled_at_s is not None:  # what the last refusal made us wait
+            self._throttle_waited_s = self._clock() - self._throttled_at_s
+            self._throttled_at_s = None
         connecting = asyncio.ensure_future(self._open(ready))
         stopper = asyncio.ensure_future(self._stop.wait())
         # stop() must not wait for a connection attempt to time out.
@@ -709,7 +736,14 @@ class RobotLink:
             self._counters["connect_failures"] += 1
             # Silence (no SYN-ACK, no refusal): the dialer paced its SYNs; go on at once.
             delay = 0.0 if isinstance(exc, DialTimeout) else self._backoff(attempt + 1)
-            if isinstance(exc, OSError) and exc.errno == errno.EADDRNOTAVAIL:
+            throttle = (from_response(exc.response.status_code, exc.response.headers,
+                                      time.time())
+                        if isinstance(exc, InvalidStatus) else None)
+            if throttle is not None:  # the server answered: reachable, and bound
+                self._log_bound_again()
+                self._log_reachable_again()
+                delay = self._throttled_wait_s(throttle, delay)
+            elif isinstance(exc, OSError) and exc.errno == errno.EADDRNOTAVAIL:
                 self._log_unbound(delay)
             else:
                 self._log_bound_again()
@@ -748,6 +782,51 @@ class RobotLink:
         if ended is not None:
             logger.info("reached %s after %.0f s (%d attempts failed)", self.url, *ended)
 
+    def _throttled_wait_s(self, throttle: LoginThrottled, backoff_s: float) -> float:
+        """The server refused this client's token unhashed: too many failed logins from
+        its address. Count and log it; return the wait before the next attempt: at least
+        the server's hint times U(1, 1.2) (robots behind one NAT do not come back in
+        lockstep) and at least *backoff_s* (the normal backoff, alone when there is no
+        hint). Sooner would only be refused again: the relay's budget refills one
+        failure at a time (2 s), and the hint says when."""
+        self._counters["login_throttled"] += 1
+        self._throttle = throttle
+        self._throttled_at_s = self._clock()
+        delay = backoff_s
+        if throttle.retry_after_s is not None:
+            delay = max(delay, throttle.retry_after_s * self._rng.uniform(1.0, 1.2))
+        self._log_throttled(throttle, delay)
+        return delay
+
+    def _log_throttled(self, throttle: LoginThrottled, delay_s: float) -> None:
+        """Explain a throttled spell once (the server is reachable; what to check), then
+        remind every ``bind_reminder_interval_s``; the attempts in between go to DEBUG.
+        The token is never logged."""
+        outage = self._throttled
+        now = self._clock()
+        hint = ("the server's Retry-After" if throttle.where == "upgrade"
+                else "the server's close reason")
+        if throttle.retry_after_s is None:
+            hint = "the server gave no usable hint: the normal backoff"
+        say = outage.failed(now, self.url)
+        if say is Say.EXPLAIN:
+            logger.error(
+                "%s is reachable but refuses this robot's token for now (%s, %s): %s; check "
+                "token_file (%s's token from fleetctl add-robot; a wrong one also gets "
+                "4401 closes) and the other clients behind this robot's address; next "
+                "try in %.1f s (%s), a reminder every %g s", self.url,
+                "HTTP 429" if throttle.where == "upgrade" else "close 4429",
+                throttle.retry_text(), EXPLANATION, self.config.robot_name, delay_s, hint,
+                self.tuning.bind_reminder_interval_s)
+        elif say is Say.REMIND:
+            assert outage.since_s is not None
+            logger.error("%s still refuses this robot's token after %.0f s (%d attempts "
+                         "refused): %s; next try in %.1f s", self.url, now - outage.since_s,
+                         outage.attempts, EXPLANATION, delay_s)
+        else:
+            logger.debug("%s refused the token unhashed (too many failed logins from this "
+                         "address); next try in %.2f s", self.url, delay_s)
+
     def _log_unbound(self, delay_s: float) -> None:
         """Log a connect that failed with EADDRNOTAVAIL: ``bind_address`` is on no
         interface, i.e. the WireGuard tunnel is down. Explain once per outage, then remind
@@ -783,6 +862,7 @@ class RobotLink:
         self._subscribed.clear()
         self._identities = []
         self._acked_any = False
+        self._last_error_code = None
         activated_s, self._activated_s = self._activated_s, None
         activating = activated_s is not None
         if not activating:
@@ -900,7 +980,11 @@ class RobotLink:
             self._last_close = (f"{rcvd.code} {rcvd.reason}".strip() if rcvd is not None
                                 else "no close frame")
             self._ended_by_takeover = rcvd is not None and rcvd.code == 4409
-            if rcvd is not None and rcvd.code in (4401, 4403):
+            throttle = (None if rcvd is None
+                        else from_close(rcvd.code, rcvd.reason, self._last_error_code))
+            if throttle is not None:  # logged with the wait, when run() knows it
+                self._session_throttle = throttle
+            elif rcvd is not None and rcvd.code in (4401, 4403):
                 self._log_refused(rcvd.code)
             else:
                 logger.warning("connection to %s closed: %s", self.url, self._last_close)
@@ -1141,6 +1225,7 @@ class RobotLink:
             self._identities = [str(i) for i in event.get("identities", [])]
             logger.info("authenticated as %s", ", ".join(self._identities) or "(nobody)")
             self._refused.ended(self._clock())  # a later refusal is explained again
+            self._end_throttled()
         elif kind in ("subscribed", "unsubscribed"):
             pattern = str(event.get("topic_regex"))
             if kind == "subscribed":
@@ -1150,11 +1235,12 @@ class RobotLink:
         elif kind == "error":
             code = str(event.get("code"))
             self._server_errors[code] += 1
+            self._last_error_code = code
             topic = event.get("topic")
             if (code == "unauthorized_send" and isinstance(topic, str)
                     and len(self._refused_topics) < _MAX_REFUSED_TOPICS):
                 self._refused_topics.add(topic)
-            if code == "bad_token":  # the 4401 close that follows says it, with a hint
+            if code in ("bad_token", "login_throttled"):  # the close that follows says it
                 logger.debug("server error bad_token: %s", event.get("message"))
             elif isinstance(topic, str):
                 logger.warning("server error %s on %s: %s", code, topic, event.get("message"))
@@ -1163,6 +1249,15 @@ class RobotLink:
         else:
             logger.debug("server: %.200s", text)
         return []
+
+    def _end_throttled(self) -> None:
+        """Authenticated: a throttled spell, if one ran, is over."""
+        self._throttle = None
+        ended = self._throttled.ended(self._clock())
+        if ended is not None:
+            logger.info("%s takes this robot's token again after %.0f s (%d attempts "
+                        "refused for too many failed logins from this address)", self.url,
+                        *ended)
 
     def _on_session(self, event: dict[str, Any]) -> list[str]:
         frames = event.get("mailbox_frames", 0)

@@ -20,6 +20,7 @@ class ExitCode(IntEnum):
     CONFLICT = 4  # a name, address or file already exists
     ENVIRONMENT = 5  # a tool or capability the command needs is missing
     RUNTIME = 6  # a component failed while running
+    RETRY_LATER = 7  # the server refuses for now and said when to come back (HTTP 429)
 
 
 class FleetError(Exception):
@@ -49,3 +50,19 @@ class EnvironmentMissing(FleetError):
     """A tool, kernel feature or package the command needs is not available."""
 
     exit_code = ExitCode.ENVIRONMENT
+
+
+class RetryLater(FleetError):
+    """The server refused for now and asked to come back later (today: too many failed
+    logins from this address, docs/security.md); nothing is wrong with the request
+    itself, unless its token is.
+
+    Attributes:
+        retry_after_s: Seconds the server asked to wait, or ``None`` when it did not say.
+    """
+
+    exit_code = ExitCode.RETRY_LATER
+
+    def __init__(self, message: str, retry_after_s: float | None) -> None:
+        super().__init__(message)
+        self.retry_after_s = retry_after_s

@@ -21,6 +21,7 @@ import json
 import os
 import ssl
 import tempfile
+import time
 import urllib.error
 import urllib.parse
 import urllib.request
@@ -31,7 +32,9 @@ from typing import Any
 import typer
 
 from fleetctl.cli.output import OutputFormat, emit, output_option, table
+from fleetctl.cli.throttled import throttled_error
 from fleetctl.cli.tokenfile import read_token_file
+from fleetctl.client import loginthrottle
 from fleetctl.errors import ConfigError, ConflictError, ExitCode, FleetError
 from fleetctl.server.config import ServerConfig, load_server_config
 from fleetctl.server.recording import files
@@ -135,6 +138,7 @@ class Remote:
         """``GET path``; returns status, headers and body.
 
         Raises:
+            RetryLater: 429: too many failed logins from this address (exit 7).
             FleetError: The server cannot be reached, or answered 401/403/404/5xx.
         """
         base = self.url.rstrip("/")
@@ -168,6 +172,9 @@ class Remote:
             with urllib.request.urlopen(request, timeout=30, context=context) as resp:
                 return resp.status, dict(resp.headers), resp.read()
         except urllib.error.HTTPError as exc:
+            throttled = loginthrottle.from_response(exc.code, exc.headers, time.time())
+            if throttled is not None:
+                raise throttled_error(f"{self.url}: GET {path}", throttled) from None
             detail = exc.read().decode("utf-8", "replace").strip()
             if exc.code == 401 and self.token is None:
                 detail += " (give it with --token-file FILE)"

@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import logging
 import math
 import re
 import time
@@ -28,9 +29,10 @@ from websockets.exceptions import InvalidURI
 from websockets.uri import parse_uri
 
 from fleetctl.cli.output import OutputFormat, emit, output_option
+from fleetctl.cli.throttled import throttled_error
 from fleetctl.cli.tokenfile import read_token_file
 from fleetctl.client.config import ClientConfig
-from fleetctl.client.transport import RobotLink
+from fleetctl.client.transport import REFUSAL_RECORD, RobotLink
 from fleetctl.errors import ConfigError, ExitCode, FleetError
 from fleetctl.server.recording import files
 from fleetctl.wire.codec import Codec
@@ -187,6 +189,34 @@ async def replay(path: Path, options: ReplayOptions) -> ReplayResult:
     config = ClientConfig(server_url=options.server_url, robot_name=options.robot_name,
                           token=options.token)
     link = RobotLink(config, on_frame=lambda _frame: None)
+    with _refusals_reported_here():
+        return await _replay_on(link, path, options)
+
+
+@contextlib.contextmanager
+def _refusals_reported_here() -> Iterator[None]:
+    """While replaying, the link's explanations of a refused token are not printed: the
+    replay stops at once with its own one-line error (:func:`_check_refused`), where the
+    link's would add a second, saying it keeps retrying."""
+    link_log = logging.getLogger("fleetctl.client.link")
+    refusals = _DropRefusals()
+    link_log.addFilter(refusals)
+    try:
+        yield
+    finally:
+        link_log.removeFilter(refusals)
+
+
+class _DropRefusals(logging.Filter):
+    """Drops the log records the link marks :data:`REFUSAL_RECORD`."""
+
+    def filter(self, record: logging.LogRecord) -> bool:
+        """``False`` for a refusal's explanation."""
+        return not getattr(record, REFUSAL_RECORD, False)
+
+
+async def _replay_on(link: RobotLink, path: Path, options: ReplayOptions) -> ReplayResult:
+    """:func:`replay` with its *link* made."""
     runner = asyncio.create_task(link.run())
     result = ReplayResult(path)
     started = time.monotonic()
@@ -224,7 +254,10 @@ def _nothing_to_replay(path: Path, result: ReplayResult) -> str:
 
 def _check_refused(link: RobotLink) -> None:
     """A refused token is final for a replay (a robot would wait for the auth map to
-    change; a person at a terminal wants to know now)."""
+    change; a person at a terminal wants to know now), and so is one refused for now
+    (too many failed logins from this address: exit 7, with the server's wait)."""
+    if link.login_throttle is not None:
+        raise throttled_error(f"replay: {link.config.server_url}", link.login_throttle)
     close = link.last_close or ""
     if close.startswith(("4401", "4403")):
         raise FleetError(f"replay: the server {link.config.server_url} refused this "

@@ -84,6 +84,11 @@ from fleetctl.wire.control import encode_subscription
 logger = logging.getLogger("fleetctl.client.link")
 
 SESSION_HEADER = "X-Fleetctl-Session"  # fleetctl.server.sessions.SESSION_HEADER
+# Set (True) on the log records that explain a refused token (4401, 4403, too many failed
+# logins): a caller that reports those itself (``fleetctl replay``, which stops at once)
+# filters them out rather than print the link's "retrying" beside its own error.
+REFUSAL_RECORD = "fleetctl_refusal"
+_REFUSAL = {REFUSAL_RECORD: True}
 PATH_RTT_DIALS = 5  # the dials whose SYN round trips give the path's (RobotLink._path_rtt_s)
 _MAX_REFUSED_TOPICS = 1024  # topics kept of the server's unauthorized_send errors
 
@@ -817,12 +822,12 @@ class RobotLink:
                 "try in %.1f s (%s), a reminder every %g s", self.url,
                 "HTTP 429" if throttle.where == "upgrade" else "close 4429",
                 throttle.retry_text(), EXPLANATION, self.config.robot_name, delay_s, hint,
-                self.tuning.bind_reminder_interval_s)
+                self.tuning.bind_reminder_interval_s, extra=_REFUSAL)
         elif say is Say.REMIND:
             assert outage.since_s is not None
             logger.error("%s still refuses this robot's token after %.0f s (%d attempts "
                          "refused): %s; next try in %.1f s", self.url, now - outage.since_s,
-                         outage.attempts, EXPLANATION, delay_s)
+                         outage.attempts, EXPLANATION, delay_s, extra=_REFUSAL)
         else:
             logger.debug("%s refused the token unhashed (too many failed logins from this "
                          "address); next try in %.2f s", self.url, delay_s)
@@ -972,7 +977,7 @@ class RobotLink:
         logger.error("connection to %s closed: %s: %s; retrying every %g s or less "
                      "(the server reloads its auth map live), a reminder every %g s",
                      self.url, self._last_close, hint, self.config.limits.reconnect_max_s,
-                     self.tuning.bind_reminder_interval_s)
+                     self.tuning.bind_reminder_interval_s, extra=_REFUSAL)
 
     def _log_session_end(self, exc: BaseException | None) -> None:
         if isinstance(exc, ConnectionClosed):

@@ -2,6 +2,7 @@
 
 import { Connection, layoutsOf } from "./connection.js";
 import { LayoutLoader } from "./fb/layout.js";
+import { throttledText } from "./loginthrottle.js";
 import { GOAL, INITIAL, goalMessage, initialPoseMessage } from "./commands.js";
 import { PANELS, reEscape, wantedRegexes } from "./panels.js";
 import { CameraView } from "./views/camera.js";
@@ -72,6 +73,7 @@ class App {
       connecting: `Connecting to ${this.conn?.url ?? this.config.server_url} …`,
       disconnected: `Disconnected from the fleet server (${detail}). Reconnecting in about ${(retryMs / 1000).toFixed(1)} s …`,
       refused: `Signed out: ${detail}. Check your token and sign in again.`,
+      throttled: throttledText(retryMs),
       closed: "Connection closed.",
     }[state] ?? state;
     if (state === "refused") {

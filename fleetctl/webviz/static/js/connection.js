@@ -13,6 +13,7 @@ import { Builder } from "./fb/builder.js";
 import { readMetadata, Reader, DecodeError } from "./fb/reader.js";
 import { FRAGMENT_TYPE, Reassembler } from "./fragments.js";
 import { LinkHealth } from "./health.js";
+import { probeThrottle, throttledClose } from "./loginthrottle.js";
 import { Rules } from "./rules.js";
 
 export const SUBSCRIPTION_TYPE = "amrl_msgs/msg/RobofleetSubscription";
@@ -33,8 +34,11 @@ export class Connection extends EventTarget {
    *          WebSocketImpl?: typeof WebSocket}} opts
    * failoverUrls: other relay replicas' WebSocket URLs; after a connection closes (or
    * fails to open) the next attempt goes to the next URL in [url, ...failoverUrls].
+   * origin, fetchImpl: the page's origin and fetch, to ask whether a socket refused before
+   * it opened was the relay's failed-login throttle (loginthrottle.js; tests replace them).
    */
-  constructor({ url, failoverUrls = [], token, loader, WebSocketImpl = globalThis.WebSocket }) {
+  constructor({ url, failoverUrls = [], token, loader, WebSocketImpl = globalThis.WebSocket,
+                origin = globalThis.location?.origin, fetchImpl = globalThis.fetch?.bind(globalThis) }) {
     super();
     this.urls = [url, ...failoverUrls.filter((u) => u !== url)];
     this.urlIndex = 0;
@@ -42,8 +46,15 @@ export class Connection extends EventTarget {
     this.token = token;
     this.loader = loader;
     this.WebSocketImpl = WebSocketImpl;
+    this.origin = origin;
+    this.fetchImpl = fetchImpl;
     this.ws = null;
-    this.state = "idle"; // idle | connecting | open | closed | refused
+    this.state = "idle"; // idle | connecting | open | disconnected | throttled | closed | refused
+    // The relay refuses this address's tokens for now (too many failed logins): its hint
+    // {retryAfterS}, kept until a socket opens; null: not throttled.
+    this.throttle = null;
+    this.opened = false; // the current socket opened
+    this.lastErrorCode = null; // of the current socket's last error frame
     this.rules = new Rules();
     this.identities = [];
     this.wanted = new Set();
@@ -74,9 +85,9 @@ export class Connection extends EventTarget {
     this.ws?.close(1000, "page closed");
   }
 
-  setStatus(state, detail = "") {
+  setStatus(state, detail = "", retryMs = this.backoffMs) {
     this.state = state;
-    this.dispatchEvent(new CustomEvent("status", { detail: { state, detail, retryMs: this.backoffMs } }));
+    this.dispatchEvent(new CustomEvent("status", { detail: { state, detail, retryMs } }));
   }
 
   open() {
@@ -90,7 +101,11 @@ export class Connection extends EventTarget {
     }
     ws.binaryType = "arraybuffer";
     this.ws = ws;
+    this.opened = false;
+    this.lastErrorCode = null;
     ws.onopen = () => {
+      this.opened = true;
+      this.throttle = null; // the upgrade went through: the address is within its budget
       if (this.token) ws.send(JSON.stringify({ token: this.token }));
     };
     ws.onmessage = (ev) => (typeof ev.data === "string" ? this.onText(ev.data) : this.onBinary(ev.data));
@@ -102,8 +117,33 @@ export class Connection extends EventTarget {
     this.active.clear();
     if (this.stopped) return this.setStatus("closed");
     if (FATAL_CLOSE[ev.code]) return this.setStatus("refused", `${FATAL_CLOSE[ev.code]} (close ${ev.code})`);
-    const wait = this.backoffMs * (0.75 + Math.random() * 0.5); // jitter: robots and pages do not reconnect in lockstep
-    this.setStatus("disconnected", `close ${ev.code}${ev.reason ? `: ${ev.reason}` : ""}`);
+    const throttle = throttledClose(ev, this.lastErrorCode);
+    // Closed before it opened: the relay answers an upgrade from an address over its
+    // failed-login budget with a 429 the page cannot see; ask, when it can (loginthrottle.js).
+    const asked = throttle || this.opened ? null : probeThrottle(this.url, this.token, { origin: this.origin, fetchImpl: this.fetchImpl });
+    if (!asked) return this.retry(ev, throttle);
+    asked.then((answer) => {
+      if (!this.stopped && !this.ws) this.retry(ev, answer);
+    });
+  }
+
+  /**
+   * Schedule the next attempt after a close.
+   * @param {{code: number, reason: string}} ev the close
+   * @param {{retryAfterS: number|null}|false|null} throttle throttled (with the relay's
+   *   hint), false: not, null: not known (a throttle seen before is kept)
+   */
+  retry(ev, throttle) {
+    if (throttle) this.throttle = throttle;
+    else if (throttle === false) this.throttle = null;
+    let wait = this.backoffMs * (0.75 + Math.random() * 0.5); // jitter: robots and pages do not reconnect in lockstep
+    const hintS = this.throttle?.retryAfterS;
+    // Sooner would only be refused again; up to 20 % more spreads the pages and robots
+    // behind one NAT. No usable hint: the backoff alone.
+    if (hintS != null) wait = Math.max(wait, hintS * 1000 * (1 + Math.random() * 0.2));
+    const why = `close ${ev.code}${ev.reason ? `: ${ev.reason}` : ""}`;
+    if (this.throttle) this.setStatus("throttled", why, wait);
+    else this.setStatus("disconnected", why);
     // Replicas: the next attempt tries the next one (a dead replica refuses at once, so a
     // live one is reached within one backoff step); the backoff grows only after a full
     // round of the list.
@@ -133,6 +173,7 @@ export class Connection extends EventTarget {
         this.dispatchEvent(new CustomEvent("robots", { detail: msg.robots ?? [] }));
         break;
       case "error":
+        this.lastErrorCode = msg.code ?? null; // login_throttled comes before its 4429
         this.logError(msg);
         break;
       case "subscribed":

@@ -30,6 +30,10 @@
   ones are due within a period and would wait behind them;
 - receives frames, reassembles fragments, drops duplicate no_drop frames (a resend after a
   reconnect, see below) and hands complete frames to ``on_frame``.
+- a token the server refuses for too many failed logins from this address (429 with
+  ``Retry-After`` at the upgrade, close 4429 ``login_throttled``;
+  :mod:`.loginthrottle`) is not "cannot connect": explained once per spell, reminded,
+  counted, and the next attempt waits at least the server's hint.
 
 Threading: everything runs on one asyncio loop, except :meth:`RobotLink.admit` (any thread),
 :meth:`RobotLink.offer_threadsafe` (any thread; hops onto the loop from others) and

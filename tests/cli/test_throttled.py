@@ -7,7 +7,7 @@ from __future__ import annotations
 
 import asyncio
 import sys
-from collections.abc import Callable, Iterator
+from collections.abc import Callable
 from pathlib import Path
 
 import pytest
@@ -25,13 +25,12 @@ WRONG = "not-alices-token"
 
 
 @pytest.fixture(autouse=True)
-def budgeted_loopback(monkeypatch: pytest.MonkeyPatch) -> Iterator[None]:
+def budgeted_loopback(monkeypatch: pytest.MonkeyPatch) -> None:
     """The CLI connects from 127.0.0.1, which has no budget (docs/security.md): here it
     has one, of 3 failures, then one a minute (Retry-After 60)."""
     monkeypatch.setattr(loginbudget, "UNLIMITED", frozenset())
     monkeypatch.setattr(loginbudget, "FAILURES_BURST", 3)
     monkeypatch.setattr(loginbudget, "FAILURE_INTERVAL_S", 60.0)
-    yield
 
 
 def token_file(tmp_path: Path, token: str) -> str:

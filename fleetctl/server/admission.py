@@ -52,6 +52,12 @@ class TokenBucket:
         incurred anyway (a failed login), which must not be refused."""
         self._tokens = max(0.0, self.level() - 1.0)
 
+    def charge(self, tokens: float) -> None:
+        """Spend *tokens* at once, going below empty (down to ``-burst``) when fewer are
+        there: for work already done whose size was known only then (a subscription's
+        first frames); :meth:`take` then fails until the refill has paid it back."""
+        self._tokens = max(-self.burst, self.level() - tokens)
+
     def take(self) -> bool:
         """Spend one token; return ``False`` (nothing spent) when the bucket is empty."""
         if self.level() < 1.0:

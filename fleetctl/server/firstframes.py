@@ -8,6 +8,12 @@
   checked (the asker may receive the topic) and forwarded to the video topic's publisher;
   a new subscription to a known video topic makes the server ask its publisher itself.
 
+What a new subscription costs is bounded: the stores are indexed
+(:class:`~fleetctl.server.topicindex.TopicIndex`), so a prefix pattern or a literal topic
+is matched only against the stored topics it may match, and a pattern that must look at
+every stored topic is charged to the connection's control request rate in proportion to
+the work (:data:`WORK_PER_CONTROL_REQUEST`).
+
 Functions over a :class:`~fleetctl.server.relay.RelayCore`, like :mod:`.reauth`, so the
 relay's hot path stays in one short module.
 """
@@ -39,6 +45,13 @@ log = logging.getLogger("fleetctl.server")
 _MAX_REFUSED_MEMO = 256
 # Video topics of other replicas' publishers remembered (the oldest is forgotten).
 MAX_REMOTE_VIDEO_TOPICS = 4096
+# Work (about one regex call, 2-4 us of the event loop, see Matched) a new subscription
+# may cost within its one control request; each further such amount costs one more. Why:
+# a pattern no index can narrow (".*") is matched against every stored topic, 4,096 per
+# store: 14.7 ms with a full latched store, and a token churning such patterns at the
+# control rate (20/s) cost the loop 0.3-0.6 s a second. Charged, one identity set's
+# churn costs the loop at most ~256 units per control request, ~20 ms a second.
+WORK_PER_CONTROL_REQUEST = 256
 
 
 def sender_key(peer: Peer) -> SenderKey:
@@ -64,30 +77,46 @@ def keep_latched(core: RelayCore, peer: Peer, topic: str, frame: bytes, root: in
     core.latched.put(sender_key(peer), topic, frame, fragment)
 
 
-def on_new_subscription(core: RelayCore, peer: Peer, pattern: str) -> None:
+def on_new_subscription(core: RelayCore, peer: Peer, pattern: str) -> int:
     """*peer* just added *pattern*: queue the stored latched messages of the topics it
     starts receiving through it, and ask the publishers of its new video topics for a
-    keyframe."""
-    store = core.latched
+    keyframe.
+
+    Only the stored topics *pattern* may match are looked at (:class:`TopicIndex`): a
+    prefix pattern or a literal topic costs what it finds. A pattern RE2 cannot bound
+    (``.*``, ``.*scan``) is matched against every stored topic, up to 4,096 per store.
+
+    Returns:
+        Control requests the subscription costs beyond its own: one per
+        :data:`WORK_PER_CONTROL_REQUEST` units of work (:class:`Matched`), which the
+        relay charges to the connection's control request rate.
+    """
+    subs, store, router = core.subs, core.latched, core.keyframes
+    work = 0
     if len(store):
-        for topic in core.subs.newly_matched(peer, pattern, store.topics()):
+        found = subs.newly_matched(peer, pattern, store.candidates)
+        work += found.work
+        for topic in found.topics:
             for frames in store.messages(topic):
                 if peer.outbound.push_latched(topic, frames):
                     core.metrics.latched_delivered += len(frames)
-    router = core.keyframes
-    for topic in core.subs.newly_matched(peer, pattern, router.video_topics()):
+    found = subs.newly_matched(peer, pattern, router.candidates)
+    work += found.work
+    for topic in found.topics:
         publisher = router.publisher(topic)
         if publisher is None or publisher is peer:
             continue
         if router.route(topic) is not None:
-            publisher.outbound.push(KEYFRAME_REQUESTS_TOPIC, encode_keyframe_request(topic),
-                                    True)
+            publisher.outbound.push(KEYFRAME_REQUESTS_TOPIC, router.request_frame(topic), True)
             core.metrics.count_keyframe_request("auto")
     if core.remote_video:  # replicas: publishers elsewhere route it (rate limit there)
-        for topic in core.subs.newly_matched(peer, pattern, list(core.remote_video)):
+        found = subs.newly_matched(peer, pattern, core.remote_video.candidates)
+        work += found.work
+        for topic in found.topics:
             if router.publisher(topic) is None and core.fanout.forward_keyframe_request(
                     encode_keyframe_request(topic)):
                 core.metrics.count_keyframe_request("auto_to_replicas")
+    return work // WORK_PER_CONTROL_REQUEST
 
 
 def on_remote_video_topic(core: RelayCore, topic: str) -> None:
@@ -96,8 +125,8 @@ def on_remote_video_topic(core: RelayCore, topic: str) -> None:
     because a local viewer just subscribed (interest follows subscriptions), and that
     viewer cannot decode before a keyframe."""
     if len(core.remote_video) >= MAX_REMOTE_VIDEO_TOPICS:
-        del core.remote_video[next(iter(core.remote_video))]
-    core.remote_video[topic] = None
+        core.remote_video.discard(core.remote_video.oldest())
+    core.remote_video.add(topic)
     if core.fanout.forward_keyframe_request(encode_keyframe_request(topic)):
         core.metrics.count_keyframe_request("auto_to_replicas")
 

@@ -19,6 +19,9 @@ from collections.abc import Callable
 from typing import Generic, TypeVar
 
 from fleetctl.server.metrics import Metrics
+from fleetctl.server.regex import FullMatch
+from fleetctl.server.topicindex import TopicIndex
+from fleetctl.wire.control import encode_keyframe_request
 
 VIDEO_TYPE = "foxglove_msgs/msg/CompressedVideo"
 
@@ -45,7 +48,11 @@ class KeyframeRouter(Generic[C]):
         self._clock = clock
         self._metrics = metrics
         self._publisher: dict[str, C] = {}  # insertion order: oldest first
+        self._index = TopicIndex()  # the same topics in the same order, sorted too
         self._last_forward_s: dict[str, float] = {}
+        # The request the server itself sends for a topic (request_frame), encoded once:
+        # a new ".*" subscription beside 4,096 video topics spent 100 ms encoding them.
+        self._requests: dict[str, bytes] = {}
 
     def note_publisher(self, topic: str, conn: C) -> None:
         """*conn* just published a video frame on *topic* (the relay's hot path)."""
@@ -53,16 +60,20 @@ class KeyframeRouter(Generic[C]):
             return
         self._publisher.pop(topic, None)
         self._publisher[topic] = conn
+        self._index.add(topic)  # (moved last, as in _publisher)
         if len(self._publisher) > self.max_topics:
-            oldest = next(iter(self._publisher))
-            del self._publisher[oldest]
-            self._last_forward_s.pop(oldest, None)
+            self._drop(next(iter(self._publisher)))
+
+    def _drop(self, topic: str) -> None:
+        del self._publisher[topic]
+        self._index.discard(topic)
+        self._last_forward_s.pop(topic, None)
+        self._requests.pop(topic, None)
 
     def forget(self, conn: C) -> None:
         """A connection closed: it publishes nothing any more."""
         for topic in [t for t, c in self._publisher.items() if c is conn]:
-            del self._publisher[topic]
-            self._last_forward_s.pop(topic, None)
+            self._drop(topic)
 
     def publisher(self, topic: str) -> C | None:
         """The connection that last published *topic* as video, or ``None``."""
@@ -71,6 +82,21 @@ class KeyframeRouter(Generic[C]):
     def video_topics(self) -> list[str]:
         """Topics with a known video publisher."""
         return list(self._publisher)
+
+    def candidates(self, pattern: FullMatch) -> list[str]:
+        """Video topics that *pattern* may match (a superset of those it matches; see
+        :meth:`TopicIndex.candidates`), in :meth:`video_topics` order."""
+        return self._index.candidates(pattern)
+
+    def request_frame(self, topic: str) -> bytes:
+        """The keyframe request the server sends for video *topic* on its own (the same
+        bytes every time: no stamp, no sequence number); kept while the topic is."""
+        frame = self._requests.get(topic)
+        if frame is None:
+            frame = encode_keyframe_request(topic)
+            if topic in self._publisher:  # bounded by the topics remembered
+                self._requests[topic] = frame
+        return frame
 
     def route(self, topic: str) -> C | None:
         """Where a keyframe request for *topic* goes now, or ``None`` (counted as

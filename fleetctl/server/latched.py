@@ -39,6 +39,8 @@ from dataclasses import dataclass, field
 from typing import Protocol
 
 from fleetctl.server.metrics import Metrics
+from fleetctl.server.regex import FullMatch
+from fleetctl.server.topicindex import TopicIndex
 from fleetctl.wire.fragments import FragmentHeader
 
 SenderKey = tuple[str, ...]
@@ -113,9 +115,11 @@ class LatchedStore:
         self._metrics = metrics
         self._entries: OrderedDict[tuple[SenderKey, str], _Entry] = OrderedDict()
         self._nbytes = 0
-        # Topic -> senders with a stored message on it (what a subscription is matched
-        # against, and the index of messages()).
+        # Topic -> senders with a stored message on it (the index of messages()).
         self._topics: dict[str, dict[SenderKey, None]] = {}
+        # The same topics, in the same order, sorted too: what a new subscription is
+        # matched against (candidates()).
+        self._index = TopicIndex()
         self._stored = 0
         self.listener: LatchedListener | None = None
 
@@ -131,6 +135,11 @@ class LatchedStore:
     def topics(self) -> list[str]:
         """Topics with at least one stored message."""
         return list(self._topics)
+
+    def candidates(self, pattern: FullMatch) -> list[str]:
+        """Topics with a stored message that *pattern* may match (a superset of those it
+        matches; see :meth:`TopicIndex.candidates`), in :meth:`topics` order."""
+        return self._index.candidates(pattern)
 
     def messages(self, topic: str) -> list[list[bytes]]:
         """The stored messages of *topic* (one per sender, in the order they were first
@@ -226,7 +235,11 @@ class LatchedStore:
     def _store(self, entry: _Entry, key: tuple[SenderKey, str], message: _Message) -> None:
         if entry.stored is None:
             sender, topic = key
-            self._topics.setdefault(topic, {})[sender] = None
+            senders = self._topics.get(topic)
+            if senders is None:
+                senders = self._topics[topic] = {}
+                self._index.add(topic)
+            senders[sender] = None
             self._stored += 1
         entry.stored = message
         if message.remote:
@@ -253,6 +266,7 @@ class LatchedStore:
         del senders[sender]
         if not senders:
             del self._topics[topic]
+            self._index.discard(topic)
 
     def _enforce_bounds(self, keep: tuple[SenderKey, str]) -> None:
         """Evict least recently updated entries; *keep* (just updated, so the most

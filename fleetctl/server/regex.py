@@ -33,6 +33,12 @@ _OPTIONS.max_mem = MAX_REGEX_MEMORY_BYTES
 # memory; 4 KiB is far more than any topic pattern needs.
 MAX_PATTERN_CHARS = 4096
 
+# Bytes of a topic RE2 looks at when bounding what a pattern can match (FullMatch.bounds).
+# Why 64: longer than the part of ROS topic names that tells them apart in the usual
+# prefix patterns (`/robot7/camera/...`); a longer topic is still bounded (RE2 rounds the
+# upper bound up), only less tightly.
+BOUNDS_MAX_BYTES = 64
+
 # Characters of ROS topic names that are never RE2 metacharacters: a pattern made only of
 # these is a literal topic and is compared with ==, which is ~50x cheaper than RE2.
 _LITERAL = std_re.compile(r"[A-Za-z0-9_/~-]*")
@@ -55,7 +61,7 @@ class FullMatch:
             when that is more.
     """
 
-    __slots__ = ("_regex", "cost", "literal", "pattern")
+    __slots__ = ("_bounds", "_bounds_known", "_regex", "cost", "literal", "pattern")
 
     def __init__(self, pattern: str) -> None:
         if len(pattern) > MAX_PATTERN_CHARS:
@@ -63,6 +69,8 @@ class FullMatch:
         self.pattern = pattern
         self.literal = pattern if _LITERAL.fullmatch(pattern) else None
         self.cost = len(pattern.encode("utf-8", "surrogatepass"))
+        self._bounds: tuple[bytes, bytes] | None = None
+        self._bounds_known = False  # bounds() computes them once, when first asked
         if self.literal is not None:  # compared with ==: no program to build or keep
             self._regex: Any = None
             return
@@ -85,6 +93,38 @@ class FullMatch:
             return self._regex.fullmatch(topic) is not None
         except UnicodeEncodeError:  # a lone surrogate: no UTF-8 topic, so none it could be
             return False
+
+    def bounds(self) -> tuple[bytes, bytes] | None:
+        """The smallest and largest UTF-8 topic (bytes order) the pattern can match.
+
+        Every topic it matches, encoded as UTF-8, lies between the two, both included
+        (RE2's ``PossibleMatchRange``: it walks the pattern's DFA, so it holds for
+        alternations, classes and case folding; RE2 rounds the upper bound up past
+        :data:`BOUNDS_MAX_BYTES`). Why: a pattern such as ``/robot7/.*`` can then be
+        matched against the few stored topics between ``/robot7/`` and its upper bound
+        instead of against every one (:class:`~fleetctl.server.topicindex.TopicIndex`).
+        Computed once, a few microseconds.
+
+        Returns:
+            ``(low, high)``, or ``None`` when RE2 cannot bound it (``.*`` and patterns
+            starting with it, a DFA over its memory budget): any topic may match.
+        """
+        if not self._bounds_known:  # lazily: RE2 builds a DFA for it (memory)
+            self._bounds = self._possible_range()
+            self._bounds_known = True
+        return self._bounds
+
+    def _possible_range(self) -> tuple[bytes, bytes] | None:
+        if self.literal is not None:
+            literal = self.literal.encode("utf-8")
+            return literal, literal
+        try:
+            ok, low, high = self._regex._regexp.PossibleMatchRange(BOUNDS_MAX_BYTES)
+        except AttributeError:  # a binding without it: no bound, every topic a candidate
+            return None
+        if not ok or high < low:  # (RE2 says "no maximum" with ok = False)
+            return None
+        return bytes(low), bytes(high)
 
     def __repr__(self) -> str:
         return f"FullMatch({self.pattern!r})"

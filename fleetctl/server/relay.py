@@ -43,6 +43,7 @@ from fleetctl.server.sessions import (
 )
 from fleetctl.server.sessionstore import SessionStore
 from fleetctl.server.subscriptions import Refusal, SubscriptionMap
+from fleetctl.server.topicindex import TopicIndex
 from fleetctl.wire.control import KEYFRAME_REQUESTS_TOPIC
 from fleetctl.wire.errors import WireError
 from fleetctl.wire.fragments import read_fragment_id
@@ -146,7 +147,7 @@ class RelayCore:
             limits.keyframe_request_interval_s, clock, metrics)
         # Video topics whose publisher is on another replica (their frames came through
         # NATS): a new subscription asks those replicas for a keyframe. Bounded.
-        self.remote_video: dict[str, None] = {}
+        self.remote_video = TopicIndex()
         # Which topics exist (Foxglove's channels); set by the Foxglove adapter.
         self.catalog: TopicCatalog | None = None
 
@@ -692,13 +693,7 @@ class RelayCore:
         """
         if peer.perms is None:
             return True
-        key = peer.identity_names
-        bucket = self._buckets.get(key)
-        if bucket is None:
-            limits = self.limits
-            burst = max(limits.max_subscriptions_per_connection, MIN_CONTROL_BURST)
-            bucket = self._buckets[key] = TokenBucket(
-                limits.max_control_requests_per_s, burst, self._clock)
+        bucket = self._control_bucket(peer)
         if bucket.take():
             return True
         self.send_error(peer, "rate_limited", None, "more than "
@@ -709,6 +704,17 @@ class RelayCore:
         if peer.throttle is not None:
             peer.throttle(bucket.wait_s())
         return False
+
+    def _control_bucket(self, peer: Peer) -> TokenBucket:
+        """The control requests left to *peer*'s identity set (made on first use)."""
+        key = peer.identity_names
+        bucket = self._buckets.get(key)
+        if bucket is None:
+            limits = self.limits
+            burst = max(limits.max_subscriptions_per_connection, MIN_CONTROL_BURST)
+            bucket = self._buckets[key] = TokenBucket(
+                limits.max_control_requests_per_s, burst, self._clock)
+        return bucket
 
     def _new_topic(self, peer: Peer, topic: str) -> bool:
         """Spend one of *peer*'s identity set's new-topic tokens (:data:`NEW_TOPICS_PER_S`);
@@ -776,7 +782,9 @@ class RelayCore:
                 self._count_refusal(peer)
             return False
         if added:  # a repeat (a client's resubscribe after its session resumed) gets nothing
-            firstframes.on_new_subscription(self, peer, pattern)
+            extra = firstframes.on_new_subscription(self, peer, pattern)
+            if extra:  # work done: served, and the next control requests wait for it
+                self._control_bucket(peer).charge(extra)
         return True
 
 

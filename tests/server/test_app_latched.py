@@ -12,6 +12,7 @@ import pytest
 
 from fleetctl.server.app import RelayServer
 from fleetctl.server.config import ServerLimits
+from fleetctl.server.latched import MAX_ENTRIES
 from fleetctl.wire.codec import default_codec
 from fleetctl.wire.control import (
     KEYFRAME_REQUESTS_TOPIC,
@@ -25,6 +26,7 @@ from fleetctl.wire.samples import header
 from tests.server.conftest import (
     ALICE_TOKEN,
     AUTH,
+    BOB_TOKEN,
     auth_map,
     client,
     next_binary,
@@ -157,3 +159,25 @@ async def test_a_new_subscription_asks_the_publisher_for_a_keyframe(
         assert read_metadata(asked).topic == KEYFRAME_REQUESTS_TOPIC
         assert decode_keyframe_request(asked) == "/husky1/camera"
         assert relay.metrics.keyframe_requests == {"auto": 1}
+
+
+async def test_prefix_and_catch_all_subscribers_get_every_latched_message_of_a_full_store(
+        relay: RelayServer) -> None:
+    """4,096 latched topics stored (the store's bound): a prefix pattern gets the messages
+    of its range, ``.*`` all of them, each once, in the store's order, before live data."""
+    topics = [f"/husky1/r{i // 64}/t{i}" for i in range(MAX_ENTRIES)]
+    async with client(relay, token=ALICE_TOKEN) as alice:
+        for topic in topics:
+            await alice.send(latched(topic, topic))
+        await wait_for(lambda: len(relay.core.latched) == MAX_ENTRIES, 30.0)
+    async with client(relay, source="127.0.0.2") as robot, \
+            client(relay, token=BOB_TOKEN) as bob, \
+            client(relay, token=ALICE_TOKEN) as everything:
+        await next_json(robot, "welcome")
+        assert (await subscribe(bob, "/husky1/r7/.*"))["type"] == "subscribed"
+        assert (await subscribe(everything, ".*"))["type"] == "subscribed"
+        await robot.send(string_frame("/husky1/r7/live", "live", no_drop=True))
+        got = [decode_text(await next_binary(bob)) for _ in range(64 + 1)]
+        assert got == [*topics[7 * 64:8 * 64], "live"]
+        got = [decode_text(await next_binary(everything)) for _ in range(MAX_ENTRIES + 1)]
+        assert got == [*topics, "live"]

@@ -143,3 +143,103 @@ def test_pattern_change_costs_no_regex_call_per_cached_topic(
     assert calls.by == {"FullMatch": 2, "AnyOf": 2}
     assert subs.receivers("/husky1/t25") == ("churner",)
     assert calls.by == {"FullMatch": 2, "AnyOf": 2}  # cached again: no call
+
+
+def _newly_matched_reference(patterns: dict[str, Permissions], conn_patterns: list[str],
+                             perms: Permissions, pattern: str,
+                             stored: list[str]) -> list[str]:
+    """What a new subscription *pattern* starts delivering, asked from scratch: every
+    stored topic in order, each matched against every subscription in turn."""
+    others = [compile_full(p) for p in conn_patterns if p != pattern]
+    new = compile_full(pattern)
+    return [t for t in stored if new.matches(t) and perms.may_receive(t)
+            and not any(o.matches(t) for o in others)]
+
+
+def test_newly_matched_equals_a_fresh_answer_under_churn() -> None:
+    """The index narrows the topics looked at and the others are asked in one matcher
+    (reused while they do not change); the topics found are the ones a scan of every
+    stored topic finds, in the store's order."""
+    from fleetctl.server.topicindex import TopicIndex
+
+    rng = random.Random(13)
+    patterns = ["/husky1/.*", "/husky1/a.*", "/husky1/(a|b)", "/husky1/goal_pose", "/husky1/b",
+                ".*", "/husky2/.*", ".*b", "(?i)/HUSKY1/A.*", "/husky[12]/.*x", "/husky1/a"]
+    names = ["/husky1/a", "/husky1/b", "/husky1/ab", "/husky1/goal_pose", "/husky2/x",
+             "/husky1/ax", "/HUSKY1/A", "/husky3/b", "/husky1/ä", "/husky1/"]
+    perms: dict[str, Permissions] = {"bob": BOB, "husky": HUSKY}
+    subs: SubscriptionMap[str] = SubscriptionMap(16)
+    index = TopicIndex()
+    found_any = 0
+    for _ in range(4000):
+        conn = rng.choice(list(perms))
+        action = rng.random()
+        if action < 0.3:
+            index.add(rng.choice(names))
+        elif action < 0.4:
+            index.discard(rng.choice(names))
+        elif action < 0.65:
+            subs.unsubscribe(conn, rng.choice(patterns))
+        else:
+            pattern = rng.choice(patterns)
+            try:
+                added = subs.subscribe(conn, perms[conn], pattern)
+            except Refusal:
+                continue
+            got = subs.newly_matched(conn, pattern, index.candidates)
+            want = (_newly_matched_reference(perms, subs.patterns(conn), perms[conn], pattern,
+                                             list(index)) if added else got.topics)
+            assert got.topics == want, (conn, pattern, subs.patterns(conn), list(index))
+            found_any += bool(got.topics)
+    assert found_any > 50
+
+
+def test_newly_matched_looks_only_at_the_topics_a_prefix_may_match(
+        monkeypatch: pytest.MonkeyPatch) -> None:
+    """With 4,096 topics stored, a prefix pattern costs the topics in its range, a
+    literal one lookup; a pattern RE2 cannot bound is asked of every topic, and its work
+    says so. Others whose range cannot meet the new pattern's are not asked."""
+    from fleetctl.server.topicindex import TopicIndex
+
+    index = TopicIndex()
+    for i in range(4096):
+        index.add(f"/husky1/r{i // 32}/t{i}")
+    bob = Permissions(BOB.identities)  # its own cache (other tests fill BOB's)
+    for topic in index:
+        bob.may_receive(topic)  # (the receive rules' answers are cached per topic)
+    subs: SubscriptionMap[str] = SubscriptionMap(8)
+    subs.subscribe("bob", bob, "/husky1/r9/.*")  # another range: never asked below
+    calls = _Calls(monkeypatch)
+    subs.subscribe("bob", bob, "/husky1/r7/.*")
+    found = subs.newly_matched("bob", "/husky1/r7/.*", index.candidates)
+    assert found.topics == [f"/husky1/r7/t{i}" for i in range(224, 256)]
+    assert found.work == 64 and calls.by == {"FullMatch": 32, "AnyOf": 0}
+    subs.subscribe("bob", bob, "/husky1/r8/t260")
+    found = subs.newly_matched("bob", "/husky1/r8/t260", index.candidates)
+    assert found.topics == ["/husky1/r8/t260"] and found.work == 2
+    subs.subscribe("bob", bob, ".*scan|.*t4095")
+    found = subs.newly_matched("bob", ".*scan|.*t4095", index.candidates)
+    joined = sum(compile_full(p).cost for p in ("/husky1/r9/.*", "/husky1/r7/.*")) // 8
+    assert found.topics == ["/husky1/r127/t4095"] and found.work == 4096 + 1 + joined
+
+
+def test_others_joined_once_while_they_do_not_change() -> None:
+    """A churn of one pattern beside held ones joins the held ones once (the work counts
+    the join the first time only)."""
+    from fleetctl.server.topicindex import TopicIndex
+
+    index = TopicIndex()
+    for i in range(100):
+        index.add(f"/husky1/t{i}")
+    subs: SubscriptionMap[str] = SubscriptionMap(8)
+    subs.subscribe("bob", BOB, "/husky1/t1.*")
+    subs.subscribe("bob", BOB, "/husky1/t2.*")
+    works = []
+    for _ in range(3):
+        subs.subscribe("bob", BOB, "/husky1/.*")
+        found = subs.newly_matched("bob", "/husky1/.*", index.candidates)
+        assert len(found.topics) == 100 - 22  # t1, t10-t19, t2, t20-t29 came before
+        works.append(found.work)
+        subs.unsubscribe("bob", "/husky1/.*")
+    joined = (compile_full("/husky1/t1.*").cost + compile_full("/husky1/t2.*").cost) // 8
+    assert works == [200 + joined, 200, 200]

@@ -460,9 +460,12 @@ def _robot_service(plan: ComposePlan, robot: RobotEntry) -> dict[str, Any]:
     return svc
 
 
+ROBOT_SERVICE_PREFIX = "robot-"
+
+
 def robot_service(robot: RobotEntry) -> str:
     """The compose service of *robot*'s simulated robot (``up --sim``)."""
-    return f"robot-{robot.name}"
+    return f"{ROBOT_SERVICE_PREFIX}{robot.name}"
 
 
 def render(plan: ComposePlan) -> dict[str, Any]:

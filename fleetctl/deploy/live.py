@@ -16,6 +16,12 @@ After ``add-robot``, ``remove-robot``, ``add-user``, ``remove-user``, ``render``
 - **simulated robots** (a deployment started with ``--sim``): the compose file is
   re-rendered and ``up`` creates the new robot's container (or removes a removed one's);
   the server and the other robots are not recreated, as their definitions did not change.
+- **the server's own compose definition** (``render`` after fleet.yaml's ``https_port``,
+  ``wireguard_port`` or ``server_port`` changed): a restart keeps the ports the container
+  was created with, so the server listened on the new port behind the old mapping and the
+  page was unreachable on both while ``status`` said healthy. The deployment is brought up
+  to date as ``fleetctl up`` with its recorded options would (the new host ports are
+  checked first; compose recreates only what changed).
 """
 
 from __future__ import annotations
@@ -23,12 +29,16 @@ from __future__ import annotations
 from collections.abc import Callable
 from pathlib import Path
 
+import yaml
+
 from fleetctl.deploy import composerun
 from fleetctl.deploy.compose import (
+    ROBOT_SERVICE_PREFIX,
     SERVER_WG_CONF,
     WG_INTERFACE,
     ComposePlan,
     plan_for,
+    render,
     saved_options,
     server_config_text,
     write_files,
@@ -72,6 +82,15 @@ def sync_running(fleet_dir: Path, progress: Callable[[str], None],
               "wg syncconf in the server container")
         done.append("WireGuard peers synced")
     plan = plan_for(fleet_dir, options)
+    if _servers_definition_changed(plan):
+        try:
+            composerun.up(fleet_dir, options, progress=progress, runner=runner)
+        except FleetError as exc:
+            raise FleetError(f"{'; '.join(done) or 'nothing applied'}; then, recreating the "
+                             f"server with its new definition: {exc}") from None
+        done += ["server recreated with its new compose definition (ports)",
+                 "auth.yaml is reloaded by the server itself"]
+        return "running fleet: " + "; ".join(done)
     changed = [what for what, yes in (("TLS certificate", _certificate_changed(plan)),
                                       ("server.yaml", _server_config_changed(plan))) if yes]
     if changed:
@@ -96,6 +115,24 @@ def sync_running(fleet_dir: Path, progress: Callable[[str], None],
         done.append("simulated robots updated")
     done.append("auth.yaml is reloaded by the server itself")
     return "running fleet: " + "; ".join(done)
+
+
+def _servers_definition_changed(plan: ComposePlan) -> bool:
+    """Whether the compose file the deployment runs from differs from the fleet's now in
+    anything but its simulated robots (which a live update brings up to date by itself)."""
+    try:
+        deployed = yaml.safe_load(read_small(plan.compose_file, MAX_CONFIG_BYTES))
+    except (OSError, yaml.YAMLError):
+        return True
+    return _without_robots(deployed) != _without_robots(render(plan))
+
+
+def _without_robots(document: object) -> object:
+    if not isinstance(document, dict) or not isinstance(document.get("services"), dict):
+        return document
+    services = {name: svc for name, svc in document["services"].items()
+                if not str(name).startswith(ROBOT_SERVICE_PREFIX)}
+    return {**document, "services": services}
 
 
 def _certificate_changed(plan: ComposePlan) -> bool:

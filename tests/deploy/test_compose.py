@@ -572,6 +572,30 @@ def test_live_sync_restarts_the_server_for_a_new_server_yaml(fleet: Path) -> Non
     assert sum(c[:2] == ["docker", "restart"] for c in docker.calls) == 1
 
 
+def test_live_sync_recreates_the_server_when_fleet_yaml_moves_its_ports(fleet: Path) -> None:
+    """`render` after https_port changed in fleet.yaml restarted the server with the new
+    server.yaml: it listened on 9443 behind the container's old 8443 mapping, the page was
+    on neither port and `status` said healthy. A restart keeps a container's ports; the
+    deployment is brought up to date as `up` would (compose recreates the server)."""
+    docker = FakeDocker()
+    composerun.up(fleet, _opts(fleet, wireguard="off"), progress=lambda _: None, runner=docker)
+    docker.server_running = True
+    path = fleet / "fleet.yaml"
+    path.write_text(path.read_text().replace("https_port: 8443", "https_port: 9443"))
+    ops.render_fleet(fleet)
+    ups = len(docker.compose_calls())
+    note = live.sync_running(fleet, lambda _: None, runner=docker)
+    assert note is not None and "server recreated with its new compose definition" in note
+    assert not any(c[:2] == ["docker", "restart"] for c in docker.calls)
+    full_up = docker.compose_calls()[ups:]
+    assert len(full_up) == 1 and full_up[0][full_up[0].index("up"):] == [
+        "up", "-d", "--remove-orphans"]
+    doc = yaml.safe_load((fleet / ".compose" / "docker-compose.yml").read_text())
+    assert doc["services"]["server"]["ports"] == ["0.0.0.0:9443:9443/tcp"]
+    live.sync_running(fleet, lambda _: None, runner=docker)  # nothing new: no compose call
+    assert len(docker.compose_calls()) == ups + 1
+
+
 def test_bind_and_project_are_checked_before_they_reach_compose(fleet: Path) -> None:
     with pytest.raises(ConfigError, match=r"--bind '1.2.3.4:2222:22': expected an IP"):
         _opts(fleet, bind="1.2.3.4:2222:22")

@@ -1,0 +1,90 @@
+"""Changes to fleet.yaml reaching a running deployment on the real server image.
+
+`init` -> `up` (WireGuard on, published on loopback) -> the page answers on the HTTPS port
+-> fleet.yaml's `https_port` and `wireguard_port` edited by hand -> `render` -> the page
+answers on the new port, the old one is closed, the container publishes the new ports and
+`status` is healthy -> `down --delete-data`.
+
+Before 2026-12-06 `render` restarted the server with the new server.yaml: it listened on
+the new port behind the container's old port mapping, so the page was on neither port
+while `status` said healthy, until a `fleetctl up`.
+"""
+
+from __future__ import annotations
+
+import socket
+import ssl
+import subprocess
+import urllib.error
+import urllib.request
+import uuid
+from collections.abc import Iterator
+from pathlib import Path
+
+import pytest
+
+from fleetctl.waiting import wait_until
+from tests.deploy.test_lifecycle_docker import Operator, _free_port, _images_present
+
+pytestmark = [pytest.mark.docker, pytest.mark.slow]
+
+PAGE_TIMEOUT_S = 60.0
+
+
+def _page_answers(port: int, cert: Path) -> bool:
+    context = ssl.create_default_context(cafile=str(cert))
+    try:
+        with urllib.request.urlopen(f"https://127.0.0.1:{port}/", context=context,
+                                    timeout=2) as res:
+            return bool(res.status == 200)
+    except (urllib.error.URLError, OSError):
+        return False
+
+
+@pytest.fixture
+def running(tmp_path: Path) -> Iterator[tuple[Operator, Path, str]]:
+    if not _images_present():
+        pytest.skip("images fleetctl/server and client not built")
+    if not Path("/dev/net/tun").exists():
+        pytest.skip("no /dev/net/tun: WireGuard cannot run here")
+    fleet = tmp_path / "yard"
+    op = Operator(tmp_path, fleet)
+    project = f"fleetctllive{uuid.uuid4().hex[:8]}"
+    op.run("init", str(fleet), "--endpoint", f"127.0.0.1:{_free_port(socket.SOCK_DGRAM)}",
+           "--https-port", str(_free_port()))
+    op.run("add-robot", "husky1")
+    try:
+        op.run("up", "--bind", "127.0.0.1", "--project", project)
+        yield op, fleet, project
+    finally:
+        if (fleet / ".compose" / "state.json").is_file():
+            op.run("down", "--delete-data", ok=False)
+
+
+def _published(project: str) -> str:
+    return subprocess.run(
+        ["docker", "ps", "--filter", f"label=com.docker.compose.project={project}",
+         "--filter", "label=com.docker.compose.service=server", "--format", "{{.Ports}}"],
+        capture_output=True, text=True, check=True).stdout
+
+
+def test_render_moves_a_running_servers_published_ports(
+        running: tuple[Operator, Path, str]) -> None:
+    op, fleet, project = running
+    cert = fleet / "server" / "tls" / "cert.pem"
+    fleet_yaml = fleet / "fleet.yaml"
+    old = int(op.json("list")["fleet"]["https_port"])
+    wait_until(lambda: _page_answers(old, cert), PAGE_TIMEOUT_S, describe="the page")
+    new, udp = _free_port(), _free_port(socket.SOCK_DGRAM)
+    text = fleet_yaml.read_text()
+    wg = op.json("list")["fleet"]["wireguard_port"]
+    fleet_yaml.write_text(text.replace(f"https_port: {old}", f"https_port: {new}")
+                          .replace(f"wireguard_port: {wg}", f"wireguard_port: {udp}"))
+    op.run("render")
+    wait_until(lambda: _page_answers(new, cert), PAGE_TIMEOUT_S,
+               describe=f"the page on the new https_port {new}")
+    assert not _page_answers(old, cert)
+    ports = _published(project)
+    assert f"127.0.0.1:{new}->{new}/tcp" in ports and f"127.0.0.1:{udp}->{udp}/udp" in ports
+    wait_until(lambda: op.json("status")["healthy"], PAGE_TIMEOUT_S,
+               describe="a healthy status")

@@ -39,6 +39,10 @@ from fleetctl.errors import ConfigError, ConflictError, ExitCode, FleetError
 from fleetctl.server.config import ServerConfig, load_server_config
 from fleetctl.server.recording import files
 
+# OpenSSL's verify codes for a certificate that does not name the host or IP address asked
+# for (X509_V_ERR_HOSTNAME_MISMATCH, X509_V_ERR_IP_ADDRESS_MISMATCH).
+HOST_MISMATCH_CODES = frozenset({62, 64})
+
 
 @dataclass(frozen=True)
 class Recording:
@@ -103,6 +107,13 @@ class RemoteRecording:
 def _unreachable(reason: object, scheme: str = "https") -> str:
     """Why a request failed, in the user's terms: a TLS handshake with a plain port, a
     plain request to a TLS port, or a certificate not trusted, is not "cannot reach it"."""
+    if (isinstance(reason, ssl.SSLCertVerificationError)
+            and reason.verify_code in HOST_MISMATCH_CODES):
+        # The CA is trusted; another --ca-file would not help (an operator's certificate
+        # for the endpoint's name, asked for by `localhost` on the server host).
+        return (f"its certificate is not for this host ({reason.verify_message}): use a "
+                "host name or address it names in the URL (`fleetctl up` prints the page "
+                "on the fleet endpoint's host)")
     if isinstance(reason, ssl.SSLCertVerificationError):
         # The usual first try against `fleetctl up`: its certificate is self-signed.
         return (f"its certificate is not trusted ({reason.verify_message}): give the CA "

@@ -12,6 +12,8 @@ import pytest
 from fleetctl.cli.main import main
 from fleetctl.errors import ExitCode
 from fleetctl.server.app import RelayServer
+from fleetctl.server.config import WebConfig
+from tests.server.certs import self_signed
 from tests.server.conftest import ALICE_TOKEN, make_server  # noqa: F401
 from tests.server.foxglove.conftest import web_config  # noqa: F401
 from tests.server.foxglove.fxclient import Viewer, open_viewer
@@ -86,3 +88,28 @@ async def test_an_untrusted_certificate_names_ca_file(
             err = capsys.readouterr().err
             assert err.count("\n") == 1 and "its certificate is not trusted" in err
             assert "--ca-file" in err and "server/tls/cert.pem" in err
+
+
+async def test_a_certificate_for_another_host_says_so_not_ca_file(
+        make_server: Callable[..., RelayServer], web_config: WebConfig,  # noqa: F811
+        tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """An operator's certificate (fleet.yaml tls:) asked for by another name, e.g.
+    `localhost` on the server host, with its CA given: the hint was to give --ca-file,
+    which the user had done."""
+    token_file = tmp_path / "token"
+    token_file.write_text(ALICE_TOKEN + "\n")
+    token_file.chmod(0o600)  # else a warning comes first on stderr
+    cert, key = self_signed(tmp_path / "other", host="127.0.0.2")  # and localhost
+    async with make_server(web=WebConfig(tls_cert=cert, tls_key=key, listen_host="127.0.0.1",
+                                         listen_port=0, vendor_dir=web_config.vendor_dir)) as srv:
+        url = f"https://127.0.0.1:{srv.web_port}/"
+        for args in (["foxglove-url"], ["recordings", "list"]):
+            assert await asyncio.to_thread(main, [
+                *args, "--server", url, "--token-file", str(token_file),
+                "--ca-file", str(cert)]) == ExitCode.FAILURE
+            err = capsys.readouterr().err
+            assert err.startswith(
+                f"fleetctl: error: --server {url}: its certificate is not for this host "
+                "(IP address mismatch, certificate is not valid for '127.0.0.1'.): use a "
+                "host name or address it names in the URL"), err
+            assert err.count("\n") == 1 and "--ca-file" not in err

@@ -27,7 +27,8 @@ README_BLOCKS = (
     "packages", "tunnel-config", "tunnel-service", "tunnel-quick", "tunnel-check", "venv",
     "venv-check", "ros-wheels", "install-files", "socket-buffer", "client-service",
     "client-check",
-    "client-foreground", "image-load", "container-run",
+    "client-foreground", "image-load", "container-run", "update-tunnel", "update-tunnel-quick",
+    "update-venv", "update-files", "update-service", "update-container",
 )
 _BLOCK = re.compile(r"<!-- block: ([a-z0-9-]+) -->\n```sh\n(.*?)```\n", re.S)
 
@@ -229,6 +230,30 @@ def test_readme_blocks(exported: Path) -> None:
     assert "--network" in args and args[args.index("--network") + 1] == "host"
     assert args[args.index("--env-file") + 1] == "fleetctl.env"
     assert args[args.index("-v") + 1] == "/robot/client.yaml:/etc/fleetctl/robot/client.yaml:ro"
+
+
+def test_readme_updates_a_robot_by_restarting_what_runs(exported: Path) -> None:
+    """docs/robot.md and operator.md say to install a new export on the robot (another
+    ros_domain_id, new keys, relay replicas), but the README had only the first install:
+    its `systemctl enable --now` leaves a running tunnel and client as they are,
+    `wg-quick up` fails on an interface that is up, pip keeps an installed fleetctl of the
+    same version and `docker run --name fleetctl-client` fails on the existing container."""
+    blocks = readme_blocks((exported / "README.md").read_text())
+    assert blocks["update-tunnel"].splitlines() == [
+        "sudo install -D -m 0600 wg0.conf /etc/wireguard/fleet0.conf",
+        "sudo systemctl restart wg-quick@fleet0"]
+    assert blocks["update-tunnel-quick"].splitlines() == [
+        "sudo wg-quick down fleet0", "sudo wg-quick up fleet0"]
+    wheel = "./fleetctl-0.1.0-py3-none-any.whl"
+    assert blocks["update-venv"].splitlines() == [
+        f"sudo /opt/fleetctl/bin/pip install --force-reinstall --no-deps {wheel}",
+        f"sudo /opt/fleetctl/bin/pip install {wheel}"]
+    assert blocks["update-files"] == blocks["install-files"].split("\n", 1)[1]
+    assert blocks["update-service"].splitlines()[-1] == (
+        "sudo systemctl restart fleetctl-client.service")
+    remove, run = blocks["update-container"].splitlines()
+    assert remove == "docker rm -f fleetctl-client"
+    assert run == blocks["container-run"].strip()
 
 
 def test_wg0_conf_starts_the_tunnel_the_way_the_readme_does(exported: Path) -> None:

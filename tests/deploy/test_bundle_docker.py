@@ -49,6 +49,9 @@ SERVER_ETC = "/etc/fleetctl/server"
 # The README's blocks a container can play, in the README's order.
 ROBOT_BLOCKS = ("tunnel-config", "tunnel-quick", "tunnel-check", "venv", "ros-wheels",
                 "install-files")
+# Updating the robot to a new export, without systemd: the new wg0.conf in place
+# (tunnel-config's line), then the README's update blocks a container can play.
+UPDATE_BLOCKS = ("tunnel-config", "update-tunnel-quick", "update-venv", "update-files")
 ONLINE_DEADLINE_S = 30.0
 
 
@@ -80,6 +83,7 @@ class Deployment:
     server: Any  # testcontainers DockerContainer
     robot: Any
     bundle: Path
+    fleet_dir: Path
 
 
 def _server_config(fleet_dir: Path, out: Path) -> None:
@@ -167,7 +171,7 @@ def deployment(tmp_path: Path) -> Iterator[Deployment]:
         _exec(robot, f"cp -a /mnt/bundle {BUNDLE}\n"
                      "printf '#!/bin/sh\\nexec \"$@\"\\n' > /usr/local/bin/sudo\n"
                      "chmod 0755 /usr/local/bin/sudo")
-        yield Deployment(server, robot, bundle)
+        yield Deployment(server, robot, bundle, fleet_dir)
     finally:
         for container in reversed(started):
             container.stop()
@@ -200,3 +204,28 @@ def test_readme_blocks_bring_the_robot_online(deployment: Deployment) -> None:
     # It reached the server over the tunnel and was identified by its WireGuard address.
     assert "connected to ws://10.8.0.1:8080/" in log
     assert f"authenticated as {ROBOT}" in log
+    _update_to_a_new_export(deployment)
+
+
+def _update_to_a_new_export(deployment: Deployment) -> None:
+    """A new export (another MTU and ROS domain) copied over the old bundle, and the
+    README's update blocks: the tunnel and the client run with the new values (re-running
+    the first install's blocks left the running tunnel as it was)."""
+    robot, fleet_yaml = deployment.robot, deployment.fleet_dir / "fleet.yaml"
+    fleet_yaml.write_text(fleet_yaml.read_text().replace("mtu_bytes: 1280", "mtu_bytes: 1300")
+                          .replace("ros_domain_id: 0", "ros_domain_id: 7"))
+    ops.render_fleet(deployment.fleet_dir)
+    export_robot(deployment.fleet_dir, ROBOT, deployment.bundle)  # over the mounted bundle
+    # The operator copies it over the old one and stops the client in the foreground.
+    _exec(robot, f"cp -a /mnt/bundle/. {BUNDLE}/\n"
+                 "pkill -x fleetctl || true")
+    blocks = readme_blocks((deployment.bundle / "README.md").read_text())
+    for name in UPDATE_BLOCKS:
+        _exec(robot, blocks[name], workdir=BUNDLE)
+    assert "mtu 1300" in _exec(robot, "ip link show fleet0")
+    robot.get_wrapped_container().exec_run(
+        ["bash", "-c", f"{{\n{blocks['client-foreground']}}} >/tmp/client2.log 2>&1"],
+        workdir=BUNDLE, detach=True)
+    wait_until(lambda: f"authenticated as {ROBOT}" in _exec(robot, "cat /tmp/client2.log || :"),
+               ONLINE_DEADLINE_S, poll_s=0.5, describe=f"{ROBOT} back after the update")
+    assert "ROS_DOMAIN_ID=7" in _exec(robot, "cat /etc/fleetctl/fleetctl.env")

@@ -55,6 +55,7 @@ from fleetctl.deploy.replicas import check_count
 from fleetctl.deploy.statusrecordings import RecordingSummary, exec_error, server_recordings
 from fleetctl.deploy.tls import CERT_RELPATH
 from fleetctl.errors import ConfigError, ConflictError, EnvironmentMissing, FleetError
+from fleetctl.server.config import load_server_config
 from fleetctl.smallfile import MAX_CONFIG_BYTES, read_small_text
 from fleetctl.wire.control import known_battery
 from fleetctl.yamlfile import safe_load
@@ -160,13 +161,18 @@ def up(fleet_dir: Path, options: Options, progress: Progress = print,
     printed (no *progress*, compose's output captured and quoted only if it fails).
 
     Raises:
-        ConfigError: the fleet directory is incomplete (the message names file and field).
+        ConfigError: the fleet directory is incomplete, or its server.yaml is one the
+            server would refuse (the message names file and field).
         ConflictError: the fleet already runs with other options, or a port it publishes
             is taken on this host.
         EnvironmentMissing: an image or Compose is missing.
         FleetError: compose failed (its output is shown).
     """
     plan = plan_for(fleet_dir, options)
+    # What the server would refuse at its start (server/server.yaml edited by hand) is
+    # said now, before anything starts: it was a server restarting every few seconds
+    # behind `fleet is up`, its reason only in `fleetctl logs`.
+    load_server_config(plan.fleet_dir / "server" / "server.yaml")
     _check_not_changed(plan.fleet_dir, options, runner)
     _require_images(plan, runner)
     hostports.require_free(

@@ -464,6 +464,21 @@ def test_up_needs_the_images(fleet: Path) -> None:
     assert not (fleet / ".compose").exists()
 
 
+def test_up_refuses_a_server_yaml_the_server_would_refuse(fleet: Path) -> None:
+    """server/server.yaml edited by hand with a value the server refuses: `up` said `fleet
+    is up` (exit 0) while the server restarted every few seconds, its reason only in the
+    logs."""
+    path = fleet / "server" / "server.yaml"
+    path.write_text(path.read_text().replace("max_subscriptions_per_connection: 256",
+                                             "max_subscriptions_per_connection: lots"))
+    docker = FakeDocker()
+    with pytest.raises(ConfigError, match=rf"^{re.escape(str(path))}: field "
+                       r"'limits.max_subscriptions_per_connection' must be a positive integer"):
+        composerun.up(fleet, _opts(fleet, wireguard="off"), progress=lambda _: None,
+                      runner=docker)
+    assert docker.compose_calls() == [] and not (fleet / ".compose").exists()
+
+
 def test_up_refuses_to_change_the_mode_of_a_running_fleet(fleet: Path) -> None:
     docker = FakeDocker()
     composerun.up(fleet, _opts(fleet, wireguard="off"), progress=lambda _: None, runner=docker)

@@ -4,7 +4,8 @@ Usage::
 
     .venv/bin/python benchmarks/subscription_churn.py [--seconds 3] [--rounds 3]
         [--rate-hz 1000] [--churners 8] [--server-cpu 0] [--client-cpu 1] [--churn-cpu 2]
-        [--cached-topics 16000] [--churn-kind pattern] [--held 0] [--json]
+        [--cached-topics 16000] [--latched-topics 4096] [--churn-kind pattern]
+        [--held 0] [--json]
 
 Project issue 14, item 2. Three processes: the relay (:class:`RelayServer`, defaults,
 pinned to one core), the churning token (its own process and core) and the honest side
@@ -25,9 +26,14 @@ client core unless ``--churn-cpu`` says otherwise). Each round measures two phas
 (``/fill/r<i // 40>/t<i>``: 40 topics per robot), so the relay's receiver cache holds N
 topics while the rounds run (docs/security.md, "The cost of a regex against many topics";
 several publisher identities, as the new-topic rate allows each 4096 at once).
-``--churn-kind pattern`` makes the toggled subscription a regex (``/t<i>/x.*``) instead of
-a literal topic; ``--held N`` is how many 4 KiB patterns each churner tries to hold (255:
-as many as the server takes).
+``--latched-topics N`` first has senders store a latched message on each of N topics
+(``/latched/r<i // 32>/t<i>``; the store keeps 4,096), so every new subscription is
+matched against a full latched store (docs/security.md, "A subscribe or unsubscribe").
+``--churn-kind`` says what the churners toggle: ``literal`` a topic, ``pattern`` a regex
+with a literal prefix (``/t<i>/x.*``), ``wide`` one RE2 cannot bound (``.*/x<i>``: every
+stored topic looked at, none matched), ``all`` ``.*`` (every stored latched message
+delivered to the churner again). ``--held N`` is how many 4 KiB patterns each churner
+tries to hold (255: as many as the server takes).
 
 Printed per phase: frames received / sent, latency p50 and p99, the join time, and what
 the server answered the churners (changes applied vs refused). The bar: in ``churn`` the
@@ -54,6 +60,10 @@ TOPIC = "/bench/telemetry"
 PUBLISHER, HONEST, ATTACKER = "publisher-token", "honest-token", "attacker-token"
 FILLERS = 5  # identities that fill the cache: 4000 new topics each (the burst is 4096)
 FILL_PER_IDENTITY = 4000
+LATCHERS = 2  # identities that fill the latched store (4,096 topics at most)
+MAX_LATCHED = LATCHERS * FILL_PER_IDENTITY
+# What each churner toggles, by --churn-kind (i: the churner's index).
+TOGGLED = {"literal": "/t{i}/x", "pattern": "/t{i}/x.*", "wide": ".*/x{i}", "all": ".*"}
 FILL_DONE = "/fill/done"
 MAX_CACHED = FILLERS * FILL_PER_IDENTITY
 
@@ -68,6 +78,7 @@ def _auth_yaml(path: Path) -> None:
 
     lines = ["version: 1", "identities:"]
     fillers = [(f"filler{k}", f"filler-token-{k}", "send") for k in range(FILLERS)]
+    fillers += [(f"latcher{k}", f"latcher-token-{k}", "send") for k in range(LATCHERS)]
     for name, token, op in (("publisher", PUBLISHER, "send"), ("honest", HONEST, "receive"),
                             ("attacker", ATTACKER, "receive"), *fillers):
         lines += [f"  - name: {name}", f"    token_sha256: {hash_token(token)}",
@@ -115,7 +126,7 @@ def run_churn(cpu: int, port: int, churners: int, stop: Any, results: Any,
 
         held = [encode_subscription(f"/held{index}_{i}/(" + "a|" * 2040 + "b)")
                 for i in range(held_count)]
-        toggled = f"/t{index}/x" + (".*" if kind == "pattern" else "")
+        toggled = TOGGLED[kind].format(i=index)
         toggle = [encode_subscription(toggled, s) for s in (True, False)]
         while not stop.is_set():
             counts["connects"] += 1
@@ -188,6 +199,39 @@ async def fill_cache(port: int, count: int) -> float:
                 while not isinstance(await sub.recv(), bytes):
                     pass
     return time.perf_counter() - started
+
+
+async def fill_latched(port: int, count: int) -> float:
+    """A latched message on each of *count* topics, by as many identities as the
+    new-topic rate asks; returns the seconds it took until the relay had them all (the
+    honest token asks for them: it gets them once all are stored, in order)."""
+    from websockets.asyncio.client import connect
+
+    from fleetctl.wire.codec import default_codec
+    from fleetctl.wire.control import encode_subscription
+
+    codec = default_codec()
+    cls = codec.registry.get("std_msgs/msg/String").cls
+    url = f"ws://127.0.0.1:{port}/"
+    started = time.perf_counter()
+    for k, first in enumerate(range(0, count, FILL_PER_IDENTITY)):
+        async with connect(url, additional_headers={
+                "Authorization": f"Bearer latcher-token-{k}"}) as pub:
+            for i in range(first, min(count, first + FILL_PER_IDENTITY)):
+                await pub.send(codec.encode(cls("x" * 64), "std_msgs/msg/String",
+                                            f"/latched/r{i // 32}/t{i}", latched=True))
+    kept = min(count, 4096)  # the store's bound (LatchedStore.max_entries)
+    async with connect(url, additional_headers={"Authorization": f"Bearer {HONEST}"}) as sub:
+        while True:  # until a new subscriber gets every one (they all arrived)
+            await sub.send(encode_subscription("/latched/.*"))
+            got = 0
+            with contextlib.suppress(TimeoutError):
+                while got < kept:
+                    if isinstance(await asyncio.wait_for(sub.recv(), 2.0), bytes):
+                        got += 1
+            if got >= kept:
+                return time.perf_counter() - started
+            await sub.send(encode_subscription("/latched/.*", False))
 
 
 # -- the honest side ----------------------------------------------------------------------
@@ -292,14 +336,20 @@ def main() -> None:
     parser.add_argument("--cached-topics", type=int, default=0,
                         help=f"topics in the receiver cache during the rounds (at most "
                              f"{MAX_CACHED})")
-    parser.add_argument("--churn-kind", choices=("literal", "pattern"), default="literal",
-                        help="what the churners toggle: a literal topic or a regex")
+    parser.add_argument("--latched-topics", type=int, default=0,
+                        help=f"latched messages stored before the rounds (at most "
+                             f"{MAX_LATCHED}; the store keeps 4096)")
+    parser.add_argument("--churn-kind", choices=tuple(TOGGLED), default="literal",
+                        help="what the churners toggle: " + ", ".join(
+                            f"{k} ({v})" for k, v in TOGGLED.items()))
     parser.add_argument("--held", type=int, default=255,
                         help="4 KiB patterns each churner tries to hold (0-255)")
     parser.add_argument("--json", action="store_true")
     args = parser.parse_args()
     if not 0 <= args.cached_topics <= MAX_CACHED:
         parser.error(f"--cached-topics: 0 to {MAX_CACHED}")
+    if not 0 <= args.latched_topics <= MAX_LATCHED:
+        parser.error(f"--latched-topics: 0 to {MAX_LATCHED}")
     if not 0 <= args.held <= 255:
         parser.error("--held: 0 to 255")
     if args.churn_cpu < 0:
@@ -315,6 +365,11 @@ def main() -> None:
                 _pin(args.client_cpu)
                 took = asyncio.run(fill_cache(port, args.cached_topics))
                 print(f"{args.cached_topics} topics cached in {took:.1f} s", file=sys.stderr)
+            if args.latched_topics:
+                _pin(args.client_cpu)
+                took = asyncio.run(fill_latched(port, args.latched_topics))
+                print(f"{args.latched_topics} latched messages stored in {took:.1f} s",
+                      file=sys.stderr)
             rounds = [one_round(port, args) for _ in range(args.rounds)]
         finally:
             server.terminate()
@@ -335,7 +390,8 @@ def report(rounds: list[dict[str, Any]], args: argparse.Namespace) -> None:
         return
     print(f"{args.rate_hz:g} Hz for {args.seconds:g} s per phase, {args.churners} churning "
           f"connections of one token toggling a {args.churn_kind} (holding up to "
-          f"{args.held} patterns), {args.cached_topics} topics cached, {args.rounds} rounds")
+          f"{args.held} patterns), {args.cached_topics} topics cached, "
+          f"{args.latched_topics} latched messages stored, {args.rounds} rounds")
     print(f"{'round':>5} {'phase':>6} {'frames':>14} {'p50 ms':>8} {'p99 ms':>8} "
           f"{'join ms':>8}  churner")
     for i, r in enumerate(rounds, 1):

@@ -25,6 +25,14 @@ MAX_REGEX_MEMORY_BYTES = 256 * 1024
 # pattern with a large program cannot be held thousands of times within the byte quotas.
 QUOTA_BYTES_PER_INSTRUCTION = 4
 
+# How matches() asks RE2: the binding's own Match on the topic's UTF-8 bytes, anchored at
+# both ends. Why not re2's fullmatch(): it wraps that call in a generator that maps byte
+# offsets back to str offsets and builds a match object, 1.5-3.6 us a call here against
+# 0.8 us for the yes/no answer wanted (a new ".*/x" subscription looks at 4,096 stored
+# topics, the receiver cache asks every connection about a new topic).
+_ANCHOR_BOTH = re2._Anchor.ANCHOR_BOTH
+_NO_MATCH = (-1, -1)
+
 _OPTIONS = re2.Options()
 _OPTIONS.log_errors = False
 _OPTIONS.max_mem = MAX_REGEX_MEMORY_BYTES
@@ -44,6 +52,15 @@ BOUNDS_MAX_BYTES = 64
 _LITERAL = std_re.compile(r"[A-Za-z0-9_/~-]*")
 
 
+def _full_match(match: Any, topic: str) -> bool:
+    """Whether the RE2 program whose binding ``Match`` is *match* matches all of *topic*."""
+    try:
+        encoded = topic.encode("utf-8")
+    except UnicodeEncodeError:  # a lone surrogate: no UTF-8 topic, so none it could be
+        return False
+    return bool(match(_ANCHOR_BOTH, encoded, 0, len(encoded))[0] != _NO_MATCH)
+
+
 class BadRegex(ValueError):
     """A pattern RE2 cannot compile; ``str(exc)`` says why."""
 
@@ -61,7 +78,7 @@ class FullMatch:
             when that is more.
     """
 
-    __slots__ = ("_bounds", "_bounds_known", "_regex", "cost", "literal", "pattern")
+    __slots__ = ("_bounds", "_bounds_known", "_match", "_regex", "cost", "literal", "pattern")
 
     def __init__(self, pattern: str) -> None:
         if len(pattern) > MAX_PATTERN_CHARS:
@@ -73,6 +90,7 @@ class FullMatch:
         self._bounds_known = False  # bounds() computes them once, when first asked
         if self.literal is not None:  # compared with ==: no program to build or keep
             self._regex: Any = None
+            self._match: Any = None
             return
         try:
             self._regex = re2.compile(pattern, options=_OPTIONS)
@@ -84,15 +102,13 @@ class FullMatch:
         except UnicodeEncodeError:  # a lone surrogate ("\ud800" in YAML or JSON): RE2 takes UTF-8
             raise BadRegex("not UTF-8 text (a lone surrogate code point)") from None
         self.cost = max(self.cost, QUOTA_BYTES_PER_INSTRUCTION * self._regex.programsize)
+        self._match = self._regex._regexp.Match
 
     def matches(self, topic: str) -> bool:
         """Return whether *topic* matches the pattern from its first to its last character."""
         if self.literal is not None:
             return topic == self.literal
-        try:
-            return self._regex.fullmatch(topic) is not None
-        except UnicodeEncodeError:  # a lone surrogate: no UTF-8 topic, so none it could be
-            return False
+        return _full_match(self._match, topic)
 
     def bounds(self) -> tuple[bytes, bytes] | None:
         """The smallest and largest UTF-8 topic (bytes order) the pattern can match.
@@ -175,7 +191,7 @@ class AnyOf:
         elif regexes:
             text = "|".join(f"(?:{p.pattern})" for p in regexes)
             try:
-                self._joined = re2.compile(text, options=_JOINED_OPTIONS)
+                self._joined = re2.compile(text, options=_JOINED_OPTIONS)._regexp.Match
             except (re2.error, UnicodeEncodeError):
                 self._each = tuple(regexes)
 
@@ -185,8 +201,5 @@ class AnyOf:
             return True
         joined = self._joined
         if joined is not None:
-            try:
-                return joined.fullmatch(topic) is not None
-            except UnicodeEncodeError:  # a lone surrogate: no UTF-8 topic, so none it could be
-                return False
+            return _full_match(joined, topic)
         return any(p.matches(topic) for p in self._each)

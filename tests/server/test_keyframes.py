@@ -55,3 +55,23 @@ def test_topic_bound_forgets_the_least_recently_published() -> None:
     for i in range(3):
         router.note_publisher(f"/r1/cam{i}", "a")
     assert router.video_topics() == ["/r1/cam1", "/r1/cam2"]
+
+
+def test_the_servers_own_request_is_encoded_once_and_forgotten_with_its_topic() -> None:
+    from fleetctl.server.regex import compile_full
+    from fleetctl.wire.control import encode_keyframe_request
+
+    router, _, _ = make(max_topics=2)
+    router.note_publisher("/r1/cam0", "a")
+    frame = router.request_frame("/r1/cam0")
+    assert frame == encode_keyframe_request("/r1/cam0")
+    assert router.request_frame("/r1/cam0") is frame  # kept while the topic is
+    router.note_publisher("/r1/cam1", "a")
+    router.note_publisher("/r1/cam2", "a")  # /r1/cam0 forgotten, its request too
+    assert router.request_frame("/r1/cam0") is not frame
+    assert router.candidates(compile_full("/r1/.*")) == ["/r1/cam1", "/r1/cam2"]
+    router.note_publisher("/r1/cam1", "b")  # a new publisher: last, as in video_topics
+    assert router.candidates(compile_full("/r1/.*")) == router.video_topics() == [
+        "/r1/cam2", "/r1/cam1"]
+    router.forget("b")
+    assert router.candidates(compile_full("/r1/cam1")) == []

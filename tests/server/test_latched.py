@@ -232,3 +232,30 @@ def test_remote_messages_are_served_replaced_and_forgotten_without_the_listener(
     assert metrics.latched_events["remote_stored"] == 2
     assert metrics.latched_events["remote_forgotten"] == 1
     assert metrics.latched_events["refused_too_big"] == 1
+
+
+def test_candidates_follow_the_stored_topics_and_their_order_under_churn() -> None:
+    """What a new subscription is matched against (candidates) stays the stored topics,
+    in topics() order, through stores, refusals, evictions, remote messages and
+    revocations."""
+    from fleetctl.server.regex import compile_full
+
+    rng = random.Random(3)
+    store, _ = make(max_message_bytes=2000, max_entries=40)
+    names = [f"/husky{r}/t{i}" for r in (1, 2) for i in range(30)]
+    everything, husky1 = compile_full(".*"), compile_full("/husky1/.*")
+    for _ in range(1500):
+        topic, sender, action = rng.choice(names), rng.choice([ROBOT, OTHER]), rng.random()
+        if action < 0.6:
+            put(store, sender, frame(topic, "m"))
+        elif action < 0.7:
+            put(store, sender, frame(topic, "b" * 3000))  # too big: the older one forgotten
+        elif action < 0.8:
+            store.put_remote(sender, topic, [frame(topic, "r")])
+        elif action < 0.9:
+            store.forget_remote(sender, topic)
+        else:
+            store.drop_where(lambda s, t, gone=topic: t == gone)
+        assert store.candidates(everything) == store.topics()
+        assert store.candidates(husky1) == [t for t in store.topics()
+                                            if t.startswith("/husky1/")]

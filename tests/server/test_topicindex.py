@@ -49,6 +49,31 @@ def test_bounds_hold_every_topic_a_pattern_matches() -> None:
     assert bounded > 300  # most patterns are bounded, or the index would not help
 
 
+def test_matches_answers_as_re2_fullmatch() -> None:
+    """FullMatch and AnyOf ask the binding's Match directly: the same answers as
+    google-re2's own fullmatch, a lone surrogate included (no match)."""
+    import re2
+
+    from fleetctl.server.regex import AnyOf
+
+    rng = random.Random(17)
+    topics = [random_topic(rng) for _ in range(150)] + ["/r7/\ud800x", ""]
+    patterns = [random_pattern(rng) for _ in range(150)]
+    for text in patterns:
+        pattern, reference = FullMatch(text), re2.compile(text)
+        for topic in topics:
+            try:
+                want = reference.fullmatch(topic) is not None
+            except UnicodeEncodeError:
+                want = False
+            assert pattern.matches(topic) == want, (text, topic)
+    for _ in range(30):
+        group = [compile_full(rng.choice(patterns)) for _ in range(rng.randint(2, 6))]
+        joined = AnyOf(group)
+        for topic in topics:
+            assert joined.matches(topic) == any(p.matches(topic) for p in group)
+
+
 @pytest.mark.parametrize(("pattern", "inside", "outside"), [
     ("/robot7/.*", "/robot7/scan", "/robot8/scan"),
     ("/robot7/scan", "/robot7/scan", "/robot7/scans"),

@@ -25,6 +25,7 @@ from fleetctl.deploy.files import (
     FileWrite,
     Plan,
     WriteFailed,
+    is_untouched,
 )
 from fleetctl.deploy.fleet import fleet_file, load_fleet, require_endpoint
 from fleetctl.deploy.keystore import load_robot_keys, load_server_key
@@ -33,6 +34,7 @@ from fleetctl.deploy.render import FleetKeys
 from fleetctl.deploy.selfwheel import fleetctl_wheel
 from fleetctl.deploy.yamlnodes import shown
 from fleetctl.errors import ConfigError, ConflictError, ExitCode, FleetError
+from fleetctl.smallfile import MAX_CONFIG_BYTES, read_small
 
 TARBALL_SUFFIXES = (".tar.gz", ".tgz")
 # Archive names export does not write: a new --out ending in one is refused, not made a
@@ -76,8 +78,9 @@ def export_robot(fleet_dir: Path, name: str, out: Path | None = None, *,
         fleet_dir: the fleet directory.
         name: the robot.
         out: a directory, or a path ending in ``.tar.gz`` or ``.tgz``; default
-            ``./NAME-bundle``. Files already in an existing directory are replaced,
-            others left alone, the directory's mode too.
+            ``./NAME-bundle``. In an existing directory the files of an earlier export
+            are replaced (only those, see :func:`check_replaceable`), others left alone,
+            the directory's mode too.
         dry_run: compute and return the changes without writing anything.
         wheel: the fleetctl wheel to ship; ``None`` builds one of the running fleetctl
             with *build_wheel* (a few seconds from a checkout).
@@ -86,7 +89,8 @@ def export_robot(fleet_dir: Path, name: str, out: Path | None = None, *,
     Raises:
         ConfigError: no such robot, no keys for it yet, no endpoint in ``fleet.yaml``, or
             a malformed fleet directory.
-        ConflictError: *out* exists and is the wrong kind of file.
+        ConflictError: *out* exists and is the wrong kind of file, or a file of the
+            bundle exists in it and was not written by an earlier export as it is.
         WriteFailed: *out* could not be written (nothing was left behind).
         FleetError: the wheel could not be built.
     """
@@ -118,6 +122,7 @@ def export_robot(fleet_dir: Path, name: str, out: Path | None = None, *,
     else:
         # Made 0700 when missing; an existing directory is the caller's and keeps its mode
         # (wg0.conf itself is 0600 either way).
+        check_replaceable(path, files)
         plan.new_directory(path, SECRET_DIR_MODE)
         for f in files:
             plan.writes.append(FileWrite(path / f.relpath, f.data, f.mode, None))
@@ -133,6 +138,40 @@ def tarball_suffix(path: Path) -> str | None:
     written), else ``None``."""
     return next((path.name[-len(s):] for s in TARBALL_SUFFIXES
                  if path.name.lower().endswith(s)), None)
+
+
+def check_replaceable(directory: Path, files: list[BundleFile]) -> None:
+    """Refuse to replace a file in *directory* that an earlier export did not write.
+
+    ``--out .`` or ``--out ~/robots`` (or an ``--out "$DIR"`` left empty: the current
+    directory) replaced the operator's own ``README.md`` or ``compose.yaml`` there without
+    a word. A file may be replaced when it is what fleetctl wrote (its digest line still
+    matches, or it is the same bytes) or, the one file without a digest line, the wheel.
+
+    Raises:
+        ConflictError: naming the first such file (exit 4).
+    """
+    for f in files:
+        target = directory / f.relpath
+        try:
+            st = target.lstat()
+        except (FileNotFoundError, NotADirectoryError):
+            continue
+        if stat.S_ISREG(st.st_mode) and (
+                f.relpath.endswith(".whl") or _written_by_export(target, f.data)):
+            continue
+        raise ConflictError(
+            f"--out {directory}: {target} exists and is not a file of an earlier export "
+            "(edited, or not fleetctl's): export into a new or empty directory, or move it "
+            "away first")
+
+
+def _written_by_export(path: Path, new: bytes) -> bool:
+    try:
+        data = read_small(path, max(len(new), MAX_CONFIG_BYTES), follow_symlinks=False)
+    except OSError:
+        return False
+    return data == new or is_untouched(data)
 
 
 def check_out_path(path: Path) -> None:

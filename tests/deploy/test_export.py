@@ -144,3 +144,34 @@ def test_export_out_errors_change_nothing(fleet_dir: Path, tmp_path: Path) -> No
                                               "does not exist$"):
             export_robot(fleet_dir, "husky1", missing, wheel=wheel)
     assert not (tmp_path / "no").exists() and not (tmp_path / "nodir").exists()
+
+
+def test_export_replaces_only_what_an_earlier_export_wrote(fleet_dir: Path,
+                                                           tmp_path: Path) -> None:
+    """`--out .` (or `--out ~/robots`, or an `--out "$DIR"` left empty: the current
+    directory) replaced the operator's own README.md and compose.yaml there."""
+    from fleetctl.errors import ConflictError
+
+    wheel = fake_wheel(tmp_path)
+    project = tmp_path / "project"
+    project.mkdir()
+    (project / "README.md").write_text("# my robots\n")
+    (project / "notes.txt").write_text("keep\n")
+    with pytest.raises(ConflictError, match=rf"^--out {project}: {project}/README.md exists and "
+                       r"is not a file of an earlier export \(edited, or not fleetctl's\)") as info:
+        export_robot(fleet_dir, "husky1", project, wheel=wheel)
+    assert info.value.exit_code is ExitCode.CONFLICT
+    assert sorted(p.name for p in project.iterdir()) == ["README.md", "notes.txt"]
+    assert (project / "README.md").read_text() == "# my robots\n"
+    # An earlier bundle is brought up to date, every file of it (compose.yaml included).
+    bundle = export_robot(fleet_dir, "husky1", tmp_path / "b", wheel=wheel).path
+    (fleet_dir / "fleet.yaml").write_text(
+        (fleet_dir / "fleet.yaml").read_text().replace("ros_domain_id: 0", "ros_domain_id: 5"))
+    export_robot(fleet_dir, "husky1", bundle, wheel=wheel)
+    assert "ROS_DOMAIN_ID=5" in (bundle / "fleetctl.env").read_text()
+    # ... but not a file of it edited by hand since.
+    client = bundle / "client.yaml"
+    client.write_text(client.read_text() + "# tuned on site\n")
+    with pytest.raises(ConflictError, match=r"client.yaml exists and is not a file of an "):
+        export_robot(fleet_dir, "husky1", bundle, wheel=wheel)
+    assert client.read_text().endswith("# tuned on site\n")

@@ -28,8 +28,8 @@ from fleetctl.deploy.files import (
     is_untouched,
 )
 from fleetctl.deploy.fleet import fleet_file, load_fleet, require_endpoint
-from fleetctl.deploy.keystore import load_robot_keys, load_server_key
-from fleetctl.deploy.operations import ExportResult, finish_plan
+from fleetctl.deploy.keystore import load_server_key
+from fleetctl.deploy.operations import ExportResult, existing_robot_keys, finish_plan
 from fleetctl.deploy.render import FleetKeys
 from fleetctl.deploy.selfwheel import fleetctl_wheel
 from fleetctl.deploy.yamlnodes import shown
@@ -101,7 +101,9 @@ def export_robot(fleet_dir: Path, name: str, out: Path | None = None, *,
     path = out if out is not None else default_bundle_path(name)
     check_out_path(path)
     require_endpoint(fleet, fleet_dir)  # a bundle without one cannot reach the server
-    robot_keys = load_robot_keys(fleet_dir, name)
+    # As render reads them: a lost key whose wg0.conf was made is "restore it from a
+    # backup", not "run render", which then refused with that.
+    robot_keys = existing_robot_keys(fleet_dir, name)
     if robot_keys is None:
         raise ConfigError(f"robot {name!r} has no keys yet (run 'fleetctl render' first)")
     keys = FleetKeys(load_server_key(fleet_dir), {name: robot_keys})

@@ -230,7 +230,7 @@ def _load_keys(fleet_dir: Path, fleet: Fleet, source: KeySource, plan: Plan) -> 
             plan.directory(directory, SECRET_DIR_MODE)
     robots: dict[str, RobotKeys] = {}
     for robot in fleet.robots:
-        keys = _existing_robot_keys(fleet_dir, robot.name)
+        keys = existing_robot_keys(fleet_dir, robot.name)
         if keys is None:
             keys = keystore.new_robot_keys(source)
             keystore.plan_robot_keys(plan, fleet_dir, robot.name, keys)
@@ -238,7 +238,7 @@ def _load_keys(fleet_dir: Path, fleet: Fleet, source: KeySource, plan: Plan) -> 
     return FleetKeys(keystore.load_server_key(fleet_dir), robots)
 
 
-def _existing_robot_keys(fleet_dir: Path, name: str) -> RobotKeys | None:
+def existing_robot_keys(fleet_dir: Path, name: str) -> RobotKeys | None:
     """Robot *name*'s keys; ``None`` when it has none yet (none were ever made for it).
 
     Raises:
@@ -746,7 +746,7 @@ def describe_fleet(fleet_dir: Path) -> FleetInfo:
     unreadable: list[str] = []
     for robot in fleet.robots:
         try:
-            if (rk := _existing_robot_keys(fleet_dir, robot.name)) is not None:
+            if (rk := existing_robot_keys(fleet_dir, robot.name)) is not None:
                 pubs[robot.name] = public_key(rk.private_key, f"key of robot {robot.name}")
         except ConfigError as exc:
             unreadable.append(robot.name)

@@ -175,3 +175,16 @@ def test_export_replaces_only_what_an_earlier_export_wrote(fleet_dir: Path,
     with pytest.raises(ConflictError, match=r"client.yaml exists and is not a file of an "):
         export_robot(fleet_dir, "husky1", bundle, wheel=wheel)
     assert client.read_text().endswith("# tuned on site\n")
+
+
+def test_export_of_a_robot_whose_keys_were_lost_says_restore_them(fleet_dir: Path,
+                                                                   tmp_path: Path) -> None:
+    """It said `has no keys yet (run 'fleetctl render' first)`, and render then refused:
+    new keys would cut off the robot that uses the old ones."""
+    for suffix in (".key", ".psk"):
+        (fleet_dir / "keys" / "robots" / f"husky1{suffix}").unlink()
+    with pytest.raises(ConfigError, match=r"husky1.key and husky1.psk: not found, but "
+                       r".*robots/husky1/wireguard/wg0.conf was made from them .*restore them "
+                       r"from a backup"):
+        export_robot(fleet_dir, "husky1", tmp_path / "b", wheel=fake_wheel(tmp_path))
+    assert not (tmp_path / "b").exists()

@@ -28,13 +28,30 @@ wg_up() {
     log "WARNING: wireguard-go did not start: $(tail -3 /tmp/wireguard-go.log)"
     return 1
   fi
-  wg setconf "$iface" <(wg-quick strip "$conf")
-  local addr mtu allowed
+  # Every step is checked by hand: wg_up runs as the condition of an `if`, where bash
+  # ignores `set -e`. A config wg could not apply (a peer's key mistyped in a hand edit)
+  # was logged, then "WireGuard wg0 up" and a healthy server without peers, even with
+  # WG_REQUIRED=1.
+  local stripped addr mtu allowed
+  if ! stripped=$(wg-quick strip "$conf"); then
+    log "WARNING: wg-quick strip $conf failed (above)"
+    return 1
+  fi
+  if ! wg setconf "$iface" <(printf '%s\n' "$stripped"); then
+    log "WARNING: $conf: wg setconf refused it (above)"
+    return 1
+  fi
   for addr in $(sed -n 's/^[[:space:]]*Address[[:space:]]*=[[:space:]]*//p' "$conf" | tr ',' ' '); do
-    ip address add "$addr" dev "$iface"
+    if ! ip address add "$addr" dev "$iface"; then
+      log "WARNING: $conf: cannot give $iface the address $addr (above)"
+      return 1
+    fi
   done
   mtu=$(sed -n 's/^[[:space:]]*MTU[[:space:]]*=[[:space:]]*//p' "$conf" | head -1)
-  ip link set "$iface" mtu "${mtu:-1380}" up
+  if ! ip link set "$iface" mtu "${mtu:-1380}" up; then
+    log "WARNING: $conf: cannot bring $iface up with MTU ${mtu:-1380} (above)"
+    return 1
+  fi
   for allowed in $(sed -n 's/^[[:space:]]*AllowedIPs[[:space:]]*=[[:space:]]*//p' "$conf" | tr ',' ' '); do
     ip route replace "$allowed" dev "$iface" 2>/dev/null || true
   done

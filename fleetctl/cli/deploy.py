@@ -101,7 +101,9 @@ def up(
 ) -> None:
     """Start the fleet on this server host: server, web page and WireGuard (docker compose).
 
-    On a running fleet it applies what changed and leaves the rest running.
+    On a running fleet it applies what changed and leaves the rest running. It returns
+    once every service runs and is healthy; a service that fails to start is exit 1,
+    naming it with its last log lines.
     """
     require_docker()
     recorded = load_fleet(fleet).relay_replicas
@@ -115,6 +117,9 @@ def up(
                                          sim=sim, bind=bind, https_port=https_port,
                                          replicas=count)
     result = composerun.up(fleet, options, progress=_progress)
+    _progress(f"waiting until every service runs and is healthy (at most "
+              f"{composerun.STARTUP_TIMEOUT_S:.0f} s)")
+    composerun.wait_started(fleet, options)
     recorded_now: Outcome | None = None
     if count != recorded:
         # Only once the deployment runs (up refuses a change of mode on a running fleet):

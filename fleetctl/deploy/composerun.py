@@ -61,6 +61,9 @@ from fleetctl.wire.control import known_battery
 from fleetctl.yamlfile import safe_load
 
 Progress = Callable[[str], None]
+# How long `up` waits for every container to run and be healthy: the server's health check
+# passes within ~10 s here; replicas wait for their NATS cluster first.
+STARTUP_TIMEOUT_S = 120.0
 
 
 @dataclass(frozen=True)
@@ -491,20 +494,7 @@ def status(fleet_dir: Path, options: Options,
            runner: Runner = subprocess_runner) -> StatusReport:
     """Each container's state, health and restarts; robots as the server reports them;
     the server's WireGuard peers and their last handshakes."""
-    # Only the containers this fleet's compose file made: `status --project P` of another
-    # fleet's project showed that fleet's containers as this one's.
-    compose_file = fleet_dir.resolve() / COMPOSE_DIR / COMPOSE_FILE
-    res = runner(["docker", "ps", "-aq", *fleet_filters(options.project, compose_file)],
-                 None, True)
-    services = []
-    for cid in check(res, "docker ps").stdout.split():
-        info = _inspect(cid, runner)
-        if info is None:
-            continue
-        name = info["Config"]["Labels"].get("com.docker.compose.service", cid[:12])
-        health = info["State"].get("Health", {}).get("Status", "none")
-        services.append(ServiceState(name, info["State"]["Status"], health,
-                                     int(info.get("RestartCount", 0))))
+    services = [state for _cid, state in _containers(fleet_dir, options.project, runner)]
     server_id = container_id(fleet_dir, options.project, "server", runner)
     robots, error = _server_robots(server_id, runner)
     tunnel, note = _tunnel(fleet_dir, server_id, runner)
@@ -513,6 +503,74 @@ def status(fleet_dir: Path, options: Options,
     return StatusReport(tuple(sorted(services, key=lambda s: s.service)), robots, error,
                         tunnel, note, recordings=recordings, recordings_note=recordings_note,
                         fleet_robots=_fleet_robot_names(fleet_dir))
+
+
+def _containers(fleet_dir: Path, project: str,
+                runner: Runner) -> list[tuple[str, ServiceState]]:
+    """Each container of the deployment (its id and state), running or not."""
+    # Only the containers this fleet's compose file made: `status --project P` of another
+    # fleet's project showed that fleet's containers as this one's.
+    compose_file = fleet_dir.resolve() / COMPOSE_DIR / COMPOSE_FILE
+    res = runner(["docker", "ps", "-aq", *fleet_filters(project, compose_file)], None, True)
+    containers = []
+    for cid in check(res, "docker ps").stdout.split():
+        info = _inspect(cid, runner)
+        if info is None:
+            continue
+        name = info["Config"]["Labels"].get("com.docker.compose.service", cid[:12])
+        health = info["State"].get("Health", {}).get("Status", "none")
+        containers.append((cid, ServiceState(name, info["State"]["Status"], health,
+                                             int(info.get("RestartCount", 0)))))
+    return containers
+
+
+def wait_started(fleet_dir: Path, options: Options, runner: Runner = subprocess_runner,
+                 timeout_s: float = STARTUP_TIMEOUT_S, poll_s: float = 1.0) -> None:
+    """Wait until every container of the deployment runs and is healthy (or has no check).
+
+    `up` said `fleet is up` as soon as compose had created the containers: a server that
+    then failed at its start (a damaged registry database, a tunnel it could not bring up)
+    restarted every few seconds behind that line.
+
+    Raises:
+        FleetError: a container exited, restarted since the wait began or is unhealthy
+            (at once), or is not healthy within *timeout_s*: naming it, with its last log
+            lines.
+    """
+    restarts = {state.service: state.restarts
+                for _cid, state in _containers(fleet_dir, options.project, runner)}
+    deadline = time.monotonic() + timeout_s
+    while True:
+        pending = [(cid, state) for cid, state in
+                   _containers(fleet_dir, options.project, runner)
+                   if state.state != "running" or state.health not in ("healthy", "none")
+                   or state.restarts > restarts.get(state.service, 0)]
+        for cid, state in pending:
+            if (state.state in ("exited", "dead", "restarting") or state.health == "unhealthy"
+                    or state.restarts > restarts.get(state.service, 0)):
+                raise FleetError(f"{_described(state)}: it did not start; "
+                                 f"{_last_lines(cid, runner)}")
+        if not pending:
+            return
+        if time.monotonic() >= deadline:
+            cid, state = pending[0]
+            raise FleetError(f"{_described(state)}: not healthy after {timeout_s:.0f} s; "
+                             f"{_last_lines(cid, runner)}")
+        time.sleep(poll_s)  # polling interval of a deadline-bounded wait
+
+
+def _described(state: ServiceState) -> str:
+    return (f"{state.service} {state.state} ({state.health}"
+            + (f", {state.restarts} restarts" if state.restarts else "") + ")")
+
+
+def _last_lines(cid: str, runner: Runner, count: int = 3) -> str:
+    """The last *count* lines *cid* logged, and where the rest is, for an error line."""
+    res = runner(["docker", "logs", "--tail", str(count), cid], None, True)
+    lines = [" ".join(line.split())[:300] for line in (res.stdout + res.stderr).splitlines()
+             if line.strip()][-count:]
+    return ((f"its last lines: {' | '.join(lines)}; " if res.returncode == 0 and lines else "")
+            + "`fleetctl logs` and `fleetctl status` have the rest")
 
 
 def _fleet_robot_names(fleet_dir: Path) -> frozenset[str] | None:

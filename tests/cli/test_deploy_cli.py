@@ -40,6 +40,7 @@ def deployed(monkeypatch: pytest.MonkeyPatch) -> list[composerun.Options]:
 
     monkeypatch.setattr(deploy_cli, "require_docker", lambda: None)
     monkeypatch.setattr(composerun, "up", fake_up)
+    monkeypatch.setattr(composerun, "wait_started", lambda *_: None)
     return calls
 
 

@@ -1,4 +1,7 @@
-"""Changes to fleet.yaml reaching a running deployment on the real server image.
+"""`up`, and changes to fleet.yaml reaching a running deployment, on the real server image.
+
+A server that fails at its start: `up` exits 1 naming it with its last log lines (it said
+`fleet is up` while the server restarted every few seconds).
 
 `init` -> `up` (WireGuard on, published on loopback) -> the page answers on the HTTPS port
 -> fleet.yaml's `https_port` and `wireguard_port` edited by hand -> `render` -> the page
@@ -24,7 +27,7 @@ from pathlib import Path
 import pytest
 
 from fleetctl.waiting import wait_until
-from tests.deploy.test_lifecycle_docker import Operator, _free_port, _images_present
+from tests.deploy.test_lifecycle_docker import FLEETCTL, Operator, _free_port, _images_present
 
 pytestmark = [pytest.mark.docker, pytest.mark.slow]
 
@@ -88,3 +91,36 @@ def test_render_moves_a_running_servers_published_ports(
     assert f"127.0.0.1:{new}->{new}/tcp" in ports and f"127.0.0.1:{udp}->{udp}/udp" in ports
     wait_until(lambda: op.json("status")["healthy"], PAGE_TIMEOUT_S,
                describe="a healthy status")
+
+
+def test_up_says_so_when_the_server_does_not_start(tmp_path: Path) -> None:
+    """A registry database that is not one (a damaged disk, a wrong file restored into the
+    volume): the server exits 3 at every start."""
+    if not _images_present():
+        pytest.skip("images fleetctl/server and client not built")
+    if not Path("/dev/net/tun").exists():
+        pytest.skip("no /dev/net/tun: WireGuard cannot run here")
+    fleet = tmp_path / "yard"
+    op = Operator(tmp_path, fleet)
+    project = f"fleetctllive{uuid.uuid4().hex[:8]}"
+    op.run("init", str(fleet), "--endpoint", f"127.0.0.1:{_free_port(socket.SOCK_DGRAM)}",
+           "--https-port", str(_free_port()))
+    volume = f"{project}_server-data"
+    try:
+        subprocess.run(["docker", "run", "--rm", "--user", "root", "-v", f"{volume}:/data",
+                        "--entrypoint", "sh", "fleetctl/server:latest", "-c",
+                        "head -c 8192 /dev/zero | tr '\\0' x > /data/fleet.db"],
+                       check=True, capture_output=True, timeout=60)
+        res = subprocess.run([FLEETCTL, "up", "--bind", "127.0.0.1", "--project", project],
+                             cwd=tmp_path, env=op.env, text=True, capture_output=True,
+                             timeout=300, check=False)
+        assert res.returncode == 1, res.stdout + res.stderr
+        assert "fleet is up" not in res.stdout
+        error = res.stderr.splitlines()[-1]
+        assert error.startswith("fleetctl: error: server "), error
+        assert "it did not start; its last lines: " in error
+        assert "file is not a database" in error
+    finally:
+        op.run("down", "--delete-data", "--project", project, ok=False)
+        subprocess.run(["docker", "volume", "rm", "-f", volume], capture_output=True,
+                       check=False)

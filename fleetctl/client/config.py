@@ -10,7 +10,6 @@ from __future__ import annotations
 import re
 from collections.abc import Mapping
 from dataclasses import dataclass, field
-from functools import lru_cache
 from pathlib import Path
 from typing import Any
 
@@ -33,6 +32,7 @@ from fleetctl.client.mediaconfig import (
     viewer_cloud_spec,
 )
 from fleetctl.client.serverurls import parse_server_urls
+from fleetctl.client.typenames import check_type
 from fleetctl.errors import ConfigError
 from fleetctl.smallfile import MAX_SECRET_BYTES, read_small_text
 from fleetctl.yamlfile import read_yaml
@@ -435,37 +435,10 @@ def _check_regex(ctx: _Ctx, where: str, pattern: str) -> None:
 def _type(ctx: _Ctx, entry: Mapping[str, Any], where: str) -> str:
     name = _str(ctx, entry, where, "type", required=True)
     assert name is not None
-    normalized, reason = _check_type(name)
+    normalized, reason = check_type(name)
     if reason:
         raise ctx.error(where, "type", reason)
     return normalized
-
-
-@lru_cache(maxsize=1)
-def _registry_names() -> frozenset[str] | None:
-    """The known ROS 2 type names, or None when the wire registry is unavailable."""
-    try:
-        from fleetctl.wire.registry import TypeRegistry
-    except ImportError:
-        return None
-    return frozenset(TypeRegistry.default().names())
-
-
-def _check_type(name: str) -> tuple[str, str]:
-    """Return ``(normalized name, "")`` or ``(name, reason)`` for an unknown/bad type."""
-    try:
-        from fleetctl.wire.metadata import normalize_type
-    except ImportError:
-        normalized = name
-    else:
-        try:
-            normalized = normalize_type(name)
-        except Exception as exc:  # the wire module's WireError; message says why
-            return name, f"not a ROS type name: {exc}"
-    names = _registry_names()
-    if names is not None and normalized not in names:
-        return name, f"unknown message type {name!r} (not in the type registry)"
-    return normalized, ""
 
 
 def _status(ctx: _Ctx, value: object) -> StatusSpec:

@@ -365,3 +365,65 @@ def test_status_location_is_read() -> None:
                               source="client.yaml")
     assert cfg.status.location == "warehouse A, aisle 3"
     assert parse_client_config(minimal(), source="client.yaml").status.location == ""
+
+
+def _workspace(root: Path, msgs: dict[str, str]) -> Path:
+    """An install prefix as colcon makes one: ``share/<pkg>/msg/<Name>.msg`` per type."""
+    for name, text in msgs.items():
+        package, _, short = name.partition("/msg/")
+        (root / "share" / package / "msg").mkdir(parents=True, exist_ok=True)
+        (root / "share" / package / "msg" / f"{short}.msg").write_text(text)
+    return root
+
+
+def test_types_of_the_robots_own_packages_are_accepted(
+        tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """A robot's own message package (sourced workspace on AMENT_PREFIX_PATH) is carried by
+    the client's run-time registry; the config check refused it as 'not in the type
+    registry' before the client started."""
+    from fleetctl.wire.registry import TypeRegistry
+
+    ws = _workspace(tmp_path / "install", {
+        "my_robot_msgs/msg/Status": "std_msgs/Header header\nfloat32 motor_temp\n"
+                                    "my_robot_msgs/Mode mode\n",
+        "my_robot_msgs/msg/Mode": "uint8 AUTO=1\nuint8 value\n"})
+    monkeypatch.setenv("AMENT_PREFIX_PATH", str(ws))
+    config = parse_client_config(minimal(
+        publish=[{"topic": "/robot_status", "type": "my_robot_msgs/Status"}],
+        subscribe=[{"remote_topic": "/r2/robot_status", "type": "my_robot_msgs/msg/Status"}]))
+    assert config.publish[0].type == config.subscribe[0].type == "my_robot_msgs/msg/Status"
+    # ... the type the client's registry (runner.build_registry) then encodes.
+    registry = TypeRegistry.default()
+    registry.from_rclpy()
+    assert "my_robot_msgs/msg/Status" in registry
+
+    # A typo is named with the installed type it most likely meant, and where it looked.
+    with pytest.raises(ConfigError) as typo:
+        parse_client_config(minimal(publish=[{"topic": "/s", "type": "my_robot_msgs/msg/Statu"}]))
+    said = str(typo.value)
+    assert "publish[0] (/s): type: unknown message type 'my_robot_msgs/msg/Statu'" in said
+    assert f"share/my_robot_msgs/msg/Statu.msg under {ws}" in said
+    assert "Did you mean my_robot_msgs/msg/Status?" in said
+
+    # Without the workspace sourced: where to look, and what to source.
+    monkeypatch.delenv("AMENT_PREFIX_PATH")
+    with pytest.raises(ConfigError, match=r"source its workspace's install/setup.bash"):
+        parse_client_config(minimal(publish=[{"topic": "/s", "type": "my_robot_msgs/msg/Status"}]))
+
+
+def test_an_unreadable_package_definition_is_named(
+        tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    ws = _workspace(tmp_path / "install", {"bad_msgs/msg/Odd": "no_such_pkg/Thing thing\n",
+                                           "good_msgs/msg/Fine": "int32 value\n"})
+    monkeypatch.setenv("AMENT_PREFIX_PATH", str(ws))
+    # Another package's definitions stay usable, as in the client's registry.
+    parse_client_config(minimal(publish=[{"topic": "/f", "type": "good_msgs/msg/Fine"}]))
+    with pytest.raises(ConfigError) as error:
+        parse_client_config(minimal(publish=[{"topic": "/o", "type": "bad_msgs/msg/Odd"}]))
+    assert "could not be read" in str(error.value) and "no_such_pkg" in str(error.value)
+
+
+def test_a_misspelt_standard_type_gets_a_suggestion() -> None:
+    with pytest.raises(ConfigError, match=r"Did you mean sensor_msgs/msg/LaserScan\?"):
+        parse_client_config(minimal(publish=[{"topic": "/scan",
+                                              "type": "sensor_msgs/msg/Laserscan"}]))

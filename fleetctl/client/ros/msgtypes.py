@@ -44,7 +44,8 @@ def _install_hint(package: str) -> str:
     if package in _NO_PYPI_WHEEL:
         return (f"PyPI has no wheel for it: apt install {debian} where ROS comes from apt, "
                 "or build it into the venv with scripts/ros_msgs.sh from fleetctl's source")
-    return f"install the ROS wheel for {package}, e.g. {debian}"
+    return (f"install the ROS wheel for {package}, e.g. {debian}; a package of your own: "
+            "source its workspace's install/setup.bash before the client starts")
 
 
 def message_class(type_name: str) -> Any:

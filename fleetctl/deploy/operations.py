@@ -11,6 +11,7 @@ from __future__ import annotations
 import contextlib
 import fcntl
 import os
+import shlex
 import stat
 from collections.abc import Iterator
 from dataclasses import dataclass, replace
@@ -626,6 +627,12 @@ def add_user(
     """
     role = role if isinstance(role, Role) else parse_role(role)
     fleet = load_fleet(fleet_dir)
+    if (known := fleet.user(email)) is not None:
+        # The one thing an operator then wants: a new token for someone who lost theirs.
+        raise ConflictError(
+            f"user {email!r} is already in {fleet_file(fleet_dir)} ({known.role.value}): to "
+            f"give them a new token, `fleetctl remove-user {shlex.quote(email)}` (their old "
+            "token stops working) and add them again")
     token = new_token(keys)
     user = User(email, role, token_sha256(token))
     new = _checked(replace(fleet, users=(*fleet.users, user)))

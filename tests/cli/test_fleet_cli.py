@@ -207,8 +207,13 @@ def test_add_user_errors(fleet: Path, cli: Cli, args: list[str], code: int,
 
 def test_duplicate_and_remove_user(fleet: Path, cli: Cli) -> None:
     cli("add-user", "bob@example.com", "--role", "viewer")
+    before = _snapshot(fleet)
     _, err = cli("add-user", "bob@example.com", "--role", "admin", code=ExitCode.CONFLICT)
-    assert "duplicate user 'bob@example.com'" in err
+    # What an operator then wants is a new token for someone who lost theirs: say how.
+    assert err == (f"fleetctl: error: user 'bob@example.com' is already in {fleet}/fleet.yaml "
+                   "(viewer): to give them a new token, `fleetctl remove-user "
+                   "bob@example.com` (their old token stops working) and add them again\n")
+    assert _snapshot(fleet) == before
     cli("remove-user", "bob@example.com")
     assert "bob@example.com" not in (fleet / "server/auth.yaml").read_text()
     _, err = cli("remove-user", "bob@example.com", code=ExitCode.CONFIG)

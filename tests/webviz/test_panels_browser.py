@@ -291,3 +291,49 @@ async def test_old_data_is_said_without_moving_the_page(
         age_s[0] = 0.0  # caught up: the note goes once the 5 s window has only new samples
         await page.locator("#behind-note").wait_for(state="hidden", timeout=TIMEOUT_MS)
         assert not problems, problems
+
+
+async def test_a_robot_that_stops_sending_looks_stale_and_offline(
+    tmp_path: Path, browser: Any, webviz_factory: list[Any]
+) -> None:
+    # A robot whose client stopped sending (frozen, its link dead) left every panel looking
+    # live: the last scan, the odometry's 0.40 m/s, nothing saying how old; the robot page
+    # never said the robot had gone offline (only the overview did).
+    async with fleet_page(tmp_path, browser, webviz_factory) as (relay, web, page, problems):
+        r1 = relay.robots["r1"]
+        await open_robot_page(page, web.url, ["/r1/scan", "/r1/odom"])
+        r1.repeat(lambda: [r1.encode(SCAN, "/scan", scan_of(3.0)),
+                           r1.encode(ODOM, "/odom", odom_values())])
+        sending = r1.tasks[-1]
+        await page.locator("#odom-text", has_text="0.40 m/s").wait_for(timeout=TIMEOUT_MS)
+        await wait_js(page, "document.querySelector('#scan-canvas').dataset.beams")
+        await page.locator("#robot-state", has_text="online").wait_for(timeout=TIMEOUT_MS)
+        heights = {p: (await page.locator(f"#panel-{p}").bounding_box())["height"]
+                   for p in ("scan", "odom", "map")}
+        assert await page.locator(".panel.stale").count() == 0
+        assert await page.locator("#panel-scan h3 .age").text_content() == ""
+
+        sending.cancel()  # still connected, sending nothing
+        for p in ("scan", "odom", "map", "scene"):
+            await page.locator(f"#panel-{p}.stale h3 .age", has_text="no data for"
+                               ).wait_for(timeout=TIMEOUT_MS)
+        assert await page.is_visible("#panel-scan.stale h3 .age")
+        opacity = "sel => getComputedStyle(document.querySelector(sel)).opacity"
+        assert float(await page.evaluate(opacity, "#panel-scan canvas")) < 1
+        assert float(await page.evaluate(opacity, "#odom-text")) < 1
+        assert await page.text_content("#robot-state") == "online"  # connected, just quiet
+        for p, h in heights.items():  # the label sits in the title's line: nothing moved
+            assert (await page.locator(f"#panel-{p}").bounding_box())["height"] == h, p
+        # Panels that never drew are not called stale: there is nothing old to show.
+        assert await page.locator("#panel-gps.stale, #panel-camera.stale").count() == 0
+
+        r1.repeat(lambda: [r1.encode(SCAN, "/scan", scan_of(3.0)),
+                           r1.encode(ODOM, "/odom", odom_values())])
+        await page.locator(".panel.stale").first.wait_for(state="detached", timeout=TIMEOUT_MS)
+        assert await page.locator("#panel-scan h3 .age").text_content() == ""
+
+        await r1.stop()  # gone: the relay's registry says offline, and so does the page
+        await page.locator("#robot-state", has_text="offline, last seen").wait_for(
+            timeout=TIMEOUT_MS)
+        assert await page.get_attribute("#robot-state", "data-state") == "offline"
+        assert not problems, problems

@@ -3,7 +3,7 @@ import assert from "node:assert/strict";
 import { LinkHealth } from "../../../fleetctl/webviz/static/js/health.js";
 import { Rules } from "../../../fleetctl/webviz/static/js/rules.js";
 import { reEscape, wantedRegexes } from "../../../fleetctl/webviz/static/js/panels.js";
-import { batteryText, robotRow, toEpochS } from "../../../fleetctl/webviz/static/js/views/overview.js";
+import { ago, batteryText, duration, robotRow, toEpochS } from "../../../fleetctl/webviz/static/js/views/overview.js";
 import { cloudXYZ } from "../../../fleetctl/webviz/static/js/views/cloudpoints.js";
 
 test("seq gaps count as drops; rate and latency over the window", () => {
@@ -36,6 +36,38 @@ test("a young topic's rate is over the time seen, then over the window", () => {
   for (let t = 3000; t <= 9000; t += 1000) rec(t);
   assert.equal(rate(9000), 6 / 5); // the window is full: the 6 messages of [4, 9] s
   assert.equal(rate(20000), 0);
+});
+
+test("a topic is stale after 5 of its periods, at least 3 s; a panel when all its judged topics are", () => {
+  const h = new LinkHealth();
+  const now = 1_700_000_000_000;
+  const rec = (topic, t, latched = false) => h.record({ topic, seq: 0n, latched, publish_time_ns: 0n }, 10, now + t);
+  for (let t = 0; t <= 1000; t += 100) rec("/r/scan", t); // 10 Hz
+  for (let t = 0; t <= 4000; t += 1000) rec("/r/status", t); // 1 Hz
+  rec("/r/map", 0, true); // latched, once: never judged
+  rec("/r/map", 500); // one live message: no period yet
+  const f = (topics, t) => h.freshness(topics, now + t);
+  assert.deepEqual(f(["/r/scan"], 3900), { stale: false, lastMs: now + 1000 }); // 2.9 s: the 3 s floor
+  assert.deepEqual(f(["/r/scan"], 4100), { stale: true, lastMs: now + 1000 });
+  assert.equal(f(["/r/status"], 8900).stale, false); // 4.9 s: five 1 s periods not yet
+  assert.equal(f(["/r/status"], 9100).stale, true);
+  // The newest of a panel's judged topics counts; one fresh topic keeps the panel fresh.
+  assert.deepEqual(f(["/r/scan", "/r/status", "/r/map"], 5000), { stale: false, lastMs: now + 4000 });
+  assert.deepEqual(f(["/r/scan", "/r/status", "/r/map"], 9100), { stale: true, lastMs: now + 4000 });
+  // Nothing judged (a map sent once, a topic never seen): not stale, no time.
+  assert.deepEqual(f(["/r/map", "/r/gps/fix"], 60_000), { stale: false, lastMs: null });
+  // A topic that resumes is fresh at once.
+  rec("/r/scan", 20_000);
+  assert.equal(f(["/r/scan"], 20_100).stale, false);
+});
+
+test("durations and ages in words", () => {
+  assert.equal(duration(3.4), "3 s");
+  assert.equal(duration(150), "3 min");
+  assert.equal(duration(3 * 3600), "3 h");
+  assert.equal(ago(100, 101), "now");
+  assert.equal(ago(100, 130), "30 s ago");
+  assert.equal(ago(NaN, 130), "never");
 });
 
 test("a latched message the server kept starts no sequence", () => {

@@ -10,7 +10,7 @@ import { CloudView } from "./views/cloud.js";
 import { GpsView } from "./views/gps.js";
 import { MapView } from "./views/map.js";
 import { OdomView } from "./views/odom.js";
-import { renderOverview, robotRow } from "./views/overview.js";
+import { ago, duration, renderOverview, robotRow, toEpochS } from "./views/overview.js";
 import { ScanView } from "./views/scan.js";
 import { SceneView } from "./views/scene.js";
 import { VideoView } from "./views/video.js";
@@ -27,6 +27,7 @@ class App {
   constructor(config) {
     this.config = config;
     this.registry = [];
+    this.registryKnown = false; // a robots list arrived since sign-in
     this.liveStatus = new Map();
     this.robot = null; // robot whose page is open
     this.visible = new Set(PANELS.map((p) => p.id));
@@ -61,6 +62,7 @@ class App {
   }
 
   onStatus({ state, detail, retryMs }) {
+    if (this.robot) this.renderRobotState();
     const banner = $("#banner");
     banner.dataset.state = state;
     $("#conn-state").textContent = state;
@@ -92,6 +94,8 @@ class App {
 
   onRobots(robots) {
     this.registry = robots;
+    this.registryKnown = true;
+    if (this.robot) this.renderRobotState();
     for (const r of robots) {
       if (r.name) this.conn.subscribe(reEscape(`/${r.name}/status`));
     }
@@ -199,6 +203,7 @@ class App {
       this.shownRobot = name;
     }
     this.commandStatus("");
+    this.renderRobotState();
     this.applyVisibility();
     this.updateCommands();
     this.renderNotes();
@@ -377,9 +382,50 @@ class App {
     }
   }
 
+  /**
+   * The open robot's state from the registry, in words beside its name: the page went on
+   * looking live, with no word that the robot had gone offline.
+   */
+  renderRobotState() {
+    const el = $("#robot-state");
+    el.hidden = !this.registryKnown;
+    const entry = this.registry.find((r) => r.name === this.robot);
+    let state = !entry ? "unlisted" : entry.online ? "online" : "offline";
+    if (this.conn?.state !== "open") state = "unknown"; // the list is as old as the connection
+    el.dataset.state = state;
+    el.textContent = {
+      unknown: "state unknown: not connected to the fleet server",
+      unlisted: "not in the fleet's robot list",
+      online: "online",
+      offline: `offline, last seen ${ago(toEpochS(entry?.last_seen_s))}`,
+    }[state];
+  }
+
+  /**
+   * A panel whose topics stopped (the robot, the link or the server went quiet, or Pause)
+   * is dimmed and its title says how old its data is: a robot that stopped sending left
+   * every panel looking live, its odometry still saying 0.50 m/s.
+   */
+  renderStale(nowMs = Date.now()) {
+    for (const p of PANELS) {
+      const panel = $(`#panel-${p.id}`);
+      const { stale, lastMs } = this.conn.health.freshness(p.topics.map((t) => `/${this.robot}${t}`), nowMs);
+      panel.classList.toggle("stale", stale);
+      let age = panel.querySelector("h3 .age");
+      if (!age) {
+        age = document.createElement("span");
+        age.className = "age";
+        panel.querySelector("h3").append(age);
+      }
+      age.textContent = stale ? `no data for ${duration((nowMs - lastMs) / 1000)}` : "";
+    }
+  }
+
   renderHealth() {
     if (!this.conn) return;
     if (!this.robot) return this.renderOverview();
+    this.renderRobotState();
+    this.renderStale();
     this.renderNotes();
     this.views?.scene.renderLists();
     this.views?.video.renderStatus();

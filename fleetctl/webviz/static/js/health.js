@@ -6,6 +6,11 @@
 
 const WINDOW_S = 5; // rate and latency are computed over the last WINDOW_S seconds
 const MAX_SAMPLES = 512; // per topic; older samples are discarded (bounded memory)
+const MAX_INTERVALS = 16; // arrival intervals kept per topic for its usual period
+// A topic is overdue when nothing arrived for STALE_PERIODS of its usual period, and at
+// least STALE_MIN_MS (a 10 Hz scan is overdue after 3 s, a 1 Hz status after 5 s).
+export const STALE_PERIODS = 5;
+export const STALE_MIN_MS = 3000;
 
 export class TopicHealth {
   constructor() {
@@ -14,6 +19,8 @@ export class TopicHealth {
     this.received = 0;
     this.gaps = 0; // messages the sender numbered but we never saw
     this.bytes = 0;
+    this.lastLiveMs = null; // arrival of the last message that was not a kept (latched) one
+    this.intervals = []; // ms between live arrivals, the last MAX_INTERVALS
   }
 
   /**
@@ -37,10 +44,28 @@ export class TopicHealth {
       // every message in between would count as a drop.
       this.lastSeq = seq;
     }
+    if (!meta.latched) {
+      if (this.lastLiveMs !== null) this.intervals.push(nowMs - this.lastLiveMs);
+      if (this.intervals.length > MAX_INTERVALS) this.intervals.shift();
+      this.lastLiveMs = nowMs;
+    }
     const pub = Number(meta.publish_time_ns) / 1e6;
     // A latched message the server kept (a map sent minutes ago) is no latency sample.
     this.samples.push({ t: nowMs, latencyMs: pub > 0 && !meta.latched ? nowMs - pub : NaN });
     if (this.samples.length > MAX_SAMPLES) this.samples.splice(0, this.samples.length - MAX_SAMPLES);
+  }
+
+  /**
+   * When this topic's data is old: nothing arrived for STALE_PERIODS of its usual period
+   * (median arrival interval), at least STALE_MIN_MS. A topic with fewer than two live
+   * messages (a latched map, a topic seen once) has no period and is never judged.
+   * @returns {{lastMs: number, stale: boolean}|null} null: not judged
+   */
+  freshness(nowMs) {
+    if (!this.intervals.length) return null;
+    const sorted = [...this.intervals].sort((a, b) => a - b);
+    const periodMs = sorted[sorted.length >> 1];
+    return { lastMs: this.lastLiveMs, stale: nowMs - this.lastLiveMs > Math.max(STALE_MIN_MS, STALE_PERIODS * periodMs) };
   }
 
   /** @returns {{rateHz: number, latencyMs: number, drops: number, received: number}} */
@@ -76,6 +101,17 @@ export class LinkHealth {
       this.topics.set(meta.topic, h);
     }
     h.record(meta, size, nowMs);
+  }
+
+  /**
+   * Whether what a panel drew from *topics* is old: every judged topic (see
+   * TopicHealth.freshness) is overdue; lastMs: the newest live arrival among them.
+   * @returns {{stale: boolean, lastMs: number|null}} stale is false when none is judged
+   */
+  freshness(topics, nowMs = Date.now()) {
+    const judged = topics.map((t) => this.topics.get(t)?.freshness(nowMs)).filter(Boolean);
+    if (!judged.length) return { stale: false, lastMs: null };
+    return { stale: judged.every((f) => f.stale), lastMs: Math.max(...judged.map((f) => f.lastMs)) };
   }
 
   /** Rows sorted by topic, optionally only those under a prefix. */

@@ -15,13 +15,17 @@ export function toEpochS(v) {
   return n;
 }
 
+/** A duration (s) as an operator reads it: "15 s", "3 min", "2 h". */
+export function duration(d) {
+  if (d < 120) return `${Math.round(d)} s`;
+  if (d < 7200) return `${Math.round(d / 60)} min`;
+  return `${Math.round(d / 3600)} h`;
+}
+
 export function ago(s, nowS = Date.now() / 1000) {
   if (!Number.isFinite(s)) return "never";
   const d = Math.max(0, nowS - s);
-  if (d < 2) return "now";
-  if (d < 120) return `${Math.round(d)} s ago`;
-  if (d < 7200) return `${Math.round(d / 60)} min ago`;
-  return `${Math.round(d / 3600)} h ago`;
+  return d < 2 ? "now" : `${duration(d)} ago`;
 }
 
 /**

@@ -91,17 +91,30 @@ def on_new_subscription(core: RelayCore, peer: Peer, pattern: str) -> int:
         :data:`WORK_PER_CONTROL_REQUEST` units of work (:class:`Matched`), which the
         relay charges to the connection's control request rate.
     """
-    subs, store, router = core.subs, core.latched, core.keyframes
-    work = 0
-    if len(store):
-        found = subs.newly_matched(peer, pattern, store.candidates)
-        work += found.work
-        for topic in found.topics:
-            for frames in store.messages(topic):
-                if peer.outbound.push_latched(topic, frames):
-                    core.metrics.latched_delivered += len(frames)
-    found = subs.newly_matched(peer, pattern, router.candidates)
-    work += found.work
+    work = _queue_latched(core, peer, pattern) + _ask_for_keyframes(core, peer, pattern)
+    if core.remote_video:  # replicas: publishers elsewhere route it (rate limit there)
+        work += _ask_replicas_for_keyframes(core, peer, pattern)
+    return work // WORK_PER_CONTROL_REQUEST
+
+
+def _queue_latched(core: RelayCore, peer: Peer, pattern: str) -> int:
+    """Queue the stored latched messages *pattern* newly delivers to *peer*; the work."""
+    store = core.latched
+    if not len(store):
+        return 0
+    found = core.subs.newly_matched(peer, pattern, store.candidates)
+    for topic in found.topics:
+        for frames in store.messages(topic):
+            if peer.outbound.push_latched(topic, frames):
+                core.metrics.latched_delivered += len(frames)
+    return found.work
+
+
+def _ask_for_keyframes(core: RelayCore, peer: Peer, pattern: str) -> int:
+    """Ask the publishers of the video topics *pattern* newly delivers to *peer* for a
+    keyframe (once per topic per interval); the work."""
+    router = core.keyframes
+    found = core.subs.newly_matched(peer, pattern, router.candidates)
     for topic in found.topics:
         publisher = router.publisher(topic)
         if publisher is None or publisher is peer:
@@ -109,14 +122,17 @@ def on_new_subscription(core: RelayCore, peer: Peer, pattern: str) -> int:
         if router.route(topic) is not None:
             publisher.outbound.push(KEYFRAME_REQUESTS_TOPIC, router.request_frame(topic), True)
             core.metrics.count_keyframe_request("auto")
-    if core.remote_video:  # replicas: publishers elsewhere route it (rate limit there)
-        found = subs.newly_matched(peer, pattern, core.remote_video.candidates)
-        work += found.work
-        for topic in found.topics:
-            if router.publisher(topic) is None and core.fanout.forward_keyframe_request(
-                    encode_keyframe_request(topic)):
-                core.metrics.count_keyframe_request("auto_to_replicas")
-    return work // WORK_PER_CONTROL_REQUEST
+    return found.work
+
+
+def _ask_replicas_for_keyframes(core: RelayCore, peer: Peer, pattern: str) -> int:
+    """The same for video topics published on other replicas; the work."""
+    found = core.subs.newly_matched(peer, pattern, core.remote_video.candidates)
+    for topic in found.topics:
+        if core.keyframes.publisher(topic) is None and core.fanout.forward_keyframe_request(
+                encode_keyframe_request(topic)):
+            core.metrics.count_keyframe_request("auto_to_replicas")
+    return found.work
 
 
 def on_remote_video_topic(core: RelayCore, topic: str) -> None:

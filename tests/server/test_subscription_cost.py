@@ -7,6 +7,8 @@ from __future__ import annotations
 import json
 from typing import Any
 
+import pytest
+
 from fleetctl.server import firstframes
 from fleetctl.server.admission import TokenBucket
 from fleetctl.server.config import ServerConfig, ServerLimits
@@ -14,7 +16,7 @@ from fleetctl.server.latched import MAX_ENTRIES
 from fleetctl.server.metrics import Metrics
 from fleetctl.server.registry import RobotRegistry
 from fleetctl.server.relay import Peer, RelayCore
-from fleetctl.wire.control import encode_subscription
+from fleetctl.wire.control import decode_keyframe_request, encode_subscription
 from tests.server.conftest import ALICE_TOKEN, BOB_TOKEN, auth_map, authed_peer
 from tests.server.test_relay_keyframes import Clock, requests, video_frame
 from tests.server.test_relay_latched import binaries, latched
@@ -139,3 +141,23 @@ def test_a_token_churning_a_pattern_over_a_full_store_scans_it_at_a_bounded_rate
     assert scans >= (rate * 60.0) / per_scan - 1
     bob = authed_peer(core, token=BOB_TOKEN)
     assert _churn(core, clock, bob, "/husky1/r7/.*", 10.0) >= (burst + rate * 10.0) / 2 - 2
+
+
+def test_video_topics_of_other_replicas_are_indexed_and_bounded(
+        monkeypatch: pytest.MonkeyPatch) -> None:
+    core, _clock = make_core()
+    forwarded: list[str] = []
+
+    def forward(frame: bytes) -> bool:
+        forwarded.append(decode_keyframe_request(frame))
+        return True
+
+    monkeypatch.setattr(core.fanout, "forward_keyframe_request", forward)
+    for i in range(firstframes.MAX_REMOTE_VIDEO_TOPICS + 1):  # the first is forgotten
+        firstframes.on_remote_video_topic(core, f"/husky1/cam{i // 32}/v{i}")
+    assert len(core.remote_video) == firstframes.MAX_REMOTE_VIDEO_TOPICS
+    assert "/husky1/cam0/v0" not in core.remote_video
+    forwarded.clear()
+    bob = authed_peer(core, token=BOB_TOKEN)
+    core.on_binary(bob, encode_subscription("/husky1/cam0/.*"))
+    assert forwarded == [f"/husky1/cam0/v{i}" for i in range(1, 32)]

@@ -179,6 +179,13 @@ def deployment(tmp_path: Path) -> Iterator[Deployment]:
         client.close()
 
 
+def _client_in_the_foreground(robot: Any, blocks: dict[str, str], log: str) -> None:
+    """The client in the foreground, as the README says (its output goes to *log* here)."""
+    robot.get_wrapped_container().exec_run(
+        ["bash", "-c", f"{{\n{blocks['client-foreground']}}} >{log} 2>&1"],
+        workdir=BUNDLE, detach=True)
+
+
 def test_readme_blocks_bring_the_robot_online(deployment: Deployment) -> None:
     blocks = readme_blocks((deployment.bundle / "README.md").read_text())
     robot, server = deployment.robot, deployment.server
@@ -186,10 +193,7 @@ def test_readme_blocks_bring_the_robot_online(deployment: Deployment) -> None:
         _exec(robot, blocks[name], workdir=BUNDLE)
     assert "latest handshake" in _exec(robot, "wg show fleet0")
 
-    # The client in the foreground, as the README says (its output goes to a file here).
-    robot.get_wrapped_container().exec_run(
-        ["bash", "-c", f"{{\n{blocks['client-foreground']}}} >/tmp/client.log 2>&1"],
-        workdir=BUNDLE, detach=True)
+    _client_in_the_foreground(robot, blocks, "/tmp/client.log")
 
     def online() -> bool:
         return any(r.get("name") == ROBOT and r.get("online") for r in _robots(server))
@@ -223,9 +227,7 @@ def _update_to_a_new_export(deployment: Deployment) -> None:
     for name in UPDATE_BLOCKS:
         _exec(robot, blocks[name], workdir=BUNDLE)
     assert "mtu 1300" in _exec(robot, "ip link show fleet0")
-    robot.get_wrapped_container().exec_run(
-        ["bash", "-c", f"{{\n{blocks['client-foreground']}}} >/tmp/client2.log 2>&1"],
-        workdir=BUNDLE, detach=True)
+    _client_in_the_foreground(robot, blocks, "/tmp/client2.log")
     wait_until(lambda: f"authenticated as {ROBOT}" in _exec(robot, "cat /tmp/client2.log || :"),
                ONLINE_DEADLINE_S, poll_s=0.5, describe=f"{ROBOT} back after the update")
     assert "ROS_DOMAIN_ID=7" in _exec(robot, "cat /etc/fleetctl/fleetctl.env")

@@ -44,17 +44,22 @@ def _page_answers(port: int, cert: Path) -> bool:
         return False
 
 
-@pytest.fixture
-def running(tmp_path: Path) -> Iterator[tuple[Operator, Path, str]]:
+def _new_fleet(tmp_path: Path) -> tuple[Operator, Path, str]:
+    """A new fleet on free ports (WireGuard on), its operator and a project name."""
     if not _images_present():
         pytest.skip("images fleetctl/server and client not built")
     if not Path("/dev/net/tun").exists():
         pytest.skip("no /dev/net/tun: WireGuard cannot run here")
     fleet = tmp_path / "yard"
     op = Operator(tmp_path, fleet)
-    project = f"fleetctllive{uuid.uuid4().hex[:8]}"
     op.run("init", str(fleet), "--endpoint", f"127.0.0.1:{_free_port(socket.SOCK_DGRAM)}",
            "--https-port", str(_free_port()))
+    return op, fleet, f"fleetctllive{uuid.uuid4().hex[:8]}"
+
+
+@pytest.fixture
+def running(tmp_path: Path) -> Iterator[tuple[Operator, Path, str]]:
+    op, fleet, project = _new_fleet(tmp_path)
     op.run("add-robot", "husky1")
     try:
         op.run("up", "--bind", "127.0.0.1", "--project", project)
@@ -96,15 +101,7 @@ def test_render_moves_a_running_servers_published_ports(
 def test_up_says_so_when_the_server_does_not_start(tmp_path: Path) -> None:
     """A registry database that is not one (a damaged disk, a wrong file restored into the
     volume): the server exits 3 at every start."""
-    if not _images_present():
-        pytest.skip("images fleetctl/server and client not built")
-    if not Path("/dev/net/tun").exists():
-        pytest.skip("no /dev/net/tun: WireGuard cannot run here")
-    fleet = tmp_path / "yard"
-    op = Operator(tmp_path, fleet)
-    project = f"fleetctllive{uuid.uuid4().hex[:8]}"
-    op.run("init", str(fleet), "--endpoint", f"127.0.0.1:{_free_port(socket.SOCK_DGRAM)}",
-           "--https-port", str(_free_port()))
+    op, _fleet, project = _new_fleet(tmp_path)
     volume = f"{project}_server-data"
     try:
         subprocess.run(["docker", "run", "--rm", "--user", "root", "-v", f"{volume}:/data",

@@ -115,13 +115,15 @@ def stop_line(stats: dict[str, Any]) -> str:
     bridge = stats.get("bridge", {})
     topics = stats.get("topics", {})
     acked = sum(int(t.get("acked", 0)) for t in topics.values() if isinstance(t, dict))
+    lost = int(bridge.get("lost_before_client") or 0)  # DDS's losses, never in local_in
+    lost_note = f", {lost} local messages lost before the client took them" if lost else ""
     return (f"client stopped: {bridge.get('local_in')} local messages in, "
             f"{bridge.get('sent')} handed to the link, {acked} acknowledged by the server "
             "(status included), "
             f"{bridge.get('rate_limited')} rate limited, {bridge.get('published_local')} "
             f"frames published locally, {stats.get('connects', 0)} connections "
             f"({stats.get('reconnects')} reconnects), {stats.get('no_drop_overflow')} no_drop "
-            "overflow")
+            f"overflow{lost_note}")
 
 
 def register(app: typer.Typer) -> None:

@@ -65,9 +65,9 @@ class LinkTuning:
         deflate_max_message_bytes: Messages up to this size are sent with
             permessage-deflate when the server accepts it (:mod:`fleetctl.linkdeflate`);
             0 does not offer the extension (today's frames on the wire).
-        publish_to_offer_s: For a message offered without its publish time (one the
-            rclpy executor took, which does not see the middleware's source
-            timestamp), how long before its offer it counts as published, seconds: the
+        publish_to_offer_s: For a message offered without its publish time (a
+            middleware that gave no source timestamp, or a frame the node made itself),
+            how long before its offer it counts as published, seconds: the
             robot's own intake (DDS delivery, the take, the encode) puts 0.5-2 ms
             between the two (a 6 KB scan's is the longer), so after an outage such a
             message is fresh only when offered this long after the path was proven

@@ -76,6 +76,11 @@ def test_the_stop_line_says_what_the_server_acknowledged() -> None:
                "connects": 2, "reconnects": 1}
     assert "120 acknowledged by the server" in stop_line(reached)
     assert "2 connections (1 reconnects)" in stop_line(reached)
+    # What DDS lost before the client took it (publisher sequence gaps) is said when any.
+    assert "lost before" not in stop_line(reached)
+    lossy = {**reached, "bridge": {**never["bridge"], "lost_before_client": 17}}
+    assert stop_line(lossy).endswith(
+        "113 no_drop overflow, 17 local messages lost before the client took them")
 
 
 @pytest.mark.parametrize("value", ["300", "abc", "-1", "1.5"])

@@ -49,7 +49,7 @@ from fleetctl.client.latched import LatchedFrames
 from fleetctl.client.outagelog import LOG_EVERY, sampled
 from fleetctl.client.ros import qos
 from fleetctl.client.ros.ddsbuffers import LargeMessageCheck
-from fleetctl.client.ros.intake import LoopIntake, MessageCallback
+from fleetctl.client.ros.intake import LoopIntake
 from fleetctl.client.ros.msgtypes import message_class
 from fleetctl.client.ros.qos import AdaptiveSubscription
 from fleetctl.client.ros.tfsource import TfRepublisher, start_tf
@@ -138,6 +138,9 @@ class BridgeStats:
         latched_compressed: of those, deflate-compressed because they were large.
         latched_resent: kept latched frames offered again on a new connection.
         latched_republished: of ``published_local``, latched frames (TRANSIENT_LOCAL).
+        lost_before_client: local messages DDS lost before the node took them (gaps in
+            their publisher's sequence numbers, :mod:`fleetctl.client.seqgaps`), never in
+            ``local_in``; ``per_topic_lost`` by local topic.
     """
 
     local_in: int = 0
@@ -157,7 +160,9 @@ class BridgeStats:
     latched_compressed: int = 0
     latched_resent: int = 0
     latched_republished: int = 0
+    lost_before_client: int = 0
     per_topic_sent: dict[str, int] = field(default_factory=dict)
+    per_topic_lost: dict[str, int] = field(default_factory=dict)
 
 
 def _entry_class(where: str, type_name: str) -> Any:
@@ -299,7 +304,8 @@ class Bridge(Node):
                 self, cls, spec.topic, self._make_callback(spec), no_drop=spec.no_drop,
                 # A compressed topic's zstd/deflate work (milliseconds per megabyte, with
                 # the GIL released) stays off the loop, which other topics' frames wait on.
-                intake=intake if spec.compression == "none" else None))
+                intake=intake if spec.compression == "none" else None,
+                on_lost=self._lost_counter(spec.topic)))
         self.create_timer(QOS_REFRESH_PERIOD_S, self._refresh_qos)
         self.tf: TfRepublisher | None = None
         if config.tf is not None:
@@ -341,7 +347,14 @@ class Bridge(Node):
                     self.tf.reconnected()
             self._connects_seen = connects
 
-    def _make_callback(self, spec: PublishSpec) -> MessageCallback:
+    def _lost_counter(self, topic: str) -> Callable[[int], None]:
+        def lost(count: int) -> None:
+            self.stats.lost_before_client += count
+            self.stats.per_topic_lost[topic] = self.stats.per_topic_lost.get(topic, 0) + count
+
+        return lost
+
+    def _make_callback(self, spec: PublishSpec) -> Callable[[bytes, int], None]:
         index = len(self.inputs)  # the AdaptiveSubscription this callback is given to
 
         def callback(cdr: bytes, published_ns: int = 0, /) -> None:

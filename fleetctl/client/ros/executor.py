@@ -13,7 +13,9 @@ subscriptions), in one wait set per round, and calls callbacks directly. It does
 services or clients, and runs no coroutines: the client node is created without parameter
 services (its settings come from the YAML file) and has no services or clients of its own.
 Subscriptions whose callback is a :class:`~fleetctl.client.ros.intake.LoopServed` are left
-to the asyncio loop's thread (:mod:`fleetctl.client.ros.intake`).
+to the asyncio loop's thread (:mod:`fleetctl.client.ros.intake`); one whose callback is a
+:class:`~fleetctl.client.ros.intake.TakesInfo` gets the take's source timestamp and
+publication sequence number too, as the loop's intake passes them.
 
 It uses the wait set of rclpy's C extension (``rclpy_implementation.WaitSet``), as rclpy's
 executors do; that API is internal to rclpy, so ``tests/client/ros/test_executor.py`` runs it
@@ -35,7 +37,7 @@ from rclpy.guard_condition import GuardCondition
 from rclpy.impl.implementation_singleton import rclpy_implementation as _rclpy
 from rclpy.node import Node
 
-from fleetctl.client.ros.intake import LoopServed
+from fleetctl.client.ros.intake import LoopServed, TakesInfo, message_info
 
 log = logging.getLogger(__name__)
 
@@ -126,7 +128,10 @@ class NodeExecutor:
             return
         if taken is None:  # rmw said ready, but the sample was gone (e.g. lost to depth)
             return
-        _call(sub.callback, taken[0])
+        if isinstance(sub.callback, TakesInfo):
+            _call(sub.callback.callback, taken[0], *message_info(taken[1]))
+        else:
+            _call(sub.callback, taken[0])
 
     @staticmethod
     def _run_waitable(waitable: Any) -> None:

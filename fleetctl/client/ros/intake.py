@@ -66,19 +66,24 @@ class HeldSender(Protocol):
 
 
 class MessageCallback(Protocol):
-    """What a loop-served subscription's messages go to: the raw CDR and the
-    middleware's source timestamp (when the publisher published it, wall clock ns; 0
-    when not known), which rclpy's executor does not pass on. The robot link judges a
-    message after an outage by it (fleetctl.client.transport.RobotLink.offer)."""
+    """What a loop-served subscription's messages go to: the raw CDR, the middleware's
+    source timestamp (when the publisher published it, wall clock ns; 0 when not known)
+    and the sample's publication sequence number (its writer's 1, 2, 3, ...; 0 when not
+    known), which rclpy's executor does not pass on (the client's does,
+    :class:`TakesInfo`). The robot link judges a message after an outage by the first
+    (fleetctl.client.transport.RobotLink.offer); gaps in the second are messages DDS
+    lost (fleetctl.client.seqgaps)."""
 
-    def __call__(self, cdr: bytes, published_ns: int = 0, /) -> None: ...
+    def __call__(self, cdr: bytes, published_ns: int = 0, sequence: int = 0, /) -> None: ...
 
 
-class LoopServed:
-    """A subscription callback that marks its subscription as served by a :class:`LoopIntake`.
+class TakesInfo:
+    """A subscription callback that wants the take's message info: the client's executor
+    (:mod:`fleetctl.client.ros.executor`) calls the wrapped callback with the CDR, the
+    publish time and the sequence number (:func:`message_info`).
 
-    Calling it calls the wrapped callback (without a publish time), so nothing breaks if
-    something else does.
+    Calling it calls the wrapped callback with the CDR only, so nothing breaks if
+    something else (rclpy's executor) does.
     """
 
     __slots__ = ("callback",)
@@ -88,6 +93,13 @@ class LoopServed:
 
     def __call__(self, cdr: bytes) -> None:
         self.callback(cdr)
+
+
+class LoopServed(TakesInfo):
+    """A :class:`TakesInfo` that marks its subscription as served by a :class:`LoopIntake`
+    (the client's executor leaves it alone)."""
+
+    __slots__ = ()
 
 
 @dataclass(frozen=True)
@@ -268,17 +280,24 @@ class LoopIntake:
                 return
             self.taken += 1
             try:
-                served.callback(taken[0], _source_timestamp_ns(taken[1]))
+                served.callback(taken[0], *message_info(taken[1]))
             except Exception:  # one bad message must not stop the intake
                 self.failed_callbacks += 1
                 log.exception("callback of %s failed", sub.topic_name)
         os.eventfd_write(served.fd, 1)  # more may wait: come back after others had a turn
 
 
-def _source_timestamp_ns(info: Any) -> int:
-    """The source timestamp in a take's message info (a dict in rclpy), 0 without one."""
-    stamp = info.get("source_timestamp") if isinstance(info, dict) else None
-    return stamp if isinstance(stamp, int) and stamp > 0 else 0
+def message_info(info: Any) -> tuple[int, int]:
+    """``(source timestamp ns, publication sequence number)`` of a take's message info (a
+    dict in rclpy); 0 for what it lacks."""
+    if not isinstance(info, dict):
+        return 0, 0
+    return _positive(info.get("source_timestamp")), _positive(
+        info.get("publication_sequence_number"))
+
+
+def _positive(value: Any) -> int:
+    return value if isinstance(value, int) and value > 0 else 0
 
 
 def _in_loop_thread(loop: asyncio.AbstractEventLoop) -> bool:

@@ -28,7 +28,9 @@ from rclpy.event_handler import SubscriptionEventCallbacks
 from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 
-from fleetctl.client.ros.intake import LoopIntake, LoopServed, MessageCallback
+from fleetctl.client.outagelog import LOG_EVERY, sampled
+from fleetctl.client.ros.intake import LoopIntake, LoopServed, MessageCallback, TakesInfo
+from fleetctl.client.seqgaps import SequenceGaps
 
 log = logging.getLogger(__name__)
 
@@ -96,15 +98,22 @@ class AdaptiveSubscription:
         node: the owning node.
         msg_type: the rclpy message class.
         topic: local topic.
-        callback: receives raw CDR bytes.
+        callback: receives raw CDR bytes and their publish time (wall clock ns; 0: not
+            known).
         no_drop: the topic is no_drop (deeper history, reliable first).
         intake: Serve the subscription in the asyncio loop's thread (None: the executor
             serves it). If the intake cannot take it, the executor does, with a warning.
+        on_lost: Called with the count of each gap in the publisher's sequence numbers:
+            messages DDS lost before this client took them (:mod:`fleetctl.client.seqgaps`;
+            also in :attr:`gaps`), after a WARNING (first and every 1000th gap).
     """
 
     def __init__(self, node: Node, msg_type: Any, topic: str,
-                 callback: MessageCallback, *, no_drop: bool,
-                 intake: LoopIntake | None = None) -> None:
+                 callback: Callable[[bytes, int], None], *, no_drop: bool,
+                 intake: LoopIntake | None = None,
+                 on_lost: Callable[[int], None] | None = None) -> None:
+        self.gaps = SequenceGaps()
+        self._on_lost = on_lost
         self._node = node
         self._intake = intake
         self._msg_type = msg_type
@@ -121,7 +130,7 @@ class AdaptiveSubscription:
     def _create(self) -> Any:
         intake = self._intake
         if intake is None:
-            return self._subscribe(self._callback)
+            return self._subscribe(TakesInfo(self._on_message))
         # The marker is set at creation, so the executor never serves this subscription.
         # Without rclpy's default QoS event handlers: the executor would wait on this
         # reader's status condition without taking its data, and on Fast DDS that wait
@@ -129,7 +138,7 @@ class AdaptiveSubscription:
         # What those handlers log (incompatible QoS or type) is covered by refresh():
         # the QoS follows the publishers, and other types are warned about there.
         subscription = self._subscribe(
-            LoopServed(self._callback),
+            LoopServed(self._on_message),
             event_callbacks=SubscriptionEventCallbacks(use_default_callbacks=False))
         try:
             intake.attach(subscription)
@@ -138,8 +147,35 @@ class AdaptiveSubscription:
                         self._topic, exc)
             self._intake = None
             self._node.destroy_subscription(subscription)
-            return self._subscribe(self._callback)
+            return self._subscribe(TakesInfo(self._on_message))
         return subscription
+
+    def _on_message(self, cdr: bytes, published_ns: int = 0, sequence: int = 0, /) -> None:
+        if sequence and (lost := self.gaps.seen(sequence, self._publisher_count)):
+            self._lost(lost)
+        self._callback(cdr, published_ns)
+
+    def _publisher_count(self) -> int:
+        return int(self._node.count_publishers(self._topic))
+
+    def _lost(self, lost: int) -> None:
+        if self._on_lost is not None:
+            self._on_lost(lost)
+        if not sampled(self.gaps.gaps):
+            return
+        if self.reliable:
+            why = (f"it was published faster than this client took it, and DDS keeps only the "
+                   f"last {profile(True, self._no_drop, self.latched).depth} messages here "
+                   "(or the publisher's own KEEP_LAST history overwrote them)")
+        else:
+            why = ("best-effort messages DDS dropped: a large message one of whose UDP "
+                   "fragments met a full receive buffer (docs/robot.md, 'Large messages'), "
+                   "or a busy machine")
+        log.warning("%s: %d %smessages published were lost before this client took them "
+                    "(a gap in the publisher's sequence numbers; %d lost in %d gaps so far, "
+                    "stats: lost_before_client; logged first and every %dth gap): %s",
+                    self._topic, lost, "no_drop " if self._no_drop else "", self.gaps.lost,
+                    self.gaps.gaps, LOG_EVERY, why)
 
     def _subscribe(self, callback: Callable[[bytes], None] | MessageCallback,
                    **options: Any) -> Any:
@@ -181,6 +217,7 @@ class AdaptiveSubscription:
         self.reliable = reliable
         self.latched = latched
         self.switches += 1
+        self.gaps.restart()
         self._subscription = self._create()
         log.info("%s: subscribed %s, %s to match its publishers", self._topic,
                  "reliable" if reliable else "best-effort",

@@ -108,9 +108,11 @@ def fleetctl_argv(*args: str) -> list[str]:
 
 @contextlib.contextmanager
 def spun_bridge(context: Any, publish: dict[str, Any],
-                send_video: Callable[[Any, bytes, bool], None] | None = None) -> Any:
+                send_video: Callable[[Any, bytes, bool], None] | None = None,
+                send: Callable[[Any, bytes, int], None] | None = None) -> Any:
     """A real :class:`Bridge` of robot ``r1`` with the one *publish* entry, spun on its own
-    thread in *context*, whose link drops what it is handed (``send_video`` gets video)."""
+    thread in *context*, whose link drops what it is handed (``send_video`` gets video,
+    ``send`` the other frames)."""
     from fleetctl.client.config import parse_client_config
     from fleetctl.client.ros.bridge import Bridge, LinkPort
     from fleetctl.client.ros.runner import status_encoder
@@ -118,7 +120,8 @@ def spun_bridge(context: Any, publish: dict[str, Any],
     from fleetctl.wire.registry import TypeRegistry
 
     codec = Codec(TypeRegistry.default())
-    port = LinkPort(admit=lambda topic: True, send=lambda spec, frame, published_ns: None,
+    port = LinkPort(admit=lambda topic: True,
+                    send=send or (lambda spec, frame, published_ns: None),
                     send_status=lambda frame: None, send_video=send_video)
     config = parse_client_config({"server_url": "ws://127.0.0.1:1/", "robot_name": "r1",
                                   "publish": [publish]}, source="test.yaml")

@@ -72,8 +72,9 @@ def wakeups() -> Wakeups:
 
 
 def cdr_only(callback: Any) -> Any:
-    """A message callback (``cdr, published_ns``) that passes *callback* the CDR only."""
-    def served(cdr: bytes, published_ns: int = 0, /) -> None:
+    """A message callback (``cdr, published_ns, sequence``) that passes *callback* the CDR
+    only."""
+    def served(cdr: bytes, published_ns: int = 0, sequence: int = 0, /) -> None:
         callback(cdr)
 
     return served
@@ -120,7 +121,7 @@ async def test_each_message_comes_with_its_publish_time(nodes: Nodes) -> None:
     intake = LoopIntake(asyncio.get_running_loop(), wakeups())
     got: list[tuple[bytes, int]] = []
     sub = nodes.node.create_subscription(
-        String, "/stamped", LoopServed(lambda cdr, ns=0: got.append((cdr, ns))), QOS,
+        String, "/stamped", LoopServed(lambda cdr, ns=0, seq=0: got.append((cdr, ns))), QOS,
         raw=True)
     intake.attach(sub)
     pub = nodes.publisher("/stamped")

@@ -1,0 +1,124 @@
+"""The client's local subscriptions (fleetctl.client.ros.qos) with real rclpy publishers:
+what DDS loses before the client takes it is counted (fleetctl.client.seqgaps)."""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+from collections.abc import Iterator
+from typing import Any
+
+import pytest
+
+pytest.importorskip("rclpy")
+
+from rclpy.qos import QoSProfile, ReliabilityPolicy
+from std_msgs.msg import String
+
+from fleetctl.client.config import parse_client_config
+from fleetctl.client.ros.bridge import Bridge, LinkPort
+from fleetctl.client.ros.intake import LoopIntake, load_wakeups
+from fleetctl.client.ros.runner import status_encoder
+from fleetctl.waiting import wait_until
+from fleetctl.wire.codec import Codec
+from fleetctl.wire.registry import TypeRegistry
+from tests.client.ros.harness import spun_bridge
+
+pytestmark = pytest.mark.ros
+DOMAIN_ID = 73  # this file's own ROS domain
+BURST = 10_000
+DEADLINE_S = 30.0
+# A driver's reliable writer with a short KEEP_LAST history: a burst faster than the
+# client takes it overwrites what the client has not taken yet.
+SHORT_HISTORY = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE)
+
+
+def _burst_through(bridge: Bridge, publisher: Any, texts: list[str]) -> None:
+    """Publish one message at a time until the bridge took one, then BURST at once, and
+    wait until the bridge took the last (a KEEP_LAST writer keeps its newest)."""
+    count = 0
+
+    def warm_up() -> bool:
+        nonlocal count
+        count += 1
+        publisher.publish(String(data=str(count)))
+        return bridge.stats.local_in > 0
+
+    wait_until(warm_up, DEADLINE_S, poll_s=0.05, describe="the bridge took a message")
+    for _ in range(BURST):
+        count += 1
+        publisher.publish(String(data=str(count)))
+    wait_until(lambda: texts and texts[-1] == str(count), DEADLINE_S,
+               describe=f"message {count} taken")
+
+
+@contextlib.contextmanager
+def _texts_bridge(context: Any, topic: str) -> Iterator[tuple[Bridge, list[str]]]:
+    codec = Codec(TypeRegistry.default())
+    texts: list[str] = []
+
+    def send(spec: Any, frame: bytes, published_ns: int) -> None:
+        texts.append(str(codec.decode(frame)[1].data))
+
+    with spun_bridge(context, {"topic": topic, "type": "std_msgs/msg/String",
+                               "no_drop": True}, send=send) as bridge:
+        yield bridge, texts
+
+
+def _assert_counted(bridge: Bridge, topic: str, texts: list[str]) -> None:
+    taken = [int(text) for text in texts]
+    missing = taken[-1] - taken[0] + 1 - len(taken)
+    assert missing > 0, "the burst lost nothing: no loss to count"
+    assert bridge.stats.lost_before_client == missing
+    assert bridge.stats.per_topic_lost == {topic: missing}
+    assert bridge.stats.local_in == len(taken)
+    (subscription,) = bridge.inputs
+    assert subscription.gaps.lost == missing
+
+
+def test_a_burst_dds_drops_before_the_executor_takes_it_is_counted(
+        ros: tuple[Any, Any], caplog: pytest.LogCaptureFixture) -> None:
+    """20,000 no_drop messages published in 1.5 s reached the relay as 2,597 and nothing
+    said so: DDS overwrote the rest before the client took them."""
+    context, peer = ros
+    with _texts_bridge(context, "/burst") as (bridge, texts):
+        assert not bridge.inputs[0].loop_served  # the client's executor takes it
+        _burst_through(bridge, peer.create_publisher(String, "/burst", SHORT_HISTORY), texts)
+    _assert_counted(bridge, "/burst", texts)
+    said = [r.getMessage() for r in caplog.records if "lost before this client" in r.message]
+    assert said and said[0].startswith("/burst: ") and "no_drop messages" in said[0]
+    assert "DDS keeps only the last 1000 messages here" in said[0]
+
+
+def test_a_burst_lost_before_the_loop_intake_takes_it_is_counted(
+        ros: tuple[Any, Any]) -> None:
+    """The same on the loop thread's intake (fleetctl.client.ros.intake), which takes the
+    uncompressed topics of ``fleetctl client``."""
+    wakeups = load_wakeups()
+    if wakeups is None:
+        pytest.skip("no new-message callbacks on this platform")
+    context, peer = ros
+
+    async def scenario() -> None:
+        intake = LoopIntake(asyncio.get_running_loop(), wakeups)
+        codec = Codec(TypeRegistry.default())
+        texts: list[str] = []
+        port = LinkPort(admit=lambda topic: True, send_status=lambda frame: None,
+                        send=lambda spec, frame, ns: texts.append(
+                            str(codec.decode(frame)[1].data)))
+        config = parse_client_config({
+            "server_url": "ws://127.0.0.1:1/", "robot_name": "r1",
+            "publish": [{"topic": "/burst_loop", "type": "std_msgs/msg/String",
+                         "no_drop": True}]}, source="test.yaml")
+        bridge = Bridge(config, codec, codec.registry.typestore, port,
+                        status_encoder(codec, "r1"), context=context, intake=intake)
+        try:
+            assert bridge.inputs[0].loop_served
+            publisher = peer.create_publisher(String, "/burst_loop", SHORT_HISTORY)
+            await asyncio.to_thread(_burst_through, bridge, publisher, texts)
+            _assert_counted(bridge, "/burst_loop", texts)
+        finally:
+            intake.close()
+            bridge.destroy_node()
+
+    asyncio.run(scenario())

@@ -35,6 +35,7 @@ from fleetctl.client.serverurls import parse_server_urls
 from fleetctl.client.typenames import check_type
 from fleetctl.errors import ConfigError
 from fleetctl.smallfile import MAX_SECRET_BYTES, read_small_text
+from fleetctl.tokens import MAX_TOKEN_CHARS, is_wellformed_token
 from fleetctl.yamlfile import read_yaml
 
 # The media keys live in fleetctl.client.mediaconfig; they are imported from here.
@@ -48,6 +49,7 @@ __all__ = [
 # ROS 2 topic names: absolute, tokens of [A-Za-z0-9_] separated by single slashes.
 _TOPIC_RE = re.compile(r"^(/[A-Za-z_][A-Za-z0-9_]*)+$")
 _ROBOT_NAME_RE = re.compile(r"^[A-Za-z][A-Za-z0-9_]{0,62}$")
+_BOM = "\ufeff"
 
 _TOP_KEYS = frozenset(
     {"server_url", "robot_name", "bind_address", "token_file", "publish", "subscribe",
@@ -318,7 +320,10 @@ def _token(ctx: _Ctx, top: Mapping[str, Any], base_dir: Path) -> str | None:
         return None
     path = Path(value) if Path(value).is_absolute() else base_dir / value
     try:
-        token = read_small_text(path, MAX_SECRET_BYTES).strip()
+        # A byte order mark (Windows editors write one) is the file's encoding, not the
+        # token's: it was sent as part of the token, refused as 4401 'bad token' while
+        # the file showed the right one.
+        token = read_small_text(path, MAX_SECRET_BYTES).removeprefix(_BOM).strip()
     except OSError as exc:
         raise ctx.error("", "token_file", f"cannot read {path}: {exc.strerror or exc}") from exc
     except UnicodeDecodeError:
@@ -326,6 +331,13 @@ def _token(ctx: _Ctx, top: Mapping[str, Any], base_dir: Path) -> str | None:
     if not token or any(c.isspace() for c in token):
         # Never echo the token itself: it is a secret.
         raise ctx.error("", "token_file", f"{path} must hold one token without whitespace")
+    if not is_wellformed_token(token):
+        # The relay refuses any other token unseen (fleetctl.tokens): say which character.
+        position, char = next(((i, c) for i, c in enumerate(token)
+                               if not (c.isascii() and c.isprintable())), (0, ""))
+        found = f": U+{ord(char):04X} at character {position + 1}" if char else ""
+        raise ctx.error("", "token_file", f"{path}: a token is printable ASCII of at most "
+                                          f"{MAX_TOKEN_CHARS} characters{found}")
     return token
 
 

@@ -427,3 +427,26 @@ def test_a_misspelt_standard_type_gets_a_suggestion() -> None:
     with pytest.raises(ConfigError, match=r"Did you mean sensor_msgs/msg/LaserScan\?"):
         parse_client_config(minimal(publish=[{"topic": "/scan",
                                               "type": "sensor_msgs/msg/Laserscan"}]))
+
+
+@pytest.mark.parametrize("written", [
+    b"\xef\xbb\xbfs3cret-token\r\n",  # Notepad / PowerShell 5: a byte order mark, CRLF
+    b"s3cret-token\n\n", b"  s3cret-token\t\n"])
+def test_the_token_is_what_the_file_holds_without_its_encoding_marks(
+        tmp_path: Path, written: bytes) -> None:
+    """A byte order mark was sent as the token's first character: 4401 'bad token' for
+    a file that showed the right token."""
+    (tmp_path / "secret").write_bytes(written)
+    cfg = parse_client_config(minimal(token_file="secret"), base_dir=tmp_path)
+    assert cfg.token == "s3cret-token"
+
+
+def test_a_token_the_relay_would_refuse_unseen_is_named_without_echoing_it(
+        tmp_path: Path) -> None:
+    (tmp_path / "secret").write_text("s3cret-t\u00f6ken\n", encoding="utf-8")
+    with pytest.raises(ConfigError) as error:
+        parse_client_config(minimal(token_file="secret"), source="c.yaml", base_dir=tmp_path)
+    assert str(error.value) == (
+        f"c.yaml: token_file: {tmp_path / 'secret'}: a token is printable ASCII of at most "
+        "1024 characters: U+00F6 at character 9")
+    assert "s3cret" not in str(error.value)

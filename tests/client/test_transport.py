@@ -592,3 +592,19 @@ async def test_held_offers_are_written_in_the_callers_turn(
         assert consumer.texts(topic) == [f"e{i}" for i in range(offered)]
         await wait_until(lambda: link.stats()["in_flight_bytes"] == 0)
         assert link.stats()["topics"][topic]["acked"] == offered
+
+
+async def test_a_token_file_with_a_byte_order_mark_authenticates(
+    server: RelayServer, tmp_path: Path
+) -> None:
+    """A token file saved by a Windows editor (UTF-8 with BOM, CRLF): the BOM went out as
+    part of the token and the relay answered 4401 'bad token' for ever."""
+    from fleetctl.client.config import load_client_config
+    from tests.client.conftest import ROBOT_TOKEN
+
+    (tmp_path / "r1.token").write_bytes(b"\xef\xbb\xbf" + ROBOT_TOKEN.encode() + b"\r\n")
+    (tmp_path / "client.yaml").write_text(
+        f"server_url: {server.url}\nrobot_name: r1\ntoken_file: r1.token\n")
+    cfg = load_client_config(tmp_path / "client.yaml")
+    async with running(RobotLink(cfg, on_frame=lambda f: None, tuning=FAST)) as link:
+        await wait_until(lambda: link.stats()["identities"] == ["r1"])

@@ -68,11 +68,16 @@ class App {
     $("#conn-state").textContent = state;
     if (state === "open") {
       banner.hidden = true;
+      this.lastDrop = null;
       return;
     }
+    if (state === "disconnected") this.lastDrop = detail;
     banner.hidden = false;
+    // While the next attempt waits (an unanswered upgrade takes up to 15 s), the banner
+    // keeps why the last connection went; it flashed by in the 0.25 s before the attempt.
+    const why = this.lastDrop ? ` (the last connection: ${this.lastDrop})` : "";
     banner.textContent = {
-      connecting: `Connecting to ${this.conn?.url ?? this.config.server_url} …`,
+      connecting: `Connecting to ${this.conn?.url ?? this.config.server_url} …${why}`,
       disconnected: `Disconnected from the fleet server (${detail}). Reconnecting in about ${(retryMs / 1000).toFixed(1)} s …`,
       refused: `Signed out: ${detail}. Check your token and sign in again.`,
       throttled: throttledText(retryMs),

@@ -23,6 +23,13 @@ const MAX_LOG = 50; // server error frames kept for display
 // Frames of one topic waiting behind an asynchronous decompression; more are dropped and
 // counted (a 1 MB cloud inflates in a few ms, so a queue this long means the page is behind).
 const MAX_INFLATE_QUEUE = 8;
+// A socket that heard nothing for this long while the page waited for an answer (the
+// welcome after it opened, or the robot list it asks for every 2 s) is given up and
+// reconnected. A hung relay, or a dead path the TCP stack does not report (a server host
+// that lost power, a laptop that changed networks), left the page saying "open" with the
+// robot "online" for as long as the browser kept the socket: minutes.
+export const SILENT_MS = 15000;
+const WATCHDOG_MS = 1000;
 
 /** Close codes that mean "do not retry with the same credentials". */
 export const FATAL_CLOSE = { 4401: "the server refused the token", 4403: "this connection matches no identity in the auth map" };
@@ -69,6 +76,8 @@ export class Connection extends EventTarget {
     this.unsupported = new Map(); // topic -> message, for topics compressed with zstd
     this.errors = [];
     this.seq = 0n;
+    this.waitingSinceMs = null; // the page waits for the server since (ms); null: not waiting
+    this.watchdog = null;
   }
 
   start() {
@@ -77,10 +86,13 @@ export class Connection extends EventTarget {
     // read: fetch them now, so a latched map sent once in fragments is not lost to a load.
     for (const t of [FRAGMENT_TYPE, COMPRESSED_TYPE]) this.loader.ensure(t).catch((err) => this.decodeFailed(err));
     this.open();
+    clearInterval(this.watchdog);
+    this.watchdog = setInterval(() => this.checkSilence(), WATCHDOG_MS);
   }
 
   stop() {
     this.stopped = true;
+    clearInterval(this.watchdog);
     clearTimeout(this.retryTimer);
     this.ws?.close(1000, "page closed");
   }
@@ -103,24 +115,48 @@ export class Connection extends EventTarget {
     this.ws = ws;
     this.opened = false;
     this.lastErrorCode = null;
+    this.waitingSinceMs = Date.now(); // for the upgrade, then the welcome
     ws.onopen = () => {
       this.opened = true;
       this.throttle = null; // the upgrade went through: the address is within its budget
       if (this.token) ws.send(JSON.stringify({ token: this.token }));
     };
-    ws.onmessage = (ev) => (typeof ev.data === "string" ? this.onText(ev.data) : this.onBinary(ev.data));
+    ws.onmessage = (ev) => {
+      this.waitingSinceMs = null; // any frame: the server is there
+      return typeof ev.data === "string" ? this.onText(ev.data) : this.onBinary(ev.data);
+    };
     ws.onclose = (ev) => this.onClose(ev);
+  }
+
+  /**
+   * Give up a socket that has not answered for SILENT_MS (see there): the browser would
+   * keep it, and the page would show stale data as live, until TCP gave up.
+   */
+  checkSilence(nowMs = Date.now()) {
+    const ws = this.ws;
+    if (!ws || this.stopped || this.waitingSinceMs === null || nowMs - this.waitingSinceMs <= SILENT_MS) return false;
+    const silentS = Math.round((nowMs - this.waitingSinceMs) / 1000);
+    ws.onopen = ws.onmessage = ws.onclose = null; // its close, whenever it comes, is not news
+    try {
+      ws.close(4000, "no answer");
+    } catch {
+      // closing a socket that never opened may throw in some browsers; it is dropped anyway
+    }
+    this.onClose({ code: null, reason: `no answer from the server for ${silentS} s`, silent: true });
+    return true;
   }
 
   onClose(ev) {
     this.ws = null;
+    this.waitingSinceMs = null;
     this.active.clear();
     if (this.stopped) return this.setStatus("closed");
     if (FATAL_CLOSE[ev.code]) return this.setStatus("refused", `${FATAL_CLOSE[ev.code]} (close ${ev.code})`);
     const throttle = throttledClose(ev, this.lastErrorCode);
     // Closed before it opened: the relay answers an upgrade from an address over its
     // failed-login budget with a 429 the page cannot see; ask, when it can (loginthrottle.js).
-    const asked = throttle || this.opened ? null : probeThrottle(this.url, this.token, { origin: this.origin, fetchImpl: this.fetchImpl });
+    // A socket given up for silence was no 429 (that is answered at once).
+    const asked = throttle || this.opened || ev.silent ? null : probeThrottle(this.url, this.token, { origin: this.origin, fetchImpl: this.fetchImpl });
     if (!asked) return this.retry(ev, throttle);
     asked.then((answer) => {
       if (!this.stopped && !this.ws) this.retry(ev, answer);
@@ -141,7 +177,7 @@ export class Connection extends EventTarget {
     // Sooner would only be refused again; up to 20 % more spreads the pages and robots
     // behind one NAT. No usable hint: the backoff alone.
     if (hintS != null) wait = Math.max(wait, hintS * 1000 * (1 + Math.random() * 0.2));
-    const why = `close ${ev.code}${ev.reason ? `: ${ev.reason}` : ""}`;
+    const why = ev.silent ? ev.reason : `close ${ev.code}${ev.reason ? `: ${ev.reason}` : ""}`;
     if (this.throttle) this.setStatus("throttled", why, wait);
     else this.setStatus("disconnected", why);
     // Replicas: the next attempt tries the next one (a dead replica refuses at once, so a
@@ -323,7 +359,9 @@ export class Connection extends EventTarget {
   }
 
   listRobots() {
-    if (this.state === "open") this.ws.send(JSON.stringify({ type: "list_robots" }));
+    if (this.state !== "open") return;
+    this.ws.send(JSON.stringify({ type: "list_robots" }));
+    this.waitingSinceMs ??= Date.now(); // answered by its robots frame (or any other)
   }
 
   /**

@@ -50,6 +50,8 @@ export function throttledClose(ev, lastErrorCode) {
   return { retryAfterS };
 }
 
+const PROBE_TIMEOUT_MS = 5000;
+
 /** The http(s) URL of config.json beside a ws(s) URL, or null when it is not on `origin`. */
 export function probeUrl(wsUrl, origin) {
   const url = new URL("config.json", wsUrl);
@@ -69,7 +71,9 @@ export function probeUrl(wsUrl, origin) {
 export function probeThrottle(wsUrl, token, { origin, fetchImpl }) {
   const url = origin && fetchImpl && token ? probeUrl(wsUrl, origin) : null;
   if (!url) return null;
-  return fetchImpl(url, { headers: { Authorization: `Bearer ${token}` }, cache: "no-store" }).then(
+  // Bounded: the next attempt waits for this answer, and a relay that hangs would never give it.
+  const signal = globalThis.AbortSignal?.timeout?.(PROBE_TIMEOUT_MS);
+  return fetchImpl(url, { headers: { Authorization: `Bearer ${token}` }, cache: "no-store", signal }).then(
     (resp) => (resp.status === 429 ? { retryAfterS: parseRetryAfter(resp.headers.get("Retry-After")) } : false),
     () => null,
   );

@@ -46,7 +46,7 @@ from typing import Any
 import yaml
 
 from fleetctl import __version__
-from fleetctl.deploy.files import FileWrite, refuse_linked_directories, write_file
+from fleetctl.deploy.files import FileWrite, WriteFailed, refuse_linked_directories, write_file
 from fleetctl.deploy.fleet import MAX_RELAY_REPLICAS, load_fleet, parse_endpoint
 from fleetctl.deploy.images import image_tag
 from fleetctl.errors import ConfigError, EnvironmentMissing, ExitCode, FleetError
@@ -551,11 +551,16 @@ def robot_wireguard(plan: ComposePlan, robot: RobotEntry) -> str:
 def write_files(plan: ComposePlan) -> Path:
     """Write the compose file, state and container-side files under ``FLEET/.compose``."""
     out = plan.compose_dir
-    for sub in (out, out / "secrets"):
-        refuse_linked_directories(plan.fleet_dir, sub)  # chmod and the key copy follow one
-        sub.mkdir(parents=True, exist_ok=True)
-        os.chmod(sub, 0o700)  # copies of private keys live below
-    (out / "server").mkdir(exist_ok=True)
+    try:
+        for sub in (out, out / "secrets"):
+            refuse_linked_directories(plan.fleet_dir, sub)  # chmod and the key copy follow one
+            sub.mkdir(parents=True, exist_ok=True)
+            os.chmod(sub, 0o700)  # copies of private keys live below
+        (out / "server").mkdir(exist_ok=True)
+    except OSError as exc:
+        # A fleet directory on a read-only mount, or owned by another user: one line (it
+        # was mkdir's traceback).
+        raise WriteFailed.from_os_error(exc) from None
     _write(out / "server" / "server.yaml", server_config_text(plan))
     _write(out / "server" / "tls-cert.pem", read_small_text(plan.tls_cert, MAX_PEM_BYTES))
     _write(out / "secrets" / "tls.key", read_small_text(plan.tls_key, MAX_PEM_BYTES),

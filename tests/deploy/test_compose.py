@@ -21,7 +21,8 @@ from fleetctl.deploy import compose, composerun, hostports, live
 from fleetctl.deploy import operations as ops
 from fleetctl.deploy.compose import Options
 from fleetctl.deploy.dockercli import Completed
-from fleetctl.errors import ConfigError, ConflictError, EnvironmentMissing, FleetError
+from fleetctl.deploy.files import WriteFailed
+from fleetctl.errors import ConfigError, ConflictError, EnvironmentMissing, ExitCode, FleetError
 
 
 @pytest.fixture
@@ -477,6 +478,17 @@ def test_up_refuses_a_server_yaml_the_server_would_refuse(fleet: Path) -> None:
         composerun.up(fleet, _opts(fleet, wireguard="off"), progress=lambda _: None,
                       runner=docker)
     assert docker.compose_calls() == [] and not (fleet / ".compose").exists()
+
+
+def test_up_in_a_fleet_directory_it_cannot_write_in_is_one_line(fleet: Path) -> None:
+    """FLEET/.compose could not be made (the fleet directory on a read-only mount, owned by
+    another user; here a file in its place): `up` printed mkdir's traceback."""
+    (fleet / ".compose").write_text("not a directory\n")
+    with pytest.raises(WriteFailed) as info:
+        composerun.up(fleet, _opts(fleet, wireguard="off"), progress=lambda _: None,
+                      runner=FakeDocker(), port_probe=lambda *_: None)
+    assert str(info.value) == f"{fleet}/.compose: cannot write: File exists; nothing was changed"
+    assert info.value.exit_code is ExitCode.ENVIRONMENT
 
 
 def test_up_refuses_to_change_the_mode_of_a_running_fleet(fleet: Path) -> None:

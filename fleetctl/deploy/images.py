@@ -32,7 +32,7 @@ from fleetctl import __version__
 from fleetctl.deploy.assets import asset_dir
 from fleetctl.deploy.dockercli import Runner, check, image_exists, subprocess_runner
 from fleetctl.deploy.selfwheel import DIST_NAME, fleetctl_wheel, source_checkout
-from fleetctl.errors import ConfigError, EnvironmentMissing, FleetError
+from fleetctl.errors import ConfigError, EnvironmentMissing, ExitCode, FleetError
 
 BASE_IMAGE = "fleetctl/base:bookworm"
 # Debian packages in the base: python for the runtime, iproute2 for tc and ip (router and
@@ -483,7 +483,14 @@ def build_all(
     if unknown:
         raise FleetError(f"unknown image(s) {unknown}; choose from {list(IMAGE_NAMES)}")
     ensure_base_image(cfg, runner, progress)
-    prepare_context(cfg, runner, progress)
+    try:
+        prepare_context(cfg, runner, progress)
+    except OSError as exc:
+        # A checkout on a read-only mount (--source), a full disk: one line, not the
+        # traceback of the mkdir or copy that failed.
+        raise FleetError(f"{exc.filename or cfg.context}: cannot write the build context "
+                         f"{cfg.context}: {exc.strerror or exc}",
+                         exit_code=ExitCode.ENVIRONMENT) from None
     tags = []
     for i, name in enumerate(cfg.images, 1):
         progress(f"[{i}/{len(cfg.images)}] docker build {image_tag(name, cfg.version)}")

@@ -10,7 +10,7 @@ import pytest
 
 from fleetctl.deploy import images
 from fleetctl.deploy.dockercli import Completed, require_docker
-from fleetctl.errors import ConfigError, EnvironmentMissing, FleetError
+from fleetctl.errors import ConfigError, EnvironmentMissing, ExitCode, FleetError
 
 REPO = Path(__file__).resolve().parents[2]
 
@@ -111,6 +111,19 @@ def test_unknown_image_name_is_rejected(tmp_path: Path) -> None:
     with pytest.raises(FleetError, match="unknown image"):
         images.build_all(images.BuildConfig(source_dir=tmp_path, images=("db",)),
                          Recorder(True), lambda s: None)
+
+
+def test_a_build_context_that_cannot_be_written_is_one_line(tmp_path: Path) -> None:
+    """`build --source` of a checkout on a read-only mount printed mkdir's traceback (here
+    a file stands where the context directory goes)."""
+    context = tmp_path / "ctx"
+    context.write_text("not a directory\n")
+    cfg = images.BuildConfig(source_dir=tmp_path, context_dir=context)
+    with pytest.raises(FleetError) as info:
+        images.build_all(cfg, Recorder(True), lambda s: None)
+    assert str(info.value) == (f"{context}/wheels: cannot write the build context {context}: "
+                               "Not a directory")
+    assert info.value.exit_code is ExitCode.ENVIRONMENT
 
 
 def test_docker_absent_is_an_environment_error() -> None:

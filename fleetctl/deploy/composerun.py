@@ -403,6 +403,13 @@ class StatusReport:
     def _removed(self, robot: dict[str, Any]) -> bool:
         return self.fleet_robots is not None and robot.get("name") not in self.fleet_robots
 
+    def never_connected(self) -> list[str]:
+        """The fleet's robots the server has never seen (empty when either is unknown)."""
+        if self.robots is None or self.fleet_robots is None:
+            return []
+        seen = {r.get("name") for r in self.robots}
+        return sorted(self.fleet_robots - seen)
+
     @property
     def healthy(self) -> bool:
         """Every service runs and is healthy (or has no check)."""
@@ -425,6 +432,7 @@ class StatusReport:
             "robots": None if self.robots is None else [
                 {**_robot_json(r), "in_fleet": not self._removed(r)} for r in self.robots],
             "robots_error": self.robots_error or None,
+            "never_connected": self.never_connected(),
             "tunnel": None if self.tunnel is None else [t.__dict__ for t in self.tunnel],
             "tunnel_note": self.tunnel_note or None,
             "recordings": (None if self.recordings is None else
@@ -432,20 +440,25 @@ class StatusReport:
             "recordings_note": self.recordings_note or None,
         }
 
+    def _robot_lines(self) -> list[str]:
+        if self.robots is None:
+            return [f"robots: unknown ({self.robots_error})"]
+        rows = [f"{r.get('name', '?')!s:<24} {'yes' if r.get('online') else 'no':<7} "
+                f"{_battery(r.get('battery_level')):<8} {_ago(r.get('last_seen_s'))}"
+                + ("  (not in fleet.yaml: removed)" if self._removed(r) else "")
+                for r in self.robots]
+        # The robots being set up: "(no robots yet)" read as if the fleet had none.
+        rows += [f"{name:<24} {'no':<7} {'-':<8} never" for name in self.never_connected()]
+        empty = "(no robots yet)" if self.fleet_robots is None else "(no robots in fleet.yaml)"
+        return [f"{'ROBOT':<24} {'ONLINE':<7} {'BATTERY':<8} LAST SEEN", *(rows or [empty])]
+
     def render_text(self) -> str:
         """Plain-text tables."""
         lines = [f"{'SERVICE':<24} {'STATE':<11} {'HEALTH':<10} RESTARTS"]
         lines += [f"{s.service:<24} {s.state:<11} {s.health:<10} {s.restarts}"
                   for s in self.services] or ["(no containers: the fleet is not running)"]
         lines.append("")
-        if self.robots is None:
-            lines.append(f"robots: unknown ({self.robots_error})")
-        else:
-            lines.append(f"{'ROBOT':<24} {'ONLINE':<7} {'BATTERY':<8} LAST SEEN")
-            lines += [f"{r.get('name', '?')!s:<24} {'yes' if r.get('online') else 'no':<7} "
-                      f"{_battery(r.get('battery_level')):<8} {_ago(r.get('last_seen_s'))}"
-                      + ("  (not in fleet.yaml: removed)" if self._removed(r) else "")
-                      for r in self.robots] or ["(no robots yet)"]
+        lines += self._robot_lines()
         lines.append("")
         if self.tunnel is None:
             lines.append(f"tunnel: {self.tunnel_note}")

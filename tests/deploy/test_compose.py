@@ -707,6 +707,22 @@ def test_status_marks_a_robot_the_fleet_no_longer_has(fleet: Path) -> None:
     assert "removed" not in text.split("husky1", 1)[1].splitlines()[0]
 
 
+def test_status_lists_the_fleets_robots_that_never_connected(fleet: Path) -> None:
+    """`status` of a fleet whose robots were being set up said "(no robots yet)", as if
+    the fleet had none: the server's registry lists only robots it has seen."""
+    names = composerun._fleet_robot_names(fleet)
+    report = composerun.StatusReport((), [], fleet_robots=names)
+    assert report.to_json()["never_connected"] == ["husky1", "jackal2"]
+    lines = report.render_text().splitlines()
+    header = lines.index(next(line for line in lines if line.startswith("ROBOT")))
+    assert [line.split() for line in lines[header + 1:header + 3]] == [
+        ["husky1", "no", "-", "never"], ["jackal2", "no", "-", "never"]]
+    seen = composerun.StatusReport((), [{"name": "husky1", "online": True}], fleet_robots=names)
+    assert seen.to_json()["never_connected"] == ["jackal2"]
+    assert "(no robots in fleet.yaml)" in composerun.StatusReport(
+        (), [], fleet_robots=frozenset()).render_text()
+
+
 def test_status_asks_only_for_this_fleets_containers(fleet: Path) -> None:
     """`status --project P` listed every container of project P, another fleet's too."""
     docker = FakeDocker()

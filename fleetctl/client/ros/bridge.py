@@ -125,7 +125,9 @@ class BridgeStats:
         compressed: of those, sent as a Compressed frame.
         compression_skipped: of those, sent plain on a compressed topic because
             compression would not have saved 5 % (incompressible data).
-        encode_errors: local messages that could not be encoded or compressed (logged).
+        encode_errors: local messages that could not be decoded, encoded or compressed
+            (logged, first and every 1000th per topic); ``per_topic_encode_errors`` by
+            local topic.
         frames_in: frames received from the link.
         published_local: of those, published on a local topic.
         decode_errors: frames that could not be decoded or serialized (logged).
@@ -163,6 +165,7 @@ class BridgeStats:
     lost_before_client: int = 0
     per_topic_sent: dict[str, int] = field(default_factory=dict)
     per_topic_lost: dict[str, int] = field(default_factory=dict)
+    per_topic_encode_errors: dict[str, int] = field(default_factory=dict)
 
 
 def _entry_class(where: str, type_name: str) -> Any:
@@ -224,6 +227,16 @@ class _Route:
             publisher = self._node.create_publisher(self._cls, local, qos_profile)
             self._publishers[local] = publisher
         return publisher
+
+
+def _failure_hint(exc: BaseException) -> str:
+    """What a robot team should know about a message that failed: a string field that is
+    not UTF-8 is the publisher's to fix (ROS 2 strings are UTF-8; rclcpp sends any bytes)."""
+    cause = exc.__cause__ or exc.__context__
+    if isinstance(exc, UnicodeDecodeError) or isinstance(cause, UnicodeDecodeError):
+        return ("; a string field is not UTF-8 (ROS 2 strings are UTF-8 text): the publisher "
+                "sends other bytes, e.g. a latin-1 degree sign")
+    return ""
 
 
 def _check_no_echo(config: ClientConfig) -> None:
@@ -382,8 +395,7 @@ class Bridge(Node):
             # (1 MB per cloud) but not a view; arrays then reference rclpy's buffer.
             msg = self._typestore.deserialize_cdr(memoryview(cdr), spec.type)
         except Exception as exc:  # a bad local message must never stop the node
-            self.stats.encode_errors += 1
-            log.warning("cannot decode %s from %s: %s", spec.type, spec.topic, exc)
+            self._local_failure(spec, "decode", exc)
             return
         self.send_message(spec, msg, latched=latched, published_ns=published_ns)
         if spec.viewer_cloud is not None:  # after the full cloud, which is sent regardless
@@ -415,8 +427,7 @@ class Bridge(Node):
             elif latched and len(frame) > LATCHED_COMPRESS_BYTES:
                 frame = self._compress_latched(spec, frame)
         except Exception as exc:  # a bad local message must never stop the node
-            self.stats.encode_errors += 1
-            log.warning("cannot encode %s from %s: %s", spec.type, spec.topic, exc)
+            self._local_failure(spec, "encode", exc)
             return False
         self._keep_latched(spec, frame, latched)
         self._port.send(spec, frame, published_ns)
@@ -425,6 +436,18 @@ class Bridge(Node):
             self.stats.per_topic_sent.get(spec.remote_topic, 0) + 1
         )
         return True
+
+    def _local_failure(self, spec: PublishSpec, what: str, exc: Exception) -> None:
+        """Count a local message of *spec* that could not be decoded or encoded; log the
+        first and every 1000th of its topic (it was a WARNING per message: a driver
+        sending a latin-1 degree sign at 20 Hz wrote 20 lines a second)."""
+        self.stats.encode_errors += 1
+        seen = self.stats.per_topic_encode_errors.get(spec.topic, 0) + 1
+        self.stats.per_topic_encode_errors[spec.topic] = seen
+        if sampled(seen):
+            log.warning("cannot %s %s from %s, dropped (%d so far; logged first and every "
+                        "%dth): %s%s", what, spec.type, spec.topic, seen, LOG_EVERY, exc,
+                        _failure_hint(exc))
 
     def _compress(self, spec: PublishSpec, frame: bytes) -> bytes:
         """Before the link fragments it: receivers reassemble, then decompress."""

@@ -28,6 +28,7 @@ from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 
 from fleetctl.client.config import PublishSpec, TfSpec, tf_remote_topics
+from fleetctl.client.outagelog import LOG_EVERY, sampled
 from fleetctl.client.ros.msgtypes import message_class
 from fleetctl.client.tfthrottle import StaticTf, TfStats, TfThrottle
 from fleetctl.errors import ConfigError
@@ -92,7 +93,10 @@ class TfRepublisher:
             return list(self._typestore.deserialize_cdr(memoryview(cdr), TF_TYPE).transforms)
         except Exception as exc:  # a bad local message must never stop the node
             self.decode_errors += 1
-            log.warning("tf: cannot decode a %s message on %s: %s", TF_TYPE, topic, exc)
+            if sampled(self.decode_errors):  # not a line per message of a 100 Hz broadcaster
+                log.warning("tf: cannot decode a %s message on %s (%d so far; logged first "
+                            "and every %dth): %s", TF_TYPE, topic, self.decode_errors,
+                            LOG_EVERY, exc)
             return None
 
     def _on_tf(self, cdr: bytes) -> None:

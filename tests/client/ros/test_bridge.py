@@ -270,6 +270,34 @@ def test_bad_frames_are_counted_never_raised(setup: tuple[Bridge, Node, FakePort
     assert bridge.stats.published_local == 0
 
 
+def test_a_local_message_that_is_not_utf8_is_counted_and_said_sampled(
+        setup: tuple[Bridge, Node, FakePort], codec: Codec,
+        caplog: pytest.LogCaptureFixture) -> None:
+    """A driver's latin-1 degree sign in a string field (rclcpp sends any bytes): each
+    message was a WARNING of its own, 20 a second at 20 Hz, for ever."""
+    from std_msgs.msg import String
+
+    bridge, peer, fake = setup
+    caplog.set_level(logging.WARNING, "fleetctl.client.ros.bridge")
+    publisher = peer.create_publisher(String, "/events", 100)
+    wait_for(lambda: publisher.get_subscription_count() > 0)
+    text = b"temp 40\xb0C"
+    latin1 = b"\x00\x01\x00\x00" + (len(text) + 1).to_bytes(4, "little") + text + b"\x00"
+    for _ in range(30):
+        publisher.publish(latin1)  # serialized bytes, as the driver's rclcpp sent them
+    publisher.publish(String(data="fine"))
+    wait_for(lambda: fake.sent)
+    assert [codec.decode(f)[1].data for _, f in fake.sent] == ["fine"]
+    assert bridge.stats.per_topic_encode_errors == {"/events": 30}
+    assert bridge.stats.encode_errors == 30
+    said = [r.getMessage() for r in caplog.records if "cannot decode" in r.getMessage()]
+    assert len(said) == 1, said
+    assert said[0].startswith("cannot decode std_msgs/msg/String from /events, dropped (1 so "
+                              "far; logged first and every 1000th): ")
+    assert said[0].endswith("a string field is not UTF-8 (ROS 2 strings are UTF-8 text): the "
+                            "publisher sends other bytes, e.g. a latin-1 degree sign")
+
+
 def test_a_wrong_subscribe_type_is_logged_once_not_per_message(
         setup: tuple[Bridge, Node, FakePort], codec: Codec,
         caplog: pytest.LogCaptureFixture) -> None:

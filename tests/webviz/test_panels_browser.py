@@ -177,8 +177,10 @@ async def test_a_phone_sized_page_is_no_wider_than_the_screen(
     tmp_path: Path, browser: Any, webviz_factory: list[Any]
 ) -> None:
     # At 390 px the overview and link health tables made the page 540-570 px wide, and the
-    # 3D scene beside its TF tree was 195 px wide with the tree cut off.
-    name = "warehouse_robot_north_07"
+    # 3D scene beside its TF tree was 195 px wide with the tree cut off. A long robot name
+    # (its topics ~90 characters) ran the title and the notes naming topics out of their
+    # panels: the page was 626 px wide here, 1082 px in a 1024 px window.
+    name = "warehouse_robot_north_building_aisle_12_unit_0007"
     async with fleet_page(tmp_path, browser, webviz_factory, (name,), viewport=(390, 844)) as (
             relay, web, page, problems):
         robot = relay.robots[name]
@@ -196,7 +198,18 @@ async def test_a_phone_sized_page_is_no_wider_than_the_screen(
         await page.goto(web.url + f"#/robot/{name}")
         await page.locator("#health tbody tr", has_text=f"/{name}/camera/image/compressed"
                            ).wait_for(timeout=TIMEOUT_MS)
+        await page.locator(note("cloud"), has_text=f"Nothing on /{name}/points").wait_for(
+            timeout=TIMEOUT_MS)
         assert await page.evaluate(width) <= 390
+        overflowing = ("[...document.querySelectorAll('.panel, #robot .toolbar')]"
+                       ".filter(e => e.offsetParent && e.scrollWidth > e.clientWidth + 1)"
+                       ".map(e => e.id || e.className)")
+        assert await page.evaluate(overflowing) == []
+        await page.set_viewport_size({"width": 1024, "height": 700})
+        await page.locator("#panel-odom .panel-wait").wait_for(timeout=TIMEOUT_MS)
+        assert await page.evaluate(width) <= 1024
+        assert await page.evaluate(overflowing) == []
+        await page.set_viewport_size({"width": 390, "height": 844})
         scene = await page.locator("#scene-canvas").bounding_box()
         tree = await page.locator(".scene-side").bounding_box()
         assert scene["width"] > 300 and tree["width"] > 300  # stacked, each full width

@@ -3,7 +3,7 @@ import assert from "node:assert/strict";
 import { LinkHealth } from "../../../fleetctl/webviz/static/js/health.js";
 import { Rules } from "../../../fleetctl/webviz/static/js/rules.js";
 import { reEscape, wantedRegexes } from "../../../fleetctl/webviz/static/js/panels.js";
-import { ago, batteryText, duration, robotRow, toEpochS } from "../../../fleetctl/webviz/static/js/views/overview.js";
+import { ago, batteryText, breakable, duration, robotRow, toEpochS } from "../../../fleetctl/webviz/static/js/views/overview.js";
 import { cloudXYZ } from "../../../fleetctl/webviz/static/js/views/cloudpoints.js";
 
 test("seq gaps count as drops; rate and latency over the window", () => {
@@ -59,6 +59,11 @@ test("a topic is stale after 5 of its periods, at least 3 s; a panel when all it
   // A topic that resumes is fresh at once.
   rec("/r/scan", 20_000);
   assert.equal(f(["/r/scan"], 20_100).stale, false);
+});
+
+test("a long robot name may wrap after its separators, and stays escaped", () => {
+  assert.equal(breakable("north_07.a-b/c"), "north_<wbr>07.<wbr>a-<wbr>b/<wbr>c");
+  assert.equal(breakable("<r&1>"), "&lt;r&amp;1&gt;");
 });
 
 test("durations and ages in words", () => {

@@ -55,16 +55,21 @@ export function batteryText(level) {
   return `${Math.round(level <= 1 ? level * 100 : level)}%`;
 }
 
+/** A name as HTML that may wrap after its separators (a long one breaks there first). */
+export function breakable(name) {
+  return esc(name).replace(/([_./-])/g, "$1<wbr>");
+}
+
 export function renderOverview(tbody, rows, linkFor) {
   tbody.innerHTML = rows.map((r) => {
     const link = linkFor(r.name);
     const batt = batteryText(r.battery);
     const ok = r.isOk === undefined ? "–" : r.isOk ? "OK" : "NOT OK";
     return `<tr data-robot="${esc(r.name)}" class="${r.online ? "online" : "offline"}">
-      <td><a href="#/robot/${encodeURIComponent(r.name)}">${esc(r.name)}</a></td>
-      <td class="state">${r.online ? "online" : "offline"}</td>
-      <td>${esc(r.status)}</td><td class="${r.isOk === false ? "bad" : ""}">${ok}</td>
-      <td>${batt}</td><td>${esc(r.location)}</td><td>${ago(r.lastSeenS)}</td>
-      <td>${link}</td></tr>`;
+      <td class="name"><a href="#/robot/${encodeURIComponent(r.name)}">${breakable(r.name)}</a></td>
+      <td class="state nowrap">${r.online ? "online" : "offline"}</td>
+      <td>${esc(r.status)}</td><td class="nowrap${r.isOk === false ? " bad" : ""}">${ok}</td>
+      <td class="nowrap">${batt}</td><td>${esc(r.location)}</td><td class="nowrap">${ago(r.lastSeenS)}</td>
+      <td class="nowrap">${link}</td></tr>`;
   }).join("");
 }

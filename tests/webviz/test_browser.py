@@ -311,6 +311,14 @@ async def test_bad_token_is_refused_with_a_clear_message(
         await page.click("#signin-button")
         await page.locator("#banner", has_text="refused the token").wait_for(timeout=TIMEOUT_MS)
         assert await page.is_visible("#signin")
+        # Only the form: the empty fleet table and the server messages stood under it.
+        assert await page.is_hidden("#main")
+        await page.fill("#token", OPERATOR_TOKEN)
+        await page.click("#signin-button")
+        await page.locator('#robots tr[data-robot="r1"]').wait_for(timeout=TIMEOUT_MS)
+        assert await page.is_hidden("#signin") and await page.is_hidden("#banner")
+        # The refused token's bad_token is not listed as if something were wrong now.
+        assert await page.locator("#errors li").count() == 0
 
 
 async def test_banner_while_disconnected_then_reconnects(

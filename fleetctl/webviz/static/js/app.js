@@ -53,6 +53,9 @@ class App {
     conn.addEventListener("server-error", (e) => this.onServerError(e.detail));
     conn.addEventListener("unsupported", () => this.renderNotes());
     conn.start();
+    // A new session: the last one's server messages (a refused token's bad_token) stayed
+    // listed under the fleet after a good sign-in, as if something were wrong now.
+    $("#errors").replaceChildren();
     $("#signin").hidden = true;
     $("#main").hidden = false;
     $("#signout").hidden = false; // before a sign-in it signed nobody out
@@ -85,6 +88,9 @@ class App {
     }[state] ?? state;
     if (state === "refused") {
       clearInterval(this.poll);
+      // Only the form: an empty fleet table and robot panels under it read as a fleet
+      // with no robots, or as data still coming in.
+      $("#main").hidden = true;
       $("#signin").hidden = false;
       $("#signin-error").textContent = detail;
     }

@@ -15,7 +15,7 @@ frames are small and whole, so a publisher is known from its first delta frame o
 
 from __future__ import annotations
 
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from typing import Generic, TypeVar
 
 from fleetctl.server.metrics import Metrics
@@ -83,10 +83,10 @@ class KeyframeRouter(Generic[C]):
         """Topics with a known video publisher."""
         return list(self._publisher)
 
-    def candidates(self, pattern: FullMatch) -> list[str]:
-        """Video topics that *pattern* may match (a superset of those it matches; see
-        :meth:`TopicIndex.candidates`), in :meth:`video_topics` order."""
-        return self._index.candidates(pattern)
+    def candidates(self, patterns: Sequence[FullMatch]) -> list[str]:
+        """Video topics that one of *patterns* may match (a superset of those they match;
+        see :meth:`TopicIndex.candidates`), in :meth:`video_topics` order."""
+        return self._index.candidates(patterns)
 
     def request_frame(self, topic: str) -> bytes:
         """The keyframe request the server sends for video *topic* on its own (the same

@@ -34,7 +34,7 @@ replicas' messages with :meth:`LatchedStore.put_remote` / :meth:`LatchedStore.fo
 from __future__ import annotations
 
 from collections import OrderedDict
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from typing import Protocol
 
@@ -136,10 +136,10 @@ class LatchedStore:
         """Topics with at least one stored message."""
         return list(self._topics)
 
-    def candidates(self, pattern: FullMatch) -> list[str]:
-        """Topics with a stored message that *pattern* may match (a superset of those it
-        matches; see :meth:`TopicIndex.candidates`), in :meth:`topics` order."""
-        return self._index.candidates(pattern)
+    def candidates(self, patterns: Sequence[FullMatch]) -> list[str]:
+        """Topics with a stored message that one of *patterns* may match (a superset of
+        those they match; see :meth:`TopicIndex.candidates`), in :meth:`topics` order."""
+        return self._index.candidates(patterns)
 
     def messages(self, topic: str) -> list[list[bytes]]:
         """The stored messages of *topic* (one per sender, in the order they were first

@@ -572,11 +572,14 @@ class RelayCore:
             self._feed_from_stream(peer, session)
         peer.outbound.push_control(protocol.session(name, resumed, len(backlog), patterns))
         peer.outbound.push_backlog(backlog)
+        held = set(self.subs.patterns(peer))
         for pattern in patterns:  # the client's own resubscribe is then a no-op
-            if self._subscribe(peer, pattern):
+            if self._subscribe(peer, pattern, first_frames=False):
                 peer.outbound.push_control(protocol.ack("subscribed", pattern))
             else:
                 self.sessions.forget_pattern(session, pattern)
+        # Their first frames together: each store looked at once, not once per pattern.
+        self._first_frames(peer, [p for p in self.subs.patterns(peer) if p not in held])
         if resumed:
             log.info("%s resumed session %s (metrics: %s): %d mailbox frames, %d "
                      "subscriptions (%d frames dropped in total)", peer.label, session.label,
@@ -772,7 +775,7 @@ class RelayCore:
                 self.sessions.subscribed(peer.session, pattern)
             peer.outbound.push_control(protocol.ack("subscribed", pattern))
 
-    def _subscribe(self, peer: Peer, pattern: str) -> bool:
+    def _subscribe(self, peer: Peer, pattern: str, *, first_frames: bool = True) -> bool:
         assert peer.perms is not None
         try:
             added = self.subs.subscribe(peer, peer.perms, pattern, peer.identity_names)
@@ -781,11 +784,17 @@ class RelayCore:
             if refusal.code == "too_many_subscriptions":
                 self._count_refusal(peer)
             return False
-        if added:  # a repeat (a client's resubscribe after its session resumed) gets nothing
-            extra = firstframes.on_new_subscription(self, peer, pattern)
-            if extra:  # work done: served, and the next control requests wait for it
-                self._control_bucket(peer).charge(extra)
+        if added and first_frames:  # a repeat (a client's resubscribe) gets nothing
+            self._first_frames(peer, [pattern])
         return True
+
+    def _first_frames(self, peer: Peer, patterns: list[str]) -> None:
+        """Queue what *patterns*, just added, start delivering first; charge the work."""
+        started = self._clock()
+        work = firstframes.on_new_subscriptions(self, peer, patterns)
+        extra = firstframes.extra_requests(work, self._clock() - started)
+        if extra:  # work done: served, and the next control requests wait for it
+            self._control_bucket(peer).charge(extra)
 
 
 def _session_key(peer: Peer, name: str) -> SessionKey:

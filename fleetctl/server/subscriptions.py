@@ -18,16 +18,17 @@ only on topics in use. An auth map reload clears the cache. A topic not
 cached yet costs one RE2 call per connection (its subscriptions joined,
 :class:`~fleetctl.server.regex.AnyOf`), not one per subscription.
 
-What a subscription just added starts delivering (:meth:`SubscriptionMap.newly_matched`,
+What subscriptions just added start delivering (:meth:`SubscriptionMap.newly_matched`,
 for the latched messages and keyframe requests a new subscriber gets) is asked of the
-stored topics the pattern may match (:class:`~fleetctl.server.topicindex.TopicIndex`),
-and of the connection's other subscriptions in one matcher, limited to those that may
-match the same topics; it says what that cost, which the relay charges.
+stored topics the patterns may match (:class:`~fleetctl.server.topicindex.TopicIndex`),
+the patterns in one matcher (a resumed session's all at once), then of the connection's
+other subscriptions in one matcher, limited to those that may match the same topics; it
+says what that cost, which the relay charges.
 """
 
 from __future__ import annotations
 
-from collections.abc import Callable, Hashable, Iterable
+from collections.abc import Callable, Hashable, Iterable, Sequence
 from dataclasses import dataclass, field
 from typing import Generic, NamedTuple, TypeVar
 
@@ -96,7 +97,7 @@ class _Entry:
     keys: tuple[str, ...] = ()  # identity names the bytes are charged to
     joined: AnyOf | None = None  # all of subs in one matcher; None: build it when asked
     # The last matcher of others_overlapping, with the patterns it joins.
-    others: tuple[tuple[str, ...], AnyOf] | None = None
+    others: tuple[tuple[str, ...], FullMatch | AnyOf] | None = None
 
     def any_matches(self, topic: str) -> bool:
         """Whether any of the subscriptions matches *topic* (one RE2 call, see AnyOf)."""
@@ -105,27 +106,37 @@ class _Entry:
             joined = self.joined = AnyOf(self.subs.values())
         return joined.matches(topic)
 
-    def others_overlapping(self, pattern: str) -> tuple[AnyOf | None, int]:
-        """One matcher of the subscriptions other than *pattern* (one of them) that may
-        match a topic *pattern* matches (their :meth:`FullMatch.bounds` overlap), and the
-        work building it took (see :class:`Matched`; 0 when the last one is reused).
+    def others_overlapping(self, new: dict[str, FullMatch]
+                           ) -> tuple[FullMatch | AnyOf | None, int]:
+        """One matcher of the subscriptions not in *new* (some of them, by pattern) that
+        may match a topic one of *new* matches (their :meth:`FullMatch.bounds` overlap),
+        and the work building it took (see :class:`Matched`; 0 when the last one is
+        reused).
 
         Returns:
-            ``(None, 0)`` when there is none: *pattern* shares no topic with the others.
+            ``(None, 0)`` when there is none: *new* shares no topic with the others.
         """
-        bounds = self.subs[pattern].bounds()
-        overlapping = tuple(p for p, m in self.subs.items()
-                            if p != pattern and _overlap(bounds, m.bounds()))
+        ranges = [m.bounds() for m in new.values()]
+        overlapping = tuple(p for p, m in self.subs.items() if p not in new
+                            and any(_overlap(r, m.bounds()) for r in ranges))
         if not overlapping:
             return None, 0
         memo = self.others
         if memo is not None and memo[0] == overlapping:  # the same others: a churn
             return memo[1], 0
-        patterns = [self.subs[p] for p in overlapping]
-        matcher = AnyOf(patterns)
+        matcher, work = _one_matcher([self.subs[p] for p in overlapping])
         self.others = (overlapping, matcher)
-        joined = [m.cost for m in patterns if m.literal is None]
-        return matcher, (sum(joined) // QUOTA_BYTES_PER_WORK if len(joined) > 1 else 0)
+        return matcher, work
+
+
+def _one_matcher(patterns: list[FullMatch]) -> tuple[FullMatch | AnyOf, int]:
+    """*patterns* in one matcher (one pattern: itself), and the work of joining them
+    (:class:`Matched`)."""
+    if len(patterns) == 1:
+        return patterns[0], 0
+    joined = [m.cost for m in patterns if m.literal is None]
+    work = sum(joined) // QUOTA_BYTES_PER_WORK if len(joined) > 1 else 0
+    return AnyOf(patterns), work
 
 
 def _overlap(a: tuple[bytes, bytes] | None, b: tuple[bytes, bytes] | None) -> bool:
@@ -238,37 +249,41 @@ class SubscriptionMap(Generic[C]):
             oldest = next(iter(changed))
             self._floor = changed.pop(oldest)
 
-    def newly_matched(self, conn: C, pattern: str,
-                      candidates: Callable[[FullMatch], list[str]]) -> Matched:
-        """The stored topics that *conn* receives through *pattern* and through none of
-        its other subscriptions: what a subscription just added starts delivering (the
-        latched messages and keyframe requests a new subscriber gets).
+    def newly_matched(self, conn: C, patterns: Sequence[str],
+                      candidates: Callable[[Sequence[FullMatch]], list[str]]) -> Matched:
+        """The stored topics that *conn* receives through one of *patterns* and through
+        none of its other subscriptions: what subscriptions just added (one, or a resumed
+        session's) start delivering (the latched messages and keyframe requests a new
+        subscriber gets).
 
         Args:
             conn: The connection.
-            pattern: One of its subscriptions.
-            candidates: Given the compiled *pattern*, the stored topics it may match, in
-                the store's order (e.g. :meth:`TopicIndex.candidates`).
+            patterns: Some of its subscriptions (those it does not hold are ignored).
+            candidates: Given the compiled *patterns*, the stored topics one of them may
+                match, in the store's order (e.g. :meth:`TopicIndex.candidates`).
 
         Returns:
-            Those topics (none if *conn* does not hold *pattern*), in the candidates'
+            Those topics (none if *conn* holds none of *patterns*), in the candidates'
             order, and the work it took.
         """
         entry = self._subs.get(conn)
-        compiled = entry.subs.get(pattern) if entry is not None else None
-        if entry is None or compiled is None:
+        if entry is None:
             return Matched([], 0)
-        topics = candidates(compiled)
+        new = {p: entry.subs[p] for p in patterns if p in entry.subs}
+        if not new:
+            return Matched([], 0)
+        topics = candidates(list(new.values()))
+        matcher, work = _one_matcher(list(new.values()))
         may_receive = entry.perms.may_receive
-        found = [t for t in topics if compiled.matches(t) and may_receive(t)]
+        found = [t for t in topics if matcher.matches(t) and may_receive(t)]
         # One call per candidate; per topic found, one call of the others and a delivery.
-        work = len(topics) + len(found)
+        work += len(topics) + len(found)
         if not found:
             return Matched(found, work)
-        others, compiled_work = entry.others_overlapping(pattern)
+        others, joined_work = entry.others_overlapping(new)
         if others is not None:
             found = [t for t in found if not others.matches(t)]
-        return Matched(found, work + compiled_work)
+        return Matched(found, work + joined_work)
 
     def _entry(self, conn: C, perms: Permissions, keys: tuple[str, ...]) -> _Entry:
         entry = self._subs.get(conn)

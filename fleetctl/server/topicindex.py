@@ -20,7 +20,7 @@ from __future__ import annotations
 
 import bisect
 import itertools
-from collections.abc import Iterator
+from collections.abc import Iterator, Sequence
 
 from fleetctl.server.regex import FullMatch
 
@@ -82,22 +82,29 @@ class TopicIndex:
         """
         return next(iter(self._order))
 
-    def candidates(self, pattern: FullMatch) -> list[str]:
-        """The topics *pattern* may match, in insertion order: every topic it matches,
-        and for a pattern RE2 bounds loosely, some it does not (the caller matches them).
+    def candidates(self, patterns: Sequence[FullMatch]) -> list[str]:
+        """The topics one of *patterns* may match, in insertion order: every topic one of
+        them matches, and for a pattern RE2 bounds loosely, some none does (the caller
+        matches them).
 
-        Costs a lookup for a literal topic, a bisection and a sort of the candidates for
-        a bounded pattern, a copy of the set for an unbounded one.
+        Costs a lookup per literal topic, a bisection per bounded pattern and a sort of
+        the candidates, a copy of the set when one pattern is unbounded.
         """
-        literal = pattern.literal
-        if literal is not None:
-            return [literal] if literal in self._order else []
-        bounds = pattern.bounds()
-        if bounds is None:
+        found: set[str] = set()
+        for pattern in patterns:
+            literal = pattern.literal
+            if literal is not None:
+                if literal in self._order:
+                    found.add(literal)
+                continue
+            bounds = pattern.bounds()
+            if bounds is None:
+                return list(self._order)
+            start = bisect.bisect_left(self._keys, bounds[0])
+            end = bisect.bisect_right(self._keys, bounds[1])
+            if end - start == len(self._keys):  # all of them: already in order
+                return list(self._order)
+            found.update(self._names[start:end])
+        if len(found) == len(self._order):  # all of them: already in order
             return list(self._order)
-        low, high = bounds
-        start = bisect.bisect_left(self._keys, low)
-        end = bisect.bisect_right(self._keys, high)
-        if end - start == len(self._keys):  # all of them: already in order
-            return list(self._order)
-        return sorted(self._names[start:end], key=self._order.__getitem__)
+        return sorted(found, key=self._order.__getitem__)

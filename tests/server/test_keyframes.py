@@ -69,9 +69,9 @@ def test_the_servers_own_request_is_encoded_once_and_forgotten_with_its_topic() 
     router.note_publisher("/r1/cam1", "a")
     router.note_publisher("/r1/cam2", "a")  # /r1/cam0 forgotten, its request too
     assert router.request_frame("/r1/cam0") is not frame
-    assert router.candidates(compile_full("/r1/.*")) == ["/r1/cam1", "/r1/cam2"]
+    assert router.candidates([compile_full("/r1/.*")]) == ["/r1/cam1", "/r1/cam2"]
     router.note_publisher("/r1/cam1", "b")  # a new publisher: last, as in video_topics
-    assert router.candidates(compile_full("/r1/.*")) == router.video_topics() == [
+    assert router.candidates([compile_full("/r1/.*")]) == router.video_topics() == [
         "/r1/cam2", "/r1/cam1"]
     router.forget("b")
-    assert router.candidates(compile_full("/r1/cam1")) == []
+    assert router.candidates([compile_full("/r1/cam1")]) == []

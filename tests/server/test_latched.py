@@ -256,6 +256,6 @@ def test_candidates_follow_the_stored_topics_and_their_order_under_churn() -> No
             store.forget_remote(sender, topic)
         else:
             store.drop_where(lambda s, t, gone=topic: t == gone)
-        assert store.candidates(everything) == store.topics()
-        assert store.candidates(husky1) == [t for t in store.topics()
+        assert store.candidates([everything]) == store.topics()
+        assert store.candidates([husky1]) == [t for t in store.topics()
                                             if t.startswith("/husky1/")]

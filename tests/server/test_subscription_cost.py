@@ -161,3 +161,53 @@ def test_video_topics_of_other_replicas_are_indexed_and_bounded(
     bob = authed_peer(core, token=BOB_TOKEN)
     core.on_binary(bob, encode_subscription("/husky1/cam0/.*"))
     assert forwarded == [f"/husky1/cam0/v{i}" for i in range(1, 32)]
+
+
+def test_a_resumed_session_asks_each_stored_topic_once(
+        monkeypatch: pytest.MonkeyPatch) -> None:
+    """A session holding 50 patterns RE2 cannot bound, resumed beside a full latched
+    store: its patterns are asked together (one joined call per stored topic, not 50),
+    and it gets each of its messages once, in the store's order."""
+    from tests.server.test_subscriptions import _Calls
+
+    core, clock = make_core()
+    topics = fill_latched(core)
+    tab = authed_peer(core, token=ALICE_TOKEN, session="tab")
+    for k in range(50):
+        clock.now_s += 100.0  # (each costs 17 control requests: refilled)
+        core.on_binary(tab, encode_subscription(f".*/t{k}"))
+    assert len(binaries(tab)) == 50
+    core.close_peer(tab)
+    clock.now_s += 100.0
+    for topic in topics:
+        tab.perms.may_receive(topic)  # (alice's receive rule answers, cached per topic)
+    calls = _Calls(monkeypatch)
+    again = authed_peer(core, token=ALICE_TOKEN, session="tab")
+    assert [t for t, _ in binaries(again)] == topics[:50]
+    assert calls.by == {"FullMatch": 0, "AnyOf": STORED}
+
+
+def test_the_charge_is_the_work_or_the_loop_time_whichever_is_more() -> None:
+    assert firstframes.extra_requests(255, 0.0) == 0
+    assert firstframes.extra_requests(2 * 256, 0.0005) == 2
+    assert firstframes.extra_requests(10, 0.0035) == 3  # a slow join: its time counts
+
+
+def test_first_frames_that_take_loop_time_are_charged_by_it(
+        monkeypatch: pytest.MonkeyPatch) -> None:
+    core, clock = make_core()
+    fill_latched(core)
+    original = firstframes.on_new_subscriptions
+
+    def slow(core: RelayCore, peer: Peer, patterns: list[str]) -> int:
+        clock.now_s += 0.05  # as if they had taken 50 ms of the loop
+        return original(core, peer, patterns)
+
+    monkeypatch.setattr(firstframes, "on_new_subscriptions", slow)
+    bob = authed_peer(core, token=BOB_TOKEN)
+    core.on_binary(bob, encode_subscription("/husky1/r7/.*"))
+    monkeypatch.undo()  # (the requests counted below take no time)
+    assert len(binaries(bob)) == 32
+    burst = core.limits.max_subscriptions_per_connection
+    # Its own request, 50 more for the 50 ms, one refilled meanwhile (20/s).
+    assert control_requests_left(core, bob) == burst - 1 - 50 + 1

@@ -103,7 +103,7 @@ def test_order_is_insertion_order_and_adding_again_moves_last() -> None:
     index.discard("/c")
     index.discard("/nothing")
     assert list(index) == ["/a", "/b"] and "/c" not in index
-    assert index.candidates(compile_full(".*")) == ["/a", "/b"]
+    assert index.candidates([compile_full(".*")]) == ["/a", "/b"]
 
 
 def test_candidates_of_a_prefix_pattern_are_its_range_only() -> None:
@@ -111,11 +111,11 @@ def test_candidates_of_a_prefix_pattern_are_its_range_only() -> None:
     for i in range(4096):
         index.add(f"/r{i // 32}/t{i}")
     index.add("/r7/t230")  # moved last: candidates follow the index's order
-    found = index.candidates(compile_full("/r7/.*"))
+    found = index.candidates([compile_full("/r7/.*")])
     assert found == [f"/r7/t{i}" for i in range(224, 256) if i != 230] + ["/r7/t230"]
-    assert index.candidates(compile_full("/r7/t230")) == ["/r7/t230"]
-    assert index.candidates(compile_full("/r7/none")) == []
-    assert len(index.candidates(compile_full(".*scan"))) == 4096  # unbounded: all
+    assert index.candidates([compile_full("/r7/t230")]) == ["/r7/t230"]
+    assert index.candidates([compile_full("/r7/none")]) == []
+    assert len(index.candidates([compile_full(".*scan")])) == 4096  # unbounded: all
 
 
 def test_candidates_hold_every_match_in_order_under_churn() -> None:
@@ -136,7 +136,13 @@ def test_candidates_hold_every_match_in_order_under_churn() -> None:
         if step % 100 == 99:
             assert list(index) == list(reference)
             for pattern in patterns:
-                candidates = index.candidates(pattern)
+                candidates = index.candidates([pattern])
                 assert len(set(candidates)) == len(candidates)
                 assert [t for t in candidates if pattern.matches(t)] == [
                     t for t in reference if pattern.matches(t)], pattern
+            for _ in range(20):  # several at once (a resumed session's patterns)
+                group = rng.sample(patterns, rng.randint(2, 4))
+                candidates = index.candidates(group)
+                assert len(set(candidates)) == len(candidates)
+                assert [t for t in candidates if any(p.matches(t) for p in group)] == [
+                    t for t in reference if any(p.matches(t) for p in group)], group

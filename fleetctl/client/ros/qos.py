@@ -21,19 +21,24 @@ client, or before the client saw its publisher, is still received.
 from __future__ import annotations
 
 import logging
+import time
 from collections.abc import Callable
 from typing import Any
 
 from rclpy.event_handler import SubscriptionEventCallbacks
 from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
+from rclpy.utilities import get_rmw_implementation_identifier
 
 from fleetctl.client.outagelog import LOG_EVERY, sampled
 from fleetctl.client.ros.intake import LoopIntake, LoopServed, MessageCallback, TakesInfo
 from fleetctl.client.seqgaps import SequenceGaps
+from fleetctl.client.topichints import no_publisher_reason
 
 log = logging.getLogger(__name__)
 
+# A publish entry without any publisher this long is explained once (fleetctl.client.topichints).
+NO_PUBLISHER_WARN_S = 30.0
 SENSOR_DEPTH = 5  # droppable topics: the link keeps only the latest anyway
 NO_DROP_DEPTH = 1000  # no_drop topics: absorb a burst until the link's FIFO takes it
 # A latched writer usually keeps depth 1 (map_server, robot_state_publisher); DDS does not
@@ -114,6 +119,8 @@ class AdaptiveSubscription:
                  on_lost: Callable[[int], None] | None = None) -> None:
         self.gaps = SequenceGaps()
         self._on_lost = on_lost
+        self._unpublished_since_s: float | None = time.monotonic()  # None: has publishers
+        self._said_unpublished = False
         self._node = node
         self._intake = intake
         self._msg_type = msg_type
@@ -149,6 +156,31 @@ class AdaptiveSubscription:
             self._node.destroy_subscription(subscription)
             return self._subscribe(TakesInfo(self._on_message))
         return subscription
+
+    def _check_unpublished(self, published: bool) -> None:
+        """Say once why a topic has had no publisher for :data:`NO_PUBLISHER_WARN_S` (it
+        was silent for as long as the client ran), and when one appears after that."""
+        now = time.monotonic()
+        if published:
+            if self._said_unpublished and self._unpublished_since_s is not None:
+                log.info("%s: a publisher appeared after %.0f s", self._topic,
+                         now - self._unpublished_since_s)
+            self._unpublished_since_s = None
+            return
+        if self._unpublished_since_s is None:
+            self._unpublished_since_s = now  # its publishers left: a new wait
+            self._said_unpublished = False
+        waited = now - self._unpublished_since_s
+        if self._said_unpublished or waited < NO_PUBLISHER_WARN_S:
+            return
+        self._said_unpublished = True
+        node = self._node
+        published_topics = [(name, kinds) for name, kinds in node.get_topic_names_and_types()
+                            if node.count_publishers(name) > 0]
+        others = [n for n in node.get_node_names_and_namespaces() if n[0] != node.get_name()]
+        log.warning("%s", no_publisher_reason(
+            self._topic, self._type_name, waited, published_topics, len(others),
+            node.context.get_domain_id(), get_rmw_implementation_identifier()))
 
     def _on_message(self, cdr: bytes, published_ns: int = 0, sequence: int = 0, /) -> None:
         if sequence and (lost := self.gaps.seen(sequence, self._publisher_count)):
@@ -202,6 +234,7 @@ class AdaptiveSubscription:
         keep as is)."""
         infos = self._node.get_publishers_info_by_topic(self._topic)
         self._warn_other_types(infos)
+        self._check_unpublished(bool(infos))
         reliable = publishers_reliable(infos)
         latched = publishers_latched(infos)
         if reliable is None or latched is None:

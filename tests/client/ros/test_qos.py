@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import logging
 from collections.abc import Iterator
 from typing import Any
 
@@ -122,3 +123,35 @@ def test_a_burst_lost_before_the_loop_intake_takes_it_is_counted(
             bridge.destroy_node()
 
     asyncio.run(scenario())
+
+
+def test_a_topic_nobody_publishes_is_explained_once_naming_the_namespaced_one(
+        ros: tuple[Any, Any], caplog: pytest.LogCaptureFixture,
+        monkeypatch: pytest.MonkeyPatch) -> None:
+    """A namespaced driver publishes /husky1/scan, the entry says /scan: nothing was ever
+    sent and nothing was said, for as long as the client ran."""
+    from sensor_msgs.msg import LaserScan
+
+    from fleetctl.client.ros import qos
+
+    context, peer = ros
+    caplog.set_level(logging.INFO, "fleetctl.client.ros.qos")
+    with spun_bridge(context, {"topic": "/scan", "type": "sensor_msgs/msg/LaserScan"}) as bridge:
+        peer.create_publisher(LaserScan, "/husky1/scan", 10)  # the node keeps it
+        wait_until(lambda: bridge.count_publishers("/husky1/scan") > 0, DEADLINE_S,
+                   describe="the bridge sees the driver")
+        monkeypatch.setattr(qos, "NO_PUBLISHER_WARN_S", 0.0)  # the next refresh (<= 1 s)
+
+        def said(text: str) -> list[str]:
+            return [r.getMessage() for r in caplog.records if text in r.getMessage()]
+
+        wait_until(lambda: said("no publisher in"), DEADLINE_S, describe="the explanation")
+        assert said("no publisher in")[0].startswith("/scan: no publisher in ")
+        assert said("no publisher in")[0].endswith(
+            "so nothing of it is sent; the ROS graph has /husky1/scan "
+            "(sensor_msgs/msg/LaserScan): a namespaced or remapped driver? set this entry's "
+            "topic to the one it publishes")
+        peer.create_publisher(LaserScan, "/scan", 10)
+        wait_until(lambda: said("a publisher appeared after"), DEADLINE_S,
+                   describe="the publisher's arrival")
+        assert len(said("no publisher in")) == 1

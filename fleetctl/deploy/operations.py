@@ -298,7 +298,8 @@ def _fleet_file_mode(path: Path) -> int:
     return mode & 0o644
 
 
-def _plan_tls(plan: Plan, fleet_dir: Path, fleet: Fleet, *, refresh: bool = False) -> bool:
+def _plan_tls(plan: Plan, fleet_dir: Path, fleet: Fleet, *, refresh: bool = False,
+              renew: bool = False) -> bool:
     """Make the self-signed HTTPS certificate if the fleet uses one and it is missing.
 
     Args:
@@ -307,6 +308,8 @@ def _plan_tls(plan: Plan, fleet_dir: Path, fleet: Fleet, *, refresh: bool = Fals
         fleet: the fleet (with ``tls`` set, the operator's files are used: nothing to do).
         refresh: also replace an existing generated certificate whose names are not the
             ones the fleet needs now (the endpoint's host changed).
+        renew: also replace one that ends within :data:`tls.RENEW_BEFORE` (``render``;
+            other commands never restart the server for it).
 
     Returns:
         True when a certificate is (re)generated.
@@ -317,7 +320,8 @@ def _plan_tls(plan: Plan, fleet_dir: Path, fleet: Fleet, *, refresh: bool = Fals
     host = parse_endpoint(fleet.endpoint)[0] if fleet.endpoint else None
     names = tls.san_names(host)
     missing = not (cert_path.is_file() and key_path.is_file())
-    if not missing and not (refresh and tls.cert_names(cert_path) != names):
+    if not missing and not (refresh and tls.cert_names(cert_path) != names) and not (
+            renew and tls.expires_soon(cert_path) is not None):
         return False
     tls.plan_self_signed(plan, fleet_dir, tls.self_signed(names, _TLS_KEYS))
     return True
@@ -670,7 +674,8 @@ def render_fleet(fleet_dir: Path, *, dry_run: bool = False, force: bool = False,
     fleet.yaml itself is only read, never rewritten (its comments and layout stay).
     Files whose bytes are already right are not touched (their mtime stays), so running it
     twice changes nothing. Robots listed in fleet.yaml without keys get new keys; a missing
-    self-signed certificate is made, an existing one kept.
+    self-signed certificate is made, an existing one kept until its last 30 days (then it
+    is made again, and said in a warning).
 
     Args:
         fleet_dir: the fleet directory.
@@ -684,10 +689,18 @@ def render_fleet(fleet_dir: Path, *, dry_run: bool = False, force: bool = False,
     """
     fleet = load_fleet(fleet_dir)
     plan = Plan()
-    _plan_tls(plan, fleet_dir, fleet)
+    cert_path = fleet_dir / tls.CERT_RELPATH
+    ending = tls.expires_soon(cert_path) if fleet.tls is None else None
+    _plan_tls(plan, fleet_dir, fleet, renew=True)
     _plan_fleet(plan, fleet_dir, fleet, _load_keys(fleet_dir, fleet, keys, plan),
                 write_fleet=False, force=force)
-    return finish_plan(plan, fleet_dir, dry_run, _endpoint_warning(fleet, fleet_dir))
+    notes = _endpoint_warning(fleet, fleet_dir)
+    if ending is not None:
+        # A browser that accepted the old one asks again; `--ca-file` users read the same
+        # file, now the new certificate.
+        notes += (f"the self-signed HTTPS certificate {cert_path} ends "
+                  f"{ending:%Y-%m-%d %H:%M} UTC: made again, valid for a year",)
+    return finish_plan(plan, fleet_dir, dry_run, notes)
 
 
 def set_endpoint(fleet_dir: Path, endpoint: str, *, dry_run: bool = False,

@@ -34,6 +34,8 @@ from fleetctl.smallfile import MAX_PEM_BYTES, read_small
 CERT_RELPATH = "server/tls/cert.pem"
 KEY_RELPATH = f"{KEYS_DIR}/tls.key"
 VALIDITY = datetime.timedelta(days=365)
+# `render` makes the self-signed certificate again this long before it ends.
+RENEW_BEFORE = datetime.timedelta(days=30)
 LOCAL_NAMES = ("localhost", "127.0.0.1", "::1")
 
 Clock = Callable[[], datetime.datetime]
@@ -104,6 +106,16 @@ def cert_names(cert_path: Path) -> tuple[str, ...] | None:
     except (OSError, ValueError, x509.ExtensionNotFound):
         return None
     return tuple(str(n.value) for n in san)
+
+
+def expires_soon(cert_path: Path, now: Clock = _utc_now) -> datetime.datetime | None:
+    """When the certificate at *cert_path* ends, if within :data:`RENEW_BEFORE` of *now*
+    (or already past); ``None`` when later, or when it cannot be read."""
+    try:
+        end = x509.load_pem_x509_certificate(cert_path.read_bytes()).not_valid_after_utc
+    except (OSError, ValueError):
+        return None
+    return end if end - now() <= RENEW_BEFORE else None
 
 
 def plan_self_signed(plan: Plan, fleet_dir: Path, cert: SelfSigned) -> None:

@@ -70,6 +70,34 @@ def test_render_makes_a_missing_certificate(tmp_path: Path) -> None:
                                                     "h.example")
 
 
+def test_render_makes_the_self_signed_certificate_again_before_it_ends(tmp_path: Path) -> None:
+    """It is valid a year and nothing made it again: a year after `init` the page's
+    certificate had expired, and `recordings --ca-file` and `foxglove-url` failed on it."""
+    fleet_dir = tmp_path / "f"
+    ops.create_fleet(fleet_dir, endpoint="h.example:1")
+    cert_path = fleet_dir / CERT_RELPATH
+    made_at = datetime.datetime.now(datetime.UTC) - datetime.timedelta(days=340)
+    old = self_signed(cert_names(cert_path) or (), SystemKeySource(), now=lambda: made_at)
+    cert_path.write_bytes(old.cert_pem)
+    (fleet_dir / KEY_RELPATH).write_text(old.key_pem.reveal())
+    ops.add_user(fleet_dir, "bob@example.org", "viewer")  # never restarts the server for it
+    assert cert_path.read_bytes() == old.cert_pem
+    outcome = ops.render_fleet(fleet_dir)
+    cert = x509.load_pem_x509_certificate(cert_path.read_bytes())
+    ends = cert.not_valid_after_utc - datetime.datetime.now(datetime.UTC)
+    assert datetime.timedelta(days=364) < ends <= datetime.timedelta(days=365)
+    assert cert_names(cert_path) == ("localhost", "127.0.0.1", "::1", "h.example")
+    key = serialization.load_pem_private_key((fleet_dir / KEY_RELPATH).read_bytes(), None)
+    assert cert.public_key() == key.public_key()
+    assert [w for w in outcome.warnings if "self-signed" in w] == [
+        f"the self-signed HTTPS certificate {cert_path} ends "
+        f"{made_at - datetime.timedelta(minutes=5) + datetime.timedelta(days=365):%Y-%m-%d %H:%M}"
+        " UTC: made again, valid for a year"]
+    renewed = cert_path.read_bytes()
+    ops.render_fleet(fleet_dir)  # a year ahead again: kept
+    assert cert_path.read_bytes() == renewed
+
+
 def _operator_files(tmp_path: Path) -> tuple[Path, Path]:
     made = self_signed(("fleet.example.org",), SystemKeySource())
     cert, key = tmp_path / "op" / "cert.pem", tmp_path / "op" / "key.pem"

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import contextlib
 import io
+import re
 import time
 from collections.abc import AsyncIterator
 from pathlib import Path
@@ -252,9 +253,20 @@ async def test_the_map_marks_the_sent_goal_breaks_the_path_at_a_jump_and_pans(
         await canvas.scroll_into_view_if_needed()
         box = await canvas.bounding_box()
         cx, cy = box["width"] * 0.25, box["height"] * 0.5  # world (-4, 0) at 40 px/m
+        # The map has a scale: 2 m at 40 px/m, its bar 80 of the canvas's 640 px.
+        assert await page.text_content("#map-scale .label") == "2 m"
+        bar = await page.locator("#map-scale .bar").bounding_box()
+        assert abs(bar["width"] - box["width"] * 80 / 640) < 1, (bar, box)
+        # Where the goal would go is said in metres while aiming, its heading while dragging.
         await canvas.hover(position={"x": cx, "y": cy})
+        await page.locator("#command-status", has_text="Navigation goal at x=").wait_for(
+            timeout=TIMEOUT_MS)
+        x_m, y_m = aimed(await page.text_content("#command-status"))
+        assert abs(x_m + 4.0) < 0.1 and abs(y_m) < 0.1
         await page.mouse.down()
         await canvas.hover(position={"x": cx, "y": cy - 30})
+        await page.locator("#command-status", has_text="yaw=90° (odom): release to send").wait_for(
+            timeout=TIMEOUT_MS)
         await page.mouse.up()
         goal = relay.codec.decode(await r1.next_frame(GOAL, 10.0))[1]
         assert abs(goal.pose.position.x + 4.0) < 0.1 and abs(goal.pose.position.y) < 0.1
@@ -274,7 +286,26 @@ async def test_the_map_marks_the_sent_goal_breaks_the_path_at_a_jump_and_pans(
         expect_m = 100 * 640 / box["width"] / 40
         assert abs(moved_m - expect_m) < 0.05, (moved_m, expect_m)
         assert await page.evaluate("fleetviz.views.map.sent.length") == 1  # no goal sent
+
+        # Esc disarms a tool, mid-press too: nothing is sent (the button again was the only way).
+        await page.click("#tool-initial")
+        await canvas.hover(position={"x": cx, "y": cy})
+        await page.mouse.down()
+        await page.keyboard.press("Escape")
+        await page.mouse.up()
+        await page.locator("#command-status", has_text="Initial pose: cancelled.").wait_for(
+            timeout=TIMEOUT_MS)
+        assert await page.evaluate("fleetviz.views.map.tool") is None
+        assert "active" not in (await page.get_attribute("#tool-initial", "class") or "")
+        assert await page.evaluate("fleetviz.views.map.sent.length") == 1
         assert not problems, problems
+
+
+def aimed(status: str) -> tuple[float, float]:
+    """(x, y) in metres from the map's 'Navigation goal at x=... m y=... m' line."""
+    match = re.search(r"x=(-?[0-9.]+) m y=(-?[0-9.]+) m", status)
+    assert match, status
+    return float(match.group(1)), float(match.group(2))
 
 
 async def test_old_data_is_said_without_moving_the_page(

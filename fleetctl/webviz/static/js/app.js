@@ -201,7 +201,9 @@ class App {
       camera: new CameraView($("#camera-canvas")),
       scan: new ScanView($("#scan-canvas")),
       cloud: new CloudView($("#cloud-canvas")),
-      map: new MapView($("#map-canvas"), (kind, x, y, yaw) => this.sendPose(kind, x, y, yaw)),
+      map: new MapView($("#map-canvas"), (kind, x, y, yaw) => this.sendPose(kind, x, y, yaw), {
+        scale: $("#map-scale"), onAim: (kind, x, y, yaw) => this.aimStatus(kind, x, y, yaw),
+      }),
       odom: new OdomView($("#odom-text")),
       gps: new GpsView($("#gps-map"), $("#gps-text")),
     };
@@ -265,19 +267,42 @@ class App {
       : "";
   }
 
-  /** A tool button: the map waits for a press and drag (the button again cancels). */
+  /** A tool button: the map waits for a press and drag (the button again, or Esc, cancels). */
   armTool(kind) {
     const map = this.views.map;
-    const label = kind === "goal" ? GOAL.label : INITIAL.label;
-    if (map.tool === kind) {
-      map.setTool(null);
-      this.commandStatus(`${label[0].toUpperCase()}${label.slice(1)}: cancelled.`);
-    } else {
-      map.setTool(kind);
-      this.commandStatus(`${label[0].toUpperCase()}${label.slice(1)}: press on the map where it is, drag toward the heading and release.`);
-    }
-    $("#tool-goal").classList.toggle("active", map.tool === "goal");
-    $("#tool-initial").classList.toggle("active", map.tool === "initialpose");
+    if (map.tool === kind) return this.cancelTool();
+    map.cancelDrag();
+    map.setTool(kind);
+    this.commandStatus(`${toolLabel(kind)}: press on the map where it is, drag toward the heading and release (Esc cancels).`);
+    this.showTool();
+  }
+
+  /** Disarm the map's tool, a press in progress included (nothing is sent). */
+  cancelTool() {
+    const map = this.views?.map;
+    if (!map?.tool) return;
+    const kind = map.tool;
+    map.cancelDrag();
+    map.setTool(null);
+    this.commandStatus(`${toolLabel(kind)}: cancelled.`);
+    this.showTool();
+  }
+
+  showTool() {
+    const tool = this.views.map.tool;
+    $("#tool-goal").classList.toggle("active", tool === "goal");
+    $("#tool-initial").classList.toggle("active", tool === "initialpose");
+  }
+
+  /**
+   * Where an armed tool points, in metres and degrees, as the pointer moves: the pose sent
+   * was said only after the release, so a goal could not be placed to a number.
+   */
+  aimStatus(kind, x, y, yaw) {
+    const where = `${toolLabel(kind)} at x=${x.toFixed(2)} m y=${y.toFixed(2)} m`;
+    this.commandStatus(yaw === null
+      ? `${where} (${this.frameId}): press here, drag toward the heading and release (Esc cancels).`
+      : `${where}, yaw=${((yaw * 180) / Math.PI).toFixed(0)}° (${this.frameId}): release to send (Esc cancels).`);
   }
 
   async sendPose(kind, x, y, yaw) {
@@ -456,6 +481,12 @@ class App {
   }
 }
 
+/** "Navigation goal" / "Initial pose" for a map tool. */
+function toolLabel(kind) {
+  const label = kind === "goal" ? GOAL.label : INITIAL.label;
+  return `${label[0].toUpperCase()}${label.slice(1)}`;
+}
+
 async function main() {
   let config;
   try {
@@ -492,6 +523,9 @@ async function main() {
   $("#pause").addEventListener("click", () => app.togglePause());
   $("#tool-goal").addEventListener("click", () => app.armTool("goal"));
   $("#tool-initial").addEventListener("click", () => app.armTool("initialpose"));
+  document.addEventListener("keydown", (e) => {
+    if (e.key === "Escape") app.cancelTool();
+  });
   for (const p of PANELS) {
     $(`#show-${p.id}`).addEventListener("change", (e) => app.togglePanel(p.id, e.target.checked));
   }

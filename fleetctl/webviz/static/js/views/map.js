@@ -7,16 +7,35 @@ import { yawOf } from "./odom.js";
 
 const MAX_PATH = 2000; // pose history points kept (oldest dropped)
 const JUMP_M = 1.0; // a pose this far from the last one is a jump, not driving
+const SCALE_BAR_MAX_PX = 120; // canvas px the scale bar may take
+
+/**
+ * The scale bar at *pxPerM* canvas px per metre: the longest round length (1, 2 or 5 x 10^k
+ * m) that fits in *maxPx*, its length in canvas px and its label ("2 m", "50 cm").
+ * @returns {{m: number, px: number, label: string}}
+ */
+export function scaleBar(pxPerM, maxPx = SCALE_BAR_MAX_PX) {
+  const fits = maxPx / pxPerM;
+  const decade = 10 ** Math.floor(Math.log10(fits));
+  const m = [5, 2, 1].map((k) => k * decade).find((v) => v <= fits * (1 + 1e-9));
+  const label = m >= 1 ? `${Math.round(m)} m` : `${Math.round(m * 100)} cm`;
+  return { m, px: m * pxPerM, label };
+}
 
 export class MapView {
   /**
    * @param {HTMLCanvasElement} canvas
    * @param {(kind: "goal"|"initialpose", x: number, y: number, yaw: number) => void} onPose
+   * @param {{scale?: HTMLElement, onAim?: (kind: string, x: number, y: number, yaw: number|null) => void}} [opts]
+   *   scale: the scale bar over the canvas (a child `.bar` and `.label`); onAim: where a
+   *   armed tool points (yaw null until the press), as the pointer moves
    */
-  constructor(canvas, onPose) {
+  constructor(canvas, onPose, { scale = null, onAim = () => {} } = {}) {
     this.canvas = canvas;
     this.ctx = canvas.getContext("2d");
     this.onPose = onPose;
+    this.scaleEl = scale;
+    this.onAim = onAim;
     this.scale = 40; // px per m
     this.center = { x: 0, y: 0 }; // world point at the canvas centre (m)
     this.pose = null;
@@ -32,6 +51,7 @@ export class MapView {
     canvas.addEventListener("pointerdown", (e) => this.down(e));
     canvas.addEventListener("pointermove", (e) => this.move(e));
     canvas.addEventListener("pointerup", (e) => this.up(e));
+    canvas.addEventListener("pointercancel", () => this.cancelDrag());
     canvas.addEventListener("wheel", (e) => {
       e.preventDefault();
       this.scale = Math.min(400, Math.max(2, this.scale * (e.deltaY < 0 ? 1.2 : 1 / 1.2)));
@@ -67,6 +87,13 @@ export class MapView {
     this.canvas.dataset.tool = tool ?? "";
   }
 
+  /** Drop a press in progress (pan or tool drag); the tool stays armed. */
+  cancelDrag() {
+    this.drag = null;
+    this.pan = null;
+    this.dirty = true;
+  }
+
   /** Remember a pose sent from this page, drawn as an arrow where it was aimed. */
   markSent(kind, x, y, yaw) {
     this.sent = [...this.sent.filter((p) => p.kind !== kind), { kind, x, y, yaw }];
@@ -95,17 +122,22 @@ export class MapView {
       this.dirty = true;
       return;
     }
-    if (!this.drag) return;
+    if (!this.tool) return;
+    if (!this.drag) {
+      const w = this.eventWorld(e);
+      return this.onAim(this.tool, w.x, w.y, null);
+    }
     this.drag.end = this.eventWorld(e);
     this.dirty = true;
+    const { start, end } = this.drag;
+    this.onAim(this.tool, start.x, start.y, yawBetween(start, end));
   }
 
   up(e) {
     this.pan = null;
     if (!this.drag) return;
     const { start } = this.drag;
-    const end = this.eventWorld(e);
-    const yaw = Math.hypot(end.x - start.x, end.y - start.y) > 1e-3 ? Math.atan2(end.y - start.y, end.x - start.x) : 0;
+    const yaw = yawBetween(start, this.eventWorld(e));
     const tool = this.tool;
     this.drag = null;
     this.setTool(null);
@@ -196,6 +228,16 @@ export class MapView {
       ctx.lineWidth = 3;
       arrow(ctx, x0, y0, x1, y1, 10);
     }
+    this.renderScale();
+  }
+
+  /** The scale bar over the canvas (HTML, as wide as its length is on the canvas). */
+  renderScale() {
+    if (!this.scaleEl) return;
+    const bar = scaleBar(this.scale);
+    this.scaleEl.querySelector(".bar").style.width = `${(100 * bar.px) / this.canvas.width}%`;
+    this.scaleEl.querySelector(".label").textContent = bar.label;
+    this.scaleEl.dataset.m = String(bar.m);
   }
 
   drawEmptyGrid() {
@@ -237,4 +279,9 @@ export class MapView {
     }
     ctx.stroke();
   }
+}
+
+/** Heading (rad) from a press to a release; 0 for a press without a drag. */
+function yawBetween(start, end) {
+  return Math.hypot(end.x - start.x, end.y - start.y) > 1e-3 ? Math.atan2(end.y - start.y, end.x - start.x) : 0;
 }

@@ -354,6 +354,7 @@ async def test_a_robot_that_stops_sending_looks_stale_and_offline(
         await page.locator("#robot-state", has_text="online").wait_for(timeout=TIMEOUT_MS)
         heights = {p: (await page.locator(f"#panel-{p}").bounding_box())["height"]
                    for p in ("scan", "odom", "map")}
+        pause = await page.locator("#pause").bounding_box()
         assert await page.locator(".panel.stale").count() == 0
         assert await page.locator("#panel-scan h3 .age").text_content() == ""
 
@@ -380,4 +381,6 @@ async def test_a_robot_that_stops_sending_looks_stale_and_offline(
         await page.locator("#robot-state", has_text="offline, last seen").wait_for(
             timeout=TIMEOUT_MS)
         assert await page.get_attribute("#robot-state", "data-state") == "offline"
+        # The state is said after Pause: the button does not move as its words change.
+        assert await page.locator("#pause").bounding_box() == pause
         assert not problems, problems

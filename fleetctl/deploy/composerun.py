@@ -311,10 +311,7 @@ def _check_project_is_ours(fleet_dir: Path, project: str, delete_data: bool,
     if project in (recorded.project if recorded else None, project_name(fleet_dir)):
         return
     ours = str(fleet_dir.resolve() / COMPOSE_DIR / COMPOSE_FILE)
-    res = runner(["docker", "ps", "-a", "--filter", f"label=com.docker.compose.project={project}",
-                  "--format", f'{{{{.Label "{CONFIG_FILES_LABEL}"}}}}'], None, True)
-    made_from = {line.strip() for line in res.stdout.splitlines() if line.strip()} \
-        if res.returncode == 0 else set()
+    made_from = _compose_files_of(project, runner)
     if others := sorted(made_from - {ours}):
         raise ConflictError(f"--project {project}: its containers were made from {others[0]}, "
                             f"not from this fleet's {ours}: run `fleetctl down` with --fleet "
@@ -399,9 +396,20 @@ class StatusReport:
     recordings_note: str = ""
     # The robots of the fleet directory; the server's registry keeps removed ones.
     fleet_robots: frozenset[str] | None = None
+    # The compose files other than this directory's that containers of the project were
+    # made from (the fleet directory moved or copied while its deployment ran).
+    elsewhere: tuple[str, ...] = ()
 
     def _removed(self, robot: dict[str, Any]) -> bool:
         return self.fleet_robots is not None and robot.get("name") not in self.fleet_robots
+
+    def _no_containers(self) -> str:
+        if not self.elsewhere:
+            return "no containers: the fleet is not running"
+        # "Not running" was false: the deployment runs, made from the old path.
+        return ("no containers made from this directory's compose file, but its project "
+                f"has containers made from {', '.join(self.elsewhere)} (was the fleet "
+                "directory moved while it ran? `fleetctl down` here stops them)")
 
     def never_connected(self) -> list[str]:
         """The fleet's robots the server has never seen (empty when either is unknown)."""
@@ -418,7 +426,7 @@ class StatusReport:
     def problems(self) -> list[str]:
         """What keeps the fleet from being healthy, one phrase per service."""
         if not self.services:
-            return ["no containers: the fleet is not running"]
+            return [self._no_containers()]
         return [f"{s.service} {s.state}" + (f" ({s.health})" if s.health != "none" else "")
                 + (f", {s.restarts} restarts" if s.restarts else "")
                 for s in self.services
@@ -456,7 +464,7 @@ class StatusReport:
         """Plain-text tables."""
         lines = [f"{'SERVICE':<24} {'STATE':<11} {'HEALTH':<10} RESTARTS"]
         lines += [f"{s.service:<24} {s.state:<11} {s.health:<10} {s.restarts}"
-                  for s in self.services] or ["(no containers: the fleet is not running)"]
+                  for s in self.services] or [f"({self._no_containers()})"]
         lines.append("")
         lines += self._robot_lines()
         lines.append("")
@@ -508,6 +516,9 @@ def status(fleet_dir: Path, options: Options,
     """Each container's state, health and restarts; robots as the server reports them;
     the server's WireGuard peers and their last handshakes."""
     services = [state for _cid, state in _containers(fleet_dir, options.project, runner)]
+    mine = str(fleet_dir.resolve() / COMPOSE_DIR / COMPOSE_FILE)
+    elsewhere = () if services else tuple(sorted(
+        _compose_files_of(options.project, runner) - {mine}))
     server_id = container_id(fleet_dir, options.project, "server", runner)
     robots, error = _server_robots(server_id, runner)
     tunnel, note = _tunnel(fleet_dir, server_id, runner)
@@ -515,7 +526,16 @@ def status(fleet_dir: Path, options: Options,
         server_id, runner, fleet_dir.resolve() / COMPOSE_DIR / "server" / "server.yaml")
     return StatusReport(tuple(sorted(services, key=lambda s: s.service)), robots, error,
                         tunnel, note, recordings=recordings, recordings_note=recordings_note,
-                        fleet_robots=_fleet_robot_names(fleet_dir))
+                        fleet_robots=_fleet_robot_names(fleet_dir), elsewhere=elsewhere)
+
+
+def _compose_files_of(project: str, runner: Runner) -> set[str]:
+    """The compose files the containers of *project* were made from (any fleet's)."""
+    res = runner(["docker", "ps", "-a", "--filter", f"label=com.docker.compose.project={project}",
+                  "--format", f'{{{{.Label "{CONFIG_FILES_LABEL}"}}}}'], None, True)
+    if res.returncode != 0:
+        return set()
+    return {line.strip() for line in res.stdout.splitlines() if line.strip()}
 
 
 def _containers(fleet_dir: Path, project: str,

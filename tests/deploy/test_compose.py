@@ -723,6 +723,26 @@ def test_status_lists_the_fleets_robots_that_never_connected(fleet: Path) -> Non
         (), [], fleet_robots=frozenset()).render_text()
 
 
+def test_status_of_a_moved_fleet_directory_names_where_its_containers_came_from(
+        fleet: Path, tmp_path: Path) -> None:
+    """The fleet directory moved while its deployment ran: `status` said "no containers:
+    the fleet is not running" (none was made from the new path), which was false."""
+    docker = FakeDocker()
+    composerun.up(fleet, _opts(fleet, wireguard="off"), progress=lambda _: None, runner=docker)
+    old = str(tmp_path / "before" / ".compose" / "docker-compose.yml")
+    project = composerun.existing_options(fleet).project
+    report = composerun.status(fleet, composerun.existing_options(fleet),
+                               runner=OtherFleets({project: [old, old]}))
+    assert report.problems() == [
+        f"no containers made from this directory's compose file, but its project has "
+        f"containers made from {old} (was the fleet directory moved while it ran? "
+        "`fleetctl down` here stops them)"]
+    assert f"containers made from {old}" in report.render_text()
+    stopped = composerun.status(fleet, composerun.existing_options(fleet),
+                                runner=OtherFleets({}))
+    assert stopped.problems() == ["no containers: the fleet is not running"]
+
+
 def test_status_asks_only_for_this_fleets_containers(fleet: Path) -> None:
     """`status --project P` listed every container of project P, another fleet's too."""
     docker = FakeDocker()
@@ -731,6 +751,8 @@ def test_status_asks_only_for_this_fleets_containers(fleet: Path) -> None:
     composerun.status(fleet, composerun.existing_options(fleet, "theirs"), runner=docker)
     mine = (f"label=com.docker.compose.project.config_files={fleet.resolve()}"
             "/.compose/docker-compose.yml")
-    listings = [c for c in docker.calls[before:] if c[:2] == ["docker", "ps"]]
+    # (Reading which compose files the project's containers came from names them only.)
+    listings = [c for c in docker.calls[before:] if c[:2] == ["docker", "ps"]
+                and "--format" not in c]
     assert listings and all(mine in c and "label=com.docker.compose.project=theirs" in c
                             for c in listings)

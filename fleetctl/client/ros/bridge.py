@@ -49,6 +49,7 @@ from fleetctl.client.latched import LatchedFrames
 from fleetctl.client.outagelog import LOG_EVERY, sampled
 from fleetctl.client.ros import qos
 from fleetctl.client.ros.ddsbuffers import LargeMessageCheck
+from fleetctl.client.ros.executor import steady_timer
 from fleetctl.client.ros.intake import LoopIntake
 from fleetctl.client.ros.msgtypes import message_class
 from fleetctl.client.ros.qos import AdaptiveSubscription
@@ -319,7 +320,7 @@ class Bridge(Node):
                 # the GIL released) stays off the loop, which other topics' frames wait on.
                 intake=intake if spec.compression == "none" else None,
                 on_lost=self._lost_counter(spec.topic)))
-        self.create_timer(QOS_REFRESH_PERIOD_S, self._refresh_qos)
+        steady_timer(self, QOS_REFRESH_PERIOD_S, self._refresh_qos)
         self.tf: TfRepublisher | None = None
         if config.tf is not None:
             self.tf = start_tf(self, config.tf, config.robot_name, typestore, self.send_message)
@@ -334,7 +335,7 @@ class Bridge(Node):
                 BatteryState, config.status.battery_topic, self._on_battery,
                 qos.profile(reliable=False, no_drop=False),
             )
-        self.create_timer(config.status.period_s, self.send_status)
+        steady_timer(self, config.status.period_s, self.send_status)
         # Camera entries with video: (fleetctl.client.ros.videotopic), by remote topic.
         self.videos: dict[str, VideoTopic] = video_topics(
             config.publish, typestore=typestore, codec=codec, send=self._send_video,

@@ -27,10 +27,12 @@ from __future__ import annotations
 import contextlib
 import logging
 import threading
-from collections.abc import Coroutine
+from collections.abc import Callable, Coroutine
 from contextlib import ExitStack
 from typing import Any
 
+from rclpy.clock import Clock
+from rclpy.clock_type import ClockType
 from rclpy.context import Context
 from rclpy.exceptions import InvalidHandle
 from rclpy.guard_condition import GuardCondition
@@ -140,6 +142,19 @@ class NodeExecutor:
         except InvalidHandle:
             return
         _drive(waitable.execute(data))
+
+
+def steady_timer(node: Node, period_s: float, callback: Callable[[], Any]) -> Any:
+    """A timer of *node* on the steady clock, for the client's own periodic work (status,
+    QoS refresh, TF ticks), which is about elapsed time, not ROS time.
+
+    rclpy's default (ROS time, i.e. the wall clock without sim time) stops a timer when the
+    wall clock steps back: its next call stays at the old time. A robot whose clock chrony
+    stepped back an hour at boot sent no status, re-read no publisher QoS and re-sent no
+    latched map for that hour (reproduced with libfaketime: a 0.2 s timer ticked once in
+    3 s after a 1 h step back, a steady one 15 times).
+    """
+    return node.create_timer(period_s, callback, clock=Clock(clock_type=ClockType.STEADY_TIME))
 
 
 def _enter_all(held: ExitStack, entities: list[Any], *, handle: bool = True) -> list[Any]:

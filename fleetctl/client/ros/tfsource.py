@@ -29,6 +29,7 @@ from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPo
 
 from fleetctl.client.config import PublishSpec, TfSpec, tf_remote_topics
 from fleetctl.client.outagelog import LOG_EVERY, sampled
+from fleetctl.client.ros.executor import steady_timer
 from fleetctl.client.ros.msgtypes import message_class
 from fleetctl.client.tfthrottle import StaticTf, TfStats, TfThrottle
 from fleetctl.errors import ConfigError
@@ -86,7 +87,7 @@ class TfRepublisher:
         node.create_subscription(msg_class, "/tf_static", self._on_static, TF_STATIC_QOS,
                                  raw=True)
         # A pending change waits at most one period; poll() itself enforces the bound.
-        node.create_timer(self.throttle.period_s, self._tick)
+        steady_timer(node, self.throttle.period_s, self._tick)
 
     def _decode(self, cdr: bytes, topic: str) -> list[Any] | None:
         try:

@@ -19,6 +19,9 @@ JSON lines on stdout that the test reads with deadlines:
 - ``latch TOPIC TYPE CDR``: publishes CDR once, TRANSIENT_LOCAL depth 1 (as map_server
   does), without waiting for anyone; prints ``{"published": true}`` and keeps running
   (the publisher holds the sample for late subscribers).
+- ``status PERIOD_S``: a real client node (:class:`~fleetctl.client.ros.bridge.Bridge` of
+  robot ``r1``, status every PERIOD_S) spun by the client's executor; prints
+  ``{"status": N}`` for every status frame it hands to its link.
 - ``listen-latched TOPIC TYPE``: waits until a TRANSIENT_LOCAL publisher of TOPIC is
   discovered, prints ``{"ready": true}``, and only then subscribes TRANSIENT_LOCAL: every
   ``{"cdr": HEX}`` it prints was published before it subscribed, or after.
@@ -138,6 +141,33 @@ def _events(node: Node, executor: SingleThreadedExecutor, args: list[str]) -> No
     executor.spin()
 
 
+def _status(period_s: str) -> None:
+    from fleetctl.client.config import parse_client_config
+    from fleetctl.client.ros.bridge import Bridge, LinkPort
+    from fleetctl.client.ros.executor import NodeExecutor
+    from fleetctl.client.ros.runner import status_encoder
+    from fleetctl.wire.codec import Codec
+    from fleetctl.wire.registry import TypeRegistry
+
+    sent = 0
+
+    def send_status(frame: bytes) -> None:
+        nonlocal sent
+        sent += 1
+        _emit({"status": sent})
+
+    codec = Codec(TypeRegistry.default())
+    config = parse_client_config({"server_url": "ws://127.0.0.1:1/", "robot_name": "r1",
+                                  "status": {"period_s": float(period_s)}})
+    port = LinkPort(admit=lambda topic: True, send=lambda spec, frame, ns: None,
+                    send_status=send_status)
+    bridge = Bridge(config, codec, codec.registry.typestore, port, status_encoder(codec, "r1"))
+    try:
+        NodeExecutor(bridge, bridge.context).spin()
+    finally:
+        bridge.destroy_node()
+
+
 def main(argv: list[str]) -> None:
     rclpy.init()
     node = Node("fleetctl_test_helper")
@@ -153,6 +183,8 @@ def main(argv: list[str]) -> None:
             _events(node, executor, args)
         elif mode == "latch":
             _latch(node, executor, args)
+        elif mode == "status":
+            _status(args[0])
         elif mode == "listen-latched":
             _listen_latched(node, executor, args[0], args[1])
         else:

@@ -3,8 +3,10 @@
 from __future__ import annotations
 
 import logging
+import sys
 import threading
 from collections.abc import Iterator
+from pathlib import Path
 from typing import Any
 
 import pytest
@@ -16,6 +18,7 @@ from rclpy.node import Node  # noqa: E402
 from rclpy.qos import QoSProfile, ReliabilityPolicy  # noqa: E402
 
 from fleetctl.client.ros.executor import NodeExecutor  # noqa: E402
+from tests.client.ros.harness import JsonProc  # noqa: E402
 from tests.support import wait_for_value  # noqa: E402
 
 pytestmark = pytest.mark.ros
@@ -156,3 +159,29 @@ def test_qos_event_handlers_run(spinning: Spinning) -> None:
     spinning.peer.create_publisher(String, "/qos", best_effort)  # a reliable reader: no match
     assert wait_for_value(lambda: events, 10.0)
     spinning.stop()
+
+
+FAKETIME = Path("/usr/lib/x86_64-linux-gnu/faketime/libfaketimeMT.so.1")  # Debian: faketime
+
+
+@pytest.mark.skipif(not FAKETIME.exists(), reason="libfaketime not installed (apt: faketime)")
+def test_the_client_keeps_its_status_when_the_wall_clock_steps_back(tmp_path: Path) -> None:
+    """rclpy timers run on ROS time (the wall clock): after a step back of an hour (chrony
+    correcting a clock that ran ahead) the client's status and QoS refresh timers waited
+    that hour. A real client node in a child process whose wall clock libfaketime steps
+    back (monotonic time untouched)."""
+    offset = tmp_path / "faketime"
+    offset.write_text("+0\n")
+    argv = [sys.executable, "-m", "tests.client.ros.rosproc", "status", "0.1"]
+    child = JsonProc(argv, {"ROS_DOMAIN_ID": str(DOMAIN_ID), "LD_PRELOAD": str(FAKETIME),
+                            "FAKETIME_TIMESTAMP_FILE": str(offset), "FAKETIME_NO_CACHE": "1",
+                            "FAKETIME_DONT_FAKE_MONOTONIC": "1"}, tmp_path / "child.log")
+    try:
+        child.wait_for(lambda line: line.get("status") == 3, 30.0, "three status frames")
+        offset.write_text("-1h\n")
+        child.drain()
+        before = child.received[-1]["status"]
+        child.wait_for(lambda line: line.get("status", 0) >= before + 20, 15.0,
+                       "20 more status frames after the wall clock stepped back an hour")
+    finally:
+        child.stop()

@@ -141,7 +141,10 @@ class RecordingNode:
         assert raw
         self.subscriptions[topic] = (callback, qos)
 
-    def create_timer(self, period_s: float, callback: Any) -> None:
+    def create_timer(self, period_s: float, callback: Any, *, clock: Any) -> None:
+        from rclpy.clock_type import ClockType
+
+        assert clock.clock_type == ClockType.STEADY_TIME  # not stopped by a wall clock step
         self.timers.append((period_s, callback))
 
 

@@ -220,6 +220,7 @@ async def test_a_phone_sized_page_is_no_wider_than_the_screen(
 
 GOAL = "geometry_msgs/msg/PoseStamped"
 GOAL_RGB = (239, 83, 80)  # #ef5350, the goal arrow
+POSE_RGB = (255, 202, 40)  # #ffca28, the robot's arrow
 
 
 async def test_the_map_marks_the_sent_goal_breaks_the_path_at_a_jump_and_pans(
@@ -244,6 +245,13 @@ async def test_the_map_marks_the_sent_goal_breaks_the_path_at_a_jump_and_pans(
             x[0] = step
             await wait_js(page, f"{path}.some(p => p && p.x === {step})")
         assert await page.evaluate(f"{path}.map(p => p && p.x)") == [0.0, 0.5, 1.0, None, 4.0]
+        # The robot's arrow is sized in CSS px: drawn at 22 canvas px in a ~330 px panel it was
+        # a speck at the end of its path (4 solid pixels here; now ~50).
+        await page.set_viewport_size({"width": 1100, "height": 800})  # 3 columns: ~340 px
+        await wait_js(page, "fleetviz.views.map.lineScale > 1.5")
+        robot = colored_pixels(await page.locator("#map-canvas").screenshot(), POSE_RGB)
+        assert robot > 30, robot
+        await page.set_viewport_size({"width": 1280, "height": 800})
 
         await page.click("#tool-goal")
         await page.locator("#command-status", has_text="press on the map").wait_for(

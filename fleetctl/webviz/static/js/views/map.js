@@ -193,6 +193,10 @@ export class MapView {
     if (!this.dirty) return;
     this.dirty = false;
     const { ctx, canvas } = this;
+    // Sizes in CSS px: the canvas is 640 px wide but shown ~300 px wide in its panel, where
+    // the robot's 22 px arrow was a 10 px speck at the end of its path.
+    const k = canvas.clientWidth ? Math.max(1, canvas.width / canvas.clientWidth) : 1;
+    this.lineScale = k;
     ctx.fillStyle = "#1b2127";
     ctx.fillRect(0, 0, canvas.width, canvas.height);
     if (this.grid) {
@@ -209,24 +213,24 @@ export class MapView {
     if (this.pose) {
       const [x, y] = this.toPx(this.pose.x, this.pose.y);
       ctx.fillStyle = ctx.strokeStyle = "#ffca28";
-      ctx.lineWidth = 3;
-      arrow(ctx, x, y, x + 22 * Math.cos(this.pose.yaw), y - 22 * Math.sin(this.pose.yaw), 9);
+      ctx.lineWidth = 3 * k;
+      arrow(ctx, x, y, x + 22 * k * Math.cos(this.pose.yaw), y - 22 * k * Math.sin(this.pose.yaw), 9 * k);
     }
     for (const p of this.sent) {
       const [x, y] = this.toPx(p.x, p.y);
       ctx.fillStyle = ctx.strokeStyle = p.kind === "goal" ? "#ef5350" : "#ab47bc";
-      ctx.lineWidth = 2;
+      ctx.lineWidth = 2 * k;
       ctx.beginPath();
-      ctx.arc(x, y, 5, 0, 2 * Math.PI);
+      ctx.arc(x, y, 5 * k, 0, 2 * Math.PI);
       ctx.stroke();
-      arrow(ctx, x, y, x + 26 * Math.cos(p.yaw), y - 26 * Math.sin(p.yaw), 9);
+      arrow(ctx, x, y, x + 26 * k * Math.cos(p.yaw), y - 26 * k * Math.sin(p.yaw), 9 * k);
     }
     if (this.drag) {
       const [x0, y0] = this.toPx(this.drag.start.x, this.drag.start.y);
       const [x1, y1] = this.toPx(this.drag.end.x, this.drag.end.y);
       ctx.fillStyle = ctx.strokeStyle = this.tool === "goal" ? "#ef5350" : "#ab47bc";
-      ctx.lineWidth = 3;
-      arrow(ctx, x0, y0, x1, y1, 10);
+      ctx.lineWidth = 3 * k;
+      arrow(ctx, x0, y0, x1, y1, 10 * k);
     }
     this.renderScale();
   }
@@ -264,7 +268,7 @@ export class MapView {
     if (points.length < 2) return;
     const { ctx } = this;
     ctx.strokeStyle = color;
-    ctx.lineWidth = 2;
+    ctx.lineWidth = 2 * (this.lineScale ?? 1);
     ctx.beginPath();
     let pen = false; // null in a path: a jump, lift the pen
     for (const p of points) {

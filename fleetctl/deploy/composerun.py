@@ -150,6 +150,41 @@ def _require_images(plan: ComposePlan, runner: Runner) -> None:
             raise EnvironmentMissing(f"image {tag} not found: run `fleetctl build` first")
 
 
+def _require_free_subnet(plan: ComposePlan, runner: Runner) -> None:
+    """Refuse a plain-mode fleet subnet that overlaps another Docker network.
+
+    Without WireGuard the compose network is the fleet subnet, and Docker refuses one that
+    overlaps a network it has ("Pool overlaps with other one on this address space", after
+    `up` had written the compose file). With WireGuard Docker picks the network itself.
+
+    Raises:
+        ConflictError: naming fleet.yaml's subnet and the other network.
+    """
+    if plan.wireguard:
+        return
+    listed = runner(["docker", "network", "ls", "-q"], None, True)
+    ids = listed.stdout.split() if listed.returncode == 0 else []
+    res = runner(["docker", "network", "inspect", *ids], None, True) if ids else None
+    if res is None or res.returncode != 0:
+        return  # none, or one removed meanwhile: compose says what it finds
+    subnet = ipaddress.ip_network(plan.fleet_subnet)
+    for net in json.loads(res.stdout):
+        if net.get("Name") == f"{plan.project}_fleet":
+            continue  # this fleet's own, from an earlier `up`
+        for cfg in (net.get("IPAM") or {}).get("Config") or []:
+            try:
+                other = ipaddress.ip_network(str(cfg.get("Subnet")), strict=False)
+            except ValueError:
+                continue
+            if other.version == subnet.version and other.overlaps(subnet):
+                raise ConflictError(
+                    f"{plan.fleet_dir / 'fleet.yaml'}: subnet {subnet} overlaps Docker "
+                    f"network {net.get('Name')!r} ({other}): without WireGuard the compose "
+                    "network is the fleet subnet, and Docker refuses two that overlap; "
+                    "remove that network, or run with WireGuard (--wireguard on, which "
+                    "needs /dev/net/tun)")
+
+
 def up(fleet_dir: Path, options: Options, progress: Progress = print,
        runner: Runner = subprocess_runner,
        port_probe: hostports.PortProbe | None = None,
@@ -166,8 +201,9 @@ def up(fleet_dir: Path, options: Options, progress: Progress = print,
     Raises:
         ConfigError: the fleet directory is incomplete, or its server.yaml is one the
             server would refuse (the message names file and field).
-        ConflictError: the fleet already runs with other options, or a port it publishes
-            is taken on this host.
+        ConflictError: the fleet already runs with other options, a port it publishes
+            is taken on this host, or (without WireGuard) its subnet overlaps a Docker
+            network.
         EnvironmentMissing: an image or Compose is missing.
         FleetError: compose failed (its output is shown).
     """
@@ -178,6 +214,7 @@ def up(fleet_dir: Path, options: Options, progress: Progress = print,
     load_server_config(plan.fleet_dir / "server" / "server.yaml")
     _check_not_changed(plan.fleet_dir, options, runner)
     _require_images(plan, runner)
+    _require_free_subnet(plan, runner)
     hostports.require_free(
         hostports.published_ports(render(plan)),
         hostports.held_by_fleet(runner, plan.project, plan.compose_file.resolve()),

@@ -15,6 +15,7 @@ while `status` said healthy, until a `fleetctl up`.
 
 from __future__ import annotations
 
+import random
 import socket
 import ssl
 import subprocess
@@ -44,8 +45,9 @@ def _page_answers(port: int, cert: Path) -> bool:
         return False
 
 
-def _new_fleet(tmp_path: Path) -> tuple[Operator, Path, str]:
-    """A new fleet on free ports (WireGuard on), its operator and a project name."""
+def _new_fleet(tmp_path: Path, *init: str) -> tuple[Operator, Path, str]:
+    """A new fleet on free ports (*init*: more `init` options), its operator and a project
+    name."""
     if not _images_present():
         pytest.skip("images fleetctl/server and client not built")
     if not Path("/dev/net/tun").exists():
@@ -53,7 +55,7 @@ def _new_fleet(tmp_path: Path) -> tuple[Operator, Path, str]:
     fleet = tmp_path / "yard"
     op = Operator(tmp_path, fleet)
     op.run("init", str(fleet), "--endpoint", f"127.0.0.1:{_free_port(socket.SOCK_DGRAM)}",
-           "--https-port", str(_free_port()))
+           "--https-port", str(_free_port()), *init)
     return op, fleet, f"fleetctllive{uuid.uuid4().hex[:8]}"
 
 
@@ -121,3 +123,28 @@ def test_up_says_so_when_the_server_does_not_start(tmp_path: Path) -> None:
         op.run("down", "--delete-data", "--project", project, ok=False)
         subprocess.run(["docker", "volume", "rm", "-f", volume], capture_output=True,
                        check=False)
+
+
+def test_up_without_wireguard_names_a_docker_network_on_the_fleet_subnet(
+        tmp_path: Path) -> None:
+    """Without WireGuard the compose network is the fleet subnet: one that overlaps another
+    Docker network was compose's "Pool overlaps with other one on this address space" and
+    `compose up failed`, after the compose file and state were written."""
+    subnet = f"10.{random.randint(200, 250)}.{random.randint(0, 255)}.0/24"
+    op, fleet, project = _new_fleet(tmp_path, "--subnet", subnet)
+    clash = f"fleetctl-clash-{uuid.uuid4().hex[:8]}"
+    subprocess.run(["docker", "network", "create", "--subnet", subnet, clash], check=True,
+                   capture_output=True, timeout=60)
+    try:
+        res = subprocess.run([FLEETCTL, "up", "--wireguard", "off", "--bind", "127.0.0.1",
+                              "--project", project], cwd=tmp_path, env=op.env, text=True,
+                             capture_output=True, timeout=300, check=False)
+        assert res.returncode == 4, res.stdout + res.stderr
+        assert res.stderr.splitlines()[-1] == (
+            f"fleetctl: error: {fleet}/fleet.yaml: subnet {subnet} overlaps Docker network "
+            f"'{clash}' ({subnet}): without WireGuard the compose network is the fleet "
+            "subnet, and Docker refuses two that overlap; remove that network, or run with "
+            "WireGuard (--wireguard on, which needs /dev/net/tun)")
+        assert not (fleet / ".compose").exists()
+    finally:
+        subprocess.run(["docker", "network", "rm", clash], capture_output=True, check=False)

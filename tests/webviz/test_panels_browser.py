@@ -245,6 +245,12 @@ async def test_the_map_marks_the_sent_goal_breaks_the_path_at_a_jump_and_pans(
             x[0] = step
             await wait_js(page, f"{path}.some(p => p && p.x === {step})")
         assert await page.evaluate(f"{path}.map(p => p && p.x)") == [0.0, 0.5, 1.0, None, 4.0]
+        # The 3D scene's trail breaks there too (it drew a line the robot never drove): two
+        # segments, 0 -> 0.5 -> 1 m, none to 4 m.
+        trail = ("fleetviz.views.scene.entries.get('/r1/odom trail')"
+                 ".content.geometry.attributes.position.array")
+        xs = await page.evaluate(f"[...{trail}].filter((_, i) => i % 3 === 0)")
+        assert xs == [0.0, 0.5, 0.5, 1.0], xs
         # The robot's arrow is sized in CSS px: drawn at 22 canvas px in a ~330 px panel it was
         # a speck at the end of its path (4 solid pixels here; now ~50).
         await page.set_viewport_size({"width": 1100, "height": 800})  # 3 columns: ~340 px

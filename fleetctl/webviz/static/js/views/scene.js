@@ -223,7 +223,8 @@ export class SceneView {
     if (!last || Math.hypot(last.x - p.x, last.y - p.y) > 0.05) trail.points.push({ x: p.x, y: p.y, z: p.z });
     if (trail.points.length > MAX_TRAIL) trail.points.shift();
     this.trails.set(topic, trail);
-    if (trail.points.length >= 2) this.set(`${topic} trail`, topic, frame, O.lineObject(this.THREE, trail.points, ODOM_COLOR));
+    const segments = O.pathSegments(trail.points);
+    if (segments.length) this.set(`${topic} trail`, topic, frame, O.lineObject(this.THREE, segments, ODOM_COLOR, true));
   }
 
   clearTrails() {

@@ -111,6 +111,22 @@ export function poseObject(THREE, pose, color, lengthM = 0.8) {
 }
 
 /** A polyline through points {x, y, z}. */
+/**
+ * A driven path as line-segment pairs, with no segment across a jump: two points more than
+ * *jumpM* apart (a relocalization, or the robot's data missing while it drove on) were
+ * joined by a straight line the robot never drove, across the room.
+ * @param {{x: number, y: number, z?: number}[]} points
+ * @returns {{x: number, y: number, z?: number}[]} pairs: [a0, b0, a1, b1, ...]
+ */
+export function pathSegments(points, jumpM = 1.0) {
+  const out = [];
+  for (let i = 1; i < points.length; i++) {
+    const a = points[i - 1], b = points[i];
+    if (Math.hypot(b.x - a.x, b.y - a.y, (b.z ?? 0) - (a.z ?? 0)) <= jumpM) out.push(a, b);
+  }
+  return out;
+}
+
 export function lineObject(THREE, points, color, segments = false) {
   const xyz = new Float32Array(points.length * 3);
   points.forEach((p, i) => xyz.set([p.x, p.y, p.z ?? 0], 3 * i));

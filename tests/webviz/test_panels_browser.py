@@ -206,6 +206,9 @@ async def test_a_phone_sized_page_is_no_wider_than_the_screen(
                        ".filter(e => e.offsetParent && e.scrollWidth > e.clientWidth + 1)"
                        ".map(e => e.id || e.className)")
         assert await page.evaluate(overflowing) == []
+        # No TF from this robot: the fixed-frame choice still offers "auto" (it was empty).
+        await wait_js(page, "document.querySelector('#scene-frame').options.length === 1")
+        assert await page.text_content("#scene-frame") == "auto (map, odom, root)"
         await page.set_viewport_size({"width": 1024, "height": 700})
         await page.locator("#panel-odom .panel-wait").wait_for(timeout=TIMEOUT_MS)
         assert await page.evaluate(width) <= 1024

@@ -353,7 +353,9 @@ export class SceneView {
     }));
     if (!rows.length) tree.replaceChildren(Object.assign(document.createElement("li"), { className: "muted", textContent: "no TF received" }));
     const want = ["", ...rows.map((r) => r.frame)];
-    if ([...frameSelect.options].map((o) => o.value).join("\n") !== want.join("\n")) {
+    // Compared as JSON: with no TF yet, [] and [""] joined alike and the select stayed
+    // empty (no "auto" choice) until a transform arrived.
+    if (JSON.stringify([...frameSelect.options].map((o) => o.value)) !== JSON.stringify(want)) {
       frameSelect.replaceChildren(...want.map((f) => new Option(f || "auto (map, odom, root)", f)));
       frameSelect.value = this.chosenFrame ?? "";
     }

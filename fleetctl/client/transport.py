@@ -756,12 +756,21 @@ class RobotLink:
                 self._log_unbound(delay)
             else:
                 self._log_bound_again()
-                self._log_unreachable(str(exc) or type(exc).__name__, delay)
+                self._log_unreachable(self._failure_reason(exc), delay)
             await self._wait_stop(delay)
             return None
         self._log_bound_again()
         self._log_reachable_again()
         return ws
+
+    def _failure_reason(self, exc: BaseException) -> str:
+        """Why a connect failed, in words: a bare ``TimeoutError`` was all a robot's log said
+        of a port that accepted TCP and never answered the upgrade."""
+        if type(exc) is TimeoutError and not str(exc):  # open_timeout_s, after the dial
+            return (f"the connection was accepted but the WebSocket handshake got no answer in "
+                    f"{self.tuning.open_timeout_s:g} s (a stalled relay, or something "
+                    "else listens on that port)")
+        return str(exc) or type(exc).__name__
 
     def _log_unreachable(self, reason: str, delay_s: float) -> None:
         """Log a connect that failed (refused, timed out, a failed upgrade): explain once

@@ -608,3 +608,31 @@ async def test_a_token_file_with_a_byte_order_mark_authenticates(
     cfg = load_client_config(tmp_path / "client.yaml")
     async with running(RobotLink(cfg, on_frame=lambda f: None, tuning=FAST)) as link:
         await wait_until(lambda: link.stats()["identities"] == ["r1"])
+
+
+async def test_a_port_that_accepts_and_never_answers_is_said_in_words(
+    tmp_path: Path, caplog: pytest.LogCaptureFixture
+) -> None:
+    """A listener that accepts TCP and never answers the upgrade (a stalled relay, another
+    service): the log said only 'cannot connect to URL: TimeoutError'."""
+    held: list[asyncio.StreamWriter] = []
+
+    async def hold(reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
+        held.append(writer)
+
+    silent = await asyncio.start_server(hold, "127.0.0.1", 0)
+    port = silent.sockets[0].getsockname()[1]
+    caplog.set_level(logging.WARNING, "fleetctl.client.link")
+    cfg = robot_config(url_of(port), tmp_path, limits={"standby_connection": False})
+    try:
+        async with running(RobotLink(cfg, on_frame=lambda f: None, tuning=FAST)):
+            await wait_until(lambda: any("cannot connect" in r.getMessage()
+                                         for r in caplog.records))
+    finally:
+        silent.close()
+        for writer in held:
+            writer.transport.abort()
+    said = next(r.getMessage() for r in caplog.records if "cannot connect" in r.getMessage())
+    assert said.startswith(f"cannot connect to {url_of(port)}: the connection was accepted but "
+                           "the WebSocket handshake got no answer in 1 s (a stalled relay, or "
+                           "something else listens on that port); retrying")

@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import functools
 import re as std_re
-from collections.abc import Iterable
+from collections.abc import Callable, Iterable
 from typing import Any
 
 import re2
@@ -29,8 +29,10 @@ QUOTA_BYTES_PER_INSTRUCTION = 4
 # both ends. Why not re2's fullmatch(): it wraps that call in a generator that maps byte
 # offsets back to str offsets and builds a match object, 1.5-3.6 us a call here against
 # 0.8 us for the yes/no answer wanted (a new ".*/x" subscription looks at 4,096 stored
-# topics, the receiver cache asks every connection about a new topic).
-_ANCHOR_BOTH = re2._Anchor.ANCHOR_BOTH
+# topics, the receiver cache asks every connection about a new topic). Those names are
+# the binding's, not its documented API: where a google-re2 release lacks them, matches()
+# falls back to fullmatch() (same answers, the old cost) instead of failing at import.
+_ANCHOR_BOTH: Any = getattr(getattr(re2, "_Anchor", None), "ANCHOR_BOTH", None)
 _NO_MATCH = (-1, -1)
 
 _OPTIONS = re2.Options()
@@ -52,13 +54,32 @@ BOUNDS_MAX_BYTES = 64
 _LITERAL = std_re.compile(r"[A-Za-z0-9_/~-]*")
 
 
-def _full_match(match: Any, topic: str) -> bool:
-    """Whether the RE2 program whose binding ``Match`` is *match* matches all of *topic*."""
+def _full_match(match: Any, anchor: Any, topic: str) -> bool:
+    """Whether the RE2 program whose binding ``Match`` is *match* matches all of *topic*
+    (*anchor*: the binding's ANCHOR_BOTH)."""
     try:
         encoded = topic.encode("utf-8")
     except UnicodeEncodeError:  # a lone surrogate: no UTF-8 topic, so none it could be
         return False
-    return bool(match(_ANCHOR_BOTH, encoded, 0, len(encoded))[0] != _NO_MATCH)
+    return bool(match(anchor, encoded, 0, len(encoded))[0] != _NO_MATCH)
+
+
+def _public_full_match(compiled: Any, topic: str) -> bool:
+    """The same answer through re2's documented ``fullmatch`` (slower, see above)."""
+    try:
+        return compiled.fullmatch(topic) is not None
+    except UnicodeEncodeError:  # a lone surrogate: no UTF-8 topic, so none it could be
+        return False
+
+
+def full_matcher(compiled: Any) -> Callable[[str], bool]:
+    """Whether a topic matches *compiled* (an ``re2.compile`` result) from its first to
+    its last character: through the binding's ``Match`` where this google-re2 has it,
+    else through ``fullmatch``."""
+    match = getattr(getattr(compiled, "_regexp", None), "Match", None)
+    if _ANCHOR_BOTH is None or match is None:
+        return functools.partial(_public_full_match, compiled)
+    return functools.partial(_full_match, match, _ANCHOR_BOTH)
 
 
 class BadRegex(ValueError):
@@ -102,13 +123,13 @@ class FullMatch:
         except UnicodeEncodeError:  # a lone surrogate ("\ud800" in YAML or JSON): RE2 takes UTF-8
             raise BadRegex("not UTF-8 text (a lone surrogate code point)") from None
         self.cost = max(self.cost, QUOTA_BYTES_PER_INSTRUCTION * self._regex.programsize)
-        self._match = self._regex._regexp.Match
+        self._match = full_matcher(self._regex)
 
     def matches(self, topic: str) -> bool:
         """Return whether *topic* matches the pattern from its first to its last character."""
         if self.literal is not None:
             return topic == self.literal
-        return _full_match(self._match, topic)
+        return bool(self._match(topic))
 
     def bounds(self) -> tuple[bytes, bytes] | None:
         """The smallest and largest UTF-8 topic (bytes order) the pattern can match.
@@ -191,7 +212,7 @@ class AnyOf:
         elif regexes:
             text = "|".join(f"(?:{p.pattern})" for p in regexes)
             try:
-                self._joined = re2.compile(text, options=_JOINED_OPTIONS)._regexp.Match
+                self._joined = full_matcher(re2.compile(text, options=_JOINED_OPTIONS))
             except (re2.error, UnicodeEncodeError):
                 self._each = tuple(regexes)
 
@@ -201,5 +222,5 @@ class AnyOf:
             return True
         joined = self._joined
         if joined is not None:
-            return _full_match(joined, topic)
+            return bool(joined(topic))
         return any(p.matches(topic) for p in self._each)

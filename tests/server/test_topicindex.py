@@ -49,12 +49,20 @@ def test_bounds_hold_every_topic_a_pattern_matches() -> None:
     assert bounded > 300  # most patterns are bounded, or the index would not help
 
 
-def test_matches_answers_as_re2_fullmatch() -> None:
+@pytest.mark.parametrize("binding", [True, False], ids=["binding-match", "public-fallback"])
+def test_matches_answers_as_re2_fullmatch(binding: bool, monkeypatch: pytest.MonkeyPatch,
+                                          ) -> None:
     """FullMatch and AnyOf ask the binding's Match directly: the same answers as
-    google-re2's own fullmatch, a lone surrogate included (no match)."""
+    google-re2's own fullmatch, a lone surrogate included (no match). A google-re2
+    without those private names (``re2._Anchor``) gets the same answers by fullmatch."""
     import re2
 
+    from fleetctl.server import regex
     from fleetctl.server.regex import AnyOf
+
+    if not binding:
+        monkeypatch.setattr(regex, "_ANCHOR_BOTH", None)
+    assert (regex.full_matcher(re2.compile("a")).func is regex._full_match) == binding
 
     rng = random.Random(17)
     topics = [random_topic(rng) for _ in range(150)] + ["/r7/\ud800x", ""]

@@ -7,6 +7,7 @@ import json
 import logging
 import os
 import re
+import stat
 import sys
 from collections.abc import Mapping
 from pathlib import Path
@@ -35,6 +36,7 @@ def _client(
     logging.basicConfig(level=log_level.upper(),
                         format="%(asctime)s %(levelname)s %(name)s: %(message)s")
     loaded = load_client_config(config)  # before rclpy: a bad file fails fast, named
+    _warn_if_others_may_read(loaded.token_file)
     _check_domain_id()
     _check_rmw_implementation()  # before rclpy's import, where rcl exits 102
     try:
@@ -50,6 +52,19 @@ def _client(
     logging.getLogger("fleetctl.client").info("%s", stop_line(stats))
     if print_stats:
         typer.echo(json.dumps(stats, default=str))
+
+
+def _warn_if_others_may_read(token_file: Path | None) -> None:
+    """A WARNING when users other than its owner may read the robot's token file (a shell
+    redirect under the usual umask makes it 0644); not refused, as ``--token-file``."""
+    if token_file is None:
+        return
+    with contextlib.suppress(OSError):  # it was just read: a race at most
+        mode = token_file.stat().st_mode
+        if mode & (stat.S_IRGRP | stat.S_IROTH):
+            logging.getLogger("fleetctl.client").warning(
+                "token_file %s: other users may read it (mode %04o): chmod 600 it (the "
+                "client's user must still read it)", token_file, stat.S_IMODE(mode))
 
 
 def _check_domain_id() -> None:

@@ -198,6 +198,7 @@ class ClientConfig:
         bind_address: Local source address for the connection, or None for any.
         token: Bearer token read from ``token_file``, or None (identified by source IP).
             Never shown in a repr.
+        token_file: The file the token was read from (resolved), or None.
         publish: Local topics sent to the fleet.
         subscribe: Fleet topics received and republished locally.
         status: The client's own status messages.
@@ -215,6 +216,7 @@ class ClientConfig:
     limits: ClientLimits = ClientLimits()
     tf: TfSpec | None = None
     failover_urls: tuple[str, ...] = ()
+    token_file: Path | None = None
 
     @property
     def server_urls(self) -> tuple[str, ...]:
@@ -284,6 +286,7 @@ def parse_client_config(
         robot_name=robot_name,
         bind_address=_bind_address(ctx, top),
         token=_token(ctx, top, base_dir or Path.cwd()),
+        token_file=_token_path(ctx, top, base_dir or Path.cwd()),
         publish=publish,
         subscribe=subscribe,
         status=_status(ctx, top.get("status")),
@@ -314,11 +317,17 @@ def _bind_address(ctx: _Ctx, top: Mapping[str, Any]) -> str | None:
     return value
 
 
-def _token(ctx: _Ctx, top: Mapping[str, Any], base_dir: Path) -> str | None:
+def _token_path(ctx: _Ctx, top: Mapping[str, Any], base_dir: Path) -> Path | None:
     value = _str(ctx, top, "", "token_file")
     if value is None:
         return None
-    path = Path(value) if Path(value).is_absolute() else base_dir / value
+    return Path(value) if Path(value).is_absolute() else base_dir / value
+
+
+def _token(ctx: _Ctx, top: Mapping[str, Any], base_dir: Path) -> str | None:
+    path = _token_path(ctx, top, base_dir)
+    if path is None:
+        return None
     try:
         # A byte order mark (Windows editors write one) is the file's encoding, not the
         # token's: it was sent as part of the token, refused as 4401 'bad token' while

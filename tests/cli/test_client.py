@@ -164,3 +164,24 @@ def test_the_installed_rmws_come_from_every_ament_prefix(tmp_path: Path) -> None
                        r"\(environment\): not installed here; installed: rmw_cyclonedds_cpp"):
         _check_rmw_implementation({"RMW_IMPLEMENTATION": "rmw_connextdds",
                                    "AMENT_PREFIX_PATH": str(apt)})
+
+
+@pytest.mark.parametrize(("mode", "warned"), [(0o644, True), (0o640, True), (0o600, False)])
+def test_a_token_file_others_may_read_is_warned_of(
+        tmp_path: Path, monkeypatch: pytest.MonkeyPatch, caplog: pytest.LogCaptureFixture,
+        mode: int, warned: bool) -> None:
+    """`echo TOKEN > robot.token` under the usual umask is 0644: the client took it without
+    a word (--token-file of the other commands warns). The domain check then stops the
+    client before ROS, so no rclpy is needed."""
+    monkeypatch.setenv("ROS_DOMAIN_ID", "300")
+    token = tmp_path / "robot.token"
+    token.write_text("s3cret-token\n")
+    token.chmod(mode)
+    config = tmp_path / "client.yaml"
+    config.write_text("server_url: ws://127.0.0.1:1/\nrobot_name: r\ntoken_file: robot.token\n")
+    assert main(["client", "--config", str(config)]) == ExitCode.CONFIG
+    said = [r.getMessage() for r in caplog.records if "other users may read" in r.getMessage()]
+    expected = [f"token_file {token}: other users may read it (mode {mode:04o}): chmod 600 it "
+                "(the client's user must still read it)"]
+    assert said == (expected if warned else [])
+    assert "s3cret" not in caplog.text

@@ -1,4 +1,5 @@
-"""Helpers shared by the test packages: frames to send and deadline-bounded waits."""
+"""Helpers shared by the test packages: frames to send, deadline-bounded waits and a
+clock moved by hand."""
 
 from __future__ import annotations
 
@@ -13,6 +14,17 @@ from fleetctl.wire.codec import default_codec
 from fleetctl.wire.compression import COMPRESSED_TYPE
 
 STRING_TYPE = "std_msgs/msg/String"
+
+
+class ManualClock:
+    """A monotonic clock (seconds) that a test moves by hand, for the components that
+    take a ``clock`` callable."""
+
+    def __init__(self, start_s: float = 100.0) -> None:
+        self.now_s = start_s
+
+    def __call__(self) -> float:
+        return self.now_s
 
 
 def string_frame(topic: str, text: str = "hi", *, no_drop: bool = False, seq: int = 0) -> bytes:

@@ -24,7 +24,7 @@ from tests.client.conftest import (
     running,
     wait_until,
 )
-from tests.support import decode_text, string_frame, watch_reads
+from tests.support import ManualClock, decode_text, string_frame, watch_reads
 
 FAST = LinkTuning(keepalive_interval_s=0.1, link_timeout_s=0.6, open_timeout_s=1.0)
 
@@ -412,16 +412,6 @@ def test_backoff_is_exponential_capped_and_jittered() -> None:
 
 
 
-class ManualClock:
-    """A monotonic clock the test moves by hand."""
-
-    def __init__(self) -> None:
-        self.now_s = 1000.0
-
-    def __call__(self) -> float:
-        return self.now_s
-
-
 def _warnings(caplog: pytest.LogCaptureFixture) -> list[str]:
     return [r.getMessage() for r in caplog.records if r.levelno == logging.WARNING]
 
@@ -474,7 +464,7 @@ def _reminding_link(url: str, tmp_path: Path, caplog: pytest.LogCaptureFixture,
     30 s of an outage, its log captured from DEBUG; *config* goes to robot_config."""
     cfg = robot_config(url, tmp_path, limits={"reconnect_min_s": 0.01, "reconnect_max_s": 0.02},
                        **config)
-    clock = ManualClock()
+    clock = ManualClock(1_000.0)
     caplog.set_level(logging.DEBUG, "fleetctl.client.link")
     link = RobotLink(cfg, on_frame=lambda f: None, clock=clock,
                      tuning=LinkTuning(bind_reminder_interval_s=30.0, open_timeout_s=1.0))

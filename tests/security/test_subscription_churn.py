@@ -27,17 +27,10 @@ from tests.server.conftest import (
     next_json,
     wait_for,
 )
+from tests.support import ManualClock
 
 
-class Clock:
-    def __init__(self) -> None:
-        self.now = 100.0
-
-    def __call__(self) -> float:
-        return self.now
-
-
-def make_core(clock: Clock, db: Path | None = None, **limits: float) -> RelayCore:
+def make_core(clock: ManualClock, db: Path | None = None, **limits: float) -> RelayCore:
     config = ServerConfig(limits=ServerLimits(**limits))  # type: ignore[arg-type]
     return RelayCore(config, auth_map(), RobotRegistry(db, 5.0), Metrics(), clock=clock)
 
@@ -49,7 +42,7 @@ def codes(p: Peer) -> list[str]:
 
 
 def test_subscription_changes_are_rate_limited_per_identity() -> None:
-    clock = Clock()
+    clock = ManualClock()
     core = make_core(clock, max_control_requests_per_s=10.0,
                      max_subscriptions_per_connection=64)
     pauses: list[float] = []
@@ -69,7 +62,7 @@ def test_subscription_changes_are_rate_limited_per_identity() -> None:
     core.on_binary(bob, encode_subscription("/husky1/x"))
     assert codes(bob) == []
     b.throttled = False  # what the I/O layer does after the pause
-    clock.now += 0.5  # 5 more at 10/s
+    clock.now_s += 0.5  # 5 more at 10/s
     for i in range(6):
         core.on_binary(b, encode_subscription(f"/u{i}"))
     assert codes(b) == ["rate_limited"]
@@ -115,7 +108,7 @@ async def test_a_throttled_connection_is_paused_then_served_again(
 
 
 def test_pattern_bytes_are_capped_per_connection_and_per_identity() -> None:
-    core = make_core(Clock(), max_pattern_bytes_per_connection=10_000,
+    core = make_core(ManualClock(), max_pattern_bytes_per_connection=10_000,
                      max_pattern_bytes_per_identity=15_000)
     big = "/a/(" + "x|" * 1500 + "y)"  # ~3 KiB
     a, b = authed_peer(core, token=ALICE_TOKEN), authed_peer(core, token=ALICE_TOKEN)
@@ -162,7 +155,7 @@ def test_incremental_receiver_cache_matches_a_full_recompute() -> None:
 
 def test_session_subscription_writes_are_batched_off_the_event_loop(tmp_path: Path) -> None:
     db = tmp_path / "fleet.db"
-    core = make_core(Clock(), db)
+    core = make_core(ManualClock(), db)
     alice = authed_peer(core, token=ALICE_TOKEN, session="console")
     for i in range(50):
         core.on_binary(alice, encode_subscription("/husky1/x", i % 2 == 0))

@@ -4,18 +4,11 @@ from __future__ import annotations
 
 from fleetctl.server.keyframes import KeyframeRouter
 from fleetctl.server.metrics import Metrics
+from tests.support import ManualClock
 
 
-class Clock:
-    def __init__(self) -> None:
-        self.now_s = 100.0
-
-    def __call__(self) -> float:
-        return self.now_s
-
-
-def make(**kw: int) -> tuple[KeyframeRouter[str], Clock, Metrics]:
-    clock, metrics = Clock(), Metrics()
+def make(**kw: int) -> tuple[KeyframeRouter[str], ManualClock, Metrics]:
+    clock, metrics = ManualClock(), Metrics()
     return KeyframeRouter(0.25, clock, metrics, **kw), clock, metrics
 
 

@@ -6,14 +6,7 @@ import pytest
 
 from fleetctl.errors import ConfigError
 from fleetctl.server.registry import RobotRegistry, robot_name
-
-
-class Clock:
-    def __init__(self) -> None:
-        self.now = 1000.0
-
-    def __call__(self) -> float:
-        return self.now
+from tests.support import ManualClock
 
 
 def test_robot_name() -> None:
@@ -24,7 +17,7 @@ def test_robot_name() -> None:
 
 
 def test_online_offline_and_persistence(tmp_path: Path) -> None:
-    clock = Clock()
+    clock = ManualClock(1_000.0)
     db = tmp_path / "fleet.db"
     reg = RobotRegistry(db, offline_after_s=5.0, clock=clock)
     reg.seen("husky1")
@@ -33,7 +26,7 @@ def test_online_offline_and_persistence(tmp_path: Path) -> None:
     reg.attach("husky2")
     reg.set_status("husky1", "driving", True, 0.8, "lab")
     assert reg.online("husky1")
-    clock.now += 6
+    clock.now_s += 6
     assert not reg.online("husky1")  # silent too long
     reg.seen("husky2")
     reg.detach("husky2")
@@ -65,7 +58,7 @@ def test_a_database_path_that_is_no_database_is_a_config_error(tmp_path: Path,
 def test_a_battery_the_robot_does_not_know_is_none(tmp_path: Path) -> None:
     """The client sends -1 for a robot without a battery topic: unknown, not -100 %."""
     db = tmp_path / "fleet.db"
-    reg = RobotRegistry(db, offline_after_s=5.0, clock=Clock())
+    reg = RobotRegistry(db, offline_after_s=5.0, clock=ManualClock(1_000.0))
     for name, level in (("husky1", -1.0), ("husky2", float("nan")), ("husky3", 0.0)):
         reg.seen(name)
         reg.set_status(name, "OK", True, level, "")
@@ -76,6 +69,6 @@ def test_a_battery_the_robot_does_not_know_is_none(tmp_path: Path) -> None:
     import sqlite3
     with sqlite3.connect(db) as con:
         con.execute("UPDATE robots SET battery_level = -1 WHERE name = 'husky3'")
-    again = RobotRegistry(db, offline_after_s=5.0, clock=Clock())
+    again = RobotRegistry(db, offline_after_s=5.0, clock=ManualClock(1_000.0))
     assert [r["battery_level"] for r in again.as_json()] == [None, None, None]
     again.close()

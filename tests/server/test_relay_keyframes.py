@@ -20,21 +20,13 @@ from fleetctl.wire.control import (
 )
 from fleetctl.wire.samples import header
 from tests.server.conftest import ALICE_TOKEN, BOB_TOKEN, auth_map, authed_peer
-from tests.support import string_frame
+from tests.support import ManualClock, string_frame
 
 VIDEO = "foxglove_msgs/msg/CompressedVideo"
 
 
-class Clock:
-    def __init__(self) -> None:
-        self.now_s = 10.0
-
-    def __call__(self) -> float:
-        return self.now_s
-
-
-def make_core(**limits: Any) -> tuple[RelayCore, Clock]:
-    clock = Clock()
+def make_core(**limits: Any) -> tuple[RelayCore, ManualClock]:
+    clock = ManualClock(10.0)
     config = ServerConfig(limits=ServerLimits(**limits))
     return RelayCore(config, auth_map(), RobotRegistry(None, 5.0), Metrics(), clock), clock
 
@@ -57,7 +49,7 @@ def errors(p: Peer) -> list[dict[str, Any]]:
                         if isinstance(f, str)) if m["type"] == "error"]
 
 
-def setup() -> tuple[RelayCore, Clock, Peer, Peer]:
+def setup() -> tuple[RelayCore, ManualClock, Peer, Peer]:
     core, clock = make_core()
     robot, husky2 = authed_peer(core, "127.0.0.2"), authed_peer(core, "127.0.0.3")
     core.on_binary(robot, video_frame("/husky1/camera"))

@@ -24,23 +24,15 @@ from fleetctl.server.sessionstore import SessionStore
 from fleetctl.wire import fragments
 from fleetctl.wire.control import encode_subscription
 from tests.server.conftest import ALICE_TOKEN, BOB_TOKEN, auth_map, authed_peer, closes, raw_peer
-from tests.support import decode_text, string_frame
+from tests.support import ManualClock, decode_text, string_frame
 
 METRIC_ID = session_metric_id((("alice",), "console"))  # opaque: no e-mail in /metrics
 
 
-class Clock:
-    def __init__(self) -> None:
-        self.now = 100.0
-
-    def __call__(self) -> float:
-        return self.now
-
-
-def make_core(db: Path | None = None, clock: Clock | None = None, **limits: Any) -> RelayCore:
+def make_core(db: Path | None = None, clock: ManualClock | None = None, **limits: Any) -> RelayCore:
     config = ServerConfig(limits=ServerLimits(**limits))
     return RelayCore(config, auth_map(), RobotRegistry(db, 5.0), Metrics(),
-                     clock=clock or Clock())
+                     clock=clock or ManualClock())
 
 
 def drain(p: Peer) -> tuple[list[dict[str, Any]], list[bytes]]:
@@ -225,15 +217,15 @@ def test_fragments_of_no_drop_messages_are_mailboxed() -> None:
 
 
 def test_expiry_drops_the_session_and_counts_its_mailbox(tmp_path: Path) -> None:
-    clock = Clock()
+    clock = ManualClock()
     core = make_core(tmp_path / "fleet.db", clock, session_expiry_s=60.0)
     alice = authed_peer(core, token=ALICE_TOKEN, session="console")
     core.on_binary(alice, encode_subscription("/husky1/.*"))
     core.close_peer(alice)
     events(authed_peer(core, address="127.0.0.2"), core, 0, 2)
-    clock.now += 59
+    clock.now_s += 59
     assert core.sessions.expire() == 0
-    clock.now += 2
+    clock.now_s += 2
     assert core.sessions.expire() == 1
     assert len(core.sessions) == 0 and not core.sessions.has_offline and stored(core) == {}
     assert core.metrics.session_drops == {(METRIC_ID, "/husky1/events"): 2}

@@ -15,17 +15,10 @@ from fleetctl.server.cluster.remoteinterest import (
     decode_subjects,
     encode_subjects,
 )
+from tests.support import ManualClock
 
 
-class Clock:
-    def __init__(self) -> None:
-        self.now = 1000.0
-
-    def __call__(self) -> float:
-        return self.now
-
-
-def board(clock: Clock) -> RemoteInterest:
+def board(clock: ManualClock) -> RemoteInterest:
     config = ClusterConfig(name="relay-a", nats_urls=("nats://127.0.0.1:4222",))
     return RemoteInterest(config, clock)
 
@@ -34,7 +27,7 @@ def value(*subjects: str) -> bytes:
     return encode_subjects("fleetctl", subjects)
 
 
-def synced(clock: Clock) -> RemoteInterest:
+def synced(clock: ManualClock) -> RemoteInterest:
     interest = board(clock)
     interest.on_entry("relay-a", value(), None)  # our own write came back
     interest.synced = True  # the watch's end-of-contents marker
@@ -43,7 +36,7 @@ def synced(clock: Clock) -> RemoteInterest:
 
 
 def test_in_doubt_every_frame_is_published() -> None:
-    clock = Clock()
+    clock = ManualClock(1_000.0)
     interest = board(clock)
     interest.on_entry("relay-b", value(), None)  # B wants nothing...
     assert interest.wants("fleetctl.husky1.pose")  # ...but the bucket is not read yet
@@ -51,14 +44,14 @@ def test_in_doubt_every_frame_is_published() -> None:
     assert interest.wants("fleetctl.husky1.pose")  # our own write has not come back
     interest.on_entry("relay-a", value(), None)
     assert not interest.wants("fleetctl.husky1.pose")
-    clock.now += TTL_S + 1  # our writes stopped coming back: JetStream away?
+    clock.now_s += TTL_S + 1  # our writes stopped coming back: JetStream away?
     interest._expire()
     assert interest.wants("fleetctl.husky1.pose")
     assert interest.known() == {"relay-b": frozenset()}  # and nobody is forgotten
 
 
 def test_exact_and_wide_subjects_of_other_replicas_only() -> None:
-    clock = Clock()
+    clock = ManualClock(1_000.0)
     interest = synced(clock)
     interest.on_entry("relay-a", value("fleetctl.husky9.>"), None)  # our own: not asked
     interest.on_entry("relay-b", value("fleetctl.husky1.status", "fleetctl.husky2.>"), None)
@@ -74,14 +67,14 @@ def test_exact_and_wide_subjects_of_other_replicas_only() -> None:
 
 
 def test_a_replica_not_heard_of_for_the_ttl_is_forgotten() -> None:
-    clock = Clock()
+    clock = ManualClock(1_000.0)
     interest = synced(clock)
     interest.on_entry("relay-b", value("fleetctl.husky1.>"), None)
-    clock.now += TTL_S / 2
+    clock.now_s += TTL_S / 2
     interest.on_entry("relay-a", value(), None)  # our refresh
     interest._expire()
     assert interest.wants("fleetctl.husky1.pose")
-    clock.now += TTL_S / 2 + 1
+    clock.now_s += TTL_S / 2 + 1
     interest.on_entry("relay-a", value(), None)
     interest._expire()
     assert interest.known() == {} and interest.counters["expired"] == 1
@@ -89,7 +82,7 @@ def test_a_replica_not_heard_of_for_the_ttl_is_forgotten() -> None:
 
 
 def test_a_malformed_value_counts_as_everything() -> None:
-    clock = Clock()
+    clock = ManualClock(1_000.0)
     interest = synced(clock)
     interest.on_entry("relay-b", b"{not json", None)
     assert interest.wants("fleetctl.anything.at.all")

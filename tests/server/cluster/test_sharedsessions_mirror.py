@@ -12,20 +12,13 @@ from fleetctl.server.cluster.framequeue import Queued
 from fleetctl.server.cluster.sessionrecord import SessionRecord, encode_record, record_key
 from fleetctl.server.cluster.sharedsessions import SharedSessions
 from fleetctl.server.outbound import OutboundScheduler
+from tests.support import ManualClock
 
 KEY = (("alice",), "console")
 OTHER = (("alice",), "laptop")
 
 
-class Clock:
-    def __init__(self) -> None:
-        self.now = 1_000_000.0
-
-    def __call__(self) -> float:
-        return self.now
-
-
-def sessions(clock: Clock) -> SharedSessions:
+def sessions(clock: ManualClock) -> SharedSessions:
     return SharedSessions(ClusterConfig(name="relay-a", nats_urls=("nats://h:4222",)), 3600.0,
                           clock=clock)
 
@@ -37,20 +30,20 @@ def entry(shared: SharedSessions, key: tuple[tuple[str, ...], str], record: Sess
 
 
 def test_entries_are_mirrored_counted_and_expire() -> None:
-    clock = Clock()
+    clock = ManualClock(1_000_000.0)
     shared = sessions(clock)
-    record = SessionRecord(("/husky1/.*",), 7, clock.now - 10, None)
-    entry(shared, KEY, record, 1, clock.now)
-    entry(shared, OTHER, record, 2, clock.now - 3000)
+    record = SessionRecord(("/husky1/.*",), 7, clock.now_s - 10, None)
+    entry(shared, KEY, record, 1, clock.now_s)
+    entry(shared, OTHER, record, 2, clock.now_s - 3000)
     assert shared.lookup(KEY) == record and shared.count(("alice",)) == 2
-    clock.now += 700  # OTHER is past the expiry now, KEY is not
+    clock.now_s += 700  # OTHER is past the expiry now, KEY is not
     assert shared.count(("alice",)) == 1 and shared.lookup(OTHER) is None
     shared.on_entry(record_key(KEY), None, "DEL", 3, None)
     assert shared.lookup(KEY) is None and shared.count(("alice",)) == 0
 
 
 def test_hostile_entries_are_counted_not_kept() -> None:
-    clock = Clock()
+    clock = ManualClock(1_000_000.0)
     shared = sessions(clock)
     shared.on_entry("no-dot-key", b"{}", None, 1, None)
     shared.on_entry(record_key(KEY), b'{"v": 1, "patterns": 5}', None, 2, None)
@@ -58,7 +51,7 @@ def test_hostile_entries_are_counted_not_kept() -> None:
 
 
 async def test_a_held_session_written_by_another_replica_is_taken_over() -> None:
-    clock = Clock()
+    clock = ManualClock(1_000_000.0)
     shared = sessions(clock)
     taken: list[bool] = []
     outbound = OutboundScheduler(1 << 20, 100)
@@ -66,15 +59,15 @@ async def test_a_held_session_written_by_another_replica_is_taken_over() -> None
     shared.attach(KEY, {"/husky1/.*": None}, outbound, lambda _: True, lambda: True,
                   lambda: taken.append(True))
     held = shared._held[KEY]
-    assert shared.lookup(KEY) == SessionRecord(("/husky1/.*",), None, clock.now, "relay-a")
+    assert shared.lookup(KEY) == SessionRecord(("/husky1/.*",), None, clock.now_s, "relay-a")
     held.fresh_attach = False  # as once its attach was written (revision 5)
     held.revision = 5
-    entry(shared, KEY, SessionRecord(("/husky1/.*",), None, clock.now, "relay-a"), 5,
-          clock.now)
+    entry(shared, KEY, SessionRecord(("/husky1/.*",), None, clock.now_s, "relay-a"), 5,
+          clock.now_s)
     assert not taken  # our own write coming back
-    entry(shared, KEY, SessionRecord(("/husky1/.*",), 3, clock.now, "relay-b"), 6, clock.now)
+    entry(shared, KEY, SessionRecord(("/husky1/.*",), 3, clock.now_s, "relay-b"), 6, clock.now_s)
     assert taken == [True] and shared.counters["taken_over"] == 1
-    assert shared.lookup(KEY) == SessionRecord(("/husky1/.*",), 3, clock.now, "relay-b")
+    assert shared.lookup(KEY) == SessionRecord(("/husky1/.*",), 3, clock.now_s, "relay-b")
     await shared.stop()
 
 
@@ -93,7 +86,7 @@ def test_a_sessions_consumer_reads_only_its_patterns_subjects() -> None:
 async def test_frames_waiting_for_a_failing_stream_go_out_live_too() -> None:
     import asyncio
 
-    shared = sessions(Clock())
+    shared = sessions(ManualClock(1_000_000.0))
     away: list[list[Queued]] = []
     shared.on_away = away.append
 
@@ -149,7 +142,7 @@ class Nats:
 def on_a_connection() -> tuple[SharedSessions, list[list[Queued]], Nats]:
     """Sessions on a (stand-in) NATS connection, recording what goes out when the
     stream goes away."""
-    shared = sessions(Clock())
+    shared = sessions(ManualClock(1_000_000.0))
     away: list[list[Queued]] = []
     shared.on_away = away.append
     nats = Nats()

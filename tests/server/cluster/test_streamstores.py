@@ -15,14 +15,7 @@ from nats.errors import MaxPayloadError
 from nats.js.errors import APIError, NoStreamResponseError, ServiceUnavailableError
 
 from fleetctl.server.cluster.streamstores import StreamStores
-
-
-class Clock:
-    def __init__(self) -> None:
-        self.now = 100.0
-
-    def __call__(self) -> float:
-        return self.now
+from tests.support import ManualClock
 
 
 class Nats:
@@ -55,10 +48,10 @@ class Nats:
         await self.acks(Msg(self, subject=reply, data=data, headers=headers))  # type: ignore[arg-type]
 
 
-def stores(clock: Clock | None = None) -> tuple[StreamStores, dict[str, int], list[int]]:
+def stores(clock: ManualClock | None = None) -> tuple[StreamStores, dict[str, int], list[int]]:
     counters = {"stored": 0, "duplicates": 0}
     wakes: list[int] = []
-    return (StreamStores("S", 2, 1.0, lambda: wakes.append(1), counters, clock or Clock()),
+    return (StreamStores("S", 2, 1.0, lambda: wakes.append(1), counters, clock or ManualClock()),
             counters, wakes)
 
 
@@ -89,15 +82,15 @@ async def test_frames_are_published_with_a_reply_each_and_retired_oldest_first()
 
 
 async def test_an_acknowledgement_that_does_not_come_is_a_timeout() -> None:
-    clock = Clock()
+    clock = ManualClock()
     s, _, _ = stores(clock)
     nc = Nats()
     await s.start(nc)  # type: ignore[arg-type]
     await s.send(nc, "f_nd.a", b"one", {})  # type: ignore[arg-type]
-    clock.now += 0.4
+    clock.now_s += 0.4
     wait_s = s.wait_s()
     assert s.oldest() == (False, None) and wait_s is not None and abs(wait_s - 0.6) < 1e-9
-    clock.now += 0.6
+    clock.now_s += 0.6
     finished, error = s.oldest()
     assert finished and isinstance(error, TimeoutError) and s.wait_s() is None
 

@@ -13,14 +13,7 @@ from fleetctl.server.authmap import Identity
 from fleetctl.server.foxglove.tickets import TicketBook, TicketBookFull
 from tests.server.conftest import ALICE_TOKEN, AUTH, BOB_TOKEN, auth_map
 from tests.server.foxglove.fxclient import Viewer, https_get, open_viewer, ticket
-
-
-class Clock:
-    def __init__(self) -> None:
-        self.now = 100.0
-
-    def __call__(self) -> float:
-        return self.now
+from tests.support import ManualClock
 
 
 def identity(name: str) -> Identity:
@@ -41,13 +34,13 @@ def test_a_ticket_works_once() -> None:
 
 
 def test_a_ticket_expires() -> None:
-    clock = Clock()
+    clock = ManualClock()
     book = TicketBook(ttl_s=60.0, clock=clock)
     value = book.issue(identity("alice"))
-    clock.now += 60.0
+    clock.now_s += 60.0
     assert book.redeem(value) is None
     book.issue(identity("alice"))
-    clock.now += 61.0
+    clock.now_s += 61.0
     book.issue(identity("bob"))  # issuing sweeps expired tickets
     assert len(book) == 1
 

@@ -13,16 +13,9 @@ from fleetctl.server.recording.config import RecordingConfig
 from fleetctl.server.recording.writer import RecordingWriter
 from fleetctl.wire import fragments, samples
 from fleetctl.wire.codec import default_codec
+from tests.support import ManualClock
 
 STRING = "std_msgs/msg/String"
-
-
-class Clock:
-    def __init__(self) -> None:
-        self.now = 1000.0
-
-    def __call__(self) -> float:
-        return self.now
 
 
 def frame(text: str, seq: int, topic: str = "/r/chat") -> bytes:
@@ -31,20 +24,20 @@ def frame(text: str, seq: int, topic: str = "/r/chat") -> bytes:
                         publish_time_ns=1_700_000_000_000_000_000 + seq, seq=seq)
 
 
-def writer(tmp_path: Path, clock: Clock, **kw: object) -> RecordingWriter:
+def writer(tmp_path: Path, clock: ManualClock, **kw: object) -> RecordingWriter:
     config = RecordingConfig(tmp_path, (), **kw)  # type: ignore[arg-type]
     out = RecordingWriter(config, default_codec(), 1 << 20, clock=clock,
-                          wall_clock_s=lambda: 1_764_000_000.0 + clock.now)
+                          wall_clock_s=lambda: 1_764_000_000.0 + clock.now_s)
     out.start()
     return out
 
 
 def test_rotates_by_duration_and_closes_complete_files(tmp_path: Path) -> None:
-    clock = Clock()
+    clock = ManualClock(1_000.0)
     w = writer(tmp_path, clock, max_file_duration_s=10.0)
-    w.record(1, frame("a", 1), 0, clock.now)
-    clock.now += 11
-    w.record(1, frame("b", 2), 0, clock.now)  # past the duration: a new file first
+    w.record(1, frame("a", 1), 0, clock.now_s)
+    clock.now_s += 11
+    w.record(1, frame("b", 2), 0, clock.now_s)  # past the duration: a new file first
     w.close()
     found = files.scan(tmp_path)
     assert len(found) == 2 and all(files.is_complete(f.path) for f in found)
@@ -52,11 +45,11 @@ def test_rotates_by_duration_and_closes_complete_files(tmp_path: Path) -> None:
 
 
 def test_rotates_by_size_and_drops_what_can_never_fit(tmp_path: Path) -> None:
-    clock = Clock()
+    clock = ManualClock(1_000.0)
     w = writer(tmp_path, clock, max_file_bytes=4096, max_total_bytes=1 << 20, chunk_bytes=512)
     for i in range(40):
-        w.record(1, frame("x" * 200, i + 1), 0, clock.now)
-    w.record(1, frame("y" * 5000, 99), 0, clock.now)
+        w.record(1, frame("x" * 200, i + 1), 0, clock.now_s)
+    w.record(1, frame("y" * 5000, 99), 0, clock.now_s)
     w.close()
     found = files.scan(tmp_path)
     assert len(found) >= 2
@@ -66,27 +59,27 @@ def test_rotates_by_size_and_drops_what_can_never_fit(tmp_path: Path) -> None:
 
 
 def test_malformed_frames_are_counted_not_fatal(tmp_path: Path) -> None:
-    clock = Clock()
+    clock = ManualClock(1_000.0)
     w = writer(tmp_path, clock)
-    w.record(1, b"\x01" * 40, 0, clock.now)
-    w.record(1, frame("ok", 1), 0, clock.now)
+    w.record(1, b"\x01" * 40, 0, clock.now_s)
+    w.record(1, frame("ok", 1), 0, clock.now_s)
     w.close()
     assert w.stats.dropped["malformed"] == 1 and w.stats.messages == 1
 
 
 def test_a_frame_without_publish_time_gets_the_receive_time(tmp_path: Path) -> None:
-    clock = Clock()
+    clock = ManualClock(1_000.0)
     w = writer(tmp_path, clock)
     codec = default_codec()
     plain = codec.encode(codec.registry.get(STRING).cls("t"), STRING, "/r/chat")
-    w.record(1, plain, 123_456_789, clock.now)
+    w.record(1, plain, 123_456_789, clock.now_s)
     w.close()
     [(_, _, message)] = list(files.read_messages(files.scan(tmp_path)[0].path))
     assert message.log_time == message.publish_time == 123_456_789
 
 
 def test_fragments_of_messages_that_never_complete_are_counted(tmp_path: Path) -> None:
-    clock = Clock()
+    clock = ManualClock(1_000.0)
     w = writer(tmp_path, clock)
     codec = default_codec()
     cloud = samples.point_cloud(codec.registry, 2, 512)
@@ -94,9 +87,9 @@ def test_fragments_of_messages_that_never_complete_are_counted(tmp_path: Path) -
     first, second = (fragments.split(whole, topic="/r/cloud", message_id=m,
                                      max_fragment_bytes=4096, no_drop=False)
                      for m in (1, 2))
-    w.record(1, first[0], 0, clock.now)  # message 1 starts...
+    w.record(1, first[0], 0, clock.now_s)  # message 1 starts...
     for part in second:  # ...and message 2 supersedes it
-        w.record(1, part, 0, clock.now)
+        w.record(1, part, 0, clock.now_s)
     w.close()
     snap = w.stats.snapshot()
     assert snap["dropped"]["incomplete"] == 1 and snap["messages"] == 1
@@ -111,15 +104,15 @@ def latched_frame(text: str, seq: int, topic: str) -> bytes:
 def test_every_new_file_starts_with_the_latched_topics(tmp_path: Path) -> None:
     """A rotated file had no map and no /tf_static (published once, at the robot's start):
     opened or replayed alone it showed no map and a TF tree without its static frames."""
-    clock = Clock()
+    clock = ManualClock(1_000.0)
     w = writer(tmp_path, clock, max_file_duration_s=10.0)
-    w.record(1, latched_frame("the map", 1, "/r/map"), 0, clock.now)
-    w.record(1, latched_frame("static tf", 2, "/r/tf_static"), 0, clock.now)
-    w.record(1, frame("a", 3), 0, clock.now)
-    clock.now += 11
-    w.record(1, frame("b", 4), 0, clock.now)  # a new file: the map and static TF first
-    clock.now += 11
-    w.record(1, latched_frame("map v2", 5, "/r/map"), 0, clock.now)  # new file, new map
+    w.record(1, latched_frame("the map", 1, "/r/map"), 0, clock.now_s)
+    w.record(1, latched_frame("static tf", 2, "/r/tf_static"), 0, clock.now_s)
+    w.record(1, frame("a", 3), 0, clock.now_s)
+    clock.now_s += 11
+    w.record(1, frame("b", 4), 0, clock.now_s)  # a new file: the map and static TF first
+    clock.now_s += 11
+    w.record(1, latched_frame("map v2", 5, "/r/map"), 0, clock.now_s)  # new file, new map
     w.close()
     found = files.scan(tmp_path)
     assert len(found) == 3
@@ -148,13 +141,13 @@ def test_every_new_file_starts_with_the_latched_topics(tmp_path: Path) -> None:
 
 
 def test_latched_copies_stay_within_a_quarter_of_a_file(tmp_path: Path) -> None:
-    clock = Clock()
+    clock = ManualClock(1_000.0)
     w = writer(tmp_path, clock, max_file_duration_s=10.0, max_file_bytes=8192,
                max_total_bytes=1 << 20, chunk_bytes=512)
-    w.record(1, latched_frame("m" * 3000, 1, "/r/map"), 0, clock.now)  # > 8192 / 4
-    w.record(1, latched_frame("s" * 100, 2, "/r/tf_static"), 0, clock.now)
-    clock.now += 11
-    w.record(1, frame("b", 3), 0, clock.now)
+    w.record(1, latched_frame("m" * 3000, 1, "/r/map"), 0, clock.now_s)  # > 8192 / 4
+    w.record(1, latched_frame("s" * 100, 2, "/r/tf_static"), 0, clock.now_s)
+    clock.now_s += 11
+    w.record(1, frame("b", 3), 0, clock.now_s)
     w.close()
     second = files.scan(tmp_path)[1]
     assert [ch.topic for _s, ch, _m in files.read_messages(second.path)] == [
@@ -188,15 +181,15 @@ def _video_seqs(path: Path) -> list[tuple[int, int, int]]:
 def test_every_new_file_starts_with_the_video_since_its_last_keyframe(tmp_path: Path) -> None:
     """A file that started between two keyframes could not show the camera until the
     next one (2 s by default): every frame before it needed frames of the old file."""
-    clock = Clock()
+    clock = ManualClock(1_000.0)
     w = writer(tmp_path, clock, max_file_duration_s=10.0)
     for seq, key in ((1, True), (2, False), (3, True), (4, False), (5, False)):
-        w.record(1, video_frame(seq, key), 0, clock.now)
-    clock.now += 11
-    w.record(1, video_frame(6, False), 0, clock.now)  # a new file, opened by a delta frame
-    w.record(1, video_frame(7, False), 0, clock.now)
-    clock.now += 11
-    w.record(1, video_frame(8, True), 0, clock.now)  # a new file, opened by a keyframe
+        w.record(1, video_frame(seq, key), 0, clock.now_s)
+    clock.now_s += 11
+    w.record(1, video_frame(6, False), 0, clock.now_s)  # a new file, opened by a delta frame
+    w.record(1, video_frame(7, False), 0, clock.now_s)
+    clock.now_s += 11
+    w.record(1, video_frame(8, True), 0, clock.now_s)  # a new file, opened by a keyframe
     w.close()
     first, second, third = files.scan(tmp_path)
     assert [s for s, _, _ in _video_seqs(first.path)] == [1, 2, 3, 4, 5]
@@ -208,17 +201,17 @@ def test_every_new_file_starts_with_the_video_since_its_last_keyframe(tmp_path: 
 
 
 def test_video_copies_stay_within_a_quarter_of_a_file(tmp_path: Path) -> None:
-    clock = Clock()
+    clock = ManualClock(1_000.0)
     w = writer(tmp_path, clock, max_file_duration_s=10.0, max_file_bytes=16384,
                max_total_bytes=1 << 20, chunk_bytes=512)
-    w.record(1, video_frame(1, True, pad=3000), 0, clock.now)
-    w.record(1, video_frame(2, False, pad=3000), 0, clock.now)  # 6 KB > 16384 / 4
-    w.record(1, video_frame(3, False), 0, clock.now)
-    clock.now += 11
-    w.record(1, video_frame(4, False), 0, clock.now)
-    w.record(1, video_frame(5, True), 0, clock.now)
-    clock.now += 11
-    w.record(1, video_frame(6, False), 0, clock.now)
+    w.record(1, video_frame(1, True, pad=3000), 0, clock.now_s)
+    w.record(1, video_frame(2, False, pad=3000), 0, clock.now_s)  # 6 KB > 16384 / 4
+    w.record(1, video_frame(3, False), 0, clock.now_s)
+    clock.now_s += 11
+    w.record(1, video_frame(4, False), 0, clock.now_s)
+    w.record(1, video_frame(5, True), 0, clock.now_s)
+    clock.now_s += 11
+    w.record(1, video_frame(6, False), 0, clock.now_s)
     w.close()
     _, second, third = files.scan(tmp_path)
     # The group outgrew its share: dropped until the next keyframe, kept again from it.
@@ -232,13 +225,13 @@ def test_a_rotated_file_decodes_a_real_camera_from_its_first_frame(tmp_path: Pat
     from fleetctl.client.video import VideoDecoder, VideoEncoder
 
     encoder = VideoEncoder("h264", 64, 48, fps=10.0, keyframe_interval_s=1.0)
-    clock = Clock()
+    clock = ManualClock(1_000.0)
     w = writer(tmp_path, clock, max_file_duration_s=10.0)
     codec, rng = default_codec(), np.random.default_rng(7)
     store = codec.registry.typestore
     for i in range(20):  # keyframes at 0 and 1 s: the rotation comes half a second after
         if i == 15:
-            clock.now += 11
+            clock.now_s += 11
         image = rng.integers(0, 255, (48, 64, 3), dtype=np.uint8)
         (encoded,) = encoder.encode(image, i / 10.0)
         msg = store.types[VIDEO](
@@ -246,7 +239,7 @@ def test_a_rotated_file_decodes_a_real_camera_from_its_first_frame(tmp_path: Pat
             frame_id="camera", format="h264",
             data=np.frombuffer(encoded.data, dtype=np.uint8))
         w.record(1, codec.encode(msg, VIDEO, "/r/camera", seq=i + 1,
-                                 publish_time_ns=1_700_000_000_000_000_000 + i), 0, clock.now)
+                                 publish_time_ns=1_700_000_000_000_000_000 + i), 0, clock.now_s)
     w.close()
     second = files.scan(tmp_path)[1]
     decoder = VideoDecoder("h264")

@@ -18,8 +18,9 @@ from fleetctl.server.registry import RobotRegistry
 from fleetctl.server.relay import Peer, RelayCore
 from fleetctl.wire.control import decode_keyframe_request, encode_subscription
 from tests.server.conftest import ALICE_TOKEN, BOB_TOKEN, auth_map, authed_peer
-from tests.server.test_relay_keyframes import Clock, requests, video_frame
+from tests.server.test_relay_keyframes import requests, video_frame
 from tests.server.test_relay_latched import binaries, latched
+from tests.support import ManualClock
 
 STORED = MAX_ENTRIES  # a full latched store (4,096 topics)
 
@@ -38,8 +39,8 @@ def test_a_charge_goes_below_empty_and_the_refill_pays_it_back() -> None:
     assert bucket.take() and not bucket.take()
 
 
-def make_core() -> tuple[RelayCore, Clock]:
-    clock = Clock()
+def make_core() -> tuple[RelayCore, ManualClock]:
+    clock = ManualClock(10.0)
     config = ServerConfig(limits=ServerLimits())
     return RelayCore(config, auth_map(), RobotRegistry(None, 5.0), Metrics(), clock), clock
 
@@ -105,7 +106,7 @@ def test_video_topics_are_indexed_and_charged_too() -> None:
     assert control_requests_left(core, bob) == burst - 2 - extra
 
 
-def _churn(core: RelayCore, clock: Clock, p: Peer, pattern: str, seconds: float) -> int:
+def _churn(core: RelayCore, clock: ManualClock, p: Peer, pattern: str, seconds: float) -> int:
     """*p* toggles *pattern* as fast as the relay lets it for *seconds* of clock (the
     I/O layer's part played here: a throttled connection is read again once its bucket
     has a token); returns how many times it was subscribed."""

@@ -64,4 +64,27 @@ def message_class(type_name: str) -> Any:
     cls = getattr(module, name, None)
     if cls is None:
         raise ConfigError(f"message type {type_name!r}: {package}.msg has no message {name!r}")
+    _check_type_support(type_name, package, cls)
     return cls
+
+
+def _check_type_support(type_name: str, package: str, cls: Any) -> None:
+    """Load the C type support rclpy needs (at start, where a failure is a config error).
+
+    A package whose Python module imports but whose libraries the dynamic loader cannot
+    find (a workspace put on PYTHONPATH by hand, without the LD_LIBRARY_PATH its
+    setup.bash sets) made the client exit with rclpy's UnsupportedTypeSupport traceback.
+
+    Raises:
+        ConfigError: naming the type, the loader's reason and what to source.
+    """
+    from rclpy.type_support import check_for_type_support
+
+    try:
+        check_for_type_support(cls)
+    except Exception as exc:  # rosidl's UnsupportedTypeSupport, rclpy's NoTypeSupport...
+        cause = exc.__context__ or exc
+        raise ConfigError(
+            f"message type {type_name!r}: Python package {package}.msg is installed but "
+            f"its C type support does not load ({cause}): source the install/setup.bash "
+            "of the workspace or ROS that built it (it sets LD_LIBRARY_PATH too)") from exc

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from typing import Any
+
 import pytest
 
 from fleetctl.client.ros.msgtypes import message_class, ros2_type_name, split_type_name
@@ -62,3 +64,42 @@ def test_missing_message_in_an_installed_package() -> None:
     pytest.importorskip("std_msgs")
     with pytest.raises(ConfigError, match="has no message 'Nope'"):
         message_class("std_msgs/msg/Nope")
+
+
+FAKE_GENERATED = '''\
+from rosidl_generator_py import import_type_support
+
+
+class Metaclass_Status(type):
+    _TYPE_SUPPORT = None
+
+    @classmethod
+    def __import_type_support__(cls):
+        # What rosidl generates: its libraries are not on the loader's path here.
+        cls._TYPE_SUPPORT = import_type_support("fake_ws_msgs").type_support
+
+
+class Status(metaclass=Metaclass_Status):
+    pass
+'''
+
+
+@pytest.mark.ros
+def test_a_package_whose_type_support_does_not_load_is_a_config_error(
+        tmp_path: Any, monkeypatch: pytest.MonkeyPatch) -> None:
+    """A workspace's package on PYTHONPATH without its libraries on LD_LIBRARY_PATH: the
+    client exited with rclpy's UnsupportedTypeSupport traceback when it subscribed."""
+    pytest.importorskip("rclpy")
+    package = tmp_path / "fake_ws_msgs"
+    (package / "msg").mkdir(parents=True)
+    (package / "__init__.py").write_text("")
+    (package / "msg" / "__init__.py").write_text(FAKE_GENERATED)
+    monkeypatch.syspath_prepend(str(tmp_path))
+    with pytest.raises(ConfigError) as info:
+        message_class("fake_ws_msgs/msg/Status")
+    message = str(info.value)
+    assert message.startswith("message type 'fake_ws_msgs/msg/Status': Python package "
+                              "fake_ws_msgs.msg is installed but its C type support does not "
+                              "load (No module named 'fake_ws_msgs.fake_ws_msgs_s__")
+    assert message.endswith("source the install/setup.bash of the workspace or ROS that "
+                            "built it (it sets LD_LIBRARY_PATH too)")

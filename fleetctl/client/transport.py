@@ -888,9 +888,13 @@ class RobotLink:
             self._standby_offered = ws.response is not None and (
                 ws.response.headers.get(STANDBY_HEADER) == "1")
         dialed, self._dialed = self._dialed, None
+        # While the server refuses this robot (4401/4403, until a welcome) each retry's
+        # connect was an INFO line: every 5 s for as long as a token stayed wrong, around
+        # the one ERROR and its 30 s reminders that say what to do.
+        level = logging.DEBUG if self._refused.since_s is not None else logging.INFO
         if dialed is None:
             self._drop_stale(None)
-            logger.info("connected to %s", self.url)
+            logger.log(level, "connected to %s", self.url)
         else:
             dialed_s, syn_rtt_s = dialed
             # What was published before the dial returned, after the winning SYN's answer
@@ -904,9 +908,9 @@ class RobotLink:
             # The upgrade includes a wait for the old connection when the watchdog dialled
             # early (a false alarm is decided first).
             ready_s = activated_s if activated_s is not None else self._clock()
-            logger.info("connected to %s (SYN round trip %.1f ms, %s %.1f ms)", self.url,
-                        syn_rtt_s * 1e3, "standby activated in" if activating else "upgrade",
-                        (ready_s - dialed_s) * 1e3)
+            logger.log(level, "connected to %s (SYN round trip %.1f ms, %s %.1f ms)", self.url,
+                       syn_rtt_s * 1e3, "standby activated in" if activating else "upgrade",
+                       (ready_s - dialed_s) * 1e3)
         tasks: list[asyncio.Task[None]] = []
         ended = _Ended(acked=False)
         self._ended_by_takeover = False

@@ -301,6 +301,10 @@ async def test_bad_token_is_reported_and_retried(server: RelayServer, tmp_path: 
     assert errors[0].startswith(f"connection to {server.url} closed: 4401 bad token: the server "
                                 "knows no such token: check token_file")
     assert "on None" not in caplog.text
+    # Each of the >= 5 retries' connects was an INFO line too (every 5 s for as long as
+    # the token was wrong); after the first they are DEBUG until a welcome.
+    connected = [r for r in caplog.records if r.getMessage().startswith("connected to")]
+    assert len(connected) == 1
 
 
 async def test_ip_identity_with_bind_address(server: RelayServer, tmp_path: Path) -> None:

@@ -623,6 +623,22 @@ def test_live_sync_recreates_the_server_when_fleet_yaml_moves_its_ports(fleet: P
     assert len(docker.compose_calls()) == ups + 1
 
 
+def test_live_sync_of_replicas_recreates_nothing_for_an_add_user(fleet: Path) -> None:
+    """The server's compose definition is compared with the deployed one: with replicas
+    (NATS passwords and configs kept from the first `up`) an add-user changes none of it."""
+    docker = FakeDocker()
+    composerun.up(fleet, _opts(fleet, wireguard="off", sim=True, replicas=2),
+                  progress=lambda _: None, runner=docker, port_probe=lambda *_: None)
+    docker.server_running = True
+    ops.add_user(fleet, "bob@example.org", "viewer")
+    before = len(docker.compose_calls())
+    note = live.sync_running(fleet, lambda _: None, runner=docker)
+    assert note is not None and "recreated" not in note
+    (live_up,) = docker.compose_calls()[before:]
+    assert live_up[live_up.index("up"):] == [
+        "up", "-d", "--remove-orphans", "--no-deps", "robot-husky1", "robot-jackal2"]
+
+
 def test_bind_and_project_are_checked_before_they_reach_compose(fleet: Path) -> None:
     with pytest.raises(ConfigError, match=r"--bind '1.2.3.4:2222:22': expected an IP"):
         _opts(fleet, bind="1.2.3.4:2222:22")

@@ -38,6 +38,7 @@ ERROR_CODES = (
     "standby",  # a binary frame on a standby connection (discarded)
     "not_standby",  # {"type": "activate"} on a connection that is not a standby
     "login_throttled",  # a token refused unhashed: too many failed logins from the address
+    "resume_throttled",  # a session resume while the identity owes first-frame work
 )
 
 

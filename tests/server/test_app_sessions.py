@@ -137,3 +137,26 @@ async def test_takeover_and_bad_session_name_close_codes(server: RelayServer) ->
     async with client(server, token=ALICE_TOKEN) as plain:  # no session: as before
         await next_json(plain, "welcome")
         assert (await subscribe(plain, EVENTS))["type"] == "subscribed"
+
+
+async def test_a_resume_while_the_identity_owes_first_frames_is_closed_4429(
+        server: RelayServer) -> None:
+    """Through real sockets: a session resumed while alice's control requests are below
+    empty (earlier first frames not paid for; charged here directly, as the relay does
+    after a costly resume) gets an error frame and close 4429 with the wait, and keeps
+    its session: once the debt is paid, the same session resumes."""
+    async with console(server) as receiver:
+        assert (await subscribe(receiver, EVENTS))["type"] == "subscribed"
+    await wait_for(lambda: server.core.sessions.offline_count == 1)
+    (bucket,) = server.core._buckets.values()
+    bucket.charge(bucket.burst * 2)  # at most one burst of debt: 256 requests, ~13 s
+    async with console(server) as refused:
+        error = await next_json(refused, "error")
+        assert error["code"] == "resume_throttled" and "retry in" in error["message"]
+        assert await closed_code(refused) == 4429
+        assert refused.close_reason is not None and "retry in" in refused.close_reason
+    assert server.core.sessions.offline_count == 1  # kept for a later attach
+    bucket.charge(-bucket.burst * 2)  # (paid back: the refill, without waiting 13 s)
+    async with console(server) as receiver:
+        session = await next_json(receiver, "session")
+        assert session["resumed"] and session["subscriptions"] == [EVENTS]

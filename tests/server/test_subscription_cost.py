@@ -212,3 +212,52 @@ def test_first_frames_that_take_loop_time_are_charged_by_it(
     burst = core.limits.max_subscriptions_per_connection
     # Its own request, 50 more for the 50 ms, one refilled meanwhile (20/s).
     assert control_requests_left(core, bob) == burst - 1 - 50 + 1
+
+
+def test_a_resume_while_the_identity_owes_first_frames_is_refused_until_paid() -> None:
+    """Reconnecting is not a control request: a session of patterns RE2 cannot bound,
+    resumed again and again beside a full store, would match them all each time. A
+    resume while the identity set's bucket is below empty (the last first frames not
+    paid for) is closed 4429 with the wait, and the session kept: once the refill has
+    paid the debt, the same session resumes with its messages."""
+    from tests.server.conftest import closes
+
+    core, clock = make_core()
+    topics = fill_latched(core)
+    tab = authed_peer(core, token=ALICE_TOKEN, session="tab")
+    for k in range(8):
+        clock.now_s += 100.0
+        core.on_binary(tab, encode_subscription(f".*/t{k}"))
+    core.close_peer(tab)
+    clock.now_s += 100.0
+    bucket = core._control_bucket(tab)
+    while bucket.take():  # the identity's other requests spent the bucket: no debt yet
+        pass
+    again = authed_peer(core, token=ALICE_TOKEN, session="tab")
+    assert [t for t, _ in binaries(again)] == topics[:8] and not closes(again)
+    core.close_peer(again)
+    assert bucket.level() < 0  # the resume's first frames: charged, not yet paid back
+    refused = authed_peer(core, token=ALICE_TOKEN, session="tab")
+    (code, reason), = closes(refused)
+    assert code == 4429 and "resume" in reason and "retry in" in reason
+    assert binaries(refused) == []
+    clock.now_s += bucket.wait_s() + 1.0
+    later = authed_peer(core, token=ALICE_TOKEN, session="tab")
+    assert [t for t, _ in binaries(later)] == topics[:8] and not closes(later)
+
+
+def test_a_resume_with_an_empty_bucket_but_no_debt_is_served() -> None:
+    """A burst of plain subscribes empties the bucket without debt: a resume then is a
+    robot back from a cut, not a loop, and is served."""
+    from tests.server.conftest import closes
+
+    core, _clock = make_core()
+    robot = authed_peer(core, token=ALICE_TOKEN, session="s")
+    core.on_binary(robot, encode_subscription("/husky1/cmd"))
+    core.close_peer(robot)
+    bucket = core._control_bucket(robot)
+    while bucket.take():
+        pass
+    assert 0 <= bucket.level() < 1
+    back = authed_peer(core, token=ALICE_TOKEN, session="s")
+    assert not closes(back)

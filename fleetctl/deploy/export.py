@@ -25,7 +25,7 @@ from fleetctl.deploy.files import (
     FileWrite,
     Plan,
     WriteFailed,
-    is_untouched,
+    edit_state,
 )
 from fleetctl.deploy.fleet import fleet_file, load_fleet, require_endpoint
 from fleetctl.deploy.keystore import load_server_key
@@ -173,7 +173,9 @@ def _written_by_export(path: Path, new: bytes) -> bool:
         data = read_small(path, max(len(new), MAX_CONFIG_BYTES), follow_symlinks=False)
     except OSError:
         return False
-    return data == new or is_untouched(data)
+    # Untouched since an export wrote it (its digest line matches), or, without one (a
+    # compose.yaml of a bundle exported before it carried one), what export writes now.
+    return edit_state(data, new.decode("utf-8", "replace")) == "generated"
 
 
 def check_out_path(path: Path) -> None:

@@ -167,6 +167,9 @@ def test_export_replaces_only_what_an_earlier_export_wrote(fleet_dir: Path,
     bundle = export_robot(fleet_dir, "husky1", tmp_path / "b", wheel=wheel).path
     (fleet_dir / "fleet.yaml").write_text(
         (fleet_dir / "fleet.yaml").read_text().replace("ros_domain_id: 0", "ros_domain_id: 5"))
+    # compose.yaml of a bundle exported before it carried a digest line: as written then.
+    compose_file = bundle / "compose.yaml"
+    compose_file.write_text(compose_file.read_text().split("\n", 1)[1])
     export_robot(fleet_dir, "husky1", bundle, wheel=wheel)
     assert "ROS_DOMAIN_ID=5" in (bundle / "fleetctl.env").read_text()
     # ... but not a file of it edited by hand since.

@@ -70,6 +70,7 @@ from websockets.exceptions import ConnectionClosed, InvalidHandshake, InvalidSta
 from websockets.uri import parse_uri
 
 from fleetctl.batched_connection import BatchedWritesConnection
+from fleetctl.client.clockcheck import ClockCheck, clock_line
 from fleetctl.client.config import ClientConfig
 from fleetctl.client.dialer import DialTimeout, dial_first
 from fleetctl.client.linktuning import LinkTuning
@@ -234,6 +235,7 @@ class RobotLink:
         self._on_frame = on_frame
         self._clock = clock
         self._wall_clock_ns = wall_clock_ns
+        self._clock_check = ClockCheck()
         self._scheduler = Scheduler(scheduler_config or scheduler_config_for(config))
         self._rates = {p.remote_topic: p.rate_limit_hz for p in config.publish}
         now = clock()
@@ -763,6 +765,16 @@ class RobotLink:
         self._log_reachable_again()
         return ws
 
+    def _check_wall_clock(self, ws: LinkConnection) -> None:
+        """Compare this robot's wall clock with the server's Date (fleetctl.client.clockcheck):
+        a robot hours off had its live data shown as hours old, and nothing here said so."""
+        date = ws.response.headers.get("Date") if ws.response is not None else None
+        said = self._clock_check.reading(date, self._wall_clock_ns() / 1e9)
+        if said is not None:
+            kind, offset_s = said
+            logger.log(logging.WARNING if kind == "off" else logging.INFO, "%s",
+                       clock_line(kind, offset_s, self.url))
+
     def _failure_reason(self, exc: BaseException) -> str:
         """Why a connect failed, in words: a bare ``TimeoutError`` was all a robot's log said
         of a port that accepted TCP and never answered the upgrade."""
@@ -911,6 +923,8 @@ class RobotLink:
             logger.log(level, "connected to %s (SYN round trip %.1f ms, %s %.1f ms)", self.url,
                        syn_rtt_s * 1e3, "standby activated in" if activating else "upgrade",
                        (ready_s - dialed_s) * 1e3)
+        if not activating:  # a standby's upgrade answer may be minutes old
+            self._check_wall_clock(ws)
         tasks: list[asyncio.Task[None]] = []
         ended = _Ended(acked=False)
         self._ended_by_takeover = False

@@ -630,3 +630,25 @@ async def test_a_port_that_accepts_and_never_answers_is_said_in_words(
     assert said.startswith(f"cannot connect to {url_of(port)}: the connection was accepted but "
                            "the WebSocket handshake got no answer in 1 s (a stalled relay, or "
                            "something else listens on that port); retrying")
+
+
+async def test_a_robot_clock_an_hour_behind_its_server_is_said_once(
+    server: RelayServer, tmp_path: Path, caplog: pytest.LogCaptureFixture
+) -> None:
+    """A robot without NTP: every page showed its live data as an hour old, and nothing on
+    the robot said why. The relay's upgrade answer carries its Date."""
+    import time
+
+    caplog.set_level(logging.INFO, "fleetctl.client.link")
+    cfg = robot_config(server.url, tmp_path)
+    behind = RobotLink(cfg, on_frame=lambda f: None, tuning=FAST,
+                       wall_clock_ns=lambda: time.time_ns() - 3600 * 10**9)
+    async with running(behind) as link:
+        await wait_until(lambda: link.stats()["identities"] == ["r1"])
+    said = [r.getMessage() for r in caplog.records if "wall clock" in r.getMessage()]
+    assert len(said) == 1 and said[0].startswith(
+        f"this robot's wall clock is about 3600 s behind {server.url}'s")
+    caplog.clear()
+    async with running(RobotLink(cfg, on_frame=lambda f: None, tuning=FAST)) as link:
+        await wait_until(lambda: link.stats()["identities"] == ["r1"])
+    assert "wall clock" not in caplog.text  # in step: nothing to say

@@ -101,9 +101,9 @@ def up(
 ) -> None:
     """Start the fleet on this server host: server, web page and WireGuard (docker compose).
 
-    On a running fleet it applies what changed and leaves the rest running. It returns
-    once every service runs and is healthy; a service that fails to start is exit 1,
-    naming it with its last log lines.
+    On a running fleet it applies what changed and leaves the rest running.
+    It returns once every service runs and is healthy; a service that fails
+    to start is exit 1, naming it with its last log lines.
     """
     require_docker()
     recorded = load_fleet(fleet).relay_replicas

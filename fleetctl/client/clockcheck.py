@@ -14,14 +14,15 @@ from __future__ import annotations
 import email.utils
 from dataclasses import dataclass
 
-# Date is truncated to the second and read a round trip later: a clock in step reads
-# 0 to ~1 s ahead. Beyond this either way, the pages' "N s old" (1 s) is the robot's clock.
+# Beyond the Date's own second, this much either way (a round trip, the pages' 1 s "old"
+# note) is taken for a clock in step.
 TOLERANCE_S = 1.0
 
 
 def date_offset_s(date_header: str | None, now_s: float) -> float | None:
     """The robot's clock minus the server's by *date_header* (positive: the robot is
-    ahead), with the header's truncation taken out; None without a readable header."""
+    ahead), 0.0 when within the header's second and :data:`TOLERANCE_S`; None without a
+    readable header."""
     if not date_header:
         return None
     try:
@@ -30,10 +31,9 @@ def date_offset_s(date_header: str | None, now_s: float) -> float | None:
         return None
     if server.tzinfo is None:  # "-0000": RFC 5322's unknown zone, HTTP says GMT
         return None
-    ahead = now_s - server.timestamp()
-    if 0.0 <= ahead <= 1.0 + TOLERANCE_S:
-        return 0.0
-    return ahead if ahead < 0.0 else ahead - 1.0
+    # The server's clock read somewhere in its Date's second: half a second on average.
+    offset = now_s - server.timestamp() - 0.5
+    return 0.0 if abs(offset) <= 0.5 + TOLERANCE_S else offset
 
 
 @dataclass
@@ -41,8 +41,7 @@ class ClockCheck:
     """The offset readings of one link: warn when it is off, once until it agrees again.
 
     Attributes:
-        offset_s: The last reading off by more than :data:`TOLERANCE_S`, else 0.0; None
-            before any reading.
+        offset_s: The last reading (0.0: in step); None before any reading.
     """
 
     offset_s: float | None = None
@@ -50,13 +49,12 @@ class ClockCheck:
 
     def reading(self, date_header: str | None, now_s: float) -> tuple[str, float] | None:
         """Take one connection's ``Date``; return ``("off", offset_s)`` the first time the
-        clock is off by more than :data:`TOLERANCE_S`, ``("agrees", old_offset_s)`` the
-        first time it agrees after that, else None."""
+        clock is off, ``("agrees", 0.0)`` the first time it agrees after that, else None."""
         offset = date_offset_s(date_header, now_s)
         if offset is None:
             return None
-        off = abs(offset) > TOLERANCE_S
-        self.offset_s = offset if off else 0.0
+        off = offset != 0.0
+        self.offset_s = offset
         if off and not self._warned:
             self._warned = True
             return "off", offset

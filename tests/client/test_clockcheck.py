@@ -17,10 +17,11 @@ def date(at_s: float) -> str:
 
 @pytest.mark.parametrize(("robot_s", "offset"), [
     (SERVER_S, 0.0), (SERVER_S + 0.99, 0.0),  # in step: Date is truncated to the second
-    (SERVER_S + 1.9, 0.0),  # ... and read a round trip later
-    (SERVER_S - 0.5, -0.5),
-    (SERVER_S - 3600.25, -3600.25), (SERVER_S + 3601.5, 3600.5)])
-def test_the_offset_takes_the_dates_truncation_out(robot_s: float, offset: float) -> None:
+    (SERVER_S + 1.9, 0.0), (SERVER_S - 0.9, 0.0),  # ... a round trip, a small offset
+    (SERVER_S + 2.5, 2.0), (SERVER_S - 1.5, -2.0),
+    (SERVER_S - 3600.0, -3600.5), (SERVER_S - 3599.01, -3599.51)])
+def test_the_offset_is_read_from_the_middle_of_the_dates_second(
+        robot_s: float, offset: float) -> None:
     assert date_offset_s(date(SERVER_S), robot_s) == pytest.approx(offset)
 
 
@@ -33,9 +34,9 @@ def test_no_readable_date_is_no_reading(header: str | None) -> None:
 def test_an_offset_is_said_once_and_its_end_once() -> None:
     check = ClockCheck()
     assert check.reading(date(SERVER_S), SERVER_S + 0.3) is None
-    assert check.reading(date(SERVER_S), SERVER_S - 3600.0) == ("off", -3600.0)
+    assert check.reading(date(SERVER_S), SERVER_S - 3600.0) == ("off", -3600.5)
     assert check.reading(date(SERVER_S), SERVER_S - 3600.0) is None  # said already
-    assert check.offset_s == -3600.0
+    assert check.offset_s == -3600.5
     assert check.reading(date(SERVER_S), SERVER_S + 0.5) == ("agrees", 0.0)
     assert check.reading(date(SERVER_S), SERVER_S + 0.5) is None
     assert check.offset_s == 0.0

@@ -219,3 +219,35 @@ async def test_a_keyframe_request_reaches_the_publishing_robot(
         feed.pos = 0  # the robot answers with a keyframe
         await feed.send_next()
         await wait_js(page, f"{stat('decoded')} >= 1")
+
+
+async def test_a_picture_frozen_while_waiting_for_a_keyframe_looks_stale(
+    tmp_path: Path, browser: Any, webviz_factory: list[Any]
+) -> None:
+    """Frames keep arriving after a gap but none is decodable until the next keyframe: the
+    picture does not move. The panel looked live (its topic was not overdue), and the status
+    line's "Waiting for a keyframe" came last, cut off in its three-line box."""
+    units = encode("h264", 150, width=320, height=240, keyframe_every=150)  # one GOP: 7.5 s
+    async with scripted_fleet(tmp_path) as relay:
+        web = webviz_server(relay.url).start()
+        webviz_factory.append(web)
+        page = await browser.new_page(viewport={"width": 1280, "height": 800})
+        problems = watch_errors(page)
+        await open_robot_page(page, web.url, [FULL])
+        feed = VideoFeed(relay.robots["r1"], TOPIC, units, "h264")
+        feed.run(period_s=0.05)
+        await wait_js(page, f"{stat('shown')} >= 3")
+        await feed.stop()
+        await feed.send_next(skip=True)  # one frame lost: every delta frame after it is skipped
+        feed.run(period_s=0.05)
+        age = page.locator("#panel-video.stale h3 .age", has_text="waiting for a keyframe")
+        await age.wait_for(timeout=TIMEOUT_MS)
+        assert (await age.text_content() or "").startswith("picture ")
+        status = await page.text_content("#video-status") or ""
+        assert status.startswith("Waiting for a keyframe (gap;"), status
+        assert await page.evaluate(f"fleetviz.conn.health.freshness(['{FULL}']).stale") is False
+        # The cycle's keyframe comes round: decoding resumes and the panel is live again.
+        await page.locator("#panel-video.stale").wait_for(state="detached", timeout=TIMEOUT_MS)
+        assert (await page.evaluate(STATS))["state"] == "decoding"
+        await feed.stop()
+        assert not problems, problems

@@ -1,6 +1,7 @@
 // The page: sign-in, fleet overview, robot pages, commands, health and banner.
 
 import { Connection, layoutsOf } from "./connection.js";
+import { STALE_MIN_MS } from "./health.js";
 import { LayoutLoader } from "./fb/layout.js";
 import { throttledText } from "./loginthrottle.js";
 import { GOAL, INITIAL, goalMessage, initialPoseMessage } from "./commands.js";
@@ -446,14 +447,19 @@ class App {
     for (const p of PANELS) {
       const panel = $(`#panel-${p.id}`);
       const { stale, lastMs } = this.conn.health.freshness(p.topics.map((t) => `/${this.robot}${t}`), nowMs);
-      panel.classList.toggle("stale", stale);
+      // A video waiting for a keyframe shows a picture that does not move, frames arriving.
+      const frozenMs = p.id === "video" ? this.views?.video.frozenMs(nowMs) ?? null : null;
+      const frozen = !stale && frozenMs !== null && frozenMs > STALE_MIN_MS;
+      panel.classList.toggle("stale", stale || frozen);
       let age = panel.querySelector("h3 .age");
       if (!age) {
         age = document.createElement("span");
         age.className = "age";
         panel.querySelector("h3").append(age);
       }
-      age.textContent = stale ? `no data for ${duration((nowMs - lastMs) / 1000)}` : "";
+      age.textContent = stale ? `no data for ${duration((nowMs - lastMs) / 1000)}`
+        : frozen ? `picture ${duration(frozenMs / 1000)} old, waiting for a keyframe` : "";
+      age.title = age.textContent;
     }
   }
 

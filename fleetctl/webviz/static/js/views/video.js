@@ -67,6 +67,7 @@ export class VideoStream {
     this.note = null; // what the panel says about this topic (missing codec, ...)
     this.latest = null; // VideoFrame waiting to be drawn
     this.size = null;
+    this.shownAtMs = null; // Date.now() when the picture on the canvas was drawn
     this.counts = { decoded: 0, shown: 0, notShown: 0, droppedBehind: 0, errors: 0, unsupported: 0 };
   }
 
@@ -195,6 +196,7 @@ export class VideoStream {
     this.size = [f.displayWidth, f.displayHeight];
     f.close();
     this.counts.shown++;
+    this.shownAtMs = Date.now();
     return true;
   }
 
@@ -262,6 +264,17 @@ export class VideoView {
     if (s?.draw(this.canvas, this.ctx)) this.canvas.dataset.shown = String(s.counts.shown);
   }
 
+  /**
+   * How old the picture on the canvas is while its stream waits for a keyframe (frames
+   * keep arriving, so the topic is not overdue, but the picture does not move).
+   * @returns {number|null} ms; null: no picture, or the stream is decoding
+   */
+  frozenMs(nowMs = Date.now()) {
+    const s = this.streams.get(this.current);
+    if (!s || s.shownAtMs === null || s.gate.state !== "waiting" || s.gate.reason === "unsupported") return null;
+    return nowMs - s.shownAtMs;
+  }
+
   /** The status line: codec, counters, and whatever the panel must say (1 Hz). */
   renderStatus() {
     const s = this.streams.get(this.current);
@@ -275,12 +288,14 @@ export class VideoView {
       return;
     }
     const st = s.stats;
+    // The state first: at the end of the three lines the box shows, "Waiting for a" was cut
+    // off on a 300 px panel, and the picture looked live.
     const waiting = st.state === "waiting" && st.reason !== "unsupported"
-      ? ` Waiting for a keyframe (${st.reason === "start" ? "joined mid-stream" : st.reason}; ${st.requests} requested).` : "";
+      ? `Waiting for a keyframe (${st.reason === "start" ? "joined mid-stream" : st.reason}; ${st.requests} requested). ` : "";
     el.textContent = s.note
       ? `${s.topic}: ${s.note}`
-      : `${s.topic} ${s.format ?? ""} ${s.configured ?? ""}${s.size ? ` ${s.size[0]}x${s.size[1]}` : ""}: ` +
-        `${st.decoded} decoded, ${st.shown} shown, ${st.skipped} skipped, ${st.gaps} gaps, ${st.errors} errors.${waiting}`;
+      : `${waiting}${s.topic} ${s.format ?? ""} ${s.configured ?? ""}${s.size ? ` ${s.size[0]}x${s.size[1]}` : ""}: ` +
+        `${st.decoded} decoded, ${st.shown} shown, ${st.skipped} skipped, ${st.gaps} gaps, ${st.errors} errors.`;
     el.classList.toggle("bad", !!s.note);
     Object.assign(this.canvas.dataset, { decoded: st.decoded, skipped: st.skipped, requests: st.requests });
   }

@@ -348,12 +348,18 @@ async def _drain(link: RobotLink, runner: asyncio.Task[None]) -> None:
         await asyncio.sleep(_DRAIN_POLL_S)  # polling the link's counters with a deadline
 
 
+# A topic prefix as a topic name is (no trailing '/'), or '/' alone.
+_PREFIX = re.compile(r"/|(/[A-Za-z_][A-Za-z0-9_]*)+")
+
+
 def _parse_remap(values: list[str]) -> tuple[tuple[str, str], ...]:
     out = []
     for value in values:
         old, sep, new = value.partition("=")
-        if not sep or not old.startswith("/") or not new.startswith("/"):
-            raise ConfigError(f"--remap {value!r}: expected /old_prefix=/new_prefix")
+        if not sep or not _PREFIX.fullmatch(old) or not _PREFIX.fullmatch(new):
+            # '/husky1=/ghost 1' was taken: every topic sent was one no ROS name can be.
+            raise ConfigError(f"--remap {value!r}: expected /old_prefix=/new_prefix, each a "
+                              "ROS topic prefix (/a/b_c: letters, digits, '_')")
         out.append((old, new))
     return tuple(out)
 

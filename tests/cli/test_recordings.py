@@ -370,6 +370,13 @@ def test_replay_errors_name_the_file_and_option(tmp_path: Path,
     assert main(["replay", str(missing), "--server", "ws://x/", "--remap",
                  "husky1=ghost"]) == ExitCode.CONFIG
     assert "--remap 'husky1=ghost'" in capsys.readouterr().err
+    for remap in ("/husky1=/ghost 1", "/husky1=/ghost\n1", "/a=/$(id)", "/husky1/=/ghost1",
+                  "/husky1=/gh\u00f6st"):
+        # Every topic sent would have been one no ROS name can be.
+        assert main(["replay", str(missing), "--server", "ws://x/", "--remap",
+                     remap]) == ExitCode.CONFIG
+        assert f"--remap {remap!r}: expected /old_prefix=/new_prefix, each a ROS topic " \
+            "prefix" in capsys.readouterr().err
     assert main(["replay", str(missing), "--server", "ws://x/", "--rate",
                  "-1"]) == ExitCode.CONFIG
     assert main(["replay", str(missing), "--server", "ws://x/", "--robot",

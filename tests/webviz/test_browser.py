@@ -119,7 +119,12 @@ async def check_robot_views(page: Any) -> None:
     # The gradient covers the whole camera canvas.
     await check_sensor_panels(page, "r1", beams=360, camera_min_fraction=0.9)
     await wait_js(page, "document.querySelector('#odom-text').textContent.includes('0.60 m/s')")
-    await wait_js(page, "document.querySelector('#gps-text').textContent.startsWith('30.286200')")
+    # Latitude and longitude with their units and names (it was "30.286200, -97.736500"),
+    # and a metric scale on the tile-less GPS map (it had no sense of distance at all).
+    await page.locator("#gps-text", has_text="lat 30.286200° lon -97.736500° alt 150.0 m, fix"
+                       ).wait_for(timeout=TIMEOUT_MS)
+    scale = await page.text_content("#gps-map .leaflet-control-scale-line") or ""
+    assert scale.endswith((" m", " km")), scale
     # The occupancy grid (8 m square = 320x320 of the 640x480 canvas at 40 px/m) is drawn;
     # r1 sends it deflate-compressed, so Chromium's DecompressionStream inflated it.
     await wait_js(page, "fleetviz.views.map.grid !== null && fleetviz.conn.stats.decompressed >= 1")

@@ -3,6 +3,21 @@
 // Leaflet is missing.
 
 const MAX_TRACK = 2000; // fixes kept on the track (oldest dropped)
+// sensor_msgs/msg/NavSatStatus.status, in words.
+const FIX_KIND = { [-1]: "NO FIX", 0: "fix", 1: "SBAS fix", 2: "GBAS (RTK) fix" };
+
+/**
+ * A NavSatFix in words with units: "lat 30.286200° lon -97.736500° alt 150.0 m, fix,
+ * ±1.5 m". The accuracy is the larger horizontal standard deviation of a known or
+ * approximated covariance (position_covariance_type > 0); none when unknown.
+ */
+export function fixText(msg) {
+  const kind = FIX_KIND[msg.status.status] ?? `status ${msg.status.status}`;
+  const cov = msg.position_covariance;
+  const sigma = msg.position_covariance_type > 0 && cov ? Math.sqrt(Math.max(cov[0], cov[4])) : NaN;
+  const accuracy = Number.isFinite(sigma) ? `, ±${sigma.toFixed(1)} m` : "";
+  return `lat ${msg.latitude.toFixed(6)}° lon ${msg.longitude.toFixed(6)}° alt ${msg.altitude.toFixed(1)} m, ${kind}${accuracy}`;
+}
 
 export class GpsView {
   constructor(el, readout, vendorBase = "vendor/") {
@@ -19,6 +34,8 @@ export class GpsView {
       this.L = L;
       this.map = L.map(this.el, { attributionControl: false, zoomControl: true }).setView([0, 0], 2);
       this.line = L.polyline([], { color: "#29b6f6" }).addTo(this.map);
+      // No tiles (no tile server is reachable): the scale is the only sense of distance.
+      L.control.scale({ imperial: false, position: "bottomleft" }).addTo(this.map);
       // The dot is added with the first fix: no marker at (0, 0) before one exists.
       this.dot = L.circleMarker([0, 0], { radius: 7, color: "#ffca28", fillOpacity: 0.9 });
     } catch (err) {
@@ -44,7 +61,7 @@ export class GpsView {
     if (!msg) return;
     this.latest = null;
     const fix = msg.status.status >= 0;
-    this.readout.textContent = `${msg.latitude.toFixed(6)}, ${msg.longitude.toFixed(6)}  alt ${msg.altitude.toFixed(1)} m  ${fix ? "fix" : "NO FIX"}`;
+    this.readout.textContent = fixText(msg);
     if (!fix || !this.map) return;
     const ll = [msg.latitude, msg.longitude];
     this.track.push(ll);

@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import asyncio
 import itertools
+import json
 import logging
 import signal
 import threading
@@ -131,6 +132,9 @@ async def _serve(config: ClientConfig, context: Context) -> dict[str, Any]:
                                daemon=True)
     for signum in (signal.SIGINT, signal.SIGTERM):
         loop.add_signal_handler(signum, stop.set)
+    # `kill -USR1` (`systemctl kill -s USR1 fleetctl-client`): the counters of a running
+    # client, which --print-stats gives only at exit.
+    loop.add_signal_handler(signal.SIGUSR1, _log_stats, link, bridge, intake)
     spinner.start()
     runner = asyncio.create_task(link.run())
     log.info("client %s: %d topics out (%d taken on the loop thread), %d in, server %s",
@@ -147,11 +151,28 @@ async def _serve(config: ClientConfig, context: Context) -> dict[str, Any]:
         executor.shutdown()
         spinner.join(_EXECUTOR_JOIN_S)
         bridge.destroy_node()
-        for signum in (signal.SIGINT, signal.SIGTERM):
+        for signum in (signal.SIGINT, signal.SIGTERM, signal.SIGUSR1):
             loop.remove_signal_handler(signum)
     failure = runner.exception() if runner.done() and not runner.cancelled() else None
     if failure is not None:
         raise failure
+    return _stats(link, bridge, intake)
+
+
+def _log_stats(link: RobotLink, bridge: Bridge, intake: LoopIntake | None) -> None:
+    """One INFO line ``stats: {JSON}`` (the executor's thread may add a topic to a counter
+    dict while it is read: then read again)."""
+    for _ in range(3):
+        try:
+            text = json.dumps(_stats(link, bridge, intake), default=str)
+        except RuntimeError:  # "dictionary changed size during iteration"
+            continue
+        log.info("stats: %s", text)
+        return
+
+
+def _stats(link: RobotLink, bridge: Bridge, intake: LoopIntake | None) -> dict[str, Any]:
+    """The link's counters with the node's (``bridge``, ``video``, ``intake``)."""
     stats = link.stats()
     stats["bridge"] = vars(bridge.stats)
     stats["video"] = {topic: vars(video.stats) for topic, video in bridge.videos.items()}

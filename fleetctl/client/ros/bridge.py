@@ -603,7 +603,10 @@ class Bridge(Node):
             cdr = self._typestore.serialize_cdr(msg, meta.type)
         except Exception as exc:
             self.stats.decode_errors += 1
-            log.warning("cannot serialize %s from %s: %s", meta.type, meta.topic, exc)
+            if sampled(self.stats.decode_errors):  # every frame of a broken sender
+                log.warning("cannot serialize %s from %s, dropped (%d so far; logged first "
+                            "and every %dth): %s", meta.type, meta.topic,
+                            self.stats.decode_errors, LOG_EVERY, exc)
             return
         publisher.publish(bytes(cdr))
         self.stats.published_local += 1

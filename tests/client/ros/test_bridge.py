@@ -298,6 +298,34 @@ def test_a_local_message_that_is_not_utf8_is_counted_and_said_sampled(
                             "publisher sends other bytes, e.g. a latin-1 degree sign")
 
 
+def test_a_fleet_frame_that_cannot_be_published_is_logged_sampled(
+        setup: tuple[Bridge, Node, FakePort], codec: Codec,
+        caplog: pytest.LogCaptureFixture, monkeypatch: pytest.MonkeyPatch) -> None:
+    """A command that decodes but does not serialize to CDR was a WARNING per frame."""
+    from geometry_msgs.msg import PoseStamped
+
+    bridge, _, _ = setup
+    ts = codec.registry.typestore
+    pose = ts.deserialize_cdr(serialize_message(PoseStamped()), "geometry_msgs/msg/PoseStamped")
+    frame = codec.encode(pose, "geometry_msgs/msg/PoseStamped", "/r1/goal_pose")
+
+    def refuse(msg: Any, type_name: str) -> bytes:
+        raise ValueError("does not fit")
+
+    monkeypatch.setattr(bridge, "_typestore", type("Refusing", (), {
+        "serialize_cdr": staticmethod(refuse)})())
+    caplog.set_level(logging.WARNING, "fleetctl.client.ros.bridge")
+    for _ in range(1200):
+        bridge.deliver(frame)
+    assert bridge.stats.decode_errors == 1200 and bridge.stats.published_local == 0
+    said = [r.getMessage() for r in caplog.records if "cannot serialize" in r.getMessage()]
+    assert said == [
+        "cannot serialize geometry_msgs/msg/PoseStamped from /r1/goal_pose, dropped (1 so "
+        "far; logged first and every 1000th): does not fit",
+        "cannot serialize geometry_msgs/msg/PoseStamped from /r1/goal_pose, dropped (1000 so "
+        "far; logged first and every 1000th): does not fit"]
+
+
 def test_a_wrong_subscribe_type_is_logged_once_not_per_message(
         setup: tuple[Bridge, Node, FakePort], codec: Codec,
         caplog: pytest.LogCaptureFixture) -> None:

@@ -4,7 +4,9 @@ page with WebCodecs; a seq gap stops decoding and makes the page ask for a keyfr
 
 from __future__ import annotations
 
+import contextlib
 import time
+from collections.abc import AsyncIterator
 from pathlib import Path
 from typing import Any
 
@@ -14,7 +16,7 @@ from fleetctl.wire.codec import Codec
 from fleetctl.wire.metadata import read_metadata
 from tests.webviz.conftest import webviz_server
 from tests.webviz.pixels import drawn_fraction_within
-from tests.webviz.scripted import KEYFRAME_REQUEST_TYPE, VideoFeed, scripted_fleet
+from tests.webviz.scripted import KEYFRAME_REQUEST_TYPE, Relay, VideoFeed, scripted_fleet
 from tests.webviz.test_browser import PANEL_BG, TIMEOUT_MS, wait_js, watch_errors
 from tests.webviz.test_scene_browser import open_robot_page
 from tests.webviz.video import encode, h264_codec_string
@@ -37,6 +39,20 @@ async def send_one(page: Any, feed: VideoFeed, *, skip: bool = False) -> None:
     await wait_js(page, f"fleetviz.conn.health.topics.get('{FULL}')?.received === {feed.pos}")
 
 
+@contextlib.asynccontextmanager
+async def video_page(tmp_path: Path, browser: Any, webviz_factory: list[Any],
+                     viewport: dict[str, int]) -> AsyncIterator[tuple[Relay, Any, list[str]]]:
+    """A scripted fleet, its page server and a page on r1 subscribed to the video topic;
+    yields the relay, the page and the page's problems."""
+    async with scripted_fleet(tmp_path) as relay:
+        web = webviz_server(relay.url).start()
+        webviz_factory.append(web)
+        page = await browser.new_page(viewport=viewport)
+        problems = watch_errors(page)
+        await open_robot_page(page, web.url, [FULL])
+        yield relay, page, problems
+
+
 def sent_keyframe_requests(page: Any, codec: Codec) -> list[str]:
     """``<frame topic> -> <requested topic>`` of each KeyframeRequest the page sends on its
     WebSocket (filled as they are sent; no assertion inside Playwright's callback)."""
@@ -56,12 +72,8 @@ async def test_video_frames_are_decoded_and_counted(
     fmt: str, tmp_path: Path, browser: Any, webviz_factory: list[Any]
 ) -> None:
     units = encode(fmt, 60, width=320, height=240, keyframe_every=15)
-    async with scripted_fleet(tmp_path) as relay:
-        web = webviz_server(relay.url).start()
-        webviz_factory.append(web)
-        page = await browser.new_page(viewport={"width": 1400, "height": 1100})
-        problems = watch_errors(page)
-        await open_robot_page(page, web.url, [FULL])
+    async with video_page(tmp_path, browser, webviz_factory,
+                          {"width": 1400, "height": 1100}) as (relay, page, problems):
         VideoFeed(relay.robots["r1"], TOPIC, units, fmt).run()
         await wait_js(page, f"{stat('shown')} >= 10")
         stats = await page.evaluate(STATS)
@@ -228,12 +240,8 @@ async def test_a_picture_frozen_while_waiting_for_a_keyframe_looks_stale(
     picture does not move. The panel looked live (its topic was not overdue), and the status
     line's "Waiting for a keyframe" came last, cut off in its three-line box."""
     units = encode("h264", 150, width=320, height=240, keyframe_every=150)  # one GOP: 7.5 s
-    async with scripted_fleet(tmp_path) as relay:
-        web = webviz_server(relay.url).start()
-        webviz_factory.append(web)
-        page = await browser.new_page(viewport={"width": 1280, "height": 800})
-        problems = watch_errors(page)
-        await open_robot_page(page, web.url, [FULL])
+    async with video_page(tmp_path, browser, webviz_factory,
+                          {"width": 1280, "height": 800}) as (relay, page, problems):
         feed = VideoFeed(relay.robots["r1"], TOPIC, units, "h264")
         feed.run(period_s=0.05)
         await wait_js(page, f"{stat('shown')} >= 3")

@@ -5,8 +5,9 @@ set -euo pipefail
 cd "$(dirname "$0")/.."
 
 # g++ and python3-dev: scripts/ros_msgs.sh compiles tf2_msgs/foxglove_msgs for the venv.
+# faketime: tests/client/ros/test_executor.py steps a client's wall clock back.
 APT_PACKAGES=(chromium wireguard-go wireguard-tools iproute2 debootstrap libjs-three libjs-leaflet
-              g++ python3-dev)
+              g++ python3-dev faketime)
 missing=()
 for pkg in "${APT_PACKAGES[@]}"; do
   dpkg-query -W -f='${Status}' "$pkg" 2>/dev/null | grep -q "install ok installed" || missing+=("$pkg")

@@ -87,7 +87,10 @@ def main(argv: list[str] | None = None) -> int:
     Click handles usage errors itself (exit code 2, a message on stderr); a
     :class:`FleetError` is printed as one line on stderr with its own exit code.
     """
-    app = build_app()
+    try:
+        app = build_app()  # imports every command group: ~2 s on a small robot computer
+    except KeyboardInterrupt:  # Ctrl-C meanwhile: the shell's convention, no traceback
+        return 130
     try:
         app(args=argv, prog_name="fleetctl")
     except FleetError as exc:

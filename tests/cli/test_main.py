@@ -109,3 +109,16 @@ def test_no_help_shows_a_value_after_a_flag(capsys: pytest.CaptureFixture[str]) 
         valued_flags += [f"{path}: {line.strip()}" for line in capsys.readouterr().out.splitlines()
                          if "<bool>" in line]
     assert valued_flags == []
+
+
+def test_ctrl_c_while_the_commands_load_is_exit_130_without_a_traceback(
+        monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]) -> None:
+    """Loading every command group takes ~2 s on a small robot computer; a Ctrl-C then
+    printed a KeyboardInterrupt traceback from the imports."""
+    def interrupted() -> typer.Typer:
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(cli_main, "build_app", interrupted)
+    assert cli_main.main(["client", "--help"]) == 130
+    captured = capsys.readouterr()
+    assert captured.out == "" and "Traceback" not in captured.err

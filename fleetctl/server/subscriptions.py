@@ -54,6 +54,10 @@ MAX_PENDING_CHANGES = 1024
 QUOTA_BYTES_PER_WORK = 8
 
 
+# Some patterns of one connection, and one matcher of them all (see _joined).
+_Joined = tuple[tuple[str, ...], "FullMatch | AnyOf"]
+
+
 class Matched(NamedTuple):
     """What :meth:`SubscriptionMap.newly_matched` found.
 
@@ -96,8 +100,11 @@ class _Entry:
     nbytes: int = 0  # quota bytes of the patterns (FullMatch.cost)
     keys: tuple[str, ...] = ()  # identity names the bytes are charged to
     joined: AnyOf | None = None  # all of subs in one matcher; None: build it when asked
-    # The last matcher of others_overlapping, with the patterns it joins.
-    others: tuple[tuple[str, ...], FullMatch | AnyOf] | None = None
+    # The last matchers of others_overlapping and of newly_matched's patterns, with the
+    # patterns each joins: the stores one subscribe asks (latched, video, other replicas'
+    # video) ask with the same patterns, and a churn with the same others.
+    others: _Joined | None = None
+    new: _Joined | None = None
 
     def any_matches(self, topic: str) -> bool:
         """Whether any of the subscriptions matches *topic* (one RE2 call, see AnyOf)."""
@@ -121,12 +128,18 @@ class _Entry:
                             and any(_overlap(r, m.bounds()) for r in ranges))
         if not overlapping:
             return None, 0
-        memo = self.others
-        if memo is not None and memo[0] == overlapping:  # the same others: a churn
-            return memo[1], 0
-        matcher, work = _one_matcher([self.subs[p] for p in overlapping])
-        self.others = (overlapping, matcher)
-        return matcher, work
+        self.others, work = _joined(self.others, overlapping, self.subs)
+        return self.others[1], work
+
+
+def _joined(last: _Joined | None, patterns: tuple[str, ...],
+            subs: dict[str, FullMatch]) -> tuple[_Joined, int]:
+    """*patterns* (keys of *subs*) in one matcher with the patterns it joins, and the work
+    of joining them; *last* again, at no work, when it joins the same patterns."""
+    if last is not None and last[0] == patterns:
+        return last, 0
+    matcher, work = _one_matcher([subs[p] for p in patterns])
+    return (patterns, matcher), work
 
 
 def _one_matcher(patterns: list[FullMatch]) -> tuple[FullMatch | AnyOf, int]:
@@ -273,7 +286,8 @@ class SubscriptionMap(Generic[C]):
         if not new:
             return Matched([], 0)
         topics = candidates(list(new.values()))
-        matcher, work = _one_matcher(list(new.values()))
+        entry.new, work = _joined(entry.new, tuple(new), entry.subs)
+        matcher = entry.new[1]
         may_receive = entry.perms.may_receive
         found = [t for t in topics if matcher.matches(t) and may_receive(t)]
         # One call per candidate; per topic found, one call of the others and a delivery.

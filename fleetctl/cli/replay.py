@@ -33,6 +33,7 @@ from fleetctl.cli.throttled import throttled_error
 from fleetctl.cli.tokenfile import read_token_file
 from fleetctl.client.config import ClientConfig
 from fleetctl.client.transport import REFUSAL_RECORD, RobotLink
+from fleetctl.deploy.topics import TOPIC
 from fleetctl.errors import ConfigError, ExitCode, FleetError
 from fleetctl.server.recording import files
 from fleetctl.wire.codec import Codec
@@ -348,15 +349,16 @@ async def _drain(link: RobotLink, runner: asyncio.Task[None]) -> None:
         await asyncio.sleep(_DRAIN_POLL_S)  # polling the link's counters with a deadline
 
 
-# A topic prefix as a topic name is (no trailing '/'), or '/' alone.
-_PREFIX = re.compile(r"/|(/[A-Za-z_][A-Za-z0-9_]*)+")
+def _is_prefix(text: str) -> bool:
+    """A topic prefix: a topic name (no trailing '/'), or '/' alone."""
+    return text == "/" or TOPIC.fullmatch(text) is not None
 
 
 def _parse_remap(values: list[str]) -> tuple[tuple[str, str], ...]:
     out = []
     for value in values:
         old, sep, new = value.partition("=")
-        if not sep or not _PREFIX.fullmatch(old) or not _PREFIX.fullmatch(new):
+        if not sep or not _is_prefix(old) or not _is_prefix(new):
             # '/husky1=/ghost 1' was taken: every topic sent was one no ROS name can be.
             raise ConfigError(f"--remap {value!r}: expected /old_prefix=/new_prefix, each a "
                               "ROS topic prefix (/a/b_c: letters, digits, '_')")

@@ -16,15 +16,15 @@ from __future__ import annotations
 
 import difflib
 import os
-import sys
 from functools import lru_cache
 from typing import Any
 
 
 def installed_prefixes() -> tuple[str, ...]:
     """The prefixes :meth:`TypeRegistry.from_rclpy` reads by default, in its order."""
-    ament = [p for p in os.environ.get("AMENT_PREFIX_PATH", "").split(os.pathsep) if p]
-    return tuple(dict.fromkeys([*ament, sys.prefix]))
+    from fleetctl.wire.registry import default_prefixes
+
+    return default_prefixes()
 
 
 @lru_cache(maxsize=1)

@@ -221,10 +221,16 @@ def _shipped_msg_texts() -> dict[str, str]:
     return texts
 
 
+def default_prefixes() -> tuple[str, ...]:
+    """The install prefixes :meth:`TypeRegistry.from_rclpy` reads by default, in order:
+    each of ``AMENT_PREFIX_PATH``, then ``sys.prefix`` (where the ROS wheels put theirs)."""
+    ament = [p for p in os.environ.get("AMENT_PREFIX_PATH", "").split(os.pathsep) if p]
+    return tuple(dict.fromkeys([*ament, sys.prefix]))
+
+
 def _installed_msg_files(prefixes: Iterable[str] | None) -> list[Path]:
     if prefixes is None:
-        ament = [p for p in os.environ.get("AMENT_PREFIX_PATH", "").split(os.pathsep) if p]
-        prefixes = [*ament, sys.prefix]
+        prefixes = default_prefixes()
     files: list[Path] = []
     for prefix in dict.fromkeys(prefixes):
         files.extend(sorted(Path(prefix, "share").glob("*/msg/*.msg")))

@@ -18,14 +18,22 @@ def wait_until(
     timeout_s: float,
     poll_s: float = 0.1,
     describe: str = "condition",
+    timeout_error: Callable[[], FleetError] | None = None,
 ) -> None:
     """Poll ``condition()`` until it is truthy or *timeout_s* passes.
 
+    Args:
+        timeout_error: Builds the error raised at the deadline, for a caller that can say
+            more than *describe* then (what it still waits for); ``None``: the default.
+
     Raises:
-        FleetError: the deadline passed first (the message names *describe*).
+        FleetError: the deadline passed first (the message names *describe*), or what
+            *timeout_error* built; whatever ``condition()`` raises, as it is.
     """
     deadline = time.monotonic() + timeout_s
     while not condition():
         if time.monotonic() >= deadline:
+            if timeout_error is not None:
+                raise timeout_error()
             raise FleetError(f"timed out after {timeout_s:.0f} s waiting for {describe}")
         time.sleep(poll_s)  # polling interval of a deadline-bounded wait, not synchronization

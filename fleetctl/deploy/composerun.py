@@ -57,6 +57,7 @@ from fleetctl.deploy.tls import CERT_RELPATH
 from fleetctl.errors import ConfigError, ConflictError, EnvironmentMissing, FleetError
 from fleetctl.server.config import load_server_config
 from fleetctl.smallfile import MAX_CONFIG_BYTES, read_small_text
+from fleetctl.waiting import wait_until
 from fleetctl.wire.control import known_battery
 from fleetctl.yamlfile import safe_load
 
@@ -609,24 +610,26 @@ def wait_started(fleet_dir: Path, options: Options, runner: Runner = subprocess_
     """
     restarts = {state.service: state.restarts
                 for _cid, state in _containers(fleet_dir, options.project, runner)}
-    deadline = time.monotonic() + timeout_s
-    while True:
-        pending = [(cid, state) for cid, state in
-                   _containers(fleet_dir, options.project, runner)
-                   if state.state != "running" or state.health not in ("healthy", "none")
-                   or state.restarts > restarts.get(state.service, 0)]
+    pending: list[tuple[str, ServiceState]] = []  # not ready at the last look
+
+    def started() -> bool:
+        pending[:] = [(cid, state) for cid, state in
+                      _containers(fleet_dir, options.project, runner)
+                      if state.state != "running" or state.health not in ("healthy", "none")
+                      or state.restarts > restarts.get(state.service, 0)]
         for cid, state in pending:
             if (state.state in ("exited", "dead", "restarting") or state.health == "unhealthy"
                     or state.restarts > restarts.get(state.service, 0)):
                 raise FleetError(f"{_described(state)}: it did not start; "
                                  f"{_last_lines(cid, runner)}")
-        if not pending:
-            return
-        if time.monotonic() >= deadline:
-            cid, state = pending[0]
-            raise FleetError(f"{_described(state)}: not healthy after {timeout_s:.0f} s; "
-                             f"{_last_lines(cid, runner)}")
-        time.sleep(poll_s)  # polling interval of a deadline-bounded wait
+        return not pending
+
+    def not_healthy() -> FleetError:
+        cid, state = pending[0]
+        return FleetError(f"{_described(state)}: not healthy after {timeout_s:.0f} s; "
+                          f"{_last_lines(cid, runner)}")
+
+    wait_until(started, timeout_s, poll_s, timeout_error=not_healthy)
 
 
 def _described(state: ServiceState) -> str:

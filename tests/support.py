@@ -1,11 +1,12 @@
-"""Helpers shared by the test packages: frames to send, deadline-bounded waits and a
-clock moved by hand."""
+"""Helpers shared by the test packages: frames to send, deadline-bounded waits, a
+clock moved by hand and an event loop on virtual time."""
 
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from typing import Any
 
 import numpy as np
@@ -25,6 +26,41 @@ class ManualClock:
 
     def __call__(self) -> float:
         return self.now_s
+
+
+@contextlib.contextmanager
+def virtual_time(loop: asyncio.AbstractEventLoop) -> Iterator[None]:
+    """Run *loop* on virtual time while the block runs: ``loop.time()`` stands still
+    while callbacks run and jumps to the next timer when nothing else is ready.
+
+    For code paced by the loop's own timers (``call_later``, ``asyncio.sleep``,
+    ``asyncio.timeout``): on a loaded test host a real loop wakes milliseconds late, which
+    makes assertions on when things happened flaky; here they happen exactly when
+    scheduled, and a 0.6 s schedule runs in no real time. Real I/O still works (ready
+    events are polled without blocking); a loop with nothing ready and no timer blocks on
+    its selector as usual. Work in other threads (``run_in_executor``, hence
+    ``loop.getaddrinfo``) is not waited for: time runs past it, so a test replaces it.
+
+    Uses the loop's ``_selector``, private to asyncio's selector event loops.
+    """
+    selector = loop._selector  # type: ignore[attr-defined]
+    real_select = selector.select
+    now = [loop.time()]
+
+    def select(timeout: float | None = None) -> Any:
+        events = real_select(0)
+        if events or timeout is None:
+            return events or real_select(None)
+        now[0] += max(timeout, 0.0)
+        return events
+
+    loop.time = lambda: now[0]  # type: ignore[method-assign]
+    selector.select = select
+    try:
+        yield
+    finally:
+        del loop.time  # the instance attribute goes: the class's method is back
+        del selector.select
 
 
 def string_frame(topic: str, text: str = "hi", *, no_drop: bool = False, seq: int = 0) -> bytes:

@@ -17,7 +17,6 @@ import errno
 import functools
 import http
 import logging
-import math
 import signal
 import socket
 import ssl
@@ -418,17 +417,29 @@ class RelayServer:
         if line is not None:
             log.warning("%s", line)
 
+    def _login_budget(self, connection: ServerConnection, request: Request) -> Response:
+        """``GET /login-budget``: whether the caller's address is over its failed-login
+        budget, for a page on any origin (:func:`endpoints.login_budget`). Answered before
+        :meth:`_read`: a token on it is never hashed, and asking is no failed login."""
+        try:
+            upgrade = read_request(connection, request, self.config.trusted_proxies)
+        except BadRequest as exc:
+            return endpoints.text(http.HTTPStatus.BAD_REQUEST, f"{exc}\n")
+        return endpoints.login_budget(self.core.logins.retry_after_s(_text(upgrade.address)))
+
     def _process_request(self, connection: ServerConnection, request: Request,
                          ) -> Response | Awaitable[Response] | None:
+        path = request.path.split("?", 1)[0]
+        if path == endpoints.LOGIN_BUDGET_PATH:
+            return self._login_budget(connection, request)
         try:
             parsed = self._read(connection, request, by_address=True)
         except BadRequest as exc:
             return endpoints.text(http.HTTPStatus.BAD_REQUEST, f"{exc}\n")
-        path = request.path.split("?", 1)[0]
         if path == "/healthz":
             return endpoints.text(http.HTTPStatus.OK, "ok\n")
         if parsed.retry_after_s > 0:
-            return _too_many_logins(parsed.retry_after_s)
+            return endpoints.too_many_logins(parsed.retry_after_s)
         if wants_websocket(request):
             return _http10_upgrade(connection)
         if path == TICKET_PATH:
@@ -445,14 +456,16 @@ class RelayServer:
 
     def _web_request(self, connection: ServerConnection, request: Request,
                      ) -> Response | Awaitable[Response] | None:
-        # The web listener: the page, /healthz and /recordings; /metrics and /robots stay
-        # on the relay port (often not exposed to the internet).
+        # The web listener: the page, /healthz, /login-budget and /recordings; /metrics and
+        # /robots stay on the relay port (often not exposed to the internet).
+        if request.path.split("?", 1)[0] == endpoints.LOGIN_BUDGET_PATH:
+            return self._login_budget(connection, request)
         try:
             parsed = self._read(connection, request, by_address=False)
         except BadRequest as exc:
             return endpoints.text(http.HTTPStatus.BAD_REQUEST, f"{exc}\n")
         if parsed.retry_after_s > 0:
-            return _too_many_logins(parsed.retry_after_s)
+            return endpoints.too_many_logins(parsed.retry_after_s)
         if wants_websocket(request):
             return _http10_upgrade(connection)
         path = request.path.split("?", 1)[0]
@@ -784,16 +797,6 @@ def _unauthorized(path: str, bad_token: bool, token_only: bool = False) -> Respo
         why = ("needs a fleet identity (a robot's or user's address, or a Bearer token) or a "
                "loopback caller")
     return endpoints.text(http.HTTPStatus.UNAUTHORIZED, f"GET {path}: {why}\n")
-
-
-def _too_many_logins(retry_after_s: float) -> Response:
-    """429 for a request whose address is over its failed-login budget (its token was
-    not looked at), with ``Retry-After`` in whole seconds (RFC 9110 10.2.3)."""
-    seconds = max(1, math.ceil(retry_after_s))
-    response = endpoints.text(http.HTTPStatus.TOO_MANY_REQUESTS, "too many failed logins "
-                              f"from this address: retry in {seconds} s\n")
-    response.headers["Retry-After"] = str(seconds)
-    return response
 
 
 def _http10_upgrade(connection: ServerConnection) -> Response | None:

@@ -1,10 +1,12 @@
-"""HTTP endpoints served on the WebSocket port: ``/healthz``, ``/metrics``, ``/robots``
-(and the page's files on the web listener, see :mod:`fleetctl.webviz.httpserver`)."""
+"""HTTP endpoints served on the WebSocket port: ``/healthz``, ``/metrics``, ``/robots``,
+``/login-budget`` (and the page's files on the web listener, see
+:mod:`fleetctl.webviz.httpserver`)."""
 
 from __future__ import annotations
 
 import http
 import json
+import math
 from typing import Any
 
 from websockets.datastructures import Headers
@@ -13,6 +15,8 @@ from websockets.http11 import Response
 from fleetctl.server.permissions import Permissions
 
 PROMETHEUS_CONTENT_TYPE = "text/plain; version=0.0.4; charset=utf-8"
+# Where a page on any origin asks whether its address is over its failed-login budget.
+LOGIN_BUDGET_PATH = "/login-budget"
 
 
 def response(status: http.HTTPStatus, body: bytes, content_type: str,
@@ -44,6 +48,37 @@ def text(status: http.HTTPStatus, body: str) -> Response:
 def json_response(data: Any) -> Response:
     """A 200 ``application/json`` response."""
     return response(http.HTTPStatus.OK, json.dumps(data).encode(), "application/json")
+
+
+def too_many_logins(retry_after_s: float) -> Response:
+    """429 for a request whose address is over its failed-login budget (its token was
+    not looked at), with ``Retry-After`` in whole seconds (RFC 9110 10.2.3)."""
+    seconds = max(1, math.ceil(retry_after_s))
+    reply = text(http.HTTPStatus.TOO_MANY_REQUESTS, "too many failed logins from this "
+                 f"address: retry in {seconds} s\n")
+    reply.headers["Retry-After"] = str(seconds)
+    return reply
+
+
+def login_budget(retry_after_s: float) -> Response:
+    """The answer to ``GET /login-budget``: 204 while the caller's address is within its
+    failed-login budget (*retry_after_s* 0), else the 429 its token would get.
+
+    Any origin may read it (docs/security.md, "Failed logins"): a browser hides a refused
+    WebSocket upgrade's status, and the page may be served from another origin than the
+    relay's. It says one thing about the caller's own address, which that caller could
+    learn by presenting any token; no credentials are asked for or allowed.
+    """
+    if retry_after_s > 0:
+        reply = too_many_logins(retry_after_s)
+    else:  # RFC 9110 8.6: no Content-Length on a 204
+        reply = Response(http.HTTPStatus.NO_CONTENT.value, http.HTTPStatus.NO_CONTENT.phrase,
+                         Headers([("Connection", "close"), ("Cache-Control", "no-store")]),
+                         b"")
+    reply.headers["Access-Control-Allow-Origin"] = "*"
+    # Not a CORS-safelisted response header: without this the page cannot read it.
+    reply.headers["Access-Control-Expose-Headers"] = "Retry-After"
+    return reply
 
 
 def robots_allowed(

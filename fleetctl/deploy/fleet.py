@@ -10,7 +10,7 @@ import enum
 import ipaddress
 import os
 import re
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from ipaddress import IPv4Address, IPv4Network
 from pathlib import Path
 
@@ -23,6 +23,7 @@ from fleetctl.deploy.fleetrecording import (
     check_recording,
     dump_recording,
 )
+from fleetctl.deploy.msgtypes import NO_MSG_TYPES, FleetMsgTypes, load_msg_types
 from fleetctl.deploy.topics import (
     DEFAULT_PUBLISH,
     PublishTopic,
@@ -208,6 +209,9 @@ class Fleet:
             every robot's ``client.yaml`` lists every replica's URL, so that a bundle
             exported from it fails over between them (docs/deploy.md).
         recording: what the server records (fleet.yaml ``recording:``); ``None``: nothing.
+        msg_types: the fleet's own message definitions (``FLEET/msg_types``, not part of
+            fleet.yaml); topics may name their types. Empty when fleet.yaml is checked
+            without its directory.
     """
 
     name: str
@@ -222,6 +226,7 @@ class Fleet:
     tls: TlsFiles | None = None
     relay_replicas: int = 1
     recording: FleetRecording | None = None
+    msg_types: FleetMsgTypes = NO_MSG_TYPES
 
     def robot(self, name: str) -> Robot | None:
         """Return the robot called *name*, or ``None``."""
@@ -347,10 +352,10 @@ def _check_robot(fleet: Fleet, i: int, robot: Robot, seen: dict[object, str]) ->
                            conflict=True)
     seen[("name", robot.name)] = seen[("ip", robot.ip)] = robot.name
     seen[("name-case", robot.name.lower())] = robot.name
-    _check_robot_topics(robot, path)
+    _check_robot_topics(robot, path, fleet.msg_types)
 
 
-def _check_robot_topics(robot: Robot, path: FieldPath) -> None:
+def _check_robot_topics(robot: Robot, path: FieldPath, own: FleetMsgTypes) -> None:
     if not MIN_MTU_BYTES <= robot.mtu_bytes <= MAX_MTU_BYTES:
         raise FleetInvalid((*path, "mtu_bytes"),
                            f"must be between {MIN_MTU_BYTES} and {MAX_MTU_BYTES}")
@@ -362,16 +367,16 @@ def _check_robot_topics(robot: Robot, path: FieldPath) -> None:
         if not _TYPE.fullmatch(cmd.type):
             raise FleetInvalid((*path, "command_topics", j, "type"),
                                f"{cmd.type!r} is not a ROS type name (pkg/msg/Name)")
-        check_type(cmd.type, (*path, "command_topics", j, "type"))
+        check_type(cmd.type, (*path, "command_topics", j, "type"), own)
         taken[f"remote /{robot.name}/{cmd.topic}"] = f"command_topics[{j}]"
         taken[f"local /{cmd.topic}"] = f"command_topics[{j}]"
     for field_name in ("extra_send", "extra_receive"):
         for j, pattern in enumerate(getattr(robot, field_name)):
             check_regex(pattern, (*path, field_name, j))
     if robot.publish is not None:
-        check_publish(robot.publish, (*path, "publish"))
+        check_publish(robot.publish, (*path, "publish"), own)
     check_tf(robot.tf, robot.publish_topics, path)
-    check_subscribe(robot.subscribe, taken, (*path, "subscribe"))
+    check_subscribe(robot.subscribe, taken, (*path, "subscribe"), own)
     if robot.battery_topic is not None:
         check_topic(robot.battery_topic, (*path, "battery_topic"))
     problem = location_problem(robot.location)
@@ -586,15 +591,17 @@ def parse_fleet(path: Path, text: str, fleet_dir: Path | None = None,
         path: the file, only used in error messages.
         text: its content.
         fleet_dir: when given, files fleet.yaml points at (``tls``) are checked too,
-            relative to this directory; ``None`` checks the text alone.
+            relative to this directory, and its ``msg_types`` (the fleet's own message
+            types) are read; ``None`` checks the text alone.
         file_problems: see :func:`load_fleet`.
 
     Raises:
-        ConfigError: ``FILE:LINE: FIELD: problem``.
+        ConfigError: ``FILE:LINE: FIELD: problem``, or a problem of a ``msg_types`` file.
     """
+    msg_types = load_msg_types(fleet_dir) if fleet_dir is not None else NO_MSG_TYPES
     doc = Document(path, text)
     try:
-        fleet = _build_fleet(doc)
+        fleet = replace(_build_fleet(doc), msg_types=msg_types)
         validate(fleet)
     except FleetInvalid as exc:
         raise doc.error(exc.path, str(exc)) from None

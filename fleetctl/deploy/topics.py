@@ -5,7 +5,8 @@ The rules match what the robot client accepts in ``client.yaml``
 (:mod:`fleetctl.client.config`), so every fleet that validates renders a client config the
 client loads: absolute topic names of ``[A-Za-z0-9_]`` tokens, ``priority >= 0``,
 ``rate_limit_hz > 0`` or ``null``, compression ``none | zstd | deflate``, a message
-type the wire registry knows (the rosbags ROS 2 Jazzy store plus fleetctl's shipped types),
+type the wire registry knows (the rosbags ROS 2 Jazzy store plus fleetctl's shipped types)
+or the fleet's own definitions define (``FLEET/msg_types``, :mod:`fleetctl.deploy.msgtypes`),
 ``video`` only on image topics and ``viewer_cloud`` only on point clouds (the client's own
 spec classes and limits are reused, so the two cannot drift apart).
 """
@@ -13,6 +14,7 @@ spec classes and limits are reused, so the two cannot drift apart).
 from __future__ import annotations
 
 import dataclasses
+import difflib
 import functools
 import math
 import re
@@ -28,6 +30,7 @@ from fleetctl.client.config import (
     VideoSpec,
     ViewerCloudSpec,
 )
+from fleetctl.deploy.msgtypes import HOW_TO_ADD, NO_MSG_TYPES, FleetMsgTypes
 from fleetctl.deploy.yamlnodes import Document, FieldPath, FleetInvalid, shown
 from fleetctl.server.regex import BadRegex, compile_full
 
@@ -124,8 +127,9 @@ def _known_types() -> frozenset[str]:
     return frozenset(TypeRegistry.default().names())
 
 
-def check_type(name: str, path: FieldPath) -> None:
-    """Raise :class:`FleetInvalid` unless *name* is a ROS 2 type the wire registry knows.
+def check_type(name: str, path: FieldPath, own: FleetMsgTypes = NO_MSG_TYPES) -> None:
+    """Raise :class:`FleetInvalid` unless *name* is a ROS 2 type the wire registry knows
+    or the fleet's own definitions (*own*, ``FLEET/msg_types``) define.
 
     ``pkg/Name`` is accepted as ``pkg/msg/Name``, as the client does.
     """
@@ -136,9 +140,20 @@ def check_type(name: str, path: FieldPath) -> None:
         normalized = normalize_type(name)
     except WireError:
         raise FleetInvalid(path, f"{name!r} is not a ROS type name (pkg/msg/Name)") from None
-    if normalized not in _known_types():
-        raise FleetInvalid(path, f"unknown ROS type {name!r} (not in the ROS 2 Jazzy type "
-                                 "store nor fleetctl's shipped types)")
+    if normalized not in _known_types() and normalized not in own.names:
+        raise FleetInvalid(path, _unknown_type(name, normalized, own))
+
+
+def _unknown_type(name: str, normalized: str, own: FleetMsgTypes) -> str:
+    # As the robot client's message (fleetctl.client.typenames): where it looked, the
+    # closest known name, and what to do for a package of the fleet's own.
+    close = difflib.get_close_matches(normalized, sorted(_known_types() | own.names), n=1,
+                                      cutoff=0.8)
+    hint = f" Did you mean {close[0]}?" if close else ""
+    package = normalized.partition("/msg/")[0]
+    return (f"unknown ROS type {name!r}: not a ROS 2 Jazzy or fleetctl type, and the "
+            f"fleet's own definitions do not have it ({own.where(normalized)}).{hint} A "
+            f"package of your own: {HOW_TO_ADD.replace('PKG', package)}, then render")
 
 
 def check_regex(pattern: str, path: FieldPath) -> None:
@@ -159,8 +174,10 @@ def check_topic(topic: str, path: FieldPath) -> None:
         raise FleetInvalid(path, f"{topic!r} is not an absolute ROS topic name (/a/b_c)")
 
 
-def check_publish(publish: tuple[PublishTopic, ...], path: FieldPath) -> None:
-    """Check a robot's ``publish`` list (*path* is the list's field path)."""
+def check_publish(publish: tuple[PublishTopic, ...], path: FieldPath,
+                  own: FleetMsgTypes = NO_MSG_TYPES) -> None:
+    """Check a robot's ``publish`` list (*path* is the list's field path; *own*: the
+    fleet's own message types)."""
     seen: dict[str, int] = {}
     for j, p in enumerate(publish):
         where = (*path, j)
@@ -172,7 +189,7 @@ def check_publish(publish: tuple[PublishTopic, ...], path: FieldPath) -> None:
             other = format_index(path, seen[p.topic])
             raise FleetInvalid((*where, "topic"), f"duplicate topic {p.topic!r} (also {other})")
         seen[p.topic] = j
-        check_type(p.type, (*where, "type"))
+        check_type(p.type, (*where, "type"), own)
         _check_numbers(p, where)
         if p.compression not in COMPRESSIONS:
             raise FleetInvalid((*where, "compression"), f"must be one of "
@@ -262,7 +279,7 @@ def _check_numbers(p: PublishTopic, where: FieldPath) -> None:
 
 
 def check_subscribe(subscribe: tuple[SubscribeTopic, ...], taken: dict[str, str],
-                    path: FieldPath) -> None:
+                    path: FieldPath, own: FleetMsgTypes = NO_MSG_TYPES) -> None:
     """Check a robot's ``subscribe`` list.
 
     Args:
@@ -270,13 +287,14 @@ def check_subscribe(subscribe: tuple[SubscribeTopic, ...], taken: dict[str, str]
         taken: remote and local topics already used (by the command topics), each mapped
             to what uses it; updated in place.
         path: the list's field path.
+        own: the fleet's own message types.
     """
     for j, s in enumerate(subscribe):
         where = (*path, j)
         check_topic(s.remote_topic, (*where, "remote_topic"))
         if s.local_topic is not None:
             check_topic(s.local_topic, (*where, "local_topic"))
-        check_type(s.type, (*where, "type"))
+        check_type(s.type, (*where, "type"), own)
         for key, field_name in ((f"remote {s.remote_topic}", "remote_topic"),
                                 (f"local {s.local}", "local_topic")):
             if key in taken:

@@ -90,7 +90,9 @@ def up(
     https_port: int | None = typer.Option(
         None, "--https-port", parser=PORT,
         help="Host port of the page + WebSocket (default: the fleet's https_port)."),
-    project: str | None = typer.Option(None, "--project", help="Compose project name."),
+    project: str | None = typer.Option(
+        None, "--project", help="Compose project name (default: the one `up` used here, "
+        "also after the directory was moved; else fleetctl + the directory's name)."),
     replicas: int | None = typer.Option(
         None, "--replicas", parser=AsciiInt(1, MAX_REPLICAS),
         help=f"Relay replicas, 1..{MAX_REPLICAS}, on a 3-node NATS cluster (robots fail over "
@@ -113,9 +115,14 @@ def up(
         # client.yaml edited by hand) stops `up` now, before anything is deployed.
         with ops.fleet_lock(fleet, dry_run=True):
             ops.set_relay_replicas(fleet, count, dry_run=True)
-    options = composerun.default_options(fleet, project=project, wireguard=wireguard,
+    # Without --project: the project this directory's deployment keeps, moved or not (a
+    # copy gets its own); the line says which when the directory moved or was copied.
+    chosen = composerun.project_for_up(fleet, project)
+    options = composerun.default_options(fleet, project=chosen.project, wireguard=wireguard,
                                          sim=sim, bind=bind, https_port=https_port,
                                          replicas=count)
+    if chosen.note:
+        _progress(chosen.note)
     result = composerun.up(fleet, options, progress=_progress)
     _progress(f"waiting until every service runs and is healthy (at most "
               f"{composerun.STARTUP_TIMEOUT_S:.0f} s)")

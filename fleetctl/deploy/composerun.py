@@ -21,7 +21,7 @@ from typing import Any
 
 import yaml
 
-from fleetctl.deploy import hostports
+from fleetctl.deploy import hostports, relocation
 from fleetctl.deploy.compose import (
     COMPOSE_DIR,
     COMPOSE_FILE,
@@ -143,6 +143,55 @@ def _as_option(name: str, value: object) -> str:
     return f"with {flag}" if value is True else f"with {flag} {value}"
 
 
+def _require_project_not_elsewhere(plan: ComposePlan, runner: Runner) -> None:
+    """Refuse a project whose containers another fleet directory's compose file made.
+
+    Compose would recreate that fleet's containers from this file and remove its
+    simulated robots as orphans; two directories never drive one project. A compose file
+    that is gone (the directory moved while its deployment ran) is no other fleet's.
+
+    Raises:
+        ConflictError: naming the project and the other compose file.
+    """
+    if others := _live_compose_files_of(plan.project, plan.fleet_dir, runner):
+        raise ConflictError(
+            f"compose project {plan.project} has containers made from {others[0]}, another "
+            "fleet directory's: two directories never share a project (each `up` would "
+            "recreate the other's containers); run `fleetctl down` there first, or give "
+            "`up` another --project")
+
+
+def _live_compose_files_of(project: str, fleet_dir: Path, runner: Runner) -> list[str]:
+    """The compose files other than *fleet_dir*'s that made *project*'s containers and
+    are still there (another fleet directory's, not one moved away)."""
+    ours = str(fleet_dir.resolve() / COMPOSE_DIR / COMPOSE_FILE)
+    return sorted(f for f in _compose_files_of(project, runner) - {ours} if _is_there(f))
+
+
+def _is_there(compose_file: str) -> bool:
+    """Whether a compose file a container was made from is still there (not moved away)."""
+    return Path(compose_file).is_file()
+
+
+def project_for_up(fleet_dir: Path, project: str | None,
+                   runner: Runner = subprocess_runner) -> relocation.ProjectChoice:
+    """The compose project ``up`` deploys *fleet_dir* as: *project* when given, else the
+    one its recorded deployment keeps (moved), or its own (new, copied)
+    (:func:`relocation.project_for_up`).
+
+    Raises:
+        ConfigError: the state file is unreadable or malformed.
+        ConflictError: a copy whose default project is the original's.
+    """
+    if project is not None:
+        return relocation.ProjectChoice(project)
+    return relocation.project_for_up(fleet_dir, _files_of(runner))
+
+
+def _files_of(runner: Runner) -> relocation.ComposeFilesOf:
+    return lambda project: _compose_files_of(project, runner)
+
+
 def _require_images(plan: ComposePlan, runner: Runner) -> None:
     names = ["server", *(["client"] if plan.options.sim and plan.robots else [])]
     for name in names:
@@ -214,6 +263,7 @@ def up(fleet_dir: Path, options: Options, progress: Progress = print,
     # behind `fleet is up`, its reason only in `fleetctl logs`.
     load_server_config(plan.fleet_dir / "server" / "server.yaml")
     _check_not_changed(plan.fleet_dir, options, runner)
+    _require_project_not_elsewhere(plan, runner)
     _require_images(plan, runner)
     _require_free_subnet(plan, runner)
     hostports.require_free(
@@ -293,18 +343,28 @@ def _up_args(plan: ComposePlan, robots_only: bool) -> list[str]:
     return [*args, "--no-deps", "--no-recreate", "server"]
 
 
-def existing_options(fleet_dir: Path, project: str | None = None) -> Options:
-    """The options of the deployment ``up`` started in *fleet_dir*.
+def existing_options(fleet_dir: Path, project: str | None = None,
+                     runner: Runner = subprocess_runner) -> Options:
+    """The options of the deployment ``up`` started in *fleet_dir* (or, moved, where it
+    was before).
 
     Raises:
         ConfigError: *fleet_dir* does not exist, is not a directory or has no
             ``fleet.yaml`` (nor a deployment), or *project* is not a project name.
-        FleetError: nothing was started there.
+        FleetError: nothing was started there; or, without *project*, *fleet_dir* is a
+            copy of a fleet directory whose deployment it recorded.
     """
     require_fleet_dir(fleet_dir)
     if project is not None:
         check_project(project)
-    options = saved_options(fleet_dir)
+    recorded = relocation.recorded_deployment(fleet_dir, _files_of(runner))
+    if recorded is not None and not recorded.ours and project is None:
+        # Its status/logs/down were the original's: `down --delete-data` deleted its data.
+        raise FleetError(
+            f"{fleet_dir.resolve() / COMPOSE_DIR}: no deployment here: this directory is a "
+            f"copy of {recorded.elsewhere}, whose deployment (compose project "
+            f"{recorded.options.project}) it recorded; `fleetctl up` starts this copy's own")
+    options = None if recorded is None else recorded.options
     if options is None:
         if not os.path.lexists(fleet_dir / "fleet.yaml"):
             # Exit 3 as for every other command pointed at a directory that is no fleet.
@@ -338,24 +398,36 @@ def _check_project_is_ours(fleet_dir: Path, project: str, delete_data: bool,
 
     ``compose -p P -f OURS down`` stops every container of project P, whichever file
     made it, and with ``-v`` deletes P's volumes: another fleet's data. P is this
-    fleet's when ``up`` recorded it here, when it is the directory's default name (made
-    from its path), or when its containers came from this fleet's compose file.
+    fleet's when ``up`` recorded it here (or where the directory was moved from), when
+    it is the directory's default name (made from its path), or when its containers came
+    from this fleet's compose file; never when this directory is a copy and P the
+    original's (:mod:`.relocation`), nor when a compose file of another fleet directory,
+    still there, made P's containers.
 
     Raises:
         ConflictError: P's containers came from another compose file; or, with
             *delete_data*, nothing shows P is this fleet's.
     """
-    recorded = saved_options(fleet_dir)
-    if project in (recorded.project if recorded else None, project_name(fleet_dir)):
-        return
+    recorded = relocation.recorded_deployment(fleet_dir, _files_of(runner))
+    claimed = {project_name(fleet_dir)}
+    if recorded is not None:
+        # A copy's recorded project is the original's, even under this path's default.
+        claimed = (claimed | {recorded.options.project} if recorded.ours
+                   else claimed - {recorded.options.project})
     ours = str(fleet_dir.resolve() / COMPOSE_DIR / COMPOSE_FILE)
     made_from = _compose_files_of(project, runner)
-    if others := sorted(made_from - {ours}):
-        raise ConflictError(f"--project {project}: its containers were made from {others[0]}, "
+    # Containers of a recorded project made from a compose file that is gone: the
+    # directory moved while they ran, and `down` here stops them. One another fleet
+    # directory still has: that fleet's, even under this fleet's recorded name (a copy).
+    others = sorted(f for f in made_from - {ours} if project not in claimed or _is_there(f))
+    if others:
+        named = f"compose project {project}" if project in claimed else f"--project {project}"
+        raise ConflictError(f"{named}: its containers were made from {others[0]}, "
                             f"not from this fleet's {ours}: run `fleetctl down` with --fleet "
                             "set to that fleet's directory")
-    if delete_data and not made_from:
-        last = f" (it was last deployed as {recorded.project})" if recorded else ""
+    if delete_data and not made_from and project not in claimed:
+        last = (f" (it was last deployed as {recorded.options.project})"
+                if recorded and recorded.ours else "")
         raise ConflictError(f"--project {project}: no container shows it is this fleet's "
                             f"deployment{last}, so its volumes are not deleted: run "
                             "`fleetctl down --delete-data` without --project")

@@ -56,7 +56,7 @@ def _msg(root: Path, relpath: str, text: str) -> Path:
     return path
 
 
-def _own_packages(root: Path) -> None:
+def write_own_packages(root: Path) -> None:
     _msg(root, "my_robot_msgs/msg/Status.msg", STATUS)
     _msg(root, "my_robot_msgs/msg/Battery.msg", BATTERY)
     _msg(root, "base_msgs/msg/Mission.msg", MISSION)
@@ -70,7 +70,7 @@ def _load_error(root: Path) -> str:
 
 def test_own_types_are_accepted_with_their_dependencies(tmp_path: Path) -> None:
     root = _fleet(tmp_path / "fleet")
-    _own_packages(root)
+    write_own_packages(root)
     # What rosidl installs beside each .msg, a README and a service: left alone.
     _msg(root, "my_robot_msgs/msg/Status.idl", "module my_robot_msgs { ... };\n")
     _msg(root, "my_robot_msgs/srv/Reset.srv", "---\nbool ok\n")
@@ -92,7 +92,7 @@ def test_no_msg_types_directory_means_no_own_types(tmp_path: Path) -> None:
 
 def test_unknown_type_says_where_it_looked_and_what_to_do(tmp_path: Path) -> None:
     root = _fleet(tmp_path / "fleet", "my_robot_msgs/msg/Statu")
-    _own_packages(root)
+    write_own_packages(root)
     assert _load_error(root) == (
         f"{root}/fleet.yaml:9: robots[0].publish[0].type: unknown ROS type "
         "'my_robot_msgs/msg/Statu': not a ROS 2 Jazzy or fleetctl type, and the fleet's own "
@@ -112,7 +112,7 @@ def test_fleet_yaml_text_alone_knows_the_default_types_only(tmp_path: Path) -> N
 
 def test_an_own_type_of_a_command_topic_and_subscribe_entry_is_checked(tmp_path: Path) -> None:
     root = _fleet(tmp_path / "fleet", "std_msgs/msg/String", "base_msgs/msg/Missing")
-    _own_packages(root)
+    write_own_packages(root)
     assert "robots[0].subscribe[0].type: unknown ROS type 'base_msgs/msg/Missing'" in (
         _load_error(root))
 
@@ -208,7 +208,7 @@ def test_render_writes_a_client_yaml_the_robot_client_loads(
     assert "robots[0].publish[0].type: unknown ROS type 'my_robot_msgs/msg/Status'" in err
     assert "Traceback" not in err
 
-    _own_packages(fleet_dir)
+    write_own_packages(fleet_dir)
     assert main(["render", "--fleet", str(fleet_dir)]) == 0
     client_yaml = fleet_dir / "robots" / "husky1" / "client.yaml"
     monkeypatch.setenv("AMENT_PREFIX_PATH", str(_robot_workspace(tmp_path / "ws")))

@@ -381,7 +381,8 @@ def server_config(fleet: Fleet, fleet_dir: Path) -> str:
     cert, key = tls_paths(fleet, fleet_dir)
     return render_template("server/server.yaml.j2", fleet_name=fleet.name,
                            listen_port=fleet.server_port, https_port=fleet.https_port,
-                           tls_cert=cert, tls_key=key, recording=fleet.recording)
+                           tls_cert=cert, tls_key=key, recording=fleet.recording,
+                           msg_types=fleet.msg_types.texts)
 
 
 # A robot's generated files, relative to robots/NAME/ (remove-robot tells them from an
@@ -395,7 +396,8 @@ def fleet_artifacts(fleet: Fleet, keys: FleetKeys, fleet_dir: Path) -> list[Arti
     """Return every generated file of the fleet directory (docs/design.md section 6)."""
     out = [
         Artifact("server/server.yaml", server_config(fleet, fleet_dir),
-                 hint="set server_port, https_port and tls in fleet.yaml"),
+                 hint="set server_port, https_port and tls in fleet.yaml, and the fleet's "
+                      "own message types in msg_types/"),
         Artifact("server/auth.yaml", auth_map(fleet),
                  hint="put rules in fleet.yaml (robots' extra_send, extra_receive and "
                       "subscribe; users)"),

@@ -46,6 +46,7 @@ from fleetctl.server.handshake import (
 from fleetctl.server.heldpongs import HeldPongs
 from fleetctl.server.identity import PROXY_HEADERS, parse_address, within
 from fleetctl.server.metrics import Metrics
+from fleetctl.server.msgtypes import codec_for
 from fleetctl.server.outbound import OutboundScheduler
 from fleetctl.server.recording.http import RECORDINGS_PATH, RecordingsEndpoint
 from fleetctl.server.recording.recorder import Recorder
@@ -161,7 +162,9 @@ class RelayServer:
         self.recordings = (RecordingsEndpoint(self.recorder) if self.recorder is not None
                            else None)
         self.reloader = AuthReloader(config.auth_map, self.core.reload_auth, self.metrics)
-        self.foxglove = FoxgloveAdapter(self.core, WRITE_BATCH_BYTES)
+        # The fleet's own message types (server.yaml msg_types) for the parts that decode.
+        self.codec = codec_for(config.msg_types)
+        self.foxglove = FoxgloveAdapter(self.core, WRITE_BATCH_BYTES, codec=self.codec)
         self.write_through = WriteThrough()
         self._server: Server | None = None
         self._web_server: Server | None = None
@@ -236,7 +239,7 @@ class RelayServer:
             self._server = await self._listen(config.listen_host, config.listen_port, main_ssl,
                                               web=False, prefix="")
             if web is not None:
-                self._page = web_page(web)
+                self._page = web_page(web, self.codec.registry)
                 self._web_server = await self._listen(web.listen_host, web.listen_port,
                                                       web_ssl, web=True, prefix="web.")
         except BaseException:

@@ -15,6 +15,7 @@ from typing import Any
 from fleetctl.errors import ConfigError
 from fleetctl.server.cluster.config import ClusterConfig, parse_cluster
 from fleetctl.server.configsection import is_positive_number, section
+from fleetctl.server.msgtypes import MsgTypes, parse_msg_types
 from fleetctl.server.recording.config import RecordingConfig, parse_recording
 from fleetctl.server.regex import BadRegex, compile_full
 from fleetctl.server.tls import server_context
@@ -137,6 +138,9 @@ class ServerConfig:
         web: The HTTPS web listener (page + WebSocket), or ``None`` for none.
         recording: MCAP recording (docs/server.md, "Recording"), or ``None`` for none.
         cluster: Relay replicas on NATS (docs/scaling.md), or ``None``: one process.
+        msg_types: The fleet's own message types, ``(pkg/msg/Name, .msg text)`` pairs, for
+            the web page's layouts and the Foxglove listener
+            (:mod:`fleetctl.server.msgtypes`).
     """
 
     listen_host: Hosts = "0.0.0.0"
@@ -151,6 +155,7 @@ class ServerConfig:
     web: WebConfig | None = None
     recording: RecordingConfig | None = None
     cluster: ClusterConfig | None = None
+    msg_types: MsgTypes = ()
 
 
 def host_list(hosts: Hosts) -> list[str]:
@@ -176,6 +181,7 @@ _TOP_KEYS = {
     "web",
     "recording",
     "cluster",
+    "msg_types",
 }
 _WEB_KEYS = {"listen_host", "listen_port", "tls_cert", "tls_key", "vendor_dir",
              "replica_ports"}
@@ -247,6 +253,7 @@ def parse_server_config(raw: dict[str, Any], path: Path) -> ServerConfig:
         web=_web(raw.get("web"), base, path),
         recording=parse_recording(raw.get("recording"), base, path),
         cluster=parse_cluster(raw.get("cluster"), base, path),
+        msg_types=parse_msg_types(raw.get("msg_types"), path),
     )
 
 

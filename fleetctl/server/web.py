@@ -29,11 +29,17 @@ log = logging.getLogger("fleetctl.server")
 MAX_LAYOUT_CACHE_TYPES = 256
 
 
-def web_page(config: WebConfig) -> WebPage:
-    """Build the page's routes for the web listener; warn about missing vendored libraries."""
+def web_page(config: WebConfig, registry: TypeRegistry | None = None) -> WebPage:
+    """Build the page's routes for the web listener; warn about missing vendored libraries.
+
+    Args:
+        config: The web listener's config.
+        registry: The types whose layouts the page gets (the server's, with the fleet's
+            own message types); ``None``: :meth:`TypeRegistry.default`.
+    """
     for line in missing_vendor_libs(config.vendor_dir):
         log.warning("web listener: %s", line)
-    layouts = LayoutCache(TypeRegistry.default(), MAX_LAYOUT_CACHE_TYPES)
+    layouts = LayoutCache(registry or TypeRegistry.default(), MAX_LAYOUT_CACHE_TYPES)
     return WebPage(STATIC_DIR, config.vendor_dir, layouts)
 
 

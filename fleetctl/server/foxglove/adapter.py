@@ -42,7 +42,7 @@ from fleetctl.server.foxglove.transcode import SharedTranscoder
 from fleetctl.server.foxglove.viewer import Viewer
 from fleetctl.server.peer import Peer
 from fleetctl.server.relay import RelayCore
-from fleetctl.wire.codec import default_codec
+from fleetctl.wire.codec import Codec, default_codec
 
 log = logging.getLogger("fleetctl.server.foxglove")
 
@@ -57,13 +57,15 @@ class FoxgloveAdapter:
         core: The relay core (its catalog tap is set here).
         write_batch_bytes: Bytes a writer takes from a scheduler per transport write.
         tickets: The ticket book (default: 60 s tickets, bounded).
+        codec: Decodes frames and gives schemas (the server's, with the fleet's own
+            message types); ``None``: :func:`default_codec`.
     """
 
     def __init__(self, core: RelayCore, write_batch_bytes: int,
-                 tickets: TicketBook | None = None) -> None:
+                 tickets: TicketBook | None = None, codec: Codec | None = None) -> None:
         self.core = core
         self.write_batch_bytes = write_batch_bytes
-        self.codec = default_codec()
+        self.codec = codec or default_codec()
         max_bytes = core.limits.max_frame_bytes
         self.catalog = TopicCatalog(self.codec, max_bytes)
         self.transcoder = SharedTranscoder(self.codec, max_bytes)

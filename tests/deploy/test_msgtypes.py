@@ -11,7 +11,7 @@ import pytest
 from fleetctl.cli.main import main
 from fleetctl.client.config import load_client_config
 from fleetctl.deploy.fleet import load_fleet, parse_fleet
-from fleetctl.deploy.msgtypes import MAX_MSG_BYTES, load_msg_types
+from fleetctl.deploy.msgtypes import MAX_MSG_BYTES, MAX_MSG_FILES, load_msg_types
 from fleetctl.errors import ConfigError
 
 FLEET = """\
@@ -170,6 +170,14 @@ def test_files_that_are_not_small_regular_utf8_files_are_refused(tmp_path: Path)
     big.unlink()
     os.symlink("/dev/zero", big)
     assert _load_error(root) == f"{big}: cannot read: not a regular file"
+
+
+def test_at_most_max_msg_files_are_read(tmp_path: Path) -> None:
+    root = _fleet(tmp_path / "fleet", "std_msgs/msg/String", "std_msgs/String")
+    for i in range(MAX_MSG_FILES + 1):
+        _msg(root, f"my_msgs/msg/M{i}.msg", "int32 x\n")
+    assert _load_error(root) == (f"{root}/msg_types: more than {MAX_MSG_FILES} .msg files "
+                                 "(copy the msg/ folders of the fleet's own packages only)")
 
 
 def test_msg_types_that_is_a_file_is_refused(tmp_path: Path) -> None:

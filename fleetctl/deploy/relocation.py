@@ -104,16 +104,26 @@ def recorded_deployment(fleet_dir: Path, compose_files_of: ComposeFilesOf) -> Re
 def _holder(recorded_dir: Path, here: Path, project: str,
             compose_files_of: ComposeFilesOf) -> Path | None:
     """The other directory that still holds the deployment of *project*, if any."""
-    if _holds(recorded_dir, project):
+    if _holds_elsewhere(recorded_dir, here, project):
         return recorded_dir
     # `mv yard a; cp -a a b`: both recorded `yard`; the containers name the one that runs.
     for made_from in sorted(compose_files_of(project)):
         path = Path(made_from)
-        if path.name == COMPOSE_FILE and path.parent.name == COMPOSE_DIR:
-            other = path.parent.parent
-            if other != here and _holds(other, project):
-                return other
+        if (path.name == COMPOSE_FILE and path.parent.name == COMPOSE_DIR
+                and _holds_elsewhere(path.parent.parent, here, project)):
+            return path.parent.parent
     return None
+
+
+def _holds_elsewhere(directory: Path, here: Path, project: str) -> bool:
+    """Whether *directory* is another fleet than *here* (not a link to it, as `mv yard
+    prod; ln -s prod yard` leaves) whose recorded deployment is *project*."""
+    try:
+        if directory.resolve() == here:
+            return False
+    except (OSError, RuntimeError):  # a link loop: no fleet there
+        return False
+    return _holds(directory, project)
 
 
 def _holds(directory: Path, project: str) -> bool:

@@ -74,6 +74,17 @@ def test_a_moved_fleet_keeps_its_project_and_says_so(fleet: Path, tmp_path: Path
     assert (again.project, again.note) == (project, "")
 
 
+def test_a_moved_fleet_with_a_link_left_at_its_old_path_is_moved(
+        fleet: Path, tmp_path: Path) -> None:
+    """`mv yard prod; ln -s prod yard`: the old path holds this very fleet, not a copy."""
+    project = _up(fleet)
+    moved = tmp_path / "prod"
+    fleet.rename(moved)
+    fleet.symlink_to(moved)
+    choice = composerun.project_for_up(moved, None, runner=FakeDocker())
+    assert choice.project == project and choice.note.startswith("fleet directory moved")
+
+
 def test_a_copy_gets_its_own_project_and_never_the_originals(
         fleet: Path, tmp_path: Path) -> None:
     project = _up(fleet)
@@ -223,3 +234,11 @@ def test_down_delete_data_of_a_moved_fleet_is_its_own(fleet: Path, tmp_path: Pat
     with pytest.raises(ConflictError):
         composerun.down(moved, replace(recorded, project="gone"), delete_data=True,
                         progress=_quiet, runner=docker)
+
+
+def test_a_plain_up_keeps_a_project_given_before(fleet: Path) -> None:
+    """`up --project P` then `up`: the second made the default project, with another empty
+    data volume (or was refused on a running fleet)."""
+    assert _up(fleet, project="chosen") == "chosen"
+    choice = composerun.project_for_up(fleet, None, runner=FakeDocker())
+    assert (choice.project, choice.note) == ("chosen", "")

@@ -616,8 +616,9 @@ def saved_state(fleet_dir: Path) -> SavedState | None:
     try:
         data = json.loads(read_small_text(path))
         recorded_dir = data.pop(STATE_FLEET_DIR, None)
-        if recorded_dir is not None and not (
-                isinstance(recorded_dir, str) and Path(recorded_dir).is_absolute()):
+        if recorded_dir is not None and not (  # a path the file system takes (no NUL)
+                isinstance(recorded_dir, str) and Path(recorded_dir).is_absolute()
+                and "\0" not in recorded_dir):
             raise ValueError(f"{STATE_FLEET_DIR}: {recorded_dir!r}")
         options = Options(**data)
         _check_state(options)

@@ -232,7 +232,8 @@ def test_a_corrupt_state_file_is_named(fleet: Path) -> None:
 @pytest.mark.parametrize(("field", "value"), [
     ("project", "Bad/Name"), ("project", 5), ("wireguard", "maybe"), ("sim", "yes"),
     ("bind", "0.0.0.0:8443:8443"), ("bind", 7), ("https_port", 0), ("https_port", True),
-    ("version", "1.0; rm -rf /"), ("replicas", 9)])
+    ("version", "1.0; rm -rf /"), ("replicas", 9), ("fleet_dir", "yard"), ("fleet_dir", 5),
+    ("fleet_dir", "/srv/a\0b")])
 def test_a_state_file_with_values_up_never_saves_is_named(
         fleet: Path, field: str, value: object) -> None:
     """down/status/logs passed state.json's project and bind on as they were: a damaged or

@@ -19,7 +19,9 @@ const loader = { layouts: new Map(), ensure: () => Promise.resolve() };
 
 function connection(failoverUrls) {
   FakeSocket.opened = [];
-  return new Connection({ url: "wss://host:8443/", failoverUrls, token: "t", loader, WebSocketImpl: FakeSocket });
+  // fetchImpl null: no login-budget question (loginthrottle.test.mjs), so no real request
+  // to "host", and each close is decided at once.
+  return new Connection({ url: "wss://host:8443/", failoverUrls, token: "t", loader, WebSocketImpl: FakeSocket, fetchImpl: null });
 }
 
 function closeAndRetry(conn, code = 1006) {

@@ -30,8 +30,7 @@ function connection() {
     probes.push(url);
     return new Promise(() => {}); // a hung relay never answers
   };
-  const conn = new Connection({ url: "wss://host:8443/", token: "t", loader, WebSocketImpl: FakeSocket,
-                                origin: "https://host:8443", fetchImpl });
+  const conn = new Connection({ url: "wss://host:8443/", token: "t", loader, WebSocketImpl: FakeSocket, fetchImpl });
   const statuses = [];
   conn.addEventListener("status", (e) => statuses.push(e.detail));
   return { conn, probes, statuses };

@@ -24,15 +24,16 @@ class FakeSocket {
 
 const loader = { layouts: new Map(), ensure: () => Promise.resolve() };
 
-/** A Connection whose same-origin probe answers `status` (Retry-After `retryAfter`). */
-function connection({ status = 200, retryAfter = null, origin = "https://host:8443" } = {}) {
+/** A Connection whose relay's probe answers `status` (Retry-After `retryAfter`), or fails (`status` null). */
+function connection({ status = 204, retryAfter = null, url = "wss://host:8443/", token = "t0k" } = {}) {
   FakeSocket.opened = [];
   const probes = [];
   const fetchImpl = (url, init) => {
-    probes.push({ url, auth: init.headers.Authorization });
+    probes.push({ url, headers: init.headers ?? {}, credentials: init.credentials });
+    if (status === null) return Promise.reject(new TypeError("Failed to fetch")); // CORS, or down
     return Promise.resolve({ status, headers: { get: (name) => (name === "Retry-After" ? retryAfter : null) } });
   };
-  const conn = new Connection({ url: "wss://host:8443/", token: "t0k", loader, WebSocketImpl: FakeSocket, origin, fetchImpl });
+  const conn = new Connection({ url, token, loader, WebSocketImpl: FakeSocket, fetchImpl });
   const statuses = [];
   conn.addEventListener("status", (e) => statuses.push(e.detail));
   return { conn, probes, statuses };
@@ -52,11 +53,11 @@ test("the relay's message, Retry-After and the 4429s that are not the throttle",
   assert.equal(throttledClose({ code: 1006, reason: REASON }, null), null);
 });
 
-test("the probe goes to the page's own origin only (a token is not sent elsewhere)", () => {
-  assert.equal(probeUrl("wss://host:8443/", "https://host:8443"), "https://host:8443/config.json");
-  assert.equal(probeUrl("ws://host:8080/", "http://host:8080"), "http://host:8080/config.json");
-  assert.equal(probeUrl("wss://host:8444/", "https://host:8443"), null); // a replica
-  assert.equal(probeUrl("ws://host:8080/", "http://host:8000"), null); // fleetctl webviz
+test("the probe goes to the relay the socket went to, whatever the page's origin", () => {
+  assert.equal(probeUrl("wss://host:8443/"), "https://host:8443/login-budget");
+  assert.equal(probeUrl("ws://host:8080/"), "http://host:8080/login-budget");
+  assert.equal(probeUrl("wss://[fd00::1]:8444/"), "https://[fd00::1]:8444/login-budget"); // a replica
+  assert.equal(probeUrl("wss://proxy.example/fleet/"), "https://proxy.example/fleet/login-budget");
 });
 
 test("an error frame and close 4429 login_throttled: said in words, and the hint is waited", () => {
@@ -73,13 +74,14 @@ test("an error frame and close 4429 login_throttled: said in words, and the hint
   assert.ok(!throttledText(last.retryMs).includes("t0k"));
 });
 
-test("a socket refused before it opened asks the page's origin: a 429 is the throttle", async () => {
+test("a socket refused before it opened asks the relay: a 429 is the throttle", async () => {
   const { conn, probes, statuses } = connection({ status: 429, retryAfter: "2" });
   conn.open();
   conn.onClose({ code: 1006, reason: "" }); // the browser's view of the relay's 429
   await settle();
   clearTimeout(conn.retryTimer);
-  assert.deepEqual(probes, [{ url: "https://host:8443/config.json", auth: "Bearer t0k" }]);
+  // No token and no cookies: a simple cross-origin GET, no preflight.
+  assert.deepEqual(probes, [{ url: "https://host:8443/login-budget", headers: {}, credentials: "omit" }]);
   assert.equal(conn.state, "throttled");
   assert.ok(statuses.at(-1).retryMs >= 2000);
   // The next socket opens: the throttle is over.
@@ -99,22 +101,27 @@ test("a 429 without a usable Retry-After: throttled, at the normal backoff", asy
   assert.ok(statuses.at(-1).retryMs < 1000); // 250 ms x jitter
 });
 
-test("a refused socket whose origin answers otherwise is a plain disconnect", async () => {
-  const { conn } = connection({ status: 200 });
+test("a refused socket whose relay answers otherwise, or not at all, is a plain disconnect", async () => {
+  // 204: within the budget; 404: a relay without the probe; null: down, or no CORS.
+  for (const status of [204, 404, null]) {
+    const { conn, probes } = connection({ status });
+    conn.open();
+    conn.onClose({ code: 1006, reason: "" });
+    await settle();
+    clearTimeout(conn.retryTimer);
+    assert.equal(conn.state, "disconnected", String(status));
+    assert.equal(probes.length, 1);
+  }
+});
+
+test("a page without a token asks too (the relay refuses its upgrade all the same)", async () => {
+  const { conn, probes } = connection({ status: 429, retryAfter: "2", token: null });
   conn.open();
   conn.onClose({ code: 1006, reason: "" });
   await settle();
   clearTimeout(conn.retryTimer);
-  assert.equal(conn.state, "disconnected");
-});
-
-test("another origin is not asked: a plain disconnect, decided at once", () => {
-  const { conn, probes } = connection({ status: 429, retryAfter: "2", origin: "http://host:8000" });
-  conn.open();
-  conn.onClose({ code: 1006, reason: "" });
-  clearTimeout(conn.retryTimer);
-  assert.equal(conn.state, "disconnected");
-  assert.deepEqual(probes, []);
+  assert.equal(conn.state, "throttled");
+  assert.equal(probes.length, 1);
 });
 
 test("stopped while asking: no attempt is scheduled", async () => {

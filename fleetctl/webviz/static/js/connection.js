@@ -41,11 +41,11 @@ export class Connection extends EventTarget {
    *          WebSocketImpl?: typeof WebSocket}} opts
    * failoverUrls: other relay replicas' WebSocket URLs; after a connection closes (or
    * fails to open) the next attempt goes to the next URL in [url, ...failoverUrls].
-   * origin, fetchImpl: the page's origin and fetch, to ask whether a socket refused before
-   * it opened was the relay's failed-login throttle (loginthrottle.js; tests replace them).
+   * fetchImpl: the page's fetch, to ask whether a socket refused before it opened was the
+   * relay's failed-login throttle (loginthrottle.js; tests replace it).
    */
   constructor({ url, failoverUrls = [], token, loader, WebSocketImpl = globalThis.WebSocket,
-                origin = globalThis.location?.origin, fetchImpl = globalThis.fetch?.bind(globalThis) }) {
+                fetchImpl = globalThis.fetch?.bind(globalThis) }) {
     super();
     this.urls = [url, ...failoverUrls.filter((u) => u !== url)];
     this.urlIndex = 0;
@@ -53,7 +53,6 @@ export class Connection extends EventTarget {
     this.token = token;
     this.loader = loader;
     this.WebSocketImpl = WebSocketImpl;
-    this.origin = origin;
     this.fetchImpl = fetchImpl;
     this.ws = null;
     this.state = "idle"; // idle | connecting | open | disconnected | throttled | closed | refused
@@ -154,9 +153,9 @@ export class Connection extends EventTarget {
     if (FATAL_CLOSE[ev.code]) return this.setStatus("refused", `${FATAL_CLOSE[ev.code]} (close ${ev.code})`);
     const throttle = throttledClose(ev, this.lastErrorCode);
     // Closed before it opened: the relay answers an upgrade from an address over its
-    // failed-login budget with a 429 the page cannot see; ask, when it can (loginthrottle.js).
+    // failed-login budget with a 429 the page cannot see; ask it (loginthrottle.js).
     // A socket given up for silence was no 429 (that is answered at once).
-    const asked = throttle || this.opened || ev.silent ? null : probeThrottle(this.url, this.token, { origin: this.origin, fetchImpl: this.fetchImpl });
+    const asked = throttle || this.opened || ev.silent ? null : probeThrottle(this.url, this.fetchImpl);
     if (!asked) return this.retry(ev, throttle);
     asked.then((answer) => {
       if (!this.stopped && !this.ws) this.retry(ev, answer);

@@ -8,12 +8,11 @@
 // - an upgrade that could only sign in by a token frame (the page's) gets HTTP 429 with
 //   Retry-After. The WebSocket API hides an upgrade's status: the page sees a close 1006
 //   before the socket opened, as for a server that is down. So after such a close the page
-//   asks the same origin with its token (GET config.json, a few bytes): an address over
-//   its budget gets the same 429, with Retry-After, unhashed; one within it costs the
-//   relay a SHA-256 of the token (and one failure if the token is wrong, as its token
-//   frame would have).
-//   Another origin (a replica, a relay behind `fleetctl webviz`) would need CORS for a
-//   request with a token: not asked, the close stays a plain disconnect.
+//   asks the relay the socket went to, whatever origin the page came from (a replica, a
+//   relay behind `fleetctl webviz`): GET /login-budget, without a token or cookies (a
+//   simple cross-origin request, no preflight; the relay answers any origin), 204 within
+//   the budget, 429 with Retry-After over it. Asking costs the relay no hash and no failure.
+//   A relay without the probe, or none at all, gives no readable answer: a plain disconnect.
 // 4429 alone is not enough: the relay also closes with 4429 for too many connections of
 // one identity and for a subscription flood; the reason or the error frame says which.
 
@@ -52,28 +51,30 @@ export function throttledClose(ev, lastErrorCode) {
 
 const PROBE_TIMEOUT_MS = 5000;
 
-/** The http(s) URL of config.json beside a ws(s) URL, or null when it is not on `origin`. */
-export function probeUrl(wsUrl, origin) {
-  const url = new URL("config.json", wsUrl);
+/**
+ * The http(s) URL of the relay's login-budget probe beside a ws(s) URL (relative: a relay
+ * behind a reverse proxy's path prefix is asked under that prefix).
+ */
+export function probeUrl(wsUrl) {
+  const url = new URL("login-budget", wsUrl);
   url.protocol = url.protocol === "wss:" ? "https:" : "http:";
-  return url.origin === origin ? url.href : null;
+  return url.href;
 }
 
 /**
  * After a socket closed before it opened: was it the relay's 429 (too many failed logins)?
  * @param {string} wsUrl the URL the socket went to
- * @param {string|null} token the page's token (sent only to the page's own origin)
- * @param {{origin: string|undefined, fetchImpl: typeof fetch|undefined}} env
+ * @param {typeof fetch|undefined} fetchImpl
  * @returns {Promise<{retryAfterS: number|null}|false|null>|null} null at once: cannot ask
- *   (no token, another origin); else the answer: throttled with the relay's hint, false:
- *   not throttled, null: no answer (a plain disconnect)
+ *   (no fetch); else the answer: throttled with the relay's hint, false: not throttled,
+ *   null: no readable answer (a plain disconnect)
  */
-export function probeThrottle(wsUrl, token, { origin, fetchImpl }) {
-  const url = origin && fetchImpl && token ? probeUrl(wsUrl, origin) : null;
-  if (!url) return null;
+export function probeThrottle(wsUrl, fetchImpl) {
+  if (!fetchImpl) return null;
   // Bounded: the next attempt waits for this answer, and a relay that hangs would never give it.
   const signal = globalThis.AbortSignal?.timeout?.(PROBE_TIMEOUT_MS);
-  return fetchImpl(url, { headers: { Authorization: `Bearer ${token}` }, cache: "no-store", signal }).then(
+  // No token, no cookies: nothing of the page's leaves for an origin it may not trust.
+  return fetchImpl(probeUrl(wsUrl), { credentials: "omit", cache: "no-store", signal }).then(
     (resp) => (resp.status === 429 ? { retryAfterS: parseRetryAfter(resp.headers.get("Retry-After")) } : false),
     () => null,
   );

@@ -255,6 +255,98 @@ async def test_operator_sees_fleet_and_robot_and_sends_a_goal(
         assert not problems, problems
 
 
+async def check_typed_goal_refuses_bad_input(page: Any) -> None:
+    """Keyboard only: the tool's button armed by Enter focuses the form's x; a word there
+    is refused in words, naming the field, and nothing is sent."""
+    await page.focus("#tool-goal")
+    await page.keyboard.press("Enter")
+    await wait_js(page, "document.activeElement.id === 'pose-x'")
+    assert await page.is_visible("#pose-form")
+    await page.keyboard.type("abc")  # replaces the prefilled x (selected)
+    await page.keyboard.press("Enter")
+    error = page.locator("#pose-error")
+    await error.wait_for(state="visible", timeout=TIMEOUT_MS)
+    assert (await error.text_content() or "").startswith('Not sent: x: "abc" is not a number')
+    assert await page.get_attribute("#pose-x", "aria-invalid") == "true"
+    assert await page.evaluate("fleetviz.views.map.tool") == "goal"  # still armed
+
+
+async def check_form_screenshots(page: Any) -> None:
+    """The form as it looks at 1024 and 1440 px (FLEETCTL_WEBVIZ_SCREENSHOTS)."""
+    if not SCREENSHOTS:
+        return
+    for width in (1024, 1440):
+        await page.set_viewport_size({"width": width, "height": 900})
+        path = Path(SCREENSHOTS) / f"pose-form-{width}.png"
+        await page.locator("#panel-map").screenshot(path=str(path))
+
+
+async def type_pose(page: Any, x: str, y: str, yaw: str) -> None:
+    for field, text in (("#pose-x", x), ("#pose-y", y), ("#pose-yaw", yaw)):
+        await page.fill(field, text)
+
+
+async def test_operator_types_a_goal_and_keys_an_initial_pose(
+    tmp_path: Path, browser: Any, webviz_factory: list[Any]
+) -> None:
+    # Beside the dragged goal above: the same message, typed (a dock at x=12.5, y=-3.0,
+    # yaw 180°) or keyed on the focused map, without a mouse.
+    async with running_fleet(tmp_path, ("r1",)) as fleet:
+        web = webviz_server(fleet.url).start()
+        webviz_factory.append(web)
+        page = await browser.new_page(viewport={"width": 1024, "height": 900})
+        problems = watch_errors(page)
+        await open_robot_page(page, web.url, ["/r1/odom"])
+        await wait_js(page, "fleetviz.views.map.pose !== null")
+        await check_typed_goal_refuses_bad_input(page)
+        await type_pose(page, "12.5", "-3.0", "180")
+        await check_form_screenshots(page)
+        await page.press("#pose-yaw", "Enter")
+        meta, goal = fleet.codec.decode(
+            await next_frame_of(fleet.robots[0], "geometry_msgs/msg/PoseStamped", 10))
+        assert meta.topic == "/r1/goal_pose"
+        assert (goal.pose.position.x, goal.pose.position.y) == (12.5, -3.0)
+        assert 2 * math.atan2(goal.pose.orientation.z, goal.pose.orientation.w) == \
+            pytest.approx(math.pi)
+        assert goal.header.frame_id == "odom"  # the drag's frame: the robot's pose source
+        assert abs(goal.header.stamp.sec - time.time()) < 60
+        await page.locator("#command-status", has_text="Sent navigation goal x=12.50 m "
+                           "y=-3.00 m yaw=180° to /r1/goal_pose").wait_for(timeout=TIMEOUT_MS)
+        assert await page.is_hidden("#pose-form")
+        assert await page.evaluate("document.activeElement.id") == "tool-goal"
+
+        # The initial pose, keyed on the focused map: Shift+Right 1 m, Up 0.1 m, Shift+Q 45°.
+        await page.click("#tool-initial")
+        await type_pose(page, "1", "2", "0")
+        await page.focus("#map-canvas")
+        scrolled = await page.evaluate("window.scrollY")  # focus scrolls the map into view
+        for key in ("Shift+ArrowRight", "ArrowUp", "Shift+Q"):
+            await page.keyboard.press(key)
+        assert [await page.input_value(f) for f in ("#pose-x", "#pose-y", "#pose-yaw")] == \
+            ["2.00", "2.10", "45.0"]
+        # The arrows moved the pose, not the page.
+        assert await page.evaluate("window.scrollY") == scrolled
+        await page.keyboard.press("Enter")
+        meta, initial = fleet.codec.decode(await next_frame_of(
+            fleet.robots[0], "geometry_msgs/msg/PoseWithCovarianceStamped", 10))
+        assert meta.topic == "/r1/initialpose"
+        assert initial.pose.pose.position.x == pytest.approx(2.0)
+        assert initial.pose.pose.position.y == pytest.approx(2.1)
+        orientation = initial.pose.pose.orientation
+        assert 2 * math.atan2(orientation.z, orientation.w) == pytest.approx(math.pi / 4)
+        assert initial.pose.covariance[0] == 0.25 and initial.header.frame_id == "odom"
+
+        # Armed again, the form starts at the last goal sent; Esc cancels, nothing sent.
+        await page.click("#tool-goal")
+        assert [await page.input_value(f) for f in ("#pose-x", "#pose-y", "#pose-yaw")] == \
+            ["12.50", "-3.00", "180.0"]
+        await page.keyboard.press("Escape")
+        await page.locator("#command-status", has_text="Navigation goal: cancelled."
+                           ).wait_for(timeout=TIMEOUT_MS)
+        assert await page.is_hidden("#pose-form")
+        assert not problems, problems
+
+
 async def test_a_zstd_topic_is_explained_in_its_panel(
     tmp_path: Path, browser: Any, webviz_factory: list[Any]
 ) -> None:

@@ -1,6 +1,7 @@
 // Map panel: OccupancyGrid (or an empty 1 m grid), the robot's pose and path, markers, and
 // click-and-drag tools for a navigation goal and an initial pose (press = position, drag =
-// heading). Coordinates are drawn in the frame the messages use; there is no TF here.
+// heading; or typed, poseentry.js, or keyed on the focused map, drawn as a preview).
+// Coordinates are drawn in the frame the messages use; there is no TF here.
 
 import { MarkerStore, arrow } from "./markers.js";
 import { yawOf } from "./odom.js";
@@ -26,11 +27,13 @@ export class MapView {
   /**
    * @param {HTMLCanvasElement} canvas
    * @param {(kind: "goal"|"initialpose", x: number, y: number, yaw: number) => void} onPose
-   * @param {{scale?: HTMLElement, onAim?: (kind: string, x: number, y: number, yaw: number|null) => void}} [opts]
+   * @param {{scale?: HTMLElement, onAim?: (kind: string, x: number, y: number, yaw: number|null) => void,
+   *          onKey?: (e: KeyboardEvent) => boolean}} [opts]
    *   scale: the scale bar over the canvas (a child `.bar` and `.label`); onAim: where a
-   *   armed tool points (yaw null until the press), as the pointer moves
+   *   armed tool points (yaw null until the press), as the pointer moves; onKey: a key on
+   *   the focused canvas while a tool is armed, true when it was used
    */
-  constructor(canvas, onPose, { scale = null, onAim = () => {} } = {}) {
+  constructor(canvas, onPose, { scale = null, onAim = () => {}, onKey = () => false } = {}) {
     this.canvas = canvas;
     this.ctx = canvas.getContext("2d");
     this.onPose = onPose;
@@ -45,6 +48,7 @@ export class MapView {
     this.markers = new MarkerStore();
     this.tool = null;
     this.drag = null;
+    this.preview = null; // the pose typed or keyed for the armed tool, {x, y, yaw}, or null
     this.pan = null; // a drag without a tool moves the view
     this.sent = []; // the last goal and initial pose sent from this page, drawn until reset
     this.dirty = true;
@@ -52,6 +56,9 @@ export class MapView {
     canvas.addEventListener("pointermove", (e) => this.move(e));
     canvas.addEventListener("pointerup", (e) => this.up(e));
     canvas.addEventListener("pointercancel", () => this.cancelDrag());
+    canvas.addEventListener("keydown", (e) => {
+      if (this.tool && !this.drag && onKey(e)) e.preventDefault(); // an arrow must not scroll the page
+    });
     canvas.addEventListener("wheel", (e) => {
       e.preventDefault();
       this.scale = Math.min(400, Math.max(2, this.scale * (e.deltaY < 0 ? 1.2 : 1 / 1.2)));
@@ -83,6 +90,7 @@ export class MapView {
 
   setTool(tool) {
     this.tool = tool;
+    if (!tool) this.setPreview(null);
     this.canvas.style.cursor = tool ? "crosshair" : "grab";
     this.canvas.dataset.tool = tool ?? "";
   }
@@ -92,6 +100,22 @@ export class MapView {
     this.drag = null;
     this.pan = null;
     this.dirty = true;
+  }
+
+  /**
+   * Draw where a typed or keyed pose is, for the armed tool (null: nothing). *reveal*: a
+   * pose off the map shown brings the view to it (a dock typed 12 m away was drawn off
+   * the canvas); never during a press, whose points are read in the view's coordinates.
+   */
+  setPreview(pose, reveal = false) {
+    this.preview = pose;
+    this.dirty = true;
+    if (!pose || !reveal || this.drag || this.pan) return;
+    const [px, py] = this.toPx(pose.x, pose.y);
+    const margin = 0.1 * this.canvas.width;
+    if (px < margin || py < margin || px > this.canvas.width - margin || py > this.canvas.height - margin) {
+      this.center = { x: pose.x, y: pose.y };
+    }
   }
 
   /** Remember a pose sent from this page, drawn as an arrow where it was aimed. */
@@ -224,6 +248,19 @@ export class MapView {
       ctx.arc(x, y, 5 * k, 0, 2 * Math.PI);
       ctx.stroke();
       arrow(ctx, x, y, x + 26 * k * Math.cos(p.yaw), y - 26 * k * Math.sin(p.yaw), 9 * k);
+    }
+    if (this.preview && this.tool && !this.drag) {
+      // Dashed: not sent yet.
+      const p = this.preview;
+      const [x, y] = this.toPx(p.x, p.y);
+      ctx.fillStyle = ctx.strokeStyle = this.tool === "goal" ? "#ef5350" : "#ab47bc";
+      ctx.lineWidth = 3 * k;
+      ctx.setLineDash([6 * k, 4 * k]);
+      ctx.beginPath();
+      ctx.arc(x, y, 7 * k, 0, 2 * Math.PI);
+      ctx.stroke();
+      ctx.setLineDash([]);
+      arrow(ctx, x, y, x + 30 * k * Math.cos(p.yaw), y - 30 * k * Math.sin(p.yaw), 10 * k);
     }
     if (this.drag) {
       const [x0, y0] = this.toPx(this.drag.start.x, this.drag.start.y);

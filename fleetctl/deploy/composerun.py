@@ -168,6 +168,14 @@ def _live_compose_files_of(project: str, fleet_dir: Path, runner: Runner) -> lis
     return sorted(f for f in _compose_files_of(project, runner) - {ours} if _is_there(f))
 
 
+def _made_here_or_moved(plan: ComposePlan) -> Callable[[str], bool]:
+    """Whether a container of the plan's project, made from a given compose file, is this
+    fleet's: made from its file, or from one that is gone (this directory, moved while its
+    deployment ran; `_require_project_not_elsewhere` refused every other fleet's)."""
+    ours = str(plan.compose_file.resolve())
+    return lambda made_from: made_from == ours or not _is_there(made_from)
+
+
 def _is_there(compose_file: str) -> bool:
     """Whether a compose file a container was made from is still there (not moved away)."""
     return Path(compose_file).is_file()
@@ -268,7 +276,7 @@ def up(fleet_dir: Path, options: Options, progress: Progress = print,
     _require_free_subnet(plan, runner)
     hostports.require_free(
         hostports.published_ports(render(plan)),
-        hostports.held_by_fleet(runner, plan.project, plan.compose_file.resolve()),
+        hostports.held_by_fleet(runner, plan.project, _made_here_or_moved(plan)),
         port_probe or hostports.bind_error)
     # A live update is one line of the command that changed the fleet (its note), so it
     # says nothing here and keeps compose's output unless compose fails (check quotes it).

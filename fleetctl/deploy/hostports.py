@@ -16,10 +16,9 @@ import re
 import socket
 from collections.abc import Callable, Iterable
 from dataclasses import dataclass
-from pathlib import Path
 from typing import Any
 
-from fleetctl.deploy.dockercli import Runner, fleet_filters
+from fleetctl.deploy.dockercli import CONFIG_FILES_LABEL, Runner
 from fleetctl.errors import ConflictError
 
 
@@ -52,17 +51,26 @@ def published_ports(document: dict[str, Any]) -> list[PublishedPort]:
     return found
 
 
-def held_by_fleet(runner: Runner, project: str, compose_file: Path) -> set[tuple[int, str]]:
+def held_by_fleet(runner: Runner, project: str,
+                  is_ours: Callable[[str], bool]) -> set[tuple[int, str]]:
     """(port, protocol) pairs that the running containers of this fleet publish.
 
-    Only containers compose made from *compose_file*: a container of the same project
-    name from another fleet directory is "another program" to this fleet.
+    Only the containers of *project* whose compose file (compose's config-files label)
+    *is_ours* accepts: a container of the same project name from another fleet
+    directory is "another program" to this fleet, while one made from this directory's
+    file before it was moved is this fleet's (``up`` recreates it from the new place).
     """
-    res = runner(["docker", "ps", *fleet_filters(project, compose_file),
-                  "--format", "{{.Ports}}"], None, True)
+    res = runner(["docker", "ps", "--filter", f"label=com.docker.compose.project={project}",
+                  "--format", f'{{{{.Label "{CONFIG_FILES_LABEL}"}}}}\t{{{{.Ports}}}}'],
+                 None, True)
     if res.returncode != 0:
         return set()
-    return {(int(m["port"]), m["proto"]) for m in _DOCKER_PS.finditer(res.stdout)}
+    held = set()
+    for line in res.stdout.splitlines():
+        made_from, _, ports = line.partition("\t")
+        if made_from.strip() and is_ours(made_from.strip()):
+            held |= {(int(m["port"]), m["proto"]) for m in _DOCKER_PS.finditer(ports)}
+    return held
 
 
 def bind_error(host: str, port: int, protocol: str) -> OSError | None:

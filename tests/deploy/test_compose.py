@@ -666,9 +666,10 @@ def test_up_names_a_taken_host_port_before_compose_runs(fleet: Path) -> None:
 def test_up_on_a_running_fleet_does_not_trip_over_its_own_ports(fleet: Path) -> None:
     class PublishingDocker(FakeDocker):
         def __call__(self, argv: Sequence[str], stdin: bytes | None, capture: bool) -> Completed:
-            if "{{.Ports}}" in argv:
+            if any("{{.Ports}}" in arg for arg in argv):
                 self.calls.append(list(argv))
-                return Completed(tuple(argv), 0, "0.0.0.0:8443->8443/tcp\n", "")
+                made_from = fleet.resolve() / composerun.COMPOSE_DIR / composerun.COMPOSE_FILE
+                return Completed(tuple(argv), 0, f"{made_from}\t0.0.0.0:8443->8443/tcp\n", "")
             return super().__call__(argv, stdin, capture)
 
     def held_by_the_fleet(host: str, port: int, protocol: str) -> OSError | None:

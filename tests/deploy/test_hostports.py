@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import socket
 from collections.abc import Iterator, Sequence
-from pathlib import Path
 
 import pytest
 
@@ -82,22 +81,24 @@ def test_an_address_that_is_not_this_hosts_is_named() -> None:
         hostports.require_free([port], set())
 
 
-def test_held_by_fleet_reads_docker_ps_for_this_fleets_file_only() -> None:
+def test_held_by_fleet_counts_the_containers_whose_compose_file_is_ours() -> None:
     calls: list[list[str]] = []
 
     def runner(argv: Sequence[str], stdin: bytes | None, capture: bool) -> Completed:
         calls.append(list(argv))
-        out = "0.0.0.0:8443->8443/tcp, [::]:8443->8443/tcp, 0.0.0.0:51820->51820/udp\n\n"
+        out = ("/f/.compose/docker-compose.yml\t0.0.0.0:8443->8443/tcp, "
+               "[::]:8443->8443/tcp, 0.0.0.0:51820->51820/udp\n"
+               "/moved/.compose/docker-compose.yml\t127.0.0.1:9000->8443/tcp\n"
+               "/other/.compose/docker-compose.yml\t0.0.0.0:7000->8443/tcp\n\n")
         return Completed(tuple(argv), 0, out, "")
 
-    held = hostports.held_by_fleet(runner, "proj", Path("/f/.compose/docker-compose.yml"))
-    assert held == {(8443, "tcp"), (51820, "udp")}
-    assert "label=com.docker.compose.project.config_files=/f/.compose/docker-compose.yml" \
-        in calls[0]
+    held = hostports.held_by_fleet(runner, "proj", lambda f: not f.startswith("/other/"))
+    assert held == {(8443, "tcp"), (51820, "udp"), (9000, "tcp")}
+    assert "label=com.docker.compose.project=proj" in calls[0]
 
 
 def test_held_by_fleet_is_empty_when_docker_ps_fails() -> None:
     def runner(argv: Sequence[str], stdin: bytes | None, capture: bool) -> Completed:
         return Completed(tuple(argv), 1, "", "Cannot connect to the Docker daemon")
 
-    assert hostports.held_by_fleet(runner, "p", Path("/x")) == set()
+    assert hostports.held_by_fleet(runner, "p", lambda f: True) == set()

@@ -132,3 +132,25 @@ def test_a_moved_fleet_keeps_its_data_and_a_copy_gets_its_own(
                for line in said.splitlines()), said
     server = _server(copied)
     assert (_data_volume(server), _marker(server)) == (f"{copied}_server-data", "")
+
+
+def test_a_fleet_moved_while_it_runs_comes_up_again_from_its_new_place(
+        fleets: tuple[FleetDirs, Path], tmp_path: Path) -> None:
+    """`mv` while the deployment runs: the old containers (made from a compose file that
+    is gone) hold the fleet's ports; they are this fleet's, so `up` recreates them from
+    the new place instead of refusing their ports as another program's."""
+    dirs, fleet = fleets
+    dirs.up(fleet)
+    project = _project(fleet)
+    subprocess.run(["docker", "exec", _server(project), "sh", "-c", f"echo kept > {MARKER}"],
+                   check=True, capture_output=True)
+    moved = tmp_path / "renamed"
+    shutil.move(fleet, moved)
+    dirs.up(moved)
+    assert _project(moved) == project
+    server = _server(project)
+    assert _marker(server) == "kept"
+    res = subprocess.run(["docker", "inspect", "--format",
+                          '{{index .Config.Labels "com.docker.compose.project.config_files"}}',
+                          server], capture_output=True, text=True, check=True)
+    assert res.stdout.strip() == str(moved.resolve() / ".compose" / "docker-compose.yml")

@@ -19,7 +19,6 @@ from __future__ import annotations
 import datetime as dt
 import json
 import os
-import ssl
 import tempfile
 import time
 import urllib.error
@@ -32,16 +31,13 @@ from typing import Any
 import typer
 
 from fleetctl.cli.output import OutputFormat, emit, output_option, table
+from fleetctl.cli.reach import ca_context, why_unreachable
 from fleetctl.cli.throttled import throttled_error
 from fleetctl.cli.tokenfile import read_token_file
 from fleetctl.client import loginthrottle
 from fleetctl.errors import ConfigError, ConflictError, ExitCode, FleetError
 from fleetctl.server.config import ServerConfig, load_server_config
 from fleetctl.server.recording import files
-
-# OpenSSL's verify codes for a certificate that does not name the host or IP address asked
-# for (X509_V_ERR_HOSTNAME_MISMATCH, X509_V_ERR_IP_ADDRESS_MISMATCH).
-HOST_MISMATCH_CODES = frozenset({62, 64})
 
 
 @dataclass(frozen=True)
@@ -104,32 +100,6 @@ class RemoteRecording:
     server: str = ""
 
 
-def _unreachable(reason: object, scheme: str = "https") -> str:
-    """Why a request failed, in the user's terms: a TLS handshake with a plain port, a
-    plain request to a TLS port, or a certificate not trusted, is not "cannot reach it"."""
-    if (isinstance(reason, ssl.SSLCertVerificationError)
-            and reason.verify_code in HOST_MISMATCH_CODES):
-        # The CA is trusted; another --ca-file would not help (an operator's certificate
-        # for the endpoint's name, asked for by `localhost` on the server host).
-        return (f"its certificate is not for this host ({reason.verify_message}): use a "
-                "host name or address it names in the URL (`fleetctl up` prints the page "
-                "on the fleet endpoint's host)")
-    if isinstance(reason, ssl.SSLCertVerificationError):
-        # The usual first try against `fleetctl up`: its certificate is self-signed.
-        return (f"its certificate is not trusted ({reason.verify_message}): give the CA "
-                "that signed it with --ca-file (a fleet's own self-signed certificate is "
-                "FLEET/server/tls/cert.pem)")
-    if isinstance(reason, ssl.SSLError):
-        return ("no TLS server answered there (a plain ws:// or http:// port? use the TLS "
-                f"port, e.g. the web listener): {reason}")
-    if scheme == "http" and isinstance(reason, ConnectionResetError):
-        # http.client.RemoteDisconnected is one: a TLS listener (`fleetctl up`'s HTTPS
-        # port) hangs up on a plain request without a word.
-        return (f"the server closed the connection without an answer (a TLS port? use "
-                f"https:// or wss://): {reason}")
-    return f"cannot reach it: {reason}"
-
-
 @dataclass(frozen=True)
 class Remote:
     """How to reach a server's ``/recordings``.
@@ -173,12 +143,7 @@ class Remote:
             request.add_header("Authorization", f"Bearer {self.token}")
         if byte_range is not None:
             request.add_header("Range", byte_range)
-        try:
-            context = (ssl.create_default_context(cafile=str(self.ca_file))
-                       if self.ca_file is not None else None)
-        except OSError as exc:  # ssl.SSLError too: not PEM certificates
-            raise ConfigError(f"--ca-file {self.ca_file}: cannot load a CA bundle from it: "
-                              f"{exc.strerror or getattr(exc, 'reason', None) or exc}") from None
+        context = ca_context(self.ca_file)
         try:
             with urllib.request.urlopen(request, timeout=30, context=context) as resp:
                 return resp.status, dict(resp.headers), resp.read()
@@ -196,7 +161,7 @@ class Remote:
         except (urllib.error.URLError, OSError) as exc:
             reason = getattr(exc, "reason", exc)
             raise FleetError(f"--server {self.url}: "
-                             f"{_unreachable(reason, parts.scheme)}") from None
+                             f"{why_unreachable(reason, parts.scheme)}") from None
 
 
 def list_remote(remote: Remote) -> list[RemoteRecording]:

@@ -29,10 +29,11 @@ from websockets.exceptions import InvalidURI
 from websockets.uri import parse_uri
 
 from fleetctl.cli.output import OutputFormat, emit, output_option
+from fleetctl.cli.reach import ca_context, why_unreachable
 from fleetctl.cli.throttled import throttled_error
 from fleetctl.cli.tokenfile import read_token_file
 from fleetctl.client.config import ClientConfig
-from fleetctl.client.transport import REFUSAL_RECORD, RobotLink
+from fleetctl.client.transport import REFUSAL_RECORD, UNREACHABLE_RECORD, RobotLink
 from fleetctl.deploy.topics import TOPIC
 from fleetctl.errors import ConfigError, ExitCode, FleetError
 from fleetctl.server.recording import files
@@ -61,6 +62,8 @@ class ReplayOptions:
         remap: ``(old_prefix, new_prefix)`` topic renames, first match wins.
         no_drop: Send every message reliably and in order (else latest-only per topic,
             as a live robot's sensor topics).
+        ca_file: CA bundle to verify a ``wss://`` server with (a fleet's self-signed
+            certificate); ``None``: the system's CAs.
     """
 
     server_url: str
@@ -69,6 +72,7 @@ class ReplayOptions:
     robot_name: str = "replay"
     remap: tuple[tuple[str, str], ...] = ()
     no_drop: bool = True
+    ca_file: Path | None = None
 
 
 @dataclass
@@ -181,7 +185,9 @@ async def replay(path: Path, options: ReplayOptions) -> ReplayResult:
     Raises:
         FleetError: The file cannot be read, is not MCAP or holds no message to replay;
             the server refused the token (exit 3) or a topic (no send permission); the
-            link did not drain in time; no_drop messages were dropped.
+            first connection failed (the server not reached, its certificate not
+            trusted, ...); the link did not drain in time; no_drop messages were dropped.
+        ConfigError: ``ca_file`` cannot be loaded.
     """
     if path.is_dir():
         raise FleetError(f"{path}: is a directory, not a recording file")
@@ -189,31 +195,42 @@ async def replay(path: Path, options: ReplayOptions) -> ReplayResult:
         raise FleetError(f"{path}: no such recording file")
     config = ClientConfig(server_url=options.server_url, robot_name=options.robot_name,
                           token=options.token)
-    link = RobotLink(config, on_frame=lambda _frame: None)
-    with _refusals_reported_here():
+    link = RobotLink(config, on_frame=lambda _frame: None,
+                     ssl_context=ca_context(options.ca_file))
+    with _failures_reported_here(link):
         return await _replay_on(link, path, options)
 
 
 @contextlib.contextmanager
-def _refusals_reported_here() -> Iterator[None]:
-    """While replaying, the link's explanations of a refused token are not printed: the
-    replay stops at once with its own one-line error (:func:`_check_refused`), where the
-    link's would add a second, saying it keeps retrying."""
+def _failures_reported_here(link: RobotLink) -> Iterator[None]:
+    """While replaying, the link's explanations of a refused token, and of a failed first
+    connection, are not printed: the replay stops at once with its own one-line error
+    (:func:`_check_refused`), where the link's would add a second, saying it keeps
+    retrying."""
     link_log = logging.getLogger("fleetctl.client.link")
-    refusals = _DropRefusals()
-    link_log.addFilter(refusals)
+    reported = _DropReported(link)
+    link_log.addFilter(reported)
     try:
         yield
     finally:
-        link_log.removeFilter(refusals)
+        link_log.removeFilter(reported)
 
 
-class _DropRefusals(logging.Filter):
-    """Drops the log records the link marks :data:`REFUSAL_RECORD`."""
+class _DropReported(logging.Filter):
+    """Drops the log records the link marks :data:`REFUSAL_RECORD`, and those it marks
+    :data:`UNREACHABLE_RECORD` while it never connected (later outages are waited out,
+    and their explanations are the user's only news of them)."""
+
+    def __init__(self, link: RobotLink) -> None:
+        super().__init__()
+        self.link = link
 
     def filter(self, record: logging.LogRecord) -> bool:
-        """``False`` for a refusal's explanation."""
-        return not getattr(record, REFUSAL_RECORD, False)
+        """``False`` for a refusal's explanation, or a first connection's failure."""
+        if getattr(record, REFUSAL_RECORD, False):
+            return False
+        return not (getattr(record, UNREACHABLE_RECORD, False)
+                    and self.link.stats()["connects"] == 0)
 
 
 async def _replay_on(link: RobotLink, path: Path, options: ReplayOptions) -> ReplayResult:
@@ -256,9 +273,16 @@ def _nothing_to_replay(path: Path, result: ReplayResult) -> str:
 def _check_refused(link: RobotLink) -> None:
     """A refused token is final for a replay (a robot would wait for the auth map to
     change; a person at a terminal wants to know now), and so is one refused for now
-    (too many failed logins from this address: exit 7, with the server's wait)."""
+    (too many failed logins from this address: exit 7, with the server's wait), and a
+    first connection that failed (the server is expected to be up; a robot would wait
+    for it, a replay that waited 30 s said only "never connected")."""
     if link.login_throttle is not None:
         raise throttled_error(f"replay: {link.config.server_url}", link.login_throttle)
+    failed = link.connect_error
+    if failed is not None and link.stats()["connects"] == 0:  # stats(): only on failure
+        url = link.config.server_url
+        raise FleetError(f"replay: --server {url}: "
+                         f"{why_unreachable(failed, url.partition(':')[0])}")
     close = link.last_close or ""
     if close.startswith(("4401", "4403")):
         raise FleetError(f"replay: the server {link.config.server_url} refused this "
@@ -287,12 +311,15 @@ async def _play(path: Path, options: ReplayOptions, link: RobotLink,
     high = int(bounds.no_drop_queue_messages * _QUEUE_HIGH_FRACTION)
     high_bytes = int(bounds.no_drop_queue_bytes * _QUEUE_HIGH_FRACTION)
     first_log: int | None = None
-    t0 = time.monotonic()
+    t0 = 0.0
     for rec in _messages(path):
         if not decoder.usable(rec.type_name, rec.schema):
             result.skipped[rec.type_name] = result.skipped.get(rec.type_name, 0) + 1
             continue
-        first_log = rec.log_ns if first_log is None else first_log
+        if first_log is None:
+            # The clock starts with the first message: the time its schema took to load
+            # (tens of ms on a busy host) was taken off the gap to the second one.
+            first_log, t0 = rec.log_ns, time.monotonic()
         if options.rate is not None:
             delay = t0 + (rec.log_ns - first_log) / 1e9 / options.rate - time.monotonic()
             if delay > 0:
@@ -383,7 +410,8 @@ def register(app: typer.Typer) -> None:
     @app.command("replay")
     def replay_command(
         file: Path = typer.Argument(..., help="The .mcap recording."),
-        server: str = typer.Option(..., "--server", help="ws:// or wss:// URL of the server."),
+        server: str = typer.Option(..., "--server", "-s", help="ws:// or wss:// URL of the "
+                                   "server: `fleetctl up`'s HTTPS port as wss://HOST:PORT/."),
         rate: float = typer.Option(1.0, "--rate", help="Speed: 1 real time, 2 twice as "
                                    "fast; 0: as fast as the link takes them."),
         token_file: Path | None = typer.Option(None, "--token-file",
@@ -393,6 +421,9 @@ def register(app: typer.Typer) -> None:
                                         "/husky1=/ghost1 (repeatable)."),
         latest_only: bool = typer.Option(False, "--latest-only", help="Let the link drop "
                                          "stale messages per topic, as a live robot does."),
+        ca_file: Path | None = typer.Option(None, "--ca-file", help="CA bundle to verify a "
+                                            "wss:// server with (a fleet's own: "
+                                            "FLEET/server/tls/cert.pem)."),
         output: OutputFormat = output_option(),
     ) -> None:
         """Play an MCAP recording into a fleet as a robot, live (real time or faster)."""
@@ -407,7 +438,10 @@ def register(app: typer.Typer) -> None:
             parse_uri(server)
         except (InvalidURI, ValueError) as exc:  # ValueError: urllib's bad IPv6 or port
             raise ConfigError(f"--server {server!r}: not a URL: {exc}") from None
+        if ca_file is not None and not server.startswith("wss://"):
+            raise ConfigError(f"--ca-file: verifies a wss:// server; {server} is plain ws:// "
+                              "(no TLS)")
         options = ReplayOptions(server, rate or None, read_token_file(token_file), robot,
-                                _parse_remap(remap), not latest_only)
+                                _parse_remap(remap), not latest_only, ca_file)
         result = asyncio.run(replay(file, options))
         emit(result, output, lambda: _result_text(result))

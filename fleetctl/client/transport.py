@@ -58,6 +58,7 @@ import logging
 import math
 import random
 import socket
+import ssl
 import threading
 import time
 from collections import Counter, deque
@@ -94,6 +95,11 @@ SESSION_HEADER = "X-Fleetctl-Session"  # fleetctl.server.sessions.SESSION_HEADER
 # filters them out rather than print the link's "retrying" beside its own error.
 REFUSAL_RECORD = "fleetctl_refusal"
 _REFUSAL = {REFUSAL_RECORD: True}
+# Set on the log records that explain a failed connection attempt: a caller that stops at
+# its first failure and says why itself (``fleetctl replay`` before it ever connected)
+# filters them out, as it does the refusals.
+UNREACHABLE_RECORD = "fleetctl_unreachable"
+_UNREACHABLE = {UNREACHABLE_RECORD: True}
 PATH_RTT_DIALS = 5  # the dials whose SYN round trips give the path's (RobotLink._path_rtt_s)
 _MAX_REFUSED_TOPICS = 1024  # topics kept of the server's unauthorized_send errors
 
@@ -226,8 +232,13 @@ class RobotLink:
         wall_clock_ns: Callable[[], int] = time.time_ns,
         scheduler_config: SchedulerConfig | None = None,
         tuning: LinkTuning | None = None,
+        ssl_context: ssl.SSLContext | None = None,
     ) -> None:
         self.config = config
+        # For wss:// URLs; None: the system's CAs (websockets' default). A robot reaches
+        # its server inside the tunnel, plain; `fleetctl replay` reaches a fleet's TLS
+        # port, whose certificate is often the fleet's own (--ca-file).
+        self._ssl_context = ssl_context
         tuning = tuning or LinkTuning()
         # The outage dial pace is the operator's trade-off (client.yaml limits): it wins.
         self.tuning = dataclasses.replace(tuning, dial=dataclasses.replace(
@@ -275,6 +286,7 @@ class RobotLink:
         # and connection); bounded like the server's own memo of them.
         self._refused_topics: set[str] = set()
         self._last_close: str | None = None
+        self._connect_error: BaseException | None = None
         self._identities: list[str] = []
         self._subscribed: set[str] = set()  # confirmed by the server on this connection
         self._acked_any = False  # a pong came back on the current connection
@@ -552,6 +564,13 @@ class RobotLink:
         return self._throttle
 
     @property
+    def connect_error(self) -> BaseException | None:
+        """Why the last connection attempt failed (the exception: ``OSError``, an
+        ``ssl.SSLError``, websockets' ``InvalidHandshake``, ...); ``None`` once one
+        succeeded, and before any failed."""
+        return self._connect_error
+
+    @property
     def last_close(self) -> str | None:
         """How the last connection ended (``"4401 bad token"``, ``"link timeout"``, ...);
         None while no connection has ended."""
@@ -699,6 +718,9 @@ class RobotLink:
             headers[STANDBY_HEADER] = "1"
         if self.config.token is not None:
             headers["Authorization"] = f"Bearer {self.config.token}"
+        tls: dict[str, Any] = {}
+        if self._ssl_context is not None and self._urls[index].startswith("wss://"):
+            tls["ssl"] = self._ssl_context  # websockets refuses one for ws://
         try:
             async with asyncio.timeout(self.tuning.open_timeout_s):
                 ws = await connect(
@@ -708,7 +730,7 @@ class RobotLink:
                     ping_timeout=None, close_timeout=self.tuning.close_timeout_s,
                     max_size=self.tuning.max_receive_frame_bytes,
                     write_limit=self.tuning.write_limit_bytes,
-                    create_connection=LinkConnection)
+                    create_connection=LinkConnection, **tls)
         except BaseException:
             sock.close()  # the handshake failed or timed out: the socket is ours
             raise
@@ -745,6 +767,7 @@ class RobotLink:
             assert isinstance(ws, LinkConnection)
         except (OSError, TimeoutError, InvalidHandshake, InvalidURI) as exc:
             self._counters["connect_failures"] += 1
+            self._connect_error = exc
             # Silence (no SYN-ACK, no refusal): the dialer paced its SYNs; go on at once.
             delay = 0.0 if isinstance(exc, DialTimeout) else self._backoff(attempt + 1)
             throttle = (from_response(exc.response.status_code, exc.response.headers,
@@ -763,6 +786,7 @@ class RobotLink:
             return None
         self._log_bound_again()
         self._log_reachable_again()
+        self._connect_error = None
         return ws
 
     def _check_wall_clock(self, ws: LinkConnection) -> None:
@@ -797,11 +821,12 @@ class RobotLink:
             logger.warning("cannot connect to %s: %s; retrying every %g s or less, quietly "
                            "(a reminder every %g s)", self.url, reason,
                            self.config.limits.reconnect_max_s,
-                           self.tuning.bind_reminder_interval_s)
+                           self.tuning.bind_reminder_interval_s, extra=_UNREACHABLE)
         elif say is Say.REMIND:
             assert outage.since_s is not None
             logger.warning("still cannot connect to %s after %.0f s (%d attempts): %s",
-                           self.url, now - outage.since_s, outage.attempts, reason)
+                           self.url, now - outage.since_s, outage.attempts, reason,
+                           extra=_UNREACHABLE)
         else:
             logger.debug("cannot connect to %s: %s; retrying in %.2f s", self.url, reason,
                          delay_s)

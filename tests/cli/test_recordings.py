@@ -461,8 +461,11 @@ def test_a_bad_ca_file_is_one_line(tmp_path: Path, capsys: pytest.CaptureFixture
     token.chmod(0o600)  # else a warning comes first on stderr
     if content is not None:
         ca.write_text(content)
-    for command in (["recordings", "list"], ["foxglove-url"]):
-        assert main([*command, "-s", "https://127.0.0.1:9/", "--token-file", str(token),
+    write_recording(tmp_path / "rec.mcap", 1)
+    for command, url in ((["recordings", "list"], "https://127.0.0.1:9/"),
+                         (["foxglove-url"], "https://127.0.0.1:9/"),
+                         (["replay", str(tmp_path / "rec.mcap")], "wss://127.0.0.1:9/")):
+        assert main([*command, "-s", url, "--token-file", str(token),
                      "--ca-file", str(ca)]) == ExitCode.CONFIG
         err = capsys.readouterr().err
         assert err.startswith(f"fleetctl: error: --ca-file {ca}: cannot load a CA bundle")

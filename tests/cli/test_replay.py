@@ -1,7 +1,12 @@
-"""``fleetctl replay`` of a damaged recording: one line, the readable part still played."""
+"""``fleetctl replay``: a damaged recording (one line, the readable part still played); a
+fleet's TLS port (``--ca-file``); a server it never reaches (at once, saying why)."""
 
 from __future__ import annotations
 
+import asyncio
+import json
+import socket
+import time
 from collections.abc import Callable
 from pathlib import Path
 
@@ -10,9 +15,12 @@ from mcap.reader import make_reader
 
 from fleetctl.cli.main import main
 from fleetctl.cli.replay import ReplayOptions, replay
-from fleetctl.errors import FleetError
+from fleetctl.errors import ExitCode, FleetError
 from fleetctl.server.app import RelayServer
+from fleetctl.server.config import WebConfig
+from tests.cli.test_recordings import write_recording
 from tests.server.conftest import ALICE_TOKEN, make_server  # noqa: F401
+from tests.server.foxglove.conftest import web_config  # noqa: F401
 from tests.server.recording.damaged import damage, damaged_recording
 
 
@@ -47,3 +55,74 @@ def test_a_damaged_recording_on_the_command_line_is_no_traceback(
     assert "Traceback" not in err
     assert f"{path}: damaged data, the rest of the file cannot be read (" in err
     assert err.rstrip().endswith("nothing before it to replay")
+
+
+def _token_file(tmp_path: Path) -> Path:
+    token = tmp_path / "token"
+    token.write_text(ALICE_TOKEN + "\n")
+    token.chmod(0o600)  # else a warning comes first on stderr
+    return token
+
+
+async def test_replays_into_a_fleets_tls_port_with_its_ca_file(
+        make_server: Callable[..., RelayServer], web_config: WebConfig,  # noqa: F811
+        tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """`fleetctl up` publishes one port, TLS with the fleet's self-signed certificate:
+    replay had no --ca-file, so it could not reach a deployed fleet at all."""
+    write_recording(tmp_path / "rec.mcap", 5, step_ns=1_000_000)
+    async with make_server(web=web_config) as srv:
+        code = await asyncio.to_thread(main, [
+            "replay", str(tmp_path / "rec.mcap"), "--server",
+            f"wss://127.0.0.1:{srv.web_port}/", "--token-file", str(_token_file(tmp_path)),
+            "--ca-file", str(web_config.tls_cert), "--rate", "0", "-o", "json"])
+        received = srv.metrics.messages_in.get("/husky1/chat", 0)
+    assert code == 0, capsys.readouterr().err
+    assert json.loads(capsys.readouterr().out)["messages"] == 5 and received == 5
+
+
+async def test_a_server_never_reached_fails_at_once_saying_why(
+        make_server: Callable[..., RelayServer], web_config: WebConfig,  # noqa: F811
+        tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """A replay that never connected waited 30 s behind the link's 'retrying' warning,
+    then said '5 message(s) still queued ... never connected' (exit 6), whatever the
+    cause: an untrusted certificate, ws:// to the TLS port, nothing listening."""
+    write_recording(tmp_path / "rec.mcap", 5, step_ns=1_000_000)
+    token = str(_token_file(tmp_path))
+    async with make_server(web=web_config) as srv:
+        closed = await asyncio.to_thread(_free_port)
+        for url, expected in (
+                (f"wss://127.0.0.1:{srv.web_port}/",
+                 "its certificate is not trusted (self-signed certificate): give the CA that "
+                 "signed it with --ca-file"),
+                (f"ws://127.0.0.1:{srv.web_port}/",
+                 "the server closed the connection without an answer (a TLS port? use "
+                 "https:// or wss://)"),
+                (f"wss://127.0.0.1:{srv.port}/",
+                 "the connection was accepted but the handshake got no answer in time (a plain "
+                 "ws:// port? use the TLS port"),
+                (f"ws://127.0.0.1:{closed}/", "cannot reach it: "),
+        ):
+            started = time.monotonic()
+            code = await asyncio.to_thread(main, [
+                "replay", str(tmp_path / "rec.mcap"), "--server", url, "--token-file", token,
+                "--rate", "0"])
+            err = capsys.readouterr().err
+            assert code == ExitCode.FAILURE, err
+            assert err.startswith(f"fleetctl: error: replay: --server {url}: {expected}"), err
+            assert err.count("\n") == 1  # not the link's "retrying every 5 s" beside it
+            assert time.monotonic() - started < 15  # not the 30 s drain deadline
+
+
+def _free_port() -> int:
+    with socket.socket() as sock:
+        sock.bind(("127.0.0.1", 0))
+        return int(sock.getsockname()[1])
+
+
+def test_ca_file_is_for_wss_only(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    write_recording(tmp_path / "rec.mcap", 1)
+    assert main(["replay", str(tmp_path / "rec.mcap"), "--server", "ws://127.0.0.1:9/",
+                 "--ca-file", str(tmp_path / "ca.pem")]) == ExitCode.CONFIG
+    assert capsys.readouterr().err == (
+        "fleetctl: error: --ca-file: verifies a wss:// server; ws://127.0.0.1:9/ is plain "
+        "ws:// (no TLS)\n")

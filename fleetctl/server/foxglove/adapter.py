@@ -47,6 +47,12 @@ from fleetctl.wire.codec import Codec, default_codec
 log = logging.getLogger("fleetctl.server.foxglove")
 
 TICKET_PATH = "/foxglove/ticket"
+# Seconds a channel stays advertised after the last connection sending it closed. A robot
+# taking over its standby connection sends again within milliseconds, one reconnecting
+# after a short outage within a few seconds (the relay calls a robot offline after 5 s):
+# both keep their channels, and every viewer its subscriptions. A robot gone for good
+# leaves its channels in the topic list this much longer.
+CHANNEL_LINGER_S = 10.0
 _TICKET_RE = re.compile(r"([?&]ticket=)[^&#\s]*")
 
 
@@ -67,7 +73,7 @@ class FoxgloveAdapter:
         self.write_batch_bytes = write_batch_bytes
         self.codec = codec or default_codec()
         max_bytes = core.limits.max_frame_bytes
-        self.catalog = TopicCatalog(self.codec, max_bytes)
+        self.catalog = TopicCatalog(self.codec, max_bytes, linger_s=CHANNEL_LINGER_S)
         self.transcoder = SharedTranscoder(self.codec, max_bytes)
         self.tickets = tickets if tickets is not None else TicketBook()
         self.viewers: dict[int, Viewer] = {}

@@ -2,9 +2,12 @@
 
 The relay core calls :meth:`TopicCatalog.note` for every accepted frame (hot path: one dict
 lookup per frame once a topic is known) and :meth:`TopicCatalog.forget` when a connection
-closes. A channel ``(topic, type)`` exists while at least one open connection has sent it;
-listeners (the Foxglove adapter) hear when one appears or goes away, and each decides per
-viewer whether its receive rules show it.
+closes. A channel ``(topic, type)`` exists while at least one open connection has sent it,
+and lingers ``linger_s`` after the last one closed: a robot that takes over its standby
+connection or reconnects sends it again on its new connection, and its channel stays
+(unadvertising it ended every viewer's subscription to it). Listeners (the Foxglove
+adapter) hear when one appears or goes away, and each decides per viewer whether its
+receive rules show it.
 
 A fragmented or compressed frame does not say its message's type; for such a topic the
 catalog reassembles and decodes the sender's frames until one message completes (a
@@ -13,6 +16,7 @@ catalog reassembles and decodes the sender's frames until one message completes 
 
 from __future__ import annotations
 
+import asyncio
 import logging
 import time
 from collections.abc import Callable
@@ -45,6 +49,13 @@ class Sender(Protocol):
 Listener = Callable[[Channel, bool], None]
 """Called with ``(channel, added)`` when a channel appears (``True``) or goes (``False``)."""
 
+CallLater = Callable[[float, Callable[[], None]], object]
+"""Runs a callback after a delay in seconds (the event loop's ``call_later``)."""
+
+
+def _loop_call_later(delay_s: float, callback: Callable[[], None]) -> object:
+    return asyncio.get_running_loop().call_later(delay_s, callback)
+
 
 class TopicCatalog:
     """Channels of the topics open connections send.
@@ -53,12 +64,22 @@ class TopicCatalog:
         codec: Decodes frames (type probing); its registry gives the schemas.
         max_message_bytes: Largest reassembled or decompressed frame, bytes (probing).
         clock: Monotonic clock, seconds (reassembly timeouts while probing).
+        linger_s: Seconds a channel stays after its last sender closed; 0: it goes at
+            once.
+        call_later: Runs the end of a linger (default: the running event loop's).
     """
 
     def __init__(self, codec: Codec, max_message_bytes: int,
-                 clock: Callable[[], float] = time.monotonic) -> None:
+                 clock: Callable[[], float] = time.monotonic, linger_s: float = 0.0,
+                 call_later: CallLater = _loop_call_later) -> None:
         self.codec = codec
         self._clock = clock
+        self.linger_s = linger_s  # read at each linger's start
+        self._call_later = call_later
+        # Channels without a sender, lingering: channel id -> the linger's number (a
+        # channel sent again and left again starts a new linger; the old timer is void).
+        self._lingering: dict[int, int] = {}
+        self._lingers = 0
         self._probe = FrameTranscoder(codec, max_message_bytes)
         self._sent: dict[int, dict[str, str]] = {}  # peer id -> topic -> type ("" probing)
         self._probes: dict[tuple[int, str], int] = {}  # frames probed so far
@@ -107,7 +128,24 @@ class TopicCatalog:
             publishers.discard(sender.peer_id)
             if not publishers:
                 del self._publishers[channel_id]
-                self._tell(self._channels.pop(channel_id), added=False)
+                self._linger(channel_id)
+
+    def _linger(self, channel_id: int) -> None:
+        """Keep the channel *channel_id*, now without a sender, for ``linger_s``."""
+        if self.linger_s <= 0:
+            self._end(channel_id)
+            return
+        self._lingers += 1
+        number = self._lingering[channel_id] = self._lingers
+        self._call_later(self.linger_s, lambda: self._linger_ended(channel_id, number))
+
+    def _linger_ended(self, channel_id: int, number: int) -> None:
+        if self._lingering.get(channel_id) == number:  # nobody sent it meanwhile
+            del self._lingering[channel_id]
+            self._end(channel_id)
+
+    def _end(self, channel_id: int) -> None:
+        self._tell(self._channels.pop(channel_id), added=False)
 
     def _probe_type(self, peer_id: int, topic: str, frame: bytes) -> str:
         key = (peer_id, topic)
@@ -136,6 +174,9 @@ class TopicCatalog:
         publishers = self._publishers.get(channel_id)
         if publishers is not None:
             publishers.add(peer_id)
+            return
+        if self._lingering.pop(channel_id, None) is not None:  # sent again: it stays
+            self._publishers[channel_id] = {peer_id}
             return
         schema = self._schema(type_name)
         if schema is None:

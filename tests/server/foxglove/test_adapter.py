@@ -15,6 +15,7 @@ import pytest
 
 from fleetctl.server.app import RelayServer
 from fleetctl.server.config import ServerLimits, WebConfig
+from fleetctl.server.foxglove.adapter import CHANNEL_LINGER_S
 from fleetctl.wire.codec import default_codec
 from tests.server.conftest import ALICE_TOKEN, BOB_TOKEN, client, wait_for
 from tests.server.foxglove.conftest import POSE_TYPE, REFERENCE, SCAN_TYPE, scan, scan_frame
@@ -98,6 +99,7 @@ async def bob_sees_husky1_of_two(
 
 
 async def test_viewer_is_offered_only_what_it_may_receive(fx_server: RelayServer) -> None:
+    fx_server.foxglove.catalog.linger_s = 0.2  # a gone robot's channels linger (10 s)
     async with bob_sees_husky1_of_two(fx_server) as (husky1, husky2, viewer):
         assert viewer.server_info is not None
         assert viewer.server_info["capabilities"] == []  # bob may send nothing
@@ -306,3 +308,45 @@ async def test_each_item_of_a_request_is_a_control_request(fx_server: RelayServe
         # The burst's channels were taken silently, the rest refused with one status.
         assert len(viewer.statuses) == 1 and burst < len(channels)
         assert fx_server.metrics.errors["rate_limited"] == 1
+
+
+async def test_a_robot_reconnecting_keeps_its_channels_and_the_viewers_subscriptions(
+        fx_server: RelayServer) -> None:
+    """A channel went with its last sender's connection: a robot that took over its
+    standby or reconnected (every few minutes on a busy host) had every channel of its
+    unadvertised and advertised again, which ended every viewer's subscriptions to them;
+    a script viewer then got nothing more from that robot."""
+    async with open_viewer(fx_server.web_port, await ticket(fx_server.web_port,
+                                                            ALICE_TOKEN)) as ws:
+        viewer = Viewer(ws)
+        await viewer.until(lambda: viewer.server_info is not None)
+        alone = len(fx_server.core.peers)
+        async with client(fx_server, source="127.0.0.2") as robot:
+            await robot.send(scan_frame("/husky1/scan", 1))
+            await viewer.until(lambda: viewer.channel("/husky1/scan") is not None)
+            channel = viewer.channel("/husky1/scan")
+            assert channel is not None
+            await viewer.subscribe(7, channel["id"])
+            await wait_for(lambda: bool(fx_server.core.subs.receivers("/husky1/scan")))
+        await wait_for(lambda: len(fx_server.core.peers) == alone)  # the server saw it go
+        async with client(fx_server, source="127.0.0.2") as robot:
+            await robot.send(scan_frame("/husky1/scan", 2))
+            await viewer.until(lambda: len(viewer.messages) == 1)
+        sub_id, _stamp, payload = viewer.messages[0]
+        assert sub_id == 7 and REFERENCE.deserialize_cdr(payload, SCAN_TYPE).header.stamp.sec == 2
+        assert "unadvertise" not in viewer.ops
+        assert [c["id"] for c in viewer.channels.values()] == [channel["id"]]
+
+
+async def test_a_channel_nobody_sends_again_goes_after_the_linger(
+        fx_server: RelayServer) -> None:
+    assert fx_server.foxglove.catalog.linger_s == CHANNEL_LINGER_S
+    fx_server.foxglove.catalog.linger_s = 0.2
+    async with open_viewer(fx_server.web_port, await ticket(fx_server.web_port,
+                                                            ALICE_TOKEN)) as ws:
+        viewer = Viewer(ws)
+        async with client(fx_server, source="127.0.0.2") as robot:
+            await robot.send(scan_frame("/husky1/scan", 1))
+            await viewer.until(lambda: viewer.channel("/husky1/scan") is not None)
+        await viewer.until(lambda: "unadvertise" in viewer.ops)
+        assert viewer.channels == {} and fx_server.foxglove.catalog.channels() == []

@@ -3,6 +3,7 @@ and fragmented or compressed topics get their real type."""
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
 
 from fleetctl.server.foxglove.catalog import TopicCatalog
@@ -68,3 +69,22 @@ def test_fragmented_and_compressed_topics_get_their_message_type() -> None:
                       topic="/r/scan_z", no_drop=False)
     note(cat, Sender(1), packed)
     assert heard[-1] == ("/r/scan_z", True)
+
+
+def test_a_channel_lingers_after_its_last_sender_and_stays_when_sent_again() -> None:
+    timers: list[Callable[[], None]] = []
+    heard: list[tuple[str, bool]] = []
+    cat = TopicCatalog(default_codec(), 1 << 24, linger_s=10.0,
+                       call_later=lambda _delay_s, callback: timers.append(callback))
+    cat.listeners.append(lambda channel, added: heard.append((channel.topic, added)))
+    old, new = Sender(1), Sender(2)
+    note(cat, old, string_frame("/r/chat"))
+    cat.forget(old)  # the robot's connection closed...
+    note(cat, new, string_frame("/r/chat"))  # ...and its next one sends the topic again
+    timers.pop()()  # the first linger ends: void, the channel has a sender
+    assert heard == [("/r/chat", True)] and len(cat.channels()) == 1
+    cat.forget(new)
+    note(cat, old, string_frame("/r/other"))
+    timers.pop()()
+    assert heard == [("/r/chat", True), ("/r/other", True), ("/r/chat", False)]
+    assert [c.topic for c in cat.channels()] == ["/r/other"]

@@ -269,6 +269,9 @@ async def check_typed_goal_refuses_bad_input(page: Any) -> None:
     assert (await error.text_content() or "").startswith('Not sent: x: "abc" is not a number')
     assert await page.get_attribute("#pose-x", "aria-invalid") == "true"
     assert await page.evaluate("fleetviz.views.map.tool") == "goal"  # still armed
+    if SCREENSHOTS:
+        path = Path(SCREENSHOTS) / "pose-form-error.png"
+        await page.locator("#panel-map").screenshot(path=str(path))
 
 
 async def check_form_screenshots(page: Any) -> None:

@@ -6,13 +6,12 @@ import { LayoutLoader } from "./fb/layout.js";
 import { throttledText } from "./loginthrottle.js";
 import { GOAL, INITIAL, goalMessage, initialPoseMessage } from "./commands.js";
 import { PANELS, reEscape, wantedRegexes } from "./panels.js";
-import { initialPose, keyedPose } from "./poseform.js";
 import { CameraView } from "./views/camera.js";
 import { CloudView } from "./views/cloud.js";
 import { GpsView } from "./views/gps.js";
 import { MapView } from "./views/map.js";
 import { OdomView } from "./views/odom.js";
-import { PoseEntry } from "./views/poseentry.js";
+import { PoseTools } from "./views/posetools.js";
 import { ago, duration, renderOverview, robotRow, toEpochS } from "./views/overview.js";
 import { ScanView } from "./views/scan.js";
 import { SceneView } from "./views/scene.js";
@@ -205,21 +204,24 @@ class App {
       scan: new ScanView($("#scan-canvas")),
       cloud: new CloudView($("#cloud-canvas")),
       map: new MapView($("#map-canvas"), (kind, x, y, yaw) => this.sendPose(kind, x, y, yaw), {
-        scale: $("#map-scale"), onAim: (kind, x, y, yaw) => this.onAim(kind, x, y, yaw),
-        onKey: (e) => this.mapKey(e),
+        scale: $("#map-scale"), onAim: (kind, x, y, yaw) => this.tools.onAim(kind, x, y, yaw),
+        onKey: (e) => this.tools.onKey(e),
       }),
       odom: new OdomView($("#odom-text")),
       gps: new GpsView($("#gps-map"), $("#gps-text")),
     };
-    this.poseEntry ??= new PoseEntry({
-      form: $("#pose-form"), x: $("#pose-x"), y: $("#pose-y"), yaw: $("#pose-yaw"),
-      frame: $("#pose-frame"), error: $("#pose-error"), cancel: $("#pose-cancel"),
-    }, {
-      onSubmit: (pose) => this.submitPose(pose),
-      onCancel: () => this.cancelTool(),
-      onChange: (pose, typed) => this.views.map.setPreview(pose, typed),
+    this.tools ??= new PoseTools({
+      map: this.views.map,
+      form: {
+        form: $("#pose-form"), x: $("#pose-x"), y: $("#pose-y"), yaw: $("#pose-yaw"),
+        frame: $("#pose-frame"), error: $("#pose-error"), cancel: $("#pose-cancel"),
+      },
+      buttons: { goal: $("#tool-goal"), initialpose: $("#tool-initial") },
+      say: (text) => this.commandStatus(text),
+      send: (kind, x, y, yaw) => this.sendPose(kind, x, y, yaw),
+      frameId: () => this.frameId,
     });
-    this.cancelTool(); // a tool armed for the last robot, its form holding that one's pose
+    this.tools.cancel(); // a tool armed for the last robot, its form holding that one's pose
     this.views.map.reset();
     if (this.shownRobot !== name) {
       // Another robot: nothing the last one showed is this one's (its camera frame, scan,
@@ -280,100 +282,8 @@ class App {
       : "";
   }
 
-  /**
-   * A tool button: the map waits for a press and drag, and the form under it for a typed
-   * pose, focused (the button again, Esc or Cancel cancels). Without a mouse, or for an
-   * exact pose (a dock at x=12.5, y=-3.0, yaw 180°), a drag was no way.
-   */
-  armTool(kind, byKeyboard = false) {
-    const map = this.views.map;
-    if (map.tool === kind) return this.cancelTool();
-    map.cancelDrag();
-    map.setTool(kind);
-    const lastSent = map.sent.find((p) => p.kind === kind);
-    this.poseEntry.show(toolLabel(kind), initialPose(lastSent, map.pose, map.center), this.frameId);
-    // A pointer on its way to the map: focus without scrolling the form into view, which
-    // would move the map under it.
-    this.poseEntry.focus(!byKeyboard);
-    this.commandStatus(`${toolLabel(kind)}: press on the map where it is, drag toward the heading and release; ` +
-      "or type x, y and yaw and press Enter; or move it with the arrow keys and Q/E on the focused map (Esc cancels).");
-    this.showTool();
-  }
-
-  /** Disarm the map's tool, a press in progress included (nothing is sent). */
-  cancelTool() {
-    const map = this.views?.map;
-    if (!map?.tool) return;
-    const kind = map.tool;
-    this.disarm(kind);
-    this.commandStatus(`${toolLabel(kind)}: cancelled.`);
-  }
-
-  /** Drop the tool and its form; focus that was in the form goes to the tool's button. */
-  disarm(kind) {
-    const refocus = this.poseEntry.hasFocus();
-    this.views.map.cancelDrag();
-    this.views.map.setTool(null);
-    this.poseEntry.hide();
-    this.showTool();
-    if (refocus) $(kind === "goal" ? "#tool-goal" : "#tool-initial").focus();
-  }
-
-  /** The form's pose (Enter, Send, or Enter on the map): sent as a drag to it would be. */
-  submitPose(pose) {
-    const kind = this.views.map.tool;
-    if (!kind) return;
-    this.disarm(kind);
-    this.sendPose(kind, pose.x, pose.y, pose.yaw);
-  }
-
-  /**
-   * A key on the focused map with a tool armed: arrows move the pose, Q/E turn it (the
-   * form follows), Enter sends it. Returns whether the key was used.
-   */
-  mapKey(e) {
-    if (e.ctrlKey || e.altKey || e.metaKey) return false;
-    if (e.key === "Enter") {
-      const pose = this.poseEntry.read();
-      if (pose) this.submitPose(pose);
-      return true;
-    }
-    const from = this.poseEntry.parse().pose ?? this.views.map.preview;
-    const next = from && keyedPose(from, e.key, e.shiftKey);
-    if (!next) return false;
-    this.poseEntry.setPose(next);
-    this.views.map.setPreview(next, true);
-    this.aimStatus(this.views.map.tool, next.x, next.y, next.yaw, "Enter to send");
-    return true;
-  }
-
-  showTool() {
-    const tool = this.views.map.tool;
-    $("#tool-goal").classList.toggle("active", tool === "goal");
-    $("#tool-initial").classList.toggle("active", tool === "initialpose");
-  }
-
-  /** The pointer over the map with a tool armed; while dragging, the form follows. */
-  onAim(kind, x, y, yaw) {
-    if (yaw !== null) this.poseEntry.setPose({ x, y, yaw });
-    this.aimStatus(kind, x, y, yaw);
-  }
-
-  /**
-   * Where an armed tool points, in metres and degrees, as the pointer moves: the pose sent
-   * was said only after the release, so a goal could not be placed to a number.
-   */
-  aimStatus(kind, x, y, yaw, send = "release to send") {
-    const where = `${toolLabel(kind)} at x=${x.toFixed(2)} m y=${y.toFixed(2)} m`;
-    this.commandStatus(yaw === null
-      ? `${where} (${this.frameId}): press here, drag toward the heading and release (Esc cancels).`
-      : `${where}, yaw=${((yaw * 180) / Math.PI).toFixed(0)}° (${this.frameId}): ${send} (Esc cancels).`);
-  }
-
   async sendPose(kind, x, y, yaw) {
-    $("#tool-goal").classList.remove("active");
-    $("#tool-initial").classList.remove("active");
-    this.poseEntry.hide(); // a drag sends without the form
+    this.tools.sent();
     const cmd = kind === "goal" ? GOAL : INITIAL;
     const topic = `/${this.robot}${cmd.suffix}`;
     if (!this.conn.rules.canSend(topic)) {
@@ -552,12 +462,6 @@ class App {
   }
 }
 
-/** "Navigation goal" / "Initial pose" for a map tool. */
-function toolLabel(kind) {
-  const label = kind === "goal" ? GOAL.label : INITIAL.label;
-  return `${label[0].toUpperCase()}${label.slice(1)}`;
-}
-
 async function main() {
   let config;
   try {
@@ -593,10 +497,10 @@ async function main() {
   });
   $("#pause").addEventListener("click", () => app.togglePause());
   // detail 0: a click made by the keyboard (Enter or Space on the button).
-  $("#tool-goal").addEventListener("click", (e) => app.armTool("goal", e.detail === 0));
-  $("#tool-initial").addEventListener("click", (e) => app.armTool("initialpose", e.detail === 0));
+  $("#tool-goal").addEventListener("click", (e) => app.tools.arm("goal", e.detail === 0));
+  $("#tool-initial").addEventListener("click", (e) => app.tools.arm("initialpose", e.detail === 0));
   document.addEventListener("keydown", (e) => {
-    if (e.key === "Escape") app.cancelTool();
+    if (e.key === "Escape") app.tools?.cancel();
   });
   for (const p of PANELS) {
     $(`#show-${p.id}`).addEventListener("change", (e) => app.togglePanel(p.id, e.target.checked));

@@ -151,7 +151,8 @@ class Remote:
             throttled = loginthrottle.from_response(exc.code, exc.headers, time.time())
             if throttled is not None:
                 raise throttled_error(f"{self.url}: GET {path}", throttled) from None
-            detail = exc.read().decode("utf-8", "replace").strip()
+            detail = _without_request_line(exc.read().decode("utf-8", "replace").strip(),
+                                           path)
             if exc.code == 401 and self.token is None:
                 detail += " (give it with --token-file FILE)"
             # A token the fleet refuses is the caller's to fix (exit 3, as `replay`).
@@ -162,6 +163,13 @@ class Remote:
             reason = getattr(exc, "reason", exc)
             raise FleetError(f"--server {self.url}: "
                              f"{why_unreachable(reason, parts.scheme)}") from None
+
+
+def _without_request_line(detail: str, path: str) -> str:
+    """The server's reason without the ``GET /path`` it starts with (some answers say
+    it; the error already does)."""
+    said = f"GET {path}"
+    return detail[len(said):].lstrip(": ") if detail.startswith(said) else detail
 
 
 def list_remote(remote: Remote) -> list[RemoteRecording]:
@@ -213,11 +221,15 @@ def fetch_from_replicas(remotes: list[Remote], name: str, target: Path) -> Fetch
         try:
             return fetch_remote(remote, name, target)
         except FleetError as exc:
-            if ": 404 " not in str(exc) or len(remotes) == 1:
+            if ": 404 " not in str(exc):
                 raise
             missing.append(remote.url)
-    raise FleetError(f"recording {name!r} is on none of {', '.join(missing)} (or this "
-                     "token may not receive all of its topics)")
+    where = (f"is not on {missing[0]}" if len(missing) == 1
+             else f"is on none of {', '.join(missing)}")
+    # A name listed a minute ago may be gone: the bounds delete the oldest files.
+    raise FleetError(f"recording {name!r} {where} (or this token may not "
+                     "receive all of its topics); the server deletes the oldest files past "
+                     "its disk bounds: see `fleetctl recordings list`")
 
 
 def fetch_remote(remote: Remote, name: str, target: Path) -> Fetched:

@@ -33,7 +33,12 @@ from fleetctl.cli.reach import ca_context, why_unreachable
 from fleetctl.cli.throttled import throttled_error
 from fleetctl.cli.tokenfile import read_token_file
 from fleetctl.client.config import ClientConfig
-from fleetctl.client.transport import REFUSAL_RECORD, UNREACHABLE_RECORD, RobotLink
+from fleetctl.client.transport import (
+    REFUSAL_RECORD,
+    REFUSED_TOPIC_RECORD,
+    UNREACHABLE_RECORD,
+    RobotLink,
+)
 from fleetctl.deploy.topics import TOPIC
 from fleetctl.errors import ConfigError, ExitCode, FleetError
 from fleetctl.server.recording import files
@@ -206,7 +211,8 @@ def _failures_reported_here(link: RobotLink) -> Iterator[None]:
     """While replaying, the link's explanations of a refused token, and of a failed first
     connection, are not printed: the replay stops at once with its own one-line error
     (:func:`_check_refused`), where the link's would add a second, saying it keeps
-    retrying."""
+    retrying. Nor are its warnings of refused topics: the replay's error names them all
+    (:func:`_check_delivered`), where the link printed one line per topic above it."""
     link_log = logging.getLogger("fleetctl.client.link")
     reported = _DropReported(link)
     link_log.addFilter(reported)
@@ -217,9 +223,10 @@ def _failures_reported_here(link: RobotLink) -> Iterator[None]:
 
 
 class _DropReported(logging.Filter):
-    """Drops the log records the link marks :data:`REFUSAL_RECORD`, and those it marks
-    :data:`UNREACHABLE_RECORD` while it never connected (later outages are waited out,
-    and their explanations are the user's only news of them)."""
+    """Drops the log records the link marks :data:`REFUSAL_RECORD` or
+    :data:`REFUSED_TOPIC_RECORD`, and those it marks :data:`UNREACHABLE_RECORD` while it
+    never connected (later outages are waited out, and their explanations are the user's
+    only news of them)."""
 
     def __init__(self, link: RobotLink) -> None:
         super().__init__()
@@ -227,7 +234,8 @@ class _DropReported(logging.Filter):
 
     def filter(self, record: logging.LogRecord) -> bool:
         """``False`` for a refusal's explanation, or a first connection's failure."""
-        if getattr(record, REFUSAL_RECORD, False):
+        if getattr(record, REFUSAL_RECORD, False) or getattr(record, REFUSED_TOPIC_RECORD,
+                                                             False):
             return False
         return not (getattr(record, UNREACHABLE_RECORD, False)
                     and self.link.stats()["connects"] == 0)

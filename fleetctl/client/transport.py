@@ -100,6 +100,11 @@ _REFUSAL = {REFUSAL_RECORD: True}
 # filters them out, as it does the refusals.
 UNREACHABLE_RECORD = "fleetctl_unreachable"
 _UNREACHABLE = {UNREACHABLE_RECORD: True}
+# Set on the server's refusals of a topic (unauthorized_send, once per topic and
+# connection), which ``stats()["refused_topics"]`` lists: ``fleetctl replay`` names them
+# all in its one-line error instead.
+REFUSED_TOPIC_RECORD = "fleetctl_refused_topic"
+_REFUSED_TOPIC = {REFUSED_TOPIC_RECORD: True}
 PATH_RTT_DIALS = 5  # the dials whose SYN round trips give the path's (RobotLink._path_rtt_s)
 _MAX_REFUSED_TOPICS = 1024  # topics kept of the server's unauthorized_send errors
 
@@ -1304,7 +1309,8 @@ class RobotLink:
             if code in ("bad_token", "login_throttled"):  # the close that follows says it
                 logger.debug("server error bad_token: %s", event.get("message"))
             elif isinstance(topic, str):
-                logger.warning("server error %s on %s: %s", code, topic, event.get("message"))
+                logger.warning("server error %s on %s: %s", code, topic, event.get("message"),
+                               extra=_REFUSED_TOPIC if code == "unauthorized_send" else None)
             else:  # "on None" was printed for errors about no topic
                 logger.warning("server error %s: %s", code, event.get("message"))
         else:

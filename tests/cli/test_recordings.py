@@ -470,3 +470,31 @@ def test_a_bad_ca_file_is_one_line(tmp_path: Path, capsys: pytest.CaptureFixture
         err = capsys.readouterr().err
         assert err.startswith(f"fleetctl: error: --ca-file {ca}: cannot load a CA bundle")
         assert why in err and err.count("\n") == 1
+
+
+async def test_a_refused_or_missing_recording_is_said_once_with_what_to_do(
+        make_server: Callable[..., RelayServer], tmp_path: Path,  # noqa: F811
+        capsys: pytest.CaptureFixture[str]) -> None:
+    """A wrong token said 'GET /recordings: 401 GET /recordings: the Bearer token matches
+    ...' (the path twice); a file the disk bounds had deleted since it was listed said
+    only '404 no recording ...'."""
+    rec = tmp_path / "rec"
+    rec.mkdir()
+    token = tmp_path / "token"
+    token.write_text("not-a-token\n")
+    token.chmod(0o600)
+    config = RecordingConfig(rec, (RecordingRule("/nothing"),))
+    async with make_server(recording=config) as srv:
+        remote = ["--server", srv.url, "--token-file", str(token)]
+        assert await asyncio.to_thread(main, ["recordings", "list", *remote]) == \
+            ExitCode.CONFIG
+        err = capsys.readouterr().err
+        assert err.startswith(f"fleetctl: error: {srv.url}: GET /recordings: 401 ") and \
+            err.count("GET /recordings") == 1, err
+        token.write_text(ALICE_TOKEN + "\n")
+        assert await asyncio.to_thread(main, ["recordings", "fetch", "fleet_gone.mcap",
+                                              *remote, "--to", str(tmp_path)]) == 1
+        assert capsys.readouterr().err == (
+            f"fleetctl: error: recording 'fleet_gone.mcap' is not on {srv.url} (or this "
+            "token may not receive all of its topics); the server deletes the oldest files "
+            "past its disk bounds: see `fleetctl recordings list`\n")

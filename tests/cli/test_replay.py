@@ -6,6 +6,7 @@ from __future__ import annotations
 import asyncio
 import json
 import socket
+import sys
 import time
 from collections.abc import Callable
 from pathlib import Path
@@ -19,7 +20,7 @@ from fleetctl.errors import ExitCode, FleetError
 from fleetctl.server.app import RelayServer
 from fleetctl.server.config import WebConfig
 from tests.cli.test_recordings import write_recording
-from tests.server.conftest import ALICE_TOKEN, make_server  # noqa: F401
+from tests.server.conftest import ALICE_TOKEN, BOB_TOKEN, make_server  # noqa: F401
 from tests.server.foxglove.conftest import web_config  # noqa: F401
 from tests.server.recording.damaged import damage, damaged_recording
 
@@ -82,7 +83,7 @@ async def test_replays_into_a_fleets_tls_port_with_its_ca_file(
 
 async def test_a_server_never_reached_fails_at_once_saying_why(
         make_server: Callable[..., RelayServer], web_config: WebConfig,  # noqa: F811
-        tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+        tmp_path: Path) -> None:
     """A replay that never connected waited 30 s behind the link's 'retrying' warning,
     then said '5 message(s) still queued ... never connected' (exit 6), whatever the
     cause: an untrusted certificate, ws:// to the TLS port, nothing listening."""
@@ -103,14 +104,24 @@ async def test_a_server_never_reached_fails_at_once_saying_why(
                 (f"ws://127.0.0.1:{closed}/", "cannot reach it: "),
         ):
             started = time.monotonic()
-            code = await asyncio.to_thread(main, [
-                "replay", str(tmp_path / "rec.mcap"), "--server", url, "--token-file", token,
-                "--rate", "0"])
-            err = capsys.readouterr().err
+            code, err = await _replay_process(tmp_path / "rec.mcap", "--server", url,
+                                              "--token-file", token, "--rate", "0")
             assert code == ExitCode.FAILURE, err
             assert err.startswith(f"fleetctl: error: replay: --server {url}: {expected}"), err
             assert err.count("\n") == 1  # not the link's "retrying every 5 s" beside it
             assert time.monotonic() - started < 15  # not the 30 s drain deadline
+
+
+async def _replay_process(*args: object) -> tuple[int, str]:
+    """``fleetctl replay ARGS`` in a process of its own (its link logs to stderr there,
+    through Python's last resort handler; pytest's log capture hides that here):
+    the exit code and stderr."""
+    proc = await asyncio.create_subprocess_exec(
+        sys.executable, "-m", "fleetctl.cli.main", "replay", *map(str, args),
+        stdout=asyncio.subprocess.DEVNULL, stderr=asyncio.subprocess.PIPE)
+    _out, err = await asyncio.wait_for(proc.communicate(), 60)
+    assert proc.returncode is not None
+    return proc.returncode, err.decode()
 
 
 def _free_port() -> int:
@@ -126,3 +137,20 @@ def test_ca_file_is_for_wss_only(tmp_path: Path, capsys: pytest.CaptureFixture[s
     assert capsys.readouterr().err == (
         "fleetctl: error: --ca-file: verifies a wss:// server; ws://127.0.0.1:9/ is plain "
         "ws:// (no TLS)\n")
+
+
+async def test_topics_refused_are_one_line(
+        make_server: Callable[..., RelayServer], tmp_path: Path) -> None:  # noqa: F811
+    """A token without send rules for a fleet recording's 19 topics printed the link's
+    19 'server error unauthorized_send on ...' warnings above the error that names them."""
+    write_recording(tmp_path / "rec.mcap", 5, step_ns=1_000_000)
+    token = tmp_path / "bob.token"
+    token.write_text(BOB_TOKEN + "\n")
+    token.chmod(0o600)
+    async with make_server() as srv:
+        code, err = await _replay_process(tmp_path / "rec.mcap", "-s", srv.url,
+                                          "--token-file", token, "--rate", "0")
+    assert code == ExitCode.FAILURE
+    assert err == ("fleetctl: error: replay: the server refused 1 topic(s), no send "
+                   "permission for this identity: /husky1/chat (give it send rules, or "
+                   "--remap to topics it may send)\n")

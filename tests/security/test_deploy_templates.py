@@ -82,6 +82,8 @@ CONTEXTS: dict[str, dict[str, Any]] = {
         # fleet.yaml's recording section (a FleetRecording; its fields by name).
         "recording": {"topics": ["/.*/map", "/husky1/.*"], "max_file_bytes": 268435456,
                       "max_total_bytes": 10737418240, "max_age_s": 604800},
+        # The fleet's own message types (FLEET/msg_types): (pkg/msg/Name, .msg text).
+        "msg_types": [["my_robot_msgs/msg/Status", "uint8 level\nstring text  # why\n"]],
     },
     "robot/fleetctl-client.service.j2": {
         "description": "fleetctl robot client of husky1 (fleet campus)", "interface": "fleet0",

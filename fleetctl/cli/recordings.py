@@ -73,11 +73,22 @@ class Fetched:
         source: The recording read (a path, or the server's URL of it).
         target: The complete copy written.
         messages: Messages copied.
+        still_open: The source was not closed (being written, or its writer stopped):
+            the copy ends at its last flush (``flush_interval_s``); a later fetch of a
+            file being written gets more.
     """
 
     source: str
     target: Path
     messages: int
+    still_open: bool = False
+
+    def text(self) -> str:
+        """One line for the terminal."""
+        if self.still_open:
+            return (f"wrote {self.target} ({self.messages} messages so far: the file is "
+                    "still open (being written); this copy ends at its last flush)")
+        return f"wrote {self.target} ({self.messages} messages)"
 
 
 @dataclass(frozen=True)
@@ -269,7 +280,7 @@ def fetch_remote(remote: Remote, name: str, target: Path) -> Fetched:
             part.chmod(_new_file_mode())  # as the copy of an open file gets (mkstemp: 0600)
             _link_new(part, target)
             return Fetched(source, target, files.describe(target)["messages"])
-        return Fetched(source, target, files.export(part, target))
+        return Fetched(source, target, files.export(part, target), still_open=True)
     except OSError as exc:
         raise _cannot_write(target, exc) from None
     finally:
@@ -417,7 +428,8 @@ def fetch(directory: Path, name: str, target: Path) -> Fetched:
     if not source.is_file():
         raise FleetError(f"{source}: no such recording (see `fleetctl recordings list`)")
     target = _target_file(target, name)
-    return Fetched(str(source), target, files.export(source, target))
+    open_now = not files.is_complete(source)
+    return Fetched(str(source), target, files.export(source, target), still_open=open_now)
 
 
 def _remote_text(found: list[RemoteRecording], urls: list[str]) -> str:
@@ -495,6 +507,6 @@ def register(app: typer.Typer) -> None:
             result = fetch_from_replicas([Remote(u, token, ca_file) for u in server], name, to)
         else:
             result = fetch(recording_dir(config, directory), name, to)
-        emit(result, output, lambda: f"wrote {result.target} ({result.messages} messages)")
+        emit(result, output, result.text)
 
     app.add_typer(rec_app, name="recordings")

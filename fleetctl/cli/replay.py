@@ -30,6 +30,7 @@ from websockets.uri import parse_uri
 
 from fleetctl.cli.output import OutputFormat, emit, output_option
 from fleetctl.cli.reach import ca_context, why_unreachable
+from fleetctl.cli.replayfiles import recording_files
 from fleetctl.cli.throttled import throttled_error
 from fleetctl.cli.tokenfile import read_token_file
 from fleetctl.client.config import ClientConfig
@@ -155,18 +156,20 @@ class _Recorded(NamedTuple):
 
 
 def _messages(path: Path) -> Iterator[_Recorded]:
-    """The file's messages in file order.
+    """The messages of the file (or of the bag directory's files, one after another)
+    in file order.
 
     Raises:
         files.DamagedRecording: A record cannot be read (what came before it was yielded).
     """
-    latched: dict[int, bool] = {}
-    for schema, channel, message in files.read_messages(path):
-        if channel.id not in latched:
-            latched[channel.id] = is_latched(channel.metadata)
-        yield _Recorded(channel.topic, schema.name if schema is not None else "",
-                        schema.data if schema is not None else None, message.log_time,
-                        message.data, message.sequence, latched[channel.id])
+    for recording in recording_files(path):
+        latched: dict[int, bool] = {}  # channel ids are the file's own
+        for schema, channel, message in files.read_messages(recording):
+            if channel.id not in latched:
+                latched[channel.id] = is_latched(channel.metadata)
+            yield _Recorded(channel.topic, schema.name if schema is not None else "",
+                            schema.data if schema is not None else None, message.log_time,
+                            message.data, message.sequence, latched[channel.id])
 
 
 def is_latched(metadata: Mapping[str, str]) -> bool:
@@ -187,6 +190,9 @@ async def replay(path: Path, options: ReplayOptions) -> ReplayResult:
     """Play *path* into the fleet at *options.server_url*; return when every frame was
     sent (and, with ``no_drop``, acknowledged by the server).
 
+    *path* is an MCAP file, or a rosbag2 bag directory (its ``.mcap`` files, in order:
+    :mod:`fleetctl.cli.replayfiles`).
+
     Raises:
         FleetError: The file cannot be read, is not MCAP or holds no message to replay;
             the server refused the token (exit 3) or a topic (no send permission); the
@@ -194,10 +200,7 @@ async def replay(path: Path, options: ReplayOptions) -> ReplayResult:
             trusted, ...); the link did not drain in time; no_drop messages were dropped.
         ConfigError: ``ca_file`` cannot be loaded.
     """
-    if path.is_dir():
-        raise FleetError(f"{path}: is a directory, not a recording file")
-    if not path.is_file():
-        raise FleetError(f"{path}: no such recording file")
+    recording_files(path)  # a bad path is said before anything connects
     config = ClientConfig(server_url=options.server_url, robot_name=options.robot_name,
                           token=options.token)
     link = RobotLink(config, on_frame=lambda _frame: None,
@@ -417,7 +420,8 @@ def register(app: typer.Typer) -> None:
 
     @app.command("replay")
     def replay_command(
-        file: Path = typer.Argument(..., help="The .mcap recording."),
+        file: Path = typer.Argument(..., help="The .mcap recording, or a rosbag2 bag "
+                                    "directory (ros2 bag record -s mcap)."),
         server: str = typer.Option(..., "--server", "-s", help="ws:// or wss:// URL of the "
                                    "server: `fleetctl up`'s HTTPS port as wss://HOST:PORT/."),
         rate: float = typer.Option(1.0, "--rate", help="Speed: 1 real time, 2 twice as "

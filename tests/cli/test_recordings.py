@@ -319,8 +319,9 @@ async def test_replay_of_a_recording_without_messages_is_an_error(
         options = ReplayOptions(srv.url, rate=None, token=ALICE_TOKEN)
         with pytest.raises(FleetError, match=r"empty\.mcap: no message to replay"):
             await replay(tmp_path / "empty.mcap", options)
-        with pytest.raises(FleetError, match="is a directory, not a recording file"):
-            await replay(tmp_path, options)
+        (tmp_path / "no recordings").mkdir()
+        with pytest.raises(FleetError, match=r"no \.mcap file in this directory"):
+            await replay(tmp_path / "no recordings", options)
 
 
 async def test_replay_sends_latched_topics_latched_for_late_viewers(
@@ -498,3 +499,22 @@ async def test_a_refused_or_missing_recording_is_said_once_with_what_to_do(
             f"fleetctl: error: recording 'fleet_gone.mcap' is not on {srv.url} (or this "
             "token may not receive all of its topics); the server deletes the oldest files "
             "past its disk bounds: see `fleetctl recordings list`\n")
+
+
+def test_a_fetch_of_the_open_file_says_it_is_a_copy_so_far(
+        tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """'wrote X (233 messages)' alone: nothing said the server was still writing it and
+    the copy ended at its last flush."""
+    rec = tmp_path / "rec"
+    rec.mkdir()
+    still_open = write_recording(rec / "fleet_a.mcap", 7, close=False)
+    write_recording(rec / "fleet_b.mcap", 3)
+    for name, said in (("fleet_a.mcap", "wrote {} (7 messages so far: the file is still "
+                        "open (being written); this copy ends at its last flush)\n"),
+                       ("fleet_b.mcap", "wrote {} (3 messages)\n")):
+        assert main(["recordings", "fetch", name, "-d", str(rec), "--to", str(tmp_path)]) == 0
+        assert capsys.readouterr().out == said.format(tmp_path / name)
+    assert main(["recordings", "fetch", "fleet_a.mcap", "-d", str(rec), "--to",
+                 str(tmp_path / "again.mcap"), "-o", "json"]) == 0
+    assert json.loads(capsys.readouterr().out)["still_open"] is True
+    still_open.close()

@@ -10,19 +10,29 @@ import sys
 import time
 from collections.abc import Callable
 from pathlib import Path
+from typing import Any
 
 import pytest
 from mcap.reader import make_reader
+from rosbags.rosbag2 import StoragePlugin, Writer
+from rosbags.typesys import Stores, get_typestore
 
 from fleetctl.cli.main import main
 from fleetctl.cli.replay import ReplayOptions, replay
 from fleetctl.errors import ExitCode, FleetError
 from fleetctl.server.app import RelayServer
 from fleetctl.server.config import WebConfig
-from tests.cli.test_recordings import write_recording
-from tests.server.conftest import ALICE_TOKEN, BOB_TOKEN, make_server  # noqa: F401
+from tests.cli.test_recordings import STRING, T0, write_recording
+from tests.server.conftest import (  # noqa: F401
+    ALICE_TOKEN,
+    BOB_TOKEN,
+    client,
+    make_server,
+    subscribe,
+)
 from tests.server.foxglove.conftest import web_config  # noqa: F401
 from tests.server.recording.damaged import damage, damaged_recording
+from tests.support import decode_text
 
 
 async def test_a_damaged_chunk_is_one_line_after_the_readable_messages(
@@ -154,3 +164,43 @@ async def test_topics_refused_are_one_line(
     assert err == ("fleetctl: error: replay: the server refused 1 topic(s), no send "
                    "permission for this identity: /husky1/chat (give it send rules, or "
                    "--remap to topics it may send)\n")
+
+
+async def test_replays_a_rosbag2_bag_directory(
+        make_server: Callable[..., RelayServer], tmp_path: Path) -> None:  # noqa: F811
+    """`ros2 bag record -s mcap` makes a directory (metadata.yaml and NAME_0.mcap, ...):
+    replay said 'is a directory, not a recording file'. Its files are played in the
+    order metadata.yaml lists them, as one recording."""
+    store = get_typestore(Stores.ROS2_JAZZY)
+    string = store.types[STRING]
+    bag = tmp_path / "bag"
+    with Writer(bag, version=9, storage_plugin=StoragePlugin.MCAP) as writer:
+        chat = writer.add_connection("/husky1/chat", STRING, typestore=store)
+        for i in range(4):
+            writer.write(chat, T0 + i * 1_000_000,
+                         store.serialize_cdr(string(data=f"message {i}"), STRING))
+    (bag / "notes.txt").write_text("not a recording")
+    async with make_server() as srv, client(srv, token=ALICE_TOKEN) as viewer:
+        assert (await subscribe(viewer, "/husky1/.*"))["type"] == "subscribed"
+        result = await replay(bag, ReplayOptions(srv.url, rate=None, token=ALICE_TOKEN))
+        got = [decode_text(f) for f in await _frames(viewer, 4)]
+    assert result.messages == 4 and got == [f"message {i}" for i in range(4)]
+
+
+async def _frames(viewer: Any, n: int) -> list[bytes]:
+    frames: list[bytes] = []
+    while len(frames) < n:
+        frame = await asyncio.wait_for(viewer.recv(), 5.0)
+        if isinstance(frame, bytes):
+            frames.append(frame)
+    return frames
+
+
+def test_a_directory_without_recordings_says_what_it_takes(tmp_path: Path) -> None:
+    (tmp_path / "bag").mkdir()
+    (tmp_path / "bag" / "rec_0.db3").write_bytes(b"SQLite format 3\0")
+    with pytest.raises(FleetError) as caught:
+        asyncio.run(replay(tmp_path / "bag", ReplayOptions("ws://127.0.0.1:9/")))
+    assert str(caught.value) == (
+        f"{tmp_path / 'bag'}: no .mcap file in this directory (replay takes an MCAP file, or "
+        "a rosbag2 bag recorded with `-s mcap`; a .db3 bag converts with rosbags-convert)")

@@ -137,7 +137,8 @@ class RelayServer:
         if recording is not None and config.cluster is not None:  # sharded by replica
             recording = dataclasses.replace(recording, file_label=config.cluster.name)
         self.recorder = (None if recording is None else
-                         Recorder(recording, max_message_bytes=config.limits.max_frame_bytes))
+                         Recorder(recording, max_message_bytes=config.limits.max_frame_bytes,
+                                  msg_types=config.msg_types))
         self.core = RelayCore(config, auth, self.registry, self.metrics,
                               recorder=self.recorder)
         if self.recorder is not None:

@@ -42,11 +42,14 @@ import threading
 import time
 from collections import deque
 from collections.abc import Callable
+from pathlib import Path
 from typing import IO, Any
 
+from fleetctl.server.msgtypes import MsgTypes
 from fleetctl.server.permissions import Permissions
 from fleetctl.server.recording.config import RecordingConfig
 from fleetctl.server.recording.rules import RecordingRules
+from fleetctl.server.recording.typesfile import write_types_file
 from fleetctl.server.recording.worker import HEADER, config_to_json
 from fleetctl.server.recording.writer import (
     DELETE_REASONS,
@@ -88,13 +91,18 @@ class Recorder:
             ``max_frame_bytes``).
         wall_clock_ns: Wall clock (log time of frames without a publish time).
         clock: Monotonic clock, seconds (log rate limits).
+        msg_types: The fleet's own message types (``server.yaml`` ``msg_types``), which
+            the worker decodes with the default ones.
     """
 
     def __init__(self, config: RecordingConfig, max_message_bytes: int = 16 * 1024 * 1024,
                  wall_clock_ns: Callable[[], int] = time.time_ns,
-                 clock: Callable[[], float] = time.monotonic) -> None:
+                 clock: Callable[[], float] = time.monotonic,
+                 msg_types: MsgTypes = ()) -> None:
         self.config = config
         self.max_message_bytes = max_message_bytes
+        self.msg_types = msg_types
+        self._types_file: Path | None = None  # msg_types for the worker (typesfile)
         self.rules = RecordingRules(config.rules)
         self._wall_ns = wall_clock_ns
         self._clock = clock
@@ -196,12 +204,14 @@ class Recorder:
         """
         self.config.directory.mkdir(parents=True, exist_ok=True)
         self._loop = asyncio.get_running_loop()
+        if self.msg_types and self._types_file is None:
+            self._types_file = write_types_file(self.msg_types)
         self._spawn()
 
     def _spawn(self) -> None:
         self._process = subprocess.Popen(
             [sys.executable, "-m", "fleetctl.server.recording.worker",
-             config_to_json(self.config, self.max_message_bytes)],
+             config_to_json(self.config, self.max_message_bytes, self._types_file)],
             stdin=subprocess.PIPE, stdout=subprocess.PIPE, bufsize=0, close_fds=True)
         assert self._process.stdin is not None and self._process.stdout is not None
         self._fd = self._process.stdin.fileno()
@@ -237,6 +247,7 @@ class Recorder:
         self._closed = True
         process = self._process
         if process is None:
+            self._remove_types_file()
             return
         self._join()
         if not self._dead and process.stdin is not None:
@@ -261,6 +272,12 @@ class Recorder:
         if self._reports is not None:
             self._reports.join(timeout_s)
         self._process = None
+        self._remove_types_file()
+
+    def _remove_types_file(self) -> None:
+        if self._types_file is not None:
+            self._types_file.unlink(missing_ok=True)
+            self._types_file = None
 
     def metric_families(self) -> list[tuple[str, str, str, str, dict[str, float]]]:
         """``(name, type, help, label, {label_value: value})`` for ``/metrics``."""

@@ -19,7 +19,8 @@ The worker ignores SIGINT, SIGTERM and SIGHUP: it stops at EOF, which also comes
 server dies, so the current file is always closed with its summary.
 
 CONFIG is a JSON object: :func:`config_to_json` of the recording config plus
-``max_message_bytes``.
+``max_message_bytes`` and ``msg_types_file`` (the fleet's own message types,
+:mod:`fleetctl.server.recording.typesfile`; ``null``: none).
 """
 
 from __future__ import annotations
@@ -36,9 +37,14 @@ import time
 from pathlib import Path
 from typing import Any, BinaryIO
 
+from fleetctl.server.msgtypes import codec_for
 from fleetctl.server.recording.config import RecordingConfig
+from fleetctl.server.recording.typesfile import read_types_file
 from fleetctl.server.recording.writer import RecordingWriter
-from fleetctl.wire.codec import default_codec
+from fleetctl.wire.codec import Codec, default_codec
+from fleetctl.wire.errors import WireError
+
+log = logging.getLogger("fleetctl.server.recording")
 
 HEADER = struct.Struct("<IqI")
 """Record header on stdin: sender id, wall clock ns at receipt, frame length."""
@@ -50,21 +56,39 @@ _NUMBERS = ("max_file_bytes", "max_file_duration_s", "max_total_bytes", "max_age
             "file_label")
 
 
-def config_to_json(config: RecordingConfig, max_message_bytes: int) -> str:
+def config_to_json(config: RecordingConfig, max_message_bytes: int,
+                   msg_types_file: Path | None = None) -> str:
     """The worker's command-line argument for *config* (rules stay in the relay)."""
     data: dict[str, Any] = {name: getattr(config, name) for name in _NUMBERS}
     data["directory"] = str(config.directory)
     data["max_message_bytes"] = max_message_bytes
+    data["msg_types_file"] = None if msg_types_file is None else str(msg_types_file)
     return json.dumps(data)
 
 
-def config_from_json(text: str) -> tuple[RecordingConfig, int]:
-    """Inverse of :func:`config_to_json`: the config (without rules) and the largest
-    message."""
+def config_from_json(text: str) -> tuple[RecordingConfig, int, Path | None]:
+    """Inverse of :func:`config_to_json`: the config (without rules), the largest
+    message and the message types' file."""
     data = json.loads(text)
     max_message_bytes = int(data.pop("max_message_bytes"))
     directory = Path(data.pop("directory"))
-    return RecordingConfig(directory, (), **data), max_message_bytes
+    types_file = data.pop("msg_types_file", None)
+    return (RecordingConfig(directory, (), **data), max_message_bytes,
+            None if types_file is None else Path(types_file))
+
+
+def worker_codec(types_file: Path | None) -> Codec:
+    """The default codec plus the fleet's own types of *types_file*. One that cannot be
+    read leaves the default types (the relay checked them at start, so this is a file
+    removed behind its back): logged, and the own types' messages are dropped as
+    ``malformed``, as before there were any."""
+    if types_file is None:
+        return default_codec()
+    try:
+        return codec_for(read_types_file(types_file))
+    except (OSError, ValueError, WireError) as exc:
+        log.error("recording without the fleet's own message types: %s", exc)
+        return default_codec()
 
 
 def serve(fd_in: int, out: BinaryIO, writer: RecordingWriter) -> None:
@@ -133,13 +157,13 @@ def main(argv: list[str]) -> int:
     """Run the worker; *argv* is ``[CONFIG]``."""
     logging.basicConfig(level=logging.INFO, stream=sys.stderr,
                         format="%(asctime)s %(levelname)s %(name)s %(message)s")
-    config, max_message_bytes = config_from_json(argv[0])
+    config, max_message_bytes, types_file = config_from_json(argv[0])
     _lower_priority(config.worker_priority)
     # The server ends the worker by closing the pipe (EOF: the file is closed properly);
     # a Ctrl-C or a service manager's SIGTERM to the whole group must not cut it short.
     for sig in (signal.SIGINT, signal.SIGTERM, signal.SIGHUP):
         signal.signal(sig, signal.SIG_IGN)
-    writer = RecordingWriter(config, default_codec(), max_message_bytes)
+    writer = RecordingWriter(config, worker_codec(types_file), max_message_bytes)
     writer.start()
     try:
         serve(sys.stdin.fileno(), sys.stdout.buffer, writer)

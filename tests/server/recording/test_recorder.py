@@ -10,6 +10,7 @@ import logging
 import os
 import random
 import signal
+import stat
 import time
 from collections.abc import Callable
 from pathlib import Path
@@ -20,6 +21,7 @@ from mcap.reader import make_reader
 from rosbags.highlevel import AnyReader
 
 from fleetctl.server.app import RelayServer
+from fleetctl.server.msgtypes import codec_for
 from fleetctl.server.permissions import PermissionsPool
 from fleetctl.server.recording import files
 from fleetctl.server.recording.config import RecordingConfig, RecordingRule
@@ -374,3 +376,35 @@ def test_one_socket_read_of_many_frames_arms_the_flush_at_most_twice(tmp_path: P
     assert spy.armed == [pytest.approx(FLUSH_DELAY_S), 0.0]  # delayed, then "now" once full
     assert spy.cancelled == 1
     assert recorder.queued_bytes == 3 * FLUSH_BYTES // len(frame) * (HEADER.size + len(frame))
+
+
+OWN_TYPES = (("my_robot_msgs/msg/Status", "uint8 mode\nmy_robot_msgs/Battery battery\n"),
+             ("my_robot_msgs/msg/Battery", "float32 voltage_v\n"))
+
+
+async def test_the_fleets_own_message_types_are_recorded(
+        make_server: Callable[..., RelayServer], tmp_path: Path) -> None:
+    """The worker decoded with the default registry: a topic of a type from server.yaml's
+    msg_types was dropped as malformed, every message of it."""
+    codec = codec_for(OWN_TYPES)
+    types = codec.registry.typestore.types
+    status = "my_robot_msgs/msg/Status"
+    async with make_server(recording=recording(tmp_path), msg_types=OWN_TYPES) as srv:
+        assert srv.recorder is not None
+        async with client(srv, source=ROBOT) as robot:
+            for mode in (1, 2, 3):
+                msg = types[status](mode=mode, battery=types["my_robot_msgs/msg/Battery"](
+                    voltage_v=24.5))
+                await robot.send(codec.encode(msg, status, "/husky1/robot_status", seq=mode))
+            recorder = srv.recorder
+            await wait_for(lambda: recorder.snapshot()["messages"] == 3, DEADLINE_S)
+        assert recorder.snapshot()["dropped"]["malformed"] == 0
+        types_file = recorder._types_file  # the definitions handed to the worker
+        assert types_file is not None and stat.S_IMODE(types_file.stat().st_mode) == 0o600
+    assert not types_file.exists()  # removed when the server stopped
+    [rec] = files.scan(tmp_path / "rec")
+    with AnyReader([rec.path]) as reader:  # the types from the file's own schemas
+        got = [(c.msgtype, reader.deserialize(raw, c.msgtype)) for c, _t, raw in
+               reader.messages()]
+    assert [(t, m.mode, m.battery.voltage_v) for t, m in got] == [
+        (status, mode, 24.5) for mode in (1, 2, 3)]

@@ -17,7 +17,7 @@ import logging
 import math
 import re
 import time
-from collections.abc import Iterator, Mapping
+from collections.abc import Callable, Iterator, Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import NamedTuple
@@ -28,7 +28,8 @@ from rosbags.typesys import get_types_from_msg
 from websockets.exceptions import InvalidURI
 from websockets.uri import parse_uri
 
-from fleetctl.cli.output import OutputFormat, emit, output_option
+from fleetctl.cli import replaytopics
+from fleetctl.cli.output import OutputFormat, emit, output_option, warn
 from fleetctl.cli.reach import ca_context, why_unreachable
 from fleetctl.cli.replayfiles import recording_files
 from fleetctl.cli.throttled import throttled_error
@@ -40,6 +41,7 @@ from fleetctl.client.transport import (
     UNREACHABLE_RECORD,
     RobotLink,
 )
+from fleetctl.deploy.replaynames import recorded_prefix, replay_prefix
 from fleetctl.deploy.topics import TOPIC
 from fleetctl.errors import ConfigError, ExitCode, FleetError
 from fleetctl.server.recording import files
@@ -52,6 +54,7 @@ _ROBOT_NAME = re.compile(r"[A-Za-z][A-Za-z0-9_]{0,62}")  # as client.yaml's robo
 _QUEUE_HIGH_FRACTION = 0.5
 _DRAIN_POLL_S = 0.01
 _DRAIN_TIMEOUT_S = 30.0
+_log = logging.getLogger(__name__)
 
 
 @dataclass(frozen=True)
@@ -70,6 +73,10 @@ class ReplayOptions:
             as a live robot's sensor topics).
         ca_file: CA bundle to verify a ``wss://`` server with (a fleet's self-signed
             certificate); ``None``: the system's CAs.
+        onto_live_robots: Send the topics no *remap* matches under their recorded names
+            (onto the robots online); else under names no live robot has
+            (``/husky1/goal_pose`` as ``/husky1_replay/goal_pose``:
+            :mod:`fleetctl.cli.replaytopics`).
     """
 
     server_url: str
@@ -79,6 +86,7 @@ class ReplayOptions:
     remap: tuple[tuple[str, str], ...] = ()
     no_drop: bool = True
     ca_file: Path | None = None
+    onto_live_robots: bool = False
 
 
 @dataclass
@@ -93,6 +101,8 @@ class ReplayResult:
         skipped: Messages skipped (a type without a usable schema), per type.
         dropped: Messages the link dropped: stale ones under ``--latest-only`` (by
             design), or no_drop ones that overflowed its FIFO (then the replay fails).
+        renamed: The recorded prefixes sent under a replay's name, to that name
+            (``{"/husky1": "/husky1_replay"}``; empty with ``onto_live_robots``).
     """
 
     file: Path
@@ -101,6 +111,7 @@ class ReplayResult:
     duration_s: float = 0.0
     skipped: dict[str, int] = field(default_factory=dict)
     dropped: int = 0
+    renamed: dict[str, str] = field(default_factory=dict)
 
 
 class _Decoder:
@@ -136,13 +147,6 @@ class _Decoder:
         return self.codec.encode(msg, rec.type_name, topic, no_drop=no_drop,
                                  publish_time_ns=time.time_ns(), seq=rec.seq,
                                  latched=rec.latched)
-
-
-def _remap(topic: str, remap: tuple[tuple[str, str], ...]) -> str:
-    for old, new in remap:
-        if topic == old or topic.startswith(old.rstrip("/") + "/"):
-            return new.rstrip("/") + topic[len(old.rstrip("/")):]
-    return topic
 
 
 class _Recorded(NamedTuple):
@@ -186,12 +190,15 @@ def is_latched(metadata: Mapping[str, str]) -> bool:
                for p in profiles)
 
 
-async def replay(path: Path, options: ReplayOptions) -> ReplayResult:
+async def replay(path: Path, options: ReplayOptions,
+                 say: Callable[[str], None] = _log.warning) -> ReplayResult:
     """Play *path* into the fleet at *options.server_url*; return when every frame was
     sent (and, with ``no_drop``, acknowledged by the server).
 
     *path* is an MCAP file, or a rosbag2 bag directory (its ``.mcap`` files, in order:
-    :mod:`fleetctl.cli.replayfiles`).
+    :mod:`fleetctl.cli.replayfiles`). Once the server is reached, *say* gets the one
+    line that tells where the topics go (renamed, or onto the live robots), if any: a
+    replay that never reaches it sent nothing anywhere, and says only why.
 
     Raises:
         FleetError: The file cannot be read, is not MCAP or holds no message to replay;
@@ -201,12 +208,14 @@ async def replay(path: Path, options: ReplayOptions) -> ReplayResult:
         ConfigError: ``ca_file`` cannot be loaded.
     """
     recording_files(path)  # a bad path is said before anything connects
+    line = replaytopics.notice(replaytopics.recorded_topics(path), options.remap,
+                               options.onto_live_robots)
     config = ClientConfig(server_url=options.server_url, robot_name=options.robot_name,
                           token=options.token)
     link = RobotLink(config, on_frame=lambda _frame: None,
                      ssl_context=ca_context(options.ca_file))
     with _failures_reported_here(link):
-        return await _replay_on(link, path, options)
+        return await _replay_on(link, path, options, _ConnectedNotice(link, line, say))
 
 
 @contextlib.contextmanager
@@ -244,9 +253,32 @@ class _DropReported(logging.Filter):
                     and self.link.stats()["connects"] == 0)
 
 
-async def _replay_on(link: RobotLink, path: Path, options: ReplayOptions) -> ReplayResult:
-    """:func:`replay` with its *link* made."""
+class _ConnectedNotice:
+    """The replay's line about where its topics go (``None``: nothing to say), said once
+    the link first connected: a replay that never reaches the server sent nothing
+    anywhere, and its error stays the one line that says why."""
+
+    def __init__(self, link: RobotLink, line: str | None, say: Callable[[str], None]):
+        self.link, self.line, self.say = link, line, say
+
+    def said(self) -> bool:
+        """Say the line if the link has connected; whether it is said (or was none)."""
+        if self.line is not None and self.link.connects:
+            self.say(self.line)
+            self.line = None
+        return self.line is None
+
+    async def run(self) -> None:
+        """Say it as soon as the link connects (the task is cancelled at the end)."""
+        while not self.said():
+            await asyncio.sleep(_DRAIN_POLL_S)  # polling the link's connection counter
+
+
+async def _replay_on(link: RobotLink, path: Path, options: ReplayOptions,
+                     notice: _ConnectedNotice) -> ReplayResult:
+    """:func:`replay` with its *link* made; *notice* is said beside it."""
     runner = asyncio.create_task(link.run())
+    announcing = asyncio.create_task(notice.run())
     result = ReplayResult(path)
     started = time.monotonic()
     corrupt: str | None = None
@@ -260,9 +292,13 @@ async def _replay_on(link: RobotLink, path: Path, options: ReplayOptions) -> Rep
         if result.messages:
             await _drain(link, runner)
     finally:
+        announcing.cancel()
+        notice.said()  # a replay done between two polls connected too
         await link.stop()
         with contextlib.suppress(asyncio.CancelledError):
             await runner
+        with contextlib.suppress(asyncio.CancelledError):
+            await announcing
         result.duration_s = time.monotonic() - started
     _check_delivered(link, result, options)
     if corrupt is not None:
@@ -338,7 +374,9 @@ async def _play(path: Path, options: ReplayOptions, link: RobotLink,
         if options.no_drop:
             await _wait_for_room(link, high, high_bytes)
         _check_refused(link)
-        remote = _remap(rec.topic, options.remap)
+        remote = replaytopics.sent_topic(rec.topic, options.remap, options.onto_live_robots)
+        if remote != rec.topic and replaytopics.remapped(rec.topic, options.remap) is None:
+            result.renamed[recorded_prefix(rec.topic)] = replay_prefix(rec.topic)
         frame = decoder.frame(rec, remote, options.no_drop)
         link.offer(remote, frame, priority=1.0, no_drop=options.no_drop)
         result.messages += 1
@@ -436,9 +474,18 @@ def register(app: typer.Typer) -> None:
         ca_file: Path | None = typer.Option(None, "--ca-file", help="CA bundle to verify a "
                                             "wss:// server with (a fleet's own: "
                                             "FLEET/server/tls/cert.pem)."),
+        onto_live_robots: bool = typer.Option(
+            False, "--onto-live-robots", help="Send the recorded topic names (those no "
+            "--remap renames), onto the robots online: they receive the recorded goals and "
+            "commands. Without it every topic goes out under a name no live robot has, "
+            "/husky1/scan as /husky1_replay/scan, said in one line."),
         output: OutputFormat = output_option(),
     ) -> None:
-        """Play an MCAP recording into a fleet as a robot, live (real time or faster)."""
+        """Play an MCAP recording into a fleet as a robot, live (real time or faster).
+
+        By default no live robot receives it: /husky1/... goes out as /husky1_replay/...
+        (a robot of its own on the page); --onto-live-robots sends the recorded names.
+        """
         if not math.isfinite(rate) or rate < 0:
             raise ConfigError(f"--rate {rate}: must be a number >= 0")
         if not _ROBOT_NAME.fullmatch(robot):
@@ -454,6 +501,7 @@ def register(app: typer.Typer) -> None:
             raise ConfigError(f"--ca-file: verifies a wss:// server; {server} is plain ws:// "
                               "(no TLS)")
         options = ReplayOptions(server, rate or None, read_token_file(token_file), robot,
-                                _parse_remap(remap), not latest_only, ca_file)
-        result = asyncio.run(replay(file, options))
+                                _parse_remap(remap), not latest_only, ca_file,
+                                onto_live_robots)
+        result = asyncio.run(replay(file, options, warn))
         emit(result, output, lambda: _result_text(result))

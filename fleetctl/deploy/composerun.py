@@ -51,6 +51,7 @@ from fleetctl.deploy.dockercli import (
 )
 from fleetctl.deploy.fleet import require_fleet_dir
 from fleetctl.deploy.images import image_tag
+from fleetctl.deploy.replaynames import replayed_robot
 from fleetctl.deploy.replicas import check_count
 from fleetctl.deploy.statusrecordings import RecordingSummary, exec_error, server_recordings
 from fleetctl.deploy.tls import CERT_RELPATH
@@ -521,6 +522,19 @@ class StatusReport:
     def _removed(self, robot: dict[str, Any]) -> bool:
         return self.fleet_robots is not None and robot.get("name") not in self.fleet_robots
 
+    def _replay_of(self, robot: dict[str, Any]) -> str | None:
+        # `fleetctl replay` sends a recorded husky1 as husky1_replay: not a removed robot.
+        name = robot.get("name")
+        if self.fleet_robots is None or not isinstance(name, str):
+            return None
+        return replayed_robot(name, self.fleet_robots)
+
+    def _robot_note(self, robot: dict[str, Any]) -> str:
+        replay_of = self._replay_of(robot)
+        if replay_of is not None:
+            return f"  (replay of {replay_of})"
+        return "  (not in fleet.yaml: removed)" if self._removed(robot) else ""
+
     def _no_containers(self) -> str:
         if not self.elsewhere:
             return "no containers: the fleet is not running"
@@ -556,7 +570,8 @@ class StatusReport:
             "healthy": self.healthy,
             "services": [s.__dict__ for s in self.services],
             "robots": None if self.robots is None else [
-                {**_robot_json(r), "in_fleet": not self._removed(r)} for r in self.robots],
+                {**_robot_json(r), "in_fleet": not self._removed(r),
+                 "replay_of": self._replay_of(r)} for r in self.robots],
             "robots_error": self.robots_error or None,
             "never_connected": self.never_connected(),
             "tunnel": None if self.tunnel is None else [t.__dict__ for t in self.tunnel],
@@ -571,7 +586,7 @@ class StatusReport:
             return [f"robots: unknown ({self.robots_error})"]
         rows = [f"{r.get('name', '?')!s:<24} {'yes' if r.get('online') else 'no':<7} "
                 f"{_battery(r.get('battery_level')):<8} {_ago(r.get('last_seen_s'))}"
-                + ("  (not in fleet.yaml: removed)" if self._removed(r) else "")
+                + self._robot_note(r)
                 for r in self.robots]
         # The robots being set up: "(no robots yet)" read as if the fleet had none.
         rows += [f"{name:<24} {'no':<7} {'-':<8} never" for name in self.never_connected()]

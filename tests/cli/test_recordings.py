@@ -255,7 +255,7 @@ async def test_replay_faster_than_real_time(
     async with make_server() as srv:
         options = ReplayOptions(srv.url, rate=None, token=ALICE_TOKEN)
         result = await replay(tmp_path / "rec.mcap", options)
-        received = srv.metrics.messages_in.get("/husky1/chat", 0)
+        received = srv.metrics.messages_in.get("/husky1_replay/chat", 0)
     assert result.messages == 20 and received == 20
     assert result.duration_s < 1.9
 
@@ -276,7 +276,7 @@ async def test_replay_of_large_messages_drops_none(
     async with make_server() as srv:
         result = await replay(tmp_path / "big.mcap",
                               ReplayOptions(srv.url, rate=None, token=ALICE_TOKEN))
-        received_bytes = srv.metrics.bytes_in.get("/husky1/big", 0)
+        received_bytes = srv.metrics.bytes_in.get("/husky1_replay/big", 0)
     assert result.messages == n and result.dropped == 0
     assert received_bytes >= n * len(payload)  # every message reached the server
 
@@ -291,8 +291,8 @@ async def test_replay_refused_by_the_send_rules_is_an_error(
             await replay(tmp_path / "rec.mcap", ReplayOptions(srv.url, rate=None,
                                                               token=BOB_TOKEN))
     assert str(caught.value) == ("replay: the server refused 1 topic(s), no send permission "
-                                 "for this identity: /husky1/chat (give it send rules, or "
-                                 "--remap to topics it may send)")
+                                 "for this identity: /husky1_replay/chat (give it send "
+                                 "rules, or --remap to topics it may send)")
 
 
 async def test_replay_with_a_refused_token_stops_at_once(
@@ -339,10 +339,11 @@ async def test_replay_sends_latched_topics_latched_for_late_viewers(
         await replay(tmp_path / "rec.mcap", ReplayOptions(srv.url, rate=None,
                                                           token=ALICE_TOKEN))
         async with client(srv, token=ALICE_TOKEN) as late:  # after the replay ended
-            assert (await subscribe(late, "/husky1/.*"))["type"] == "subscribed"
+            assert (await subscribe(late, "/husky1_replay/.*"))["type"] == "subscribed"
             frame = await asyncio.wait_for(next_binary(late), 5.0)
     meta, _ = default_codec().decode(frame)
-    assert (meta.topic, meta.latched, decode_text(frame)) == ("/husky1/map", True,
+    # Under the replay's name (tests/cli/test_replay_live_robots.py: never husky1's own).
+    assert (meta.topic, meta.latched, decode_text(frame)) == ("/husky1_replay/map", True,
                                                               "/husky1/map")
 
 
@@ -423,8 +424,9 @@ def test_replay_command_line_with_a_token_file(
         thread.join(10)
     assert code == 0
     result = json.loads(capsys.readouterr().out)
-    assert result["messages"] == 5 and result["topics"] == {"/husky1/chat": 5}
-    assert srv.metrics.messages_in["/husky1/chat"] == 5
+    assert result["messages"] == 5 and result["topics"] == {"/husky1_replay/chat": 5}
+    assert result["renamed"] == {"/husky1": "/husky1_replay"}
+    assert srv.metrics.messages_in["/husky1_replay/chat"] == 5
     assert ALICE_TOKEN not in json.dumps(result)
 
 

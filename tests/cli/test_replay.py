@@ -44,7 +44,7 @@ async def test_a_damaged_chunk_is_one_line_after_the_readable_messages(
         options = ReplayOptions(srv.url, rate=None, token=ALICE_TOKEN)
         with pytest.raises(FleetError) as info:
             await replay(tmp_path / "rec.mcap", options)
-        received = srv.metrics.messages_in.get("/husky1/chat", 0)
+        received = srv.metrics.messages_in.get("/husky1_replay/chat", 0)
     assert str(info.value).startswith(
         f"{tmp_path / 'rec.mcap'}: damaged data, the rest of the file cannot be read (")
     assert str(info.value).endswith(f"); the {first} message(s) before it were replayed")
@@ -86,7 +86,7 @@ async def test_replays_into_a_fleets_tls_port_with_its_ca_file(
             "replay", str(tmp_path / "rec.mcap"), "--server",
             f"wss://127.0.0.1:{srv.web_port}/", "--token-file", str(_token_file(tmp_path)),
             "--ca-file", str(web_config.tls_cert), "--rate", "0", "-o", "json"])
-        received = srv.metrics.messages_in.get("/husky1/chat", 0)
+        received = srv.metrics.messages_in.get("/husky1_replay/chat", 0)
     assert code == 0, capsys.readouterr().err
     assert json.loads(capsys.readouterr().out)["messages"] == 5 and received == 5
 
@@ -161,9 +161,11 @@ async def test_topics_refused_are_one_line(
         code, err = await _replay_process(tmp_path / "rec.mcap", "-s", srv.url,
                                           "--token-file", token, "--rate", "0")
     assert code == ExitCode.FAILURE
-    assert err == ("fleetctl: error: replay: the server refused 1 topic(s), no send "
-                   "permission for this identity: /husky1/chat (give it send rules, or "
-                   "--remap to topics it may send)\n")
+    notice, error = err.splitlines()
+    assert notice.startswith("fleetctl: warning: replay: topics renamed so that no live robot")
+    assert error == ("fleetctl: error: replay: the server refused 1 topic(s), no send "
+                     "permission for this identity: /husky1_replay/chat (give it send "
+                     "rules, or --remap to topics it may send)")
 
 
 async def test_replays_a_rosbag2_bag_directory(
@@ -181,7 +183,7 @@ async def test_replays_a_rosbag2_bag_directory(
                          store.serialize_cdr(string(data=f"message {i}"), STRING))
     (bag / "notes.txt").write_text("not a recording")
     async with make_server() as srv, client(srv, token=ALICE_TOKEN) as viewer:
-        assert (await subscribe(viewer, "/husky1/.*"))["type"] == "subscribed"
+        assert (await subscribe(viewer, "/husky1_replay/.*"))["type"] == "subscribed"
         result = await replay(bag, ReplayOptions(srv.url, rate=None, token=ALICE_TOKEN))
         got = [decode_text(f) for f in await _frames(viewer, 4)]
     assert result.messages == 4 and got == [f"message {i}" for i in range(4)]

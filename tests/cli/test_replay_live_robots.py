@@ -21,6 +21,7 @@ from fleetctl.cli.replay import ReplayOptions, replay
 from fleetctl.server.app import RelayServer
 from fleetctl.server.recording.mcapfile import McapFile
 from fleetctl.wire.codec import default_codec
+from fleetctl.wire.control import STATUS_TYPE
 from tests.cli.test_recordings import STRING, T0, next_binary, write_recording
 from tests.server.conftest import (  # noqa: F401
     ALICE_TOKEN,
@@ -143,3 +144,25 @@ async def test_the_command_says_in_one_line_where_the_topics_went(
         received = srv.metrics.messages_in
     assert received.get("/husky1/goal_pose", 0) == 0
     assert received["/husky1_replay/goal_pose"] == 2 and received["/ghost1/goal_pose"] == 2
+
+
+async def test_a_replayed_status_is_the_replays_robot_not_the_live_ones(
+        make_server: Callable[..., RelayServer], tmp_path: Path) -> None:  # noqa: F811
+    """A replayed /husky1/status set the live husky1's registry record (status, battery,
+    last seen): `status` and the page showed last week's battery as husky1's. Renamed,
+    it puts the replay on the robot list as a robot of its own (`status` shows it as
+    "(replay of husky1)"); the replay's session name (`--robot`, default ``replay``)
+    names no robot."""
+    registry = default_codec().registry
+    cls = registry.get(STATUS_TYPE).cls
+    out = McapFile(tmp_path / "rec.mcap", registry, 1024)
+    cdr = bytes(registry.typestore.serialize_cdr(cls("docked", True, 0.25, "dock"),
+                                                 STATUS_TYPE))
+    out.write("/husky1/status", STATUS_TYPE, cdr, T0, 1)
+    out.close()
+    async with make_server() as srv:
+        await replay(tmp_path / "rec.mcap", ReplayOptions(srv.url, rate=None,
+                                                          token=ALICE_TOKEN))
+        robots = srv.registry.as_json()
+    assert [(r["name"], r["status"], r["battery_level"]) for r in robots] == [
+        ("husky1_replay", "docked", 0.25)]

@@ -483,8 +483,9 @@ def register(app: typer.Typer) -> None:
     ) -> None:
         """Play an MCAP recording into a fleet as a robot, live (real time or faster).
 
-        By default no live robot receives it: /husky1/... goes out as /husky1_replay/...
-        (a robot of its own on the page); --onto-live-robots sends the recorded names.
+        By default no live robot receives it: /husky1/... goes out as
+        /husky1_replay/... (a robot of its own on the page); --onto-live-robots sends
+        the recorded names.
         """
         if not math.isfinite(rate) or rate < 0:
             raise ConfigError(f"--rate {rate}: must be a number >= 0")

@@ -68,7 +68,7 @@ def test_a_damaged_recording_on_the_command_line_is_no_traceback(
     assert err.rstrip().endswith("nothing before it to replay")
 
 
-def _token_file(tmp_path: Path) -> Path:
+def alice_token_file(tmp_path: Path) -> Path:
     token = tmp_path / "token"
     token.write_text(ALICE_TOKEN + "\n")
     token.chmod(0o600)  # else a warning comes first on stderr
@@ -84,7 +84,7 @@ async def test_replays_into_a_fleets_tls_port_with_its_ca_file(
     async with make_server(web=web_config) as srv:
         code = await asyncio.to_thread(main, [
             "replay", str(tmp_path / "rec.mcap"), "--server",
-            f"wss://127.0.0.1:{srv.web_port}/", "--token-file", str(_token_file(tmp_path)),
+            f"wss://127.0.0.1:{srv.web_port}/", "--token-file", str(alice_token_file(tmp_path)),
             "--ca-file", str(web_config.tls_cert), "--rate", "0", "-o", "json"])
         received = srv.metrics.messages_in.get("/husky1_replay/chat", 0)
     assert code == 0, capsys.readouterr().err
@@ -98,7 +98,7 @@ async def test_a_server_never_reached_fails_at_once_saying_why(
     then said '5 message(s) still queued ... never connected' (exit 6), whatever the
     cause: an untrusted certificate, ws:// to the TLS port, nothing listening."""
     write_recording(tmp_path / "rec.mcap", 5, step_ns=1_000_000)
-    token = str(_token_file(tmp_path))
+    token = str(alice_token_file(tmp_path))
     async with make_server(web=web_config) as srv:
         closed = await asyncio.to_thread(_free_port)
         for url, expected in (

@@ -23,6 +23,7 @@ from fleetctl.server.recording.mcapfile import McapFile
 from fleetctl.wire.codec import default_codec
 from fleetctl.wire.control import STATUS_TYPE
 from tests.cli.test_recordings import STRING, T0, next_binary, write_recording
+from tests.cli.test_replay import alice_token_file
 from tests.server.conftest import (  # noqa: F401
     ALICE_TOKEN,
     client,
@@ -107,18 +108,11 @@ async def _run(*args: object) -> tuple[int, str, str]:
     return proc.returncode, out.decode(), err.decode()
 
 
-def _token_file(tmp_path: Path) -> Path:
-    token = tmp_path / "token"
-    token.write_text(ALICE_TOKEN + "\n")
-    token.chmod(0o600)
-    return token
-
-
 async def test_the_command_says_in_one_line_where_the_topics_went(
         make_server: Callable[..., RelayServer], tmp_path: Path) -> None:  # noqa: F811
     write_recording(tmp_path / "a.mcap", 2, step_ns=1_000_000, topic="/husky1/goal_pose")
     write_recording(tmp_path / "b.mcap", 2, step_ns=1_000_000, topic="/husky2/scan")
-    token = _token_file(tmp_path)
+    token = alice_token_file(tmp_path)
     async with make_server() as srv:
         code, out, err = await _run(tmp_path / "a.mcap", "-s", srv.url, "--token-file",
                                     token, "--rate", "0", "-o", "json")

@@ -24,7 +24,10 @@ its camera is decodable from the file's first moment, not from the next keyframe
 
 Disk: before a new file starts, and at every flush tick, closed files past
 ``max_age_s`` or past ``max_total_bytes - max_file_bytes`` (so that a full current file
-still fits) are deleted, oldest first, counted by reason.
+still fits) are deleted, oldest first, counted by reason and logged at INFO (the bound
+doing what it was configured to do). A WARNING (at most one per
+:data:`SHORT_BUDGET_LOG_INTERVAL_S`) only when ``max_total_bytes`` deletes a file last
+written under :data:`MIN_HELD_S` ago: the budget is too small for the traffic recorded.
 """
 
 from __future__ import annotations
@@ -47,6 +50,10 @@ from fleetctl.wire.ros2msg import FrameTranscoder
 log = logging.getLogger("fleetctl.server.recording")
 
 LOG_INTERVAL_S = 10.0
+# The byte bound deleting a file last written less than this ago (seconds) means the
+# budget holds too little recording to be useful; said at most once per interval below.
+MIN_HELD_S = 600.0
+SHORT_BUDGET_LOG_INTERVAL_S = 3600.0
 WRITER_DROP_REASONS = ("too_big", "malformed", "write_error", "incomplete")
 DELETE_REASONS = ("max_total_bytes", "max_age")
 MAX_LATCHED_TOPICS = 256
@@ -133,6 +140,7 @@ class RecordingWriter:
         self.disk_bytes = 0  # .mcap bytes in the directory, as of the last bounds check
         self._latched: dict[str, _Latched] = {}
         self._not_kept: set[str] = set()  # latched topics warned about (bounded as above)
+        self._budget_warned_s: float | None = None  # monotonic; None: not yet
         self._gops = GopKeeper(config.max_file_bytes // 4,
                                codec.registry.typestore.deserialize_cdr)
 
@@ -254,8 +262,28 @@ class RecordingWriter:
         for f, reason in deleted:
             self.stats.deleted_files[reason] += 1
             self.stats.deleted_bytes[reason] += f.size_bytes
-            log.warning("recording: deleted %s (%d bytes) to hold %s", f.name, f.size_bytes,
-                        reason)
+            # The configured bound doing its job: INFO, not WARNING (was a WARNING every
+            # ~75 s with a 64 MiB budget, which trains operators to ignore warnings).
+            log.info("recording: deleted %s (%d bytes) to hold %s", f.name, f.size_bytes,
+                     reason)
+            if reason == "max_total_bytes":
+                self._warn_if_budget_short(f)
+
+    def _warn_if_budget_short(self, deleted: files.RecordingFile) -> None:
+        """One WARNING per :data:`SHORT_BUDGET_LOG_INTERVAL_S` when the byte bound deleted
+        a file last written less than :data:`MIN_HELD_S` ago: the directory holds only
+        minutes of recording, too little to fetch a run after the fact."""
+        held_s = self._wall_s() - deleted.modified_s
+        now = self._clock()
+        if held_s >= MIN_HELD_S or (self._budget_warned_s is not None and
+                                    now - self._budget_warned_s < SHORT_BUDGET_LOG_INTERVAL_S):
+            return
+        self._budget_warned_s = now
+        log.warning("recording: max_total_bytes (%d bytes) holds only ~%.0f s of recording "
+                    "(deleted %s, last written %.0f s ago); raise recording.max_total_bytes "
+                    "in server.yaml or record fewer topics (recording.rules)",
+                    self.config.max_total_bytes, max(held_s, 0.0), deleted.name,
+                    max(held_s, 0.0))
 
     def _writable(self, nbytes: int, topic: str, time_ns: int,
                   keyframe: bool | None = None) -> McapFile:

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import logging
+import time
 from pathlib import Path
 
 import numpy as np
@@ -250,3 +252,53 @@ def test_a_rotated_file_decodes_a_real_camera_from_its_first_frame(tmp_path: Pat
     # The group from the 1 s keyframe (frames 10-14 of the old file), then the new frames:
     # every one decodes, the first included.
     assert len(shown) == 5 + 5 and all(shown), shown
+
+
+def rotating_writer(tmp_path: Path, clock: ManualClock, wall_offset_s: list[float],
+                    ) -> RecordingWriter:
+    """A writer whose byte bound deletes a file at about every second rotation; its wall
+    clock is the real one (the files' mtimes are real) plus ``wall_offset_s[0]``."""
+    config = RecordingConfig(tmp_path, (), max_file_bytes=4096, max_total_bytes=8192,
+                             chunk_bytes=512)
+    out = RecordingWriter(config, default_codec(), 1 << 20, clock=clock,
+                          wall_clock_s=lambda: time.time() + wall_offset_s[0])
+    out.start()
+    return out
+
+
+def fill(w: RecordingWriter, clock: ManualClock, first_seq: int, n: int = 40) -> None:
+    for i in range(n):
+        w.record(1, frame("x" * 200, first_seq + i), 0, clock.now_s)
+
+
+def test_deleting_for_the_bounds_is_info_and_counted(
+        tmp_path: Path, caplog: pytest.LogCaptureFixture) -> None:
+    clock = ManualClock(1_000.0)
+    w = rotating_writer(tmp_path, clock, [2 * 3600.0])  # the files hold hours: no warning
+    with caplog.at_level(logging.INFO, "fleetctl.server.recording"):
+        fill(w, clock, 1)
+    deletions = [r for r in caplog.records if "deleted" in r.getMessage()]
+    assert deletions and all(r.levelno == logging.INFO for r in deletions)
+    assert not [r for r in caplog.records if r.levelno >= logging.WARNING]
+    assert w.stats.deleted_files["max_total_bytes"] == len(deletions)
+    assert w.stats.deleted_bytes["max_total_bytes"] > 0
+
+
+def test_a_budget_holding_minutes_warns_once_an_hour_saying_what_to_change(
+        tmp_path: Path, caplog: pytest.LogCaptureFixture) -> None:
+    clock = ManualClock(1_000.0)
+    w = rotating_writer(tmp_path, clock, [0.0])
+    with caplog.at_level(logging.INFO, "fleetctl.server.recording"):
+        fill(w, clock, 1)
+        clock.now_s += 3599  # within the hour: still one line
+        fill(w, clock, 100)
+    warnings = [r.getMessage() for r in caplog.records if r.levelno >= logging.WARNING]
+    assert len(warnings) == 1, warnings
+    assert "max_total_bytes (8192 bytes) holds only" in warnings[0]
+    assert "raise recording.max_total_bytes" in warnings[0]
+    assert w.stats.deleted_files["max_total_bytes"] >= 4
+    caplog.clear()
+    with caplog.at_level(logging.INFO, "fleetctl.server.recording"):
+        clock.now_s += 2  # an hour after the first line
+        fill(w, clock, 200)
+    assert len([r for r in caplog.records if r.levelno >= logging.WARNING]) == 1

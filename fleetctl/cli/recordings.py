@@ -30,10 +30,11 @@ from typing import Any
 
 import typer
 
-from fleetctl.cli.output import OutputFormat, emit, output_option, table
+from fleetctl.cli.output import OutputFormat, emit, output_option
 from fleetctl.cli.reach import ca_context, why_unreachable
 from fleetctl.cli.throttled import throttled_error
 from fleetctl.cli.tokenfile import read_token_file
+from fleetctl.cli.widetable import table_with_names, terminal_columns
 from fleetctl.client import loginthrottle
 from fleetctl.errors import ConfigError, ConflictError, ExitCode, FleetError
 from fleetctl.server.config import ServerConfig, load_server_config
@@ -432,17 +433,18 @@ def fetch(directory: Path, name: str, target: Path) -> Fetched:
     return Fetched(str(source), target, files.export(source, target), still_open=open_now)
 
 
-def _remote_text(found: list[RemoteRecording], urls: list[str]) -> str:
+def _remote_text(found: list[RemoteRecording], urls: list[str], width: int | None) -> str:
     if not found:
         return f"no recordings on {', '.join(urls)} (that this token may receive)"
-    rows = [(r.name, r.size_bytes, dt.datetime.fromtimestamp(r.modified_s, dt.UTC).strftime(
-        "%Y-%m-%d %H:%M:%S"), "yes" if r.complete else "writing", ",".join(r.topics))
-        for r in found]
-    head = ("NAME", "BYTES", "LAST WRITE (UTC)", "COMPLETE", "TOPICS")
-    if len(urls) > 1:
-        return table((*head, "SERVER"), [(*row, r.server) for row, r in
-                                         zip(rows, found, strict=True)])
-    return table(head, rows)
+    rows: list[tuple[object, ...]] = [
+        (r.name, r.size_bytes, dt.datetime.fromtimestamp(r.modified_s, dt.UTC).strftime(
+            "%Y-%m-%d %H:%M:%S"), "yes" if r.complete else "writing") for r in found]
+    head: tuple[str, ...] = ("NAME", "BYTES", "LAST WRITE (UTC)", "COMPLETE")
+    if len(urls) > 1:  # before TOPICS, the column cut to the width
+        head, rows = (*head, "SERVER"), [(*row, r.server) for row, r in
+                                         zip(rows, found, strict=True)]
+    return table_with_names((*head, "TOPICS"), rows, [r.topics for r in found], width,
+                            "topics")
 
 
 def _time(ns: int) -> str:
@@ -451,13 +453,14 @@ def _time(ns: int) -> str:
     return dt.datetime.fromtimestamp(ns / 1e9, dt.UTC).strftime("%Y-%m-%d %H:%M:%S")
 
 
-def _list_text(found: list[Recording], directory: Path) -> str:
+def _list_text(found: list[Recording], directory: Path, width: int | None) -> str:
     if not found:
         return f"no recordings in {directory}"
     rows = [(r.name, r.size_bytes, r.messages, _time(r.start_ns), _time(r.end_ns),
-             "yes" if r.complete else "writing", ",".join(r.topics)) for r in found]
-    return table(("NAME", "BYTES", "MESSAGES", "START (UTC)", "END (UTC)", "COMPLETE",
-                  "TOPICS"), rows)
+             "yes" if r.complete else "writing") for r in found]
+    return table_with_names(("NAME", "BYTES", "MESSAGES", "START (UTC)", "END (UTC)",
+                             "COMPLETE", "TOPICS"), rows, [r.topics for r in found], width,
+                            "topics")
 
 
 _CONFIG = typer.Option(None, "--config", "-c", help="server.yaml (its recording.directory).")
@@ -467,6 +470,9 @@ _SERVER = typer.Option(None, "--server", "-s", help="ws(s):// or http(s):// URL 
                        "--config/--dir); once per replica for a fleet of replicas.")
 _TOKEN = typer.Option(None, "--token-file", help="File holding a Bearer token (--server).")
 _CA = typer.Option(None, "--ca-file", help="CA bundle for a wss:// server (--server).")
+_ALL_TOPICS = typer.Option(False, "--all-topics", help="Every topic of each file in the "
+                           "TOPICS column, however wide (default: as many as fit the "
+                           "terminal, then '+N more'; -o json has them all).")
 
 
 def register(app: typer.Typer) -> None:
@@ -477,20 +483,21 @@ def register(app: typer.Typer) -> None:
     @rec_app.command("list")
     def list_command(config: Path | None = _CONFIG, directory: Path | None = _DIR,
                      server: list[str] | None = _SERVER, token_file: Path | None = _TOKEN,
-                     ca_file: Path | None = _CA, output: OutputFormat = output_option(),
-                     ) -> None:
+                     ca_file: Path | None = _CA, all_topics: bool = _ALL_TOPICS,
+                     output: OutputFormat = output_option()) -> None:
         """List the recordings (oldest first), the one being written included."""
         check_one_source(config, directory, server)
+        width = None if all_topics else terminal_columns()
         if server:
             token = read_token_file(token_file)
             listed, errors = list_replicas([Remote(u, token, ca_file) for u in server])
             for error in errors:
                 typer.echo(f"fleetctl: not listed: {error}", err=True)
-            emit(listed, output, lambda: _remote_text(listed, server))
+            emit(listed, output, lambda: _remote_text(listed, server, width))
             return
         where = recording_dir(config, directory)
         found = list_recordings(where)
-        emit(found, output, lambda: _list_text(found, where))
+        emit(found, output, lambda: _list_text(found, where, width))
 
     @rec_app.command("fetch")
     def fetch_command(

@@ -72,6 +72,27 @@ def test_list_shows_complete_and_open_files(tmp_path: Path,
     still_open.close()
 
 
+def test_list_cuts_many_topics_to_the_terminal_width(
+        tmp_path: Path, capsys: pytest.CaptureFixture[str],
+        monkeypatch: pytest.MonkeyPatch) -> None:
+    topics = [f"/husky1/sensor_{i:02d}/data" for i in range(20)]
+    registry = default_codec().registry
+    out = McapFile(tmp_path / "fleet_a.mcap", registry, 1024)
+    cdr = bytes(registry.typestore.serialize_cdr(registry.get(STRING).cls("x"), STRING))
+    for i, topic in enumerate(topics):
+        out.write(topic, STRING, cdr, T0 + i, i + 1)
+    out.close()
+    monkeypatch.setenv("COLUMNS", "160")
+    assert main(["recordings", "list", "--dir", str(tmp_path)]) == 0
+    head, row = capsys.readouterr().out.splitlines()
+    assert head.endswith("TOPICS") and len(row) <= 160
+    assert row.endswith(" more") and topics[0] in row and topics[-1] not in row
+    assert main(["recordings", "list", "--dir", str(tmp_path), "--all-topics"]) == 0
+    assert capsys.readouterr().out.splitlines()[1].endswith(", ".join(topics))
+    assert main(["recordings", "list", "--dir", str(tmp_path), "-o", "json"]) == 0
+    assert json.loads(capsys.readouterr().out)[0]["topics"] == topics
+
+
 def test_list_reads_the_directory_from_server_yaml(tmp_path: Path,
                                                    capsys: pytest.CaptureFixture[str]) -> None:
     (tmp_path / "rec").mkdir()

@@ -72,6 +72,11 @@ async def test_list_and_fetch_across_replicas(
         assert sorted((r["name"].split("_")[1], r["server"]) for r in listed) == [
             ("relay-a", a.url), ("relay-b", b.url)]
         assert dead in out.err  # named, while the others are listed
+        argv = ["recordings", "list", "--server", a.url, "-s", b.url]  # text: TOPICS last
+        assert await asyncio.to_thread(main, argv) == 0
+        head, *rows = capsys.readouterr().out.splitlines()
+        assert head.split()[-2:] == ["SERVER", "TOPICS"]
+        assert sorted(row.split()[-1] for row in rows) == ["/husky1/chat", "/husky2/chat"]
         on_b = next(r["name"] for r in listed if r["server"] == b.url)
         argv = ["recordings", "fetch", on_b, "--to", str(tmp_path), "-s", a.url, "-s", b.url]
         assert await asyncio.to_thread(main, argv) == 0

@@ -6,6 +6,7 @@ import { LayoutLoader } from "./fb/layout.js";
 import { throttledText } from "./loginthrottle.js";
 import { GOAL, INITIAL, goalMessage, initialPoseMessage } from "./commands.js";
 import { PANELS, reEscape, wantedRegexes } from "./panels.js";
+import { replayOf } from "./replays.js";
 import { CameraView } from "./views/camera.js";
 import { CloudView } from "./views/cloud.js";
 import { GpsView } from "./views/gps.js";
@@ -231,10 +232,26 @@ class App {
       this.shownRobot = name;
     }
     this.commandStatus("");
+    this.renderReplay(name);
     this.renderRobotState();
     this.applyVisibility();
     this.updateCommands();
     this.renderNotes();
+  }
+
+  /**
+   * A replay (husky1_replay, `fleetctl replay`'s renamed recording) is said beside its name
+   * and above the goal tools: it looked like one more live robot, and a goal sent to it
+   * reaches no robot. The tools stay (the rule cannot tell a fleet robot named x_replay).
+   */
+  renderReplay(name) {
+    const of = replayOf(name);
+    $("#robot-replay").hidden = !of;
+    $("#robot-replay").textContent = of ? `replay of ${of}` : "";
+    $("#replay-note").hidden = !of;
+    $("#replay-note").textContent = of
+      ? `${name} is a recording of ${of} played back (fleetctl replay): old data, and no robot acts on a navigation goal or initial pose sent here.`
+      : "";
   }
 
   setSubscriptions(robot, visible) {
@@ -273,7 +290,8 @@ class App {
       const topic = `/${this.robot}${cmd.suffix}`;
       const ok = this.conn.rules.canSend(topic);
       $(btn).disabled = !ok;
-      $(btn).title = ok ? `Drag on the map, or type the pose, to send a ${cmd.label}` : `You may not send on ${topic}`;
+      const replay = replayOf(this.robot) ? ` (${this.robot} is a replay: no robot acts on it)` : "";
+      $(btn).title = (ok ? `Drag on the map, or type the pose, to send a ${cmd.label}` : `You may not send on ${topic}`) + replay;
     }
     const denied = [GOAL, INITIAL].filter((c) => !this.conn.rules.canSend(`/${this.robot}${c.suffix}`));
     $("#command-denied").hidden = denied.length === 0;

@@ -1,6 +1,8 @@
 // Fleet overview: every robot in the server's registry (online or not), merged with live
 // /<robot>/status frames and this page's link health per robot.
 
+import { replayOf } from "../replays.js";
+
 function esc(s) {
   return String(s ?? "").replace(/[&<>"']/g, (c) => ({ "&": "&amp;", "<": "&lt;", ">": "&gt;", '"': "&quot;", "'": "&#39;" })[c]);
 }
@@ -42,6 +44,7 @@ export function robotRow(entry, live) {
     battery: pick("battery_level") ?? undefined,
     location: pick("location") ?? "",
     lastSeenS: toEpochS(entry.last_seen_s),
+    replayOf: replayOf(entry.name), // a recording played back: old data, no robot acts
   };
 }
 
@@ -60,13 +63,20 @@ export function breakable(name) {
   return esc(name).replace(/([_./-])/g, "$1<wbr>");
 }
 
+/** The mark beside a replay's name: it looked like one more live robot. */
+export function replayBadge(of) {
+  if (!of) return "";
+  return ` <span class="pill replay-of" title="Recorded data played back by fleetctl replay: ` +
+    `no robot acts on what is sent to it">replay of ${esc(of)}</span>`;
+}
+
 export function renderOverview(tbody, rows, linkFor) {
   tbody.innerHTML = rows.map((r) => {
     const link = linkFor(r.name);
     const batt = batteryText(r.battery);
     const ok = r.isOk === undefined ? "–" : r.isOk ? "OK" : "NOT OK";
-    return `<tr data-robot="${esc(r.name)}" class="${r.online ? "online" : "offline"}">
-      <td class="name"><a href="#/robot/${encodeURIComponent(r.name)}">${breakable(r.name)}</a></td>
+    return `<tr data-robot="${esc(r.name)}" class="${r.online ? "online" : "offline"}${r.replayOf ? " replay" : ""}">
+      <td class="name"><a href="#/robot/${encodeURIComponent(r.name)}">${breakable(r.name)}</a>${replayBadge(r.replayOf)}</td>
       <td class="state nowrap">${r.online ? "online" : "offline"}</td>
       <td>${esc(r.status)}</td><td class="nowrap${r.isOk === false ? " bad" : ""}">${ok}</td>
       <td class="nowrap">${batt}</td><td>${esc(r.location)}</td><td class="nowrap">${ago(r.lastSeenS)}</td>

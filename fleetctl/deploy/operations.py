@@ -69,6 +69,7 @@ from fleetctl.deploy.render import (
     fleet_artifacts,
     plan_artifacts,
 )
+from fleetctl.deploy.replaynames import check_not_replay_name
 from fleetctl.deploy.secrets import Secret
 from fleetctl.deploy.yamlnodes import FieldPath, format_path
 from fleetctl.errors import ConfigError, ConflictError, ExitCode, FleetError
@@ -509,6 +510,9 @@ def add_robot(
     options = {"mtu_bytes": "--mtu", **({"ip": "--ip"} if ip is not None else {})}
     try:
         check_robot_name(name)
+        # New names only: a fleet.yaml that has one already keeps loading (status knows
+        # it is the fleet's; the page, which sees no fleet.yaml, marks it as a replay).
+        check_not_replay_name(name)
         # An empty --ip is refused (as an empty endpoint is), not taken as "next free".
         address = parse_ip(ip, ("ip",)) if ip is not None else next_free_ip(fleet)
     except FleetInvalid as exc:

@@ -10,7 +10,22 @@ own (``husky1_replay``) with the same topic layout, so its views work unchanged.
 
 from __future__ import annotations
 
+from fleetctl.deploy.yamlnodes import FleetInvalid
+
 REPLAY_SUFFIX = "_replay"
+
+
+def check_not_replay_name(name: str) -> None:
+    """Refuse a new robot named like a replay (``dock_replay``): status and the page would
+    mark it as a replay of ``dock``.
+
+    Raises:
+        FleetInvalid: *name* ends in :data:`REPLAY_SUFFIX` (the message says so).
+    """
+    if name.endswith(REPLAY_SUFFIX):
+        raise FleetInvalid(("name",), f"robot name {name!r} ends in {REPLAY_SUFFIX}, "
+                           "which `fleetctl replay` gives replayed robots (husky1 -> "
+                           f"husky1{REPLAY_SUFFIX}): choose another name")
 
 
 def replay_prefix(topic: str) -> str:

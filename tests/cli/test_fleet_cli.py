@@ -118,6 +118,10 @@ def test_add_robot_allocates_and_writes(fleet: Path, cli: Cli) -> None:
         (["bad-name"], ExitCode.CONFIG, "not a ROS namespace segment"),
         (["9lives"], ExitCode.CONFIG, "not a ROS namespace segment"),
         (["a__b"], ExitCode.CONFIG, "not a ROS namespace segment"),
+        # `fleetctl replay` sends a recorded husky1 as husky1_replay (status and the page
+        # mark such a name as a replay).
+        (["dock_replay"], ExitCode.CONFIG, "robot name 'dock_replay' ends in _replay, which "
+         "`fleetctl replay` gives replayed robots (husky1 -> husky1_replay): choose another"),
         # Out of range is a usage error, above 65535 as below 576 (once 2 and 3).
         (["other", "--mtu", "100"], ExitCode.USAGE, "Invalid value for '--mtu': 100 is not in "
          "576..9000"),

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import logging
+import os
 import sys
 import threading
 from collections.abc import Iterator
@@ -178,7 +179,12 @@ def test_the_client_keeps_its_status_when_the_wall_clock_steps_back(tmp_path: Pa
                             "FAKETIME_DONT_FAKE_MONOTONIC": "1"}, tmp_path / "child.log")
     try:
         child.wait_for(lambda line: line.get("status") == 3, 30.0, "three status frames")
-        offset.write_text("-1h\n")
+        # Replaced, not rewritten: libfaketime reads the file at every clock read
+        # (FAKETIME_NO_CACHE), and a read between write_text's truncation and its write
+        # would see an empty file (one CI run under load timed out here, unexplained).
+        stepped = tmp_path / "faketime.new"
+        stepped.write_text("-1h\n")
+        os.replace(stepped, offset)
         child.drain()
         before = child.received[-1]["status"]
         child.wait_for(lambda line: line.get("status", 0) >= before + 20, 15.0,

@@ -154,19 +154,13 @@ def _require_project_not_elsewhere(plan: ComposePlan, runner: Runner) -> None:
     Raises:
         ConflictError: naming the project and the other compose file.
     """
-    if others := _live_compose_files_of(plan.project, plan.fleet_dir, runner):
+    ours = _made_here_or_moved(plan)
+    if others := sorted(f for f in _compose_files_of(plan.project, runner) if not ours(f)):
         raise ConflictError(
             f"compose project {plan.project} has containers made from {others[0]}, another "
             "fleet directory's: two directories never share a project (each `up` would "
             "recreate the other's containers); run `fleetctl down` there first, or give "
             "`up` another --project")
-
-
-def _live_compose_files_of(project: str, fleet_dir: Path, runner: Runner) -> list[str]:
-    """The compose files other than *fleet_dir*'s that made *project*'s containers and
-    are still there (another fleet directory's, not one moved away)."""
-    ours = str(fleet_dir.resolve() / COMPOSE_DIR / COMPOSE_FILE)
-    return sorted(f for f in _compose_files_of(project, runner) - {ours} if _is_there(f))
 
 
 def _made_here_or_moved(plan: ComposePlan) -> Callable[[str], bool]:

@@ -84,7 +84,11 @@ class TopicCatalog:
         self._sent: dict[int, dict[str, str]] = {}  # peer id -> topic -> type ("" probing)
         self._probes: dict[tuple[int, str], int] = {}  # frames probed so far
         self._publishers: dict[int, set[int]] = {}  # channel id -> peer ids
-        self._ids: dict[tuple[str, str], int] = {}  # (topic, type) -> channel id, kept
+        # (topic, type) -> channel id, kept after the channel ends so that a topic coming
+        # back gets its id again; ids of ended channels are forgotten when the table is
+        # full (_make_room), and an id is never given twice (_last_id).
+        self._ids: dict[tuple[str, str], int] = {}
+        self._last_id = 0
         self._channels: dict[int, Channel] = {}  # live channels
         self._schemas: dict[str, str | None] = {}
         self.listeners: list[Listener] = []
@@ -167,10 +171,11 @@ class TopicCatalog:
         key = (topic, type_name)
         channel_id = self._ids.get(key)
         if channel_id is None:
-            if len(self._ids) >= MAX_CHANNELS:
+            if len(self._ids) >= MAX_CHANNELS and not self._make_room():
                 self.refused += 1
                 return
-            channel_id = self._ids[key] = len(self._ids) + 1
+            self._last_id += 1
+            channel_id = self._ids[key] = self._last_id
         publishers = self._publishers.get(channel_id)
         if publishers is not None:
             publishers.add(peer_id)
@@ -185,6 +190,16 @@ class TopicCatalog:
         self._publishers[channel_id] = {peer_id}
         channel = self._channels[channel_id] = Channel(channel_id, topic, type_name, schema)
         self._tell(channel, added=True)
+
+    def _make_room(self) -> bool:
+        """Forget the ids of channels that ended (no sender, not lingering); whether
+        that made room. Why: the ids of every (topic, type) ever sent were kept, so on a
+        relay whose robots come and go under new names (a week of sims, replays, renamed
+        robots) the table filled and no new topic was ever offered to Foxglove again.
+        One pass over the table when it is full: amortized over the ids it frees."""
+        live = self._channels.keys() | self._lingering.keys()
+        self._ids = {key: i for key, i in self._ids.items() if i in live}
+        return len(self._ids) < MAX_CHANNELS
 
     def _schema(self, type_name: str) -> str | None:
         if type_name not in self._schemas:

@@ -6,7 +6,7 @@ from __future__ import annotations
 from collections.abc import Callable
 from dataclasses import dataclass
 
-from fleetctl.server.foxglove.catalog import TopicCatalog
+from fleetctl.server.foxglove.catalog import MAX_CHANNELS, TopicCatalog
 from fleetctl.server.foxglove.messages import Channel
 from fleetctl.wire import fragments
 from fleetctl.wire.codec import default_codec
@@ -88,3 +88,24 @@ def test_a_channel_lingers_after_its_last_sender_and_stays_when_sent_again() -> 
     timers.pop()()
     assert heard == [("/r/chat", True), ("/r/other", True), ("/r/chat", False)]
     assert [c.topic for c in cat.channels()] == ["/r/other"]
+
+
+def test_topics_that_came_and_went_do_not_use_up_the_channels() -> None:
+    # A relay whose robots come and go under new names saw more than MAX_CHANNELS
+    # (topic, type) pairs in a few days of churn: the ids of every one were kept, and
+    # from then on no new topic was offered to Foxglove at all (benchmarks/soak_relay.py).
+    cat, heard = catalog()
+    for k in range(MAX_CHANNELS):
+        gone = Sender(k)
+        note(cat, gone, string_frame(f"/robot{k}/chat"))
+        cat.forget(gone)
+    live = Sender(-1)
+    note(cat, live, string_frame("/kept/chat"))
+    assert [c.topic for c in cat.channels()] == ["/kept/chat"]  # before: [] (refused)
+    kept = cat.channels()[0]
+    note(cat, Sender(-2), string_frame("/new/chat"))
+    assert heard[-1] == ("/new/chat", True) and cat.refused == 0
+    new = next(c for c in cat.channels() if c.topic == "/new/chat")
+    assert new.id > MAX_CHANNELS + 1  # ids of ended channels are never given again
+    note(cat, live, string_frame("/kept/chat"))
+    assert [c.id for c in cat.channels() if c.topic == "/kept/chat"] == [kept.id]

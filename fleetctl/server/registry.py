@@ -9,6 +9,7 @@ NAT'd address.
 
 from __future__ import annotations
 
+import logging
 import sqlite3
 import time
 from collections.abc import Callable
@@ -18,6 +19,8 @@ from typing import Any
 
 from fleetctl.errors import ConfigError
 from fleetctl.wire.control import known_battery
+
+log = logging.getLogger("fleetctl.server.registry")
 
 _SCHEMA = """
 CREATE TABLE IF NOT EXISTS robots (
@@ -38,6 +41,9 @@ _COLUMNS = (
 # Why: names come from topics clients send; bound the registry like every other table.
 MAX_ROBOTS = 10000
 MAX_NAME_CHARS = 128
+# A full registry forgets this many of the robots seen longest ago at once (those no open
+# connection speaks for), so the sort that finds them is paid once per that many names.
+FORGET_AT_ONCE = MAX_ROBOTS // 10
 
 
 @dataclass(frozen=True)
@@ -103,6 +109,7 @@ class RobotRegistry:
         self._last_seen: dict[str, float] = {}
         self._dirty: set[str] = set()
         self._live: dict[str, int] = {}  # robot -> open connections that speak for it
+        self._forgotten: set[str] = set()  # to delete from SQLite at the next flush
         for row in self._db.execute(f"SELECT {', '.join(_COLUMNS)} FROM robots"):
             rec = RobotRecord(
                 name=row[0], first_seen_s=row[1], last_seen_s=row[2], status=row[3],
@@ -113,6 +120,7 @@ class RobotRegistry:
             self._robots[rec.name] = rec
             self._last_seen[rec.name] = rec.last_seen_s
         self.dropped_names = 0
+        self.forgotten_names = 0
 
     @property
     def db(self) -> sqlite3.Connection:
@@ -123,13 +131,33 @@ class RobotRegistry:
         """Note a frame from robot *name* now; return ``False`` if the registry is full."""
         now = self._clock()
         if name not in self._last_seen:
-            if len(self._last_seen) >= MAX_ROBOTS:
+            if len(self._last_seen) >= MAX_ROBOTS and not self._make_room():
                 self.dropped_names += 1
                 return False
             self._robots[name] = RobotRecord(name, now, now)
+            self._forgotten.discard(name)
         self._last_seen[name] = now
         self._dirty.add(name)
         return True
+
+    def _make_room(self) -> bool:
+        """Forget the :data:`FORGET_AT_ONCE` robots seen longest ago that no open
+        connection speaks for; whether that made room. Why: a full registry refused every
+        new name for good (and the table is kept across restarts), so a fleet whose robot
+        names come and go (sims, replays, renamed robots) stopped showing new robots
+        after its 10,000th name, while robots gone for months stayed listed."""
+        idle = sorted((t, n) for n, t in self._last_seen.items() if n not in self._live)
+        gone = idle[:FORGET_AT_ONCE]
+        for _, name in gone:
+            del self._robots[name], self._last_seen[name]
+            self._dirty.discard(name)
+            self._forgotten.add(name)
+        self.forgotten_names += len(gone)
+        if gone:
+            log.info("robot registry full (%d robots): forgot the %d seen longest ago "
+                     "(last seen %s to %s)", MAX_ROBOTS, len(gone), _when(gone[0][0]),
+                     _when(gone[-1][0]))
+        return len(self._last_seen) < MAX_ROBOTS
 
     def attach(self, name: str) -> None:
         """Note that one more open connection speaks for *name*."""
@@ -188,15 +216,18 @@ class RobotRegistry:
         return out
 
     def flush(self) -> int:
-        """Write changed robots to SQLite in one transaction; return how many."""
+        """Write changed robots to SQLite in one transaction (and delete forgotten ones,
+        :meth:`seen`); return how many were written."""
         job = self.take_flush()
         return job() if job is not None else 0
 
     def take_flush(self) -> Callable[[], int] | None:
         """Take the changed robots now; return the job that writes them (one transaction,
         safe in a worker thread; returns how many), or ``None`` when nothing changed."""
-        if not self._dirty:
+        if not self._dirty and not self._forgotten:
             return None
+        forgotten = [(name,) for name in self._forgotten]
+        self._forgotten = set()
         rows = []
         for name in self._dirty:
             rec = self.get(name)
@@ -209,6 +240,7 @@ class RobotRegistry:
 
         def job() -> int:
             with db:
+                db.executemany("DELETE FROM robots WHERE name = ?", forgotten)
                 db.executemany(
                     f"INSERT OR REPLACE INTO robots ({', '.join(_COLUMNS)}) VALUES ({marks})",
                     rows)
@@ -220,3 +252,7 @@ class RobotRegistry:
         """Flush and close the database."""
         self.flush()
         self._db.close()
+
+
+def _when(wall_s: float) -> str:
+    return time.strftime("%Y-%m-%d %H:%M:%S", time.gmtime(wall_s))

@@ -5,7 +5,7 @@ from pathlib import Path
 import pytest
 
 from fleetctl.errors import ConfigError
-from fleetctl.server.registry import RobotRegistry, robot_name
+from fleetctl.server.registry import FORGET_AT_ONCE, MAX_ROBOTS, RobotRegistry, robot_name
 from tests.support import ManualClock
 
 
@@ -71,4 +71,32 @@ def test_a_battery_the_robot_does_not_know_is_none(tmp_path: Path) -> None:
         con.execute("UPDATE robots SET battery_level = -1 WHERE name = 'husky3'")
     again = RobotRegistry(db, offline_after_s=5.0, clock=ManualClock(1_000.0))
     assert [r["battery_level"] for r in again.as_json()] == [None, None, None]
+    again.close()
+
+
+def test_a_full_registry_forgets_the_robots_seen_longest_ago(tmp_path: Path) -> None:
+    # It refused every new name for good (kept across restarts): after 10,000 names a
+    # fleet whose robots come and go stopped showing new robots (the relay soak, with a
+    # new robot name every few seconds, gets there in hours).
+    clock = ManualClock(1_000.0)
+    db = tmp_path / "fleet.db"
+    reg = RobotRegistry(db, offline_after_s=5.0, clock=clock)
+    reg.seen("connected")  # the oldest, but a connection still speaks for it
+    reg.attach("connected")
+    for k in range(MAX_ROBOTS - 1):
+        clock.now_s += 1
+        reg.seen(f"gone{k}")
+    reg.flush()
+    clock.now_s += 1
+    assert reg.seen("newcomer") and reg.get("newcomer") is not None
+    assert reg.get("connected") is not None  # live robots are never forgotten
+    assert reg.get("gone0") is None and reg.get(f"gone{FORGET_AT_ONCE - 1}") is None
+    assert reg.get(f"gone{FORGET_AT_ONCE}") is not None
+    assert len(reg.names()) == MAX_ROBOTS - FORGET_AT_ONCE + 1
+    assert reg.forgotten_names == FORGET_AT_ONCE and reg.dropped_names == 0
+    reg.seen("gone1")  # a forgotten robot that comes back is a robot like any other
+    reg.close()
+    again = RobotRegistry(db, offline_after_s=5.0, clock=clock)
+    assert "gone0" not in again.names() and {"gone1", "newcomer"} <= set(again.names())
+    assert len(again.names()) == MAX_ROBOTS - FORGET_AT_ONCE + 2
     again.close()

@@ -11,7 +11,7 @@ if docker info >/dev/null 2>&1; then
   # cached, so only changed code is rebuilt; a fresh machine needs ~15 minutes once).
   echo "== fleetctl build"; fleetctl build
 fi
-# A whole-run deadline (default 45 min; the run takes ~17): a hang ends red, with the stacks
+# A whole-run deadline (default 45 min; pytest takes ~27 of a fresh clone): a hang ends red, with the stacks
 # faulthandler printed and pytest's summary after the SIGINT, not silent at the CI's limit.
 # The 30 slowest steps are listed at the end: the CI run must stay under 40 minutes.
 echo "== pytest"

@@ -476,9 +476,17 @@ def logs(fleet_dir: Path, options: Options, services: Sequence[str], *, follow: 
 # --- status ----------------------------------------------------------------------------
 
 
+# The state of a service of the compose file that has no container.
+MISSING = "missing"
+
+
 @dataclass(frozen=True)
 class ServiceState:
-    """One container: its service, run state, health (``none`` without a check), restarts."""
+    """One container: its service, run state, health (``none`` without a check), restarts.
+
+    A service of the compose file without a container has state ``missing`` and health
+    ``unknown``.
+    """
 
     service: str
     state: str
@@ -553,9 +561,7 @@ class StatusReport:
         """What keeps the fleet from being healthy, one phrase per service."""
         if not self.services:
             return [self._no_containers()]
-        return [f"{s.service} {s.state}" + (f" ({s.health})" if s.health != "none" else "")
-                + (f", {s.restarts} restarts" if s.restarts else "")
-                for s in self.services
+        return [_problem(s) for s in self.services
                 if s.state != "running" or s.health not in ("healthy", "none")]
 
     def to_json(self) -> dict[str, Any]:
@@ -607,6 +613,30 @@ class StatusReport:
         return "\n".join(lines)
 
 
+def _problem(state: ServiceState) -> str:
+    """One phrase of what is wrong with a service that does not run healthy."""
+    if state.state == MISSING:
+        return (f"{state.service} has no container (`fleetctl up` with the options the fleet "
+                "runs with makes it again)")
+    return (f"{state.service} {state.state}"
+            + (f" ({state.health})" if state.health != "none" else "")
+            + (f", {state.restarts} restarts" if state.restarts else ""))
+
+
+def _with_missing(present: list[ServiceState], expected: list[str]) -> list[ServiceState]:
+    """*present* and a ``missing`` row for each service of the compose file without one.
+
+    A container gone while the rest run (``up`` interrupted after compose made the server,
+    a ``docker rm -f``) was simply not listed, and ``status`` said healthy. With no
+    container at all the fleet is not running, which the report says once instead.
+    """
+    if not present:
+        return present
+    have = {state.service for state in present}
+    return present + [ServiceState(name, MISSING, "unknown", 0)
+                      for name in expected if name not in have]
+
+
 def _robot_json(robot: dict[str, Any]) -> dict[str, Any]:
     """A robot of the server's ``/robots`` with an unknown battery as ``None`` (a server
     older than this fleetctl reports the robot's -1 as is)."""
@@ -642,7 +672,9 @@ def status(fleet_dir: Path, options: Options,
            runner: Runner = subprocess_runner) -> StatusReport:
     """Each container's state, health and restarts; robots as the server reports them;
     the server's WireGuard peers and their last handshakes."""
-    services = [state for _cid, state in _containers(fleet_dir, options.project, runner)]
+    services = _with_missing(
+        [state for _cid, state in _containers(fleet_dir, options.project, runner)],
+        deployed_services(fleet_dir))
     mine = str(fleet_dir.resolve() / COMPOSE_DIR / COMPOSE_FILE)
     elsewhere = () if services else tuple(sorted(
         _compose_files_of(options.project, runner) - {mine}))

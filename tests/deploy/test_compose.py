@@ -776,3 +776,62 @@ def test_status_asks_only_for_this_fleets_containers(fleet: Path) -> None:
                 and "--format" not in c]
     assert listings and all(mine in c and "label=com.docker.compose.project=theirs" in c
                             for c in listings)
+
+
+class RunningServices(FakeDocker):
+    """`docker ps` finds one container per service in *running*, each running and healthy;
+    `docker exec` in the server fails (no robot list, no tunnel: not what is tested)."""
+
+    def __init__(self, running: Sequence[str]) -> None:
+        super().__init__()
+        self.running = list(running)
+
+    def __call__(self, argv: Sequence[str], stdin: bytes | None, capture: bool) -> Completed:
+        argv = list(argv)
+        if argv[:2] == ["docker", "ps"] and "--format" not in argv:
+            self.calls.append(argv)
+            wanted = [f.rpartition("=")[2] for f in argv
+                      if f.startswith("label=com.docker.compose.service=")]
+            ids = [f"cid-{s}" for s in self.running if not wanted or s in wanted]
+            return Completed(tuple(argv), 0, "".join(i + "\n" for i in ids), "")
+        if argv[:2] == ["docker", "inspect"] and argv[2].startswith("cid-"):
+            self.calls.append(argv)
+            info = {"Config": {"Labels": {"com.docker.compose.service": argv[2][4:]}},
+                    "State": {"Status": "running", "Health": {"Status": "healthy"}},
+                    "RestartCount": 0}
+            return Completed(tuple(argv), 0, json.dumps([info]), "")
+        if argv[:2] == ["docker", "exec"]:
+            self.calls.append(argv)
+            return Completed(tuple(argv), 1, "", "not what is tested")
+        return super().__call__(argv, stdin, capture)
+
+
+def test_status_names_a_service_of_the_deployment_that_has_no_container(
+        fleet: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """`up --sim` interrupted (Ctrl-C) after compose made the server, or a robot's
+    container removed by hand (`docker rm -f`): `status` listed the containers there were,
+    said nothing of the missing one and exited 0, so a monitoring check saw a healthy
+    fleet with a simulated robot (or a relay replica) gone."""
+    composerun.up(fleet, _opts(fleet, wireguard="off", sim=True), progress=lambda _: None,
+                  runner=FakeDocker())
+    assert composerun.deployed_services(fleet) == ["robot-husky1", "robot-jackal2", "server"]
+    options = composerun.existing_options(fleet)
+    report = composerun.status(fleet, options, runner=RunningServices(["server",
+                                                                       "robot-husky1"]))
+    assert not report.healthy
+    assert report.problems() == [
+        "robot-jackal2 has no container (`fleetctl up` with the options the fleet runs with "
+        "makes it again)"]
+    assert {"service": "robot-jackal2", "state": "missing", "health": "unknown",
+            "restarts": 0} in report.to_json()["services"]
+    rows = [line.split() for line in report.render_text().splitlines()[1:4]]
+    assert rows == [["robot-husky1", "running", "healthy", "0"],
+                    ["robot-jackal2", "missing", "unknown", "0"],
+                    ["server", "running", "healthy", "0"]]
+    # Every service there: healthy, as before.
+    whole = composerun.status(fleet, options, runner=RunningServices(
+        ["server", "robot-husky1", "robot-jackal2"]))
+    assert whole.healthy and whole.problems() == []
+    # No container at all: the fleet is not running, said once (not once per service).
+    assert composerun.status(fleet, options, runner=RunningServices([])).problems() == [
+        "no containers: the fleet is not running"]

@@ -393,6 +393,28 @@ def down(fleet_dir: Path, options: Options, *, delete_data: bool = False,
     progress(f"stopping {options.project}: removing {what}")
     check(runner(compose_argv(fleet_dir, options.project, *args, runner=runner), None, False),
           "compose down")
+    if delete_data:
+        _delete_other_volumes(options.project, progress, runner)
+
+
+def _delete_other_volumes(project: str, progress: Progress, runner: Runner) -> None:
+    """Delete the volumes of *project* that compose's ``down -v`` left.
+
+    ``down -v`` deletes only the volumes the current compose file names: after ``up``,
+    ``down``, ``up --replicas 2`` it names ``relay-i-data`` and ``nats-k-data``, and the
+    single server's ``server-data`` (registry, sessions, recordings) stayed, the other
+    way round the replicas'. Compose labels every volume it makes with its project, and
+    :func:`_check_project_is_ours` has established that the project is this fleet's.
+
+    Raises:
+        FleetError: docker could not list or delete them (one in use, say).
+    """
+    res = runner(["docker", "volume", "ls", "-q", "--filter",
+                  f"label=com.docker.compose.project={project}"], None, True)
+    names = check(res, "docker volume ls").stdout.split()
+    if names:
+        progress(f"removing {project}'s volumes of an earlier deployment: {', '.join(names)}")
+        check(runner(["docker", "volume", "rm", *names], None, True), "docker volume rm")
 
 
 def _check_project_is_ours(fleet_dir: Path, project: str, delete_data: bool,

@@ -835,3 +835,47 @@ def test_status_names_a_service_of_the_deployment_that_has_no_container(
     # No container at all: the fleet is not running, said once (not once per service).
     assert composerun.status(fleet, options, runner=RunningServices([])).problems() == [
         "no containers: the fleet is not running"]
+
+
+class ProjectVolumes(FakeDocker):
+    """`docker volume ls` of a project lists *volumes*; `docker volume rm` removes them."""
+
+    def __init__(self, volumes: Sequence[str]) -> None:
+        super().__init__()
+        self.volumes = list(volumes)
+
+    def __call__(self, argv: Sequence[str], stdin: bytes | None, capture: bool) -> Completed:
+        argv = list(argv)
+        if argv[:3] == ["docker", "volume", "ls"]:
+            self.calls.append(argv)
+            project = argv[argv.index("--filter") + 1].rpartition("=")[2]
+            mine = [v for v in self.volumes if v.startswith(project + "_")]
+            return Completed(tuple(argv), 0, "".join(v + "\n" for v in mine), "")
+        if argv[:3] == ["docker", "volume", "rm"]:
+            self.calls.append(argv)
+            self.volumes = [v for v in self.volumes if v not in argv[3:]]
+            return Completed(tuple(argv), 0, "", "")
+        return super().__call__(argv, stdin, capture)
+
+
+def test_down_delete_data_deletes_the_volumes_of_an_earlier_mode(fleet: Path) -> None:
+    """`up`, `down`, `up --replicas 2`, `down --delete-data` left the single server's
+    `server-data` volume (its registry, sessions and recordings): compose's `down -v`
+    deletes only the volumes the current compose file names, and with replicas it names
+    `relay-i-data` and `nats-k-data` instead (the other way round left those)."""
+    project = composerun.default_options(fleet).project
+    other = "fleetctlother123456_server-data"
+    docker = ProjectVolumes([f"{project}_server-data", f"{project}_relay-1-data", other])
+    composerun.up(fleet, _opts(fleet, wireguard="off"), progress=lambda _: None, runner=docker)
+    said: list[str] = []
+    composerun.down(fleet, composerun.existing_options(fleet), progress=said.append,
+                    runner=docker)
+    assert len(docker.volumes) == 3  # plain down keeps every volume
+    assert not any(c[:3] == ["docker", "volume", "rm"] for c in docker.calls)
+    composerun.down(fleet, composerun.existing_options(fleet), delete_data=True,
+                    progress=said.append, runner=docker)
+    down_v = max(i for i, c in enumerate(docker.calls) if "down" in c and "-v" in c)
+    rm = next(i for i, c in enumerate(docker.calls) if c[:3] == ["docker", "volume", "rm"])
+    assert rm > down_v  # after compose removed the containers that use them
+    assert docker.volumes == [other]  # another project's volume is never touched
+    assert any(f"{project}_relay-1-data" in line for line in said)

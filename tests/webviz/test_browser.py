@@ -174,36 +174,32 @@ async def wait_map_still(page: Any) -> None:
         " return w.n >= 5; }", polling=100, timeout=15_000)
 
 
-async def press_where_aimed(page: Any, canvas: Any, x: float, y: float) -> bool:
-    """Point at (*x*, *y*) of *canvas* and press the mouse button there.
+async def press_where_aimed(page: Any, canvas: Any, x: float, y: float) -> None:
+    """Point at (*x*, *y*) of *canvas* and press the mouse button there; the canvas must
+    not move between the aim and the press.
 
-    False when the canvas moved between the aim and the press (the press is then cancelled
-    with Esc and the button released; the caller aims again): the press lands where the
-    pointer is on the screen, so a line of text wrapping in a panel above the map in that
-    instant moved it (a CI run's second demo goal arrived at y = 2.5 for 2.0: 20 px, one
-    line)."""
+    The press lands where the pointer is on the screen: a line of text wrapping in a panel
+    above the map in that instant moved it 20 px (a CI run's second demo goal arrived at
+    y = 2.5 for 2.0). This helper used to cancel such a press and aim again; the page now
+    keeps every live text from moving the map (css/app.css, test_layout_browser.py), so a
+    move is a failure again."""
     before = await canvas.bounding_box()
     await canvas.hover(position={"x": x, "y": y})
     await page.mouse.down()
-    if await canvas.bounding_box() == before:
-        return True
-    await page.keyboard.press("Escape")
-    await page.mouse.up()
-    return False
+    after = await canvas.bounding_box()
+    assert after == before, f"the map moved between the aim and the press: {before} -> {after}"
 
 
 async def aim_goal_tool(page: Any, fx: float, fy: float) -> dict[str, float]:
     """Arm the goal tool and press at (*fx*, *fy*) of the map canvas (fractions of its
-    size), aiming again while the canvas moves under the press; the canvas's box."""
+    size), once it is in view and has held still; the canvas's box."""
     canvas = page.locator("#map-canvas")
-    for _attempt in range(5):
-        await page.click("#tool-goal")
-        await canvas.scroll_into_view_if_needed()
-        await wait_map_still(page)
-        box: dict[str, float] = await canvas.bounding_box()
-        if await press_where_aimed(page, canvas, box["width"] * fx, box["height"] * fy):
-            return box
-    raise AssertionError("the map moved under every press of five")
+    await page.click("#tool-goal")
+    await canvas.scroll_into_view_if_needed()
+    await wait_map_still(page)
+    box: dict[str, float] = await canvas.bounding_box()
+    await press_where_aimed(page, canvas, box["width"] * fx, box["height"] * fy)
+    return box
 
 
 async def drag_goal(page: Any) -> None:
@@ -214,8 +210,8 @@ async def drag_goal(page: Any) -> None:
     pointer position is then taken relative to the canvas where it is at that moment
     (``hover`` scrolls it into view and checks the point reaches the canvas), not from
     a box read before: a press below the viewport or on a panel that moved over the
-    map reaches nothing (a CI run sent no goal at all); and a press during which the
-    canvas moved is aimed again (:func:`press_where_aimed`)."""
+    map reaches nothing (a CI run sent no goal at all); and the canvas must not move
+    during the press (:func:`press_where_aimed`)."""
     box = await aim_goal_tool(page, 0.75, 0.5)
     canvas = page.locator("#map-canvas")
     x, y = box["width"] * 0.75, box["height"] * 0.5

@@ -4,6 +4,7 @@ import { Connection, layoutsOf } from "./connection.js";
 import { STALE_MIN_MS } from "./health.js";
 import { LayoutLoader } from "./fb/layout.js";
 import { throttledText } from "./loginthrottle.js";
+import { mirrorTitles } from "./oneline.js";
 import { GOAL, INITIAL, goalMessage, initialPoseMessage } from "./commands.js";
 import { PANELS, reEscape, wantedRegexes } from "./panels.js";
 import { replayOf } from "./replays.js";
@@ -387,7 +388,9 @@ class App {
         note = document.createElement("p");
         note.className = "panel-note bad";
         note.setAttribute("role", "status");
-        panel.querySelector("h3").after(note);
+        // Over the top of what the panel shows (css/app.css), not in the flow: inserted
+        // under the title it pushed the panel, and the map below it, down a few lines.
+        panel.querySelector(".scene-row, .map-wrap, .canvas-wrap, canvas, pre, #gps-map").before(note);
       }
       if (!note) continue;
       note.textContent = notes.join(" ");
@@ -501,6 +504,7 @@ async function main() {
       .filter((url) => url !== config.server_url);
   }
   $("#server-url").textContent = config.server_url;
+  mirrorTitles(document.body);
   const app = new App(config);
   window.fleetviz = app; // for debugging from the console
   $("#signin-form").addEventListener("submit", (e) => {

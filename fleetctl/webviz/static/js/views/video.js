@@ -236,6 +236,7 @@ export class VideoView {
     this.streams.clear();
     this.current = null;
     this.select.replaceChildren();
+    this.select.hidden = true; // no options: an empty selector stayed over the picture
     this.ctx.clearRect(0, 0, this.canvas.width, this.canvas.height);
     this.renderStatus();
   }

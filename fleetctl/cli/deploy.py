@@ -65,13 +65,14 @@ def build(
     output: OutputFormat = output_option(),
 ) -> None:
     """Build the server, client, webviz and router images (no registry needed)."""
-    require_docker()
     cfg = images.BuildConfig(
         source_dir=images.check_source_dir(source) if source else images.find_source_dir(),
         base_image=base_image,
         mirror_url=mirror,
         images=tuple(image) or images.IMAGE_NAMES,
     )
+    images.check_build_options(cfg)  # a typo is a usage error, with or without Docker
+    require_docker()
     tags = images.build_all(cfg, progress=_progress)
     emit({"images": tags}, output, lambda: "\n".join(tags))
 

@@ -27,6 +27,7 @@ from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass, field
 from importlib import metadata
 from pathlib import Path
+from urllib.parse import urlsplit
 
 from fleetctl import __version__
 from fleetctl.deploy.assets import asset_dir
@@ -468,6 +469,38 @@ def build_argv(cfg: BuildConfig, name: str) -> list[str]:
     ]
 
 
+def check_build_options(cfg: BuildConfig) -> None:
+    """Refuse ``--image`` and ``--mirror`` values that cannot work, before anything runs.
+
+    Raises:
+        FleetError: an unknown image name or a mirror that is not a URL (exit 2).
+    """
+    unknown = [n for n in cfg.images if n not in IMAGE_NAMES]
+    if unknown:
+        raise FleetError(f"--image: unknown image(s) {', '.join(map(repr, unknown))}; "
+                         f"choose from {', '.join(IMAGE_NAMES)}", exit_code=ExitCode.USAGE)
+    if cfg.mirror_url is not None:
+        check_mirror(cfg.mirror_url)
+
+
+def check_mirror(url: str) -> None:
+    """Check a ``--mirror`` for debootstrap: an http(s) URL with a host, or a file: URL.
+
+    It is used only when the base image is made, so a typo went unnoticed (or was found
+    by debootstrap minutes into a build).
+
+    Raises:
+        FleetError: not such a URL (exit 2).
+    """
+    parts = urlsplit(url)
+    web = parts.scheme in ("http", "https") and bool(parts.hostname)
+    local = parts.scheme == "file" and parts.path.startswith("/")
+    if not (web or local) or not url.isprintable() or any(c.isspace() for c in url):
+        raise FleetError(f"--mirror {url[:200]!r}: expected an http://, https:// or file:/ "
+                         "URL of a Debian mirror (e.g. http://deb.debian.org/debian)",
+                         exit_code=ExitCode.USAGE)
+
+
 def build_all(
     cfg: BuildConfig, runner: Runner = subprocess_runner, progress: Progress = print
 ) -> list[str]:
@@ -479,9 +512,7 @@ def build_all(
     Raises:
         FleetError: an unknown image name, or a step failed (its output says which).
     """
-    unknown = [n for n in cfg.images if n not in IMAGE_NAMES]
-    if unknown:
-        raise FleetError(f"unknown image(s) {unknown}; choose from {list(IMAGE_NAMES)}")
+    check_build_options(cfg)
     ensure_base_image(cfg, runner, progress)
     try:
         prepare_context(cfg, runner, progress)

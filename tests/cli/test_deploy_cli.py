@@ -228,3 +228,21 @@ def test_up_and_the_recordings_hint_name_the_endpoints_host(
     config = fleet / "server" / "server.yaml"
     err = fleetctl("recordings", "list", "--config", str(config), code=3).stderr
     assert err.endswith(f"ask it with --server {url} --token-file FILE --ca-file {cert}\n")
+
+
+@pytest.mark.parametrize(("args", "said"), [
+    (["--image", "db"], "--image: unknown image(s) 'db'"),
+    (["--mirror", "deb.debian.org/debian"], "--mirror 'deb.debian.org/debian': expected"),
+])
+def test_build_refuses_bad_options_before_asking_docker(
+        args: list[str], said: str, monkeypatch: pytest.MonkeyPatch,
+        capsys: pytest.CaptureFixture[str]) -> None:
+    """A typo in `build`'s options is a usage error (exit 2) said at once, with or without
+    Docker; `--mirror` was ignored while the base image existed and the build went on."""
+    def no_docker() -> None:
+        raise AssertionError("docker asked before the options were checked")
+
+    monkeypatch.setattr(deploy_cli, "require_docker", no_docker)
+    assert main(["build", *args]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("fleetctl: error: ") and said in err and err.count("\n") == 1

@@ -113,6 +113,31 @@ def test_unknown_image_name_is_rejected(tmp_path: Path) -> None:
                          Recorder(True), lambda s: None)
 
 
+@pytest.mark.parametrize(("options", "message"), [
+    ({"images": ("db",)}, r"--image: unknown image\(s\) 'db'; choose from server, client, "
+                          r"webviz, router"),
+    ({"mirror_url": "not a url"}, r"--mirror 'not a url': expected an http://, https:// or "
+                                  r"file:/ URL of a Debian mirror"),
+    ({"mirror_url": "deb.debian.org/debian"}, r"--mirror 'deb\.debian\.org/debian'"),
+    ({"mirror_url": "http:///debian"}, r"--mirror 'http:///debian'"),
+    ({"mirror_url": "http://h/debian\nx"}, r"--mirror"),
+])
+def test_bad_build_options_are_usage_errors_before_anything_runs(
+        tmp_path: Path, options: dict[str, object], message: str) -> None:
+    """`fleetctl build --mirror 'not a url'` made the wheelhouses (minutes of pip) and
+    would have built every image with the option ignored (the base image was there), and
+    `--image db` was exit 1 where every other bad option is 2."""
+    rec = Recorder(True)
+    with pytest.raises(FleetError, match=message) as err:
+        images.build_all(images.BuildConfig(source_dir=tmp_path, **options),  # type: ignore[arg-type]
+                         rec, lambda s: None)
+    assert err.value.exit_code == ExitCode.USAGE
+    assert rec.calls == []
+    for good in ("http://deb.debian.org/debian", "https://mirror.example:8443/debian/",
+                 "file:///srv/mirror"):
+        images.check_mirror(good)
+
+
 def test_a_build_context_that_cannot_be_written_is_one_line(tmp_path: Path) -> None:
     """`build --source` of a checkout on a read-only mount printed mkdir's traceback (here
     a file stands where the context directory goes)."""

@@ -856,7 +856,13 @@ def _tunnel(fleet_dir: Path, server_id: str | None,
         stamp = int(cols[4]) if cols[4].isdigit() else 0
         peers.append(TunnelPeer(names.get(address, "?"), address,
                                 None if stamp == 0 else max(0.0, now - stamp)))
-    return tuple(peers), ""
+    # wg lists peers in its own order: by robot name as the ROBOT table above it, peers
+    # of no robot of fleet.yaml last.
+    return tuple(sorted(peers, key=_peer_order)), ""
+
+
+def _peer_order(peer: TunnelPeer) -> tuple[bool, str, str]:
+    return peer.robot == "?", peer.robot, peer.address.rjust(15)
 
 
 def _peer_names(fleet_dir: Path) -> dict[str, str]:

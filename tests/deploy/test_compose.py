@@ -9,6 +9,7 @@ import re
 import shutil
 import stat
 import subprocess
+import time
 from collections.abc import Sequence
 from dataclasses import replace
 from pathlib import Path
@@ -879,3 +880,35 @@ def test_down_delete_data_deletes_the_volumes_of_an_earlier_mode(fleet: Path) ->
     assert rm > down_v  # after compose removed the containers that use them
     assert docker.volumes == [other]  # another project's volume is never touched
     assert any(f"{project}_relay-1-data" in line for line in said)
+
+
+class WireGuardDump(RunningServices):
+    """The server runs; `wg show wg0 dump` answers *dump*."""
+
+    def __init__(self, dump: str) -> None:
+        super().__init__(["server"])
+        self.dump = dump
+
+    def __call__(self, argv: Sequence[str], stdin: bytes | None, capture: bool) -> Completed:
+        if list(argv[:2]) == ["docker", "exec"] and "wg" in argv:
+            return Completed(tuple(argv), 0, self.dump, "")
+        return super().__call__(argv, stdin, capture)
+
+
+def test_status_lists_tunnel_peers_in_the_robot_table_order(fleet: Path) -> None:
+    """The TUNNEL PEER table came in wg's own order (jackal2 above husky1 while the ROBOT
+    table above it said husky1, jackal2): the same robots, in the same order in both."""
+    composerun.up(fleet, _opts(fleet, wireguard="off"), progress=lambda _: None,
+                  runner=FakeDocker())
+    now = int(time.time())
+    dump = ("PRIV\tPUB\t51820\toff\n"
+            f"K3\tPSK\t(none)\t10.8.0.9/32\t0\t0\t0\toff\n"
+            f"K2\tPSK\t203.0.113.9:4500\t10.8.0.3/32\t{now - 4}\t10\t20\toff\n"
+            f"K1\tPSK\t203.0.113.8:4500\t10.8.0.2/32\t{now - 7}\t10\t20\toff\n")
+    report = composerun.status(fleet, composerun.existing_options(fleet),
+                               runner=WireGuardDump(dump))
+    assert report.tunnel is not None
+    assert [(p.robot, p.address) for p in report.tunnel] == [
+        ("husky1", "10.8.0.2"), ("jackal2", "10.8.0.3"), ("?", "10.8.0.9")]
+    assert report.tunnel[2].handshake_age_s is None
+    assert report.tunnel[0].handshake_age_s is not None and report.tunnel[0].handshake_age_s >= 6

@@ -12,8 +12,10 @@ from urllib.parse import urlsplit
 import typer
 
 from fleetctl.cli.output import PORT_OR_ANY
+from fleetctl.deploy.msgtypes import MSG_TYPES_DIR, load_msg_types
 from fleetctl.errors import ConfigError
 from fleetctl.webviz.config import DEBIAN_JS_DIR, WebvizConfig
+from fleetctl.webviz.layouts import MsgTypes
 from fleetctl.webviz.run import run_webviz
 
 
@@ -61,6 +63,27 @@ def _check_host(host: str, port: int) -> str:
     return host
 
 
+def _fleet_msg_types(fleet: Path | None) -> MsgTypes:
+    """The fleet's own message types, read as ``fleetctl render`` reads them
+    (``FLEET/msg_types/PKG/msg/NAME.msg``); none without ``--fleet``.
+
+    Raises:
+        ConfigError: (exit code 3) *fleet* is not a directory, or a definition is bad (the
+            message names the file).
+    """
+    if fleet is None:
+        return ()
+    if not fleet.is_dir():
+        raise ConfigError(f"--fleet {str(fleet)!r}: not a directory (a fleet directory, "
+                          f"whose {MSG_TYPES_DIR}/PKG/msg/NAME.msg the page decodes too)")
+    texts = load_msg_types(fleet).texts
+    if not texts:  # asked for, and none: say so rather than serve as if they were there
+        logging.getLogger("fleetctl.webviz").warning(
+            "webviz: %s has no %s/PKG/msg/NAME.msg: the standard message types only",
+            fleet, MSG_TYPES_DIR)
+    return texts
+
+
 def register(app: typer.Typer) -> None:
     """Add ``webviz`` to *app*."""
 
@@ -82,6 +105,14 @@ def register(app: typer.Typer) -> None:
             "--vendor-dir",
             help="Directory with three/ and leaflet/ (Debian libjs-three, libjs-leaflet).",
         ),
+        fleet: Path | None = typer.Option(
+            None,
+            "--fleet",
+            "-f",
+            help=f"Fleet directory: the page decodes its own message types too "
+            f"({MSG_TYPES_DIR}/PKG/msg/NAME.msg, as fleetctl render reads them). "
+            "Default: the standard types only.",
+        ),
         verbose: bool = typer.Option(False, "--verbose", "-v", help="Log every request."),
     ) -> None:
         """Serve the web visualizer (static page, config.json, type layouts)."""
@@ -91,5 +122,6 @@ def register(app: typer.Typer) -> None:
             listen_port=port,
             server_url=_check_url(server_url),
             vendor_dir=vendor_dir,
+            msg_types=_fleet_msg_types(fleet),
         )
         run_webviz(config)

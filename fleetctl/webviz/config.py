@@ -5,6 +5,8 @@ from __future__ import annotations
 from dataclasses import dataclass
 from pathlib import Path
 
+from fleetctl.webviz.layouts import MsgTypes
+
 STATIC_DIR = Path(__file__).resolve().parent / "static"
 """The page's own files (index.html, ES modules, css), shipped as package data."""
 
@@ -26,6 +28,8 @@ class WebvizConfig:
             ``/usr/share/javascript`` or a copy made at image build).
         static_dir: The page's files.
         max_layout_cache_types: Type layouts kept in memory (least recently used evicted).
+        msg_types: The fleet's own message types, ``(pkg/msg/Name, .msg text)`` pairs,
+            served in ``/types/`` beside the default ones (``fleetctl webviz --fleet``).
     """
 
     listen_host: str = "127.0.0.1"
@@ -34,3 +38,4 @@ class WebvizConfig:
     vendor_dir: Path = DEBIAN_JS_DIR
     static_dir: Path = STATIC_DIR
     max_layout_cache_types: int = 256
+    msg_types: MsgTypes = ()

@@ -8,10 +8,10 @@ import signal
 import threading
 from types import FrameType
 
-from fleetctl.errors import EnvironmentMissing
+from fleetctl.errors import ConfigError, EnvironmentMissing
 from fleetctl.webviz.config import WebvizConfig
 from fleetctl.webviz.httpserver import BackgroundWebviz
-from fleetctl.webviz.layouts import LayoutCache
+from fleetctl.webviz.layouts import LayoutCache, LayoutError, registry_with
 from fleetctl.webviz.vendor import missing_vendor_libs
 from fleetctl.wire.registry import TypeRegistry
 
@@ -23,13 +23,15 @@ def start_webviz(config: WebvizConfig, registry: TypeRegistry | None = None) -> 
 
     Args:
         config: What to serve and where.
-        registry: Type registry for ``/types/``; :meth:`TypeRegistry.default` if None.
+        registry: Type registry for ``/types/``; if None, :meth:`TypeRegistry.default`
+            plus ``config.msg_types``.
 
     Returns:
         The running server (call ``stop()``).
 
     Raises:
         EnvironmentMissing: the static files are missing or the address cannot be bound.
+        ConfigError: ``config.msg_types`` cannot be registered (the message says which).
     """
     if not (config.static_dir / "index.html").is_file():
         raise EnvironmentMissing(
@@ -37,7 +39,12 @@ def start_webviz(config: WebvizConfig, registry: TypeRegistry | None = None) -> 
         )
     for line in missing_vendor_libs(config.vendor_dir):
         log.warning("webviz: %s", line)
-    cache = LayoutCache(registry or TypeRegistry.default(), config.max_layout_cache_types)
+    if registry is None:
+        try:
+            registry = registry_with(config.msg_types)
+        except LayoutError as exc:
+            raise ConfigError(f"the fleet's own message types: {exc}") from None
+    cache = LayoutCache(registry, config.max_layout_cache_types)
     try:
         server = BackgroundWebviz(config, cache)
     except OSError as exc:
@@ -48,18 +55,24 @@ def start_webviz(config: WebvizConfig, registry: TypeRegistry | None = None) -> 
 
 def run_webviz(config: WebvizConfig) -> None:
     """Serve until SIGINT or SIGTERM."""
+    done = threading.Event()
+
+    def stop(_sig: int, _frame: FrameType | None) -> None:
+        done.set()
+
+    # Before the "serving" line: a SIGTERM sent as soon as it is read (a supervisor, a
+    # test) killed the process (exit -15) instead of stopping it.
+    signal.signal(signal.SIGTERM, stop)
+    signal.signal(signal.SIGINT, stop)
+    if config.msg_types:
+        names = [name for name, _ in config.msg_types]
+        more = f", ... ({len(names)} in all)" if len(names) > 5 else ""
+        log.info("webviz: the fleet's own message types too: %s%s", ", ".join(names[:5]), more)
     server = start_webviz(config)
     log.info(
         "webviz: serving %s (fleet server %s)",
         server.url,
         config.server_url or "ws://<the page's host>:8080/",
     )
-    done = threading.Event()
-
-    def stop(_sig: int, _frame: FrameType | None) -> None:
-        done.set()
-
-    signal.signal(signal.SIGTERM, stop)
-    signal.signal(signal.SIGINT, stop)
     done.wait()
     server.stop()

@@ -170,5 +170,11 @@ async def test_map_and_scene_hold_still_while_the_page_text_changes(
         boxes: list[list[str]] = await page.evaluate("window.__boxes.splice(0)")
         assert len(boxes) > 100, len(boxes)  # read at every frame for seconds
         assert len({b for b, _ in boxes}) == 1, moves(boxes)
+        # What an ellipsis cuts stays in the title.
+        assert await page.get_attribute("#robot-name", "title") == LONG
+        untitled = await page.evaluate("[...document.querySelectorAll('.oneline')]"
+                                       ".filter(e => e.title !== e.textContent.trim())"
+                                       ".map(e => e.id)")
+        assert untitled == []
         # The attempts while the relay was away are expected; nothing else is.
         assert [p for p in problems if "ERR_CONNECTION_REFUSED" not in p] == []

@@ -148,3 +148,27 @@ def test_up_without_wireguard_names_a_docker_network_on_the_fleet_subnet(
         assert not (fleet / ".compose").exists()
     finally:
         subprocess.run(["docker", "network", "rm", clash], capture_output=True, check=False)
+
+
+def _volumes(project: str) -> list[str]:
+    return sorted(subprocess.run(
+        ["docker", "volume", "ls", "-q", "--filter",
+         f"label=com.docker.compose.project={project}"],
+        capture_output=True, text=True, check=True).stdout.split())
+
+
+def test_down_delete_data_deletes_the_volumes_of_an_earlier_mode(tmp_path: Path) -> None:
+    """`up`, `down`, `up --replicas 2`, `down --delete-data` left the single server's
+    `server-data` volume (its registry, sessions and recordings): compose's `down -v`
+    deletes only the volumes of the compose file it is given, the replicas' one."""
+    op, _fleet, project = _new_fleet(tmp_path)
+    try:
+        op.run("up", "--bind", "127.0.0.1", "--project", project)
+        op.run("down")
+        assert _volumes(project) == [f"{project}_server-data"]  # plain down keeps it
+        op.run("up", "--bind", "127.0.0.1", "--project", project, "--replicas", "2")
+        assert {f"{project}_server-data", f"{project}_relay-1-data"} <= set(_volumes(project))
+        op.run("down", "--delete-data")
+        assert _volumes(project) == []
+    finally:
+        op.run("down", "--delete-data", ok=False)

@@ -13,6 +13,7 @@ import enum
 import ipaddress
 import json
 import re
+import unicodedata
 from collections.abc import Callable, Mapping, Sequence
 from pathlib import Path
 from typing import Any
@@ -108,12 +109,24 @@ def progress_line(line: str) -> None:
     typer.echo(f"  {line}", err=True)
 
 
+def display_width(text: str) -> int:
+    """Terminal columns *text* takes: East Asian wide and full-width characters (kanji,
+    most emoji) two, combining marks none, the rest one."""
+    return sum(0 if unicodedata.combining(c) else
+               2 if unicodedata.east_asian_width(c) in ("W", "F") else 1 for c in text)
+
+
 def table(headers: Sequence[str], rows: Sequence[Sequence[object]]) -> str:
-    """Return a plain text table with columns padded to their widest cell."""
+    """Return a plain text table with columns padded to their widest cell.
+
+    Padded by terminal columns, not code points: e-mail addresses may be in any script
+    (``a🤖@例え.jp``), and a wide character shifted every later column of its row.
+    """
     cells = [[str(h) for h in headers], *[[str(c) for c in row] for row in rows]]
-    widths = [max(len(row[i]) for row in cells) for i in range(len(headers))]
+    widths = [max(display_width(row[i]) for row in cells) for i in range(len(headers))]
     return "\n".join(
-        "  ".join(c.ljust(w) for c, w in zip(row, widths, strict=True)).rstrip() for row in cells
+        "  ".join(c + " " * (w - display_width(c))
+                  for c, w in zip(row, widths, strict=True)).rstrip() for row in cells
     )
 
 

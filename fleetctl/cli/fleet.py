@@ -38,7 +38,7 @@ from fleetctl.deploy.fleet import (
     MIN_MTU_BYTES,
     Fleet,
 )
-from fleetctl.errors import ConfigError
+from fleetctl.errors import ConfigError, ExitCode, FleetError
 
 _DRY_RUN_HELP = "Show what would be written, write nothing."
 
@@ -73,7 +73,24 @@ def _finish(outcome: ops.Outcome, output: OutputFormat) -> None:
         typer.echo(note, err=output is OutputFormat.JSON)
 
 
+def _require_one_directory(ctx: typer.Context, directory: Path | None, fleet: Path) -> None:
+    """Refuse ``init DIR --fleet OTHER``: the fleet went into DIR and OTHER was dropped
+    without a word. ``$FLEET_DIR`` beside the argument is fine (the argument names the new
+    fleet), and so is the same directory twice.
+
+    Raises:
+        FleetError: both given on the command line, naming different directories (exit 2).
+    """
+    source = ctx.get_parameter_source("fleet")
+    if (directory is None or source is None or source.name != "COMMANDLINE"
+            or directory.resolve() == fleet.resolve()):
+        return
+    raise FleetError(f"init: the directory {str(directory)!r} and --fleet {str(fleet)!r} "
+                     "differ: give the new fleet's directory once", exit_code=ExitCode.USAGE)
+
+
 def init(
+    ctx: typer.Context,
     directory: Path | None = typer.Argument(
         None, help="Directory to create the fleet in (default: --fleet / $FLEET_DIR / .)."),
     endpoint: str | None = typer.Option(
@@ -102,6 +119,7 @@ def init(
 
     Writes fleet.yaml, the server's WireGuard key and config, server.yaml,
     auth.yaml and a self-signed HTTPS certificate for the web page."""
+    _require_one_directory(ctx, directory, fleet)
     result = ops.create_fleet(
         directory or fleet, endpoint=endpoint, name=name, subnet=subnet, server_ip=server_ip,
         server_port=server_port, wireguard_port=wireguard_port, https_port=https_port,

@@ -792,3 +792,19 @@ def test_init_force_dry_run_says_what_the_real_run_then_does(fleet: Path, cli: C
     # The fleet it made is whole: `render` finds every file up to date.
     out, _ = cli("render", "--dry-run")
     assert [line for line in out.splitlines()[1:] if "would" in line] == []
+
+
+def test_init_given_two_different_directories_is_a_usage_error(
+        tmp_path: Path, capsys: pytest.CaptureFixture[str],
+        monkeypatch: pytest.MonkeyPatch) -> None:
+    """`fleetctl init aa --fleet bb` made the fleet in aa and said nothing of bb; the same
+    directory twice, or $FLEET_DIR beside the argument (the README's flow with a second
+    fleet), is fine: the argument names where the new fleet goes."""
+    monkeypatch.chdir(tmp_path)
+    assert main(["init", "aa", "--fleet", "bb"]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("fleetctl: error: ") and "'aa'" in err and "--fleet 'bb'" in err
+    assert not (tmp_path / "aa").exists() and not (tmp_path / "bb").exists()
+    assert main(["init", "aa", "--fleet", str(tmp_path / "aa")]) == 0
+    monkeypatch.setenv("FLEET_DIR", str(tmp_path / "aa"))
+    assert main(["init", "cc"]) == 0 and (tmp_path / "cc" / "fleet.yaml").is_file()

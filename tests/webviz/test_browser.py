@@ -174,6 +174,22 @@ async def wait_map_still(page: Any) -> None:
         " return w.n >= 5; }", polling=100, timeout=15_000)
 
 
+# The canvas's box and the scroll at every animation frame until the press: a line that
+# wrapped and unwrapped in between would move the canvas and back, unseen by two reads.
+_WATCH_BOX = """el => {
+  const rows = (window.__pressBoxes = []);
+  const step = () => {
+    if (window.__pressBoxes !== rows) return;
+    const r = el.getBoundingClientRect();
+    rows.push([r.x, r.y, r.width, r.height, scrollY].map((v) => v.toFixed(1)).join());
+    requestAnimationFrame(step);
+  };
+  step();
+}"""
+_BOXES_SEEN = "(() => { const s = [...new Set(window.__pressBoxes)]; window.__pressBoxes = null;" \
+              " return s; })()"
+
+
 async def press_where_aimed(page: Any, canvas: Any, x: float, y: float) -> None:
     """Point at (*x*, *y*) of *canvas* and press the mouse button there; the canvas must
     not move between the aim and the press.
@@ -182,23 +198,36 @@ async def press_where_aimed(page: Any, canvas: Any, x: float, y: float) -> None:
     above the map in that instant moved it 20 px (a CI run's second demo goal arrived at
     y = 2.5 for 2.0). This helper used to cancel such a press and aim again; the page now
     keeps every live text from moving the map (css/app.css, test_layout_browser.py), so a
-    move is a failure again."""
+    move is a failure again, with the boxes seen frame by frame."""
     before = await canvas.bounding_box()
+    await canvas.evaluate(_WATCH_BOX)
     await canvas.hover(position={"x": x, "y": y})
     await page.mouse.down()
     after = await canvas.bounding_box()
-    assert after == before, f"the map moved between the aim and the press: {before} -> {after}"
+    seen = await page.evaluate(_BOXES_SEEN)
+    assert after == before and len(seen) <= 1, (
+        f"the canvas moved between the aim and the press: {before} -> {after}; "
+        f"x, y, width, height, scrollY seen: {seen}")
 
 
 async def aim_goal_tool(page: Any, fx: float, fy: float) -> dict[str, float]:
     """Arm the goal tool and press at (*fx*, *fy*) of the map canvas (fractions of its
-    size), once it is in view and has held still; the canvas's box."""
+    size), once it is in view and has held still; the canvas's box. The press must reach
+    the map at the world point aimed at (the view's centre and scale are said if not)."""
     canvas = page.locator("#map-canvas")
     await page.click("#tool-goal")
     await canvas.scroll_into_view_if_needed()
     await wait_map_still(page)
     box: dict[str, float] = await canvas.bounding_box()
     await press_where_aimed(page, canvas, box["width"] * fx, box["height"] * fy)
+    where = await page.evaluate(
+        "([fx, fy]) => { const m = fleetviz.views.map;"
+        " const want = m.toWorld(fx * m.canvas.width, fy * m.canvas.height);"
+        " return {want, got: m.drag?.start ?? null, tool: m.tool, center: m.center,"
+        " scale: m.scale, rect: m.canvas.getBoundingClientRect().toJSON()}; }", [fx, fy])
+    got, want = where["got"], where["want"]
+    off = got is None or max(abs(got["x"] - want["x"]), abs(got["y"] - want["y"])) >= 0.05
+    assert not off, f"the press reached the map elsewhere: {where}, box {box}"
     return box
 
 

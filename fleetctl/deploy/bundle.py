@@ -31,6 +31,7 @@ from fleetctl.deploy.render import (
     render_template,
     robot_wireguard,
     server_url,
+    server_urls,
 )
 
 EXECUTABLE_FILE_MODE = 0o755
@@ -224,6 +225,9 @@ def robot_readme(fleet: Fleet, robot: Robot, *, wheel_name: str) -> str:
         endpoint=fleet.endpoint,
         mtu_bytes=robot.mtu_bytes,
         server_url=server_url(fleet),
+        # With relay replicas client.yaml lists each (the README said only the first);
+        # without, this is server_url.
+        server_urls=", ".join(server_urls(fleet)),
         server_ip=str(fleet.server_ip),
         ros_domain_id=robot.ros_domain_id,
         rmw=robot.rmw_implementation,

@@ -311,3 +311,25 @@ def test_readme_needs_an_endpoint(fleet_dir: Path) -> None:
     with pytest.raises(ValueError, match="endpoint"):
         bundle.robot_readme(type(fleet)(**{**fleet.__dict__, "endpoint": None}), robot,
                             wheel_name="w.whl")
+
+
+def test_readme_names_every_relay_replica_the_client_yaml_lists(
+        fleet_dir: Path, tmp_path: Path, wheel: Path) -> None:
+    """With `relay_replicas: 2` the bundle's client.yaml lists ws://10.8.0.1:8080/ and
+    :8081/, but its README said "server ws://10.8.0.1:8080/" and told the operator to
+    look for `connected to ws://10.8.0.1:8080/`, which a client on the second replica
+    never logs."""
+    one = (export_robot(fleet_dir, "husky1", tmp_path / "one", wheel=wheel).path
+           / "README.md").read_text()
+    assert "robot client: server ws://10.8.0.1:8080/, bound to" in one
+    assert "`connected to ws://10.8.0.1:8080/`" in one
+    path = fleet_dir / "fleet.yaml"
+    path.write_text(path.read_text().replace("robots:", "relay_replicas: 2\nrobots:", 1))
+    two_dir = export_robot(fleet_dir, "husky1", tmp_path / "two", wheel=wheel).path
+    urls = yaml.safe_load((two_dir / "client.yaml").read_text())["server_url"]
+    assert urls == ["ws://10.8.0.1:8080/", "ws://10.8.0.1:8081/"]
+    two = (two_dir / "README.md").read_text()
+    assert ("robot client: servers ws://10.8.0.1:8080/, ws://10.8.0.1:8081/ (relay "
+            "replicas: it fails over between them), bound to") in two
+    assert "`connected to ws://10.8.0.1:8080/` (or another replica's URL)" in two
+    assert "8080" not in re.sub(r"ws://10\.8\.0\.1:808[01]/", "", two)

@@ -102,6 +102,8 @@ CONTEXTS: dict[str, dict[str, Any]] = {
         "fleet_name": "campus", "robot_name": "husky1", "ip": "10.8.0.2",
         "endpoint": "vpn.example.com:51820", "mtu_bytes": 1280,
         "server_url": "ws://10.8.0.1:8080/", "server_ip": "10.8.0.1", "ros_domain_id": 0,
+        # Two relay replicas: the README names both (server_urls is rendered).
+        "server_urls": "ws://10.8.0.1:8080/, ws://10.8.0.1:8081/",
         "rmw": "rmw_cyclonedds_cpp", "rmw_is_fastdds": False, "default_rmw": "rmw_fastrtps_cpp",
         "iface": "fleet0", "wheel": "./fleetctl-0.1.0-py3-none-any.whl",
         "wheel_name": "fleetctl-0.1.0-py3-none-any.whl", "venv": "/opt/fleetctl",

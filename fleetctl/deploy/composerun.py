@@ -603,22 +603,33 @@ class StatusReport:
             "recordings_note": self.recordings_note or None,
         }
 
+    def _first_width(self) -> int:
+        """Width of the first column of all three tables: 24, or the longest name (robot
+        names have up to 63 characters, services ``robot-`` before them), so that every
+        later column stays under its header."""
+        names = [s.service for s in self.services]
+        names += [str(r.get("name", "?")) for r in self.robots or []]
+        names += self.never_connected() + [t.robot for t in self.tunnel or ()]
+        return max([24, *map(len, names)])
+
     def _robot_lines(self) -> list[str]:
         if self.robots is None:
             return [f"robots: unknown ({self.robots_error})"]
-        rows = [f"{r.get('name', '?')!s:<24} {'yes' if r.get('online') else 'no':<7} "
+        w = self._first_width()
+        rows = [f"{r.get('name', '?')!s:<{w}} {'yes' if r.get('online') else 'no':<7} "
                 f"{_battery(r.get('battery_level')):<8} {_ago(r.get('last_seen_s'))}"
                 + self._robot_note(r)
                 for r in self.robots]
         # The robots being set up: "(no robots yet)" read as if the fleet had none.
-        rows += [f"{name:<24} {'no':<7} {'-':<8} never" for name in self.never_connected()]
+        rows += [f"{name:<{w}} {'no':<7} {'-':<8} never" for name in self.never_connected()]
         empty = "(no robots yet)" if self.fleet_robots is None else "(no robots in fleet.yaml)"
-        return [f"{'ROBOT':<24} {'ONLINE':<7} {'BATTERY':<8} LAST SEEN", *(rows or [empty])]
+        return [f"{'ROBOT':<{w}} {'ONLINE':<7} {'BATTERY':<8} LAST SEEN", *(rows or [empty])]
 
     def render_text(self) -> str:
         """Plain-text tables."""
-        lines = [f"{'SERVICE':<24} {'STATE':<11} {'HEALTH':<10} RESTARTS"]
-        lines += [f"{s.service:<24} {s.state:<11} {s.health:<10} {s.restarts}"
+        w = self._first_width()
+        lines = [f"{'SERVICE':<{w}} {'STATE':<11} {'HEALTH':<10} RESTARTS"]
+        lines += [f"{s.service:<{w}} {s.state:<11} {s.health:<10} {s.restarts}"
                   for s in self.services] or [f"({self._no_containers()})"]
         lines.append("")
         lines += self._robot_lines()
@@ -626,8 +637,8 @@ class StatusReport:
         if self.tunnel is None:
             lines.append(f"tunnel: {self.tunnel_note}")
         else:
-            lines.append(f"{'TUNNEL PEER':<24} {'ADDRESS':<16} LAST HANDSHAKE")
-            lines += [f"{t.robot:<24} {t.address:<16} " + (
+            lines.append(f"{'TUNNEL PEER':<{w}} {'ADDRESS':<16} LAST HANDSHAKE")
+            lines += [f"{t.robot:<{w}} {t.address:<16} " + (
                 "never" if t.handshake_age_s is None else f"{t.handshake_age_s:.0f} s ago")
                 for t in self.tunnel] or ["(no peers)"]
         lines += ["", self.recordings.text() if self.recordings is not None

@@ -912,3 +912,24 @@ def test_status_lists_tunnel_peers_in_the_robot_table_order(fleet: Path) -> None
         ("husky1", "10.8.0.2"), ("jackal2", "10.8.0.3"), ("?", "10.8.0.9")]
     assert report.tunnel[2].handshake_age_s is None
     assert report.tunnel[0].handshake_age_s is not None and report.tunnel[0].handshake_age_s >= 6
+
+
+def test_status_columns_line_up_with_the_longest_robot_name() -> None:
+    """Robot names may have 63 characters: the first column was 24 wide, and the row of a
+    longer name (its `robot-NAME` service, its tunnel peer) had every later column
+    shifted right, out from under its header."""
+    name = "r" + "x" * 62
+    services = (composerun.ServiceState(f"robot-{name}", "running", "healthy", 0),
+                composerun.ServiceState("server", "running", "healthy", 0))
+    robots = [{"name": name, "online": True, "last_seen_s": None},
+              {"name": "husky1", "online": False, "last_seen_s": None}]
+    tunnel = (composerun.TunnelPeer(name, "10.8.0.2", None),
+              composerun.TunnelPeer("husky1", "10.8.0.3", None))
+    text = composerun.StatusReport(services, robots, tunnel=tunnel).render_text()
+    for block, second in zip(text.split("\n\n")[:3], ("STATE", "ONLINE", "ADDRESS"),
+                             strict=True):
+        header, *rows = block.splitlines()
+        col = header.index(second)
+        assert all(row[col - 1] == " " and row[col] != " " for row in rows), block
+    short = composerun.StatusReport(services[1:], robots[1:], tunnel=tunnel[1:]).render_text()
+    assert short.splitlines()[1] == f"{'server':<24} {'running':<11} {'healthy':<10} 0"

@@ -34,8 +34,9 @@ What the churn does, each actor in a loop with random lifetimes:
 
 Printed: a table of the samples, then for each series its value at the end of warm-up
 and at the end, growth per hour fitted (least squares) over the samples after warm-up
-and over the last half, and a verdict per series (``flat``, ``plateau``: grew, then not
-in the last half, or ``GROWS``). ``--tracemalloc`` also prints the allocation sites that
+and over the last third, and a verdict per series (``flat``, ``plateau``: grew, then not
+in the last third, ``to cap``: still growing toward a bound :data:`CAPS` names, or
+``GROWS``: no known bound). ``--tracemalloc`` also prints the allocation sites that
 grew most between the end of warm-up (or ``--snapshot-s``) and the end (slows the relay).
 """
 
@@ -463,6 +464,30 @@ def _metrics(port: int) -> dict[str, int]:
     return out
 
 
+# What bounds the tables that grow with new topics and robot names (the soak's new names
+# reach these caps after hours, not minutes): series name prefix -> its bound.
+CAPS = {
+    "core.subs._cache": "16,384 topics, then cleared (subscriptions.MAX_CACHED_TOPICS)",
+    "sum(peer.perms.": "16,384 topics per identity set, then cleared (permissions)",
+    "sum(peer.session.perms.": "16,384 topics per identity set, then cleared (permissions)",
+    "recorder.rules._cache": "16,384 (topic, identity set), then cleared (recording/rules)",
+    "core.catalog._ids": "4,096 channels; ids of ended ones forgotten when full (foxglove)",
+    "core.latched.": "4,096 (sender, topic) and latched_bytes (64 MiB), LRU eviction",
+    "latched_": "4,096 (sender, topic) and latched_bytes (64 MiB), LRU eviction",
+    "metrics.": "2,000 topic labels, later topics under <other> (metrics.MAX_TOPIC_LABELS)",
+    "metrics_lines": "2,000 topic labels x 5 families",
+    "registry.": "10,000 robots; the 1,000 seen longest ago forgotten when full",
+    "db_kib": "10,000 robot rows and the sessions' rows (session_expiry_s)",
+    "recordings_kib": "recording.max_total_bytes (32 MiB here)",
+    "core.keyframes.": "4,096 video topics (keyframes.MAX_VIDEO_TOPICS)",
+}
+
+
+def cap_of(key: str) -> str | None:
+    """The bound of series *key*, if :data:`CAPS` knows it."""
+    return next((cap for prefix, cap in CAPS.items() if key.startswith(prefix)), None)
+
+
 def _fit(xs: list[float], ys: list[float]) -> float:
     """Least-squares slope of *ys* over *xs* (0 for fewer than 3 points)."""
     if len(xs) < 3:
@@ -474,9 +499,9 @@ def _fit(xs: list[float], ys: list[float]) -> float:
 
 def analyse(rows: list[dict[str, Any]], warmup_s: float) -> dict[str, dict[str, Any]]:
     """Per series: value after warm-up and at the end, slope per hour (after warm-up and
-    over the last half), verdict."""
+    over the last third), verdict."""
     after = [r for r in rows if r["t_s"] >= warmup_s] or rows
-    half = after[len(after) // 2:]
+    half = after[len(after) * 2 // 3:]
     keys = sorted({k for r in rows for k in r if k != "t_s"})
     out: dict[str, dict[str, Any]] = {}
     for key in keys:
@@ -492,13 +517,29 @@ def analyse(rows: list[dict[str, Any]], warmup_s: float) -> dict[str, dict[str, 
         hours = (after[-1]["t_s"] - after[0]["t_s"]) / 3600 or 1.0
         if slope * hours <= floor or span <= floor:
             verdict = "flat"
-        elif late * hours / 2 <= floor:
+        elif late * hours / 3 <= floor:
             verdict = "plateau"
         else:
-            verdict = "GROWS"
+            verdict = "GROWS" if cap_of(key) is None else "to cap"
         out[key] = {"start": ys[0], "end": ys[-1], "per_hour": slope, "late_per_hour": late,
-                    "verdict": verdict}
+                    "verdict": verdict, "cap": cap_of(key)}
     return out
+
+
+def rereport(path: Path, warmup_s: float) -> None:
+    """Analyse a report saved with ``--save`` again (``--reanalyse PATH``)."""
+    saved = json.loads(path.read_text())
+    args = argparse.Namespace(**{k: _number(v) for k, v in saved["args"].items()})
+    args.json = False
+    report(saved["rows"], analyse(saved["rows"], warmup_s), saved["tracemalloc"],
+           saved["churn"], args)
+
+
+def _number(text: str) -> Any:
+    for kind in (int, float):
+        with contextlib.suppress(ValueError):
+            return kind(text)
+    return {"True": True, "False": False, "None": None}.get(text, text)
 
 
 def main() -> None:
@@ -527,7 +568,12 @@ def main() -> None:
     parser.add_argument("--client-cpu", type=int, default=1)
     parser.add_argument("--json", action="store_true")
     parser.add_argument("--save", type=Path, help="also write the JSON report to this file")
+    parser.add_argument("--reanalyse", type=Path,
+                        help="only analyse a report saved with --save again")
     args = parser.parse_args()
+    if args.reanalyse is not None:
+        rereport(args.reanalyse, args.warmup_s)
+        return
     if not 1 <= args.robots <= 200:
         parser.error("--robots: 1 to 200 (one loopback address each)")
     rows, growth, counts = soak(args)
@@ -603,14 +649,17 @@ def report(rows: list[dict[str, Any]], result: dict[str, dict[str, Any]], growth
     for row in rows:
         print(" ".join(f"{row.get(k, '-'):>12}" for k in ("t_s", *SHOWN)))
     print(f"\nafter {args.warmup_s:g} s of warm-up: start -> end, growth per hour "
-          "(after warm-up; last half), verdict")
+          "(after warm-up; last third), verdict")
     for key, r in result.items():
         if r["verdict"] != "flat" or key in SHOWN:
-            print(f"  {key:<48} {r['start']:>12.0f} -> {r['end']:>12.0f}  "
-                  f"{r['per_hour']:>+12.0f}/h  {r['late_per_hour']:>+12.0f}/h  {r['verdict']}")
+            cap = f"  [{r['cap']}]" if r["verdict"] == "to cap" else ""
+            print(f"  {key:<40} {r['start']:>10.0f} -> {r['end']:>10.0f}  "
+                  f"{r['per_hour']:>+11.0f}/h {r['late_per_hour']:>+11.0f}/h  "
+                  f"{r['verdict']}{cap}")
     growing = [k for k, r in result.items() if r["verdict"] == "GROWS"]
-    print(f"verdict: {'GROWS: ' + ', '.join(growing) if growing else 'no series grows'}"
-          " (series not listed: flat)")
+    verdict = "GROWS: " + ", ".join(growing) if growing else "nothing grows without a bound"
+    print(f"verdict: {verdict} (series not listed: flat; 'to cap': still growing toward the "
+          "bound shown)")
     for line in growth:
         print("  tracemalloc", line)
 

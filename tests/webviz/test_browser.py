@@ -178,16 +178,29 @@ async def wait_map_still(page: Any) -> None:
 # wrapped and unwrapped in between would move the canvas and back, unseen by two reads.
 _WATCH_BOX = """el => {
   const rows = (window.__pressBoxes = []);
+  // What above the canvas changed height when it moved (the boxes alone do not say).
+  const parts = () => new Map([...document.querySelectorAll(
+    "header, #banner, #robot > *, .panel, .panel > *, .panel h3 > *")].map((e, i) =>
+    [`${i}:${e.id || e.tagName + "." + e.className}`,
+     e.getBoundingClientRect().height.toFixed(1)]));
+  const first = parts();
+  window.__pressChanged = [];
   const step = () => {
     if (window.__pressBoxes !== rows) return;
     const r = el.getBoundingClientRect();
-    rows.push([r.x, r.y, r.width, r.height, scrollY].map((v) => v.toFixed(1)).join());
+    const box = [r.x, r.y, r.width, r.height, scrollY].map((v) => v.toFixed(1)).join();
+    if (rows.length && box !== rows[rows.length - 1]) {
+      for (const [k, h] of parts()) {
+        if (first.get(k) !== h) window.__pressChanged.push(`${k} ${first.get(k)} -> ${h}`);
+      }
+    }
+    rows.push(box);
     requestAnimationFrame(step);
   };
   step();
 }"""
 _BOXES_SEEN = "(() => { const s = [...new Set(window.__pressBoxes)]; window.__pressBoxes = null;" \
-              " return s; })()"
+              " return [s, window.__pressChanged]; })()"
 
 
 async def press_where_aimed(page: Any, canvas: Any, x: float, y: float) -> None:
@@ -204,10 +217,10 @@ async def press_where_aimed(page: Any, canvas: Any, x: float, y: float) -> None:
     await canvas.hover(position={"x": x, "y": y})
     await page.mouse.down()
     after = await canvas.bounding_box()
-    seen = await page.evaluate(_BOXES_SEEN)
+    seen, changed = await page.evaluate(_BOXES_SEEN)
     assert after == before and len(seen) <= 1, (
         f"the canvas moved between the aim and the press: {before} -> {after}; "
-        f"x, y, width, height, scrollY seen: {seen}")
+        f"x, y, width, height, scrollY seen: {seen}; heights that changed: {changed}")
 
 
 async def aim_goal_tool(page: Any, fx: float, fy: float) -> dict[str, float]:

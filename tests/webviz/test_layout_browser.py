@@ -4,7 +4,8 @@
 An operator hovers over the map, then presses: a status line that wrapped in that instant
 moved the map by a line (~20 px) and sent the goal ~0.5 m off. Here everything that says
 something live changes while the map's and the scene's boxes are read at every animation
-frame: video counters climbing, a second video topic (its selector), a camera and a video
+frame: video counters climbing, its picture frozen behind a lost frame (a long label in the
+panel's title), a second video topic (its selector), a camera and a video
 of another aspect ratio, a topic the page cannot decompress (its panel's note), the scene's
 fixed frame, panels going quiet ("no data for N s"), the robot going offline ("offline,
 last seen N s ago"), the relay going away and coming back (the banner, the header's
@@ -124,6 +125,15 @@ async def test_map_and_scene_hold_still_while_the_page_text_changes(
         video.run(period_s=1 / 15)
         await wait_js(page, "Number(document.querySelector('#video-canvas').dataset.shown"
                             " || 0) >= 10")
+        # A frame lost: the panel's title says the picture is old (a long label: it
+        # wrapped the panel's title "Video" onto two lines in a demo run).
+        await phase(page, "frozen video")
+        await video.stop()
+        video = VideoFeed(robot, "/camera/video", [u for u in units if not u.key], "h264")
+        await video.send_next(skip=True)  # and no keyframe after it
+        video.run(period_s=1 / 15)
+        await page.locator("#panel-video h3 .age", has_text="waiting for a keyframe").wait_for(
+            timeout=TIMEOUT_MS)
         await phase(page, "second video")
         await VideoFeed(robot, "/camera/image", units, "h264").send_next()
         await page.locator("#video-topic").wait_for(state="visible", timeout=TIMEOUT_MS)

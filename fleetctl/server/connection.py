@@ -268,8 +268,13 @@ class RelayConnection(FrameSink, BatchedWritesConnection, ServerConnection):
         transport = self.transport
         with contextlib.suppress(Exception):  # already closing: abort is enough
             self.protocol.fail(code, reason)
-            self.send_data()
-            transport.close()
+            self.send_data()  # over TLS this closes the transport already (no half-close)
+            # Closed once only: a second close() makes Python < 3.11.4's TLS transport
+            # forget its protocol, and the abort below (or websockets' own) then raises
+            # a traceback into the log for every refused login (CPython gh-98539; the
+            # server image runs Debian bookworm's 3.11.2).
+            if not transport.is_closing():
+                transport.close()
         asyncio.get_running_loop().call_later(ABORT_AFTER_S, transport.abort)
 
     def throttle(self, delay_s: float, peer: Any) -> None:

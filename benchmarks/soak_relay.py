@@ -19,13 +19,16 @@ What the churn does, each actor in a loop with random lifetimes:
 
 - ``--robots`` robots, each from its own loopback address (an address identity, so the
   registry sees them), a new robot name each round (``r<slot>n<round>``), session named
-  after the robot: a latched map at connect (``--map-kib``, 256), an 8 KiB "scan" at 10 Hz, pose and
-  TF (~200 B) at 20 Hz, a small CompressedVideo at 10 Hz, a RobofleetStatus at 1 Hz;
+  after the robot and subscribed to its ``goal`` (so the session outlives the connection
+  for ``--session-expiry-s``): a latched map at connect (``--map-kib``, 256), an 8 KiB
+  "scan" at 10 Hz, pose and TF (~200 B) at 20 Hz, a small CompressedVideo at 10 Hz, a
+  RobofleetStatus at 1 Hz;
   then a clean close, an abrupt TCP reset (SO_LINGER 0), or a reset and a resume (the
   next round keeps the name: the session is taken up again);
 - ``--viewers`` token viewers, half with a named session (resumed next round), changing
-  regexes (a robot, ``.*/pose``, ``.*``, literals), subscribe/unsubscribe, and every
-  fifth round a slow reader that subscribes to ``.*`` and stops reading;
+  regexes (a robot, ``.*/pose``, ``.*``, literals), subscribe/unsubscribe, a no_drop goal
+  to a recent robot name with each change (an offline robot's session mailboxes it), and
+  every fifth round a slow reader that subscribes to ``.*`` and stops reading;
 - ``--foxglove`` Foxglove clients (Bearer token + ``foxglove.websocket.v1``): advertise,
   subscribe to a few channels, unsubscribe, leave (clean or reset);
 - ``--junk`` pests: connections that never authenticate (the relay aborts them after
@@ -83,7 +86,8 @@ def _auth_yaml(path: Path, robots: int) -> None:
     lines = ["version: 1", "identities:"]
     for name, token in (("viewer", VIEWER), ("foxglove", FOXGLOVE)):
         lines += [f"  - name: {name}", f"    token_sha256: {hash_token(token)}",
-                  "    rules:", "      - {topic: '.*', op: receive}"]
+                  "    rules:", "      - {topic: '.*', op: receive}",
+                  "      - {topic: '/[^/]+/goal', op: send}"]
     for k in range(robots):
         lines += [f"  - name: slot{k}", f"    ip: 127.0.0.{FIRST_ROBOT_ADDRESS + k}",
                   "    rules:", "      - {topic: '.*', op: both}"]
@@ -182,9 +186,10 @@ class Frames:
         self.codec = default_codec()
         self.string = self.codec.registry.get("std_msgs/msg/String").cls
 
-    def text(self, topic: str, size: int, *, latched: bool = False) -> bytes:
+    def text(self, topic: str, size: int, *, latched: bool = False,
+             no_drop: bool = False) -> bytes:
         return self.codec.encode(self.string("x" * size), "std_msgs/msg/String", topic,
-                                 latched=latched)
+                                 latched=latched, no_drop=no_drop)
 
     def video(self, topic: str, size: int) -> bytes:
         import numpy as np
@@ -230,6 +235,8 @@ async def robot(slot: int, port: int, frames: Frames, map_bytes: int, stop: asyn
                 counts: collections.Counter[str]) -> None:
     from websockets.asyncio.client import connect
 
+    from fleetctl.wire.control import encode_subscription
+
     rounds, name = 0, ""
     while not stop.is_set():
         rounds += 1
@@ -248,6 +255,7 @@ async def robot(slot: int, port: int, frames: Frames, map_bytes: int, stop: asyn
                                additional_headers={"X-Fleetctl-Session": name}) as ws:
                 counts["robot_connects"] += 1
                 reader = asyncio.create_task(_drain(ws))
+                await ws.send(encode_subscription(f"{t}/goal"))  # kept by its session
                 await ws.send(the_map)
                 until = time.monotonic() + random.uniform(4, 12)
                 tick = 0
@@ -272,7 +280,7 @@ def _viewer_patterns(robots: int) -> list[str]:
                           "/r[0-9]+n[0-9]+/status", f"/r{slot}n2/map"], 3)
 
 
-async def viewer(slot: int, port: int, robots: int, stop: asyncio.Event,
+async def viewer(slot: int, port: int, robots: int, frames: Frames, stop: asyncio.Event,
                  counts: collections.Counter[str]) -> None:
     from websockets.asyncio.client import connect
 
@@ -305,6 +313,9 @@ async def viewer(slot: int, port: int, robots: int, stop: asyncio.Event,
                     for pattern in held:
                         await ws.send(encode_subscription(pattern))
                     counts["viewer_changes"] += 1
+                    goal = f"/r{random.randrange(robots)}n{random.randint(1, rounds + 2)}/goal"
+                    await ws.send(frames.text(goal, 100, no_drop=True))
+                    counts["goals"] += 1
                     if random.random() < 0.2:
                         await ws.send(b"\x00not a frame")
                         counts["bad_frames"] += 1
@@ -408,7 +419,7 @@ def run_churn(cpu: int, port: int, args: argparse.Namespace, stop: Any, results:
         tasks = [asyncio.create_task(robot(k, port, frames, args.map_kib * 1024, done,
                                                    counts))
                  for k in range(args.robots)]
-        tasks += [asyncio.create_task(viewer(k, port, args.robots, done, counts))
+        tasks += [asyncio.create_task(viewer(k, port, args.robots, frames, done, counts))
                   for k in range(args.viewers)]
         tasks += [asyncio.create_task(foxglove(port, done, counts)) for _ in range(args.foxglove)]
         tasks += [asyncio.create_task(junk(port, done, counts)) for _ in range(args.junk)]
@@ -480,6 +491,11 @@ CAPS = {
     "db_kib": "10,000 robot rows and the sessions' rows (session_expiry_s)",
     "recordings_kib": "recording.max_total_bytes (32 MiB here)",
     "core.keyframes.": "4,096 video topics (keyframes.MAX_VIDEO_TOPICS)",
+    "core.sessions._offline._cache": "16,384 topics, then cleared (subscriptions)",
+    "core.sessions.": "64 sessions per identity set; offline ones expire (session_expiry_s)",
+    "metrics.session_drops": "2,000 (session, topic) labels (metrics.MAX_TOPIC_LABELS)",
+    "sum(peer.outbound.": "per connection: outbound_queue_bytes and latched_bytes; freed "
+                          "with it",
 }
 
 

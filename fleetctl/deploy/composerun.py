@@ -844,7 +844,12 @@ def _server_robots(server_id: str | None,
     except json.JSONDecodeError:
         return None, "server /robots is not JSON"
     robots = data.get("robots", data) if isinstance(data, dict) else data
-    return (robots if isinstance(robots, list) else None), ""
+    if not isinstance(robots, list):
+        return None, ""
+    # The robots the server's auth map expects and has not seen are listed by the server
+    # too (for the page); status says which have never connected from fleet.yaml, the
+    # source of truth here (StatusReport.never_connected).
+    return [r for r in robots if not (isinstance(r, dict) and r.get("never_connected"))], ""
 
 
 def _tunnel(fleet_dir: Path, server_id: str | None,

@@ -504,8 +504,6 @@ class RelayServer:
         allowed, perms = self._caller(parsed)
         if not allowed:
             return _unauthorized("/robots", parsed.bad_token)
-        if perms is None:
-            return endpoints.json_response({"robots": self.registry.as_json()})
         return endpoints.json_response({"robots": self.core.robots_for(perms)})
 
     async def _recordings(self, parsed: _Request, path: str, request: Request) -> Response:

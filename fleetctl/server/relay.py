@@ -23,6 +23,7 @@ from fleetctl.server import firstframes, protocol, reauth
 from fleetctl.server.admission import IdentityConnections, TokenBucket
 from fleetctl.server.authmap import AuthMap, Identity
 from fleetctl.server.config import ServerConfig
+from fleetctl.server.expectedrobots import expected_robots, never_connected
 from fleetctl.server.fanout import Fanout, LocalFanout
 from fleetctl.server.keyframes import VIDEO_TYPE, KeyframeRouter
 from fleetctl.server.latched import LatchedStore
@@ -107,6 +108,8 @@ class RelayCore:
         self.recorder = recorder
         self.limits = limits = config.limits
         self.auth = auth
+        # The robots the auth map expects (expectedrobots), for the one it was read from.
+        self._expected: tuple[AuthMap, tuple[str, ...]] = (auth, expected_robots(auth))
         self.registry = registry
         self.metrics = metrics
         self.pool = PermissionsPool()
@@ -447,10 +450,21 @@ class RelayCore:
         """Drop *peer*'s subscription *pattern* (no answer; unknown patterns are ignored)."""
         self.subs.unsubscribe(peer, pattern)
 
-    def robots_for(self, perms: Permissions) -> list[dict[str, Any]]:
-        """Robots whose ``/<name>/status`` *perms* may receive, as JSON-ready dicts."""
-        names = [n for n in self.registry.names() if perms.may_receive(f"/{n}/status")]
-        return self.registry.as_json(names)
+    def robots_for(self, perms: Permissions | None) -> list[dict[str, Any]]:
+        """Robots whose ``/<name>/status`` *perms* may receive (None: every robot), as
+        JSON-ready dicts, by name: the registry's, and the auth map's robots it has not
+        seen yet (:func:`~fleetctl.server.expectedrobots.never_connected`)."""
+
+        def shown(name: str) -> bool:
+            return perms is None or perms.may_receive(f"/{name}/status")
+
+        names = [n for n in self.registry.names() if shown(n)]
+        if self._expected[0] is not self.auth:  # reloaded since
+            self._expected = (self.auth, expected_robots(self.auth))
+        seen = set(names)
+        unseen = [never_connected(n) for n in self._expected[1] if n not in seen and shown(n)]
+        listed = self.registry.as_json(names)
+        return sorted(listed + unseen, key=lambda r: r["name"]) if unseen else listed
 
     def session_gauges(self) -> list[tuple[str, str, str, dict[str, float]]]:
         """Session gauges for ``/metrics``: sessions by state, mailbox depth per session

@@ -744,6 +744,24 @@ def test_status_lists_the_fleets_robots_that_never_connected(fleet: Path) -> Non
         (), [], fleet_robots=frozenset()).render_text()
 
 
+def test_status_takes_never_connected_robots_from_fleet_yaml_not_the_server() -> None:
+    """The server lists the robots its auth map expects and has not seen (for the page);
+    status says which never connected from fleet.yaml, as it did before: the server's
+    entries for them are left out, not shown twice."""
+    body = json.dumps({"robots": [
+        {"name": "husky1", "online": True, "last_seen_s": 1.0},
+        {"name": "jackal2", "online": False, "never_connected": True, "last_seen_s": None}]})
+
+    def runner(args: Sequence[str], stdin: bytes | None, capture: bool) -> Completed:
+        return Completed(list(args), 0, body, "")
+
+    robots, error = composerun._server_robots("cid", runner)
+    assert error == "" and robots == [{"name": "husky1", "online": True, "last_seen_s": 1.0}]
+    report = composerun.StatusReport((), robots, fleet_robots=frozenset({"husky1", "jackal2"}))
+    assert report.to_json()["never_connected"] == ["jackal2"]
+    assert report.render_text().count("jackal2") == 1
+
+
 def test_status_of_a_moved_fleet_directory_names_where_its_containers_came_from(
         fleet: Path, tmp_path: Path) -> None:
     """The fleet directory moved while its deployment ran: `status` said "no containers:

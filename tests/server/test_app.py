@@ -286,8 +286,9 @@ async def test_restart_keeps_registry(make_server: Callable[..., RelayServer]) -
     async with make_server() as again:
         status, body = await http_get(again.port, "/robots")
         assert status == 200
-        (robot_json,) = json.loads(body)["robots"]
+        robot_json, husky2 = json.loads(body)["robots"]  # husky2: the auth map's, unseen
         assert robot_json["name"] == "husky1" and robot_json["status"] == "charging"
+        assert husky2["name"] == "husky2" and husky2["never_connected"] is True
         assert robot_json["battery_level"] == 0.25 and robot_json["online"] is False
 
 
@@ -300,5 +301,6 @@ async def test_robots_reports_an_unknown_battery_as_null(
         await wait_for(lambda: srv.registry.get("husky1") is not None
                        and srv.registry.get("husky1").status == "OK")  # type: ignore[union-attr]
         status, body = await http_get(srv.port, "/robots")
-        (robot_json,) = json.loads(body)["robots"]
-        assert status == 200 and robot_json["battery_level"] is None
+        robot_json = json.loads(body)["robots"][0]
+        assert status == 200 and robot_json["name"] == "husky1"
+        assert robot_json["battery_level"] is None

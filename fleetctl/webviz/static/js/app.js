@@ -423,7 +423,8 @@ class App {
     const el = $("#robot-state");
     el.hidden = !this.registryKnown;
     const entry = this.registry.find((r) => r.name === this.robot);
-    let state = !entry ? "unlisted" : entry.online ? "online" : "offline";
+    let state = !entry ? "unlisted" : entry.online ? "online"
+      : entry.never_connected ? "never" : "offline";
     if (this.conn?.state !== "open") state = "unknown"; // the list is as old as the connection
     el.dataset.state = state;
     el.textContent = {
@@ -431,6 +432,7 @@ class App {
       unlisted: "not in the fleet's robot list",
       online: "online",
       offline: `offline, last seen ${ago(toEpochS(entry?.last_seen_s))}`,
+      never: "never connected: in the fleet, not heard from yet",
     }[state];
   }
 

@@ -32,13 +32,16 @@ export function ago(s, nowS = Date.now() / 1000) {
 
 /**
  * One robot's row from a registry entry (the server's GET /robots record: name, online,
- * last_seen_s, status, is_ok, battery_level, location) and its latest live status frame.
+ * last_seen_s, status, is_ok, battery_level, location; never_connected for a robot of the
+ * auth map the server has not heard from) and its latest live status frame.
  */
 export function robotRow(entry, live) {
   const pick = (k) => (live && live[k] !== undefined ? live[k] : entry[k] ?? undefined);
   return {
     name: entry.name,
     online: Boolean(entry.online),
+    // In the fleet's auth map, never heard from (just added, not yet installed).
+    neverConnected: Boolean(entry.never_connected),
     status: pick("status") ?? "",
     isOk: pick("is_ok") ?? undefined,
     battery: pick("battery_level") ?? undefined,
@@ -77,7 +80,7 @@ export function renderOverview(tbody, rows, linkFor) {
     const ok = r.isOk === undefined ? "–" : r.isOk ? "OK" : "NOT OK";
     return `<tr data-robot="${esc(r.name)}" class="${r.online ? "online" : "offline"}${r.replayOf ? " replay" : ""}">
       <td class="name"><a href="#/robot/${encodeURIComponent(r.name)}">${breakable(r.name)}</a>${replayBadge(r.replayOf)}</td>
-      <td class="state nowrap">${r.online ? "online" : "offline"}</td>
+      <td class="state nowrap">${r.online ? "online" : r.neverConnected ? "never connected" : "offline"}</td>
       <td>${esc(r.status)}</td><td class="nowrap${r.isOk === false ? " bad" : ""}">${ok}</td>
       <td class="nowrap">${batt}</td><td>${esc(r.location)}</td><td class="nowrap">${ago(r.lastSeenS)}</td>
       <td class="nowrap">${link}</td></tr>`;

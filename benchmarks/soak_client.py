@@ -258,6 +258,7 @@ class Consumer:
     url: str
     frames: dict[str, int] = field(default_factory=dict)
     events: list[int] = field(default_factory=list)
+    event_times: list[float] = field(default_factory=list)  # wall clock of each arrival
     cmd_sent: int = 0
     connects: int = 0
 
@@ -288,6 +289,7 @@ class Consumer:
                             self.frames[meta.topic] = self.frames.get(meta.topic, 0) + 1
                             if meta.topic == EVENTS:
                                 self.events.append(int(codec.decode(whole)[1].data))
+                                self.event_times.append(time.time())
                     finally:
                         sender.cancel()
             except (TimeoutError, OSError, WebSocketException):
@@ -390,7 +392,7 @@ async def poll(check: Callable[[], bool], timeout_s: float, what: str) -> None:
 class ClientProc:
     """The ``fleetctl client`` process; :meth:`sample` reads /proc and its SIGUSR1 stats."""
 
-    def __init__(self, work: Path, url: str, env: dict[str, str]) -> None:
+    def __init__(self, work: Path, url: str, env: dict[str, str], log_level: str) -> None:
         (work / "token").write_text(ROBOT_TOKEN)
         (work / "client.yaml").write_text(json.dumps({
             "server_url": url, "robot_name": ROBOT, "token_file": str(work / "token"),
@@ -406,7 +408,8 @@ class ClientProc:
                            "local_topic": "/cmd_pose"}]}))
         self.log_path = work / "client.log"
         self.proc = subprocess.Popen(
-            [str(Path(PY).parent / "fleetctl"), "client", "--config", str(work / "client.yaml")],
+            [str(Path(PY).parent / "fleetctl"), "client", "--config", str(work / "client.yaml"),
+             "--log-level", log_level],
             env=env, stdout=subprocess.DEVNULL, stderr=self.log_path.open("ab"),
             start_new_session=True)
         self._read_at = 0
@@ -558,7 +561,7 @@ async def soak(args: argparse.Namespace, work: Path) -> dict[str, Any]:
                            stdout=subprocess.PIPE, stderr=(work / "ros.log").open("ab"),
                            start_new_session=True)
     scan = ScanPublisher(env, work)
-    client = ClientProc(work, f"ws://{RELAY_ADDR}:{proxy.port}/", env)
+    client = ClientProc(work, f"ws://{RELAY_ADDR}:{proxy.port}/", env, args.client_log_level)
     ros_state: dict[str, int] = {}
 
     def read_ros() -> None:
@@ -574,6 +577,8 @@ async def soak(args: argparse.Namespace, work: Path) -> dict[str, Any]:
         t0 = time.monotonic()
         end = t0 + args.minutes * 60
         steps = driver.steps()
+        if args.steps:
+            steps = [steps[int(i)] for i in args.steps.split(",")]
         i = 0
         while time.monotonic() < end:
             name, step = steps[i % len(steps)]
@@ -597,10 +602,13 @@ async def soak(args: argparse.Namespace, work: Path) -> dict[str, Any]:
             await poll(lambda: len(set(consumer.events)) >= published, 60.0,
                        f"all {published} events at the consumer")
         final = await client.stats()
+        drops = relay_drops(relay.port)
+        around = gap_context(consumer)
         return {"samples": samples, "final_stats": final, "published_events": published,
                 "cmd_sent": consumer.cmd_sent, "cmd_received_by_ros": ros_state.get("cmd", 0),
                 "consumer_frames": consumer.frames, "consumer_connects": consumer.connects,
                 "order": consumer.order_report(), "relay_starts": relay.starts,
+                "relay_drops_since_last_start": drops, "gap_arrivals": around,
                 "proxy_accepted": proxy.accepted}
     finally:
         consumer_task.cancel()
@@ -616,6 +624,31 @@ async def soak(args: argparse.Namespace, work: Path) -> dict[str, Any]:
         scan.stop()
         if relay.proc is not None and relay.proc.poll() is None:
             await relay.stop(signal.SIGTERM)
+
+
+def relay_drops(port: int) -> list[str]:
+    """The relay's drop counters (``/metrics`` lines naming drops; loopback may read
+    them), since its last start."""
+    try:
+        with urllib.request.urlopen(f"http://{RELAY_ADDR}:{port}/metrics", timeout=5) as r:
+            text = r.read().decode()
+    except OSError as exc:
+        return [f"unreadable: {exc}"]
+    return [line for line in text.splitlines()
+            if "drop" in line and not line.startswith("#") and not line.endswith(" 0")]
+
+
+def gap_context(consumer: Consumer) -> list[str]:
+    """When the events on either side of each gap arrived (wall clock), to line a loss up
+    with the churn step and the logs."""
+    out = []
+    for first, count in consumer.order_report()["gaps"]:
+        for n in (first - 1, first + count):
+            if n in consumer.events:
+                at = consumer.event_times[consumer.events.index(n)]
+                out.append(f"event {n} arrived {time.strftime('%H:%M:%S', time.gmtime(at))}"
+                           f".{int(at % 1 * 1000):03d} UTC")
+    return out
 
 
 def pick(stats: dict[str, Any]) -> dict[str, Any]:
@@ -691,6 +724,8 @@ def report(res: dict[str, Any], args: argparse.Namespace) -> None:
               f"{v['per_hour']:+8.2f} per hour, {v['per_100_connects']:+7.2f} per 100 connects")
     order = res["order"]
     print(f"no_drop {EVENTS}: published {res['published_events']}, consumer {order}")
+    print(f"relay drop counters (since its last start): {res['relay_drops_since_last_start']}")
+    print(f"arrivals around the gaps: {res['gap_arrivals']}")
     print(f"commands: consumer sent {res['cmd_sent']}, ROS got {res['cmd_received_by_ros']}, "
           f"client received frames {final.get('received', {}).get('frames')}")
     print("client accounting per topic (residual = offered - first sends - dropped):")
@@ -713,6 +748,9 @@ def main() -> None:
     parser.add_argument("--warmup-s", type=float, default=60.0)
     parser.add_argument("--settle-s", type=float, default=6.0,
                         help="link up this long after each churn step, then a sample")
+    parser.add_argument("--steps", help="churn only these steps, by position (0-8, comma-"
+                        "separated; 2 = the resets): to tell one kind of churn's cost apart")
+    parser.add_argument("--client-log-level", default="INFO")
     parser.add_argument("--rss-mb-per-hour", type=float, default=5.0,
                         help="the verdict's bar for RSS growth")
     parser.add_argument("--domain", type=int, default=60 + os.getpid() % 30)

@@ -295,6 +295,10 @@ class RobotLink:
         self._identities: list[str] = []
         self._subscribed: set[str] = set()  # confirmed by the server on this connection
         self._acked_any = False  # a pong came back on the current connection
+        # Pongs of the current connection that came before its welcome (ping tokens, in
+        # order): acknowledgements only once the welcome comes (_on_pong).
+        self._held_acks: list[int] = []
+        self._welcomed = False  # the server welcomed the current connection
         # When the current outage began (clock seconds): the last ACK of a dead path or
         # the oldest unanswered ping; None while the link is up.
         self._outage_since_s: float | None = None
@@ -922,11 +926,16 @@ class RobotLink:
         self._subscribed.clear()
         self._identities = []
         self._acked_any = False
+        self._held_acks = []
+        self._welcomed = False
         self._last_error_code = None
         activated_s, self._activated_s = self._activated_s, None
         activating = activated_s is not None
         if not activating:
             # An older server, or another Robofleet-convention one, does not offer it.
+            # The fleetctl relay offers it on every upgrade, and welcomes (again, on an
+            # activation) every connection it accepts: there, acknowledgements wait for
+            # the welcome (_on_pong).
             self._standby_offered = ws.response is not None and (
                 ws.response.headers.get(STANDBY_HEADER) == "1")
         dialed, self._dialed = self._dialed, None
@@ -1152,6 +1161,17 @@ class RobotLink:
     def _on_pong(self, token: int, fut: asyncio.Future[float]) -> None:
         if self._pings.pop(token, None) is None or fut.cancelled() or fut.exception():
             return
+        if self._standby_offered and not self._welcomed:
+            # A relay refusing this robot's token (4401, 4429) drops what it sent, but
+            # its WebSocket protocol still answers the ping after it, sometimes before
+            # the close: taken as an acknowledgement, those no_drop frames were lost
+            # (benchmarks/soak_client.py). A pong before the welcome waits for it.
+            self._held_acks.append(token)
+            return
+        self._acknowledged(token)
+
+    def _acknowledged(self, token: int) -> None:
+        """The server has everything sent before the ping *token*."""
         if not self._acked_any:
             self._acked_any = True
             if self._standby is not None:  # the path works: keep a standby beside it
@@ -1277,6 +1297,13 @@ class RobotLink:
                 self._receiver.on_binary(message)
                 ws.message_handled()
 
+    def _welcome_acks(self) -> None:
+        """The server accepted this connection: the pongs held until now acknowledge."""
+        self._welcomed = True
+        held, self._held_acks = self._held_acks, []
+        for token in held:
+            self._acknowledged(token)
+
     def _on_text(self, text: str) -> list[str]:
         """Handle a server text frame; return subscriptions to drop (stale in the session)."""
         try:
@@ -1292,6 +1319,7 @@ class RobotLink:
             logger.info("authenticated as %s", ", ".join(self._identities) or "(nobody)")
             self._refused.ended(self._clock())  # a later refusal is explained again
             self._end_throttled()
+            self._welcome_acks()
         elif kind in ("subscribed", "unsubscribed"):
             pattern = str(event.get("topic_regex"))
             if kind == "subscribed":

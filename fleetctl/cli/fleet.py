@@ -129,8 +129,13 @@ def init(
     def text() -> str:
         what = (f"fleet {f.name!r}: subnet {f.subnet}, server {f.server_ip}, WireGuard "
                 f"{_endpoint_text(f)}")
-        return (_header(result.outcome, what, f"would create {what}")
-                + f"\nserver public key: {result.server_public_key}"
+        out = _header(result.outcome, what, f"would create {what}")
+        if result.server_public_key is None:  # a dry run: the real run makes another key
+            return (out + "\nserver WireGuard key pair: would be made by the real run (its "
+                    "public key is printed then, and by `fleetctl list`)"
+                    + f"\nHTTPS port {f.https_port}: a self-signed certificate would be made "
+                    "(server/tls/cert.pem; set tls in fleet.yaml to use your own)")
+        return (out + f"\nserver public key: {result.server_public_key}"
                 + f"\nHTTPS port {f.https_port}: self-signed certificate server/tls/cert.pem "
                 "(set tls in fleet.yaml to use your own)")
 

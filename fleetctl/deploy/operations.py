@@ -114,10 +114,15 @@ class EndpointResult:
 
 @dataclass(frozen=True)
 class InitResult:
-    """Result of :func:`create_fleet`."""
+    """Result of :func:`create_fleet`.
+
+    Attributes:
+        server_public_key: ``None`` for a dry run: the key pair made for the preview is
+            thrown away and the real run makes another, so its public key would be false.
+    """
 
     fleet: Fleet
-    server_public_key: str
+    server_public_key: str | None
     outcome: Outcome
 
 
@@ -466,7 +471,8 @@ def create_fleet(
     host = parse_endpoint(endpoint)[0] if endpoint else None
     tls.plan_self_signed(plan, fleet_dir, tls.self_signed(tls.san_names(host), _TLS_KEYS))
     _plan_fleet(plan, fleet_dir, fleet, FleetKeys(server_key, {}), force=force)
-    return InitResult(fleet, public_key(server_key), finish_plan(plan, fleet_dir, dry_run))
+    return InitResult(fleet, None if dry_run else public_key(server_key),
+                      finish_plan(plan, fleet_dir, dry_run))
 
 
 def _check_can_be_directory(fleet_dir: Path) -> None:

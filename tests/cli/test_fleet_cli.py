@@ -808,3 +808,20 @@ def test_init_given_two_different_directories_is_a_usage_error(
     assert main(["init", "aa", "--fleet", str(tmp_path / "aa")]) == 0
     monkeypatch.setenv("FLEET_DIR", str(tmp_path / "aa"))
     assert main(["init", "cc"]) == 0 and (tmp_path / "cc" / "fleet.yaml").is_file()
+
+
+def test_init_dry_run_shows_no_key_the_real_run_will_not_use(cli: Cli, tmp_path: Path) -> None:
+    """`init --dry-run` printed a server public key made for the preview only: the real
+    `init` makes a new key pair, so the key an operator copied from the dry run was false."""
+    new = tmp_path / "new"
+    out, _ = cli("init", str(new), "--dry-run")
+    assert "server public key" not in out
+    assert "server WireGuard key pair: would be made by the real run" in out
+    assert "a self-signed certificate would be made" in out
+    shown, _ = cli("init", str(new), "--dry-run", "-o", "json")
+    assert json.loads(shown)["server_public_key"] is None
+    out, _ = cli("init", str(new))
+    real = re.search(r"^server public key: (\S+)$", out, re.M)
+    assert real is not None
+    listed, _ = cli("list", "--fleet", str(new))
+    assert f"server public key: {real.group(1)}" in listed

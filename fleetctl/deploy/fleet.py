@@ -10,6 +10,7 @@ import enum
 import ipaddress
 import os
 import re
+from collections.abc import Iterable
 from dataclasses import dataclass, replace
 from ipaddress import IPv4Address, IPv4Network
 from pathlib import Path
@@ -553,6 +554,48 @@ def require_fleet_dir(fleet_dir: Path) -> None:
                           "(create one with 'fleetctl init', or set --fleet / FLEET_DIR)")
 
 
+# The directories fleetctl keeps in a fleet directory, and what each holds (said when one
+# is something else): a regular file named keys/ made every robot's key files "not found",
+# and a file named server/ or robots/NAME a "cannot write" (exit 5) of the first file in it.
+# msg_types/ is checked where it is read (fleetctl.deploy.msgtypes).
+_FLEET_DIRECTORIES: tuple[tuple[str, str], ...] = (
+    ("keys", "the fleet's WireGuard private keys: move the file away and restore the "
+     "directory from a backup of the fleet directory"),
+    ("keys/robots", "the robots' WireGuard keys: move the file away and restore the "
+     "directory from a backup of the fleet directory"),
+    ("server", "the server's generated configs and TLS certificate: move the file away, "
+     "restore server/tls from a backup if you had one, then run `fleetctl render`"),
+    ("server/wireguard", "the server's WireGuard config: move the file away, then run "
+     "`fleetctl render`"),
+    ("server/tls", "the server's HTTPS certificate: move the file away, restore the directory "
+     "from a backup or run `fleetctl render` for a new self-signed one"),
+    ("robots", "the robots' generated configs: move the file away, then run `fleetctl render`"),
+    (".compose", "the deployment's files, made by `fleetctl up`: move the file away, `up` "
+     "makes the directory again"),
+)
+
+
+def not_a_directory(path: Path) -> bool:
+    """Whether *path* exists (a dangling symbolic link too) and is not a directory."""
+    return os.path.lexists(path) and not path.is_dir()
+
+
+def directory_problems(fleet_dir: Path, robot_names: Iterable[str] = ()) -> list[str]:
+    """One line per directory of the fleet that exists but is not a directory (a
+    symbolic link to a directory is one), naming it and what it should hold."""
+    expected = [*_FLEET_DIRECTORIES, *((f"robots/{name}", f"the configs made for robot "
+                                        f"{name!r}: move the file away, then run `fleetctl "
+                                        "render`") for name in robot_names)]
+    problems = []
+    for relative, holds in expected:
+        path = fleet_dir / relative
+        if not_a_directory(path):
+            what = (f"a symbolic link to {os.readlink(path)}" if path.is_symlink()
+                    else "a file")
+            problems.append(f"{path}: not a directory but {what} (it holds {holds})")
+    return problems
+
+
 def load_fleet(fleet_dir: Path, file_problems: list[str] | None = None) -> Fleet:
     """Load and validate ``fleet_dir/fleet.yaml``.
 
@@ -580,7 +623,14 @@ def load_fleet(fleet_dir: Path, file_problems: list[str] | None = None) -> Fleet
         raise ConfigError(f"{path}: cannot read: {exc.strerror or exc}") from None
     except UnicodeDecodeError:
         raise ConfigError(f"{path}: cannot read: not UTF-8 text") from None
-    return parse_fleet(path, text, fleet_dir, file_problems)
+    fleet = parse_fleet(path, text, fleet_dir, file_problems)
+    problems = directory_problems(fleet_dir, (r.name for r in fleet.robots))
+    if problems and file_problems is None:
+        raise ConfigError(problems[0] if len(problems) == 1 else f"{len(problems)} problems: "
+                          + " ".join(f"[{i}] {p}" for i, p in enumerate(problems, 1)))
+    if file_problems is not None:
+        file_problems.extend(problems)
+    return fleet
 
 
 def parse_fleet(path: Path, text: str, fleet_dir: Path | None = None,

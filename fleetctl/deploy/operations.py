@@ -48,6 +48,7 @@ from fleetctl.deploy.fleet import (
     fleet_file,
     load_fleet,
     next_free_ip,
+    not_a_directory,
     parse_endpoint,
     parse_ip,
     parse_subnet,
@@ -774,7 +775,15 @@ def describe_fleet(fleet_dir: Path) -> FleetInfo:
     fleet = load_fleet(fleet_dir, problems)
     pubs: dict[str, str] = {}
     unreadable: list[str] = []
+    # keys/ (or keys/robots/) that is a file is one problem, already in *problems*: not
+    # also every key file in it "not found".
+    keys_dir = fleet_dir / keystore.KEYS_DIR
+    keys_broken = not_a_directory(keys_dir)
+    robot_keys_broken = keys_broken or not_a_directory(keys_dir / "robots")
     for robot in fleet.robots:
+        if robot_keys_broken:
+            unreadable.append(robot.name)
+            continue
         try:
             if (rk := existing_robot_keys(fleet_dir, robot.name)) is not None:
                 pubs[robot.name] = public_key(rk.private_key, f"key of robot {robot.name}")
@@ -783,7 +792,8 @@ def describe_fleet(fleet_dir: Path) -> FleetInfo:
             problems.append(str(exc))
     server_pub: str | None = None
     try:
-        server_pub = public_key(keystore.load_server_key(fleet_dir), "server key")
+        if not keys_broken:
+            server_pub = public_key(keystore.load_server_key(fleet_dir), "server key")
     except ConfigError as exc:
         problems.insert(0, str(exc))  # the fleet's own key first: every robot needs it
     return FleetInfo(fleet_dir, fleet, server_pub, pubs, tuple(unreadable), tuple(problems))

@@ -825,3 +825,22 @@ def test_init_dry_run_shows_no_key_the_real_run_will_not_use(cli: Cli, tmp_path:
     assert real is not None
     listed, _ = cli("list", "--fleet", str(new))
     assert f"server public key: {real.group(1)}" in listed
+
+
+@pytest.mark.parametrize("directory", ["keys", "keys/robots", "server", "server/tls",
+                                       "robots", "robots/husky1", ".compose"])
+def test_a_fleet_directory_that_is_a_file_is_named(fleet: Path, cli: Cli,
+                                                   directory: str) -> None:
+    """keys/ as a regular file: every command said robot key files were not found (and
+    render, with server/ a file, `server/tls: cannot write`, exit 5) instead of naming the
+    path that is not a directory."""
+    path = fleet / directory
+    if path.exists():
+        os.rename(path, fleet / "moved-away")
+    path.write_text("not a directory\n")
+    for args in (["list"], ["render"], ["add-robot", "r2"], ["export", "husky1", "--out",
+                                                              str(fleet.parent / "b.tgz")]):
+        _, err = cli(*args, code=ExitCode.CONFIG)
+        assert err.startswith(f"fleetctl: error: {path}: not a directory but a file (it "
+                              "holds "), (args, err)
+        assert "not found" not in err and err.count("\n") == 1

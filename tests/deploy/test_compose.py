@@ -485,12 +485,25 @@ def test_up_refuses_a_server_yaml_the_server_would_refuse(fleet: Path) -> None:
 def test_up_in_a_fleet_directory_it_cannot_write_in_is_one_line(fleet: Path) -> None:
     """FLEET/.compose could not be made (the fleet directory on a read-only mount, owned by
     another user; here a file in its place): `up` printed mkdir's traceback."""
-    (fleet / ".compose").write_text("not a directory\n")
+    (fleet / ".compose").mkdir()
+    (fleet / ".compose" / "server").write_text("not a directory\n")
     with pytest.raises(WriteFailed) as info:
         composerun.up(fleet, _opts(fleet, wireguard="off"), progress=lambda _: None,
                       runner=FakeDocker(), port_probe=lambda *_: None)
-    assert str(info.value) == f"{fleet}/.compose: cannot write: File exists; nothing was changed"
+    assert str(info.value) == (f"{fleet}/.compose/server: cannot write: File exists; "
+                               "nothing was changed")
     assert info.value.exit_code is ExitCode.ENVIRONMENT
+
+
+def test_up_names_a_compose_directory_that_is_a_file(fleet: Path) -> None:
+    """FLEET/.compose a regular file: `up` said `cannot write: File exists` (exit 5), not
+    what the path should be."""
+    (fleet / ".compose").write_text("not a directory\n")
+    with pytest.raises(ConfigError) as info:
+        composerun.up(fleet, _opts(fleet, wireguard="off"), progress=lambda _: None,
+                      runner=FakeDocker(), port_probe=lambda *_: None)
+    assert str(info.value).startswith(f"{fleet}/.compose: not a directory but a file (it "
+                                      "holds the deployment's files, made by `fleetctl up`")
 
 
 def test_up_refuses_to_change_the_mode_of_a_running_fleet(fleet: Path) -> None:

@@ -29,6 +29,7 @@ from fleetctl.cli.output import (
 )
 from fleetctl.deploy import operations as ops
 from fleetctl.deploy.export import export_robot
+from fleetctl.deploy.files import ChangeKind
 from fleetctl.deploy.fleet import (
     DEFAULT_HTTPS_PORT,
     DEFAULT_MTU_BYTES,
@@ -67,7 +68,8 @@ def _finish(outcome: ops.Outcome, output: OutputFormat) -> None:
     # Imported here: only change commands need it, and it may pull in Docker tooling.
     from fleetctl.deploy.live import sync_running
 
-    note = sync_running(outcome.fleet_dir, progress_line)
+    changed = [c.path for c in outcome.changes if c.kind is not ChangeKind.UNCHANGED]
+    note = sync_running(outcome.fleet_dir, progress_line, changed=changed)
     if note is not None:
         # JSON on stdout stays one parseable document; the note goes to stderr then.
         typer.echo(note, err=output is OutputFormat.JSON)

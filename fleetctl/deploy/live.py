@@ -26,7 +26,7 @@ After ``add-robot``, ``remove-robot``, ``add-user``, ``remove-user``, ``render``
 
 from __future__ import annotations
 
-from collections.abc import Callable
+from collections.abc import Callable, Collection
 from pathlib import Path
 
 import yaml
@@ -50,12 +50,20 @@ from fleetctl.smallfile import MAX_CONFIG_BYTES, MAX_PEM_BYTES, read_small
 
 
 def sync_running(fleet_dir: Path, progress: Callable[[str], None],
-                 runner: Runner = subprocess_runner) -> str | None:
+                 runner: Runner = subprocess_runner,
+                 changed: Collection[Path] | None = None) -> str | None:
     """Apply the fleet directory's current state to its running deployment, if any.
 
+    Args:
+        changed: the files the command changed (created, updated or deleted); the note
+            says auth.yaml is reloaded only when it is among them. ``None``: not known,
+            the note says the server reloads it if it changed.
+
     Returns:
-        A one-line note of what was applied, or ``None`` when no deployment of this fleet
-        runs (nothing to do: the next ``fleetctl up`` uses the new files).
+        A one-line note of what was applied, said only of what changed (WireGuard peers
+        added or removed, auth.yaml, the server restarted or recreated, simulated robots),
+        or ``None`` when no deployment of this fleet runs (nothing to do: the next
+        ``fleetctl up`` uses the new files).
 
     Raises:
         FleetError: the deployment runs but could not be updated (the message says how far
@@ -77,23 +85,30 @@ def sync_running(fleet_dir: Path, progress: Callable[[str], None],
         return None
     done = []
     if _has_wireguard(server, runner):
+        # The peers before and after say what syncconf changed: users are token
+        # identities, and a note "WireGuard peers synced" after add-user or remove-user
+        # claimed a change to the tunnel that never happened.
+        before = _peers(server, runner)
         sync = f"wg syncconf {WG_INTERFACE} <(wg-quick strip {SERVER_WG_CONF})"
         check(runner(["docker", "exec", server, "bash", "-c", sync], None, True),
               "wg syncconf in the server container")
-        done.append("WireGuard peers synced")
+        if (peers := _peer_change(before, _peers(server, runner))) is not None:
+            done.append(peers)
+    auth = _auth_note(fleet_dir, changed)
     plan = plan_for(fleet_dir, options)
-    if _servers_definition_changed(plan):
+    deployed = _deployed_compose(plan)
+    if _without_robots(deployed) != _without_robots(render(plan)):
         try:
             composerun.up(fleet_dir, options, progress=progress, runner=runner)
         except FleetError as exc:
             raise FleetError(f"{'; '.join(done) or 'nothing applied'}; then, recreating the "
                              f"server with its new definition: {exc}") from None
-        done += ["server recreated with its new compose definition (ports)",
-                 "auth.yaml is reloaded by the server itself"]
+        done += ["server recreated with its new compose definition (ports)", *auth]
         return "running fleet: " + "; ".join(done)
-    changed = [what for what, yes in (("TLS certificate", _certificate_changed(plan)),
-                                      ("server.yaml", _server_config_changed(plan))) if yes]
-    if changed:
+    loaded_at_start = [what for what, yes in (("TLS certificate", _certificate_changed(plan)),
+                                              ("server.yaml", _server_config_changed(plan)))
+                       if yes]
+    if loaded_at_start:
         # The server loads its certificate and server.yaml at start: a new one (set-endpoint
         # regenerates the self-signed certificate for the new name; render a server.yaml
         # with fleet.yaml's new recording section) needs a restart; robots reconnect on
@@ -105,26 +120,60 @@ def sync_running(fleet_dir: Path, progress: Callable[[str], None],
             cid = composerun.container_id(fleet_dir, options.project, name, runner)
             if cid is not None:
                 check(runner(["docker", "restart", cid], None, True), f"restart of {name}")
-        done.append(f"server restarted with the new {' and '.join(changed)}")
+        done.append(f"server restarted with the new {' and '.join(loaded_at_start)}")
     if options.sim:
+        robots_changed = _robots(deployed) != _robots(render(plan))
         try:
             composerun.up(fleet_dir, options, progress=progress, runner=runner,
                           robots_only=True)
         except FleetError as exc:
             raise FleetError(f"{'; '.join(done) or 'nothing applied'}; then: {exc}") from None
-        done.append("simulated robots updated")
-    done.append("auth.yaml is reloaded by the server itself")
-    return "running fleet: " + "; ".join(done)
+        if robots_changed:
+            done.append("simulated robots updated")
+    done += auth
+    return "running fleet: " + ("; ".join(done) or "nothing to apply")
 
 
-def _servers_definition_changed(plan: ComposePlan) -> bool:
-    """Whether the compose file the deployment runs from differs from the fleet's now in
-    anything but its simulated robots (which a live update brings up to date by itself)."""
+def _auth_note(fleet_dir: Path, changed: Collection[Path] | None) -> list[str]:
+    """The note on auth.yaml: the server watches the file (mounted live) and reloads it
+    itself, so only a change of it is worth a word."""
+    if changed is None:
+        return ["auth.yaml, if changed, is reloaded by the server itself"]
+    if any(Path(p).parts[-2:] == ("server", "auth.yaml") for p in changed):
+        return ["auth.yaml changed: the server reloads it by itself (within a second)"]
+    return []
+
+
+def _peers(server: str, runner: Runner) -> frozenset[str] | None:
+    """The public keys of the tunnel's peers; ``None``: ``wg`` did not answer."""
+    res = runner(["docker", "exec", server, "wg", "show", WG_INTERFACE, "peers"], None, True)
+    return frozenset(res.stdout.split()) if res.returncode == 0 else None
+
+
+def _peer_change(before: frozenset[str] | None, after: frozenset[str] | None) -> str | None:
+    """What ``wg syncconf`` changed, or ``None`` when nothing did."""
+    if before is None or after is None:
+        return "WireGuard peers reloaded (which changed is unknown: `wg show` failed)"
+    added, removed = len(after - before), len(before - after)
+    if not added and not removed:
+        return None
+    return f"WireGuard peers: {added} added, {removed} removed"
+
+
+def _deployed_compose(plan: ComposePlan) -> object:
+    """The compose file the deployment runs from, ``None`` when it cannot be read (then
+    the server's definition counts as changed)."""
     try:
-        deployed = yaml.safe_load(read_small(plan.compose_file, MAX_CONFIG_BYTES))
+        return yaml.safe_load(read_small(plan.compose_file, MAX_CONFIG_BYTES))
     except (OSError, yaml.YAMLError):
-        return True
-    return _without_robots(deployed) != _without_robots(render(plan))
+        return None
+
+
+def _robots(document: object) -> object:
+    if not isinstance(document, dict) or not isinstance(document.get("services"), dict):
+        return None
+    return {name: svc for name, svc in document["services"].items()
+            if str(name).startswith(ROBOT_SERVICE_PREFIX)}
 
 
 def _without_robots(document: object) -> object:

@@ -7,7 +7,7 @@ import json
 import os
 import re
 import stat
-from collections.abc import Callable
+from collections.abc import Callable, Collection
 from pathlib import Path
 
 import pytest
@@ -36,7 +36,8 @@ def synced(monkeypatch: pytest.MonkeyPatch) -> list[Path]:
 
     calls: list[Path] = []
 
-    def fake(fleet_dir: Path, progress: Callable[[str], None]) -> str | None:
+    def fake(fleet_dir: Path, progress: Callable[[str], None],
+             changed: Collection[Path] | None = None) -> str | None:
         calls.append(fleet_dir)
         progress("checking")
         return None
@@ -381,7 +382,7 @@ def test_change_commands_sync_a_running_fleet(fleet: Path, cli: Cli,
 def test_sync_note_is_printed(fleet: Path, cli: Cli, monkeypatch: pytest.MonkeyPatch) -> None:
     from fleetctl.deploy import live
 
-    monkeypatch.setattr(live, "sync_running", lambda d, p: "running fleet: peers synced")
+    monkeypatch.setattr(live, "sync_running", lambda d, p, changed: "running fleet: peers synced")
     out, _ = cli("render")
     assert out.rstrip().endswith("running fleet: peers synced")
     out, err = cli("render", "-o", "json")
@@ -844,3 +845,24 @@ def test_a_fleet_directory_that_is_a_file_is_named(fleet: Path, cli: Cli,
         assert err.startswith(f"fleetctl: error: {path}: not a directory but a file (it "
                               "holds "), (args, err)
         assert "not found" not in err and err.count("\n") == 1
+
+
+def test_the_sync_is_told_which_files_changed(fleet: Path, cli: Cli,
+                                              monkeypatch: pytest.MonkeyPatch) -> None:
+    """The running fleet's note says only what changed: it needs the command's changed
+    files (remove-user changes auth.yaml, no WireGuard file)."""
+    from fleetctl.deploy import live
+
+    seen: list[set[str]] = []
+
+    def record(d: Path, p: Callable[[str], None],
+               changed: Collection[Path] | None = None) -> str | None:
+        assert changed is not None
+        seen.append({str(Path(c).relative_to(d)) for c in changed})
+        return None
+
+    monkeypatch.setattr(live, "sync_running", record)
+    cli("add-user", "a@example.com", "--role", "viewer")
+    cli("remove-user", "a@example.com")
+    cli("render")
+    assert seen == [{"fleet.yaml", "server/auth.yaml"}] * 2 + [set()]

@@ -569,8 +569,59 @@ def test_live_sync_prints_nothing_but_its_note(fleet: Path) -> None:
     ops.add_user(fleet, "bob@example.org", "viewer")
     printed: list[str] = []
     note = live.sync_running(fleet, printed.append, runner=docker)
-    assert note is not None and "simulated robots updated" in note
+    assert note is not None and "simulated robots updated" not in note  # a user is no robot
     assert printed == [] and captured == [False, True]
+
+
+class Tunnel(FakeDocker):
+    """A server container whose `wg show wg0 peers` answers the peers of the wg0.conf
+    `wg syncconf` last loaded (those of the deployment's start before it)."""
+
+    def __init__(self, fleet: Path) -> None:
+        super().__init__(server_running=True)
+        self.conf = fleet / "server" / "wireguard" / "wg0.conf"
+        self.peers = self._conf_peers()
+
+    def _conf_peers(self) -> str:
+        return "".join(line.split("=", 1)[1].strip() + "\n"
+                       for line in self.conf.read_text().splitlines()
+                       if line.replace(" ", "").startswith("PublicKey="))
+
+    def __call__(self, argv: Sequence[str], stdin: bytes | None, capture: bool) -> Completed:
+        if list(argv[-2:]) == ["wg0", "peers"]:
+            self.calls.append(list(argv))
+            return Completed(tuple(argv), 0, self.peers, "")
+        if "wg syncconf wg0" in " ".join(argv):
+            self.peers = self._conf_peers()
+        return super().__call__(argv, stdin, capture)
+
+
+def _changed(outcome: ops.Outcome) -> list[Path]:
+    return [c.path for c in outcome.changes]
+
+
+def test_live_sync_says_only_what_changed(fleet: Path) -> None:
+    """`remove-user NAME` on a running fleet said `WireGuard peers synced` (users are token
+    identities, no peer changed) and every note `auth.yaml is reloaded`, changed or not."""
+    composerun.up(fleet, _opts(fleet, wireguard="off"), progress=lambda _: None,
+                  runner=FakeDocker())
+    docker = Tunnel(fleet)
+    added = ops.add_user(fleet, "bob@example.org", "viewer").outcome
+    note = live.sync_running(fleet, lambda _: None, runner=docker, changed=_changed(added))
+    assert note == ("running fleet: auth.yaml changed: the server reloads it by itself "
+                    "(within a second)")
+    removed = ops.remove_user(fleet, "bob@example.org").outcome
+    note = live.sync_running(fleet, lambda _: None, runner=docker, changed=_changed(removed))
+    assert note is not None and "WireGuard" not in note and "auth.yaml changed" in note
+    robot = ops.add_robot(fleet, "rover3").outcome
+    note = live.sync_running(fleet, lambda _: None, runner=docker, changed=_changed(robot))
+    assert note is not None and note.startswith(
+        "running fleet: WireGuard peers: 1 added, 0 removed; ")
+    gone = ops.remove_robot(fleet, "rover3").outcome
+    note = live.sync_running(fleet, lambda _: None, runner=docker, changed=_changed(gone))
+    assert note is not None and "WireGuard peers: 0 added, 1 removed" in note
+    assert live.sync_running(fleet, lambda _: None, runner=docker,
+                             changed=[]) == "running fleet: nothing to apply"
 
 
 def test_live_sync_after_the_last_robot_goes_leaves_the_server_alone(fleet: Path) -> None:

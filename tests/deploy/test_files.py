@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import errno
+import re
 import shutil
 from pathlib import Path
 
@@ -17,13 +18,25 @@ def test_a_file_where_a_directory_belongs_is_one_error_and_changes_nothing(
         tmp_path: Path) -> None:
     fleet_dir = tmp_path / "f"
     ops.create_fleet(fleet_dir)
+    ops.add_robot(fleet_dir, "r1")
+    # A directory the fleet's check does not name (fleet.directory_problems): the write
+    # itself says which path is in the way.
+    inner = fleet_dir / "robots" / "r1" / "wireguard"
+    shutil.rmtree(inner)
+    inner.write_text("in the way\n")
+    assert ops.render_fleet(fleet_dir, dry_run=True).changes  # a preview, no traceback
+    with pytest.raises(FleetError, match=r"robots/r1/wireguard/\S+: cannot write: Not a "
+                                         r"directory; nothing was changed"):
+        ops.render_fleet(fleet_dir)
+    assert inner.read_text() == "in the way\n"
+    # One the check names: refused before any write, the dry run too, naming it.
     server = fleet_dir / "server"
     shutil.rmtree(server)
     server.write_text("in the way\n")
-    assert ops.render_fleet(fleet_dir, dry_run=True).changes  # a preview, no traceback
-    with pytest.raises(FleetError, match=r"server/\S+: cannot write: Not a directory; "
-                                         r"nothing was changed"):
-        ops.render_fleet(fleet_dir)
+    for dry_run in (True, False):
+        with pytest.raises(ConfigError, match=rf"^{re.escape(str(server))}: not a directory "
+                                              r"but a file \(it holds the server's"):
+            ops.render_fleet(fleet_dir, dry_run=dry_run)
     assert server.read_text() == "in the way\n"
 
 

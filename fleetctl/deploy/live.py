@@ -94,7 +94,7 @@ def sync_running(fleet_dir: Path, progress: Callable[[str], None],
               "wg syncconf in the server container")
         if (peers := _peer_change(before, _peers(server, runner))) is not None:
             done.append(peers)
-    auth = _auth_note(fleet_dir, changed)
+    auth = _auth_note(changed)
     plan = plan_for(fleet_dir, options)
     deployed = _deployed_compose(plan)
     if _without_robots(deployed) != _without_robots(render(plan)):
@@ -134,7 +134,7 @@ def sync_running(fleet_dir: Path, progress: Callable[[str], None],
     return "running fleet: " + ("; ".join(done) or "nothing to apply")
 
 
-def _auth_note(fleet_dir: Path, changed: Collection[Path] | None) -> list[str]:
+def _auth_note(changed: Collection[Path] | None) -> list[str]:
     """The note on auth.yaml: the server watches the file (mounted live) and reloads it
     itself, so only a change of it is worth a word."""
     if changed is None:

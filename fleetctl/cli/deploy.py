@@ -138,8 +138,11 @@ def up(
     def text() -> str:
         robots = ", ".join(result.robots) or "none yet"
         lines = [f"fleet is up: open {result.url} and sign in with a user token "
-                 "(`fleetctl add-user`)", f"wireguard: {result.wireguard_note}",
-                 f"robots: {robots}{' (simulated)' if result.simulated else ''}"]
+                 "(`fleetctl add-user`)"]
+        if result.certificate_note:
+            lines += [f"warning: {result.certificate_note}"]
+        lines += [f"wireguard: {result.wireguard_note}",
+                  f"robots: {robots}{' (simulated)' if result.simulated else ''}"]
         if result.replicas > 1:
             lines += [f"replicas: {result.replicas} (pages: {' '.join(result.page_urls)})"]
         if result.recording_topics:

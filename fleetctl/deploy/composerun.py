@@ -21,7 +21,7 @@ from typing import Any
 
 import yaml
 
-from fleetctl.deploy import hostports, relocation
+from fleetctl.deploy import hostports, relocation, tls
 from fleetctl.deploy.compose import (
     COMPOSE_DIR,
     COMPOSE_FILE,
@@ -33,6 +33,7 @@ from fleetctl.deploy.compose import (
     Options,
     check_wireguard_choice,
     container_server_config,
+    page_host,
     plan_for,
     project_name,
     read_robots,
@@ -82,6 +83,8 @@ class UpResult:
     page_urls: tuple[str, ...] = ()
     recording_topics: tuple[str, ...] = ()  # fleet.yaml's recording: what the server records
     recordings_command: str = ""  # how to list them (every replica, the CA when self-signed)
+    # Non-empty when the certificate does not cover the URL's host: a browser would warn.
+    certificate_note: str = ""
 
 
 def compose_command(runner: Runner = subprocess_runner) -> list[str]:
@@ -295,7 +298,29 @@ def up(fleet_dir: Path, options: Options, progress: Progress = print,
     return UpResult(path, plan.wireguard_note, plan.url,
                     tuple(r.name for r in plan.robots), options.sim, options.replicas, *urls,
                     recording_topics=topics,
-                    recordings_command=recordings_command(plan, urls[1]) if topics else "")
+                    recordings_command=recordings_command(plan, urls[1]) if topics else "",
+                    certificate_note=certificate_note(plan))
+
+
+def certificate_note(plan: ComposePlan) -> str:
+    """What is wrong with the page's URL for the HTTPS certificate, ``""`` when nothing.
+
+    The URL's host is the endpoint's (or the ``--bind`` address): with the operator's own
+    certificate (fleet.yaml ``tls:``) issued for another name, ``up`` printed a URL a
+    browser warns about. Which of the certificate's names reaches this host is not known
+    here (DNS, a proxy), so the URL stays and the note names what the certificate covers.
+    """
+    host = page_host(plan.options.bind, plan.endpoint_host)
+    names = tls.cert_names(plan.tls_cert)
+    if names is None:
+        return (f"the HTTPS certificate {plan.tls_cert} names no host (no subjectAltName, "
+                f"or unreadable): a browser will warn at https://{host}/")
+    if tls.covers(names, host):
+        return ""
+    return (f"the HTTPS certificate {plan.tls_cert} does not cover {host}, only "
+            f"{', '.join(names)}: a browser will warn at this URL; open the page by one of "
+            f"those names if it reaches this host, or give fleet.yaml tls: a certificate "
+            f"for {host}")
 
 
 def _page_urls(plan: ComposePlan) -> tuple[str, ...]:

@@ -108,6 +108,35 @@ def cert_names(cert_path: Path) -> tuple[str, ...] | None:
     return tuple(str(n.value) for n in san)
 
 
+def covers(names: tuple[str, ...], host: str) -> bool:
+    """Whether a certificate for SAN *names* (as :func:`cert_names` returns them) is valid
+    for *host* as a browser checks it (RFC 6125 section 6.4): an IP address against the IP
+    entries, a name against the DNS entries without regard to case, ``*`` only as the whole
+    left-most label, standing for exactly one label.
+
+    Args:
+        host: the URL's host; an IPv6 address may be in brackets.
+    """
+    host = host.strip("[]")
+    try:
+        ip = ipaddress.ip_address(host)
+    except ValueError:
+        return any(_dns_match(name, host) for name in names)
+    for name in names:
+        with contextlib.suppress(ValueError):
+            if ipaddress.ip_address(name) == ip:
+                return True
+    return False
+
+
+def _dns_match(pattern: str, host: str) -> bool:
+    pattern, host = pattern.lower().rstrip("."), host.lower().rstrip(".")
+    if pattern.startswith("*."):
+        first, dot, rest = host.partition(".")
+        return bool(first) and bool(dot) and rest == pattern[2:]
+    return pattern == host
+
+
 def expires_soon(cert_path: Path, now: Clock = _utc_now) -> datetime.datetime | None:
     """When the certificate at *cert_path* ends, if within :data:`RENEW_BEFORE` of *now*
     (or already past); ``None`` when later, or when it cannot be read."""

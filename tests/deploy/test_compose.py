@@ -18,11 +18,12 @@ import pytest
 import yaml
 
 from fleetctl.cli.main import main
-from fleetctl.deploy import compose, composerun, hostports, live
+from fleetctl.deploy import compose, composerun, hostports, live, tls
 from fleetctl.deploy import operations as ops
 from fleetctl.deploy.compose import Options
 from fleetctl.deploy.dockercli import Completed
 from fleetctl.deploy.files import WriteFailed
+from fleetctl.deploy.keys import SystemKeySource
 from fleetctl.errors import ConfigError, ConflictError, EnvironmentMissing, ExitCode, FleetError
 
 
@@ -1015,3 +1016,32 @@ def test_status_columns_line_up_with_the_longest_robot_name() -> None:
         assert all(row[col - 1] == " " and row[col] != " " for row in rows), block
     short = composerun.StatusReport(services[1:], robots[1:], tunnel=tunnel[1:]).render_text()
     assert short.splitlines()[1] == f"{'server':<24} {'running':<11} {'healthy':<10} 0"
+
+
+def test_up_says_when_the_certificate_does_not_cover_the_page_host(fleet: Path,
+                                                                  tmp_path: Path) -> None:
+    """fleet.yaml `tls:` with the operator's certificate for fleet.example.org, endpoint
+    fleet.example: `up` printed https://fleet.example:8443/ without a word, and a browser
+    warned there."""
+    opts = _opts(fleet, wireguard="off", bind="0.0.0.0")
+    result = composerun.up(fleet, opts, progress=lambda _: None, runner=FakeDocker(),
+                           port_probe=lambda *_: None)
+    assert result.url == "https://fleet.example:8443/" and result.certificate_note == ""
+    made = tls.self_signed(("fleet.example.org", "192.0.2.7"), SystemKeySource())
+    cert, key = tmp_path / "own-cert.pem", tmp_path / "own-key.pem"
+    cert.write_bytes(made.cert_pem)
+    key.write_text(made.key_pem.reveal())
+    key.chmod(0o600)
+    path = fleet / "fleet.yaml"
+    path.write_text(path.read_text().replace("tls: null\n", f"tls:\n  cert: {cert}\n"
+                                             f"  key: {key}\n"))
+    ops.render_fleet(fleet)
+    result = composerun.up(fleet, opts, progress=lambda _: None, runner=FakeDocker(),
+                           port_probe=lambda *_: None)
+    assert result.certificate_note == (
+        f"the HTTPS certificate {cert} does not cover fleet.example, only fleet.example.org, "
+        "192.0.2.7: a browser will warn at this URL; open the page by one of those names if "
+        "it reaches this host, or give fleet.yaml tls: a certificate for fleet.example")
+    local = compose.plan_for(fleet, replace(opts, bind="127.0.0.1"))
+    assert local.url == "https://127.0.0.1:8443/"
+    assert "does not cover 127.0.0.1, only" in composerun.certificate_note(local)

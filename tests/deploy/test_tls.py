@@ -19,6 +19,7 @@ from fleetctl.deploy.tls import (
     KEY_RELPATH,
     MAX_PEM_BYTES,
     cert_names,
+    covers,
     self_signed,
 )
 from fleetctl.errors import ConfigError
@@ -161,3 +162,20 @@ def test_bad_operator_files_change_nothing(tmp_path: Path, break_it: object,
     with pytest.raises(ConfigError, match=expected):
         ops.add_robot(fleet_dir, "r1")
     assert _snapshot(fleet_dir) == before
+
+
+@pytest.mark.parametrize(("host", "covered"), [
+    ("fleet.example.org", True), ("FLEET.example.org.", True), ("a.pages.example.org", True),
+    ("pages.example.org", False), ("a.b.pages.example.org", False), ("vpn.example.com", False),
+    ("192.0.2.7", True), ("[2001:db8::7]", True), ("2001:db8::8", False),
+    ("localhost", False), ("127.0.0.1", False)])
+def test_covers_checks_a_host_as_a_browser_does(tmp_path: Path, host: str,
+                                                covered: bool) -> None:
+    """The names of a certificate made here for other names than the endpoint's (as an
+    operator's own `tls:` certificate may be)."""
+    made = self_signed(("fleet.example.org", "*.pages.example.org", "192.0.2.7",
+                        "2001:db8::7"), SystemKeySource())
+    path = tmp_path / "cert.pem"
+    path.write_bytes(made.cert_pem)
+    names = cert_names(path)
+    assert names is not None and covers(names, host) is covered

@@ -223,7 +223,7 @@ def test_up_and_the_recordings_hint_name_the_endpoints_host(
     out = fleetctl("up", "--wireguard", "off", "--https-port", str(port)).stdout
     url = f"https://{host}:{port}/"
     cert = fleet.resolve() / "server" / "tls" / "cert.pem"
-    assert f"fleet is up: open {url} and sign in" in out
+    assert f"fleet is up: open {url} and sign in" in out and "warning:" not in out
     assert f"(fleetctl recordings list --server {url} --token-file FILE --ca-file {cert})" in out
     config = fleet / "server" / "server.yaml"
     err = fleetctl("recordings", "list", "--config", str(config), code=3).stderr
@@ -246,3 +246,52 @@ def test_build_refuses_bad_options_before_asking_docker(
     assert main(["build", *args]) == 2
     err = capsys.readouterr().err
     assert err.startswith("fleetctl: error: ") and said in err and err.count("\n") == 1
+
+
+def test_up_warns_when_the_fleets_own_certificate_does_not_cover_the_url(
+        tmp_path: Path) -> None:
+    """fleet.yaml `tls:` with the operator's certificate for another name than the
+    endpoint host: `up` printed the page's URL on the endpoint host with no word, and a
+    browser warned there."""
+    import os
+    import subprocess
+    import sys
+
+    from fleetctl.deploy.keys import SystemKeySource
+    from fleetctl.deploy.tls import self_signed
+
+    bin_dir = tmp_path / "bin"
+    bin_dir.mkdir()
+    (bin_dir / "docker").write_text(_STAND_IN_DOCKER)
+    (bin_dir / "docker").chmod(0o755)
+    fleet = tmp_path / "yard"
+    env = {**os.environ, "PATH": f"{bin_dir}{os.pathsep}{os.environ['PATH']}",
+           "FLEET_DIR": str(fleet)}
+
+    def fleetctl(*args: str) -> str:
+        done = subprocess.run([sys.executable, "-m", "fleetctl.cli.main", *args], env=env,
+                              cwd=tmp_path, capture_output=True, text=True, timeout=120,
+                              check=False)
+        assert done.returncode == 0, done.stderr
+        return done.stdout
+
+    fleetctl("init", str(fleet), "--endpoint", "vpn.example.com:51820")
+    made = self_signed(("pages.example.org",), SystemKeySource())
+    cert, key = tmp_path / "own.pem", tmp_path / "own.key"
+    cert.write_bytes(made.cert_pem)
+    key.write_text(made.key_pem.reveal())
+    key.chmod(0o600)
+    path = fleet / "fleet.yaml"
+    path.write_text(path.read_text().replace(
+        "tls: null\n", f"tls:\n  cert: {cert}\n  key: {key}\n"))
+    fleetctl("render")
+    port = _free_tcp_port()
+    lines = fleetctl("up", "--wireguard", "off", "--bind", "0.0.0.0", "--https-port",
+                     str(port)).splitlines()
+    first = lines.index(f"fleet is up: open https://vpn.example.com:{port}/ and sign in with "
+                        "a user token (`fleetctl add-user`)")
+    assert lines[first + 1] == (
+        f"warning: the HTTPS certificate {cert} does not cover vpn.example.com, only "
+        "pages.example.org: a browser will warn at this URL; open the page by one of those "
+        "names if it reaches this host, or give fleet.yaml tls: a certificate for "
+        "vpn.example.com")

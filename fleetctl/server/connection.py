@@ -115,6 +115,8 @@ class RelayConnection(FrameSink, BatchedWritesConnection, ServerConnection):
         self._request_bytes = 0  # bytes received before the request was complete
         self._request_line = RequestLine()  # an HTTP/1.0 health check is read as HTTP/1.1
         self._held_pong: Frame | None = None  # see _send_frame
+        self._identified = False  # see authenticated
+        self._unidentified_pong: Frame | None = None  # see _send_frame
         self._pong_paused = False  # not read because of a held pong (no identity yet)
         self._protocol_send_frame: Callable[[Frame], None] | None = None
         self._slot: str | None = None  # address holding an unauthenticated slot
@@ -198,6 +200,13 @@ class RelayConnection(FrameSink, BatchedWritesConnection, ServerConnection):
         until then either (no client of ours does that before its token frame)."""
         send = self._protocol_send_frame
         assert send is not None
+        if frame.opcode is Opcode.PONG and not self._identified:
+            # A pong says that what came before the ping was taken, and frames of a
+            # connection with no identity yet are discarded if its token is refused: a
+            # client that trusts pongs (the robot's link) forgot no_drop messages the
+            # relay dropped. Sent by authenticated(), the latest one (RFC 6455 5.5.3).
+            self._unidentified_pong = frame
+            return
         if frame.opcode is not Opcode.PONG or not self.paused:
             send(frame)
             return
@@ -255,10 +264,16 @@ class RelayConnection(FrameSink, BatchedWritesConnection, ServerConnection):
 
     def authenticated(self, max_size: int) -> None:
         """The connection has an identity: frames up to *max_size* bytes, messages of up
-        to :data:`MAX_MESSAGE_FRAMES` frames, slot given back."""
+        to :data:`MAX_MESSAGE_FRAMES` frames, slot given back, and the pong of a ping that
+        came before its token sent (see :meth:`_send_frame`)."""
         self.protocol.max_size = max_size
         self.max_message_frames = MAX_MESSAGE_FRAMES
         self._release()
+        self._identified = True
+        pong, self._unidentified_pong = self._unidentified_pong, None
+        if pong is not None and self.protocol.state is State.OPEN:
+            self._send_frame(pong)
+            self.send_data()
 
     def abort_with(self, code: int, reason: str) -> None:
         """Fail the connection now (RFC 6455 7.1.7): one close frame, then the TCP

@@ -103,7 +103,7 @@ def sync_running(fleet_dir: Path, progress: Callable[[str], None],
         except FleetError as exc:
             raise FleetError(f"{'; '.join(done) or 'nothing applied'}; then, recreating the "
                              f"server with its new definition: {exc}") from None
-        done += ["server recreated with its new compose definition (ports)", *auth]
+        done += ["server recreated with its new compose definition", *auth]
         return "running fleet: " + "; ".join(done)
     loaded_at_start = [what for what, yes in (("TLS certificate", _certificate_changed(plan)),
                                               ("server.yaml", _server_config_changed(plan)))

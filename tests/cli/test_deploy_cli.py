@@ -5,6 +5,7 @@ the real one)."""
 from __future__ import annotations
 
 import json
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -188,14 +189,10 @@ def _free_tcp_port() -> int:
         return int(s.getsockname()[1])
 
 
-@pytest.mark.parametrize(("endpoint", "host"), [("fleet.example.org:51820", "fleet.example.org"),
-                                                (None, "localhost")])
-def test_up_and_the_recordings_hint_name_the_endpoints_host(
-        tmp_path: Path, endpoint: str | None, host: str) -> None:
-    """`up` printed https://localhost:PORT/ (and the same in its `recordings list` line)
-    in a fleet whose fleet.yaml names the server host: the page's URL is on the endpoint's
-    host, localhost only without one; `recordings list --config` of the deployed fleet
-    said `--server https://HOST:PORT/` with the container's port, not `up --https-port`'s."""
+def _stand_in_fleetctl(tmp_path: Path) -> tuple[Path, Callable[..., Any]]:
+    """A fleet path under *tmp_path* and a runner of the real `fleetctl` command (a
+    process, FLEET_DIR set) whose `docker` is the stand-in: ``run(*args, code=0)``
+    returns the CompletedProcess, having checked its exit code."""
     import os
     import subprocess
     import sys
@@ -208,13 +205,25 @@ def test_up_and_the_recordings_hint_name_the_endpoints_host(
     env = {**os.environ, "PATH": f"{bin_dir}{os.pathsep}{os.environ['PATH']}",
            "FLEET_DIR": str(fleet)}
 
-    def fleetctl(*args: str, code: int = 0) -> subprocess.CompletedProcess[str]:
+    def run(*args: str, code: int = 0) -> subprocess.CompletedProcess[str]:
         done = subprocess.run([sys.executable, "-m", "fleetctl.cli.main", *args], env=env,
                               cwd=tmp_path, capture_output=True, text=True, timeout=120,
                               check=False)
         assert done.returncode == code, done.stderr
         return done
 
+    return fleet, run
+
+
+@pytest.mark.parametrize(("endpoint", "host"), [("fleet.example.org:51820", "fleet.example.org"),
+                                                (None, "localhost")])
+def test_up_and_the_recordings_hint_name_the_endpoints_host(
+        tmp_path: Path, endpoint: str | None, host: str) -> None:
+    """`up` printed https://localhost:PORT/ (and the same in its `recordings list` line)
+    in a fleet whose fleet.yaml names the server host: the page's URL is on the endpoint's
+    host, localhost only without one; `recordings list --config` of the deployed fleet
+    said `--server https://HOST:PORT/` with the container's port, not `up --https-port`'s."""
+    fleet, fleetctl = _stand_in_fleetctl(tmp_path)
     fleetctl("init", str(fleet), *(["--endpoint", endpoint] if endpoint else []))
     with (fleet / "fleet.yaml").open("a") as f:
         f.write("recording:\n  topics: ['/.*/odom']\n")
@@ -253,27 +262,13 @@ def test_up_warns_when_the_fleets_own_certificate_does_not_cover_the_url(
     """fleet.yaml `tls:` with the operator's certificate for another name than the
     endpoint host: `up` printed the page's URL on the endpoint host with no word, and a
     browser warned there."""
-    import os
-    import subprocess
-    import sys
-
     from fleetctl.deploy.keys import SystemKeySource
     from fleetctl.deploy.tls import self_signed
 
-    bin_dir = tmp_path / "bin"
-    bin_dir.mkdir()
-    (bin_dir / "docker").write_text(_STAND_IN_DOCKER)
-    (bin_dir / "docker").chmod(0o755)
-    fleet = tmp_path / "yard"
-    env = {**os.environ, "PATH": f"{bin_dir}{os.pathsep}{os.environ['PATH']}",
-           "FLEET_DIR": str(fleet)}
+    fleet, run = _stand_in_fleetctl(tmp_path)
 
     def fleetctl(*args: str) -> str:
-        done = subprocess.run([sys.executable, "-m", "fleetctl.cli.main", *args], env=env,
-                              cwd=tmp_path, capture_output=True, text=True, timeout=120,
-                              check=False)
-        assert done.returncode == 0, done.stderr
-        return done.stdout
+        return str(run(*args).stdout)
 
     fleetctl("init", str(fleet), "--endpoint", "vpn.example.com:51820")
     made = self_signed(("pages.example.org",), SystemKeySource())

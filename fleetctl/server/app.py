@@ -337,6 +337,7 @@ class RelayServer:
         while True:  # periodic write-behind and session expiry, not synchronization
             await asyncio.sleep(REGISTRY_FLUSH_PERIOD_S)
             self.core.sessions.expire()
+            self.metrics.forget_idle(asyncio.get_running_loop().time())
             jobs: list[Callable[[], object]] = [
                 j for j in (self.registry.take_flush(), self.core.sessions.take_changes())
                 if j is not None]

@@ -2,7 +2,8 @@
 
 Counters live in plain dicts keyed by topic: the relay increments them on every frame, so
 they must cost one dict update. Topic labels are bounded (:data:`MAX_TOPIC_LABELS`);
-topics past the bound are counted under ``topic="<other>"``.
+topics past the bound are counted under ``topic="<other>"`` until
+:meth:`Metrics.forget_idle` makes room by forgetting topics idle for an hour.
 """
 
 from __future__ import annotations
@@ -13,6 +14,16 @@ from dataclasses import dataclass, field
 # Why: topic names come from clients; an unbounded label set is a memory and scrape hazard.
 MAX_TOPIC_LABELS = 2000
 OTHER = "<other>"
+# A full label table forgets the topics (and session/topic pairs) whose counters have not
+# moved for this long, seconds. Why: the first 2,000 topics kept their labels for good, so
+# on a relay whose robots come and go under new names (sims, replays, renames: the relay
+# soak used up the table in 12 minutes) /metrics went on showing gone robots' topics and
+# counted every new one under <other>. A forgotten series ends; should the topic come
+# back, its counter starts again from 0, which Prometheus reads as a counter reset.
+IDLE_LABEL_S = 3600.0
+# How often forget_idle looks at the counters, seconds: a copy of the tables' values,
+# about a millisecond when full, so the per-frame counting stays one dict update.
+IDLE_SWEEP_PERIOD_S = 60.0
 
 
 @dataclass
@@ -41,6 +52,12 @@ class Metrics:
     latched_delivered: int = 0  # frames queued to new subscribers
     # Keyframe requests (fleetctl.server.keyframes) by outcome.
     keyframe_requests: dict[str, int] = field(default_factory=dict)
+    # Labels forgotten by forget_idle (topics and session/topic pairs).
+    labels_forgotten: int = 0
+    # forget_idle's memory: per key, its counters when they last moved and since when.
+    _moved: dict[object, tuple[tuple[int, ...], float]] = field(default_factory=dict,
+                                                                 repr=False)
+    _swept_at_s: float = field(default=float("-inf"), repr=False)
 
     def label(self, topic: str) -> str:
         """Return *topic*, or ``<other>`` once the label bound is reached."""
@@ -87,6 +104,45 @@ class Metrics:
         """Count one connection the server closed with *code*."""
         self.closes[code] = self.closes.get(code, 0) + 1
 
+    def forget_idle(self, now_s: float) -> int:
+        """Every :data:`IDLE_SWEEP_PERIOD_S`: note which labels' counters moved, and in a
+        full label table (the topics', the session/topic pairs'), forget the labels idle
+        for :data:`IDLE_LABEL_S` (never ``<other>``); return how many were forgotten.
+        *now_s*: a monotonic clock, seconds."""
+        if now_s - self._swept_at_s < IDLE_SWEEP_PERIOD_S:
+            return 0
+        self._swept_at_s = now_s
+        counts: dict[object, tuple[int, ...]] = {
+            t: (n, self.messages_out.get(t, 0), self.drops.get(t, 0))
+            for t, n in self.messages_in.items()}
+        counts.update((t, (0, n, self.drops.get(t, 0)))
+                      for t, n in self.messages_out.items() if t not in counts)
+        counts.update((t, (0, 0, n)) for t, n in self.drops.items() if t not in counts)
+        counts.update((k, (n,)) for k, n in self.session_drops.items())
+        moved = self._moved
+        for key in moved.keys() - counts.keys():
+            del moved[key]
+        for key, now in counts.items():
+            if key not in moved or moved[key][0] != now:
+                moved[key] = (now, now_s)
+        topics_full = len(self.messages_in) >= MAX_TOPIC_LABELS
+        sessions_full = len(self.session_drops) >= MAX_TOPIC_LABELS
+        if not topics_full and not sessions_full:
+            return 0
+        idle = [k for k, (_, since) in moved.items()
+                if now_s - since >= IDLE_LABEL_S and k != OTHER and k != (OTHER, OTHER)
+                and (sessions_full if isinstance(k, tuple) else topics_full)]
+        for key in idle:
+            del moved[key]
+            if isinstance(key, tuple):
+                self.session_drops.pop(key, None)  # type: ignore[call-overload]
+                continue
+            for table in (self.messages_in, self.bytes_in, self.messages_out,
+                          self.bytes_out, self.drops):
+                table.pop(key, None)  # type: ignore[call-overload]
+        self.labels_forgotten += len(idle)
+        return len(idle)
+
     def render(
         self,
         gauges: Iterable[tuple[str, str, dict[str, float]]] = (),
@@ -129,6 +185,10 @@ class Metrics:
         _labelled(out, "fleetctl_connections_refused_total", "counter",
                   "Connections aborted at accept: unauthenticated connections at their "
                   "cap (total, per_address).", "cap", self.connections_refused)
+        _scalar(out, "fleetctl_metric_labels_forgotten_total", "counter",
+                "Topic (and session/topic) labels forgotten after an hour without a "
+                "count while their table was full: their series end here.",
+                self.labels_forgotten)
         _scalar(out, "fleetctl_pongs_coalesced_total", "counter",
                 "Pongs not sent because the peer did not read: the answer to its later "
                 "ping replaced them (RFC 6455 5.5.3).", self.pongs_coalesced)

@@ -117,7 +117,6 @@ class RelayConnection(FrameSink, BatchedWritesConnection, ServerConnection):
         self._held_pong: Frame | None = None  # see _send_frame
         self._identified = False  # see authenticated
         self._unidentified_pong: Frame | None = None  # see _send_frame
-        self._pong_paused = False  # not read because of a held pong (no identity yet)
         self._protocol_send_frame: Callable[[Frame], None] | None = None
         self._slot: str | None = None  # address holding an unauthenticated slot
         self._strikes = 0  # throttles in a row (see throttle)
@@ -196,15 +195,17 @@ class RelayConnection(FrameSink, BatchedWritesConnection, ServerConnection):
         reading made the relay buffer 40 MB of pongs in 8 s, before authentication too.
         The held pong goes when the transport drains (:meth:`resume_writing`).
 
-        A connection without an identity that pings faster than it reads is not read
-        until then either (no client of ours does that before its token frame)."""
+        A connection without an identity gets no pong at all until it has one (below)."""
         send = self._protocol_send_frame
         assert send is not None
         if frame.opcode is Opcode.PONG and not self._identified:
             # A pong says that what came before the ping was taken, and frames of a
             # connection with no identity yet are discarded if its token is refused: a
             # client that trusts pongs (the robot's link) forgot no_drop messages the
-            # relay dropped. Sent by authenticated(), the latest one (RFC 6455 5.5.3).
+            # relay dropped. Sent by authenticated(), the latest one (RFC 6455 5.5.3):
+            # a ping flood before the token costs one frame, not a write buffer of pongs.
+            if self._unidentified_pong is not None and self._metrics is not None:
+                self._metrics.pongs_coalesced += 1
             self._unidentified_pong = frame
             return
         if frame.opcode is not Opcode.PONG or not self.paused:
@@ -213,9 +214,6 @@ class RelayConnection(FrameSink, BatchedWritesConnection, ServerConnection):
         if self._held_pong is not None and self._metrics is not None:
             self._metrics.pongs_coalesced += 1
         self._held_pong = frame
-        if self._slot is not None and not self._pong_paused:
-            self._pong_paused = True
-            self.transport.pause_reading()
 
     def resume_writing(self) -> None:
         """Below the write limit again: send the pong held meanwhile (see _send_frame)."""
@@ -226,10 +224,6 @@ class RelayConnection(FrameSink, BatchedWritesConnection, ServerConnection):
         assert self._protocol_send_frame is not None
         self._protocol_send_frame(pong)
         self.send_data()  # asyncio lets resume_writing write (the buffer may grow again)
-        if self._pong_paused:
-            self._pong_paused = False
-            if not self.transport.is_closing():
-                self.transport.resume_reading()
 
     def connection_made(self, transport: asyncio.BaseTransport) -> None:
         """Take an unauthenticated slot, or abort the connection when there is none."""

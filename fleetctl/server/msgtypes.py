@@ -90,11 +90,4 @@ def codec_for(msg_types: MsgTypes) -> Codec:
 
     if not msg_types:
         return default_codec()
-    registry = TypeRegistry.default()
-    for name, _ in msg_types:
-        if name in registry:
-            raise WireError(f"{name} is a ROS 2 Jazzy or fleetctl type already")
-    registry.add_msg_texts(dict(msg_types))
-    for name, _ in msg_types:
-        registry.get(name)  # every field's type must be defined somewhere
-    return Codec(registry)
+    return Codec(TypeRegistry.default_with(msg_types))

@@ -23,29 +23,6 @@ class LayoutError(Exception):
     """No layout can be given for a requested type name (the message says why)."""
 
 
-def registry_with(msg_types: MsgTypes) -> TypeRegistry:
-    """The default registry plus a fleet's own types (``fleetctl webviz --fleet``), so the
-    page served by ``fleetctl webviz`` decodes them as the relay's own page does.
-
-    Raises:
-        LayoutError: A definition does not parse, names a type nobody defines, or is of a
-            type the default registry has (the message names the type).
-    """
-    registry = TypeRegistry.default()
-    if not msg_types:
-        return registry
-    for name, _ in msg_types:
-        if name in registry:
-            raise LayoutError(f"{name} is a ROS 2 Jazzy or fleetctl type already")
-    try:
-        registry.add_msg_texts(dict(msg_types))
-        for name, _ in msg_types:
-            registry.get(name)  # every field's type must be defined somewhere
-    except WireError as exc:
-        raise LayoutError(str(exc).splitlines()[0]) from None
-    return registry
-
-
 class LayoutCache:
     """JSON bodies of ``describe()`` documents, computed once per type (bounded LRU)."""
 

@@ -11,8 +11,9 @@ from types import FrameType
 from fleetctl.errors import ConfigError, EnvironmentMissing
 from fleetctl.webviz.config import WebvizConfig
 from fleetctl.webviz.httpserver import BackgroundWebviz
-from fleetctl.webviz.layouts import LayoutCache, LayoutError, registry_with
+from fleetctl.webviz.layouts import LayoutCache
 from fleetctl.webviz.vendor import missing_vendor_libs
+from fleetctl.wire.errors import WireError
 from fleetctl.wire.registry import TypeRegistry
 
 log = logging.getLogger("fleetctl.webviz")
@@ -41,9 +42,10 @@ def start_webviz(config: WebvizConfig, registry: TypeRegistry | None = None) -> 
         log.warning("webviz: %s", line)
     if registry is None:
         try:
-            registry = registry_with(config.msg_types)
-        except LayoutError as exc:
-            raise ConfigError(f"the fleet's own message types: {exc}") from None
+            registry = TypeRegistry.default_with(config.msg_types)
+        except WireError as exc:
+            first_line = str(exc).splitlines()[0]
+            raise ConfigError(f"the fleet's own message types: {first_line}") from None
     cache = LayoutCache(registry, config.max_layout_cache_types)
     try:
         server = BackgroundWebviz(config, cache)

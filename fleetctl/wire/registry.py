@@ -55,6 +55,25 @@ class TypeRegistry:
         registry.add_msg_texts(_shipped_msg_texts())
         return registry
 
+    @classmethod
+    def default_with(cls, msg_types: Iterable[tuple[str, str]]) -> TypeRegistry:
+        """:meth:`default` plus a fleet's own types, ``(pkg/msg/Name, .msg text)`` pairs
+        (server.yaml ``msg_types``, ``fleetctl webviz --fleet``).
+
+        Raises:
+            WireError: A definition does not parse, names a type nobody defines, or is of
+                a type the default registry has already.
+        """
+        texts = dict(msg_types)
+        registry = cls.default()
+        for name in texts:
+            if name in registry:
+                raise WireError(f"{name} is a ROS 2 Jazzy or fleetctl type already")
+        registry.add_msg_texts(texts)
+        for name in texts:
+            registry.get(name)  # every field's type must be defined somewhere
+        return registry
+
     def add_msg_text(self, name: str, text: str) -> None:
         """Register one type from its ``.msg`` text.
 

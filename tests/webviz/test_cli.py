@@ -15,7 +15,7 @@ from pathlib import Path
 
 from fleetctl.cli.main import main
 from fleetctl.deploy.msgtypes import load_msg_types
-from fleetctl.webviz.layouts import registry_with
+from fleetctl.wire.registry import TypeRegistry
 from fleetctl.wire.schema import describe
 
 START_TIMEOUT_S = 30
@@ -85,7 +85,7 @@ def test_serves_the_layouts_of_the_fleets_own_types(tmp_path: Path) -> None:
         assert code == 200, body
         assert "the fleet's own message types too: my_robot_msgs/msg/Arm" in "".join(lines)
         doc = json.loads(body)
-        assert doc == describe(registry_with(load_msg_types(fleet).texts),
+        assert doc == describe(TypeRegistry.default_with(load_msg_types(fleet).texts),
                                "my_robot_msgs/msg/Status")
         assert "mission" in body.decode() and "progress" in body.decode()
         assert get(url + "types/sensor_msgs/msg/LaserScan.json")[0] == 200  # still served

@@ -10,11 +10,12 @@ or /128) that may send its own ``/<name>/status``, which every robot reports on.
 
 from __future__ import annotations
 
+from dataclasses import fields
 from typing import Any
 
 from fleetctl.server.authmap import AuthMap, Identity
 from fleetctl.server.permissions import Permissions
-from fleetctl.server.registry import robot_name
+from fleetctl.server.registry import RobotRecord, robot_name
 
 
 def expected_robots(auth: AuthMap) -> tuple[str, ...]:
@@ -33,7 +34,7 @@ def _is_robot(identity: Identity) -> bool:
 
 def never_connected(name: str) -> dict[str, Any]:
     """The robot list's entry for a robot the registry has not seen: every field the
-    registry's entries have, ``None`` where nothing is known yet."""
-    return {"name": name, "first_seen_s": None, "last_seen_s": None, "status": None,
-            "is_ok": None, "battery_level": None, "location": None, "status_time_s": None,
-            "online": False, "never_connected": True}
+    registry's entries have (:meth:`RobotRegistry.as_json`), ``None`` where nothing is
+    known yet."""
+    unknown = dict.fromkeys(f.name for f in fields(RobotRecord))
+    return {**unknown, "name": name, "online": False, "never_connected": True}

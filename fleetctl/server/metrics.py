@@ -8,12 +8,14 @@ topics past the bound are counted under ``topic="<other>"`` until
 
 from __future__ import annotations
 
-from collections.abc import Iterable
+from collections.abc import Iterable, Mapping
 from dataclasses import dataclass, field
+from typing import TypeVar
 
 # Why: topic names come from clients; an unbounded label set is a memory and scrape hazard.
 MAX_TOPIC_LABELS = 2000
 OTHER = "<other>"
+K = TypeVar("K", str, tuple[str, str])  # a label: a topic, or a session and topic
 # A full label table forgets the topics (and session/topic pairs) whose counters have not
 # moved for this long, seconds. Why: the first 2,000 topics kept their labels for good, so
 # on a relay whose robots come and go under new names (sims, replays, renames: the relay
@@ -54,9 +56,11 @@ class Metrics:
     keyframe_requests: dict[str, int] = field(default_factory=dict)
     # Labels forgotten by forget_idle (topics and session/topic pairs).
     labels_forgotten: int = 0
-    # forget_idle's memory: per key, its counters when they last moved and since when.
-    _moved: dict[object, tuple[tuple[int, ...], float]] = field(default_factory=dict,
-                                                                 repr=False)
+    # forget_idle's memory: per label, its counters when they last moved and since when.
+    _topics_moved: dict[str, tuple[tuple[int, ...], float]] = field(default_factory=dict,
+                                                                    repr=False)
+    _pairs_moved: dict[tuple[str, str], tuple[tuple[int, ...], float]] = field(
+        default_factory=dict, repr=False)
     _swept_at_s: float = field(default=float("-inf"), repr=False)
 
     def label(self, topic: str) -> str:
@@ -112,36 +116,25 @@ class Metrics:
         if now_s - self._swept_at_s < IDLE_SWEEP_PERIOD_S:
             return 0
         self._swept_at_s = now_s
-        counts: dict[object, tuple[int, ...]] = {
-            t: (n, self.messages_out.get(t, 0), self.drops.get(t, 0))
-            for t, n in self.messages_in.items()}
-        counts.update((t, (0, n, self.drops.get(t, 0)))
-                      for t, n in self.messages_out.items() if t not in counts)
-        counts.update((t, (0, 0, n)) for t, n in self.drops.items() if t not in counts)
-        counts.update((k, (n,)) for k, n in self.session_drops.items())
-        moved = self._moved
-        for key in moved.keys() - counts.keys():
-            del moved[key]
-        for key, now in counts.items():
-            if key not in moved or moved[key][0] != now:
-                moved[key] = (now, now_s)
-        topics_full = len(self.messages_in) >= MAX_TOPIC_LABELS
-        sessions_full = len(self.session_drops) >= MAX_TOPIC_LABELS
-        if not topics_full and not sessions_full:
-            return 0
-        idle = [k for k, (_, since) in moved.items()
-                if now_s - since >= IDLE_LABEL_S and k != OTHER and k != (OTHER, OTHER)
-                and (sessions_full if isinstance(k, tuple) else topics_full)]
-        for key in idle:
-            del moved[key]
-            if isinstance(key, tuple):
-                self.session_drops.pop(key, None)  # type: ignore[call-overload]
-                continue
-            for table in (self.messages_in, self.bytes_in, self.messages_out,
-                          self.bytes_out, self.drops):
-                table.pop(key, None)  # type: ignore[call-overload]
-        self.labels_forgotten += len(idle)
-        return len(idle)
+        topic_tables = (self.messages_in, self.bytes_in, self.messages_out, self.bytes_out,
+                        self.drops)
+        topics = {t: (self.messages_in.get(t, 0), self.messages_out.get(t, 0),
+                      self.drops.get(t, 0))
+                  for t in self.messages_in.keys() | self.messages_out.keys()
+                  | self.drops.keys()}
+        idle_topics = _idle(self._topics_moved, topics, now_s, OTHER,
+                            full=len(self.messages_in) >= MAX_TOPIC_LABELS)
+        for topic in idle_topics:
+            for table in topic_tables:
+                table.pop(topic, None)
+        pairs = {k: (n,) for k, n in self.session_drops.items()}
+        idle_pairs = _idle(self._pairs_moved, pairs, now_s, (OTHER, OTHER),
+                           full=len(self.session_drops) >= MAX_TOPIC_LABELS)
+        for pair in idle_pairs:
+            del self.session_drops[pair]
+        forgotten = len(idle_topics) + len(idle_pairs)
+        self.labels_forgotten += forgotten
+        return forgotten
 
     def render(
         self,
@@ -229,6 +222,24 @@ class Metrics:
                   "Keyframe requests by outcome: forwarded, auto (sent by the server for "
                   "a new subscriber), rate_limited, refused (may not receive the topic), "
                   "no_publisher, malformed.", "outcome", self.keyframe_requests)
+
+
+def _idle(moved: dict[K, tuple[tuple[int, ...], float]], counts: Mapping[K, tuple[int, ...]],
+             now_s: float, keep: K, *, full: bool) -> list[K]:
+    """Note in *moved* which labels' *counts* changed since the last sweep (forgetting
+    labels no longer counted); when the table is *full*, take out and return those idle
+    for :data:`IDLE_LABEL_S`, never *keep* (``<other>``)."""
+    for key in moved.keys() - counts.keys():
+        del moved[key]
+    for key, now in counts.items():
+        if key not in moved or moved[key][0] != now:
+            moved[key] = (now, now_s)
+    if not full:
+        return []
+    idle = [k for k, (_, since) in moved.items() if now_s - since >= IDLE_LABEL_S and k != keep]
+    for key in idle:
+        del moved[key]
+    return idle
 
 
 def _scalar(out: list[str], name: str, kind: str, help_text: str, value: float) -> None:

@@ -71,9 +71,9 @@ def test_forget_idle_looks_once_a_sweep_period() -> None:
     metrics.forget_idle(0.0)
     metrics.count_in("/a", 1)
     metrics.forget_idle(m.IDLE_SWEEP_PERIOD_S / 2)  # too soon: not looked at
-    assert metrics._moved["/a"] == ((1, 0, 0), 0.0)
+    assert metrics._topics_moved["/a"] == ((1, 0, 0), 0.0)
     metrics.forget_idle(m.IDLE_SWEEP_PERIOD_S)
-    assert metrics._moved["/a"] == ((2, 0, 0), m.IDLE_SWEEP_PERIOD_S)
+    assert metrics._topics_moved["/a"] == ((2, 0, 0), m.IDLE_SWEEP_PERIOD_S)
 
 
 def test_a_full_session_drop_table_forgets_its_idle_pairs(

@@ -637,10 +637,10 @@ class StatusReport:
         names += self.never_connected() + [t.robot for t in self.tunnel or ()]
         return max([24, *map(len, names)])
 
-    def _robot_lines(self) -> list[str]:
+    def _robot_lines(self, w: int) -> list[str]:
+        """The ROBOT table, its first column *w* wide (:meth:`_first_width`)."""
         if self.robots is None:
             return [f"robots: unknown ({self.robots_error})"]
-        w = self._first_width()
         rows = [f"{r.get('name', '?')!s:<{w}} {'yes' if r.get('online') else 'no':<7} "
                 f"{_battery(r.get('battery_level')):<8} {_ago(r.get('last_seen_s'))}"
                 + self._robot_note(r)
@@ -657,7 +657,7 @@ class StatusReport:
         lines += [f"{s.service:<{w}} {s.state:<11} {s.health:<10} {s.restarts}"
                   for s in self.services] or [f"({self._no_containers()})"]
         lines.append("")
-        lines += self._robot_lines()
+        lines += self._robot_lines(w)
         lines.append("")
         if self.tunnel is None:
             lines.append(f"tunnel: {self.tunnel_note}")

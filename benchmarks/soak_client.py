@@ -40,6 +40,7 @@ import json
 import os
 import signal
 import socket
+import statistics
 import struct
 import subprocess
 import sys
@@ -678,12 +679,9 @@ def row(s: dict[str, Any]) -> str:
 
 def slope(xs: list[float], ys: list[float]) -> float:
     """Least-squares slope of ys over xs (0 with fewer than 2 points)."""
-    n = len(xs)
-    if n < 2:
+    if len(set(xs)) < 2:  # fewer than 2 points, or no spread to fit a slope on
         return 0.0
-    mx, my = sum(xs) / n, sum(ys) / n
-    var = sum((x - mx) ** 2 for x in xs)
-    return 0.0 if var == 0 else sum((x - mx) * (y - my) for x, y in zip(xs, ys, strict=True)) / var
+    return statistics.linear_regression(xs, ys).slope
 
 
 def growth(samples: list[dict[str, Any]], warmup_s: float) -> dict[str, dict[str, float]]:

@@ -55,6 +55,7 @@ import multiprocessing as mp
 import os
 import random
 import socket
+import statistics
 import struct
 import sys
 import tempfile
@@ -506,11 +507,9 @@ def cap_of(key: str) -> str | None:
 
 def _fit(xs: list[float], ys: list[float]) -> float:
     """Least-squares slope of *ys* over *xs* (0 for fewer than 3 points)."""
-    if len(xs) < 3:
+    if len(xs) < 3 or len(set(xs)) < 2:
         return 0.0
-    mx, my = sum(xs) / len(xs), sum(ys) / len(ys)
-    var = sum((x - mx) ** 2 for x in xs)
-    return sum((x - mx) * (y - my) for x, y in zip(xs, ys, strict=True)) / var if var else 0.0
+    return statistics.linear_regression(xs, ys).slope
 
 
 def analyse(rows: list[dict[str, Any]], warmup_s: float) -> dict[str, dict[str, Any]]:

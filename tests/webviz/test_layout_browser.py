@@ -188,3 +188,93 @@ async def test_map_and_scene_hold_still_while_the_page_text_changes(
         assert untitled == []
         # The attempts while the relay was away are expected; nothing else is.
         assert [p for p in problems if "ERR_CONNECTION_REFUSED" not in p] == []
+
+
+# Each animation frame: the box, in page coordinates (a click may scroll the window), of
+# everything an operator presses on or drags.
+PRESSABLE = ("#scene-canvas", "#video-canvas", "#camera-canvas", "#scan-canvas",
+             "#cloud-canvas", "#map-canvas", "#tool-goal", "#gps-map")
+_RECORD_PRESSABLE = """(sels) => {
+  const rows = (window.__held = []);
+  const box = (sel) => { const r = document.querySelector(sel).getBoundingClientRect();
+                         const v = [r.x + scrollX, r.y + scrollY, r.width, r.height];
+                         return `${sel} ${v.map((n) => n.toFixed(2)).join(",")}`; };
+  const step = () => {
+    if (window.__held !== rows) return;
+    rows.push([sels.map(box).join(" "), window.__phase]);
+    requestAnimationFrame(step);
+  };
+  step();
+}"""
+
+
+def gps_values() -> dict[str, Any]:
+    return {"header": header("gps"), "status": {"status": 0, "service": 1},
+            "latitude": 30.2862, "longitude": -97.7365, "altitude": 150.5,
+            "position_covariance": np.ones(9), "position_covariance_type": 2}
+
+
+# Where the panels stack: 3 columns (the GPS panel in the row under the map's), 2 (the GPS
+# panel under the map), 1 (a phone: odometry, then GPS, under the map).
+@pytest.mark.parametrize(("width", "height"), [(1024, 800), (800, 800), (390, 844)])
+async def test_pressable_panels_hold_still_while_the_map_panel_and_odometry_grow(
+    tmp_path: Path, browser: Any, webviz_factory: list[Any], width: int, height: int
+) -> None:
+    # The pose form opening under the map (and its error line, the aiming line) grew the
+    # map's panel, so the panels below moved: the GPS map an operator was dragging went
+    # down by the form's height. Likewise the odometry's first message above the GPS panel
+    # on a phone.
+    async with scripted_fleet(tmp_path, ("r1",)) as relay:
+        web = webviz_server(relay.url).start()
+        webviz_factory.append(web)
+        page = await browser.new_page(viewport={"width": width, "height": height})
+        problems = watch_errors(page)
+        robot = relay.robots["r1"]
+        await open_robot_page(page, web.url, ["/r1/odom", "/r1/gps/fix"])
+        await wait_js(page, "fleetviz.views.gps.map !== undefined")
+        await page.locator("#panel-odom .panel-wait").wait_for(timeout=TIMEOUT_MS)
+        await phase(page, "start")
+        await page.evaluate(_RECORD_PRESSABLE, list(PRESSABLE))
+
+        await phase(page, "odometry and GPS")
+        robot.repeat(lambda: [robot.encode(ODOM, "/odom", odom_values()),
+                              robot.encode("sensor_msgs/msg/NavSatFix", "/gps/fix",
+                                           gps_values())], period_s=0.2)
+        await page.locator("#odom-text", has_text="heading").wait_for(timeout=TIMEOUT_MS)
+        await page.locator("#gps-text", has_text="lat 30.286200").wait_for(timeout=TIMEOUT_MS)
+        await page.locator("#panel-odom .panel-wait").wait_for(state="hidden",
+                                                               timeout=TIMEOUT_MS)
+        await phase(page, "goal tool armed")
+        await page.click("#tool-goal")
+        await page.locator("#pose-form").wait_for(state="visible", timeout=TIMEOUT_MS)
+        await page.locator("#command-status", has_text="press on the map").wait_for(
+            timeout=TIMEOUT_MS)
+        await phase(page, "aiming")
+        await page.hover("#map-canvas")
+        await page.locator("#command-status", has_text="Navigation goal at x=").wait_for(
+            timeout=TIMEOUT_MS)
+        await phase(page, "a bad field")
+        await page.fill("#pose-y", "abc")
+        await page.press("#pose-y", "Enter")
+        await page.locator("#pose-error", has_text='y: "abc"').wait_for(timeout=TIMEOUT_MS)
+        await phase(page, "cancelled")
+        await page.keyboard.press("Escape")
+        await page.locator("#pose-form").wait_for(state="hidden", timeout=TIMEOUT_MS)
+        await phase(page, "typed and sent")
+        await page.click("#tool-goal")
+        await page.fill("#pose-x", "12.5")
+        await page.fill("#pose-y", "-3")
+        await page.fill("#pose-yaw", "180")
+        await page.press("#pose-yaw", "Enter")
+        await page.locator("#command-status", has_text="Sent navigation goal").wait_for(
+            timeout=TIMEOUT_MS)
+        await page.locator("#pose-form").wait_for(state="hidden", timeout=TIMEOUT_MS)
+        boxes: list[list[str]] = await page.evaluate("window.__held.splice(0)")
+        if SCREENSHOTS:  # after the record: a full-page shot lays the page out again
+            await page.click("#tool-goal")  # armed, a field refused: the most said
+            await page.fill("#pose-y", "abc")
+            await page.press("#pose-y", "Enter")
+            await page.screenshot(path=f"{SCREENSHOTS}/held-{width}.png", full_page=True)
+        assert len(boxes) > 30, len(boxes)
+        assert len({b for b, _ in boxes}) == 1, moves(boxes)
+        assert problems == []

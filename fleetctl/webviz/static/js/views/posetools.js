@@ -51,8 +51,9 @@ export class PoseTools {
     // A pointer on its way to the map: focus without scrolling the form into view, which
     // would move the map under it.
     this.entry.focus(!byKeyboard);
-    this.say(`${toolLabel(kind)}: press on the map where it is, drag toward the heading and release; ` +
-      "or type x, y and yaw and press Enter; or move it with the arrow keys and Q/E on the focused map (Esc cancels).");
+    // Four lines in a 300 px panel: the box under the map keeps four (css/app.css).
+    this.say(`${toolLabel(kind)}: press on the map and drag toward the heading; or type x, y ` +
+      "and yaw, Enter sends; or arrow keys and Q/E on the focused map. Esc cancels.");
     this.showArmed();
   }
 

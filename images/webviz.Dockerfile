@@ -26,4 +26,6 @@ EXPOSE 8000
 HEALTHCHECK --interval=5s --timeout=3s --start-period=5s --retries=3 \
   CMD ["python3", "/usr/local/bin/fleetctl-healthcheck"]
 ENTRYPOINT ["/usr/local/bin/fleetctl-entrypoint"]
+# The standard message types only: a fleet with its own mounts FLEET/msg_types read-only
+# and adds --fleet to this command (docs/webviz.md, "The fleetctl/webviz image").
 CMD ["fleetctl", "webviz", "--host", "0.0.0.0", "--port", "8000"]

@@ -48,6 +48,9 @@ __all__ = [
 
 # ROS 2 topic names: absolute, tokens of [A-Za-z0-9_] separated by single slashes.
 _TOPIC_RE = re.compile(r"^(/[A-Za-z_][A-Za-z0-9_]*)+$")
+# rmw's RMW_TOPIC_MAX_NAME_LENGTH (255 - 8: DDS's 256 less the rt/rq/rr prefix and a
+# Request/Reply suffix): a longer topic made rcl refuse the node's subscription at start.
+MAX_ROS_TOPIC_CHARS = 247
 _ROBOT_NAME_RE = re.compile(r"^[A-Za-z][A-Za-z0-9_]{0,62}$")
 _BOM = "\ufeff"
 
@@ -299,9 +302,22 @@ def _topic(
     ctx: _Ctx, entry: Mapping[str, Any], where: str, key: str, *, required: bool
 ) -> str | None:
     value = _str(ctx, entry, where, key, required=required)
+    if value is not None and value.startswith("~"):
+        # A node's private name: the client's node (fleetctl_client_NAME) is not the
+        # driver whose ~/state it means, and ROS would expand it to the client's own.
+        raise ctx.error(where, key, f"{value!r} is private to the node that publishes it "
+                        "(~ is that node's namespace and name); write it in full, e.g. "
+                        f"/NAMESPACE/NODE{value[1:]} (`ros2 topic list` shows it)")
     if value is not None and not _TOPIC_RE.match(value):
         raise ctx.error(where, key, f"not a ROS topic name (/a/b_c), got {value!r}")
+    if value is not None and len(value) > MAX_ROS_TOPIC_CHARS:
+        raise ctx.error(where, key, _too_long(value))
     return value
+
+
+def _too_long(value: str) -> str:
+    return (f"{len(value)} characters, ROS 2 allows at most {MAX_ROS_TOPIC_CHARS} (rmw's "
+            f"RMW_TOPIC_MAX_NAME_LENGTH), got {value[:40]!r}...")
 
 
 def _bind_address(ctx: _Ctx, top: Mapping[str, Any]) -> str | None:
@@ -434,6 +450,8 @@ def _subscribe(ctx: _Ctx, raw: object, where: str) -> SubscribeSpec:
     if not is_topic:
         _check_regex(ctx, where, remote)
     local = _topic(ctx, entry, where, "local_topic", required=False)
+    if local is None and is_topic and len(remote) > MAX_ROS_TOPIC_CHARS:
+        raise ctx.error(where, "remote_topic", _too_long(remote) + ": set a local_topic")
     return SubscribeSpec(
         remote_topic=remote,
         type=_type(ctx, entry, where),

@@ -35,6 +35,7 @@ from dataclasses import dataclass, field
 from typing import Any, cast
 
 import re2
+from rclpy.exceptions import InvalidTopicNameException
 from rclpy.node import Node
 from rclpy.parameter import Parameter
 from rclpy.qos import (
@@ -85,6 +86,10 @@ LATCHED_QOS = QoSProfile(
 LATCHED_COMPRESS_BYTES = 64 * 1024
 QOS_REFRESH_PERIOD_S = 1.0  # how often local subscriptions re-check their publishers' QoS
 MAX_DYNAMIC_PUBLISHERS = 64  # regex subscriptions without local_topic: one publisher per topic
+# Remote topics a regex entry cannot republish under their own name (not a ROS 2 name: the
+# relay allows '-' and '~', ROS 2 neither; a token starting with a digit; over 247
+# characters), remembered so that a 30 Hz topic is not refused by rcl 30 times a second.
+MAX_REFUSED_NAMES = 256
 
 
 @dataclass(frozen=True)
@@ -136,6 +141,9 @@ class BridgeStats:
         unmatched: frames matching no subscribe entry (dropped).
         publishers_over_limit: frames dropped because a regex entry already has
             :data:`MAX_DYNAMIC_PUBLISHERS` local topics.
+        bad_local_topic: frames dropped because their topic, which a regex entry without
+            ``local_topic`` republishes as it is, is not a valid ROS 2 topic name
+            (logged first and every 1000th per topic, with rcl's reason).
         status_sent: RobofleetStatus frames sent.
         latched_sent: of ``sent``, frames marked latched (TRANSIENT_LOCAL publishers).
         latched_compressed: of those, deflate-compressed because they were large.
@@ -158,6 +166,7 @@ class BridgeStats:
     type_mismatch: int = 0
     unmatched: int = 0
     publishers_over_limit: int = 0
+    bad_local_topic: int = 0
     status_sent: int = 0
     latched_sent: int = 0
     latched_compressed: int = 0
@@ -181,6 +190,10 @@ def _entry_class(where: str, type_name: str) -> Any:
         raise ConfigError(f"{where}: type: {exc}") from exc
 
 
+class BadLocalTopic(Exception):
+    """A remote topic cannot be republished under its own name: rcl refuses the name."""
+
+
 class _Route:
     """One subscribe entry: its matcher and its local publisher(s)."""
 
@@ -191,6 +204,7 @@ class _Route:
         self._regex = re2.compile(spec.remote_topic) if spec.is_regex else None
         self._publishers: dict[str, Any] = {}
         self._latched: set[str] = set()  # local topics whose publisher is TRANSIENT_LOCAL
+        self.refused: dict[str, str] = {}  # local topic -> rcl's reason (bounded)
         if spec.local_topic is not None:
             self._publishers[spec.local_topic] = node.create_publisher(
                 self._cls, spec.local_topic, COMMAND_QOS
@@ -203,6 +217,10 @@ class _Route:
 
     def publisher_for(self, topic: str, latched: bool = False) -> Any | None:
         """The publisher for remote *topic*; None when the dynamic bound is reached.
+
+        Raises:
+            BadLocalTopic: *topic* is republished under its own name (a regex entry
+                without ``local_topic``) and that is not a ROS 2 topic name.
 
         The first *latched* frame of a local topic replaces its volatile publisher with a
         TRANSIENT_LOCAL one for good (it also serves volatile subscribers). One publisher
@@ -220,12 +238,21 @@ class _Route:
             del self._publishers[local]
             publisher = None
         if publisher is None:
+            if local in self.refused:
+                raise BadLocalTopic(self.refused[local])
             if len(self._publishers) >= MAX_DYNAMIC_PUBLISHERS:
                 return None
+            qos_profile = LATCHED_QOS if latched or local in self._latched else COMMAND_QOS
+            try:
+                publisher = self._node.create_publisher(self._cls, local, qos_profile)
+            except InvalidTopicNameException as exc:
+                reason = (str(exc).split("\n", 1)[0].removeprefix("Invalid topic name: ")
+                          .rstrip(":").replace("'255U - 8U'", "247 characters"))
+                if len(self.refused) < MAX_REFUSED_NAMES:
+                    self.refused[local] = reason
+                raise BadLocalTopic(reason) from None
             if latched:
                 self._latched.add(local)
-            qos_profile = LATCHED_QOS if local in self._latched else COMMAND_QOS
-            publisher = self._node.create_publisher(self._cls, local, qos_profile)
             self._publishers[local] = publisher
         return publisher
 
@@ -295,6 +322,7 @@ class Bridge(Node):
             parameter_overrides=[Parameter("start_type_description_service", value=False)])
         self.stats = BridgeStats()
         self._mismatches: dict[tuple[str, str], int] = {}  # (topic, type) -> frames dropped
+        self._refused_frames: dict[str, int] = {}  # remote topic -> frames (bounded)
         self._config = config
         self._codec = codec
         self._typestore = typestore
@@ -557,6 +585,22 @@ class Bridge(Node):
 
     # --- fleet -> local -----------------------------------------------------------------
 
+    def _bad_local_topic(self, route: _Route, topic: str, reason: str) -> None:
+        """Count a frame whose topic cannot be a local topic; say so first and every
+        1000th per topic (it was rcl's traceback for every frame)."""
+        self.stats.bad_local_topic += 1
+        counts = self._refused_frames
+        if topic in counts or len(counts) < MAX_REFUSED_NAMES:
+            seen = counts[topic] = counts.get(topic, 0) + 1
+        else:  # past the bound: sampled over all such topics
+            seen = self.stats.bad_local_topic
+        if sampled(seen):
+            log.warning("dropping %s from the fleet: subscribe entry %s republishes it under "
+                        "its own name, which is not a ROS 2 topic name (%s); give the entry a "
+                        "local_topic, or rename the topic where it is sent (%d dropped so "
+                        "far; logged first and every %dth)", topic, route.spec.remote_topic,
+                        reason, seen, LOG_EVERY)
+
     def deliver(self, frame: bytes) -> None:
         """Publish one frame from the fleet on the local topic of its subscribe entry.
 
@@ -595,7 +639,11 @@ class Bridge(Node):
                     meta.type, meta.topic, route.spec.remote_topic, route.spec.type,
                     meta.type, seen, LOG_EVERY)
             return
-        publisher = route.publisher_for(meta.topic, latched=meta.latched)
+        try:
+            publisher = route.publisher_for(meta.topic, latched=meta.latched)
+        except BadLocalTopic as exc:
+            self._bad_local_topic(route, meta.topic, str(exc))
+            return
         if publisher is None:
             self.stats.publishers_over_limit += 1
             return

@@ -45,6 +45,21 @@ NO_DROP_DEPTH = 1000  # no_drop topics: absorb a burst until the link's FIFO tak
 # tell readers a writer's depth (rclpy reports it as 0), so the reader keeps the sensor
 # depth: enough for the stored samples of a few publishers arriving at once on a match.
 LATCHED_DEPTH = SENSOR_DEPTH
+# Topics whose publishers are all TRANSIENT_LOCAL but which are streams, not a last state:
+# rcl publishes every node's log on /rosout transient-local (depth 1000, lifespan 10 s) so
+# that a late rqt_console sees recent lines. Marked latched, each log line replaced the map
+# and the static TF in the relay's latched store as "the" state of /rosout, was kept and
+# re-sent after each reconnect, and a transient-local reader was sent every node's last
+# 1000 lines at each start and QoS switch. A volatile reader matches those writers too.
+STREAM_TOPICS = frozenset({"/rosout"})
+# A loop-served topic whose messages take longer than this (CPU of the loop's thread, in
+# the callback: decode, encode, compress) holds the link's loop that long: pongs, ACKs and
+# other topics' frames wait. After SLOW_MESSAGES_TO_MOVE such messages the topic is taken
+# by the executor thread instead (the GIL is then handed over every 5 ms, not after the
+# whole message). Measured (docs/benchmarks.md, "A realistic robot graph"): nav_msgs/Path
+# of 2,000 poses 39 ms, MarkerArray of 300 line strips 84 ms; LaserScan, Imu, Image 0.2-0.3.
+SLOW_MESSAGE_S = 0.005
+SLOW_MESSAGES_TO_MOVE = 3
 
 
 def profile(reliable: bool, no_drop: bool, latched: bool = False) -> QoSProfile:
@@ -132,6 +147,9 @@ class AdaptiveSubscription:
         self.reliable = no_drop
         self.latched = False  # TRANSIENT_LOCAL: every publisher offers it
         self.switches = 0
+        self.slow_messages = 0  # loop-served messages over SLOW_MESSAGE_S
+        self._move_off_loop = False  # set on the loop's thread, acted on by refresh()
+        self._slow_took_s = 0.0  # the message that decided it
         self._subscription = self._create()
 
     def _create(self) -> Any:
@@ -185,7 +203,17 @@ class AdaptiveSubscription:
     def _on_message(self, cdr: bytes, published_ns: int = 0, sequence: int = 0, /) -> None:
         if sequence and (lost := self.gaps.seen(sequence, self._publisher_count)):
             self._lost(lost)
+        if self._intake is None:
+            self._callback(cdr, published_ns)
+            return
+        started = time.thread_time()
         self._callback(cdr, published_ns)
+        took = time.thread_time() - started
+        if took > SLOW_MESSAGE_S and not self._move_off_loop:
+            self.slow_messages += 1
+            if self.slow_messages >= SLOW_MESSAGES_TO_MOVE:
+                self._move_off_loop = True
+                self._slow_took_s = took
 
     def _publisher_count(self) -> int:
         return int(self._node.count_publishers(self._topic))
@@ -224,6 +252,21 @@ class AdaptiveSubscription:
                 log.warning("%s: a publisher sends %s, this client expects %s: its messages "
                             "are not received", self._topic, other, self._type_name)
 
+    def _leave_loop(self) -> None:
+        """Recreate the subscription served by the executor (on the executor's thread,
+        like a QoS switch): its messages held the loop too long."""
+        assert self._intake is not None
+        self._intake.detach(self._subscription)
+        self._node.destroy_subscription(self._subscription)
+        self._intake = None
+        self.gaps.restart()
+        self._subscription = self._create()
+        log.info("%s: its messages take %.0f ms each to convert (%d over %.0f ms), so the "
+                 "executor thread takes them from now on, not the link's loop (which they "
+                 "held that long); a rate_limit_hz on this entry saves that CPU too",
+                 self._topic, 1000 * self._slow_took_s, self.slow_messages,
+                 1000 * SLOW_MESSAGE_S)
+
     @property
     def loop_served(self) -> bool:
         """True when the asyncio loop's thread takes this topic's messages."""
@@ -231,12 +274,16 @@ class AdaptiveSubscription:
 
     def refresh(self) -> None:
         """Match the reliability and durability of the publishers discovered so far (none:
-        keep as is)."""
+        keep as is); hand a slow topic from the loop's thread to the executor's."""
         infos = self._node.get_publishers_info_by_topic(self._topic)
         self._warn_other_types(infos)
         self._check_unpublished(bool(infos))
         reliable = publishers_reliable(infos)
         latched = publishers_latched(infos)
+        if self._topic in STREAM_TOPICS:
+            latched = False if latched is not None else None
+        if self._move_off_loop and self._intake is not None:
+            self._leave_loop()
         if reliable is None or latched is None:
             return
         if (reliable, latched) == (self.reliable, self.latched):

@@ -36,7 +36,7 @@ def test_export_chosen_types_compiles_with_flatc(
 
 def test_export_all_by_default(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     assert main(["schema", "export", str(tmp_path)]) == 0
-    assert "wrote 170 .fbs files" in capsys.readouterr().out
+    assert "wrote 171 .fbs files" in capsys.readouterr().out
     assert (tmp_path / "tf2_msgs/msg/TFMessage.fbs").is_file()
 
 
@@ -87,5 +87,5 @@ def test_types_lists_the_registry(capsys: pytest.CaptureFixture[str]) -> None:
 @pytest.mark.ros
 def test_types_from_the_installed_ros_packages(capsys: pytest.CaptureFixture[str]) -> None:
     assert main(["schema", "types", "--from-ros", "-o", "json"]) == 0
-    # nav_msgs/msg/Goals ships in the Jazzy wheels but not in the rosbags store.
+    # nav_msgs/msg/Goals ships in the Jazzy wheels (and fleetctl), not in the rosbags store.
     assert "nav_msgs/msg/Goals" in json.loads(capsys.readouterr().out)

@@ -73,7 +73,12 @@ def test_installed_definition_with_missing_dependency_is_a_wire_error(tmp_path: 
 
 
 @pytest.mark.ros
-def test_installed_ros_wheels_add_types_missing_from_the_store() -> None:
+def test_installed_ros_wheels_add_types_missing_from_the_store(tmp_path: Path) -> None:
+    # nav_msgs/msg/Goals was the example here until fleetctl shipped it (fleetctl/wire/msg).
     registry = TypeRegistry.default()
-    assert "nav_msgs/msg/Goals" in registry.from_rclpy()
-    registry.get("nav_msgs/msg/Goals")
+    assert "nav_msgs/msg/Goals" not in registry.from_rclpy()
+    package = tmp_path / "share" / "my_robot_msgs" / "msg"
+    package.mkdir(parents=True)
+    (package / "Status.msg").write_text("std_msgs/Header header\nfloat32 charge\n")
+    assert registry.from_rclpy([str(tmp_path)]) == ["my_robot_msgs/msg/Status"]
+    registry.get("my_robot_msgs/msg/Status")

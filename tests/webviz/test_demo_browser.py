@@ -45,6 +45,8 @@ MAP_PX_PER_M = 40
 # Goals inside the sim's 10 x 8 m room, whose corner is the origin (simworld.RoomConfig).
 FIRST_GOAL_M = (4.0, 2.0)
 SECOND_GOAL_M = (6.0, 2.0)
+# How long a screenshot waits for the page to be live (a loaded machine catches up slowly).
+SCREENSHOT_LIVE_MS = 60_000
 
 
 def yaw_of(goal: Any) -> float:
@@ -132,7 +134,25 @@ async def send_operator_goal(page: Any, listener: Any) -> None:
         page, "document.querySelector('#command-status').textContent.startsWith('Sent navigation')"
     )
     if SCREENSHOTS:
+        await live_for_screenshot(page)
         await page.screenshot(path=str(Path(SCREENSHOTS) / "demo-robot.png"), full_page=True)
+
+
+async def live_for_screenshot(page: Any) -> None:
+    """Wait (bounded) until the page shows robot1 live: under 1 s behind (no old-data note)
+    and its video decoding. The README's screenshot was taken as soon as the goal was sent,
+    and on a loaded 2-core machine that page was 4.8 s behind, the note lying across link
+    health and the video waiting for a keyframe."""
+    video = "fleetviz.views.video.stats['/robot1/camera/image_raw']"
+    live = (f"document.querySelector('#behind-note').hidden && {video}.state === 'decoding'"
+            f" && {video}.shown > 0")
+    try:
+        await page.wait_for_function(live, timeout=SCREENSHOT_LIVE_MS)
+    except Exception:  # Playwright's TimeoutError: say why, not where
+        behind = await page.get_attribute("#behind-note", "data-behind-ms")
+        pytest.fail(f"no screenshot: robot1's page stayed behind ({behind} ms) or its video "
+                    f"waiting for {SCREENSHOT_LIVE_MS / 1000:.0f} s; retake it on a quieter "
+                    "machine")
 
 
 async def check_viewer_refused(browser: Any, demo: RunningDemo) -> None:

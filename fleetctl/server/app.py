@@ -619,6 +619,8 @@ class RelayServer:
 
     def _closer(self, connection: RelayConnection) -> Callable[[int, str], None]:
         def close(code: int, reason: str) -> None:
+            # What it sends from now on is discarded: no pong may say it was taken.
+            connection.discard_from_now()
             # Called from inside data_received or the relay: close in a task, keep a ref.
             task = asyncio.get_running_loop().create_task(self._close(connection, code, reason))
             self._tasks.add(task)

@@ -117,6 +117,8 @@ class RelayConnection(FrameSink, BatchedWritesConnection, ServerConnection):
         self._held_pong: Frame | None = None  # see _send_frame
         self._identified = False  # see authenticated
         self._unidentified_pong: Frame | None = None  # see _send_frame
+        self._read_pong: Frame | None = None  # see _send_frame
+        self._discarding = False  # see discard_from_now
         self._protocol_send_frame: Callable[[Frame], None] | None = None
         self._slot: str | None = None  # address holding an unauthenticated slot
         self._strikes = 0  # throttles in a row (see throttle)
@@ -137,8 +139,14 @@ class RelayConnection(FrameSink, BatchedWritesConnection, ServerConnection):
     def message_handled(self) -> None:
         """Mark one message from ``recv()`` as handled; pongs held behind it may go."""
         super().message_handled()
-        if not self.pending_messages and self.held_pongs is not None:
+        if self.pending_messages:
+            return
+        if self.held_pongs is not None:
             self.held_pongs.settle()
+        elif self._read_pong is not None:
+            self._answer_read_pong()
+            with contextlib.suppress(OSError, RuntimeError):  # a transport closing meanwhile
+                self.send_data()
 
     def data_received(self, data: bytes) -> None:
         """websockets' ``data_received`` with the frames relayed before this connection's
@@ -161,6 +169,8 @@ class RelayConnection(FrameSink, BatchedWritesConnection, ServerConnection):
             if collecting:
                 assert through is not None
                 through.end()
+        if not self.pending_messages:
+            self._answer_read_pong()  # the frames before its ping are handled now
         try:
             self.send_data()
         except Exception as exc:  # as websockets: the reader sees it, the loop goes on
@@ -195,10 +205,17 @@ class RelayConnection(FrameSink, BatchedWritesConnection, ServerConnection):
         reading made the relay buffer 40 MB of pongs in 8 s, before authentication too.
         The held pong goes when the transport drains (:meth:`resume_writing`).
 
-        A connection without an identity gets no pong at all until it has one (below)."""
+        A connection without an identity gets no pong at all until it has one (below), and
+        a pong waits until the frames read before its ping are handled, and goes only if
+        they were taken (:meth:`discard_from_now`)."""
         send = self._protocol_send_frame
         assert send is not None
-        if frame.opcode is Opcode.PONG and not self._identified:
+        if frame.opcode is not Opcode.PONG:
+            send(frame)
+            return
+        if self._discarding:
+            return  # see discard_from_now
+        if not self._identified:
             # A pong says that what came before the ping was taken, and frames of a
             # connection with no identity yet are discarded if its token is refused: a
             # client that trusts pongs (the robot's link) forgot no_drop messages the
@@ -208,18 +225,58 @@ class RelayConnection(FrameSink, BatchedWritesConnection, ServerConnection):
                 self._metrics.pongs_coalesced += 1
             self._unidentified_pong = frame
             return
-        if frame.opcode is not Opcode.PONG or not self.paused:
-            send(frame)
+        if self.held_pongs is None:
+            # websockets answers a ping as it parses it, before the frames read with it
+            # (and any message still waiting for recv()) are handled, and handling them
+            # may close the connection and discard the rest (too many malformed frames
+            # in a row, a message in too many frames): answered by _answer_read_pong
+            # once they are handled, the latest one (RFC 6455 5.5.3). In a cluster
+            # HeldPongs settles it so before it comes here.
+            if self._read_pong is not None and self._metrics is not None:
+                self._metrics.pongs_coalesced += 1
+            self._read_pong = frame
+            return
+        self._pong(frame)
+
+    def _answer_read_pong(self) -> None:
+        """Send the pong of the last ping read, now that what came before it is handled."""
+        pong, self._read_pong = self._read_pong, None
+        if pong is not None:
+            self._pong(pong)
+
+    def _pong(self, frame: Frame) -> None:
+        """Send a pong whose ping's earlier frames were handled (the caller writes it),
+        or hold it while the transport is above its write limit (see _send_frame)."""
+        if self._discarding or self.protocol.state is not State.OPEN:
+            return  # see discard_from_now; closing: nobody reads pongs any more
+        if not self.paused:
+            assert self._protocol_send_frame is not None
+            self._protocol_send_frame(frame)
             return
         if self._held_pong is not None and self._metrics is not None:
             self._metrics.pongs_coalesced += 1
         self._held_pong = frame
 
+    def discard_from_now(self) -> None:
+        """The relay closes this connection and discards whatever still comes from it:
+        no pong leaves from now on, held ones included.
+
+        Why: a pong says that everything sent before its ping was taken, and the robot's
+        link forgets its no_drop messages on it. Until the close frame is written (after
+        the queued error frames, within ABORT_AFTER_S when the peer does not read)
+        websockets went on answering pings: a token revoked by an auth map reload
+        (4403), a session taken over (4409), too many malformed frames (1007) answered
+        the ping after frames the relay had dropped, and the client lost them. A pong
+        withheld costs a resend (receivers drop the duplicate); one sent wrongly, the
+        message. After the close frame a client reads nothing (RFC 6455 1.4)."""
+        self._discarding = True
+        self._read_pong = self._held_pong = self._unidentified_pong = None
+
     def resume_writing(self) -> None:
         """Below the write limit again: send the pong held meanwhile (see _send_frame)."""
         super().resume_writing()
         pong, self._held_pong = self._held_pong, None
-        if pong is None or self.protocol.state is not State.OPEN:
+        if pong is None or self._discarding or self.protocol.state is not State.OPEN:
             return
         assert self._protocol_send_frame is not None
         self._protocol_send_frame(pong)
@@ -265,8 +322,12 @@ class RelayConnection(FrameSink, BatchedWritesConnection, ServerConnection):
         self._release()
         self._identified = True
         pong, self._unidentified_pong = self._unidentified_pong, None
-        if pong is not None and self.protocol.state is State.OPEN:
-            self._send_frame(pong)
+        if pong is None:
+            return
+        if self.held_pongs is None and self.pending_messages:
+            self._read_pong = pong  # after the messages read with the token are handled
+        elif self.protocol.state is State.OPEN:
+            self._pong(pong)
             self.send_data()
 
     def abort_with(self, code: int, reason: str) -> None:

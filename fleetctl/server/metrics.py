@@ -45,7 +45,8 @@ class Metrics:
     auth_reloads: int = 0
     auth_reload_failures: int = 0
     connections_refused: dict[str, int] = field(default_factory=dict)
-    # Pongs replaced by a newer one while the peer did not read (RelayConnection).
+    # Pongs replaced by a newer one: pings read together, or while the peer did not read
+    # (RelayConnection).
     pongs_coalesced: int = 0
     # The latched store (fleetctl.server.latched): events by name, and two gauges it sets.
     latched_events: dict[str, int] = field(default_factory=dict)
@@ -183,8 +184,9 @@ class Metrics:
                 "count while their table was full: their series end here.",
                 self.labels_forgotten)
         _scalar(out, "fleetctl_pongs_coalesced_total", "counter",
-                "Pongs not sent because the peer did not read: the answer to its later "
-                "ping replaced them (RFC 6455 5.5.3).", self.pongs_coalesced)
+                "Pongs not sent because the answer to a later ping replaced them "
+                "(RFC 6455 5.5.3): pings read together, or the peer did not read.",
+                self.pongs_coalesced)
         self._render_latched(out)
         closes = {str(k): v for k, v in self.closes.items()}
         _labelled(out, "fleetctl_closes_total", "counter",

@@ -1,12 +1,15 @@
 """Helpers shared by the test packages: frames to send, deadline-bounded waits, a
-clock moved by hand and an event loop on virtual time."""
+clock moved by hand, an event loop on virtual time and a process paused for certain."""
 
 from __future__ import annotations
 
 import asyncio
 import contextlib
+import os
+import signal
 import time
 from collections.abc import Callable, Iterator
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -120,3 +123,36 @@ def wait_for_value(condition: Callable[[], Any], timeout_s: float) -> Any:
         assert time.monotonic() < deadline, "condition not met before the deadline"
         time.sleep(0.02)  # polling interval of a deadline-bounded wait
     return result
+
+
+def _thread_states(pid: int) -> list[str]:
+    """The state letter (``R``, ``S``, ``T``, ...) of each thread of process *pid*."""
+    states = []
+    for stat in Path(f"/proc/{pid}/task").glob("*/stat"):
+        with contextlib.suppress(OSError):  # a thread that ended meanwhile
+            text = stat.read_text()
+            states.append(text[text.rindex(")") + 2])  # the field after "(comm)"
+    return states
+
+
+@contextlib.contextmanager
+def paused(pid: int, timeout_s: float = 10.0) -> Iterator[None]:
+    """Process *pid* stopped (SIGSTOP) while the block runs, continued (SIGCONT) after.
+
+    ``kill(SIGSTOP)`` returns before the process has stopped: the kernel wakes one of its
+    threads to stop the others, and until it has run, the others run on (a loaded 2-core
+    host took up to 0.4 s to stop every thread of a nats-server, which answered a request
+    meanwhile). So the block starts only once every thread is stopped (Linux's ``/proc``).
+
+    Raises:
+        AssertionError: Not every thread stopped within *timeout_s*.
+    """
+    os.kill(pid, signal.SIGSTOP)
+    try:
+        deadline = time.monotonic() + timeout_s
+        while any(state != "T" for state in _thread_states(pid)):
+            assert time.monotonic() < deadline, f"process {pid} not stopped in {timeout_s} s"
+            time.sleep(0.001)  # polling interval of a deadline-bounded wait
+        yield
+    finally:
+        os.kill(pid, signal.SIGCONT)

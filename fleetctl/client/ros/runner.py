@@ -21,6 +21,7 @@ import itertools
 import json
 import logging
 import signal
+import sys
 import threading
 import time
 from collections.abc import Callable
@@ -181,12 +182,28 @@ def _stats(link: RobotLink, bridge: Bridge, intake: LoopIntake | None) -> dict[s
     return stats
 
 
+# How long a thread running Python keeps the GIL when another thread wants it (Python's
+# default: 5 ms). The executor converts the slow topics (a Nav2 Path: 39 ms of Python,
+# fleetctl.client.ros.qos.SLOW_MESSAGE_S), and each time the loop's thread gives the GIL
+# up (every socket call, every wait) it waited up to 5 ms to get it back: the link's RTT
+# grew to 11 ms on loopback, its window shrank to 9 KB and it carried 2.2 MB/s. With
+# 0.5 ms: 203 KB, 48 MB/s, a 30 Hz camera 13 of 30 images a second instead of 1.9
+# (docs/benchmarks.md, "A realistic robot graph"). A lone thread is never interrupted.
+GIL_SWITCH_INTERVAL_S = 0.0005
+
+
+def tune_gil() -> None:
+    """Give the GIL back to the link's loop within :data:`GIL_SWITCH_INTERVAL_S`."""
+    sys.setswitchinterval(GIL_SWITCH_INTERVAL_S)
+
+
 def run_client(config: ClientConfig) -> dict[str, Any]:
     """Run the robot client until SIGINT/SIGTERM; return the final link and node stats.
 
     Raises:
         ConfigError: a configured message type is not installed.
     """
+    tune_gil()
     context = Context()
     # Signals are the asyncio loop's job: rclpy's own handlers would shut the context down
     # under the executor's feet before the link has unsubscribed.

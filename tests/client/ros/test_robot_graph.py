@@ -226,3 +226,44 @@ def test_a_remote_topic_that_is_no_ros_name_is_dropped_and_said_once(
             wait_for_value(lambda: bridge.deliver(frame) or got, DEADLINE_S)  # still works
     finally:
         bridge.destroy_node()
+
+
+async def test_the_loop_gets_the_gil_back_soon_while_the_executor_converts() -> None:
+    """While another thread converts Paths (the executor, after a slow topic moved there),
+    the loop waited up to Python's 5 ms switch interval at every socket call and wait:
+    the link read an RTT of 11 ms on loopback and shrank its window to 9 KB. The client
+    sets 0.5 ms; a 1 ms sleep of the loop is then late by ~1 ms, not 5-7 ms."""
+    import statistics
+    import sys
+    import time
+
+    from fleetctl.client.ros.runner import tune_gil
+
+    codec = Codec(TypeRegistry.default())
+    types = codec.registry.typestore.types
+    header = types["std_msgs/msg/Header"](types["builtin_interfaces/msg/Time"](0, 0), "map")
+    pose = types["geometry_msgs/msg/PoseStamped"](header, types["geometry_msgs/msg/Pose"](
+        types["geometry_msgs/msg/Point"](0.0, 0.0, 0.0),
+        types["geometry_msgs/msg/Quaternion"](0.0, 0.0, 0.0, 1.0)))
+    path = types[PATH](header, [pose] * 2000)
+    stop = threading.Event()
+
+    def convert() -> None:
+        while not stop.is_set():
+            codec.encode(path, PATH, "/r1/plan")
+
+    before = sys.getswitchinterval()
+    tune_gil()
+    converter = threading.Thread(target=convert)
+    converter.start()
+    try:
+        late_ms = []
+        for _ in range(200):
+            started = time.perf_counter()
+            await asyncio.sleep(0.001)
+            late_ms.append(1000 * (time.perf_counter() - started) - 1.0)
+    finally:
+        stop.set()
+        converter.join()
+        sys.setswitchinterval(before)
+    assert statistics.median(late_ms) < 4.0, statistics.median(late_ms)

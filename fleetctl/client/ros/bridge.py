@@ -323,6 +323,7 @@ class Bridge(Node):
         self.stats = BridgeStats()
         self._mismatches: dict[tuple[str, str], int] = {}  # (topic, type) -> frames dropped
         self._refused_frames: dict[str, int] = {}  # remote topic -> frames (bounded)
+        self._said_too_large: set[str] = set()  # latched topics over the kept bound, said
         self._config = config
         self._codec = codec
         self._typestore = typestore
@@ -499,11 +500,28 @@ class Bridge(Node):
     def _keep_latched(self, spec: PublishSpec, frame: bytes, latched: bool) -> None:
         if latched:
             self.stats.latched_sent += 1
+            too_large = self.latched.stats.too_large
             self.latched.put(spec.remote_topic, spec, frame)
+            if self.latched.stats.too_large > too_large:
+                self._latched_too_large(spec, len(frame))
         elif spec.remote_topic in self.latched:
             # The topic's last message is no longer latched: re-sending the old one would
             # bring back stale data after a reconnect.
             self.latched.forget(spec.remote_topic)
+
+    def _latched_too_large(self, spec: PublishSpec, size: int) -> None:
+        """Say once per topic that a latched message is too big to be kept (a point-cloud
+        map): it was counted in ``latched.stats.too_large`` and nothing else said so."""
+        if spec.topic in self._said_too_large:
+            return
+        self._said_too_large.add(spec.topic)  # bounded: topics of the config's entries
+        log.warning(
+            "%s: a latched message of %d bytes as sent (compressed when that saved 5 %%) is "
+            "over the %d bytes this client keeps to send again after a reconnect, and the "
+            "relay keeps latched messages of at most latched_message_bytes (16 MiB by "
+            "default) for viewers and robots who come later: they may never get it; "
+            "publish it smaller (a coarser grid, a downsampled cloud)", spec.topic, size,
+            self.latched.max_bytes)
 
     def resend_latched(self) -> int:
         """Offer the kept latched frames again (call on a new connection to the server).

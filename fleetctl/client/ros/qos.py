@@ -154,7 +154,11 @@ class AdaptiveSubscription:
 
     def _create(self) -> Any:
         intake = self._intake
-        if intake is None:
+        if intake is None or self.latched:
+            # A latched topic's message (a map, a point-cloud map) comes once and may be
+            # tens of MB: its deflate (0.45 s for a 16 MB float cloud, with the GIL
+            # released) would stop the link's loop; on the executor it does not. The
+            # intake is kept for when the topic is volatile again.
             return self._subscribe(TakesInfo(self._on_message))
         # The marker is set at creation, so the executor never serves this subscription.
         # Without rclpy's default QoS event handlers: the executor would wait on this
@@ -203,7 +207,7 @@ class AdaptiveSubscription:
     def _on_message(self, cdr: bytes, published_ns: int = 0, sequence: int = 0, /) -> None:
         if sequence and (lost := self.gaps.seen(sequence, self._publisher_count)):
             self._lost(lost)
-        if self._intake is None:
+        if not self.loop_served:
             self._callback(cdr, published_ns)
             return
         started = time.thread_time()
@@ -270,7 +274,7 @@ class AdaptiveSubscription:
     @property
     def loop_served(self) -> bool:
         """True when the asyncio loop's thread takes this topic's messages."""
-        return self._intake is not None
+        return self._intake is not None and not self.latched
 
     def refresh(self) -> None:
         """Match the reliability and durability of the publishers discovered so far (none:

@@ -267,3 +267,77 @@ async def test_the_loop_gets_the_gil_back_soon_while_the_executor_converts() -> 
         converter.join()
         sys.setswitchinterval(before)
     assert statistics.median(late_ms) < 4.0, statistics.median(late_ms)
+
+
+async def test_a_latched_topic_is_taken_by_the_executor_not_the_loop(
+        ros: tuple[Context, Node]) -> None:
+    """A latched message comes once and may be tens of MB (a point-cloud map): its deflate
+    (0.45 s for 16 MB of floats) ran on the loop's thread and stopped the link."""
+    from nav_msgs.msg import OccupancyGrid
+
+    context, peer = ros
+    wakeups = load_wakeups()
+    assert wakeups is not None
+    intake = LoopIntake(asyncio.get_running_loop(), wakeups)
+    node = Node("latched_topic_client", context=context, start_parameter_services=False)
+    threads: list[int] = []
+    entry = AdaptiveSubscription(node, OccupancyGrid, "/map",
+                                 lambda cdr, ns=0, /: threads.append(threading.get_ident()),
+                                 no_drop=False, intake=intake)
+    maps = peer.create_publisher(OccupancyGrid, "/map", LATCHED_QOS)
+    maps.publish(OccupancyGrid())
+    try:
+        with spinning(node, context):
+            deadline = asyncio.get_running_loop().time() + DEADLINE_S
+            while not entry.latched:  # the node's 1 s timer does this
+                assert asyncio.get_running_loop().time() < deadline
+                entry.refresh()
+                await asyncio.sleep(0.05)  # discovery's pace; the deadline bounds it
+            assert not entry.loop_served
+            while not threads:  # the stored sample, sent again to the new reader
+                assert asyncio.get_running_loop().time() < deadline
+                await asyncio.sleep(0.05)
+            assert threads[-1] != threading.get_ident()  # the executor's, not the loop's
+    finally:
+        intake.close()
+        node.destroy_node()
+
+
+def test_a_latched_message_too_big_to_keep_is_said_once(ros: tuple[Context, Node],
+                                                       codec: Codec,
+                                                       caplog: pytest.LogCaptureFixture
+                                                       ) -> None:
+    """A latched message over the 16 MiB the client keeps (and the relay's default
+    latched_message_bytes) was counted in latched.stats.too_large and said nowhere: late
+    viewers never got the map, and nothing told the robot team why."""
+    import os
+
+    from nav_msgs.msg import OccupancyGrid
+
+    context, peer = ros
+    sent = Sent()
+    bridge = _bridge(context, codec, sent, {"publish": [
+        {"topic": "/map_cloud", "type": "nav_msgs/msg/OccupancyGrid"}]})
+    bridge.latched.max_bytes = 1 << 20  # the bound, scaled down to keep the test light
+    big = OccupancyGrid()
+    big.info.width = big.info.height = 1100
+    big.data = os.urandom(1100 * 1100)  # noise: deflate cannot bring it under the bound
+    maps = peer.create_publisher(OccupancyGrid, "/map_cloud", LATCHED_QOS)
+    caplog.set_level(logging.WARNING, "fleetctl.client.ros.bridge")
+    try:
+        def latched_frames() -> int:
+            return len([f for f in sent.on("/r1/map_cloud") if read_metadata(f).latched])
+
+        with spinning(bridge, context):
+            maps.publish(big)  # stored; sent to the client's reader once it is latched
+            wait_for_value(latched_frames, DEADLINE_S)
+            maps.publish(big)
+            wait_for_value(lambda: latched_frames() >= 2, DEADLINE_S)
+        assert bridge.latched.stats.too_large >= 2
+        said = [r.getMessage() for r in caplog.records if "latched message of" in
+                r.getMessage()]
+        assert len(said) == 1, said
+        assert said[0].startswith("/map_cloud: a latched message of ")
+        assert "over the 1048576 bytes this client keeps" in said[0]
+    finally:
+        bridge.destroy_node()

@@ -603,7 +603,8 @@ class RelayServer:
                 return False  # not authenticated yet: keep order with the token frame
             if not peer.closing:
                 try:
-                    core.on_binary(peer, frame)
+                    if not core.on_binary(peer, frame, hold=True):
+                        connection.decline()  # over a rate: it and what follows wait
                 except Exception as exc:  # as _handle: the frame's, not the connection's
                     self._not_handled(peer, exc)
             return True
@@ -697,20 +698,25 @@ class RelayServer:
         # frames went through the sink already.
         with contextlib.suppress(ConnectionClosed):
             async for message in connection:
-                if not peer.closing:
-                    self._handle(peer, message)
+                # Over a rate the relay takes it after the pause; later frames wait behind
+                # it in websockets' queue, which stops reading when full.
+                while not peer.closing and not self._handle(peer, message):
+                    if not await connection.throttle_ended():
+                        return
                 connection.message_handled()
 
-    def _handle(self, peer: Peer, message: str | bytes) -> None:
-        """One text frame or fragmented binary message. A bug the frame triggers costs the
-        frame (an error frame, one log line with the traceback), never the connection."""
+    def _handle(self, peer: Peer, message: str | bytes) -> bool:
+        """One text frame or fragmented binary message; ``False``: not taken yet, offer it
+        again once the connection's throttle ends (RelayCore.on_binary's *hold*). A bug
+        the frame triggers costs the frame (an error frame, one log line with the
+        traceback), never the connection."""
         try:
             if isinstance(message, str):
-                self.core.on_text(peer, message)
-            else:
-                self.core.on_binary(peer, message)
+                return self.core.on_text(peer, message, hold=True)
+            return self.core.on_binary(peer, message, hold=True)
         except Exception as exc:
             self._not_handled(peer, exc)
+            return True
 
     def _not_handled(self, peer: Peer, exc: Exception) -> None:
         """A bug a frame triggered: one log line with the traceback, one error frame.

@@ -29,12 +29,13 @@ import asyncio
 import contextlib
 import logging
 import socket
-from collections.abc import Callable
+from collections import deque
+from collections.abc import Callable, Iterable
 from typing import Any
 
 from websockets.asyncio.server import ServerConnection
-from websockets.frames import CloseCode, Frame, Opcode
-from websockets.protocol import State
+from websockets.frames import DATA_OPCODES, CloseCode, Frame, Opcode
+from websockets.protocol import Event, State
 
 from fleetctl.batched_connection import BatchedWritesConnection
 from fleetctl.frame_sink import FrameSink
@@ -119,6 +120,13 @@ class RelayConnection(FrameSink, BatchedWritesConnection, ServerConnection):
         self._unidentified_pong: Frame | None = None  # see _send_frame
         self._read_pong: Frame | None = None  # see _send_frame
         self._discarding = False  # see discard_from_now
+        # Back-pressure (see decline): data frames read but not yet taken, the first of
+        # them declined by the relay; a decline of the frame being handled; the end of the
+        # current pause, and a reader waiting for it.
+        self._held: deque[Frame] = deque()
+        self._declined = False
+        self._resume: asyncio.TimerHandle | None = None
+        self._unthrottled: asyncio.Future[bool] | None = None
         self._protocol_send_frame: Callable[[Frame], None] | None = None
         self._slot: str | None = None  # address holding an unauthenticated slot
         self._strikes = 0  # throttles in a row (see throttle)
@@ -139,7 +147,7 @@ class RelayConnection(FrameSink, BatchedWritesConnection, ServerConnection):
     def message_handled(self) -> None:
         """Mark one message from ``recv()`` as handled; pongs held behind it may go."""
         super().message_handled()
-        if self.pending_messages:
+        if self.pending_messages or self._held:
             return
         if self.held_pongs is not None:
             self.held_pongs.settle()
@@ -162,14 +170,12 @@ class RelayConnection(FrameSink, BatchedWritesConnection, ServerConnection):
         protocol = self.protocol
         try:
             protocol.receive_data(data)
-            events = protocol.events_received()
-            for event in events:
-                self.process_event(event)
+            self._take(protocol.events_received())
         finally:
             if collecting:
                 assert through is not None
                 through.end()
-        if not self.pending_messages:
+        if not self.pending_messages and not self._held:
             self._answer_read_pong()  # the frames before its ping are handled now
         try:
             self.send_data()
@@ -180,8 +186,97 @@ class RelayConnection(FrameSink, BatchedWritesConnection, ServerConnection):
             self.close_deadline = self.loop.time() + self.close_timeout
         # Pings read with these bytes are answered once every frame before them was
         # handled (a cluster: their pongs wait for those frames' store).
-        if self.held_pongs is not None and not self.pending_messages:
+        if self.held_pongs is not None and not self.pending_messages and not self._held:
             self.held_pongs.settle()
+
+    # -- back-pressure -------------------------------------------------------------------
+
+    def decline(self) -> None:
+        """The relay did not take the binary frame being handled: its connection is over a
+        rate of its identity set and throttled (``RelayCore.on_binary``'s *hold*). That
+        frame and every data frame read after it wait here, in order, unread by the
+        relay, and are offered again when the pause ends (:meth:`throttle`).
+
+        Why not discard them: a pong says that everything before its ping was taken, and
+        the robot's link forgets its no_drop messages on it; over the control request
+        rate the relay discarded the rest of the read and answered the next ping (5 of 5
+        no_drop frames after 300 subscriptions lost). Bounded: reading stops at once, so
+        what waits is at most what one read brought (:data:`READ_BYTES`, then
+        :data:`THROTTLED_READ_BYTES` while the client keeps flooding) and the frame it
+        completed; TCP pushes back on the client, which loses nothing. Pings, pongs and
+        the close frame are not held (websockets answered the ping already; its pong waits
+        for the held frames, :meth:`_send_frame`)."""
+        self._declined = True
+
+    @property
+    def held_bytes(self) -> int:
+        """Payload bytes of the frames waiting now (see :meth:`decline`)."""
+        return sum(len(frame.data) for frame in self._held)
+
+    def _take(self, events: Iterable[Event]) -> None:
+        """Process *events* in order; from a frame the relay declines on, hold the data
+        frames (see :meth:`decline`)."""
+        held = self._held
+        for event in events:
+            if held and isinstance(event, Frame) and event.opcode in DATA_OPCODES:
+                held.append(event)
+                continue
+            self.process_event(event)
+            if self._declined:  # only the sink declines, and it takes frames only
+                assert isinstance(event, Frame)
+                self._declined = False
+                held.append(event)
+        if held:
+            self.transport.pause_reading()
+
+    def _drain(self) -> None:
+        """Offer the held frames again, in order, until the relay declines one more."""
+        held = self._held
+        while held:
+            event = held.popleft()
+            self.process_event(event)
+            if self._declined:
+                self._declined = False
+                held.appendleft(event)
+                return
+
+    async def throttle_ended(self) -> bool:
+        """Wait until the current pause of :meth:`throttle` ends (a reader whose message
+        the relay declined: it offers it again then). ``False``: the connection was lost
+        first."""
+        if self.transport.is_closing():
+            return False
+        if self._unthrottled is None:
+            self._unthrottled = self.loop.create_future()
+        return await self._unthrottled
+
+    def _end_throttle(self) -> None:
+        """The pause is over: the waiting reader goes on, the held frames are offered
+        again, and reading resumes unless the relay declined one more (a new pause runs)
+        or websockets' queue is full (it resumes reading when drained)."""
+        waiter, self._unthrottled = self._unthrottled, None
+        if waiter is not None and not waiter.done():
+            waiter.set_result(True)
+        if self.transport.is_closing():
+            return
+        through = self.write_through
+        collecting = through is not None and through.begin()
+        try:
+            self._drain()
+        finally:
+            if collecting:
+                assert through is not None
+                through.end()
+        if self._held or self.protocol.state is not State.OPEN:
+            return
+        if not self.pending_messages:
+            self._answer_read_pong()
+            if self.held_pongs is not None:
+                self.held_pongs.settle()
+        with contextlib.suppress(OSError, RuntimeError):  # a transport closing meanwhile
+            self.send_data()
+        if not self.recv_messages.paused:
+            self.transport.resume_reading()
 
     def too_many_frames(self) -> None:
         """Close with 1009 (see :attr:`FrameSink.max_message_frames`)."""
@@ -271,6 +366,7 @@ class RelayConnection(FrameSink, BatchedWritesConnection, ServerConnection):
         message. After the close frame a client reads nothing (RFC 6455 1.4)."""
         self._discarding = True
         self._read_pong = self._held_pong = self._unidentified_pong = None
+        self._held.clear()  # never taken now
 
     def resume_writing(self) -> None:
         """Below the write limit again: send the pong held meanwhile (see _send_frame)."""
@@ -324,7 +420,7 @@ class RelayConnection(FrameSink, BatchedWritesConnection, ServerConnection):
         pong, self._unidentified_pong = self._unidentified_pong, None
         if pong is None:
             return
-        if self.held_pongs is None and self.pending_messages:
+        if self.held_pongs is None and (self.pending_messages or self._held):
             self._read_pong = pong  # after the messages read with the token are handled
         elif self.protocol.state is State.OPEN:
             self._pong(pong)
@@ -348,13 +444,14 @@ class RelayConnection(FrameSink, BatchedWritesConnection, ServerConnection):
         asyncio.get_running_loop().call_later(ABORT_AFTER_S, transport.abort)
 
     def throttle(self, delay_s: float, peer: Any) -> None:
-        """Stop reading for *delay_s* seconds, then clear ``peer.throttled`` and read
-        again (the relay's rate limit, docs/security.md).
+        """Stop reading for *delay_s* seconds, then clear ``peer.throttled``, offer the
+        frames held meanwhile again (:meth:`decline`) and read again (the relay's rate
+        limits, docs/security.md).
 
         Each further throttle within :data:`THROTTLE_MEMORY_S` doubles the pause (from
         :data:`MIN_THROTTLE_S` up to :data:`MAX_THROTTLE_S`), and meanwhile the socket is
-        read :data:`THROTTLED_READ_BYTES` at a time (plain TCP), so what a flooding client
-        already sent costs a few frames per pause, not a 256 KiB read of tiny frames.
+        read :data:`THROTTLED_READ_BYTES` at a time (plain TCP), so a flooding client
+        costs one small read and one refused request per pause, not work per frame.
         """
         self.transport.pause_reading()
         self._strikes += 1
@@ -362,18 +459,20 @@ class RelayConnection(FrameSink, BatchedWritesConnection, ServerConnection):
         pause_s = min(MAX_THROTTLE_S, max(delay_s, MIN_THROTTLE_S * 2 ** (self._strikes - 1)))
         strikes = self._strikes
         loop = asyncio.get_running_loop()
+        if self._resume is not None:  # one pause at a time: the latest
+            self._resume.cancel()
 
         def resume() -> None:
+            self._resume = None
             peer.throttled = False
-            if not self.transport.is_closing():
-                self.transport.resume_reading()
+            self._end_throttle()
 
         def forgive() -> None:
             if self._strikes == strikes:  # no throttle since: a normal client again
                 self._strikes = 0
                 self._set_read_bytes(None)
 
-        loop.call_later(pause_s, resume)
+        self._resume = loop.call_later(pause_s, resume)
         loop.call_later(pause_s + THROTTLE_MEMORY_S, forgive)
 
     def _set_read_bytes(self, nbytes: int | None) -> None:
@@ -400,6 +499,13 @@ class RelayConnection(FrameSink, BatchedWritesConnection, ServerConnection):
                      "request (%d bytes in the handshake timeout)",
                      peer[0] if peer else "?", self._request_bytes)
         self._release()
+        self._held.clear()
+        if self._resume is not None:
+            self._resume.cancel()
+            self._resume = None
+        waiter, self._unthrottled = self._unthrottled, None
+        if waiter is not None and not waiter.done():
+            waiter.set_result(False)
         super().connection_lost(exc)
         on_lost, self.on_lost = self.on_lost, None
         if on_lost is not None:

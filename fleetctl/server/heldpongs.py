@@ -125,7 +125,9 @@ class HeldPongs:
         now, acks = time.monotonic(), self._acks
 
         def due(mark: int | None, at: float) -> bool:
-            if mark is not None and acks.stored(mark):
+            if mark is None:  # its frames are not handled yet (held over a rate): never
+                return False
+            if acks.stored(mark):
                 return True
             if now - at >= self._hold_max_s:
                 acks.unstored += 1

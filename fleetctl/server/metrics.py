@@ -48,6 +48,8 @@ class Metrics:
     # Pongs replaced by a newer one: pings read together, or while the peer did not read
     # (RelayConnection).
     pongs_coalesced: int = 0
+    # Connections not read for a moment (a rate of their identity set), by reason.
+    reads_paused: dict[str, int] = field(default_factory=dict)
     # The latched store (fleetctl.server.latched): events by name, and two gauges it sets.
     latched_events: dict[str, int] = field(default_factory=dict)
     latched_bytes: int = 0
@@ -100,6 +102,11 @@ class Metrics:
     def count_keyframe_request(self, outcome: str) -> None:
         """Count one keyframe request by *outcome* (``forwarded``, ``rate_limited``...)."""
         self.keyframe_requests[outcome] = self.keyframe_requests.get(outcome, 0) + 1
+
+    def count_read_paused(self, reason: str) -> None:
+        """Count one pause of a connection's reading (``control_rate``,
+        ``new_topic_rate``)."""
+        self.reads_paused[reason] = self.reads_paused.get(reason, 0) + 1
 
     def count_error(self, code: str) -> None:
         """Count one error frame (or would-be error frame) of *code*."""
@@ -183,6 +190,13 @@ class Metrics:
                 "Topic (and session/topic) labels forgotten after an hour without a "
                 "count while their table was full: their series end here.",
                 self.labels_forgotten)
+        _labelled(out, "fleetctl_reads_paused_total", "counter",
+                  "Times a connection was not read for a moment because its identity set "
+                  "went over a rate (control_rate: control requests; new_topic_rate: "
+                  "frames on new topics). What it had sent waits and is taken once the "
+                  "rate allows, in order: nothing is dropped (a Foxglove connection's "
+                  "frames meanwhile are: fleetctl_errors_total{code=\"rate_limited\"}).",
+                  "reason", self.reads_paused)
         _scalar(out, "fleetctl_pongs_coalesced_total", "counter",
                 "Pongs not sent because the answer to a later ping replaced them "
                 "(RFC 6455 5.5.3): pings read together, or the peer did not read.",

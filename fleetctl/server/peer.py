@@ -38,8 +38,10 @@ class Peer:
             I/O layer lifts its pre-authentication bounds).
         throttle: Asks the I/O layer to stop reading from the connection for a number of
             seconds, then to clear :attr:`throttled` (``None``: the core only discards).
-        throttled: The connection is over its control request rate: every frame it sent
-            is discarded (counted) until the I/O layer clears this.
+        throttled: The connection is over a rate of its identity set (control requests,
+            new topics): its frames wait, unread, until the I/O layer clears this
+            (``RelayCore.on_binary``'s *hold*; the Foxglove adapter discards them,
+            counted).
         standby: A robot's idle standby connection of :attr:`session_name`: welcomed but
             not attached to the session, sent nothing else, and every binary frame it
             sends is discarded (counted), until ``{"type": "activate"}`` clears this

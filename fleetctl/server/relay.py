@@ -266,37 +266,50 @@ class RelayCore:
 
     # -- frames ---------------------------------------------------------------------
 
-    def on_binary(self, peer: Peer, frame: bytes) -> None:
-        """Handle one binary frame from *peer* (Algorithm 3)."""
+    def on_binary(self, peer: Peer, frame: bytes, *, hold: bool = False) -> bool:
+        """Handle one binary frame from *peer* (Algorithm 3).
+
+        Args:
+            hold: The caller keeps a frame this declines, and every later one of the
+                connection, in order, and offers it again once :attr:`Peer.throttled` is
+                cleared (the I/O layer of a fleetctl connection: back-pressure, see
+                :meth:`_allow`). ``False`` (the Foxglove adapter): such a frame is
+                dropped, counted.
+
+        Returns:
+            ``False`` only with *hold*: the connection is over a rate of its identity
+            set, the frame was not taken and is to be offered again.
+        """
         if peer.throttled:
+            if hold:
+                return False
             self.discard(peer)
-            return
+            return True
         perms = peer.perms
         if perms is None:
             self.close_with(peer, protocol.CLOSE_NO_IDENTITY,
                         "connection matches no identity: send a token frame first")
-            return
+            return True
         if peer.standby:
             self._standby_frame(peer)
-            return
+            return True
         try:
             meta, root = read_root(frame)
         except WireError as exc:
             self.malformed(peer, "malformed_frame", None, str(exc))
-            return
+            return True
         peer.malformed_in_row = 0
         topic = meta.topic
         if topic == SUBSCRIPTION_TOPIC:
-            self._on_subscription(peer, frame, meta.type)
-            return
+            return self._on_subscription(peer, frame, meta.type, hold)
         if topic == KEYFRAME_REQUESTS_TOPIC:  # a control topic: no send rule needed
             firstframes.on_keyframe_request(self, peer, frame, meta.type)
-            return
+            return True
         if not perms.may_send(topic):
             self._unauthorized(peer, topic)
-            return
-        if not self.subs.routes(topic) and not self._new_topic(peer, topic):
-            return
+            return True
+        if not self.subs.routes(topic) and not self._new_topic(peer, topic, hold):
+            return not hold
         self.metrics.count_in(topic, len(frame))
         message_id: int | None = None
         if meta.type == FRAGMENT_TYPE:
@@ -304,7 +317,7 @@ class RelayCore:
                 message_id = read_fragment_id(frame, root)
             except WireError as exc:
                 self.malformed(peer, "malformed_frame", topic, str(exc))
-                return
+                return True
         elif meta.type == VIDEO_TYPE:
             self.keyframes.note_publisher(topic, peer)
         self._note_robot(peer, topic, meta.type, frame)
@@ -318,6 +331,7 @@ class RelayCore:
             peer.store_mark = self.store_acks.offered  # this frame's, or an earlier one's
         if meta.latched:
             firstframes.keep_latched(self, peer, topic, frame, root, message_id is not None)
+        return True
 
     def on_remote(self, frame: bytes) -> None:
         """Deliver a frame another replica accepted to local subscribers only (it was
@@ -349,21 +363,23 @@ class RelayCore:
     def _follow(self, pattern: str, delta: int) -> None:
         self.fanout.follow(pattern, delta)
 
-    def on_text(self, peer: Peer, text: str) -> None:
+    def on_text(self, peer: Peer, text: str, *, hold: bool = False) -> bool:
         """Handle one text frame: a token frame, a ``list_robots`` request or a standby's
-        ``activate``."""
+        ``activate``. *hold* and the result: as :meth:`on_binary`'s."""
         if peer.throttled:
+            if hold:
+                return False
             self.discard(peer)
-            return
+            return True
         try:
             data: Any = json.loads(text) if len(text) <= protocol.MAX_TEXT_CHARS else None
         except (ValueError, RecursionError):  # RecursionError: "[[[[...": deep nesting
             data = None
         if not isinstance(data, dict):
             self.malformed(peer, "malformed_frame", None, "text frame is not a JSON object")
-            return
+            return True
         if ("token" in data or data.get("type") == "list_robots") and not self._allow(peer):
-            return
+            return not hold
         if "token" in data:
             self.on_token(peer, data["token"], data.get("session"))
         elif data.get("type") == "list_robots" and peer.perms is not None:
@@ -377,6 +393,7 @@ class RelayCore:
         else:
             self.malformed(peer, "unknown_type", None, "text frames are {'token': ...}, "
                            "{'type': 'list_robots'} or {'type': 'activate'}")
+        return True
 
     def on_token(self, peer: Peer, token: Any, session: Any = None) -> None:
         """Authenticate *peer* by a token; close with 4401 if it matches no identity.
@@ -704,11 +721,15 @@ class RelayCore:
         """Spend one control request of *peer*'s identity set. Free before the connection
         has an identity (its first token frame).
 
-        An empty bucket throttles the connection: one ``rate_limited`` error frame, then
-        the I/O layer stops reading from it until the bucket has a token again, and every
-        frame it already sent is discarded (counted), unparsed. A flooding client thus
-        costs the relay one socket read per refill, not work per frame, and gets no
-        answers to reconnect over.
+        An empty bucket throttles the connection (:meth:`_throttle`): one
+        ``rate_limited`` error frame, and the I/O layer stops reading from it until the
+        bucket has a token again. A fleetctl connection's I/O layer keeps the request and
+        everything read after it (``hold``, :meth:`on_binary`) and offers them again
+        then, in order: nothing is lost, so no pong says that a dropped frame was taken
+        (docs/security.md), and TCP pushes back on the client meanwhile. A flooding
+        client still costs the relay one socket read per pause and one refused request,
+        not work per frame. (The Foxglove adapter's requests are dropped instead, and
+        what the connection sends meanwhile is discarded, counted: :meth:`discard`.)
         """
         if peer.perms is None:
             return True
@@ -717,12 +738,18 @@ class RelayCore:
             return True
         self.send_error(peer, "rate_limited", None, "more than "
                         f"{self.limits.max_control_requests_per_s:g} control requests/s "
-                        "(subscribe, unsubscribe, token, list_robots): frames are "
-                        "discarded for a moment")
+                        "(subscribe, unsubscribe, token, list_robots): this connection is "
+                        "not read for a moment")
+        self._throttle(peer, "control_rate", bucket)
+        return False
+
+    def _throttle(self, peer: Peer, reason: str, bucket: TokenBucket) -> None:
+        """Stop reading from *peer* until *bucket* has a token (the I/O layer clears
+        :attr:`Peer.throttled` then); counted in ``fleetctl_reads_paused_total``."""
         peer.throttled = True
+        self.metrics.count_read_paused(reason)
         if peer.throttle is not None:
             peer.throttle(bucket.wait_s())
-        return False
 
     def _control_bucket(self, peer: Peer) -> TokenBucket:
         """The control requests left to *peer*'s identity set (made on first use)."""
@@ -735,10 +762,15 @@ class RelayCore:
                 limits.max_control_requests_per_s, burst, self._clock)
         return bucket
 
-    def _new_topic(self, peer: Peer, topic: str) -> bool:
-        """Spend one of *peer*'s identity set's new-topic tokens (:data:`NEW_TOPICS_PER_S`);
-        ``False``: the frame is dropped (counted as ``new_topic_rate``; the first time per
-        connection one error frame and one log line)."""
+    def _new_topic(self, peer: Peer, topic: str, hold: bool) -> bool:
+        """Spend one of *peer*'s identity set's new-topic tokens (:data:`NEW_TOPICS_PER_S`).
+
+        ``False``: none left. With *hold* (a fleetctl connection) the connection is
+        throttled as over the control rate (:meth:`_allow`): the frame and what follows
+        it wait, unread, until a token is there, then are taken in order. Without (the
+        Foxglove adapter's client publishing) the frame is dropped, counted as
+        ``new_topic_rate``. The first time per connection: one error frame and one log
+        line."""
         key = peer.identity_names
         bucket = self._topic_buckets.get(key)
         if bucket is None:
@@ -746,19 +778,24 @@ class RelayCore:
                                                             self._clock)
         if bucket.take():
             return True
-        self.metrics.count_error("new_topic_rate")
+        if hold:
+            self._throttle(peer, "new_topic_rate", bucket)
+        else:
+            self.metrics.count_error("new_topic_rate")
         if not peer.new_topics_refused:
             peer.new_topics_refused = True
+            what = "wait, unread," if hold else "are dropped"
             log.warning("%s: more than %g new topics/s (bursts of %d): frames on topics not "
-                        "routed yet are dropped meanwhile", peer.label, NEW_TOPICS_PER_S,
-                        NEW_TOPICS_BURST)
+                        "routed yet %s meanwhile", peer.label, NEW_TOPICS_PER_S,
+                        NEW_TOPICS_BURST, what)
             peer.outbound.push_control(protocol.error(
                 "rate_limited", topic, f"more than {NEW_TOPICS_PER_S:g} new topics/s: frames "
-                "on topics the server has not routed yet are dropped for a moment"))
+                f"on topics the server has not routed yet {what} for a moment"))
         return False
 
     def discard(self, peer: Peer) -> None:
-        """Count one frame of a throttled *peer*, discarded unread."""
+        """Count one frame of a throttled *peer* whose caller does not hold frames (the
+        Foxglove adapter), discarded unread."""
         self.metrics.count_error("rate_limited")
 
     def _count_refusal(self, peer: Peer) -> None:
@@ -767,19 +804,20 @@ class RelayCore:
             self.close_with(peer, protocol.CLOSE_SUBSCRIPTION_FLOOD,
                             "subscription flood past the limit")
 
-    def _on_subscription(self, peer: Peer, frame: bytes, type_name: str) -> None:
+    def _on_subscription(self, peer: Peer, frame: bytes, type_name: str, hold: bool) -> bool:
+        """Handle one ``/subscriptions`` frame; ``False``: as :meth:`on_binary`'s."""
         # Sending on /subscriptions needs no rule (docs/design.md section 3).
         if not self._allow(peer):
-            return
+            return not hold
         if type_name != SUBSCRIPTION_TYPE:
             self.malformed(peer, "unknown_type", SUBSCRIPTION_TOPIC,
                            f"/subscriptions carries RobofleetSubscription, not {type_name}")
-            return
+            return True
         fields = protocol.decode_subscription_fields(frame)
         if fields is None:
             self.malformed(peer, "malformed_frame", SUBSCRIPTION_TOPIC,
                            "RobofleetSubscription does not decode")
-            return
+            return True
         pattern, subscribe = fields
         if not subscribe:
             self.subs.unsubscribe(peer, pattern)
@@ -790,6 +828,7 @@ class RelayCore:
             if peer.session is not None:
                 self.sessions.subscribed(peer.session, pattern)
             peer.outbound.push_control(protocol.ack("subscribed", pattern))
+        return True
 
     def _subscribe(self, peer: Peer, pattern: str, *, first_frames: bool = True) -> bool:
         assert peer.perms is not None

@@ -25,9 +25,8 @@ from tests.server.conftest import (
     authed_peer,
     client,
     next_json,
-    wait_for,
 )
-from tests.support import ManualClock
+from tests.support import ManualClock, string_frame
 
 
 def make_core(clock: ManualClock, db: Path | None = None, **limits: float) -> RelayCore:
@@ -68,43 +67,62 @@ def test_subscription_changes_are_rate_limited_per_identity() -> None:
     assert codes(b) == ["rate_limited"]
 
 
+def test_a_connection_whose_frames_are_held_gets_them_declined_not_discarded() -> None:
+    """With *hold* (a fleetctl connection's I/O layer) a request over the rate, and every
+    frame while throttled, is declined (offered again later), not discarded: nothing is
+    counted as dropped and nothing answered until the pause ends."""
+    clock = ManualClock()
+    core = make_core(clock, max_control_requests_per_s=10.0,
+                     max_subscriptions_per_connection=64)
+    pauses: list[float] = []
+    b = authed_peer(core, token=ALICE_TOKEN)
+    b.throttle = pauses.append
+    for i in range(64):
+        assert core.on_binary(b, encode_subscription("/husky1/t", i % 2 == 0), hold=True)
+    codes(b)
+    over = encode_subscription("/husky1/x")
+    assert not core.on_binary(b, over, hold=True)
+    assert codes(b) == ["rate_limited"] and b.throttled and pauses == [0.1]
+    assert not core.on_text(b, '{"type": "list_robots"}', hold=True)
+    assert not core.on_binary(b, string_frame("/husky1/events", "e", no_drop=True), hold=True)
+    assert codes(b) == [] and core.metrics.errors == {"rate_limited": 1}  # the error frame
+    assert core.metrics.reads_paused == {"control_rate": 1}
+    assert "/husky1/events" not in core.metrics.messages_in
+    b.throttled = False  # what the I/O layer does after the pause
+    clock.now_s += 0.2
+    assert core.on_binary(b, over, hold=True)  # offered again: served
+    assert "/husky1/x" in core.subs.patterns(b)
+
+
 async def test_a_throttled_connection_is_paused_then_served_again(
     make_server: Callable[..., RelayServer],
 ) -> None:
-    # A burst of 64 answers: well inside the control FIFO (256), so the error is not
-    # itself dropped as an overflow.
-    limits = ServerLimits(max_subscriptions_per_connection=8)
+    """Past its burst a connection is not read for a moment; what it sent waits and is
+    served at the rate, in order, none of it discarded (a pong after a discarded frame
+    would lose it: tests/server/test_pongs_after_rate_limits.py)."""
+    # A burst of 64 answers: well inside the control FIFO (256), so none is itself dropped
+    # as an overflow. 100/s: the 137 past the burst take ~1.4 s.
+    limits = ServerLimits(max_subscriptions_per_connection=8, max_control_requests_per_s=100.0)
     async with make_server(limits=limits) as server, \
             client(server, token=ALICE_TOKEN) as ws:
         await next_json(ws, "welcome")
+        loop = asyncio.get_running_loop()
+        started = loop.time()
         for i in range(200):  # past the burst of 64
-            await ws.send(encode_subscription(f"/t{i % 2}", i % 2 == 0))
-        assert (await next_json(ws, "error"))["code"] == "rate_limited"
-        # Frames of the burst still unread when it is throttled again are discarded, and
-        # ours may be among them (relay.RelayCore._allow): ask again, each time the
-        # connection is served again, until the answer to ours comes.
+            await ws.send(encode_subscription(f"/husky1/t{i % 2}", i % 2 == 0))
+        await ws.send(encode_subscription("/husky1/.*"))
         seen: list[dict[str, object]] = []
-
-        async def answer_to_ours() -> dict[str, object] | None:
-            while True:
-                try:
-                    msg = await asyncio.wait_for(ws.recv(), 1.0)
-                except TimeoutError:
-                    return None  # discarded: ask again
-                if isinstance(msg, str):
-                    seen.append(json.loads(msg))
-                    if "/husky1/.*" in (seen[-1].get("topic_regex"), seen[-1].get("topic")):
-                        return seen[-1]
-
-        answer = None
-        deadline = asyncio.get_running_loop().time() + 20.0
-        while answer is None:
-            assert asyncio.get_running_loop().time() < deadline, seen
-            await wait_for(lambda: not any(p.throttled for p in server.core.peers.values()))
-            await ws.send(encode_subscription("/husky1/.*"))
-            answer = await answer_to_ours()
-        assert answer["type"] == "subscribed", seen
+        while not seen or seen[-1].get("topic_regex") != "/husky1/.*":
+            msg = await asyncio.wait_for(ws.recv(), 10.0)
+            if isinstance(msg, str):
+                seen.append(json.loads(msg))
+        answers = [(a["type"], a["topic_regex"]) for a in seen if a["type"] != "error"]
+        assert answers == [(("subscribed", "unsubscribed")[i % 2], f"/husky1/t{i % 2}")
+                           for i in range(200)] + [("subscribed", "/husky1/.*")]
+        assert "rate_limited" in [a.get("code") for a in seen]
+        assert loop.time() - started >= 137 / 100.0  # served no faster than the rate
         assert server.metrics.closes.get(4429) is None
+        assert server.metrics.reads_paused["control_rate"] >= 1
 
 
 def test_pattern_bytes_are_capped_per_connection_and_per_identity() -> None:

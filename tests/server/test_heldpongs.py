@@ -141,3 +141,25 @@ async def test_a_ping_read_with_a_frame_waits_for_that_frame() -> None:
     assert connection.pongs() == [] and acks.held == 1
     acks.note_done()
     assert connection.pongs() == [b"p1"]
+
+
+async def test_a_pong_whose_frames_are_not_handled_yet_never_expires() -> None:
+    """The bound is for the store, not for frames the relay has not taken: a pong queued
+    while its frames are held over a rate (RelayConnection.decline: no settle yet) must
+    not go when the timer armed for an earlier pong finds it past the bound. Before, the
+    timer sent it unsettled, and a client forgot the held no_drop frames on it."""
+    connection, acks, marks = Connection(), StoreAcks(), [0]
+    held(connection, acks, marks, hold_max_s=0.05)
+    marks.append(acks.note_offered())
+    connection.ping(b"p1")  # settled, waits for its store: the timer is armed
+    connection.protocol.receive_data(Frame(Opcode.PING, b"p2").serialize(mask=True,
+                                                                         extensions=[]))
+    connection.send_data()  # p2 read with frames the relay holds: not settled
+    await wait_until(lambda: connection.pongs() == [b"p1"], 5.0)  # p1 past the bound
+    deadline = asyncio.get_running_loop().time() + 0.3  # p2's bound, and then some
+    while asyncio.get_running_loop().time() < deadline:
+        assert connection.pongs() == [b"p1"]
+        await asyncio.sleep(0.01)
+    assert connection.pongs_held is not None
+    connection.pongs_held.settle()  # its frames taken: now it may wait for the store
+    await wait_until(lambda: connection.pongs() == [b"p1", b"p2"], 5.0)

@@ -231,13 +231,17 @@ def test_a_remote_topic_that_is_no_ros_name_is_dropped_and_said_once(
 async def test_the_loop_gets_the_gil_back_soon_while_the_executor_converts() -> None:
     """While another thread converts Paths (the executor, after a slow topic moved there),
     the loop waited up to Python's 5 ms switch interval at every socket call and wait:
-    the link read an RTT of 11 ms on loopback and shrank its window to 9 KB. The client
-    sets 0.5 ms; a 1 ms sleep of the loop is then late by ~1 ms, not 5-7 ms."""
+    the link read an RTT of 11 ms on loopback and shrank its window to 9 KB. With the
+    client's interval a 1 ms sleep of the loop is late by ~1 ms, not 5-7 ms.
+
+    Judged against Python's default in the same test, alternating rounds, so that a
+    loaded host slows both alike (an absolute bound would be a timed test): the tuned
+    lateness must be under half the default's (measured 1.0 against 5.7 ms)."""
     import statistics
     import sys
     import time
 
-    from fleetctl.client.ros.runner import tune_gil
+    from fleetctl.client.ros.runner import GIL_SWITCH_INTERVAL_S, tune_gil
 
     codec = Codec(TypeRegistry.default())
     types = codec.registry.typestore.types
@@ -252,21 +256,31 @@ async def test_the_loop_gets_the_gil_back_soon_while_the_executor_converts() -> 
         while not stop.is_set():
             codec.encode(path, PATH, "/r1/plan")
 
+    async def lateness_ms(samples: int) -> list[float]:
+        late = []
+        for _ in range(samples):
+            started = time.perf_counter()
+            await asyncio.sleep(0.001)
+            late.append(1000 * (time.perf_counter() - started) - 1.0)
+        return late
+
     before = sys.getswitchinterval()
-    tune_gil()
+    late_ms: dict[float, list[float]] = {0.005: [], GIL_SWITCH_INTERVAL_S: []}
     converter = threading.Thread(target=convert)
     converter.start()
     try:
-        late_ms = []
-        for _ in range(200):
-            started = time.perf_counter()
-            await asyncio.sleep(0.001)
-            late_ms.append(1000 * (time.perf_counter() - started) - 1.0)
+        for _ in range(4):
+            sys.setswitchinterval(0.005)  # Python's default
+            late_ms[0.005] += await lateness_ms(50)
+            tune_gil()
+            assert sys.getswitchinterval() == GIL_SWITCH_INTERVAL_S
+            late_ms[GIL_SWITCH_INTERVAL_S] += await lateness_ms(50)
     finally:
         stop.set()
         converter.join()
         sys.setswitchinterval(before)
-    assert statistics.median(late_ms) < 4.0, statistics.median(late_ms)
+    default, tuned = (statistics.median(v) for v in late_ms.values())
+    assert tuned < default / 2, (tuned, default)
 
 
 async def test_a_latched_topic_is_taken_by_the_executor_not_the_loop(

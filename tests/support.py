@@ -1,16 +1,19 @@
 """Helpers shared by the test packages: frames to send, deadline-bounded waits, a
-clock moved by hand, an event loop on virtual time and a process paused for certain."""
+clock moved by hand, an event loop on virtual time, a process paused for certain and a ROS
+domain no other test run on this host uses."""
 
 from __future__ import annotations
 
 import asyncio
 import contextlib
+import fcntl
 import os
 import signal
+import tempfile
 import time
-from collections.abc import Callable, Iterator
+from collections.abc import Callable, Iterable, Iterator
 from pathlib import Path
-from typing import Any
+from typing import IO, Any
 
 import numpy as np
 
@@ -18,6 +21,10 @@ from fleetctl.wire.codec import default_codec
 from fleetctl.wire.compression import COMPRESSED_TYPE
 
 STRING_TYPE = "std_msgs/msg/String"
+# ROS domains no test module has as its own: a module whose domain another process holds
+# takes one of these (ros_domain_alone).
+SPARE_ROS_DOMAINS = range(64, 73)
+_HELD_DOMAINS: list[IO[str]] = []  # open lock files: held until this process exits
 
 
 class ManualClock:
@@ -156,3 +163,31 @@ def paused(pid: int, timeout_s: float = 10.0) -> Iterator[None]:
         yield
     finally:
         os.kill(pid, signal.SIGCONT)
+
+
+def ros_domain_alone(preferred: int, spares: Iterable[int] = SPARE_ROS_DOMAINS) -> int:
+    """A ROS domain that no other caller of this function holds: *preferred* if free,
+    else the first free one of *spares*; held until this process exits.
+
+    Why: DDS discovery spans the host, and each test module has a fixed domain. Two runs
+    of one module at once (a targeted run beside a CI run) share its domain and topic
+    names: each sees the other's publishers and takes its messages (test_qos: two
+    publishers on ``/burst``, so no gap could be attributed to one; 6 of 30 runs failed).
+    The hold is an exclusive ``flock`` on a file per domain in the temporary directory,
+    which the kernel drops when the process ends, however it ends.
+
+    Raises:
+        RuntimeError: Every one of those domains is held.
+    """
+    for domain in (preferred, *spares):
+        lock = (Path(tempfile.gettempdir()) / f"fleetctl-tests-ros-domain-{domain}.lock"
+                ).open("a")
+        try:
+            fcntl.flock(lock, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            lock.close()
+            continue
+        _HELD_DOMAINS.append(lock)
+        return domain
+    raise RuntimeError(f"ROS domains {preferred} and {list(spares)} are all held by other "
+                       "processes")

@@ -18,6 +18,7 @@ ping was taken (``messages_in``), in order.
 from __future__ import annotations
 
 import asyncio
+import itertools
 import json
 from collections.abc import Callable
 
@@ -26,12 +27,13 @@ import pytest
 from fleetctl.server import relay
 from fleetctl.server.app import RelayServer
 from fleetctl.server.config import ServerLimits
-from fleetctl.server.connection import READ_BYTES
+from fleetctl.server.connection import READ_BYTES, THROTTLED_READ_BYTES
 from fleetctl.wire.control import encode_subscription
 from tests.security.conftest import RawClient
 from tests.server.conftest import wait_for
 from tests.server.test_pongs_after_discard import (
     BINARY,
+    EVENTS,
     PING,
     PONG,
     TEXT,
@@ -168,4 +170,35 @@ async def test_what_waits_is_at_most_one_read_and_tcp_holds_the_rest(
         assert 0 < most <= READ_BYTES  # not read again before what waits was taken
         assert unread(relay) > 0  # TCP pushes back on the client
         assert not srv.metrics.closes
+        raw.close()
+
+
+async def test_held_frames_are_offered_a_slice_per_loop_round(
+    make_server: Callable[..., RelayServer],
+) -> None:
+    """When the pause ends, what waits is offered THROTTLED_READ_BYTES per event loop
+    round, as a throttled connection's small reads were: the tokens an identity set saved
+    during a pause are not spent in one round, with every other connection waiting."""
+    async with make_server(limits=LIMITS) as srv:
+        raw = await opened(srv)
+        over = b"".join(frame(BINARY, encode_subscription("/husky1/x", n % 2 == 0))
+                        for n in range(65))  # the 65th is over the burst
+        raw.writer.write(over + events(1, 400) + frame(PING, b"after"))
+        loop = asyncio.get_running_loop()
+        rounds: list[int] = []  # frames taken, sampled once per loop round
+        done = False
+
+        def tick() -> None:
+            rounds.append(taken(srv))
+            if not done:
+                loop.call_soon(tick)
+
+        loop.call_soon(tick)
+        try:
+            await pong_and_texts(raw, b"after", srv, 400, answers=65)
+        finally:
+            done = True
+        steps = [b - a for a, b in itertools.pairwise(rounds) if b > a]
+        size = len(frame(BINARY, string_frame(EVENTS, "e100", no_drop=True, seq=100)))
+        assert len(steps) > 1 and max(steps) <= THROTTLED_READ_BYTES // (size - 6) + 1, steps
         raw.close()

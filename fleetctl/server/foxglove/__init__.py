@@ -8,6 +8,7 @@ messages and the bounded latest-per-topic queues are the core's.
 
 Rooms: :mod:`.messages` (the wire format, no I/O), :mod:`.tickets` (short-lived single-use
 sign-in tickets), :mod:`.catalog` (which topics exist, their channel ids),
-:mod:`.transcode` (frame to CDR, once per frame), :mod:`.viewer` (one connection's
-channels and subscriptions), :mod:`.adapter` (the asyncio layer).
+:mod:`.transcode` (frame to CDR, once per frame), :mod:`.offload` (the conversion, off
+the event loop), :mod:`.viewer` (one connection's channels and subscriptions),
+:mod:`.adapter` (the asyncio layer).
 """

@@ -25,6 +25,7 @@ import logging
 import re
 import time
 import urllib.parse
+from collections import OrderedDict
 from collections.abc import Sequence
 
 from websockets.asyncio.server import ServerConnection
@@ -36,10 +37,12 @@ from fleetctl.server import endpoints, protocol
 from fleetctl.server.authmap import AuthMap, Identity
 from fleetctl.server.connection import RelayConnection
 from fleetctl.server.foxglove import messages as fx
+from fleetctl.server.foxglove import offload
 from fleetctl.server.foxglove.catalog import TopicCatalog
 from fleetctl.server.foxglove.tickets import TicketBook, TicketBookFull
 from fleetctl.server.foxglove.transcode import SharedTranscoder
 from fleetctl.server.foxglove.viewer import Viewer
+from fleetctl.server.outbound import CONTROL_TOPIC
 from fleetctl.server.peer import Peer
 from fleetctl.server.relay import RelayCore
 from fleetctl.wire.codec import Codec, default_codec
@@ -53,6 +56,9 @@ TICKET_PATH = "/foxglove/ticket"
 # both keep their channels, and every viewer its subscriptions. A robot gone for good
 # leaves its channels in the topic list this much longer.
 CHANNEL_LINGER_S = 10.0
+# Topics whose superseded frames were logged (once each); the oldest is forgotten past
+# this (it may be said again), so a relay of many topics keeps bounded memory.
+MAX_SUPERSEDED_TOPICS_SAID = 1024
 _TICKET_RE = re.compile(r"([?&]ticket=)[^&#\s]*")
 
 
@@ -78,6 +84,9 @@ class FoxgloveAdapter:
         self.tickets = tickets if tickets is not None else TicketBook()
         self.viewers: dict[int, Viewer] = {}
         self.session_id = str(time.time_ns())
+        self.convert_seconds = 0.0  # the conversion thread's time, for every viewer
+        self.superseded = 0  # frames superseded in a viewer's queue while its batch converted
+        self._superseded_said: OrderedDict[str, None] = OrderedDict()
         self.catalog.listeners.append(self._on_channel)
         core.catalog = self.catalog
 
@@ -158,8 +167,7 @@ class FoxgloveAdapter:
     def wire(self, connection: RelayConnection, peer: Peer) -> None:
         """Give the open *connection* its viewer and binary frame sink (from the
         handshake's ``process_response``, before :meth:`serve` runs)."""
-        viewer = Viewer(self.core, peer, self.catalog, self.transcoder, self.codec,
-                        self.session_id)
+        viewer = Viewer(self.core, peer, self.catalog, self.codec, self.session_id)
         self.viewers[peer.peer_id] = viewer
 
         def sink(frame: bytes) -> bool:
@@ -231,15 +239,47 @@ class FoxgloveAdapter:
                     wake.clear()
                     await wake.wait()
                 viewer.refresh()  # an auth reload may have changed what it may receive
+                batch = outbound.pop_batch(self.write_batch_bytes)
+                frames = [f for _, f in batch if isinstance(f, bytes)]
+                total, drops = outbound.dropped_total, dict(outbound.drops)
+                converted = await offload.convert(self.transcoder, frames)
+                if converted.converted:
+                    self._converted(viewer, converted, total, drops)
+                results = iter(converted.results)
                 out: list[bytes | str] = []
-                for topic, frame in outbound.pop_batch(self.write_batch_bytes):
+                for topic, frame in batch:
                     data = (viewer.control(frame) if isinstance(frame, str)
-                            else viewer.message(topic, frame))
+                            else viewer.message(topic, next(results)))
                     if data is not None:
                         metrics.count_out(topic, len(data))
                         out.append(data)
                 if out:
                     await connection.send_frames(out)
+
+    def _converted(self, viewer: Viewer, batch: offload.Batch, total_before: int,
+                   drops_before: dict[str, int]) -> None:
+        """Count the thread's work for *viewer*'s batch and the frames its scheduler
+        superseded meanwhile (the converter was slower than they came); say so once per
+        topic."""
+        self.convert_seconds += batch.seconds
+        outbound = viewer.peer.outbound
+        if outbound.dropped_total == total_before:
+            return
+        for topic, n in outbound.drops.items():
+            new = n - drops_before.get(topic, 0)
+            if new <= 0 or topic == CONTROL_TOPIC:
+                continue
+            self.superseded += new
+            if topic in self._superseded_said:
+                continue
+            if len(self._superseded_said) >= MAX_SUPERSEDED_TOPICS_SAID:
+                self._superseded_said.popitem(last=False)
+            self._superseded_said[topic] = None
+            log.warning("%s: Foxglove viewer: %d frame(s) of %s superseded while the relay "
+                        "converted to CDR (%d frame(s) in %.0f ms): the viewer gets the "
+                        "newest; counted in fleetctl_foxglove_superseded_total (said once "
+                        "per topic)", viewer.peer.label, new, topic, batch.converted,
+                        batch.seconds * 1e3)
 
     def metric_families(self) -> list[tuple[str, str, str, str, dict[str, float]]]:
         """``/metrics`` families (see :meth:`Metrics.render`): tickets, viewers, and the
@@ -256,6 +296,13 @@ class FoxgloveAdapter:
              "did not convert).", "result",
              {"converted": cache.transcoded - cache.failed, "hit": cache.hits,
               "failed": cache.failed}),
+            ("fleetctl_foxglove_convert_seconds_total", "counter", "Seconds the conversion "
+             "thread spent converting frames to CDR for Foxglove viewers (off the event "
+             "loop).", "", {"": self.convert_seconds}),
+            ("fleetctl_foxglove_superseded_total", "counter", "Frames superseded by newer "
+             "ones in a Foxglove viewer's queue while its previous frames converted to CDR "
+             "(the converter slower than they came; also in fleetctl_drops_total).", "",
+             {"": self.superseded}),
         ]
 
     @staticmethod

@@ -2,7 +2,7 @@
 
 Every Foxglove viewer's scheduler holds the *same* ``bytes`` object the relay routed (the
 core pushes one frame object to every receiver). The first viewer whose writer pops it
-transcodes it; the others find the result by the frame's identity. Only popped frames are
+has it transcoded; the others find the result by the frame's identity. Only popped frames are
 transcoded: a frame superseded in every viewer's latest-per-topic slot costs nothing, and
 topics nobody subscribed to never reach a viewer at all.
 
@@ -13,10 +13,16 @@ the cost of a very slow viewer, paid by that viewer's writer, never a wrong answ
 a whole message. Fragments are reassembled per topic by the first viewer that pops each
 one; a viewer popping a fragment whose entry was evicted gets nothing for it (the
 fragment was already fed).
+
+Threads: :meth:`SharedTranscoder.convert` runs on the one conversion thread
+(:mod:`fleetctl.server.foxglove.offload`), never on the event loop; the loop only looks
+up results (:meth:`SharedTranscoder.cached`). A lock guards the cache's dict, never a
+conversion, so a lookup never waits for one.
 """
 
 from __future__ import annotations
 
+import threading
 import time
 from collections import OrderedDict
 from collections.abc import Callable
@@ -48,6 +54,15 @@ class Converted(NamedTuple):
     receive_time_ns: int
 
 
+class NotCached:
+    """The type of :data:`NOT_CACHED` (``None`` is a result: nothing to send)."""
+
+    __slots__ = ()
+
+
+NOT_CACHED = NotCached()
+
+
 class SharedTranscoder:
     """The frame -> CDR cache shared by every Foxglove viewer of a server.
 
@@ -66,19 +81,31 @@ class SharedTranscoder:
         self._wall_ns = wall_ns
         self._cache: OrderedDict[int, tuple[bytes, Converted | None]] = OrderedDict()
         self._bytes = 0
+        self._lock = threading.Lock()  # the cache's dict: the loop reads, the worker writes
         self.transcoded = 0  # frames fed to the transcoder (the work done)
         self.hits = 0
         self.failed = 0  # frames that do not transcode (malformed, unknown type)
 
+    def cached(self, frame: bytes) -> Converted | NotCached | None:
+        """The result for *frame* if it was converted already (counted as a hit), else
+        :data:`NOT_CACHED`. Never converts: safe on the event loop."""
+        with self._lock:
+            entry = self._cache.get(id(frame))
+            if entry is not None and entry[0] is frame:
+                self.hits += 1
+                return entry[1]
+        return NOT_CACHED
+
     def convert(self, frame: bytes) -> Converted | None:
         """CDR of the message *frame* carries or completes; ``None`` for a fragment that
-        completes nothing and for a frame that does not transcode (counted)."""
-        entry = self._cache.get(id(frame))
-        if entry is not None and entry[0] is frame:
-            self.hits += 1
-            return entry[1]
+        completes nothing and for a frame that does not transcode (counted). Called from
+        one thread at a time (the reassembly state is not locked)."""
+        hit = self.cached(frame)
+        if not isinstance(hit, NotCached):
+            return hit
         result = self._feed(frame)
-        self._remember(frame, result)
+        with self._lock:
+            self._remember(frame, result)
         return result
 
     def _feed(self, frame: bytes) -> Converted | None:

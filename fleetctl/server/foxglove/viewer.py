@@ -25,7 +25,7 @@ from typing import Any
 
 from fleetctl.server.foxglove import messages as fx
 from fleetctl.server.foxglove.catalog import TopicCatalog
-from fleetctl.server.foxglove.transcode import SharedTranscoder
+from fleetctl.server.foxglove.transcode import Converted
 from fleetctl.server.peer import Peer
 from fleetctl.server.permissions import Permissions
 from fleetctl.server.relay import RelayCore
@@ -44,17 +44,15 @@ class Viewer:
         core: The relay core.
         peer: The connection's core state (authenticated before :meth:`start`).
         catalog: The server's channels.
-        transcoder: The shared frame -> CDR cache.
         codec: Encodes client messages as fleetctl frames.
         session_id: Server Info ``sessionId`` (one per server run).
     """
 
     def __init__(self, core: RelayCore, peer: Peer, catalog: TopicCatalog,
-                 transcoder: SharedTranscoder, codec: Codec, session_id: str) -> None:
+                 codec: Codec, session_id: str) -> None:
         self.core = core
         self.peer = peer
         self.catalog = catalog
-        self.transcoder = transcoder
         self.codec = codec
         self.session_id = session_id
         self.advertised: set[int] = set()
@@ -195,10 +193,10 @@ class Viewer:
 
     # -- server messages --------------------------------------------------------------
 
-    def message(self, topic: str, frame: bytes) -> bytes | None:
-        """The Message Data for *frame* (popped from the outbound scheduler), or ``None``
-        when it is not for a current subscription or does not complete a message."""
-        converted = self.transcoder.convert(frame)
+    def message(self, topic: str, converted: Converted | None) -> bytes | None:
+        """The Message Data for a frame of *topic* popped from the outbound scheduler and
+        *converted* (:mod:`.offload`), or ``None`` when it is not for a current
+        subscription or does not complete a message."""
         if converted is None:
             return None
         sub_id = self._by_topic_type.get((topic, converted.type))

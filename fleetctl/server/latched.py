@@ -21,7 +21,9 @@ included), incomplete messages too. A message over ``max_message_bytes`` (its de
 ``total_bytes`` or its frames) is not kept, and the sender's older message on that topic
 is forgotten with it, so the store never serves a message older than the sender's newest.
 Past ``max_bytes`` (or ``max_entries`` keys), the least recently updated entries are
-evicted. Each of these is counted in :attr:`Metrics.latched_events`.
+evicted. Each of these is counted in :attr:`Metrics.latched_events`; a message refused as
+too big is also one WARNING per (sender, topic) naming the topic, its size and the
+setting, since a late viewer then gets no map and the count alone says nowhere which.
 
 The store lives in memory: a restarted single-process server has none until the senders
 publish again (a fleetctl robot client republishes what its ``TRANSIENT_LOCAL``
@@ -33,6 +35,7 @@ replicas' messages with :meth:`LatchedStore.put_remote` / :meth:`LatchedStore.fo
 
 from __future__ import annotations
 
+import logging
 from collections import OrderedDict
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
@@ -42,6 +45,8 @@ from fleetctl.server.metrics import Metrics
 from fleetctl.server.regex import FullMatch
 from fleetctl.server.topicindex import TopicIndex
 from fleetctl.wire.fragments import FragmentHeader
+
+log = logging.getLogger("fleetctl.server.latched")
 
 SenderKey = tuple[str, ...]
 """The sending connection's identity names, sorted (a robot's address identity, a person's
@@ -122,6 +127,11 @@ class LatchedStore:
         self._index = TopicIndex()
         self._stored = 0
         self.listener: LatchedListener | None = None
+        # (sender, topic) keys a too-big message was said for, oldest first; bounded like
+        # the entries (a forgotten one may be said again).
+        self._warned: OrderedDict[tuple[SenderKey, str], None] = OrderedDict()
+        self._setting = ("limits.latched_message_bytes" if max_message_bytes <= max_bytes
+                         else "limits.latched_bytes")
 
     @property
     def nbytes(self) -> int:
@@ -195,7 +205,7 @@ class LatchedStore:
             entry.pending = None
             self._count("superseded")
         if len(frame) > self.max_message_bytes:
-            self._refuse(entry, key)
+            self._refuse(entry, key, len(frame))
             return
         self._store(entry, key, _Message(None, [frame], len(frame)))
 
@@ -212,7 +222,7 @@ class LatchedStore:
         if pending is None:
             if header.total_bytes > self.max_message_bytes:
                 entry.refused_id = mid
-                self._refuse(entry, key)
+                self._refuse(entry, key, header.total_bytes)
                 return
             pending = entry.pending = _Pending(mid, header.count, header.total_bytes)
         if (header.count != pending.count or header.total_bytes != pending.total_bytes
@@ -226,7 +236,7 @@ class LatchedStore:
         pending.nbytes += len(frame)
         if pending.nbytes > self.max_message_bytes:
             entry.pending, entry.refused_id = None, mid
-            self._refuse(entry, key)
+            self._refuse(entry, key, pending.nbytes)
         elif len(pending.parts) == pending.count:
             entry.pending = None
             frames = [pending.parts[i] for i in range(pending.count)]
@@ -249,12 +259,27 @@ class LatchedStore:
             if self.listener is not None:
                 self.listener.stored(key[0], key[1], message.frames)
 
-    def _refuse(self, entry: _Entry, key: tuple[SenderKey, str]) -> None:
-        """A message too big to keep: forget the older one too (never serve stale)."""
+    def _refuse(self, entry: _Entry, key: tuple[SenderKey, str], nbytes: int) -> None:
+        """A message of *nbytes* too big to keep: forget the older one too (never serve
+        stale)."""
         self._count("refused_too_big")
+        self._warn_too_big(key, nbytes)
         self._unstore(entry, key)
         if self.listener is not None:
             self.listener.forgotten(*key)
+
+    def _warn_too_big(self, key: tuple[SenderKey, str], nbytes: int) -> None:
+        if key in self._warned:
+            return
+        if len(self._warned) >= self.max_entries:
+            self._warned.popitem(last=False)
+        self._warned[key] = None
+        sender, topic = key
+        log.warning("latched message on %s from %s not kept: %d bytes, over %s (%d): it is "
+                    "relayed, but a subscriber that comes later does not get it (counted "
+                    "in fleetctl_latched_events_total{event=\"refused_too_big\"}; said once "
+                    "per sender and topic)", topic, ",".join(sender) or "?", nbytes,
+                    self._setting, self.max_message_bytes)
 
     def _unstore(self, entry: _Entry, key: tuple[SenderKey, str]) -> None:
         if entry.stored is None:

@@ -14,29 +14,46 @@ import asyncio
 import contextlib
 import socket
 import struct
-from dataclasses import dataclass
-from typing import Any
+from collections import deque
+from typing import Any, NamedTuple
 
 
-@dataclass(frozen=True)
-class TcpInfo:
-    """What :class:`AckStall` reads from Linux's ``struct tcp_info``.
+class TcpInfo(NamedTuple):
+    """What :class:`AckStall` reads from Linux's ``struct tcp_info`` (a tuple: one may be
+    read after every write, and with a frozen dataclass a read took 12 µs, not 7).
 
     Attributes:
         unacked: Segments sent and not acknowledged (``tcpi_unacked``).
         last_ack_s: Time since the last ACK arrived, seconds (``tcpi_last_ack_recv``).
         srtt_s: Smoothed RTT, seconds (``tcpi_rtt``); not updated while no ACK comes.
+        rttvar_s: The RTT's mean deviation, seconds (``tcpi_rttvar``: the kernel's RTO is
+            about ``srtt + 4 x rttvar``).
+        acked_bytes: Sequence space acknowledged so far (``tcpi_bytes_acked``: the data
+            bytes plus the SYN's one); None on a kernel older than 4.19.
+        sent_bytes: Data bytes sent so far, retransmissions not counted again
+            (``tcpi_bytes_sent - tcpi_bytes_retrans``); None on a kernel older than 4.19.
     """
 
     unacked: int
     last_ack_s: float
     srtt_s: float
+    rttvar_s: float = 0.0
+    acked_bytes: int | None = None
+    sent_bytes: int | None = None
 
 
-# struct tcp_info up to tcpi_total_retrans: 8 one-byte fields, then 24 __u32.
-_TCP_INFO = struct.Struct("=8B24I")
+# struct tcp_info up to tcpi_total_retrans: 8 one-byte fields, then 24 __u32; then (Linux
+# 4.19 and later) up to tcpi_bytes_retrans: __u64 pacing_rate, max_pacing_rate,
+# bytes_acked, bytes_received; 6 __u32 (segs_out .. data_segs_out); __u64 delivery_rate,
+# busy_time, rwnd_limited, sndbuf_limited; __u32 delivered, delivered_ce; __u64 bytes_sent,
+# bytes_retrans. Only the fields read are unpacked (this runs after every write): unacked
+# (byte 24), last_ack_recv (56), rtt and rttvar (68), then bytes_acked (120), bytes_sent
+# and bytes_retrans (200).
+_TCP_INFO = struct.Struct("=24xI28xI8xII28x")
+_TCP_INFO_BYTES = struct.Struct("=24xI28xI8xII44xQ72xQQ")
 _LINGER_RESET = struct.pack("ii", 1, 0)  # struct linger {l_onoff = 1, l_linger = 0}
-_UNACKED, _LAST_ACK_RECV, _RTT = 4, 12, 15  # indices among the __u32 fields
+# Sends kept by AckStall: a bound, not a figure (a watch needs the oldest few).
+_MAX_SENDS = 64
 
 
 def read_tcp_info(sock: Any) -> TcpInfo | None:
@@ -46,21 +63,27 @@ def read_tcp_info(sock: Any) -> TcpInfo | None:
     if option is None or sock is None:
         return None
     try:
-        raw = sock.getsockopt(socket.IPPROTO_TCP, option, _TCP_INFO.size)
+        raw = sock.getsockopt(socket.IPPROTO_TCP, option, _TCP_INFO_BYTES.size)
     except OSError:
         return None
+    if len(raw) >= _TCP_INFO_BYTES.size:
+        unacked, last_ack, rtt, rttvar, acked, sent, retrans = _TCP_INFO_BYTES.unpack(raw)
+        return TcpInfo(unacked, last_ack / 1e3, rtt / 1e6, rttvar / 1e6, acked, sent - retrans)
     if len(raw) < _TCP_INFO.size:
         return None
-    words = _TCP_INFO.unpack(raw)[8:]
-    return TcpInfo(words[_UNACKED], words[_LAST_ACK_RECV] / 1e3, words[_RTT] / 1e6)
+    unacked, last_ack, rtt, rttvar = _TCP_INFO.unpack_from(raw)
+    return TcpInfo(unacked, last_ack / 1e3, rtt / 1e6, rttvar / 1e6)
 
 
 class AckStall:
     """Decides from polled :class:`TcpInfo` whether the path is dead (pure, no I/O).
 
     Dead: data is unacknowledged, no ACK came for ``max(min_gap_s, rtts x srtt)``, and the
-    unacknowledged data has been seen for that long too. The last condition matters after
-    an idle spell: ``tcpi_last_ack_recv`` is then large although the data was just sent.
+    unacknowledged data has been seen for that long too: readings that long apart saw data
+    in flight, and the later one's ACKs do not cover what the earlier one had sent (the
+    kernel's byte counts: else the path delivered in between and the data in flight now
+    is newer). The last condition matters after an idle spell, or a late wake-up on a busy
+    host: ``tcpi_last_ack_recv`` is then large although the data was just sent.
     A live link, however congested, ACKs what arrives; only a silent path stops the ACKs
     with data outstanding (a receiver that stops reading still ACKs, window probes too).
 
@@ -87,11 +110,24 @@ class AckStall:
         self.min_gap_s = min_gap_s
         self.rtts = rtts
         self.stale_gaps = stale_gaps
-        self._busy_since_s: float | None = None  # first poll that saw unacked data
+        # When data was seen sent: (seconds, TcpInfo.sent_bytes by then), oldest first,
+        # from readings and from writes (:meth:`sent`); those whose bytes are all ACKed
+        # are dropped, so the first one says since when the oldest unacknowledged byte
+        # has been in flight at the latest.
+        self._sends: deque[tuple[float, int | None]] = deque()
+
+    @property
+    def _busy_since_s(self) -> float | None:
+        return self._sends[0][0] if self._sends else None
 
     def gap_s(self, info: TcpInfo) -> float:
         """How long without an ACK means dead, for this connection's RTT."""
         return max(self.min_gap_s, self.rtts * info.srtt_s)
+
+    def in_flight_s(self, now_s: float) -> float:
+        """Since when (seconds before *now_s*) the data in flight has been watched; 0
+        with nothing in flight."""
+        return 0.0 if self._busy_since_s is None else now_s - self._busy_since_s
 
     def next_check_s(self, now_s: float, info: TcpInfo) -> float | None:
         """Seconds from *now_s* until the path could be dead if no ACK comes (0 when it
@@ -103,15 +139,56 @@ class AckStall:
         due = max(gap - info.last_ack_s, self._busy_since_s + gap - now_s)
         return max(0.0, due + 0.001)
 
+    @property
+    def watching(self) -> bool:
+        """Whether data is in flight as far as the readings so far show: a write's own
+        reading (:meth:`sent`) matters only then (otherwise the watchdog waits for the
+        write and reads at once)."""
+        return bool(self._sends)
+
+    def sent(self, now_s: float, info: TcpInfo | None) -> None:
+        """Note a reading taken right after a write at *now_s*: what it sent is in flight
+        from then on (no verdict: the watchdog's readings give those)."""
+        if info is not None:
+            self._note(now_s, info)
+
     def dead(self, now_s: float, info: TcpInfo) -> bool:
         """Update with a poll at *now_s*; True while the path looks dead."""
-        if info.unacked == 0:
-            self._busy_since_s = None
+        self._note(now_s, info)
+        busy_since = self._busy_since_s
+        if busy_since is None:
             return False
-        if self._busy_since_s is None:
-            self._busy_since_s = now_s
         gap = self.gap_s(info)
-        return info.last_ack_s > gap and now_s - self._busy_since_s > gap
+        return info.last_ack_s > gap and now_s - busy_since > gap
+
+    def _note(self, now_s: float, info: TcpInfo) -> None:
+        """Keep the sends whose bytes are not all ACKed, and this one if it sent more.
+
+        Why: two readings that both see data in flight do not show that data was in
+        flight in between. A watchdog that wakes late on a busy host read data just
+        written, after the ACK of what the previous reading saw, and took the time since
+        that ACK for silence: a dead path, and a switch to the standby on a live link.
+        The kernel's byte counts tell the two apart, and the writes' own readings say
+        when the data in flight now was sent (a cut soon after an ACK is seen as soon as
+        before). ``tcpi_bytes_acked`` counts the SYN of a connecting socket too, so the
+        comparison errs by that byte: at worst a send is dropped with its last byte
+        unacknowledged, and the watch runs from a later one.
+        Without the counts (a kernel before 4.19) the first reading that saw data in
+        flight starts the watch until one sees none, as before.
+        """
+        sends = self._sends
+        if info.unacked == 0:
+            sends.clear()
+            return
+        acked = info.acked_bytes
+        if acked is not None:
+            while sends and sends[0][1] is not None and sends[0][1] <= acked:
+                sends.popleft()
+        if len(sends) >= _MAX_SENDS:
+            return  # the oldest decide; a newer send is noted once they are ACKed
+        sent, last = info.sent_bytes, sends[-1][1] if sends else None
+        if not sends or (sent is not None and last is not None and sent > last):
+            sends.append((now_s, sent))
 
     def stale(self, now_s: float, info: TcpInfo) -> bool:
         """True when the path has been dead for ``stale_gaps`` gaps (call after

@@ -6,6 +6,7 @@ import asyncio
 import contextlib
 import socket
 import time
+from collections.abc import Callable
 
 import pytest
 
@@ -37,6 +38,62 @@ def test_data_sent_after_an_idle_spell_is_not_a_false_alarm() -> None:
     assert not stall.dead(0.15, info(3, 0.06))
     assert not stall.dead(0.25, info(3, 0.16))  # busy for only 0.10 s
     assert stall.dead(0.35, info(3, 0.26))
+
+
+def sent(unacked: int, last_ack_s: float, acked_bytes: int, sent_bytes: int) -> TcpInfo:
+    """A reading with the kernel's byte counts (Linux 4.19 and later)."""
+    return TcpInfo(unacked=unacked, last_ack_s=last_ack_s, srtt_s=0.004, rttvar_s=0.006,
+                   acked_bytes=acked_bytes, sent_bytes=sent_bytes)
+
+
+def test_a_late_reading_of_data_written_after_an_ack_is_not_a_dead_path() -> None:
+    """A busy host (the demo under load, 2026-12-06): a reading saw data in flight, its
+    ACK came a moment later, and the next reading woke 93 ms late, after the process had
+    written again: data in flight and the last ACK 0.244 s ago, so the path was taken for
+    dead and the robot swapped to its standby, on a live loopback link. What was in flight
+    at the first reading was acknowledged: no data waited 0.244 s for an ACK."""
+    stall = AckStall(0.15, 4.0)
+    assert not stall.dead(0.0, sent(3, 0.0, acked_bytes=1001, sent_bytes=4000))
+    late = sent(5, 0.244, acked_bytes=4001, sent_bytes=9000)  # 0-4000 ACKed at 0.0
+    assert not stall.dead(0.244, late)
+    assert not stall.stale(0.244, late)
+    assert stall.next_check_s(0.244, late) == pytest.approx(0.151)  # watched from here
+    # The same data still unacknowledged a gap later: dead then (and stale after two).
+    assert not stall.dead(0.35, sent(5, 0.35, acked_bytes=4001, sent_bytes=9000))
+    assert stall.dead(0.40, sent(6, 0.40, acked_bytes=4001, sent_bytes=9500))
+    assert stall.stale(0.55, sent(6, 0.55, acked_bytes=4001, sent_bytes=9500))
+
+
+def test_a_cut_while_streaming_is_dead_one_gap_after_the_first_reading() -> None:
+    """ACKs that cover only part of what the first reading saw in flight (the path died
+    with data on it) do not restart the watch: detection is as quick as before."""
+    stall = AckStall(0.15, 4.0)
+    assert not stall.dead(0.0, sent(8, 0.001, acked_bytes=50_001, sent_bytes=80_000))
+    cut = sent(9, 0.155, acked_bytes=70_001, sent_bytes=90_000)  # last ACK at 0.005
+    assert stall.dead(0.16, cut)
+    assert stall.stale(0.31, sent(9, 0.305, acked_bytes=70_001, sent_bytes=90_000))
+
+
+def test_a_cut_soon_after_an_ack_is_dead_a_gap_after_the_write_into_it() -> None:
+    """What the first reading saw in flight is ACKed, the link writes more (the write's
+    own reading notes it, :meth:`AckStall.sent`) and the path dies: dead a gap after that
+    write, not a gap after the next reading (the e2e dropout's cut, first version of the
+    fix: dead after 0.23-0.30 s of silence and stale after 0.39-0.45 s, not 0.15 and
+    0.30)."""
+    stall = AckStall(0.15, 4.0)
+    assert not stall.dead(0.0, sent(3, 0.0, acked_bytes=1001, sent_bytes=4000))
+    stall.sent(0.01, sent(2, 0.009, acked_bytes=4001, sent_bytes=6000))  # then the cut
+    assert not stall.dead(0.151, sent(2, 0.150, acked_bytes=4001, sent_bytes=6000))
+    assert stall.dead(0.165, sent(2, 0.164, acked_bytes=4001, sent_bytes=6000))
+    assert stall.stale(0.315, sent(2, 0.314, acked_bytes=4001, sent_bytes=6000))
+
+
+def test_retransmissions_do_not_restart_the_watch() -> None:
+    """A dead path's retransmissions (RTO, tail loss probes) are not new data: the byte
+    count sent stays, so the watch goes on (TcpInfo.sent_bytes leaves them out)."""
+    stall = AckStall(0.15, 4.0)
+    assert not stall.dead(0.0, sent(4, 0.0, acked_bytes=1, sent_bytes=6000))
+    assert stall.dead(0.2, sent(4, 0.2, acked_bytes=1, sent_bytes=6000))
 
 
 def test_a_path_dead_for_two_gaps_is_stale() -> None:
@@ -123,7 +180,67 @@ def test_tcp_info_of_a_loopback_connection() -> None:
             assert got.unacked == 0
             assert 0 < got.srtt_s < 0.1
             assert got.last_ack_s < 1.0
+            # The byte counts (Linux 4.19+): the data, and the SYN's sequence number.
+            assert got.sent_bytes == 1000
+            assert got.acked_bytes == 1001
     assert read_tcp_info(None) is None
+
+
+def _read(sock: socket.socket) -> TcpInfo:
+    got = read_tcp_info(sock)
+    assert got is not None
+    return got
+
+
+def _wait_for(sock: socket.socket, done: Callable[[TcpInfo], bool]) -> TcpInfo:
+    """Read *sock*'s TCP_INFO until *done* says so (at most 5 s)."""
+    deadline = time.monotonic() + 5.0
+    while not done(got := _read(sock)):
+        assert time.monotonic() < deadline, got
+        time.sleep(0.002)  # the reading's pace, not a synchronization
+    return got
+
+
+def _exchange(client: socket.socket, peer: socket.socket, data: bytes) -> TcpInfo:
+    """*client* sends *data* and reads its TCP_INFO at once; *peer* answers with a byte,
+    as the relay answers a ping (the answer carries the ACK; in this request-response
+    mode the peer's kernel otherwise delays its ACK by 40 ms or more)."""
+    client.send(data)
+    got = _read(client)
+    peer.recv(4096)
+    peer.send(b"r")
+    client.recv(16)
+    return got
+
+
+@pytest.mark.skipif(not hasattr(socket, "TCP_INFO"), reason="Linux only")
+def test_a_late_reading_on_a_live_loopback_connection_is_not_a_dead_path() -> None:
+    """The busy host's false alarm with the kernel's own readings: one reading sees data in
+    flight; its ACK comes (the watchdog, late, misses the moment nothing was in flight);
+    more than a gap after that ACK the process writes again and reads at once, before
+    the answer that ACKs it. Data in flight, no ACK for over a gap: the old rule called
+    the live path dead."""
+    with socket.create_server(("127.0.0.1", 0)) as server:
+        client = socket.create_connection(server.getsockname())
+        peer, _ = server.accept()
+        with client, peer:
+            for _ in range(4):  # out of quick-ACK mode, into request-response
+                _exchange(client, peer, b"w" * 100)
+            deadline = time.monotonic() + 20.0
+            checked = 0
+            while checked < 3:  # three times where the readings show the case
+                assert time.monotonic() < deadline, f"only {checked} readings showed it"
+                stall = AckStall(0.15, 4.0)
+                first = _exchange(client, peer, b"a" * 100)
+                stall.dead(time.monotonic() - 0.001, first)  # read as it was sent
+                _wait_for(client, lambda got: got.unacked == 0)  # not shown to stall
+                _wait_for(client, lambda got: got.last_ack_s > 0.2)
+                late = _exchange(client, peer, b"b" * 100)
+                if first.unacked == 0 or late.unacked == 0:
+                    continue  # ACKed at once (quick-ACK mode): not the case, again
+                assert late.last_ack_s > stall.gap_s(late)
+                assert not stall.dead(time.monotonic(), late), late
+                checked += 1
 
 
 @pytest.mark.netns

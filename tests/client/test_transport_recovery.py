@@ -6,7 +6,9 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import socket
-from collections.abc import AsyncIterator
+import threading
+import time
+from collections.abc import AsyncIterator, Callable
 from pathlib import Path
 from typing import Any
 
@@ -127,6 +129,91 @@ async def test_a_path_dead_past_two_gaps_is_reset_and_redialled_exactly_once_in_
     assert stats["link_timeouts"] == 0 and stats["last_close"] == "stale path"
 
 
+class RobotOnItsOwnLoop:
+    """A :class:`RobotLink` on its own thread and event loop, as in the robot's process,
+    beside the test's loop that runs the relay: the robot's loop can be kept busy while
+    the relay goes on answering."""
+
+    def __init__(self, link: RobotLink) -> None:
+        self.link = link
+        self.loop = asyncio.new_event_loop()
+        self._thread = threading.Thread(target=self.loop.run_forever, daemon=True)
+        self._thread.start()
+        self._run = asyncio.run_coroutine_threadsafe(link.run(), self.loop)
+
+    async def call(self, fn: Callable[[], Any]) -> Any:
+        """*fn()* on the robot's loop; its result."""
+        async def on_loop() -> Any:
+            return fn()
+        return await asyncio.wrap_future(asyncio.run_coroutine_threadsafe(on_loop(), self.loop))
+
+    async def stop(self) -> None:
+        await asyncio.wait_for(asyncio.wrap_future(
+            asyncio.run_coroutine_threadsafe(self.link.stop(), self.loop)), 5.0)
+        await asyncio.wait_for(asyncio.wrap_future(self._run), 5.0)
+        self.loop.call_soon_threadsafe(self.loop.stop)
+        self._thread.join(5.0)
+        self.loop.close()
+
+
+async def test_a_busy_robot_does_not_take_its_live_path_for_dead(
+    server: RelayServer, tmp_path: Path,
+) -> None:
+    """A busy host: the robot's process is off the CPU for 0.3 s right after it offered a
+    message, so its watchdog wakes late, after the send loop wrote that message, and reads
+    it in flight with the last ACK (of what the watchdog saw in flight before) 0.3 s old.
+    The link stays (no early dial, no switch, no reset): what the earlier reading saw in
+    flight was acknowledged. Before 2026-12-06 such episodes ended in a false alarm, a
+    switch or a reset (a demo under load swapped to its standby about once a minute).
+
+    The relay (this test's loop) is off the CPU too at the two readings that matter, as
+    on a busy host, so that they see the data in flight: without its pong the relay's
+    kernel delays its ACK (40 ms at least)."""
+    # Keepalive pings only after 0.5 s idle (the default): the watchdog reads when the
+    # episode's first message is written, not at a ping's.
+    tuning = LinkTuning(link_timeout_s=30.0, open_timeout_s=2.0)
+    robot = RobotOnItsOwnLoop(RobotLink(robot_config(server.url, tmp_path),
+                                        on_frame=lambda f: None, tuning=tuning))
+
+    def offer(i: int) -> None:
+        robot.link.offer("/r1/events", string_frame("/r1/events", f"e{i}", no_drop=True,
+                                                    seq=i), priority=1.0, no_drop=True)
+
+    def off_the_cpu_after(i: int) -> None:
+        offer(i)
+        time.sleep(0.3)  # the robot's process descheduled (the stimulus, not a wait)
+
+    def episode(i: int) -> None:
+        offer(2 * i)  # written at once: the watchdog reads it in flight
+        robot.loop.call_later(0.02, off_the_cpu_after, 2 * i + 1)
+
+    try:
+        await wait_until(lambda: robot.loop.is_running())
+        stats: dict[str, Any] = {}
+        while not stats.get("connected"):
+            stats = await robot.call(robot.link.stats)
+        for i in range(5):
+            start = time.monotonic()
+            robot.loop.call_soon_threadsafe(episode, i)
+            time.sleep(0.01)  # the relay off the CPU while the first message is read
+            await asyncio.sleep(start + 0.29 - time.monotonic())
+            time.sleep(0.06)  # ... and while the robot wakes, writes and reads again
+            await wait_until_acked(robot)
+        stats = await robot.call(robot.link.stats)
+    finally:
+        await robot.stop()
+    assert stats["dead_paths"] == stats["stale_paths"] == stats["false_alarms"] == 0, stats
+    assert stats["connects"] == 1
+
+
+async def wait_until_acked(robot: RobotOnItsOwnLoop) -> None:
+    """Until the relay acknowledged every no_drop event offered (deadline 10 s)."""
+    deadline = time.monotonic() + 10.0
+    while (await robot.call(robot.link.stats))["no_drop_unacked"]:
+        assert time.monotonic() < deadline
+        await asyncio.sleep(0.01)  # the reading's pace, not a synchronization
+
+
 async def test_a_false_alarm_keeps_the_connection_and_closes_the_new_socket(
     server: RelayServer, tmp_path: Path, monkeypatch: pytest.MonkeyPatch,
 ) -> None:
@@ -156,6 +243,7 @@ async def test_a_false_alarm_keeps_the_connection_and_closes_the_new_socket(
         await wait_until(lambda: bool(opened) and opened[0].fileno() == -1)
         stats = robot.stats()
     assert stats["connects"] == 1 and stats["dead_paths"] == 0
+    assert stats["false_alarms"] == 1
 
 
 async def test_an_outage_dial_is_told_when_the_next_message_is_due(

@@ -79,11 +79,12 @@ class AckStall:
     """Decides from polled :class:`TcpInfo` whether the path is dead (pure, no I/O).
 
     Dead: data is unacknowledged, no ACK came for ``max(min_gap_s, rtts x srtt)``, and the
-    unacknowledged data has been seen for that long too: readings that long apart saw data
-    in flight, and the later one's ACKs do not cover what the earlier one had sent (the
-    kernel's byte counts: else the path delivered in between and the data in flight now
-    is newer). The last condition matters after an idle spell, or a late wake-up on a busy
-    host: ``tcpi_last_ack_recv`` is then large although the data was just sent.
+    unacknowledged data has been seen for that long too: a reading, or a write's own
+    reading (:meth:`sent`), that long ago saw bytes sent that the ACKs still do not cover
+    (the kernel's byte counts; a reading whose bytes are all ACKed says the path delivered
+    since, and the data in flight now is newer). The last condition matters after an idle
+    spell, or a late wake-up on a busy host: ``tcpi_last_ack_recv`` is then large although
+    the data was just sent.
     A live link, however congested, ACKs what arrives; only a silent path stops the ACKs
     with data outstanding (a receiver that stops reading still ACKs, window probes too).
 

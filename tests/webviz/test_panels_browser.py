@@ -103,6 +103,9 @@ async def test_empty_panels_name_their_topic_and_a_robot_switch_clears_them(
         await page.goto(web.url + "#/robot/r1")
         await wait_js(page, "Number(document.querySelector('#camera-canvas').dataset.frames"
                             " || 0) >= 1 && document.querySelector('#scan-canvas').dataset.beams")
+        # The waiting notes go with the panel's first message, not at the next
+        # once-a-second render: "Nothing on ... yet" lay over a picture already drawn.
+        assert await page.is_hidden(note("camera")) and await page.is_hidden(note("scan"))
         await page.locator(note("cloud"), has_text=(
             "Nothing on /r1/points (sensor_msgs/msg/PointCloud2) yet. The robot's /points is "
             "shown here; another topic needs remote_topic: /r1/points in its publish entry."

@@ -138,7 +138,11 @@ class App {
       return;
     }
     if (!this.robot || !meta.topic.startsWith(`/${this.robot}/`)) return;
+    const firstOfType = this.seenTypes.get(meta.topic) !== meta.type;
     this.seenTypes.set(meta.topic, meta.type);
+    // A panel's "Nothing on ... yet" goes with its first message, not at the next
+    // once-a-second health render: it lay over a camera picture already drawn.
+    if (firstOfType) this.renderNotes();
     const v = this.views;
     v.scene.update(meta, msg); // the 3D scene draws what it can place through TF
     switch (meta.type) {

@@ -8,7 +8,8 @@ doing any work, then converts CDR -> rosbags message -> FlatBuffer frame, compre
 the entry asks for it (:mod:`fleetctl.wire.compression`; the link fragments afterwards) and
 hands the frame to the link. For every ``subscribe`` entry it holds a publisher; frames from
 the link (reassembled and decompressed by the link) are decoded, serialized to CDR and
-published as bytes.
+published as bytes. Those publishers keep a deep history (:mod:`fleetctl.client.ros.republish`)
+so that a backlog of no_drop frames the relay delivers at once reaches slow local readers.
 
 Latched topics (docs/client.md): a subscription whose publishers all offer TRANSIENT_LOCAL
 marks its frames ``latched``; one over :data:`LATCHED_COMPRESS_BYTES` is deflate-compressed
@@ -54,6 +55,14 @@ from fleetctl.client.ros.executor import steady_timer
 from fleetctl.client.ros.intake import LoopIntake
 from fleetctl.client.ros.msgtypes import message_class
 from fleetctl.client.ros.qos import AdaptiveSubscription
+from fleetctl.client.ros.republish import (
+    ACK_WINDOW_S,
+    DEEP_DEPTH,
+    SHALLOW_DEPTH,
+    BurstWatch,
+    depth_for,
+    republish_qos,
+)
 from fleetctl.client.ros.tfsource import TfRepublisher, start_tf
 from fleetctl.client.ros.videotopic import VideoTopic, video_topics
 from fleetctl.client.transport import LinkFeedback
@@ -65,13 +74,10 @@ from fleetctl.wire.compression import LATCHED_DEFLATE_LEVEL, CompressionCodec, c
 log = logging.getLogger(__name__)
 BATTERY_TYPE = "sensor_msgs/msg/BatteryState"
 
-# Commands republished locally (goal poses): reliable, like RViz's tools publish them.
-COMMAND_QOS = QoSProfile(
-    history=HistoryPolicy.KEEP_LAST,
-    depth=10,
-    reliability=ReliabilityPolicy.RELIABLE,
-    durability=DurabilityPolicy.VOLATILE,
-)
+# Topics republished locally (goal poses, events, scans): reliable, like RViz's tools
+# publish commands; the depth is fleetctl.client.ros.republish's (deep; shallow for big
+# droppable messages). COMMAND_QOS is the shallow one.
+COMMAND_QOS = republish_qos(SHALLOW_DEPTH)
 # A received latched topic republished locally: late joiners get the last message, like
 # from map_server itself (depth 1, as map_server and robot_state_publisher keep).
 LATCHED_QOS = QoSProfile(
@@ -152,6 +158,11 @@ class BridgeStats:
         lost_before_client: local messages DDS lost before the node took them (gaps in
             their publisher's sequence numbers, :mod:`fleetctl.client.seqgaps`), never in
             ``local_in``; ``per_topic_lost`` by local topic.
+        no_drop_at_risk: of ``published_local``, no_drop messages republished while the
+            publisher's history (``republish.DEEP_DEPTH``) may have been full of samples
+            a local reader had not acknowledged: each may have overwritten one a slow
+            reader never took (:class:`~fleetctl.client.ros.republish.BurstWatch`; one
+            WARNING per topic); ``per_topic_at_risk`` by remote topic (bounded).
     """
 
     local_in: int = 0
@@ -173,6 +184,8 @@ class BridgeStats:
     latched_resent: int = 0
     latched_republished: int = 0
     lost_before_client: int = 0
+    no_drop_at_risk: int = 0
+    per_topic_at_risk: dict[str, int] = field(default_factory=dict)
     per_topic_sent: dict[str, int] = field(default_factory=dict)
     per_topic_lost: dict[str, int] = field(default_factory=dict)
     per_topic_encode_errors: dict[str, int] = field(default_factory=dict)
@@ -204,18 +217,23 @@ class _Route:
         self._regex = re2.compile(spec.remote_topic) if spec.is_regex else None
         self._publishers: dict[str, Any] = {}
         self._latched: set[str] = set()  # local topics whose publisher is TRANSIENT_LOCAL
+        # Depth of each volatile publisher (fleetctl.client.ros.republish): deep from the
+        # start, so the first no_drop burst finds it matched and deep.
+        self.depths: dict[str, int] = {}
         self.refused: dict[str, str] = {}  # local topic -> rcl's reason (bounded)
         if spec.local_topic is not None:
             self._publishers[spec.local_topic] = node.create_publisher(
-                self._cls, spec.local_topic, COMMAND_QOS
+                self._cls, spec.local_topic, republish_qos(DEEP_DEPTH)
             )
+            self.depths[spec.local_topic] = DEEP_DEPTH
 
     def matches(self, topic: str) -> bool:
         if self._regex is None:
             return topic == self.spec.remote_topic
         return self._regex.fullmatch(topic) is not None
 
-    def publisher_for(self, topic: str, latched: bool = False) -> Any | None:
+    def publisher_for(self, topic: str, latched: bool = False, *, no_drop: bool = False,
+                      frame_bytes: int = 0) -> Any | None:
         """The publisher for remote *topic*; None when the dynamic bound is reached.
 
         Raises:
@@ -230,10 +248,16 @@ class _Route:
         subscriber that had matched the old publisher may miss this first latched
         message while it discovers the new one; latched topics' readers (RViz's map
         display, Nav2's static layer, tf2) are TRANSIENT_LOCAL and do not.
+
+        A volatile publisher is deep (:mod:`fleetctl.client.ros.republish`); the first
+        droppable frame over ``BIG_DROPPABLE_BYTES`` (*frame_bytes*, *no_drop*) replaces it
+        by a shallow one for good, which bounds what a stuck reader makes it hold.
         """
         local = self.spec.local_topic or topic
         publisher = self._publishers.get(local)
-        if publisher is not None and latched and local not in self._latched:
+        depth = depth_for(no_drop, frame_bytes)
+        if publisher is not None and local not in self._latched and (
+                latched or depth < self.depths.get(local, DEEP_DEPTH)):
             self._node.destroy_publisher(publisher)
             del self._publishers[local]
             publisher = None
@@ -242,7 +266,11 @@ class _Route:
                 raise BadLocalTopic(self.refused[local])
             if len(self._publishers) >= MAX_DYNAMIC_PUBLISHERS:
                 return None
-            qos_profile = LATCHED_QOS if latched or local in self._latched else COMMAND_QOS
+            if latched or local in self._latched:
+                qos_profile = LATCHED_QOS
+            else:
+                depth = min(depth, self.depths.get(local, DEEP_DEPTH))  # shallow for good
+                qos_profile = republish_qos(depth)
             try:
                 publisher = self._node.create_publisher(self._cls, local, qos_profile)
             except InvalidTopicNameException as exc:
@@ -253,8 +281,15 @@ class _Route:
                 raise BadLocalTopic(reason) from None
             if latched:
                 self._latched.add(local)
+            else:
+                self.depths[local] = depth
             self._publishers[local] = publisher
         return publisher
+
+    def depth_of(self, topic: str) -> int:
+        """History depth of remote *topic*'s volatile publisher (0: latched, none yet)."""
+        local = self.spec.local_topic or topic
+        return 0 if local in self._latched else self.depths.get(local, 0)
 
 
 def _failure_hint(exc: BaseException) -> str:
@@ -324,6 +359,7 @@ class Bridge(Node):
         self._mismatches: dict[tuple[str, str], int] = {}  # (topic, type) -> frames dropped
         self._refused_frames: dict[str, int] = {}  # remote topic -> frames (bounded)
         self._said_too_large: set[str] = set()  # latched topics over the kept bound, said
+        self._bursts = BurstWatch()  # no_drop messages republished beyond the history
         self._config = config
         self._codec = codec
         self._typestore = typestore
@@ -658,7 +694,8 @@ class Bridge(Node):
                     meta.type, seen, LOG_EVERY)
             return
         try:
-            publisher = route.publisher_for(meta.topic, latched=meta.latched)
+            publisher = route.publisher_for(meta.topic, latched=meta.latched,
+                                            no_drop=meta.no_drop, frame_bytes=len(frame))
         except BadLocalTopic as exc:
             self._bad_local_topic(route, meta.topic, str(exc))
             return
@@ -678,4 +715,26 @@ class Bridge(Node):
         self.stats.published_local += 1
         if meta.latched:
             self.stats.latched_republished += 1
+        elif meta.no_drop:
+            self._watch_burst(route, meta.topic)
+
+    def _watch_burst(self, route: _Route, topic: str) -> None:
+        """Count a no_drop message published at risk of overwriting one a slow local
+        reader has not taken (fleetctl.client.ros.republish.BurstWatch); say so once per
+        topic: a loss there is not seen by anything else."""
+        depth = route.depth_of(topic)
+        if not depth or not self._bursts.published(topic, depth):
+            return
+        self.stats.no_drop_at_risk += 1
+        at_risk = self.stats.per_topic_at_risk
+        if topic not in at_risk and len(at_risk) >= MAX_REFUSED_NAMES:
+            return  # counted in the total; the per-topic map stays bounded
+        at_risk[topic] = at_risk.get(topic, 0) + 1
+        if at_risk[topic] == 1:
+            log.warning(
+                "%s: more than %d no_drop messages of this topic were republished locally "
+                "within %.0f s (a backlog the relay delivered at once?): a local subscriber "
+                "slower than that may miss the oldest, overwritten in the publisher's "
+                "KEEP_LAST %d history before it took them (counted in no_drop_at_risk; "
+                "said once per topic)", topic, depth, ACK_WINDOW_S, depth)
 

@@ -249,6 +249,12 @@ async def browse(url: str, token: str) -> None:
             # so the scene finds the map frame only through the relay's latched TF snapshot.
             await wait_js(page, "document.querySelector('#scene-canvas').dataset.fixed"
                                 " === 'map'")
+            # Every picture the sim sends reaches the page through the deployment (the
+            # camera's JPEG and the cloud), and the page has drawn it: the screenshot below
+            # showed "Nothing on ... yet" beside the first frames when taken before.
+            await wait_js(page, "Number(document.querySelector('#camera-canvas').dataset"
+                                ".frames || 0) >= 1 && Number(document.querySelector("
+                                "'#cloud-canvas').dataset.points || 0) > 0")
             shots = os.environ.get("FLEETCTL_WEBVIZ_SCREENSHOTS")
             if shots:
                 await page.screenshot(path=str(Path(shots) / "up-robot.png"), full_page=True)

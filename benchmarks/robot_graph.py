@@ -56,6 +56,7 @@ import tempfile
 import time
 import urllib.request
 from collections import Counter
+from collections.abc import AsyncIterator
 from pathlib import Path
 from typing import Any
 
@@ -409,6 +410,28 @@ def metrics(port: int) -> dict[str, float]:
 LATENCY_TOPICS = (f"/{ROBOT}/imu/data", f"/{ROBOT}/odom", f"/{ROBOT}/status")
 
 
+async def whole_messages(ws: Any, deadline: float) -> AsyncIterator[bytes]:
+    """The whole binary messages *ws* receives until *deadline* (``time.monotonic()``),
+    fragmented ones reassembled."""
+    from fleetctl.wire.fragments import FRAGMENT_TYPE, Reassembler
+    from fleetctl.wire.metadata import read_metadata
+
+    reassembler = Reassembler(64 << 20, 30.0)
+    while (left := deadline - time.monotonic()) > 0:
+        try:
+            message = await asyncio.wait_for(ws.recv(), left)
+        except TimeoutError:
+            return
+        if not isinstance(message, bytes):
+            continue
+        if read_metadata(message).type == FRAGMENT_TYPE:
+            whole = reassembler.feed(message, time.monotonic())
+            if whole is None:
+                continue
+            message = whole
+        yield message
+
+
 async def consume(port: int, seconds: float, counts: Counter[str],
                   sizes: dict[str, int], latencies_ms: list[float]) -> None:
     """A viewer subscribed to all of the robot's topics; counts whole messages per topic
@@ -416,26 +439,13 @@ async def consume(port: int, seconds: float, counts: Counter[str],
     from websockets.asyncio.client import connect
 
     from fleetctl.wire.control import encode_subscription
-    from fleetctl.wire.fragments import FRAGMENT_TYPE, Reassembler
     from fleetctl.wire.metadata import read_metadata
 
-    reassembler = Reassembler(64 << 20, 30.0)
     deadline = time.monotonic() + seconds
     async with connect(f"ws://127.0.0.1:{port}/", max_size=None, ping_interval=None,
                        additional_headers={"Authorization": f"Bearer {CONSUMER_TOKEN}"}) as ws:
         await ws.send(encode_subscription(f"/{ROBOT}/.*"))
-        while (left := deadline - time.monotonic()) > 0:
-            try:
-                message = await asyncio.wait_for(ws.recv(), left)
-            except TimeoutError:
-                break
-            if not isinstance(message, bytes):
-                continue
-            if read_metadata(message).type == FRAGMENT_TYPE:
-                whole = reassembler.feed(message, time.monotonic())
-                if whole is None:
-                    continue
-                message = whole
+        async for message in whole_messages(ws, deadline):
             meta = read_metadata(message)
             counts[meta.topic] += 1
             sizes[meta.topic] = len(message)
@@ -477,26 +487,13 @@ async def late_map(port: int, timeout_s: float) -> dict[str, Any]:
     from websockets.asyncio.client import connect
 
     from fleetctl.wire.control import encode_subscription
-    from fleetctl.wire.fragments import FRAGMENT_TYPE, Reassembler
     from fleetctl.wire.metadata import read_metadata
 
-    reassembler = Reassembler(64 << 20, 30.0)
     start = time.monotonic()
     async with connect(f"ws://127.0.0.1:{port}/", max_size=None, ping_interval=None,
                        additional_headers={"Authorization": f"Bearer {CONSUMER_TOKEN}"}) as ws:
         await ws.send(encode_subscription(f"/{ROBOT}/map"))
-        while time.monotonic() - start < timeout_s:
-            try:
-                message = await asyncio.wait_for(ws.recv(), timeout_s)
-            except TimeoutError:
-                break
-            if not isinstance(message, bytes):
-                continue
-            if read_metadata(message).type == FRAGMENT_TYPE:
-                whole = reassembler.feed(message, time.monotonic())
-                if whole is None:
-                    continue
-                message = whole
+        async for message in whole_messages(ws, start + timeout_s):
             meta = read_metadata(message)
             return {"received": True, "after_s": round(time.monotonic() - start, 2),
                     "frame_bytes": len(message), "type": meta.type, "latched": meta.latched}

@@ -132,6 +132,12 @@ def stop_line(stats: dict[str, Any]) -> str:
     acked = sum(int(t.get("acked", 0)) for t in topics.values() if isinstance(t, dict))
     lost = int(bridge.get("lost_before_client") or 0)  # DDS's losses, never in local_in
     lost_note = f", {lost} local messages lost before the client took them" if lost else ""
+    # no_drop messages republished here in bursts deeper than their writer's history
+    # (fleetctl.client.ros.republish): a slow local node may have missed them.
+    at_risk = int(bridge.get("no_drop_at_risk") or 0)
+    if at_risk:
+        lost_note += (f", {at_risk} no_drop messages republished in bursts past the local "
+                      "history (a slow local reader may have missed them)")
     return (f"client stopped: {bridge.get('local_in')} local messages in, "
             f"{bridge.get('sent')} handed to the link, {acked} acknowledged by the server "
             "(status included), "

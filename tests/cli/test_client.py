@@ -78,6 +78,12 @@ def test_the_stop_line_says_what_the_server_acknowledged() -> None:
     assert "2 connections (1 reconnects)" in stop_line(reached)
     # What DDS lost before the client took it (publisher sequence gaps) is said when any.
     assert "lost before" not in stop_line(reached)
+    # So are no_drop messages republished past the local writer's history (the last hop).
+    assert "past the local history" not in stop_line(reached)
+    risky = {**reached, "bridge": {**never["bridge"], "no_drop_at_risk": 5}}
+    assert stop_line(risky).endswith(
+        ", 5 no_drop messages republished in bursts past the local history (a slow local "
+        "reader may have missed them)")
     lossy = {**reached, "bridge": {**never["bridge"], "lost_before_client": 17}}
     assert stop_line(lossy).endswith(
         "113 no_drop overflow, 17 local messages lost before the client took them")

@@ -144,7 +144,10 @@ async def test_a_latched_map_sent_to_a_reaches_later_viewers_on_b_and_on_a_new_c
                 assert frames == parts
         shared = fanout(a).latched
         assert shared is not None
-        assert shared.counters["puts"] == 1 and shared.counters["put_failures"] == 0
+        # Stored once. A write that fails while the just-started cluster's JetStream has no
+        # stream leader yet is retried (counted in put_failures: 1 in a CI run on a loaded
+        # host, with puts 1): the retry is kvloops' job, not this test's subject.
+        assert shared.counters["puts"] == 1, shared.counters
         assert fanout(b).latched is not None and fanout(b).latched.counters["received"] == 1
         # The robot sends a map too big to keep: no replica serves the older one.
         async with client(a, source="127.0.0.2") as robot:

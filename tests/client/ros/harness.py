@@ -15,6 +15,8 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
+import yaml
+
 REPO = Path(__file__).resolve().parents[3]
 
 
@@ -92,6 +94,12 @@ class JsonProc:
         self._reader.join(timeout=grace_s)
         self._log.close()
         return int(self.process.returncode)
+
+
+def write_yaml(path: Path, data: Any) -> Path:
+    """Write *data* to *path* as YAML, keys in the order given (a test's configs)."""
+    path.write_text(yaml.safe_dump(data, sort_keys=False), encoding="utf-8")
+    return path
 
 
 def ros_helper(mode: str, args: list[str], domain_id: int, log_path: Path) -> JsonProc:

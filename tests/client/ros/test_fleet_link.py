@@ -21,7 +21,6 @@ from pathlib import Path
 from typing import Any
 
 import pytest
-import yaml
 
 pytest.importorskip("rclpy")
 
@@ -35,6 +34,7 @@ from tests.client.ros.harness import (
     JsonProc,
     fleetctl_argv,
     ros_helper,
+    write_yaml,
 )
 from tests.client.ros.rosproc import WARMUP
 
@@ -63,15 +63,10 @@ class Fleet:
         wait_until(lambda: http_ok(f"{self.http}/healthz"), STARTUP_S, describe="server")
 
 
-def _write(path: Path, data: Any) -> Path:
-    path.write_text(yaml.safe_dump(data, sort_keys=False), encoding="utf-8")
-    return path
-
-
 def _configs(root: Path, port: int) -> None:
-    _write(root / "server.yaml", {"listen_host": "127.0.0.1", "listen_port": port,
-                                  "auth_map": "auth.yaml", "database": "fleet.db"})
-    _write(root / "auth.yaml", {"version": 1, "identities": [
+    write_yaml(root / "server.yaml", {"listen_host": "127.0.0.1", "listen_port": port,
+                                      "auth_map": "auth.yaml", "database": "fleet.db"})
+    write_yaml(root / "auth.yaml", {"version": 1, "identities": [
         {"name": "alpha", "ip": "127.0.1.2", "rules": [
             {"topic": "/alpha/.*", "op": "send"},
             {"topic": "/alpha/(goal_pose|initialpose)", "op": "receive"}]},
@@ -84,7 +79,7 @@ def _configs(root: Path, port: int) -> None:
     ]})
     url = f"ws://127.0.0.1:{port}/"
     fast = {"reconnect_min_s": 0.1, "reconnect_max_s": 0.5}
-    _write(root / "alpha.yaml", {
+    write_yaml(root / "alpha.yaml", {
         "server_url": url, "robot_name": "alpha", "bind_address": "127.0.1.2",
         "publish": [{"topic": "/scan", "type": "sensor_msgs/msg/LaserScan"},
                     {"topic": "/events", "type": "std_msgs/msg/String", "no_drop": True},
@@ -92,7 +87,7 @@ def _configs(root: Path, port: int) -> None:
         "subscribe": [{"remote_topic": "/alpha/goal_pose",
                        "type": "geometry_msgs/msg/PoseStamped", "local_topic": "/goal_pose"}],
         "limits": fast})
-    _write(root / "bravo.yaml", {
+    write_yaml(root / "bravo.yaml", {
         "server_url": url, "robot_name": "bravo", "bind_address": "127.0.1.3",
         "subscribe": [{"remote_topic": "/alpha/scan", "type": "sensor_msgs/msg/LaserScan",
                        "local_topic": "/alpha_scan"},

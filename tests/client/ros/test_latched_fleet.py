@@ -20,7 +20,6 @@ from pathlib import Path
 from typing import Any
 
 import pytest
-import yaml
 
 pytest.importorskip("rclpy")
 
@@ -33,7 +32,7 @@ from fleetctl.wire.fragments import FRAGMENT_TYPE, Reassembler
 from fleetctl.wire.metadata import read_metadata
 from fleetctl.wire.registry import TypeRegistry
 from fleetctl.wire.samples import occupancy_grid
-from tests.client.ros.harness import JsonProc, fleetctl_argv, ros_helper
+from tests.client.ros.harness import JsonProc, fleetctl_argv, ros_helper, write_yaml
 
 pytestmark = [pytest.mark.ros, pytest.mark.slow]
 ALPHA_DOMAIN, BRAVO_DOMAIN = 26, 27  # this file's own domains (the client tests use 20-39)
@@ -62,15 +61,10 @@ class Fleet:
         return proc
 
 
-def _write(path: Path, data: Any) -> Path:
-    path.write_text(yaml.safe_dump(data, sort_keys=False), encoding="utf-8")
-    return path
-
-
 def _configs(root: Path, port: int) -> None:
-    _write(root / "server.yaml", {"listen_host": "127.0.0.1", "listen_port": port,
-                                  "auth_map": "auth.yaml", "database": "fleet.db"})
-    _write(root / "auth.yaml", {"version": 1, "identities": [
+    write_yaml(root / "server.yaml", {"listen_host": "127.0.0.1", "listen_port": port,
+                                      "auth_map": "auth.yaml", "database": "fleet.db"})
+    write_yaml(root / "auth.yaml", {"version": 1, "identities": [
         {"name": "alpha", "ip": ALPHA_IP, "rules": [{"topic": "/alpha/.*", "op": "send"}]},
         {"name": "bravo", "ip": BRAVO_IP, "rules": [
             {"topic": "/bravo/.*", "op": "send"},
@@ -80,7 +74,7 @@ def _configs(root: Path, port: int) -> None:
          "rules": [{"topic": ".*", "op": "receive"}]},
     ]})
     fast = {"reconnect_min_s": 0.1, "reconnect_max_s": 0.5}
-    _write(root / "alpha.yaml", {
+    write_yaml(root / "alpha.yaml", {
         "server_url": f"ws://127.0.0.1:{port}/", "robot_name": "alpha",
         "bind_address": ALPHA_IP,
         "publish": [{"topic": "/map", "type": MAP_TYPE}],  # compression none: the client
@@ -90,7 +84,7 @@ def _configs(root: Path, port: int) -> None:
     if HAVE_TF2_MSGS:
         subscribe.append({"remote_topic": "/alpha/tf_static", "type": TF_TYPE,
                           "local_topic": "/alpha_tf_static"})
-    _write(root / "bravo.yaml", {
+    write_yaml(root / "bravo.yaml", {
         "server_url": f"ws://127.0.0.1:{port}/", "robot_name": "bravo",
         "bind_address": BRAVO_IP, "subscribe": subscribe, "limits": fast})
 

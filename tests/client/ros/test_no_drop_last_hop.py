@@ -24,7 +24,6 @@ from pathlib import Path
 from typing import Any
 
 import pytest
-import yaml
 
 pytest.importorskip("rclpy")
 
@@ -33,7 +32,7 @@ from rclpy.serialization import deserialize_message
 from fleetctl.demo.fleet import free_port
 from fleetctl.demo.run import http_ok, online_robots
 from fleetctl.waiting import wait_until
-from tests.client.ros.harness import JsonProc, fleetctl_argv, ros_helper
+from tests.client.ros.harness import JsonProc, fleetctl_argv, ros_helper, write_yaml
 from tests.support import ros_domain_alone
 
 pytestmark = [pytest.mark.ros, pytest.mark.slow]
@@ -47,21 +46,17 @@ WARMUP = "warmup"
 TYPE = "std_msgs/msg/String"
 
 
-def _write(path: Path, data: Any) -> None:
-    path.write_text(yaml.safe_dump(data, sort_keys=False), encoding="utf-8")
-
-
 def _configs(root: Path, port: int) -> None:
-    _write(root / "server.yaml", {"listen_host": "127.0.0.1", "listen_port": port,
-                                  "auth_map": "auth.yaml", "database": "fleet.db"})
-    _write(root / "auth.yaml", {"version": 1, "identities": [
+    write_yaml(root / "server.yaml", {"listen_host": "127.0.0.1", "listen_port": port,
+                                      "auth_map": "auth.yaml", "database": "fleet.db"})
+    write_yaml(root / "auth.yaml", {"version": 1, "identities": [
         {"name": "bravo", "ip": ROBOT_IP, "rules": [
             {"topic": "/bravo/.*", "op": "send"}, {"topic": "/ops/events", "op": "receive"}]},
         {"name": "operator",
          "token_sha256": hashlib.sha256(OPERATOR_TOKEN.encode()).hexdigest(),
          "rules": [{"topic": ".*", "op": "receive"}, {"topic": "/ops/events", "op": "send"}]},
     ]})
-    _write(root / "bravo.yaml", {
+    write_yaml(root / "bravo.yaml", {
         "server_url": f"ws://127.0.0.1:{port}/", "robot_name": "bravo",
         "bind_address": ROBOT_IP,
         "subscribe": [{"remote_topic": "/ops/events", "type": TYPE,

@@ -16,10 +16,8 @@ import hashlib
 import threading
 from collections.abc import Iterator
 from pathlib import Path
-from typing import Any
 
 import pytest
-import yaml
 
 rclpy = pytest.importorskip("rclpy")
 
@@ -27,7 +25,7 @@ from fleetctl.demo.fleet import free_port  # noqa: E402
 from fleetctl.demo.run import http_ok, online_robots  # noqa: E402
 from fleetctl.waiting import wait_until  # noqa: E402
 from fleetctl.wire.metadata import read_metadata  # noqa: E402
-from tests.client.ros.harness import JsonProc, fleetctl_argv  # noqa: E402
+from tests.client.ros.harness import JsonProc, fleetctl_argv, write_yaml  # noqa: E402
 
 pytestmark = [pytest.mark.ros, pytest.mark.slow]
 DOMAIN_ID = 85  # this file's own ROS domain
@@ -36,21 +34,17 @@ TOKEN = "viewer-token-for-rosout-tests"
 STARTUP_S = 30.0
 
 
-def _write(path: Path, data: Any) -> None:
-    path.write_text(yaml.safe_dump(data, sort_keys=False), encoding="utf-8")
-
-
 @pytest.fixture
 def fleet(tmp_path: Path) -> Iterator[tuple[int, JsonProc]]:
     """A relay and robot alpha's client sending ``/rosout``: (relay port, client)."""
     port = free_port()
-    _write(tmp_path / "server.yaml", {"listen_host": "127.0.0.1", "listen_port": port,
-                                      "auth_map": "auth.yaml", "database": "fleet.db"})
-    _write(tmp_path / "auth.yaml", {"version": 1, "identities": [
+    write_yaml(tmp_path / "server.yaml", {"listen_host": "127.0.0.1", "listen_port": port,
+                                          "auth_map": "auth.yaml", "database": "fleet.db"})
+    write_yaml(tmp_path / "auth.yaml", {"version": 1, "identities": [
         {"name": "alpha", "ip": ALPHA_IP, "rules": [{"topic": "/alpha/.*", "op": "send"}]},
         {"name": "viewer", "token_sha256": hashlib.sha256(TOKEN.encode()).hexdigest(),
          "rules": [{"topic": ".*", "op": "receive"}]}]})
-    _write(tmp_path / "alpha.yaml", {
+    write_yaml(tmp_path / "alpha.yaml", {
         "server_url": f"ws://127.0.0.1:{port}/", "robot_name": "alpha",
         "bind_address": ALPHA_IP,
         "publish": [{"topic": "/rosout", "type": "rcl_interfaces/msg/Log"}]})

@@ -29,14 +29,13 @@ from pathlib import Path
 from typing import Any
 
 import pytest
-import yaml
 
 pytest.importorskip("rclpy")
 
 from fleetctl.demo.fleet import free_port
 from fleetctl.demo.run import http_ok, online_robots
 from fleetctl.waiting import wait_until
-from tests.client.ros.harness import JsonProc, fleetctl_argv, spun_bridge
+from tests.client.ros.harness import JsonProc, fleetctl_argv, spun_bridge, write_yaml
 
 pytestmark = [pytest.mark.ros, pytest.mark.slow]
 DOMAIN_ID = 62  # the in-process bridge test (this file's range: 61-62)
@@ -61,14 +60,10 @@ class Fleet:
         return f"ws://127.0.0.1:{self.port}/"
 
 
-def _write(path: Path, data: Any) -> None:
-    path.write_text(yaml.safe_dump(data, sort_keys=False), encoding="utf-8")
-
-
 def _configs(root: Path, port: int) -> None:
-    _write(root / "server.yaml", {"listen_host": "127.0.0.1", "listen_port": port,
-                                  "auth_map": "auth.yaml", "database": "fleet.db"})
-    _write(root / "auth.yaml", {"version": 1, "identities": [
+    write_yaml(root / "server.yaml", {"listen_host": "127.0.0.1", "listen_port": port,
+                                      "auth_map": "auth.yaml", "database": "fleet.db"})
+    write_yaml(root / "auth.yaml", {"version": 1, "identities": [
         {"name": "cam1", "ip": "127.0.1.5", "rules": [
             {"topic": "/cam1/.*", "op": "send"},
             {"topic": "/keyframe_requests", "op": "receive"}]},
@@ -78,7 +73,7 @@ def _configs(root: Path, port: int) -> None:
                    {"topic": "/keyframe_requests", "op": "send"}]},
     ]})
     camera = {"topic": "/camera/image_raw", "type": "sensor_msgs/msg/Image", "priority": 2}
-    _write(root / "cam1.yaml", {
+    write_yaml(root / "cam1.yaml", {
         "server_url": f"ws://127.0.0.1:{port}/", "robot_name": "cam1",
         "bind_address": "127.0.1.5",
         "publish": [

@@ -144,10 +144,16 @@ class RelayConnection(FrameSink, BatchedWritesConnection, ServerConnection):
         """Whether the request came as HTTP/1.0 (see :mod:`fleetctl.server.http10`)."""
         return self._request_line.http10
 
+    @property
+    def _all_handled(self) -> bool:
+        """Every frame read so far was handled: none waits for ``recv()`` nor is held over a
+        rate (:meth:`decline`), so the pong of the last ping read may go."""
+        return not self.pending_messages and not self._held
+
     def message_handled(self) -> None:
         """Mark one message from ``recv()`` as handled; pongs held behind it may go."""
         super().message_handled()
-        if self.pending_messages or self._held:
+        if not self._all_handled:
             return
         if self.held_pongs is not None:
             self.held_pongs.settle()
@@ -175,7 +181,7 @@ class RelayConnection(FrameSink, BatchedWritesConnection, ServerConnection):
             if collecting:
                 assert through is not None
                 through.end()
-        if not self.pending_messages and not self._held:
+        if self._all_handled:
             self._answer_read_pong()  # the frames before its ping are handled now
         try:
             self.send_data()
@@ -186,7 +192,7 @@ class RelayConnection(FrameSink, BatchedWritesConnection, ServerConnection):
             self.close_deadline = self.loop.time() + self.close_timeout
         # Pings read with these bytes are answered once every frame before them was
         # handled (a cluster: their pongs wait for those frames' store).
-        if self.held_pongs is not None and not self.pending_messages and not self._held:
+        if self.held_pongs is not None and self._all_handled:
             self.held_pongs.settle()
 
     # -- back-pressure -------------------------------------------------------------------

@@ -21,7 +21,6 @@ import itertools
 import json
 import logging
 import signal
-import sys
 import threading
 import time
 from collections.abc import Callable
@@ -36,6 +35,7 @@ from fleetctl.client.ros.bridge import Bridge, LinkPort
 from fleetctl.client.ros.executor import NodeExecutor
 from fleetctl.client.ros.intake import LoopIntake, load_wakeups
 from fleetctl.client.transport import RobotLink
+from fleetctl.gilswitch import tune_gil
 from fleetctl.wire.codec import Codec
 from fleetctl.wire.control import UNKNOWN_BATTERY, encode_status
 from fleetctl.wire.registry import TypeRegistry
@@ -180,21 +180,6 @@ def _stats(link: RobotLink, bridge: Bridge, intake: LoopIntake | None) -> dict[s
     if intake is not None:
         stats["intake"] = {"taken": intake.taken, "failed_callbacks": intake.failed_callbacks}
     return stats
-
-
-# How long a thread running Python keeps the GIL when another thread wants it (Python's
-# default: 5 ms). The executor converts the slow topics (a Nav2 Path: 39 ms of Python,
-# fleetctl.client.ros.qos.SLOW_MESSAGE_S), and each time the loop's thread gives the GIL
-# up (every socket call, every wait) it waited up to 5 ms to get it back: the link's RTT
-# grew to 11 ms on loopback, its window shrank to 9 KB and it carried 2.2 MB/s. With
-# 0.5 ms: 203 KB, 48 MB/s, a 30 Hz camera 13 of 30 images a second instead of 1.9
-# (docs/benchmarks.md, "A realistic robot graph"). A lone thread is never interrupted.
-GIL_SWITCH_INTERVAL_S = 0.0005
-
-
-def tune_gil() -> None:
-    """Give the GIL back to the link's loop within :data:`GIL_SWITCH_INTERVAL_S`."""
-    sys.setswitchinterval(GIL_SWITCH_INTERVAL_S)
 
 
 def run_client(config: ClientConfig) -> dict[str, Any]:

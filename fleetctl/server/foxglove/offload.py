@@ -16,24 +16,21 @@ Why one thread: the conversion holds the GIL, so a second thread would not conve
 it would only take the GIL from the loop more often. Why the switch interval: a thread
 running Python keeps the GIL up to ``sys.getswitchinterval()`` when the loop wants it
 (Python's 5 ms), and the loop gives it up at every socket call and every wait; 0.5 ms, as
-the robot's client has for the same reason (fleetctl.client.ros.runner).
+the robot's client has for the same reason (fleetctl.gilswitch).
 """
 
 from __future__ import annotations
 
 import asyncio
 import logging
-import sys
 import threading
 import time
 from concurrent.futures import ThreadPoolExecutor
 
+from fleetctl.gilswitch import tune_gil
 from fleetctl.server.foxglove.transcode import Converted, NotCached, SharedTranscoder
 
 log = logging.getLogger("fleetctl.server.foxglove")
-
-# See the module docstring; a host that set a shorter interval keeps it.
-GIL_SWITCH_INTERVAL_S = 0.0005
 
 _executor: ThreadPoolExecutor | None = None
 _executor_lock = threading.Lock()
@@ -44,8 +41,7 @@ def executor() -> ThreadPoolExecutor:
     global _executor
     with _executor_lock:
         if _executor is None:
-            if sys.getswitchinterval() > GIL_SWITCH_INTERVAL_S:
-                sys.setswitchinterval(GIL_SWITCH_INTERVAL_S)
+            tune_gil()
             _executor = ThreadPoolExecutor(1, thread_name_prefix="fleetctl-foxglove-cdr")
         return _executor
 

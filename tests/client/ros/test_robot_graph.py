@@ -241,7 +241,7 @@ async def test_the_loop_gets_the_gil_back_soon_while_the_executor_converts() -> 
     import sys
     import time
 
-    from fleetctl.client.ros.runner import GIL_SWITCH_INTERVAL_S, tune_gil
+    from fleetctl.gilswitch import GIL_SWITCH_INTERVAL_S, tune_gil
 
     codec = Codec(TypeRegistry.default())
     types = codec.registry.typestore.types

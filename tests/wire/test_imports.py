@@ -11,6 +11,7 @@ def test_wire_imports_no_io_or_ros_modules() -> None:
         "import sys\n"
         "import fleetctl.wire.codec, fleetctl.wire.control, fleetctl.wire.fragments\n"
         "import fleetctl.wire.schema, fleetctl.wire.samples, fleetctl.wire.compression\n"
+        "import fleetctl.wire.whole_messages\n"
         "fleetctl.wire.control.encode_subscription('.*')\n"
         "print(sorted(m for m in ('asyncio', 'websockets', 'rclpy') if m in sys.modules))\n"
     )

@@ -11,7 +11,9 @@ so a fleet's recordings are sharded: ``--server`` given once per replica lists t
 (with a SERVER column; a replica that does not answer is named on stderr while the others
 are listed) and ``fetch`` takes the file from whichever replica has it. ``fetch`` writes a
 complete, indexed copy, also of the file still being written (read up to its last
-flushed chunk), which ``ros2 bag``, rosbags and Foxglove open.
+flushed chunk), which ``ros2 bag``, rosbags and Foxglove open. ``merge``
+(:mod:`fleetctl.cli.recordingmerge`) joins several recordings, e.g. a robot's files on
+two replicas after a failover, into one such file.
 """
 
 from __future__ import annotations
@@ -257,13 +259,13 @@ def fetch_remote(remote: Remote, name: str, target: Path) -> Fetched:
             target cannot be written (exit 5).
         ConflictError: The target file exists.
     """
-    _check_name(name)
+    check_name(name)
     target = _target_file(target, name)
     try:
         fd, temp = tempfile.mkstemp(prefix=f".{target.name}.", suffix=".part",
                                     dir=target.parent)
     except OSError as exc:
-        raise _cannot_write(target, exc) from None
+        raise cannot_write(target, exc) from None
     part = Path(temp)
     try:
         with os.fdopen(fd, "wb") as out:
@@ -278,12 +280,12 @@ def fetch_remote(remote: Remote, name: str, target: Path) -> Fetched:
                 offset += len(body)
         source = f"{remote.url.rstrip('/')}/recordings/{name}"
         if files.is_complete(part):
-            part.chmod(_new_file_mode())  # as the copy of an open file gets (mkstemp: 0600)
-            _link_new(part, target)
+            part.chmod(new_file_mode())  # as the copy of an open file gets (mkstemp: 0600)
+            link_new(part, target)
             return Fetched(source, target, files.describe(target)["messages"])
         return Fetched(source, target, files.export(part, target), still_open=True)
     except OSError as exc:
-        raise _cannot_write(target, exc) from None
+        raise cannot_write(target, exc) from None
     finally:
         part.unlink(missing_ok=True)
 
@@ -300,7 +302,7 @@ def _target_file(target: Path, name: str) -> Path:
     return target
 
 
-def _link_new(source: Path, target: Path) -> None:
+def link_new(source: Path, target: Path) -> None:
     """Give *source* the name *target* too, never replacing what is there."""
     try:
         os.link(source, target, follow_symlinks=False)
@@ -312,19 +314,21 @@ def _link_new(source: Path, target: Path) -> None:
         source.rename(target)
 
 
-def _new_file_mode() -> int:
+def new_file_mode() -> int:
     """The mode ``open()`` gives a new file under the current umask."""
     mask = os.umask(0o077)
     os.umask(mask)
     return 0o666 & ~mask
 
 
-def _cannot_write(target: Path, exc: OSError) -> FleetError:
+def cannot_write(target: Path, exc: OSError) -> FleetError:
+    """The error for a *target* that cannot be written (exit 5)."""
     return FleetError(f"{target}: cannot write: {exc.strerror or exc}",
                       exit_code=ExitCode.ENVIRONMENT)
 
 
-def _check_name(name: str) -> None:
+def check_name(name: str) -> None:
+    """Refuse a recording name that is not a plain file name (usage, exit 2)."""
     if "/" in name or name in ("", ".", ".."):
         raise FleetError(f"recording name {name!r}: give a file name from "
                          "`fleetctl recordings list`", exit_code=ExitCode.USAGE)
@@ -424,7 +428,7 @@ def fetch(directory: Path, name: str, target: Path) -> Fetched:
         FleetError: No such recording; *name* is not a plain file name.
         ConflictError: The target file exists.
     """
-    _check_name(name)
+    check_name(name)
     source = directory / name
     if not source.is_file():
         raise FleetError(f"{source}: no such recording (see `fleetctl recordings list`)")
@@ -477,7 +481,7 @@ _ALL_TOPICS = typer.Option(False, "--all-topics", help="Every topic of each file
 
 def register(app: typer.Typer) -> None:
     """Add the ``recordings`` command group to *app*."""
-    rec_app = typer.Typer(help="MCAP recordings of the server: list, fetch.",
+    rec_app = typer.Typer(help="MCAP recordings of the server: list, fetch, merge.",
                           no_args_is_help=True)
 
     @rec_app.command("list")
@@ -514,6 +518,41 @@ def register(app: typer.Typer) -> None:
             result = fetch_from_replicas([Remote(u, token, ca_file) for u in server], name, to)
         else:
             result = fetch(recording_dir(config, directory), name, to)
+        emit(result, output, result.text)
+
+    @rec_app.command("merge")
+    def merge_command(
+        names: list[str] | None = typer.Argument(None, help="Recordings to merge: file "
+                                                 "names with --server/--dir/--config (see "
+                                                 "`recordings list`), else paths; none: "
+                                                 "every file --robot/--since/--until select."),
+        to: Path = typer.Option(..., "--to", help="The merged .mcap file to write."),
+        robot: str | None = typer.Option(None, "--robot", help="Only this robot's topics "
+                                         "(/NAME/...), from the files that have them."),
+        since: str | None = typer.Option(None, "--since", help="Leave out messages logged "
+                                         "before this: seconds since the epoch or ISO 8601 "
+                                         "(2026-12-06T19:00:00Z; UTC without an offset)."),
+        until: str | None = typer.Option(None, "--until", help="Leave out messages logged "
+                                         "after this (same forms)."),
+        force: bool = typer.Option(False, "--force", help="Replace the --to file if it "
+                                   "exists."),
+        config: Path | None = _CONFIG, directory: Path | None = _DIR,
+        server: list[str] | None = _SERVER, token_file: Path | None = _TOKEN,
+        ca_file: Path | None = _CA, output: OutputFormat = output_option(),
+    ) -> None:
+        """Write one indexed MCAP file, in log-time order, from several recordings
+        (replicas, rotated files, the open one); a message recorded twice is written
+        once."""
+        from fleetctl.cli.recordingmerge import merge_command, parse_time
+        from fleetctl.server.recording.merge import Selection
+
+        check_one_source(config, directory, server)
+        selection = Selection(robot, None if since is None else parse_time(since, "--since"),
+                              None if until is None else parse_time(until, "--until"))
+        token = read_token_file(token_file) if server else None
+        result = merge_command(names or [], to, selection,
+                               remotes=[Remote(u, token, ca_file) for u in server or []],
+                               directory=directory, config=config, force=force)
         emit(result, output, result.text)
 
     app.add_typer(rec_app, name="recordings")

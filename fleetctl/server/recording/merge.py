@@ -1,0 +1,313 @@
+"""Several recordings in, one indexed MCAP file out, messages in log-time order.
+
+Why: replicas record sharded (each replica its own senders' frames) and rotation splits a
+long run into several files, so a robot that failed over from one replica to another has
+its run in files of both. :func:`merge` joins them back into one file that rosbags,
+``ros2 bag``, Foxglove and the ``mcap`` CLI open.
+
+- **Order.** Each input is read through its index in log-time order (the ``mcap``
+  library's seeking reader), the inputs are merged with a heap: one pass, one chunk per
+  input (and chunks overlapping in time) in memory, not the files.
+- **Channels and schemas** are deduplicated: the same topic with the same schema (name,
+  encoding, text) and message encoding from two files is one channel (the first file's
+  metadata); the same topic with another definition of its type is a channel of its own.
+- **Selection.** ``robot``: only topics whose first segment is the robot's name
+  (:func:`fleetctl.server.registry.robot_name`, the relay's own rule); ``since_ns`` and
+  ``until_ns``: log times outside ``[since_ns, until_ns]`` are left out.
+- **Open inputs.** A file without a footer (being written, or its writer died: a cut-short
+  file looks the same) is read up to its last complete record, through a complete,
+  indexed copy in *scratch* (:func:`fleetctl.server.recording.files.export`).
+- **A message in two inputs is written once.** Identity: output channel, publish time,
+  sequence and a digest of the data. Two ways it happens, counted apart:
+  ``duplicates`` (same log time: the same frame recorded twice, e.g. a frame a robot
+  sent again to its new replica after failing over because the old one had not
+  acknowledged it, or a restarted worker's latched messages) and ``repeats`` (a later log
+  time: the writer's copy of a latched message or of a video group at the start of a
+  rotated file, whose original is in the output already). A copy whose original is not
+  in the output (an earlier file not merged, or before ``since_ns``) is kept: it is what
+  makes the merged file start with its map. Bounded: the last :data:`RECENT_PER_CHANNEL`
+  messages of each channel are remembered; an exact duplicate is never further back than
+  the messages sharing its log time, a start-of-file copy never further than its topic's
+  messages since the original (a latched topic: its last one; a video group: the frames
+  since its keyframe).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import hashlib
+import heapq
+import struct
+from collections import OrderedDict
+from collections.abc import Iterator, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import BinaryIO
+
+import zstandard
+from mcap.exceptions import McapError
+from mcap.reader import SeekingReader
+from mcap.records import Channel, Message, Schema
+from mcap.writer import CompressionType, Writer
+
+from fleetctl.errors import FleetError
+from fleetctl.server.recording import files
+from fleetctl.server.registry import robot_name
+
+LIBRARY = "fleetctl"
+RECENT_PER_CHANNEL = 4096
+"""Messages remembered per output channel to recognise one written twice (about 100
+bytes each)."""
+_DIGEST_BYTES = 16
+# What reading a damaged file raises inside the mcap library: a bad CRC or record
+# (McapError), a chunk that does not decompress (zstandard; lz4: RuntimeError), a record
+# cut short (struct, EOF, index errors).
+_READ_ERRORS = (McapError, zstandard.ZstdError, RuntimeError, ValueError, EOFError,
+                IndexError, KeyError, struct.error)
+
+
+@dataclass(frozen=True)
+class MergeSource:
+    """One recording to merge.
+
+    Attributes:
+        path: The file on this host.
+        label: How errors and the result name it (a path, or ``URL/recordings/NAME`` for a
+            file fetched from a server).
+        was_open: The file is a complete copy of one that was still open (a fetch).
+    """
+
+    path: Path
+    label: str
+    was_open: bool = False
+
+
+@dataclass(frozen=True)
+class Selection:
+    """What of the inputs goes into the merged file.
+
+    Attributes:
+        robot: Only this robot's topics (``/NAME/...``); ``None``: every topic.
+        since_ns: Earliest log time kept, ns since the epoch; ``None``: no bound.
+        until_ns: Latest log time kept (inclusive); ``None``: no bound.
+    """
+
+    robot: str | None = None
+    since_ns: int | None = None
+    until_ns: int | None = None
+
+    def wants(self, topic: str) -> bool:
+        """Whether *topic* is selected."""
+        return self.robot is None or robot_name(topic) == self.robot
+
+
+@dataclass
+class MergeCounts:
+    """What :func:`merge` wrote.
+
+    Attributes:
+        messages: Messages written.
+        duplicates: Messages left out as the same message already written with the same
+            log time (recorded twice).
+        repeats: Messages left out as a start-of-file copy (later log time) of a latched
+            or video message already written.
+        topics: The topics written, sorted.
+        channels: Channels written.
+        start_ns: Log time of the first message written (0: none).
+        end_ns: Log time of the last.
+        still_open: Labels of the inputs that had no footer (read up to their last
+            complete record).
+    """
+
+    messages: int = 0
+    duplicates: int = 0
+    repeats: int = 0
+    topics: list[str] = field(default_factory=list)
+    channels: int = 0
+    start_ns: int = 0
+    end_ns: int = 0
+    still_open: list[str] = field(default_factory=list)
+
+
+def merge(sources: Sequence[MergeSource], out: BinaryIO, selection: Selection,
+          scratch: Path) -> MergeCounts:
+    """Write the selected messages of *sources* to *out* as one indexed MCAP file.
+
+    Args:
+        sources: The inputs; the first's header profile is the output's.
+        out: Where the file goes (a new, empty file opened for binary writing).
+        selection: Robot and time window.
+        scratch: A directory for complete copies of open inputs (the caller removes it).
+
+    Returns:
+        The counts; ``messages`` may be 0 (the caller decides whether that is an error).
+
+    Raises:
+        FleetError: An input is missing, cannot be read, is not MCAP or is damaged (the
+            message names it).
+        OSError: Writing *out* failed.
+    """
+    counts = MergeCounts()
+    readable = [_indexed(s, scratch, n, counts) for n, s in enumerate(sources)]
+    with contextlib.ExitStack() as stack:
+        streams: list[tuple[MergeSource, BinaryIO]] = [
+            (s, stack.enter_context(p.open("rb"))) for s, p in zip(sources, readable,
+                                                                   strict=True)]
+        writer = Writer(out, compression=CompressionType.ZSTD)
+        writer.start(profile=_profile(streams), library=LIBRARY)
+        output = _Output(writer)
+        ordered = [_in_log_time_order(s, stream, n, selection)
+                   for n, (s, stream) in enumerate(streams)]
+        for (_time, n), schema, channel, message in heapq.merge(*ordered,
+                                                                key=lambda m: m[0]):
+            output.add(n, schema, channel, message, counts)
+        writer.finish()  # type: ignore[no-untyped-call]
+    counts.topics = sorted(output.topics)
+    counts.channels = len(output.channels)
+    return counts
+
+
+def _indexed(source: MergeSource, scratch: Path, n: int, counts: MergeCounts) -> Path:
+    """*source*'s path when it is complete, else a complete copy in *scratch*.
+
+    Raises:
+        FleetError: It is missing, not a regular file, not MCAP or damaged.
+    """
+    path = source.path
+    if not path.is_file():
+        what = "not a file" if path.exists() else "no such file"
+        raise FleetError(f"{source.label}: {what}")
+    try:
+        complete = files.is_complete(path)
+    except OSError as exc:
+        raise FleetError(f"{source.label}: cannot read: {exc.strerror or exc}") from None
+    if source.was_open or not complete:
+        counts.still_open.append(source.label)
+    if complete and _has_index(path):
+        return path
+    copy = scratch / f"{n}{files.SUFFIX}"
+    try:
+        files.export(path, copy)
+    except FleetError as exc:  # named by its path: name it as the caller does
+        raise _renamed(exc, path, source.label) from None
+    return copy
+
+
+def _has_index(path: Path) -> bool:
+    """Whether *path*'s summary can be read and has a chunk index (a file closed with a
+    damaged summary is read as an open one: up to its last complete record)."""
+    try:
+        with path.open("rb") as stream:
+            summary = SeekingReader(stream).get_summary()
+    except (*_READ_ERRORS, OSError):
+        return False
+    return summary is not None and bool(summary.chunk_indexes)
+
+
+def _renamed(exc: FleetError, path: Path, label: str) -> FleetError:
+    message = str(exc)
+    if message.startswith(str(path)):
+        message = label + message[len(str(path)):]
+    return type(exc)(message, exit_code=exc.exit_code)
+
+
+def _profile(streams: list[tuple[MergeSource, BinaryIO]]) -> str:
+    """The first input's header profile (``ros2`` for the relay's recordings)."""
+    source, stream = streams[0]
+    try:
+        profile: str = SeekingReader(stream).get_header().profile
+    except _READ_ERRORS:
+        raise FleetError(f"{source.label}: not an MCAP file") from None
+    finally:
+        stream.seek(0)
+    return profile
+
+
+_Item = tuple[tuple[int, int], Schema | None, Channel, Message]
+
+
+def _in_log_time_order(source: MergeSource, stream: BinaryIO, n: int,
+                       selection: Selection) -> Iterator[_Item]:
+    """The selected messages of one indexed input in log-time order, keyed for the heap
+    (ties: the inputs' order).
+
+    Raises:
+        FleetError: The input is damaged (the messages before the damage were yielded).
+    """
+    try:
+        reader = SeekingReader(stream, validate_crcs=True)
+        summary = reader.get_summary()
+        if summary is None:
+            return
+        topics = sorted({c.topic for c in summary.channels.values()
+                         if selection.wants(c.topic)})
+        if not topics:
+            return
+        for schema, channel, message in reader.iter_messages(
+                topics=topics, starting_at=selection.since_ns, ending_at=selection.until_ns):
+            yield (message.log_time, n), schema, channel, message
+    except _READ_ERRORS as exc:
+        raise files.DamagedRecording(f"{source.label}: damaged data, cannot merge it "
+                                     f"({type(exc).__name__}: {exc})") from None
+
+
+_SchemaKey = tuple[str, str, bytes]
+_ChannelKey = tuple[str, str, _SchemaKey | None]
+
+
+class _Output:
+    """The merged file's schemas, channels and recently written messages."""
+
+    def __init__(self, writer: Writer) -> None:
+        self._writer = writer
+        self._schemas: dict[_SchemaKey, int] = {}
+        self.channels: dict[_ChannelKey, int] = {}
+        self._by_input: dict[tuple[int, int], int] = {}  # (input, its channel id) -> ours
+        self.topics: set[str] = set()
+        # Per output channel: (publish time, sequence, digest) -> log time, oldest first.
+        self._recent: dict[int, OrderedDict[tuple[int, int, bytes], int]] = {}
+
+    def add(self, n: int, schema: Schema | None, channel: Channel, message: Message,
+            counts: MergeCounts) -> None:
+        """Write *message* of input *n* unless it was written already (counted)."""
+        out_channel = self._by_input.get((n, channel.id))
+        if out_channel is None:
+            out_channel = self._by_input[(n, channel.id)] = self._channel(schema, channel)
+        recent = self._recent.setdefault(out_channel, OrderedDict())
+        key = (message.publish_time, message.sequence,
+               hashlib.blake2b(message.data, digest_size=_DIGEST_BYTES).digest())
+        seen_at = recent.get(key)
+        if seen_at is not None:
+            if seen_at == message.log_time:
+                counts.duplicates += 1
+            else:
+                counts.repeats += 1
+            return
+        recent[key] = message.log_time
+        if len(recent) > RECENT_PER_CHANNEL:
+            recent.popitem(last=False)
+        self._writer.add_message(out_channel, message.log_time, message.data,
+                                 message.publish_time, message.sequence)
+        if not counts.messages:
+            counts.start_ns = message.log_time
+        counts.messages += 1
+        counts.end_ns = message.log_time
+
+    def _channel(self, schema: Schema | None, channel: Channel) -> int:
+        schema_key = (schema.name, schema.encoding, schema.data) if schema else None
+        key = (channel.topic, channel.message_encoding, schema_key)
+        found = self.channels.get(key)
+        if found is not None:
+            return found
+        schema_id = 0  # MCAP: no schema
+        if schema is not None and schema_key is not None:
+            schema_id = self._schemas.get(schema_key, 0)
+            if not schema_id:
+                schema_id = self._writer.register_schema(schema.name, schema.encoding,
+                                                         schema.data)
+                self._schemas[schema_key] = schema_id
+        found = self._writer.register_channel(channel.topic, channel.message_encoding,
+                                              schema_id, channel.metadata)
+        self.channels[key] = found
+        self.topics.add(channel.topic)
+        return found

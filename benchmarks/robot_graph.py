@@ -410,26 +410,25 @@ def metrics(port: int) -> dict[str, float]:
 LATENCY_TOPICS = (f"/{ROBOT}/imu/data", f"/{ROBOT}/odom", f"/{ROBOT}/status")
 
 
-async def whole_messages(ws: Any, deadline: float) -> AsyncIterator[bytes]:
-    """The whole binary messages *ws* receives until *deadline* (``time.monotonic()``),
-    fragmented ones reassembled."""
-    from fleetctl.wire.fragments import FRAGMENT_TYPE, Reassembler
-    from fleetctl.wire.metadata import read_metadata
-
-    reassembler = Reassembler(64 << 20, 30.0)
+async def frames_until(ws: Any, deadline: float) -> AsyncIterator[str | bytes]:
+    """The frames *ws* receives until *deadline* (``time.monotonic()``), one ``wait_for``
+    a receive: the receive path the latency figures of docs/benchmarks.md were measured
+    with."""
     while (left := deadline - time.monotonic()) > 0:
         try:
-            message = await asyncio.wait_for(ws.recv(), left)
+            frame = await asyncio.wait_for(ws.recv(), left)
         except TimeoutError:
             return
-        if not isinstance(message, bytes):
-            continue
-        if read_metadata(message).type == FRAGMENT_TYPE:
-            whole = reassembler.feed(message, time.monotonic())
-            if whole is None:
-                continue
-            message = whole
-        yield message
+        yield frame
+
+
+def whole_messages_until(ws: Any, deadline: float) -> AsyncIterator[bytes]:
+    """The whole binary messages *ws* receives until *deadline*, fragmented ones
+    reassembled (64 MiB, 30 s)."""
+    from fleetctl.wire.fragments import Reassembler
+    from fleetctl.wire.whole_messages import whole_messages
+
+    return whole_messages(frames_until(ws, deadline), Reassembler(64 << 20, 30.0))
 
 
 async def consume(port: int, seconds: float, counts: Counter[str],
@@ -445,7 +444,7 @@ async def consume(port: int, seconds: float, counts: Counter[str],
     async with connect(f"ws://127.0.0.1:{port}/", max_size=None, ping_interval=None,
                        additional_headers={"Authorization": f"Bearer {CONSUMER_TOKEN}"}) as ws:
         await ws.send(encode_subscription(f"/{ROBOT}/.*"))
-        async for message in whole_messages(ws, deadline):
+        async for message in whole_messages_until(ws, deadline):
             meta = read_metadata(message)
             counts[meta.topic] += 1
             sizes[meta.topic] = len(message)
@@ -493,7 +492,7 @@ async def late_map(port: int, timeout_s: float) -> dict[str, Any]:
     async with connect(f"ws://127.0.0.1:{port}/", max_size=None, ping_interval=None,
                        additional_headers={"Authorization": f"Bearer {CONSUMER_TOKEN}"}) as ws:
         await ws.send(encode_subscription(f"/{ROBOT}/map"))
-        async for message in whole_messages(ws, start + timeout_s):
+        async for message in whole_messages_until(ws, start + timeout_s):
             meta = read_metadata(message)
             return {"received": True, "after_s": round(time.monotonic() - start, 2),
                     "frame_bytes": len(message), "type": meta.type, "latched": meta.latched}

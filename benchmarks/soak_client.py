@@ -266,8 +266,8 @@ class Consumer:
     async def run(self) -> None:
         from fleetctl.wire.codec import default_codec
         from fleetctl.wire.control import encode_subscription
-        from fleetctl.wire.fragments import Reassembler
         from fleetctl.wire.metadata import read_metadata
+        from fleetctl.wire.whole_messages import whole_messages
 
         codec = default_codec()
         while True:
@@ -278,14 +278,8 @@ class Consumer:
                     self.connects += 1
                     await ws.send(encode_subscription("/soak/.*"))
                     sender = asyncio.create_task(self._send_cmd(ws, codec))
-                    reassembler = Reassembler(1 << 24, 10.0)
                     try:
-                        async for message in ws:
-                            if not isinstance(message, bytes):
-                                continue
-                            whole = reassembler.feed(message, time.monotonic())
-                            if whole is None:
-                                continue
+                        async for whole in whole_messages(ws):
                             meta = read_metadata(whole)
                             self.frames[meta.topic] = self.frames.get(meta.topic, 0) + 1
                             if meta.topic == EVENTS:

@@ -6,7 +6,6 @@ import asyncio
 import contextlib
 import hashlib
 import json
-import time
 from collections.abc import AsyncIterator, Callable
 from pathlib import Path
 from typing import Any
@@ -20,8 +19,9 @@ from fleetctl.server.app import RelayServer
 from fleetctl.server.authmap import AuthMap, parse_auth_map
 from fleetctl.server.config import ServerConfig
 from fleetctl.wire.control import encode_subscription
-from fleetctl.wire.fragments import FRAGMENT_TYPE, Reassembler
+from fleetctl.wire.fragments import Reassembler
 from fleetctl.wire.metadata import read_metadata
+from fleetctl.wire.whole_messages import whole_messages
 from tests.support import decode_text
 from tests.support import wait_until as wait_until_s
 
@@ -120,14 +120,8 @@ class Consumer:
                     await consumer._task
 
     async def _read(self) -> None:
-        async for message in self.ws:
-            if isinstance(message, bytes):
-                if read_metadata(message).type == FRAGMENT_TYPE:
-                    whole = self.reassembler.feed(message, time.monotonic())
-                    if whole is not None:
-                        self.frames.append(whole)
-                else:
-                    self.frames.append(message)
+        async for whole in whole_messages(self.ws, self.reassembler):
+            self.frames.append(whole)
 
     def texts(self, topic: str | None = None) -> list[str]:
         return [decode_text(f) for f in self.frames

@@ -166,18 +166,13 @@ async def _first_whole_frame(url: str, topic: str) -> bytes:
     from websockets.asyncio.client import connect
 
     from fleetctl.wire.control import encode_subscription
-    from fleetctl.wire.fragments import Reassembler
+    from fleetctl.wire.whole_messages import first_whole_messages
 
-    reassembler = Reassembler(1 << 24, 10.0)
     async with connect(url, additional_headers={"Authorization": f"Bearer {OPERATOR_TOKEN}"},
                        ping_interval=None) as ws:
         await ws.send(encode_subscription(topic))
-        async for message in ws:
-            if isinstance(message, bytes):
-                whole = reassembler.feed(message, time.monotonic())
-                if whole is not None:
-                    return whole
-    raise AssertionError("the server closed the connection")
+        (whole,) = await first_whole_messages(ws, 1)
+    return whole
 
 
 def test_compressed_map_from_alpha_arrives_on_bravo_intact(fleet: Fleet) -> None:

@@ -13,7 +13,6 @@ import asyncio
 import hashlib
 import importlib.util
 import math
-import time
 from collections.abc import Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -28,10 +27,10 @@ from fleetctl.demo.run import http_ok, online_robots
 from fleetctl.waiting import wait_until
 from fleetctl.wire.codec import Codec
 from fleetctl.wire.compression import COMPRESSED_TYPE, decompress
-from fleetctl.wire.fragments import FRAGMENT_TYPE, Reassembler
 from fleetctl.wire.metadata import read_metadata
 from fleetctl.wire.registry import TypeRegistry
 from fleetctl.wire.samples import occupancy_grid
+from fleetctl.wire.whole_messages import first_whole_messages
 from tests.client.ros.harness import JsonProc, fleetctl_argv, ros_helper, write_yaml
 
 pytestmark = [pytest.mark.ros, pytest.mark.slow]
@@ -111,24 +110,11 @@ async def _viewer_frames(url: str, topics: list[str], count: int) -> list[bytes]
 
     from fleetctl.wire.control import encode_subscription
 
-    reassembler = Reassembler(1 << 24, 10.0)
-    frames: list[bytes] = []
     async with connect(url, additional_headers={"Authorization": f"Bearer {OPERATOR_TOKEN}"},
                        ping_interval=None, max_size=None) as ws:
         for topic in topics:
             await ws.send(encode_subscription(topic))
-        async for message in ws:
-            if not isinstance(message, bytes):
-                continue
-            if read_metadata(message).type == FRAGMENT_TYPE:
-                whole = reassembler.feed(message, time.monotonic())
-                if whole is None:
-                    continue
-                message = whole
-            frames.append(message)
-            if len(frames) >= count:
-                return frames
-    raise AssertionError("the server closed the connection")
+        return await first_whole_messages(ws, count)
 
 
 def viewer_frames(fleet: Fleet, topics: list[str], count: int) -> list[bytes]:

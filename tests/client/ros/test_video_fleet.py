@@ -146,14 +146,12 @@ class Viewer:
     def __init__(self, ws: Any, topic: str, codec: str) -> None:
         from fleetctl.client.video import VideoDecoder
         from fleetctl.wire.codec import Codec
-        from fleetctl.wire.fragments import Reassembler
         from fleetctl.wire.registry import TypeRegistry
 
         self.ws = ws
         self.topic = topic
         self.codec = Codec(TypeRegistry.default())
         self.decoder = VideoDecoder(codec)
-        self.reassembler = Reassembler(1 << 26, 10.0)
         self.shown: list[tuple[int, bool, Any]] = []  # (seq, keyframe, picture)
         self.received: list[tuple[float, int, bool]] = []  # (time, seq, keyframe)
         self.skip_seqs: set[int] = set()
@@ -166,16 +164,9 @@ class Viewer:
 
     async def run(self) -> None:
         from fleetctl.client.videobits import is_keyframe
-        from fleetctl.wire.fragments import FRAGMENT_TYPE
-        from fleetctl.wire.metadata import read_metadata
+        from fleetctl.wire.whole_messages import whole_messages
 
-        async for message in self.ws:
-            if not isinstance(message, bytes):
-                continue
-            if read_metadata(message).type == FRAGMENT_TYPE:
-                message = self.reassembler.feed(message, time.monotonic())
-                if message is None:
-                    continue
+        async for message in whole_messages(self.ws):
             meta, msg = self.codec.decode(message)
             if meta.topic != self.topic or meta.type != VIDEO_TYPE:
                 continue

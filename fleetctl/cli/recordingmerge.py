@@ -209,11 +209,8 @@ def scratch_beside(target: Path) -> Iterator[Path]:
     disk the result goes to), removed on exit.
 
     Raises:
-        FleetError: *target* is a directory, or its directory cannot be written (exit 5).
+        FleetError: *target*'s directory cannot be written (exit 5).
     """
-    if target.is_dir():
-        raise FleetError(f"--to {target}: is a directory; give the merged file's name "
-                         f"({target / 'merged.mcap'})", exit_code=ExitCode.USAGE)
     try:
         holder = tempfile.TemporaryDirectory(prefix=".fleetctl-merge-", dir=target.parent)
     except FileNotFoundError:
@@ -225,6 +222,20 @@ def scratch_beside(target: Path) -> Iterator[Path]:
         yield Path(scratch)
 
 
+def check_target(target: Path, force: bool) -> None:
+    """Refuse a *target* that is a directory, or that exists without *force*.
+
+    Raises:
+        FleetError: (usage, exit 2) a directory.
+        ConflictError: It exists (a dangling link included) and not *force*.
+    """
+    if target.is_dir():
+        raise FleetError(f"--to {target}: is a directory; give the merged file's name "
+                         f"({target / 'merged.mcap'})", exit_code=ExitCode.USAGE)
+    if not force and os.path.lexists(target):
+        raise ConflictError(f"{target}: already exists (give --force to replace it)")
+
+
 def write_merged(sources: Sequence[MergeSource], target: Path, selection: Selection,
                  scratch: Path, force: bool = False) -> Merged:
     """Merge *sources* into a temp file beside *target*, then put it in place.
@@ -234,8 +245,7 @@ def write_merged(sources: Sequence[MergeSource], target: Path, selection: Select
         FleetError: An input is bad (named), the selection holds no message, or *target*
             cannot be written (exit 5).
     """
-    if not force and os.path.lexists(target):
-        raise ConflictError(f"{target}: already exists (give --force to replace it)")
+    check_target(target, force)
     if not sources:
         raise FleetError(f"no recording{_selection_text(selection)}")
     try:
@@ -289,8 +299,7 @@ def merge_command(names: Sequence[str], target: Path, selection: Selection, *,
                          "or --config (or none, with --robot/--since/--until, for every "
                          "file they select), or paths of .mcap files",
                          exit_code=ExitCode.USAGE)
-    if not force and os.path.lexists(target):  # before fetching anything
-        raise ConflictError(f"{target}: already exists (give --force to replace it)")
+    check_target(target, force)  # before fetching anything
     with scratch_beside(target) as scratch:
         if remotes:
             sources = remote_sources(remotes, names, selection, scratch)

@@ -212,7 +212,10 @@ def _renamed(exc: FleetError, path: Path, label: str) -> FleetError:
 
 
 def _profile(streams: list[tuple[MergeSource, BinaryIO]]) -> str:
-    """The first input's header profile (``ros2`` for the relay's recordings)."""
+    """The first input's header profile (``ros2`` for the relay's recordings; none
+    without an input)."""
+    if not streams:
+        return ""
     source, stream = streams[0]
     try:
         profile: str = SeekingReader(stream).get_header().profile

@@ -210,3 +210,10 @@ def test_a_damaged_chunk_is_named(tmp_path: Path) -> None:
     damaged_recording(path)
     with pytest.raises(FleetError, match=r"^the label: damaged data"):
         run(tmp_path, [MergeSource(path, "the label")])
+
+
+def test_no_input_is_an_empty_file(tmp_path: Path) -> None:
+    target, counts = run(tmp_path, [])
+    with target.open("rb") as stream:
+        assert list(make_reader(stream).iter_messages()) == []
+    assert counts.messages == 0

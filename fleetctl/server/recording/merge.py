@@ -6,8 +6,10 @@ its run in files of both. :func:`merge` joins them back into one file that rosba
 ``ros2 bag``, Foxglove and the ``mcap`` CLI open.
 
 - **Order.** Each input is read through its index in log-time order (the ``mcap``
-  library's seeking reader), the inputs are merged with a heap: one pass, one chunk per
-  input (and chunks overlapping in time) in memory, not the files.
+  library's seeking reader), and the inputs are merged with a heap: one pass, chunks in
+  memory, not files. Inputs that follow each other in time (a replica's rotated files)
+  form a lane read one after another, so the files open at once are as many as overlap
+  in time (about one per replica), not one per file.
 - **Channels and schemas** are deduplicated: the same topic with the same schema (name,
   encoding, text) and message encoding from two files is one channel (the first file's
   metadata); the same topic with another definition of its type is a channel of its own.
@@ -39,7 +41,7 @@ import hashlib
 import heapq
 import struct
 from collections import OrderedDict
-from collections.abc import Iterator, Sequence
+from collections.abc import Generator, Iterator, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import BinaryIO
@@ -148,27 +150,44 @@ def merge(sources: Sequence[MergeSource], out: BinaryIO, selection: Selection,
         OSError: Writing *out* failed.
     """
     counts = MergeCounts()
-    readable = [_indexed(s, scratch, n, counts) for n, s in enumerate(sources)]
+    inputs = [_indexed(s, scratch, n, counts) for n, s in enumerate(sources)]
+    writer = Writer(out, compression=CompressionType.ZSTD)
+    writer.start(profile=inputs[0].profile if inputs else "", library=LIBRARY)
+    output = _Output(writer)
     with contextlib.ExitStack() as stack:
-        streams: list[tuple[MergeSource, BinaryIO]] = [
-            (s, stack.enter_context(p.open("rb"))) for s, p in zip(sources, readable,
-                                                                   strict=True)]
-        writer = Writer(out, compression=CompressionType.ZSTD)
-        writer.start(profile=_profile(streams), library=LIBRARY)
-        output = _Output(writer)
-        ordered = [_in_log_time_order(s, stream, n, selection)
-                   for n, (s, stream) in enumerate(streams)]
-        for (_time, n), schema, channel, message in heapq.merge(*ordered,
-                                                                key=lambda m: m[0]):
+        lanes = [stack.enter_context(contextlib.closing(_in_log_time_order(lane, selection)))
+                 for lane in _lanes(inputs)]
+        for (_time, n), schema, channel, message in heapq.merge(*lanes, key=lambda m: m[0]):
             output.add(n, schema, channel, message, counts)
-        writer.finish()  # type: ignore[no-untyped-call]
+    writer.finish()  # type: ignore[no-untyped-call]
     counts.topics = sorted(output.topics)
     counts.channels = len(output.channels)
     return counts
 
 
-def _indexed(source: MergeSource, scratch: Path, n: int, counts: MergeCounts) -> Path:
-    """*source*'s path when it is complete, else a complete copy in *scratch*.
+@dataclass(frozen=True)
+class _Indexed:
+    """An input ready to be read through its index.
+
+    Attributes:
+        n: Its place among the inputs (ties of log time go to the earlier one).
+        source: The input.
+        path: The input itself, or its complete copy.
+        profile: Its header's profile.
+        start_ns: Log time of its first message (its summary's statistics; 0 without).
+        end_ns: Of its last (the largest int64 without statistics: overlaps every input).
+    """
+
+    n: int
+    source: MergeSource
+    path: Path
+    profile: str
+    start_ns: int
+    end_ns: int
+
+
+def _indexed(source: MergeSource, scratch: Path, n: int, counts: MergeCounts) -> _Indexed:
+    """*source* when it is complete, else a complete copy of it in *scratch*.
 
     Raises:
         FleetError: It is missing, not a regular file, not MCAP or damaged.
@@ -183,25 +202,57 @@ def _indexed(source: MergeSource, scratch: Path, n: int, counts: MergeCounts) ->
         raise FleetError(f"{source.label}: cannot read: {exc.strerror or exc}") from None
     if source.was_open or not complete:
         counts.still_open.append(source.label)
-    if complete and _has_index(path):
-        return path
+    found = _read_index(path, n, source) if complete else None
+    if found is not None:
+        return found
     copy = scratch / f"{n}{files.SUFFIX}"
     try:
         files.export(path, copy)
     except FleetError as exc:  # named by its path: name it as the caller does
         raise _renamed(exc, path, source.label) from None
-    return copy
+    found = _read_index(copy, n, source, copy=True)
+    if found is None:  # export writes a summary; reading it back failed
+        raise files.DamagedRecording(f"{source.label}: cannot index a copy of it")
+    return found
 
 
-def _has_index(path: Path) -> bool:
-    """Whether *path*'s summary can be read and has a chunk index (a file closed with a
-    damaged summary is read as an open one: up to its last complete record)."""
+def _read_index(path: Path, n: int, source: MergeSource, copy: bool = False
+                ) -> _Indexed | None:
+    """*path*'s header and summary, or ``None`` when they cannot be read or it has no
+    chunk index (a file closed with a damaged summary, or written without chunks, is then
+    read as an open one: up to its last complete record); a *copy* without chunks has no
+    message."""
     try:
         with path.open("rb") as stream:
-            summary = SeekingReader(stream).get_summary()
+            reader = SeekingReader(stream)
+            profile = reader.get_header().profile
+            summary = reader.get_summary()
     except (*_READ_ERRORS, OSError):
-        return False
-    return summary is not None and bool(summary.chunk_indexes)
+        return None
+    if summary is None or not (summary.chunk_indexes or copy):
+        return None
+    stats = summary.statistics
+    if stats is None:
+        return _Indexed(n, source, path, profile, 0, _NO_END)
+    return _Indexed(n, source, path, profile, stats.message_start_time,
+                    stats.message_end_time)
+
+
+_NO_END = 2**63 - 1
+
+
+def _lanes(inputs: list[_Indexed]) -> list[list[_Indexed]]:
+    """The inputs in chains whose time ranges do not overlap, each chain in time order:
+    a chain is read one file after another, so the files open at once (and the chunks in
+    memory) are as many as overlap in time (about one per replica), not one per file."""
+    lanes: list[list[_Indexed]] = []
+    for each in sorted(inputs, key=lambda i: (i.start_ns, i.n)):
+        lane = next((lane for lane in lanes if lane[-1].end_ns <= each.start_ns), None)
+        if lane is None:
+            lanes.append([each])
+        else:
+            lane.append(each)
+    return lanes
 
 
 def _renamed(exc: FleetError, path: Path, label: str) -> FleetError:
@@ -211,47 +262,36 @@ def _renamed(exc: FleetError, path: Path, label: str) -> FleetError:
     return type(exc)(message, exit_code=exc.exit_code)
 
 
-def _profile(streams: list[tuple[MergeSource, BinaryIO]]) -> str:
-    """The first input's header profile (``ros2`` for the relay's recordings; none
-    without an input)."""
-    if not streams:
-        return ""
-    source, stream = streams[0]
-    try:
-        profile: str = SeekingReader(stream).get_header().profile
-    except _READ_ERRORS:
-        raise FleetError(f"{source.label}: not an MCAP file") from None
-    finally:
-        stream.seek(0)
-    return profile
-
-
 _Item = tuple[tuple[int, int], Schema | None, Channel, Message]
 
 
-def _in_log_time_order(source: MergeSource, stream: BinaryIO, n: int,
-                       selection: Selection) -> Iterator[_Item]:
-    """The selected messages of one indexed input in log-time order, keyed for the heap
-    (ties: the inputs' order).
+def _in_log_time_order(lane: list[_Indexed], selection: Selection
+                       ) -> Generator[_Item, None, None]:
+    """The selected messages of a lane's inputs in log-time order, keyed for the heap.
 
     Raises:
-        FleetError: The input is damaged (the messages before the damage were yielded).
+        FleetError: An input is damaged (the messages before the damage were yielded).
     """
-    try:
-        reader = SeekingReader(stream, validate_crcs=True)
-        summary = reader.get_summary()
-        if summary is None:
-            return
-        topics = sorted({c.topic for c in summary.channels.values()
-                         if selection.wants(c.topic)})
-        if not topics:
-            return
-        for schema, channel, message in reader.iter_messages(
-                topics=topics, starting_at=selection.since_ns, ending_at=selection.until_ns):
-            yield (message.log_time, n), schema, channel, message
-    except _READ_ERRORS as exc:
-        raise files.DamagedRecording(f"{source.label}: damaged data, cannot merge it "
-                                     f"({type(exc).__name__}: {exc})") from None
+    for each in lane:
+        try:
+            with each.path.open("rb") as stream:
+                yield from _ordered(stream, each.n, selection)
+        except (*_READ_ERRORS, OSError) as exc:
+            raise files.DamagedRecording(f"{each.source.label}: damaged data, cannot merge "
+                                         f"it ({type(exc).__name__}: {exc})") from None
+
+
+def _ordered(stream: BinaryIO, n: int, selection: Selection) -> Iterator[_Item]:
+    reader = SeekingReader(stream, validate_crcs=True)
+    summary = reader.get_summary()
+    if summary is None:
+        return
+    topics = sorted({c.topic for c in summary.channels.values() if selection.wants(c.topic)})
+    if not topics:
+        return
+    for schema, channel, message in reader.iter_messages(
+            topics=topics, starting_at=selection.since_ns, ending_at=selection.until_ns):
+        yield (message.log_time, n), schema, channel, message
 
 
 _SchemaKey = tuple[str, str, bytes]

@@ -12,7 +12,14 @@ from rosbags.highlevel import AnyReader
 from fleetctl.errors import FleetError
 from fleetctl.server.recording import files
 from fleetctl.server.recording.config import RecordingConfig
-from fleetctl.server.recording.merge import MergeCounts, MergeSource, Selection, merge
+from fleetctl.server.recording.merge import (
+    MergeCounts,
+    MergeSource,
+    Selection,
+    _indexed,
+    _lanes,
+    merge,
+)
 from fleetctl.server.recording.writer import RecordingWriter
 from fleetctl.wire.codec import default_codec
 from tests.server.recording.damaged import damaged_recording
@@ -217,3 +224,27 @@ def test_no_input_is_an_empty_file(tmp_path: Path) -> None:
     with target.open("rb") as stream:
         assert list(make_reader(stream).iter_messages()) == []
     assert counts.messages == 0
+
+
+def test_files_that_follow_each_other_are_read_one_after_another(tmp_path: Path) -> None:
+    """A week of hourly files per replica: as many files open at once as overlap in time
+    (one per replica), not one per file (the file descriptors, the chunks in memory)."""
+    a = Replica(tmp_path / "a", "relay-a", max_file_duration_s=10.0)
+    b = Replica(tmp_path / "b", "relay-b", max_file_duration_s=10.0)
+    for hour in range(4):
+        a.record(frame("/husky1/chat", f"a{hour}", hour * 1000), frame(
+            "/husky1/chat", f"a{hour}", hour * 1000 + 500))
+        b.record(frame("/husky2/chat", f"b{hour}", hour * 1000 + 250), frame(
+            "/husky2/chat", f"b{hour}", hour * 1000 + 1000))  # ends as a's next begins
+        a.clock.now_s += 11
+        b.clock.now_s += 11
+    a.writer.close()
+    b.writer.close()
+    counts = MergeCounts()
+    inputs = [_indexed(s, tmp_path, n, counts) for n, s in enumerate(a.files() + b.files())]
+    lanes = _lanes(inputs)
+    assert sorted(len(lane) for lane in lanes) == [4, 4]
+    assert all(sorted(lane, key=lambda i: i.start_ns) == lane for lane in lanes)
+    target, counts = run(tmp_path, a.files() + b.files())
+    times = [ms for _, ms, _ in read(target)]
+    assert times == sorted(times) and counts.messages == 16

@@ -27,8 +27,9 @@ class Fanout(Protocol):
     def publish(self, topic: str, frame: bytes, no_drop: bool, message_id: int | None) -> None:
         """Deliver a frame accepted from a local sender to everyone who wants it."""
 
-    def follow(self, pattern: str, delta: int) -> None:
-        """One more (``+1``) or one fewer (``-1``) local connection holds *pattern*."""
+    def follow(self, pattern: str, delta: int, receive: tuple[str, ...] | None = None) -> None:
+        """One more (``+1``) or one fewer (``-1``) local connection holds *pattern*; it
+        may receive the topics of the *receive* regexes (``None``: not known)."""
 
     def forward_keyframe_request(self, frame: bytes) -> bool:
         """A keyframe request for a video topic whose publisher is not connected here:
@@ -82,7 +83,7 @@ class LocalFanout:
     def forward_keyframe_request(self, frame: bytes) -> bool:
         return False  # one process: a publisher not here is nowhere
 
-    def follow(self, pattern: str, delta: int) -> None:
+    def follow(self, pattern: str, delta: int, receive: tuple[str, ...] | None = None) -> None:
         pass  # every frame is already here
 
     async def start(self) -> None:

@@ -21,13 +21,16 @@ class Permissions:
     so one robot reconnecting keeps its warm cache.
     """
 
-    __slots__ = ("_receive", "_recv_cache", "_send", "_send_cache", "identities")
+    __slots__ = ("_receive", "_recv_cache", "_send", "_send_cache", "identities",
+                 "receive_patterns")
 
     def __init__(self, identities: tuple[Identity, ...]) -> None:
         self.identities = identities
         rules = [r for i in identities for r in i.rules]
         self._send = tuple(r.topic for r in rules if r.op.allows_send())
         self._receive = tuple(r.topic for r in rules if r.op.allows_receive())
+        # What a replica's NATS interest is narrowed by (cluster/interest.py).
+        self.receive_patterns = tuple(m.pattern for m in self._receive)
         self._send_cache: dict[str, bool] = {}
         self._recv_cache: dict[str, bool] = {}
 

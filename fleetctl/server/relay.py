@@ -360,8 +360,8 @@ class RelayCore:
         self.sessions.shared = shared
         self.store_acks = shared.acks
 
-    def _follow(self, pattern: str, delta: int) -> None:
-        self.fanout.follow(pattern, delta)
+    def _follow(self, pattern: str, receive: tuple[str, ...], delta: int) -> None:
+        self.fanout.follow(pattern, delta, receive)
 
     def on_text(self, peer: Peer, text: str, *, hold: bool = False) -> bool:
         """Handle one text frame: a token frame, a ``list_robots`` request or a standby's

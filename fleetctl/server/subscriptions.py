@@ -166,13 +166,15 @@ class SubscriptionMap(Generic[C]):
             for no bound.
         max_bytes_per_key: Pattern bytes all connections charged to one key (an identity
             name) may hold together; ``None`` for no bound.
-        watch: Called with ``(pattern, +1)`` when a connection starts holding a pattern
-            and ``(pattern, -1)`` when it stops (the fan-out's interest), or ``None``.
+        watch: Called with ``(pattern, receive, +1)`` when a connection whose receive
+            rules' regexes are *receive* starts holding a pattern and with ``-1`` when it
+            stops, or its rules change (the fan-out's interest, which the rules narrow),
+            or ``None``.
     """
 
     def __init__(self, max_per_connection: int, max_bytes_per_connection: int | None = None,
                  max_bytes_per_key: int | None = None,
-                 watch: Callable[[str, int], None] | None = None) -> None:
+                 watch: Callable[[str, tuple[str, ...], int], None] | None = None) -> None:
         self._watch = watch or _ignore
         self.max_per_connection = max_per_connection
         self.max_bytes_per_connection = max_bytes_per_connection
@@ -240,7 +242,7 @@ class SubscriptionMap(Generic[C]):
         entry.subs[pattern] = compiled
         entry.joined = None
         self._charge(entry, size)
-        self._watch(pattern, 1)
+        self._watch(pattern, entry.perms.receive_patterns, 1)
         literal = compiled.literal
         if literal is None:  # cached answers catch up on their topic's next frame
             self._touch(conn)
@@ -304,6 +306,7 @@ class SubscriptionMap(Generic[C]):
         if entry is None:
             entry = self._subs[conn] = _Entry(perms, keys=keys)
         elif entry.perms is not perms:  # its permissions changed: answers may differ
+            self._rewatch(entry, perms)
             entry.perms = perms
             self._touch(conn)
         if entry.keys != keys:  # e.g. a token frame added an identity
@@ -352,7 +355,7 @@ class SubscriptionMap(Generic[C]):
             return False
         entry.joined = None
         self._charge(entry, -compiled.cost)
-        self._watch(pattern, -1)
+        self._watch(pattern, entry.perms.receive_patterns, -1)
         literal = compiled.literal
         if literal is None:  # as in subscribe: answers catch up on their next frame
             self._touch(conn)
@@ -383,7 +386,8 @@ class SubscriptionMap(Generic[C]):
                 del entry.subs[pattern]
                 entry.joined = None
                 self._charge(entry, -compiled.cost)
-                self._watch(pattern, -1)
+                self._watch(pattern, entry.perms.receive_patterns, -1)
+        self._rewatch(entry, perms)
         entry.perms = perms
         self._cache.clear()
         return refused
@@ -395,7 +399,7 @@ class SubscriptionMap(Generic[C]):
             return
         self._charge(entry, -entry.nbytes)
         for pattern in entry.subs:
-            self._watch(pattern, -1)
+            self._watch(pattern, entry.perms.receive_patterns, -1)
         self._changed.pop(conn, None)  # in no answer from now on: nothing to catch up
         # At once, not lazily: a cached answer must not keep a closed connection (and
         # what its queue holds) alive until its topic's next frame. One tuple test per
@@ -403,6 +407,18 @@ class SubscriptionMap(Generic[C]):
         for topic, (version, found) in self._cache.items():
             if conn in found:
                 self._cache[topic] = (version, tuple(c for c in found if c != conn))
+
+    def _rewatch(self, entry: _Entry, perms: Permissions) -> None:
+        """*entry*'s patterns are held under *perms* from now on: the interest follows its
+        receive rules (the new ones counted before the old ones go, so that a subject
+        both need is never let go in between)."""
+        old, new = entry.perms.receive_patterns, perms.receive_patterns
+        if old == new:
+            return
+        for pattern in entry.subs:
+            self._watch(pattern, new, 1)
+        for pattern in entry.subs:
+            self._watch(pattern, old, -1)
 
     def routes(self, topic: str) -> bool:
         """Whether the receivers of *topic* are cached (a frame on it costs a lookup)."""
@@ -451,7 +467,7 @@ class SubscriptionMap(Generic[C]):
                 and entry.perms.may_receive(topic))
 
 
-def _ignore(pattern: str, delta: int) -> None:
+def _ignore(pattern: str, receive: tuple[str, ...], delta: int) -> None:
     pass
 
 

@@ -167,8 +167,8 @@ class NatsFanout:
         digest = frame_digest(frame) if order is not None else None
         self._enqueue(queued(subject, frame, topic, no_drop, message_id, digest, order))
 
-    def follow(self, pattern: str, delta: int) -> None:
-        if self.interest.follow(pattern, delta):
+    def follow(self, pattern: str, delta: int, receive: tuple[str, ...] | None = None) -> None:
+        if self.interest.follow(pattern, delta, receive):
             self._interest_changed.set()
 
     def forward_keyframe_request(self, frame: bytes) -> bool:
@@ -299,6 +299,11 @@ class NatsFanout:
             ("fleetctl_cluster_dropped_total", "counter",
              "Frames not carried between replicas, by reason.", "reason",
              {k: float(v) for k, v in self.dropped.items()}),
+            ("fleetctl_cluster_interest_derived_total", "counter",
+             "Local subscriptions (pattern and receive rules) whose NATS subjects were "
+             "derived, by what the receive rules did: narrowed, unchanged, unclear (an "
+             "alternation not split: subjects may be wider than needed).", "result",
+             {k: float(v) for k, v in self.interest.counters.items()}),
             ("fleetctl_cluster_subscriptions", "gauge",
              "NATS subscriptions this replica holds (interest of its consumers).", "",
              {"": float(len(self._subs))}),

@@ -89,8 +89,21 @@ def pattern_subject(prefix: str, pattern: str, literal: str | None) -> str:
         return topic_subject(prefix, head)
     if not head.startswith("/"):
         return prefix + ".>"
-    whole = head[1:].split("/")[:-1]  # the last segment may continue past the prefix
-    return ".".join((prefix, *map(escape_token, whole), ">"))
+    return prefix_subject(prefix, head)
+
+
+def prefix_subject(prefix: str, head: str) -> str:
+    """The subject covering every topic that starts with *head*: its whole segments, then
+    ``>`` (``<prefix>.>`` when it has none; a relative topic's segments follow
+    :data:`RELATIVE_TOKEN`)."""
+    if head.startswith("/"):
+        tokens = head[1:].split("/")[:-1]  # the last segment may continue past the prefix
+    elif "/" in head:
+        tokens = head.split("/")[:-1]
+        return ".".join((prefix, RELATIVE_TOKEN, *map(escape_token, tokens), ">"))
+    else:
+        return prefix + ".>"
+    return ".".join((prefix, *map(escape_token, tokens), ">"))
 
 
 def literal_prefix(pattern: str) -> tuple[str, bool]:
@@ -141,6 +154,19 @@ def covered(subject: str, wild: set[str]) -> bool:
     tokens = subject.split(".")
     base = tokens[:-1] if tokens[-1] == ">" else tokens
     return any(".".join(base[:k]) in wild for k in range(1, len(base)))
+
+
+def meet(a: str, b: str) -> str | None:
+    """The subject covering the topics both *a* and *b* cover, each a topic's subject or
+    ``X.>``; ``None`` if they share none. Two such subjects are nested or disjoint, so the
+    narrower one is the answer."""
+    if a == b:
+        return a
+    if a.endswith(".>") and covered(b, {a[:-2]}):
+        return b
+    if b.endswith(".>") and covered(a, {b[:-2]}):
+        return a
+    return None
 
 
 def subject_matches(subject: str, pattern: str) -> bool:

@@ -115,10 +115,16 @@ async def test_frame_crosses_replicas_once(replicas: tuple[RelayServer, ...]) ->
 
 async def test_acl_applies_on_the_receiving_replica(replicas: tuple[RelayServer, ...]) -> None:
     a, b = replicas
-    async with client(a, token=ALICE_TOKEN) as alice, client(b, token=BOB_TOKEN) as bob:
+    async with client(a, token=ALICE_TOKEN) as alice, client(b, token=BOB_TOKEN) as bob, \
+            client(b, token=ALICE_TOKEN) as other:
         assert (await subscribe(bob, ".*"))["type"] == "subscribed"  # filtered per delivery
-        await wait_for(lambda: fanout(b).subscribed == {"fleetctl.>"})
+        # Bob's rules narrow B's interest (receive /husky1/.*); another viewer on B
+        # brings /elsewhere/ frames to B too, which Bob's `.*` matches.
+        assert (await subscribe(other, "/elsewhere/.*"))["type"] == "subscribed"
+        await wait_for(lambda: fanout(b).subscribed == {"fleetctl.husky1.>",
+                                                        "fleetctl.elsewhere.>"})
         await until_crossing(alice, bob, "/husky1/probe")
+        await until_crossing(alice, other, "/elsewhere/probe")
         await drain(bob)
         before = fanout(b).received
         await alice.send(string_frame("/elsewhere/x", "not for bob"))
@@ -126,6 +132,40 @@ async def test_acl_applies_on_the_receiving_replica(replicas: tuple[RelayServer,
         assert decode_text(await next_binary(bob)) == "for bob"
         assert await no_binary(bob)
         await wait_for(lambda: fanout(b).received == before + 2)  # both came; one refused
+
+
+async def test_receive_rules_keep_unreceivable_frames_home(
+        replicas: tuple[RelayServer, ...], nats_cluster: list[NatsServer]) -> None:
+    """The page subscribes to `.*` with a token that may receive one robot: the other
+    robot's frames are not published to NATS at all (docs/scaling.md, "Interest narrowed
+    by receive rules")."""
+    a, b = replicas
+    board = fanout(a).remote_interest
+    assert board is not None
+    async with client(a, source="127.0.0.2") as husky1, \
+            client(a, source="127.0.0.3") as husky2, client(b, token=BOB_TOKEN) as viewer:
+        for ws in (husky1, husky2, viewer):
+            await next_json(ws, "welcome")
+        assert (await subscribe(viewer, ".*"))["type"] == "subscribed"
+        await wait_for(lambda: fanout(b).subscribed == {"fleetctl.husky1.>"})
+        await wait_for(lambda: fleet_subjects(nats_cluster[1]) == ["fleetctl.husky1.>"])
+        await wait_for(lambda: board.known() == {"relay-b": {"fleetctl.husky1.>"}})
+        await until_crossing(husky1, viewer, "/husky1/probe")
+        await drain(viewer)
+        published, unwanted, received = (fanout(a).published, fanout(a).unwanted,
+                                         fanout(b).received)
+        for i in range(FRAMES_EACH):
+            await husky1.send(string_frame("/husky1/scan", f"h1-{i}"))
+            await husky2.send(string_frame("/husky2/scan", f"h2-{i}"))
+        # husky1's frames cross; husky2's are not even published.
+        await wait_for(lambda: fanout(a).published - published == FRAMES_EACH
+                       and fanout(a).unwanted - unwanted == FRAMES_EACH, 15.0)
+        await wait_for(lambda: fanout(b).received - received == FRAMES_EACH, 15.0)
+        assert a.metrics.messages_in["/husky2/scan"] == FRAMES_EACH
+        assert fanout(b).interest.counters["narrowed"] == 1
+
+
+FRAMES_EACH = 200
 
 
 def fleet_subjects(node: NatsServer) -> list[str]:

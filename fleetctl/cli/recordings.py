@@ -540,9 +540,11 @@ def register(app: typer.Typer) -> None:
         server: list[str] | None = _SERVER, token_file: Path | None = _TOKEN,
         ca_file: Path | None = _CA, output: OutputFormat = output_option(),
     ) -> None:
-        """Write one indexed MCAP file, in log-time order, from several recordings
-        (replicas, rotated files, the open one); a message recorded twice is written
-        once."""
+        """Merge recordings (replicas, rotated files) into one indexed MCAP file.
+
+        Messages in log-time order; channels and schemas deduplicated; a
+        message recorded twice written once; an open file read up to its last
+        flush."""
         from fleetctl.cli.recordingmerge import merge_command, parse_time
         from fleetctl.server.recording.merge import Selection
 

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import asyncio
+import copy
 import os
 import subprocess
 import sys
@@ -19,7 +20,9 @@ from tests.server.cluster.conftest import fanout
 from tests.server.cluster.natsproc import NatsServer
 from tests.server.conftest import (
     ALICE_TOKEN,
+    AUTH,
     BOB_TOKEN,
+    auth_map,
     client,
     next_binary,
     next_json,
@@ -166,6 +169,31 @@ async def test_receive_rules_keep_unreceivable_frames_home(
 
 
 FRAMES_EACH = 200
+
+
+async def test_an_auth_reload_moves_the_interest(replicas: tuple[RelayServer, ...]) -> None:
+    """Bob's rules change live: B's subscription and A's view of it follow, and the
+    robot he may now receive crosses."""
+    a, b = replicas
+    board = fanout(a).remote_interest
+    assert board is not None
+    async with client(a, source="127.0.0.3") as husky2, client(b, token=BOB_TOKEN) as viewer:
+        await next_json(husky2, "welcome")
+        assert (await subscribe(viewer, ".*"))["type"] == "subscribed"
+        await wait_for(lambda: board.known() == {"relay-b": {"fleetctl.husky1.>"}})
+        raw = copy.deepcopy(AUTH)
+        bob = next(i for i in raw["identities"] if i["name"] == "bob")
+        bob["rules"] = [{"topic": "/husky2/.*", "op": "receive"}]
+        assert b.core.reload_auth(auth_map(raw)) == (1, 0)
+        await wait_for(lambda: fanout(b).subscribed == {"fleetctl.husky2.>"})
+        await wait_for(lambda: board.known() == {"relay-b": {"fleetctl.husky2.>"}})
+        await until_crossing(husky2, viewer, "/husky2/scan")
+        # ... and back: husky2's frames stay home again.
+        assert b.core.reload_auth(auth_map(AUTH)) == (1, 0)
+        await wait_for(lambda: board.known() == {"relay-b": {"fleetctl.husky1.>"}})
+        unwanted = fanout(a).unwanted
+        await husky2.send(string_frame("/husky2/scan", "not wanted"))
+        await wait_for(lambda: fanout(a).unwanted == unwanted + 1)
 
 
 def fleet_subjects(node: NatsServer) -> list[str]:

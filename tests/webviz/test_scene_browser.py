@@ -239,3 +239,47 @@ async def test_scene_with_tf_map_scan_cloud_markers_and_video(
                                 ".includes('decoded')")
             await page.screenshot(path=str(Path(SCREENSHOTS) / "scene.png"), full_page=True)
         assert not problems, problems
+
+
+# Counts the shader programs the page links (every WebGL context, from the first script on).
+COUNT_LINKS = """(() => {
+  window.__programLinks = 0;
+  for (const C of [WebGLRenderingContext, WebGL2RenderingContext]) {
+    const link = C.prototype.linkProgram;
+    C.prototype.linkProgram = function (p) { window.__programLinks++; return link.call(this, p); };
+  }
+})();"""
+
+
+async def test_messages_replacing_each_other_link_no_new_shader_programs(
+    tmp_path: Path, browser: Any, webviz_factory: list[Any]
+) -> None:
+    """Each scan, cloud and odometry replaces the one before it in the scene. three.js
+    deletes a program with its last material, so disposing the old object before the new
+    one was drawn compiled and linked the same program again for every message (12.5 links
+    a second for one simulated robot, a synchronous wait on the GPU process each)."""
+    async with scripted_fleet(tmp_path) as relay:
+        r1 = relay.robots["r1"]
+        web = webviz_server(relay.url).start()
+        webviz_factory.append(web)
+        page = await browser.new_page(viewport={"width": 1400, "height": 1100})
+        await page.add_init_script(COUNT_LINKS)
+        problems = watch_errors(page)
+        await open_robot_page(page, web.url, ["/r1/tf", "/r1/scan", "/r1/points", "/r1/odom"])
+        cloud = {**cloud_values(500), "header": header("odom")}
+        odom = {"header": header("odom"), "child_frame_id": "base_link",
+                "pose": {"pose": pose_values(1.0, 2.0, 0.0)}}
+        r1.repeat(lambda: [r1.encode(TF_TYPE, "/tf", tf_values(DYNAMIC[:1])),
+                           r1.encode(SCAN_TYPE, "/scan", scan_in("odom")),
+                           r1.encode("sensor_msgs/msg/PointCloud2", "/points", cloud),
+                           r1.encode("nav_msgs/msg/Odometry", "/odom", odom)],
+                  period_s=0.05)
+        for key in ("/r1/scan", "/r1/points", "/r1/odom"):
+            await wait_js(page, f"{placement_js(key)}?.visible === true")
+        scene = "document.querySelector('#scene-canvas').dataset"
+        draws = await page.evaluate(f"Number({scene}.draws)")
+        linked = await page.evaluate("window.__programLinks")
+        await wait_js(page, f"fleetviz.views.scene.stats.messages > 0 && Number({scene}.draws)"
+                            f" >= {draws + 20}")
+        assert await page.evaluate("window.__programLinks") == linked
+        assert not problems, problems

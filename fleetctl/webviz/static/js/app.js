@@ -481,11 +481,11 @@ class App {
     $("#client-stats").textContent = `frames ${s.framesIn}, decode errors ${s.decodeErrors}, dropped while loading a type ${s.droppedNoLayout}, fragments dropped ${this.conn.reassembler.totalDropped()}, decompressed ${s.decompressed}, compressed but undecodable here ${s.unsupported}, dropped behind decompression ${s.droppedInflateQueue}`;
   }
 
-  frame() {
+  frame(nowMs = performance.now()) {
     if (this.robot && this.views) {
-      for (const v of Object.values(this.views)) v.render?.();
+      for (const v of Object.values(this.views)) v.render?.(nowMs);
     }
-    requestAnimationFrame(() => this.frame());
+    requestAnimationFrame((t) => this.frame(t));
   }
 }
 

@@ -6,6 +6,7 @@
 // page ("/r1/scan: frame base_scan not connected to map (...)"), never drawn in the wrong
 // place. The frame tree is listed beside the scene, with axes per frame on request.
 
+import { DrawPacer } from "../drawpacer.js";
 import { TfTree, normalizeFrame } from "../tf.js";
 import { viewerCloudXYZ } from "../viewercloud.js";
 import * as O from "./sceneobjects.js";
@@ -57,6 +58,9 @@ export class SceneView {
     this.canvas = els.canvas;
     this.tf = new TfTree();
     this.entries = new Map(); // key -> {topic, frame, group, content}
+    this.retired = []; // replaced contents, disposed after the next draw (retire())
+    this.draws = 0; // draws so far: an entry set since the last one was never drawn
+    this.pacer = new DrawPacer(); // draws take at most half the main thread (drawpacer.js)
     this.markerKeys = new Set(); // insertion order = age, for eviction
     this.trails = new Map(); // odometry topic -> {frame, points}
     this.backlog = new Map(); // key -> [meta, msg] that arrived before three.js loaded
@@ -191,7 +195,7 @@ export class SceneView {
     const old = this.entries.get(key);
     if (old) {
       old.group.remove(old.content);
-      O.dispose(old.content);
+      this.retire(old);
     }
     let group = old?.group;
     if (!group) {
@@ -200,7 +204,7 @@ export class SceneView {
       this.scene.add(group);
     }
     group.add(content);
-    this.entries.set(key, { topic, frame: normalizeFrame(frame), group, content });
+    this.entries.set(key, { topic, frame: normalizeFrame(frame), group, content, setAt: this.draws });
     return undefined;
   }
 
@@ -208,9 +212,29 @@ export class SceneView {
     const e = this.entries.get(key);
     if (!e) return;
     this.scene?.remove(e.group);
-    O.dispose(e.content);
+    this.retire(e);
     this.entries.delete(key);
     this.markerKeys.delete(key);
+  }
+
+  /**
+   * Dispose an entry's content after the next draw, not now. three.js deletes a shader
+   * program when the last material using it is disposed, so disposing the old scan before
+   * its successor was drawn made the successor compile and link the same program again:
+   * 12.5 program links a second for one simulated robot, each a synchronous wait on the GPU
+   * process (docs/webviz.md, "The 3D scene's cost per message"). Content set since the last
+   * draw was never drawn, holds no program, and goes at once (paced draws let several
+   * scans replace each other between two draws).
+   */
+  retire(entry) {
+    if (entry.setAt === this.draws) O.dispose(entry.content);
+    else this.retired.push(entry.content);
+    this.dirty = true;
+  }
+
+  disposeRetired() {
+    for (const c of this.retired) O.dispose(c);
+    this.retired.length = 0;
   }
 
   odometry(topic, frame, pose) {
@@ -313,10 +337,13 @@ export class SceneView {
     }
   }
 
-  render() {
-    if (this.mode !== "webgl") return;
+  /** Draw what changed, at most as often as the pacer allows (*nowMs*: the frame's time). */
+  render(nowMs = performance.now()) {
+    if (this.mode !== "webgl") return this.disposeRetired();
+    const due = this.pacer.due(nowMs); // every frame: it learns the last draw's cost here
     if (!this.dirty && this.tfVersion === this.tf.version) return;
-    if (this.canvas.offsetParent === null) return; // panel hidden: draw when shown again
+    if (this.canvas.offsetParent === null) return this.disposeRetired(); // hidden: draw when shown
+    if (!due) return this.pacer.defer();
     this.dirty = false;
     this.tfVersion = this.tf.version;
     this.place();
@@ -328,7 +355,12 @@ export class SceneView {
     );
     this.camera.lookAt(this.target);
     this.renderer.render(this.scene, this.camera);
+    this.draws++;
+    this.pacer.drew(nowMs);
+    this.disposeRetired(); // their programs now have the new contents' materials as users
     this.canvas.dataset.drawn = String(this.stats.drawn);
+    this.canvas.dataset.draws = String(this.draws);
+    this.canvas.dataset.deferred = String(this.pacer.deferred);
     this.canvas.dataset.fixed = this.fixed.frame ?? "";
   }
 

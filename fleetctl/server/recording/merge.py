@@ -32,6 +32,14 @@ its run in files of both. :func:`merge` joins them back into one file that rosba
   the messages sharing its log time, a start-of-file copy never further than its topic's
   messages since the original (a latched topic: its last one; a video group: the frames
   since its keyframe).
+- **The window starts with what it needs from before** (``since_ns``): as a rotated file
+  starts with copies of the latched messages and the video groups, the output starts
+  with the newest message before ``since_ns`` of each selected latched channel, and each
+  selected video channel's frames from its last keyframe before it
+  (:mod:`fleetctl.server.recording.carry`; the newest over all inputs, per output
+  channel), counted in ``carried``. Written as rotation writes its copies: log time the
+  window's start, publish time, sequence and data the original's. A later start-of-file
+  copy of a carried message is then a repeat.
 """
 
 from __future__ import annotations
@@ -53,8 +61,9 @@ from mcap.records import Channel, Message, Schema
 from mcap.writer import CompressionType, Writer
 
 from fleetctl.errors import FleetError
-from fleetctl.server.recording import files
+from fleetctl.server.recording import carry, files
 from fleetctl.server.registry import robot_name
+from fleetctl.wire.codec import default_codec
 
 LIBRARY = "fleetctl"
 RECENT_PER_CHANNEL = 4096
@@ -113,6 +122,11 @@ class MergeCounts:
             log time (recorded twice).
         repeats: Messages left out as a start-of-file copy (later log time) of a latched
             or video message already written.
+        carried: Of ``messages``, those from before ``since_ns`` written at its time: the
+            newest latched message of each channel, the video frames since the last
+            keyframe.
+        not_carried: Video topics whose frames before ``since_ns`` were not carried (no
+            keyframe within :data:`fleetctl.server.recording.carry.MAX_GROUP_BYTES`).
         topics: The topics written, sorted.
         channels: Channels written.
         start_ns: Log time of the first message written (0: none).
@@ -124,6 +138,8 @@ class MergeCounts:
     messages: int = 0
     duplicates: int = 0
     repeats: int = 0
+    carried: int = 0
+    not_carried: list[str] = field(default_factory=list)
     topics: list[str] = field(default_factory=list)
     channels: int = 0
     start_ns: int = 0
@@ -154,6 +170,8 @@ def merge(sources: Sequence[MergeSource], out: BinaryIO, selection: Selection,
     writer = Writer(out, compression=CompressionType.ZSTD)
     writer.start(profile=inputs[0].profile if inputs else "", library=LIBRARY)
     output = _Output(writer)
+    if selection.since_ns is not None:
+        _carry(inputs, selection, selection.since_ns, output, counts)
     with contextlib.ExitStack() as stack:
         lanes = [stack.enter_context(contextlib.closing(_in_log_time_order(lane, selection)))
                  for lane in _lanes(inputs)]
@@ -273,12 +291,23 @@ def _in_log_time_order(lane: list[_Indexed], selection: Selection
         FleetError: An input is damaged (the messages before the damage were yielded).
     """
     for each in lane:
-        try:
-            with each.path.open("rb") as stream:
-                yield from _ordered(stream, each.n, selection)
-        except (*_READ_ERRORS, OSError) as exc:
-            raise files.DamagedRecording(f"{each.source.label}: damaged data, cannot merge "
-                                         f"it ({type(exc).__name__}: {exc})") from None
+        with _reading(each) as stream:
+            yield from _ordered(stream, each.n, selection)
+
+
+@contextlib.contextmanager
+def _reading(each: _Indexed) -> Iterator[BinaryIO]:
+    """*each* open for reading; what reading it raises as an error naming it.
+
+    Raises:
+        FleetError: It is damaged.
+    """
+    try:
+        with each.path.open("rb") as stream:
+            yield stream
+    except (*_READ_ERRORS, OSError) as exc:
+        raise files.DamagedRecording(f"{each.source.label}: damaged data, cannot merge "
+                                     f"it ({type(exc).__name__}: {exc})") from None
 
 
 def _ordered(stream: BinaryIO, n: int, selection: Selection) -> Iterator[_Item]:
@@ -294,8 +323,50 @@ def _ordered(stream: BinaryIO, n: int, selection: Selection) -> Iterator[_Item]:
         yield (message.log_time, n), schema, channel, message
 
 
+def _carry(inputs: list[_Indexed], selection: Selection, since_ns: int, output: _Output,
+           counts: MergeCounts) -> None:
+    """Write at *since_ns* what the window needs from before it (the module's docstring):
+    per output channel, the newest found over the inputs (ties: the earlier input).
+
+    Raises:
+        FleetError: An input is damaged.
+    """
+    best: dict[_ChannelKey, tuple[int, carry.CarriedChannel]] = {}
+    not_carried: set[str] = set()
+    for each in inputs:
+        if each.start_ns >= since_ns:  # nothing before the window (its statistics)
+            continue
+        with _reading(each) as stream:
+            found = carry.before(stream, since_ns, selection.wants, _deserializer)
+        not_carried |= found.not_carried
+        for channel in found.carried.values():
+            key = _channel_key(channel.schema, channel.channel)
+            held = best.get(key)
+            if held is None or channel.newest_ns > held[1].newest_ns:
+                best[key] = (each.n, channel)
+    # A video topic carried from one input is carried, whatever another input lacked.
+    carried_topics = {c.channel.topic for _n, c in best.values()}
+    counts.not_carried = sorted(not_carried - carried_topics)
+    for n, channel in sorted(best.values(), key=lambda b: (b[1].messages[0].log_time, b[0])):
+        for message in channel.messages:
+            if output.add(n, channel.schema, channel.channel, message, counts, since_ns):
+                counts.carried += 1
+
+
+def _deserializer() -> carry.Deserialize:
+    # The recorder writes video with the default registry's definition (its schema).
+    return default_codec().registry.typestore.deserialize_cdr
+
+
 _SchemaKey = tuple[str, str, bytes]
 _ChannelKey = tuple[str, str, _SchemaKey | None]
+
+
+def _channel_key(schema: Schema | None, channel: Channel) -> _ChannelKey:
+    """What makes two inputs' channels one output channel: topic, message encoding and
+    schema (name, encoding, text)."""
+    schema_key = (schema.name, schema.encoding, schema.data) if schema else None
+    return (channel.topic, channel.message_encoding, schema_key)
 
 
 class _Output:
@@ -311,8 +382,11 @@ class _Output:
         self._recent: dict[int, OrderedDict[tuple[int, int, bytes], int]] = {}
 
     def add(self, n: int, schema: Schema | None, channel: Channel, message: Message,
-            counts: MergeCounts) -> None:
-        """Write *message* of input *n* unless it was written already (counted)."""
+            counts: MergeCounts, log_time: int | None = None) -> bool:
+        """Write *message* of input *n* unless it was written already (counted); at
+        *log_time* (a carried message), ``None``: its own. Returns whether it was
+        written."""
+        log_time = message.log_time if log_time is None else log_time
         out_channel = self._by_input.get((n, channel.id))
         if out_channel is None:
             out_channel = self._by_input[(n, channel.id)] = self._channel(schema, channel)
@@ -321,28 +395,29 @@ class _Output:
                hashlib.blake2b(message.data, digest_size=_DIGEST_BYTES).digest())
         seen_at = recent.get(key)
         if seen_at is not None:
-            if seen_at == message.log_time:
+            if seen_at == log_time:
                 counts.duplicates += 1
             else:
                 counts.repeats += 1
-            return
-        recent[key] = message.log_time
+            return False
+        recent[key] = log_time
         if len(recent) > RECENT_PER_CHANNEL:
             recent.popitem(last=False)
-        self._writer.add_message(out_channel, message.log_time, message.data,
+        self._writer.add_message(out_channel, log_time, message.data,
                                  message.publish_time, message.sequence)
         if not counts.messages:
-            counts.start_ns = message.log_time
+            counts.start_ns = log_time
         counts.messages += 1
-        counts.end_ns = message.log_time
+        counts.end_ns = log_time
+        return True
 
     def _channel(self, schema: Schema | None, channel: Channel) -> int:
-        schema_key = (schema.name, schema.encoding, schema.data) if schema else None
-        key = (channel.topic, channel.message_encoding, schema_key)
+        key = _channel_key(schema, channel)
         found = self.channels.get(key)
         if found is not None:
             return found
         schema_id = 0  # MCAP: no schema
+        schema_key = key[2]
         if schema is not None and schema_key is not None:
             schema_id = self._schemas.get(schema_key, 0)
             if not schema_id:

@@ -5,12 +5,13 @@ from __future__ import annotations
 from collections.abc import Iterator
 from pathlib import Path
 
+import numpy as np
 import pytest
 from mcap.reader import make_reader
 from rosbags.highlevel import AnyReader
 
 from fleetctl.errors import FleetError
-from fleetctl.server.recording import files
+from fleetctl.server.recording import carry, files
 from fleetctl.server.recording.config import RecordingConfig
 from fleetctl.server.recording.merge import (
     MergeCounts,
@@ -26,6 +27,7 @@ from tests.server.recording.damaged import damaged_recording
 from tests.support import ManualClock
 
 STRING = "std_msgs/msg/String"
+VIDEO = "foxglove_msgs/msg/CompressedVideo"
 T0 = 1_700_000_000_000_000_000
 MS = 1_000_000
 
@@ -248,3 +250,115 @@ def test_files_that_follow_each_other_are_read_one_after_another(tmp_path: Path)
     target, counts = run(tmp_path, a.files() + b.files())
     times = [ms for _, ms, _ in read(target)]
     assert times == sorted(times) and counts.messages == 16
+
+
+def read_times(path: Path) -> list[tuple[str, int, int, str]]:
+    """(topic, log time and publish time in ms after T0, text) of every String message,
+    in file order."""
+    store = default_codec().registry.typestore
+    with path.open("rb") as stream:
+        return [(c.topic, (m.log_time - T0) // MS, (m.publish_time - T0) // MS,
+                 store.deserialize_cdr(m.data, STRING).data)
+                for s, c, m in make_reader(stream).iter_messages(log_time_order=False)
+                if s is not None and s.name == STRING]
+
+
+def test_since_carries_the_newest_latched_message_of_each_channel_to_the_window_start(
+        tmp_path: Path) -> None:
+    """A map sent once at the start is what a window of the incident needs to be read;
+    as a rotated file starts with copies of the latched messages, the merged window
+    starts with the newest of each (log time: the window start, publish time: the
+    original's)."""
+    a = Replica(tmp_path / "a", "relay-a")
+    a.record(*(frame("/husky1/map", f"map v{v}", v, latched=True) for v in range(1, 51)),
+             frame("/husky1/tf_static", "static", 55, latched=True),
+             frame("/husky2/map", "husky2's map", 57, latched=True),
+             frame("/husky1/chat", "before", 60),  # not latched: not carried
+             frame("/husky1/chat", "in the window", 200))
+    a.writer.close()
+    target, counts = run(tmp_path, a.files(), Selection(since_ns=T0 + 100 * MS))
+    assert read_times(target) == [
+        ("/husky1/map", 100, 50, "map v50"), ("/husky1/tf_static", 100, 55, "static"),
+        ("/husky2/map", 100, 57, "husky2's map"), ("/husky1/chat", 200, 200, "in the window")]
+    assert (counts.messages, counts.carried, counts.start_ns) == (4, 3, T0 + 100 * MS)
+    (tmp_path / "merged.mcap").unlink()
+    target, counts = run(tmp_path, a.files(), Selection("husky1", since_ns=T0 + 100 * MS))
+    assert [(t, ms, text) for t, ms, _, text in read_times(target)] == [
+        ("/husky1/map", 100, "map v50"), ("/husky1/tf_static", 100, "static"),
+        ("/husky1/chat", 200, "in the window")]
+    assert counts.carried == 2
+
+
+def test_a_carried_message_makes_the_next_start_of_file_copy_a_repeat(
+        tmp_path: Path) -> None:
+    """Rotated files each start with a copy of the map: the newest before the window
+    (here a copy itself) is carried, the one in the window is left out as a repeat."""
+    a = Replica(tmp_path / "a", "relay-a", max_file_duration_s=10.0)
+    a.record(frame("/husky1/map", "map", 5, latched=True), frame("/husky1/chat", "x", 10))
+    for ms in (20_000, 40_000):
+        a.clock.now_s += 11
+        a.record(frame("/husky1/chat", "y", ms))
+    a.writer.close()
+    target, counts = run(tmp_path, a.files(), Selection(since_ns=T0 + 30_000 * MS))
+    assert read_times(target) == [("/husky1/map", 30_000, 5, "map"),
+                                  ("/husky1/chat", 40_000, 40_000, "y")]
+    assert (counts.carried, counts.repeats) == (1, 1)
+
+
+def test_the_newest_before_the_window_is_taken_across_inputs(tmp_path: Path) -> None:
+    a, b = Replica(tmp_path / "a", "relay-a"), Replica(tmp_path / "b", "relay-b")
+    a.record(frame("/husky1/map", "old", 10, latched=True),
+             frame("/husky1/chat", "a", 150))
+    b.record(frame("/husky1/map", "new", 20, latched=True),
+             frame("/husky1/map", "in the window", 120, latched=True))
+    a.writer.close()
+    b.writer.close()
+    target, counts = run(tmp_path, a.files() + b.files(), Selection(since_ns=T0 + 100 * MS))
+    assert [(ms, text) for _, ms, _, text in read_times(target)] == [
+        (100, "new"), (120, "in the window"), (150, "a")]
+    assert counts.carried == 1
+
+
+def video(at_ms: int, key: bool, pad: int = 0) -> bytes:
+    """A CompressedVideo frame (H.264: SPS + IDR slice, or a non-IDR slice)."""
+    codec = default_codec()
+    store = codec.registry.typestore
+    data = (b"\x00\x00\x00\x01\x67\x42\x00\x1e\x00\x00\x00\x01\x65\x88\x84" if key
+            else b"\x00\x00\x00\x01\x41\x9a\x02") + b"\x00" * pad
+    msg = store.types[VIDEO](
+        timestamp=store.types["builtin_interfaces/msg/Time"](sec=at_ms, nanosec=0),
+        frame_id="camera", format="h264", data=np.frombuffer(data, dtype=np.uint8))
+    return codec.encode(msg, VIDEO, "/husky1/camera", publish_time_ns=T0 + at_ms * MS,
+                        seq=at_ms)
+
+
+def camera(path: Path) -> list[tuple[int, int]]:
+    """(log time, publish time) in ms after T0 of each camera frame."""
+    with path.open("rb") as stream:
+        return [((m.log_time - T0) // MS, (m.publish_time - T0) // MS)
+                for _s, c, m in make_reader(stream).iter_messages() if c.topic ==
+                "/husky1/camera"]
+
+
+def test_since_carries_the_video_since_its_last_keyframe(tmp_path: Path) -> None:
+    """A window that starts between two keyframes could not show the camera until the
+    next one: it starts with the frames from the last keyframe, as a rotated file does."""
+    a = Replica(tmp_path / "a", "relay-a")
+    a.record(*(video(ms, key) for ms, key in ((10, True), (20, False), (30, True),
+                                               (40, False), (50, False), (60, False),
+                                               (70, True))))
+    a.writer.close()
+    target, counts = run(tmp_path, a.files(), Selection(since_ns=T0 + 55 * MS))
+    assert camera(target) == [(55, 30), (55, 40), (55, 50), (60, 60), (70, 70)]
+    assert (counts.carried, counts.not_carried) == (3, [])
+
+
+def test_a_video_group_past_the_bound_is_not_carried_and_said(
+        tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.setattr(carry, "MAX_GROUP_BYTES", 4096)
+    a = Replica(tmp_path / "a", "relay-a")
+    a.record(video(10, True), *(video(ms, False, pad=1000) for ms in range(20, 70, 10)))
+    a.writer.close()
+    target, counts = run(tmp_path, a.files(), Selection(since_ns=T0 + 65 * MS))
+    assert camera(target) == []
+    assert (counts.carried, counts.not_carried) == (0, ["/husky1/camera"])

@@ -3,7 +3,9 @@
 Which recordings: file names (on the replicas given with ``--server``, fetched as
 ``fetch`` does; in ``--dir``/``--config``'s directory; else paths on this host), and/or a
 selection: ``--robot NAME`` (the files with that robot's topics, and only those topics
-merged) and ``--since``/``--until`` (log times outside are left out). The merge itself is
+merged) and ``--since``/``--until`` (log times outside are left out, but the window starts
+with the newest latched message of each channel and the current video group from before
+``--since``, as a rotated file starts with their copies). The merge itself is
 :mod:`fleetctl.server.recording.merge`; this module finds the inputs, fetches them into a
 scratch directory beside the output and puts the result in place (written to a temp file
 in the same directory, then linked to its name, or renamed over an old file with
@@ -56,6 +58,11 @@ class Merged:
         duplicates: Messages recorded twice (same log time) written once.
         repeats: Start-of-file copies of latched or video messages whose original is in
             the merged file (left out).
+        carried: Of ``messages``, those from before ``--since`` written at its time (each
+            latched channel's newest message, each video channel's frames since its last
+            keyframe).
+        not_carried: Video topics whose frames before ``--since`` were not carried (no
+            keyframe found within the bound): they show from their next keyframe.
         topics: Topics written, sorted.
         start_ns: Log time of the first message, ns since the epoch.
         end_ns: Log time of the last.
@@ -69,6 +76,8 @@ class Merged:
     messages: int
     duplicates: int
     repeats: int
+    carried: int
+    not_carried: list[str]
     topics: list[str]
     start_ns: int
     end_ns: int
@@ -79,6 +88,12 @@ class Merged:
         lines = [f"wrote {self.target}: {self.messages} messages on {len(self.topics)} "
                  f"topic(s), {_utc(self.start_ns)} to {_utc(self.end_ns)} UTC, from "
                  f"{self.files} recording(s)"]
+        if self.carried:
+            lines.append(f"  carried: {self.carried} message(s) from before --since "
+                         "(latched: the newest of each; video: since the last keyframe), "
+                         "at its time")
+        lines += [f"  {t}: not carried (no keyframe found before --since): shows from its "
+                  "next keyframe" for t in self.not_carried]
         if self.duplicates or self.repeats:
             lines.append(f"  left out: {self.duplicates} recorded twice, {self.repeats} "
                          "start-of-file copies of latched/video messages")
@@ -257,7 +272,7 @@ def write_merged(sources: Sequence[MergeSource], target: Path, selection: Select
     try:
         with os.fdopen(fd, "wb") as out:
             counts = merge(sources, out, selection, scratch)
-        if not counts.messages:
+        if counts.messages == counts.carried:  # only what came before the window
             raise FleetError(f"no message{_selection_text(selection)} in "
                              f"{', '.join(s.label for s in sources)}")
         part.chmod(MERGED_FILE_MODE)  # mkstemp made it 0600
@@ -270,8 +285,8 @@ def write_merged(sources: Sequence[MergeSource], target: Path, selection: Select
     finally:
         part.unlink(missing_ok=True)
     return Merged(target, len(sources), [s.label for s in sources], counts.messages,
-                  counts.duplicates, counts.repeats, counts.topics, counts.start_ns,
-                  counts.end_ns, counts.still_open)
+                  counts.duplicates, counts.repeats, counts.carried, counts.not_carried,
+                  counts.topics, counts.start_ns, counts.end_ns, counts.still_open)
 
 
 def _selection_text(selection: Selection) -> str:

@@ -15,8 +15,10 @@ from fleetctl.cli.main import main
 from fleetctl.cli.recordingmerge import parse_time, selected_remote
 from fleetctl.cli.recordings import RemoteRecording
 from fleetctl.errors import ExitCode, FleetError
+from fleetctl.server.recording.mcapfile import McapFile
 from fleetctl.server.recording.merge import Selection
-from tests.cli.test_recordings import T0, write_recording
+from fleetctl.wire.codec import default_codec
+from tests.cli.test_recordings import STRING, T0, write_recording
 from tests.server.recording.damaged import damaged_recording
 
 MS = 1_000_000
@@ -165,3 +167,39 @@ def test_bad_inputs_are_named_and_leave_nothing_behind(
     assert f"{nowhere}: cannot write: no such directory" in capsys.readouterr().err
     assert main(["recordings", "merge", good, "--to", str(tmp_path)]) == ExitCode.USAGE
     assert "is a directory" in capsys.readouterr().err
+
+
+def with_a_map(path: Path) -> None:
+    """A map sent once (latched, twice updated), then chat every 20 ms until 100 ms."""
+    registry = default_codec().registry
+    out = McapFile(path, registry, 1024)
+    for i, (topic, text, latched) in enumerate(
+            [("/husky1/map", "map v1", True), ("/husky1/map", "map v2", True)]
+            + [("/husky1/chat", f"chat {n}", False) for n in range(4)]):
+        cdr = bytes(registry.typestore.serialize_cdr(registry.get(STRING).cls(text), STRING))
+        out.write(topic, STRING, cdr, T0 + i * STEP_NS, i + 1, latched)
+    out.close()
+
+
+def test_a_window_starts_with_the_latched_map_from_before_it(
+        tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    with_a_map(tmp_path / "in.mcap")
+    out = tmp_path / "window.mcap"
+    argv = ["recordings", "merge", str(tmp_path / "in.mcap"), "--since", "1700000000.07",
+            "--to", str(out)]
+    assert main([*argv, "-o", "json"]) == 0
+    result = json.loads(capsys.readouterr().out)
+    assert (result["messages"], result["carried"], result["not_carried"]) == (3, 1, [])
+    with AnyReader([out]) as reader:
+        assert [(c.topic, (t - T0) // MS, reader.deserialize(raw, c.msgtype).data)
+                for c, t, raw in reader.messages()] == [
+            ("/husky1/map", 70, "map v2"), ("/husky1/chat", 80, "chat 2"),
+            ("/husky1/chat", 100, "chat 3")]
+    assert main([*argv, "--force"]) == 0
+    assert "  carried: 1 message(s) from before --since" in capsys.readouterr().out
+    # A window after the last message: the map alone is no window.
+    argv = ["recordings", "merge", str(tmp_path / "in.mcap"), "--since", "1700000000.5",
+            "--to", str(tmp_path / "late.mcap")]
+    assert main(argv) == ExitCode.FAILURE
+    assert "no message since 2023-11-14 22:13:20.500 UTC in" in capsys.readouterr().err
+    assert not (tmp_path / "late.mcap").exists()

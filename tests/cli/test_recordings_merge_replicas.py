@@ -1,6 +1,7 @@
 """``fleetctl recordings merge --server A --server B --robot X``: a robot that moved from
 replica A to replica B of a real NATS cluster has its run in files of both; the merged
-file holds all of it, once, in order, as rosbags reads it."""
+file holds all of it, once, in order, as rosbags reads it; a window of it starts with the
+latched map from before the window."""
 
 from __future__ import annotations
 
@@ -131,6 +132,17 @@ async def test_a_robot_that_moved_from_a_to_b_is_merged_into_one_file(
         times = [t for _, t, _ in merged]
         assert times == sorted(times)
         assert (times[0], times[-1]) == (result["start_ns"], result["end_ns"])
+        # A window from message 10 on starts with the map A recorded long before it.
+        since = times[11]
+        argv = ["recordings", "merge", "--server", a.url, "--server", b.url,
+                "--robot", "husky1", "--since", f"{since // 10**9}.{since % 10**9:09d}",
+                "--to", str(tmp_path / "window.mcap"), "-o", "json"]
+        assert await asyncio.to_thread(main, argv) == 0
+        result = json.loads(capsys.readouterr().out)
+        assert (result["messages"], result["carried"]) == (11, 1)
+        assert read_back(tmp_path / "window.mcap") == [
+            ("/husky1/map", since, "the map"),
+            *(("/husky1/chat", t, text) for _, t, text in merged[11:])]
         # A replica that does not answer is an error naming it: the merge would miss its
         # part of the run.
         dead = f"http://127.0.0.1:{free_port()}/"

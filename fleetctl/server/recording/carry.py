@@ -93,47 +93,71 @@ def before(stream: BinaryIO, time_ns: int, wants: Callable[[str], bool],
     Raises:
         McapError, zstandard.ZstdError, ...: The file is damaged (the caller names it).
     """
-    found = Found()
     reader = SeekingReader(stream, validate_crcs=True)
     summary = reader.get_summary()
     if summary is None:
-        return found
-    latched = {c.id for c in summary.channels.values()
-               if wants(c.topic) and is_latched(c.metadata)}
-    videos = {c.id for c in summary.channels.values() if wants(c.topic)
-              and c.id not in latched and _schema_name(summary.schemas, c) == VIDEO_TYPE}
+        return Found()
+    selected = [c for c in summary.channels.values() if wants(c.topic)]
+    latched = {c.id for c in selected if is_latched(c.metadata)}
+    videos = {c.id for c in selected if c.id not in latched
+              and _schema_name(summary.schemas, c) == VIDEO_TYPE}
     if not latched and not videos:
-        return found
-    keyframe = GopKeeper(0, deserialize()).keyframe if videos else None
-    pending, keyed = latched | videos, set()
-    read_bytes: dict[int, int] = {}
-    topics = sorted({summary.channels[i].topic for i in pending})
+        return Found()
+    search = _Search(latched, videos, GopKeeper(0, deserialize()).keyframe if videos
+                     else None)
+    topics = sorted({summary.channels[i].topic for i in latched | videos})
     for schema, channel, message in reader.iter_messages(topics=topics, reverse=True,
                                                          ending_before=time_ns):
-        if channel.id not in pending:
-            continue
-        carried = found.carried.setdefault(channel.id, CarriedChannel(schema, channel))
-        carried.messages.append(message)  # newest first until the end
-        if channel.id in latched:
-            pending.discard(channel.id)
-        elif keyframe is not None and keyframe(VIDEO_TYPE, message.data):
-            keyed.add(channel.id)
-            pending.discard(channel.id)
-        else:
-            read_bytes[channel.id] = read_bytes.get(channel.id, 0) + len(message.data)
-            if read_bytes[channel.id] > MAX_GROUP_BYTES:  # not held to the end
-                pending.discard(channel.id)
-                del found.carried[channel.id]
-                found.not_carried.add(channel.topic)
-        if not pending:
+        if search.take(schema, channel, message):
             break
-    for channel_id in videos - keyed:  # no keyframe before the input's start
-        unkeyed = found.carried.pop(channel_id, None)
-        if unkeyed is not None:
-            found.not_carried.add(unkeyed.channel.topic)
-    for carried in found.carried.values():
-        carried.messages.reverse()
-    return found
+    return search.result()
+
+
+class _Search:
+    """The messages read newest first, kept while their channel needs more."""
+
+    def __init__(self, latched: set[int], videos: set[int],
+                 keyframe: Callable[[str, bytes], bool | None] | None) -> None:
+        self._latched = latched
+        self._videos = videos
+        self._keyframe = keyframe
+        self._pending = latched | videos
+        self._keyed: set[int] = set()
+        self._read_bytes: dict[int, int] = {}
+        self._found = Found()
+
+    def take(self, schema: Schema | None, channel: Channel, message: Message) -> bool:
+        """Keep *message* if its channel needs it; whether every channel has what it
+        needs (the search is over)."""
+        if channel.id not in self._pending:  # a topic's other channel, or one done
+            return False
+        found = self._found.carried.setdefault(channel.id, CarriedChannel(schema, channel))
+        found.messages.append(message)  # newest first until result()
+        if channel.id in self._latched:
+            self._pending.discard(channel.id)
+        elif self._keyframe is not None and self._keyframe(VIDEO_TYPE, message.data):
+            self._keyed.add(channel.id)
+            self._pending.discard(channel.id)
+        else:
+            read = self._read_bytes.get(channel.id, 0) + len(message.data)
+            self._read_bytes[channel.id] = read
+            if read > MAX_GROUP_BYTES:  # given up: not held to the end
+                self._give_up(channel.id)
+        return not self._pending
+
+    def result(self) -> Found:
+        """What was found, each channel's messages oldest first."""
+        for channel_id in self._videos - self._keyed:  # no keyframe before the start
+            self._give_up(channel_id)
+        for found in self._found.carried.values():
+            found.messages.reverse()
+        return self._found
+
+    def _give_up(self, channel_id: int) -> None:
+        self._pending.discard(channel_id)
+        given_up = self._found.carried.pop(channel_id, None)
+        if given_up is not None:
+            self._found.not_carried.add(given_up.channel.topic)
 
 
 def _schema_name(schemas: dict[int, Schema], channel: Channel) -> str:

@@ -25,13 +25,13 @@ its run in files of both. :func:`merge` joins them back into one file that rosba
   sent again to its new replica after failing over because the old one had not
   acknowledged it, or a restarted worker's latched messages) and ``repeats`` (a later log
   time: the writer's copy of a latched message or of a video group at the start of a
-  rotated file, whose original is in the output already). A copy whose original is not
-  in the output (an earlier file not merged, or before ``since_ns``) is kept: it is what
-  makes the merged file start with its map. Bounded: the last :data:`RECENT_PER_CHANNEL`
-  messages of each channel are remembered; an exact duplicate is never further back than
-  the messages sharing its log time, a start-of-file copy never further than its topic's
-  messages since the original (a latched topic: its last one; a video group: the frames
-  since its keyframe).
+  rotated file, whose original is in the output already, or was carried to the window's
+  start: below). A copy whose original is not in the output (an earlier file not merged)
+  is kept: it is what makes the merged file start with its map. Bounded: the last
+  :data:`RECENT_PER_CHANNEL` messages of each channel are remembered; an exact duplicate
+  is never further back than the messages sharing its log time, a start-of-file copy
+  never further than its topic's messages since the original (a latched topic: its last
+  one; a video group: the frames since its keyframe).
 - **The window starts with what it needs from before** (``since_ns``): as a rotated file
   starts with copies of the latched messages and the video groups, the output starts
   with the newest message before ``since_ns`` of each selected latched channel, and each

@@ -362,3 +362,33 @@ def test_a_video_group_past_the_bound_is_not_carried_and_said(
     target, counts = run(tmp_path, a.files(), Selection(since_ns=T0 + 65 * MS))
     assert camera(target) == []
     assert (counts.carried, counts.not_carried) == (0, ["/husky1/camera"])
+
+
+def test_a_window_decodes_a_real_camera_from_its_first_frame(tmp_path: Path) -> None:
+    pytest.importorskip("av")
+    from fleetctl.client.video import VideoDecoder, VideoEncoder
+
+    encoder = VideoEncoder("h264", 64, 48, fps=10.0, keyframe_interval_s=1.0)
+    codec, rng = default_codec(), np.random.default_rng(7)
+    store = codec.registry.typestore
+    a = Replica(tmp_path / "a", "relay-a")
+    for i in range(20):  # keyframes at 0 and 1 s: the window starts half a second after
+        (encoded,) = encoder.encode(rng.integers(0, 255, (48, 64, 3), dtype=np.uint8),
+                                    i / 10.0)
+        msg = store.types[VIDEO](
+            timestamp=store.types["builtin_interfaces/msg/Time"](sec=i, nanosec=0),
+            frame_id="camera", format="h264",
+            data=np.frombuffer(encoded.data, dtype=np.uint8))
+        a.record(codec.encode(msg, VIDEO, "/husky1/camera", seq=i + 1,
+                              publish_time_ns=T0 + i * 100 * MS))
+    a.writer.close()
+    target, counts = run(tmp_path, a.files(), Selection(since_ns=T0 + 1500 * MS))
+    decoder = VideoDecoder("h264")
+    with target.open("rb") as stream:
+        shown = [decoder.decode(store.deserialize_cdr(m.data, VIDEO).data.tobytes(),
+                                m.sequence) is not None
+                 for _s, _c, m in make_reader(stream).iter_messages()]
+    # The group from the 1 s keyframe (frames 10-14), then the window's: every one
+    # decodes, the first included.
+    assert len(shown) == 5 + 5 and all(shown), shown
+    assert counts.carried == 5

@@ -530,8 +530,11 @@ def register(app: typer.Typer) -> None:
         robot: str | None = typer.Option(None, "--robot", help="Only this robot's topics "
                                          "(/NAME/...), from the files that have them."),
         since: str | None = typer.Option(None, "--since", help="Leave out messages logged "
-                                         "before this: seconds since the epoch or ISO 8601 "
-                                         "(2026-12-06T19:00:00Z; UTC without an offset)."),
+                                         "before this (the newest latched message of each "
+                                         "topic and a camera's frames from its last keyframe "
+                                         "are carried to it): seconds since the epoch or ISO "
+                                         "8601 (2026-12-06T19:00:00Z; UTC without an "
+                                         "offset)."),
         until: str | None = typer.Option(None, "--until", help="Leave out messages logged "
                                          "after this (same forms)."),
         force: bool = typer.Option(False, "--force", help="Replace the --to file if it "

@@ -17,13 +17,12 @@ import logging
 import math
 import re
 import time
-from collections.abc import Callable, Iterator, Mapping
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import NamedTuple
 
 import typer
-import yaml
 from rosbags.typesys import get_types_from_msg
 from websockets.exceptions import InvalidURI
 from websockets.uri import parse_uri
@@ -45,6 +44,7 @@ from fleetctl.deploy.replaynames import recorded_prefix, replay_prefix
 from fleetctl.deploy.topics import TOPIC
 from fleetctl.errors import ConfigError, ExitCode, FleetError
 from fleetctl.server.recording import files
+from fleetctl.server.recording.latched import is_latched
 from fleetctl.wire.codec import Codec
 from fleetctl.wire.errors import WireError
 from fleetctl.wire.registry import TypeRegistry
@@ -174,20 +174,6 @@ def _messages(path: Path) -> Iterator[_Recorded]:
             yield _Recorded(channel.topic, schema.name if schema is not None else "",
                             schema.data if schema is not None else None, message.log_time,
                             message.data, message.sequence, latched[channel.id])
-
-
-def is_latched(metadata: Mapping[str, str]) -> bool:
-    """Whether a channel's rosbag2 ``offered_qos_profiles`` say ``transient_local`` (as
-    the server's recordings and ``ros2 bag record`` write them; rosbag2 before Iron wrote
-    the enum's number, 1)."""
-    try:
-        profiles = yaml.safe_load(metadata.get("offered_qos_profiles", "") or "[]")
-    except yaml.YAMLError:
-        return False
-    if not isinstance(profiles, list):
-        return False
-    return any(isinstance(p, dict) and p.get("durability") in ("transient_local", 1)
-               for p in profiles)
 
 
 async def replay(path: Path, options: ReplayOptions,

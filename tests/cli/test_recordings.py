@@ -17,12 +17,13 @@ from mcap.reader import make_reader
 
 from fleetctl.cli.main import main
 from fleetctl.cli.recordings import Remote, fetch_remote
-from fleetctl.cli.replay import ReplayOptions, is_latched, replay
+from fleetctl.cli.replay import ReplayOptions, replay
 from fleetctl.errors import ExitCode, FleetError
 from fleetctl.server.app import RelayServer
 from fleetctl.server.config import ServerConfig
 from fleetctl.server.recording import files
 from fleetctl.server.recording.config import RecordingConfig, RecordingRule
+from fleetctl.server.recording.latched import is_latched
 from fleetctl.server.recording.mcapfile import McapFile
 from fleetctl.wire.codec import default_codec
 from tests.server.conftest import (  # noqa: F401

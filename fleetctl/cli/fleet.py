@@ -1,5 +1,5 @@
 """Fleet life-cycle commands: init, set-endpoint, add-robot, remove-robot, add-user,
-remove-user, list, render, export.
+set-user, remove-user, list, render, export.
 
 Each command calls one function of :mod:`fleetctl.deploy.operations` (or
 :mod:`fleetctl.deploy.export`) and prints its result with :mod:`fleetctl.cli.output`.
@@ -39,6 +39,7 @@ from fleetctl.deploy.fleet import (
     MIN_MTU_BYTES,
     Fleet,
 )
+from fleetctl.deploy.userscope import scope_text
 from fleetctl.errors import ConfigError, ExitCode, FleetError
 
 _DRY_RUN_HELP = "Show what would be written, write nothing."
@@ -46,6 +47,27 @@ _DRY_RUN_HELP = "Show what would be written, write nothing."
 
 def _dry_run_option() -> Any:
     return typer.Option(False, "--dry-run", help=_DRY_RUN_HELP)
+
+
+def _robots_option(help_text: str) -> Any:
+    return typer.Option([], "--robots", metavar="NAME[,NAME...]", help=help_text)
+
+
+def _robot_names(values: list[str]) -> tuple[str, ...] | None:
+    """The names of ``--robots`` (repeatable, each comma-separated) in the order given;
+    ``None`` when the option is absent.
+
+    Raises:
+        FleetError: (usage) an empty name, as in ``--robots ""`` or ``a,,b``.
+    """
+    if not values:
+        return None
+    names = tuple(n.strip() for v in values for n in v.split(","))
+    if "" in names:
+        given = " ".join(f"--robots {v!r}" for v in values)
+        raise FleetError(f"--robots: an empty robot name in {given}",
+                         exit_code=ExitCode.USAGE)
+    return names
 
 
 def _header(outcome: ops.Outcome, done: str, would: str) -> str:
@@ -194,24 +216,59 @@ def remove_robot(
 def add_user(
     email: str = typer.Argument(..., help="The user's email address."),
     role: str = typer.Option(..., "--role", help="viewer, operator or admin."),
+    robots: list[str] = _robots_option(
+        "Only these robots: what the user sees and, as operator, commands (comma-"
+        "separated or repeated; default: every robot; not for an admin)."),
     fleet: Path = fleet_option(),
     dry_run: bool = _dry_run_option(),
     output: OutputFormat = output_option(),
 ) -> None:
     """Add a user; prints their token once (only its SHA-256 is stored)."""
+    names = _robot_names(robots)
     with ops.fleet_lock(fleet, dry_run=dry_run):
-        result = ops.add_user(fleet, email, role, dry_run=dry_run)
+        result = ops.add_user(fleet, email, role, robots=names, dry_run=dry_run)
     shown = {"user": result.user, "outcome": result.outcome,
              "token": result.token.reveal() if result.token else None}
 
     def text() -> str:
-        what = f"user {email!r} ({result.user.role.value})"
+        scope = "" if names is None else f", robots {scope_text(names)}"
+        what = f"user {email!r} ({result.user.role.value}{scope})"
         out = _header(result.outcome, what, f"would add {what}")
         if result.token is not None:
             out += f"\ntoken (shown once, store it now): {result.token.reveal()}"
         return out
 
     emit(shown, output, text)
+    _finish(result.outcome, output)
+
+
+def set_user(
+    email: str = typer.Argument(..., help="The user to change."),
+    robots: list[str] = _robots_option(
+        "Scope the user to these robots only (comma-separated or repeated)."),
+    all_robots: bool = typer.Option(False, "--all-robots",
+                                    help="Let the user use every robot again."),
+    fleet: Path = fleet_option(),
+    dry_run: bool = _dry_run_option(),
+    output: OutputFormat = output_option(),
+) -> None:
+    """Change the robots a user may use; their token stays the same.
+
+    Give --robots or --all-robots. auth.yaml is re-rendered, and a running server
+    applies it to the user's open connections."""
+    names = _robot_names(robots)
+    if (names is None) == (not all_robots):
+        raise FleetError("set-user: give --robots NAME[,NAME...] or --all-robots (one of "
+                         "them)", exit_code=ExitCode.USAGE)
+    with ops.fleet_lock(fleet, dry_run=dry_run):
+        result = ops.set_user_robots(fleet, email, names, dry_run=dry_run)
+
+    def text() -> str:
+        what = (f"user {email!r} ({result.user.role.value}) robots: "
+                f"{scope_text(result.user.robots)} (was: {scope_text(result.previous_robots)})")
+        return _header(result.outcome, f"set {what}", f"would set {what}")
+
+    emit(result, output, text)
     _finish(result.outcome, output)
 
 
@@ -250,7 +307,9 @@ def list_fleet(
         robots = table(["ROBOT", "IP", "MTU", "COMMAND TOPICS", "PUBLIC KEY"], [
             (r.name, r.ip, r.mtu_bytes, ",".join(c.topic for c in r.command_topics) or "-",
              robot_key(r.name)) for r in f.robots])
-        users = table(["USER", "ROLE"], [(u.email, u.role.value) for u in f.users])
+        users = table(["USER", "ROLE", "ROBOTS"], [
+            (u.email, u.role.value, "all" if u.robots is None else ",".join(u.robots))
+            for u in f.users])
         server_key = info.server_public_key or "(key file unreadable: see the error)"
         return (f"fleet {f.name!r}: subnet {f.subnet}, server {f.server_ip}:{f.server_port}, "
                 f"WireGuard {_endpoint_text(f)}, HTTPS port {f.https_port}\n"
@@ -324,6 +383,7 @@ def register(app: typer.Typer) -> None:
     app.command("add-robot")(add_robot)
     app.command("remove-robot")(remove_robot)
     app.command("add-user")(add_user)
+    app.command("set-user")(set_user)
     app.command("remove-user")(remove_user)
     app.command("list")(list_fleet)
     app.command("render")(render)

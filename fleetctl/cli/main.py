@@ -17,7 +17,7 @@ from fleetctl.errors import FleetError
 
 # Order is the order of `fleetctl --help`.
 _COMMAND_MODULES = (
-    "fleetctl.cli.fleet",  # init, add-robot, remove-robot, add-user, remove-user, list, ...
+    "fleetctl.cli.fleet",  # init, add-robot, remove-robot, add-user, set-user, list, ...
     "fleetctl.cli.server",  # server
     "fleetctl.cli.client",  # client
     "fleetctl.cli.webviz",  # webviz
@@ -38,7 +38,7 @@ _SETUP, _RUN, _DEPLOY = "Set up a fleet", "Run one component", "Deploy"
 _USE, _DEVELOP = "Use a running fleet", "Develop and test"
 _PANELS = {
     **dict.fromkeys(("init", "set-endpoint", "add-robot", "remove-robot", "add-user",
-                     "remove-user", "list", "list-fleet", "render", "export"), _SETUP),
+                     "set-user", "remove-user", "list", "list-fleet", "render", "export"), _SETUP),
     **dict.fromkeys(("server", "client", "webviz", "demo"), _RUN),
     **dict.fromkeys(("build", "up", "down", "status", "logs"), _DEPLOY),
     **dict.fromkeys(("foxglove-url", "recordings", "replay"), _USE),

@@ -7,6 +7,8 @@ people by a token whose SHA-256 is stored.
 
 from __future__ import annotations
 
+import re
+from collections.abc import Iterable
 from dataclasses import dataclass
 from typing import Literal
 
@@ -65,19 +67,49 @@ def robot_rules(robot: Robot) -> tuple[Rule, ...]:
     return tuple(rules)
 
 
-def user_rules(fleet: Fleet, role: Role) -> tuple[Rule, ...]:
-    """Rules of a role; operators may send every robot's command topics."""
+def scope_regex(names: Iterable[str]) -> str | None:
+    """Return the regex of every topic of the robots *names*: ``/husky1/.*`` for one,
+    ``/(husky1|jackal2)/.*`` for more; ``None`` for none.
+
+    One alternation rather than one rule per robot: a relay replica derives its NATS
+    subjects from it alternative by alternative (docs/scaling.md, "Interest narrowed by
+    receive rules"), up to 16 robots; past that the rule still holds, only the replica's
+    interest is the broad one. Names are validated ROS segments, escaped all the same so
+    that a name can never widen the rule.
+    """
+    escaped = [re.escape(n) for n in names]
+    if not escaped:
+        return None
+    return f"/{escaped[0]}/.*" if len(escaped) == 1 else f"/({'|'.join(escaped)})/.*"
+
+
+def user_rules(fleet: Fleet, role: Role, robots: tuple[str, ...] | None = None
+               ) -> tuple[Rule, ...]:
+    """Rules of a role: viewers receive robots' topics, operators also send their command
+    topics, admins send and receive everything.
+
+    Args:
+        fleet: the fleet (its robots' command topics).
+        role: the user's role.
+        robots: the user's scope (:attr:`~fleetctl.deploy.fleet.User.robots`): those
+            robots only, in this order; ``None``: every robot (an admin's is ignored:
+            validation refuses it).
+    """
     if role is Role.ADMIN:
         return (Rule(EVERYTHING, "both"),)
-    rules = [Rule(ROBOT_TOPICS, "receive")]
+    scoped = fleet.robots if robots is None else [
+        r for r in (fleet.robot(n) for n in robots) if r is not None]
+    receive = ROBOT_TOPICS if robots is None else scope_regex(r.name for r in scoped)
+    rules = [] if receive is None else [Rule(receive, "receive")]
     if role is Role.OPERATOR:
-        regexes = (command_regex(r) for r in fleet.robots)
+        regexes = (command_regex(r) for r in scoped)
         rules += [Rule(rx, "send") for rx in regexes if rx is not None]
     return tuple(rules)
 
 
 def _user_identity(fleet: Fleet, user: User) -> Identity:
-    return Identity(user.email, "token_sha256", user.token_sha256, user_rules(fleet, user.role))
+    return Identity(user.email, "token_sha256", user.token_sha256,
+                    user_rules(fleet, user.role, user.robots))
 
 
 def identities(fleet: Fleet) -> tuple[Identity, ...]:

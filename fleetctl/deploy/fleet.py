@@ -92,7 +92,8 @@ class Role(enum.Enum):
     """What a user may do.
 
     viewer: receive everything robots publish, send nothing. operator: viewer plus send
-    every robot's command topics. admin: send and receive every topic.
+    every robot's command topics. admin: send and receive every topic. A viewer or an
+    operator may be scoped to some robots (:attr:`User.robots`).
     """
 
     VIEWER = "viewer"
@@ -160,11 +161,21 @@ class Robot:
 
 @dataclass(frozen=True)
 class User:
-    """A person, signed in with a token whose SHA-256 (hex) is all that is stored."""
+    """A person, signed in with a token whose SHA-256 (hex) is all that is stored.
+
+    Attributes:
+        email: who (compared without case for duplicates).
+        role: what they may do.
+        token_sha256: the SHA-256 of their token, 64 lowercase hex digits.
+        robots: the robots a viewer or an operator sees and commands, by name, in the
+            order given (at least one, each a robot of the fleet); ``None``: every robot,
+            those added later too. An admin has none: an admin is everything.
+    """
 
     email: str
     role: Role
     token_sha256: str
+    robots: tuple[str, ...] | None = None
 
 
 @dataclass(frozen=True)
@@ -396,7 +407,7 @@ def _check_ros_environment(robot: Robot, path: FieldPath) -> None:
                            f"(expected one of {', '.join(RMW_IMPLEMENTATIONS)})")
 
 
-def _check_user(i: int, user: User, seen: set[str]) -> None:
+def _check_user(fleet: Fleet, i: int, user: User, seen: set[str]) -> None:
     path: FieldPath = ("users", i)
     try:
         check_email(user.email)
@@ -413,6 +424,30 @@ def _check_user(i: int, user: User, seen: set[str]) -> None:
     seen.add(user.email)
     if not _SHA256.fullmatch(user.token_sha256):
         raise FleetInvalid((*path, "token_sha256"), "expected 64 lowercase hex digits")
+    if user.robots is not None:
+        check_user_robots(fleet, user.role, user.robots, (*path, "robots"))
+
+
+def check_user_robots(fleet: Fleet, role: Role, robots: tuple[str, ...],
+                      path: FieldPath) -> None:
+    """Raise :class:`FleetInvalid` (at *path*, or at the item) unless *robots* is a scope
+    *role* may have: not an admin's, not empty, no name twice, every name a robot of
+    *fleet*."""
+    if role is Role.ADMIN:
+        raise FleetInvalid(path, "an admin may use every robot and cannot be scoped to "
+                           "some: remove the field, or make the user a viewer or an operator")
+    if not robots:
+        # Refused rather than read as "no robot": a token that shows nothing is a user to
+        # remove, and an empty list reads too easily as "no restriction".
+        raise FleetInvalid(path, "an empty list: name at least one robot, or leave the "
+                           "field out for every robot")
+    for j, name in enumerate(robots):
+        if name in robots[:j]:
+            raise FleetInvalid((*path, j), f"robot {shown(name)} is listed twice")
+        if fleet.robot(name) is None:
+            known = ", ".join(r.name for r in fleet.robots) or "none"
+            raise FleetInvalid((*path, j), f"no robot {shown(name)} in the fleet "
+                               f"(its robots: {known})")
 
 
 def validate(fleet: Fleet) -> None:
@@ -441,7 +476,7 @@ def validate(fleet: Fleet) -> None:
         _check_robot(fleet, i, robot, seen)
     emails: set[str] = set()
     for i, user in enumerate(fleet.users):
-        _check_user(i, user, emails)
+        _check_user(fleet, i, user, emails)
 
 
 # Each robot routes the whole fleet subnet through its tunnel (AllowedIPs): a larger one
@@ -756,7 +791,7 @@ def _strings(doc: Document, f: dict[str, yaml.Node], key: str, path: FieldPath) 
 
 
 def _build_user(doc: Document, node: yaml.Node, path: FieldPath) -> User:
-    f = doc.mapping(node, path, ["email", "role", "token_sha256"], [])
+    f = doc.mapping(node, path, ["email", "role", "token_sha256"], ["robots"])
     role_text = doc.string(f["role"], (*path, "role"))
     try:
         role = Role(role_text)
@@ -764,7 +799,20 @@ def _build_user(doc: Document, node: yaml.Node, path: FieldPath) -> User:
         raise FleetInvalid((*path, "role"), f"unknown role {role_text!r} "
                            f"(expected one of {', '.join(r.value for r in Role)})") from None
     return User(doc.string(f["email"], (*path, "email")), role,
-                doc.string(f["token_sha256"], (*path, "token_sha256")))
+                doc.string(f["token_sha256"], (*path, "token_sha256")),
+                _user_robots(doc, f["robots"], (*path, "robots")) if "robots" in f else None)
+
+
+def _user_robots(doc: Document, node: yaml.Node, path: FieldPath) -> tuple[str, ...]:
+    if doc.is_null(node):
+        # `robots:` with nothing after it: refused rather than read as every robot (a
+        # list left to fill in later would widen the user to the whole fleet).
+        raise FleetInvalid(path, "expected a list of robot names, got null (leave the "
+                           "field out for every robot)")
+    if isinstance(node, yaml.ScalarNode):
+        raise FleetInvalid(path, f"expected a list of robot names such as [husky1, jackal2],"
+                           f" got {shown(str(node.value))}")
+    return tuple(doc.string(n, (*path, j)) for j, n in enumerate(doc.sequence(node, path)))
 
 
 # --- save ------------------------------------------------------------------------------
@@ -793,8 +841,7 @@ def dump_fleet(fleet: Fleet) -> str:
         # Only when set, as relay_replicas.
         **({"recording": dump_recording(fleet.recording)} if fleet.recording else {}),
         "robots": [_dump_robot(r) for r in fleet.robots],
-        "users": [{"email": u.email, "role": u.role.value, "token_sha256": u.token_sha256}
-                  for u in fleet.users],
+        "users": [_dump_user(u) for u in fleet.users],
     }
     return _HEADER + yaml.safe_dump(data, sort_keys=False, default_flow_style=False,
                                     allow_unicode=True, width=100)
@@ -819,4 +866,12 @@ def _dump_robot(robot: Robot) -> dict[str, object]:
         out["location"] = robot.location
     if robot.tf is not None:  # absent: no TF, and older fleets keep their bytes
         out["tf"] = dump_tf(robot.tf)
+    return out
+
+
+def _dump_user(user: User) -> dict[str, object]:
+    out: dict[str, object] = {"email": user.email, "role": user.role.value}
+    if user.robots is not None:  # absent: every robot, and older fleets keep their bytes
+        out["robots"] = list(user.robots)
+    out["token_sha256"] = user.token_sha256
     return out

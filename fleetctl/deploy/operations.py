@@ -13,7 +13,7 @@ import fcntl
 import os
 import shlex
 import stat
-from collections.abc import Iterator
+from collections.abc import Iterator, Sequence
 from dataclasses import dataclass, replace
 from ipaddress import IPv4Address
 from pathlib import Path
@@ -72,6 +72,7 @@ from fleetctl.deploy.render import (
 )
 from fleetctl.deploy.replaynames import check_not_replay_name
 from fleetctl.deploy.secrets import Secret
+from fleetctl.deploy.userscope import check_scope, without_robot
 from fleetctl.deploy.yamlnodes import FieldPath, format_path
 from fleetctl.errors import ConfigError, ConflictError, ExitCode, FleetError
 from fleetctl.smallfile import MAX_CONFIG_BYTES, read_small
@@ -146,6 +147,16 @@ class UserResult:
 
     user: User
     token: Secret | None
+    outcome: Outcome
+
+
+@dataclass(frozen=True)
+class ScopeResult:
+    """Result of :func:`set_user_robots`: the user as they are now, and their robots
+    before (``None``: every robot)."""
+
+    user: User
+    previous_robots: tuple[str, ...] | None
     outcome: Outcome
 
 
@@ -557,15 +568,20 @@ def remove_robot(fleet_dir: Path, name: str, *, dry_run: bool = False,
     ``robots/NAME/`` goes as a whole, so anything an operator put or edited there would go
     with it: unless *force*, such files stop the removal before anything changes.
 
+    Users scoped to it (``robots`` in fleet.yaml) lose it from their list, each said in
+    the outcome's warnings.
+
     Raises:
         ConfigError: there is no such robot, or the fleet directory is missing/malformed.
         ConflictError: (unless *force*) ``robots/NAME/`` holds files fleetctl did not
-            generate, or generated files edited by hand.
+            generate, or generated files edited by hand; or it is the only robot of a
+            scoped user (:func:`~fleetctl.deploy.userscope.without_robot`).
     """
     fleet = load_fleet(fleet_dir)
     robot = fleet.robot(name)
     if robot is None:
         raise ConfigError(f"robot {name!r} is not in {fleet_file(fleet_dir)}")
+    users, notes = without_robot(fleet, fleet_dir, name, dry_run=dry_run)
     robot_dir = fleet_dir / "robots" / name
     kept = [] if force else _operator_files(robot_dir)
     if kept:
@@ -573,14 +589,15 @@ def remove_robot(fleet_dir: Path, name: str, *, dry_run: bool = False,
         raise ConflictError(f"{robot_dir} holds files fleetctl did not write or that were "
                             f"edited by hand ({shown}): move them out of it, or run "
                             f"`fleetctl remove-robot {name} --force` to delete them too")
-    new = replace(fleet, robots=tuple(r for r in fleet.robots if r.name != name))
+    new = replace(fleet, robots=tuple(r for r in fleet.robots if r.name != name),
+                  users=users)
     plan = Plan()
     fleet_keys = _load_keys(fleet_dir, new, _SYSTEM_KEYS, plan)
     plan.delete(fleet_dir / "robots" / name)
     plan.deletes.extend(keystore.robot_key_paths(fleet_dir, name))
     _plan_tls(plan, fleet_dir, new)
     _plan_fleet(plan, fleet_dir, new, fleet_keys)
-    return RobotResult(robot, None, finish_plan(plan, fleet_dir, dry_run))
+    return RobotResult(robot, None, finish_plan(plan, fleet_dir, dry_run, notes))
 
 
 # What fleetctl writes under robots/NAME/, relative to it, and the directories they need.
@@ -632,16 +649,29 @@ def add_user(
     email: str,
     role: Role | str,
     *,
+    robots: Sequence[str] | None = None,
     dry_run: bool = False,
     keys: KeySource = _SYSTEM_KEYS,
 ) -> UserResult:
     """Add a user with a new token; only the token's SHA-256 is stored.
 
+    Args:
+        fleet_dir: the fleet directory.
+        email: who.
+        role: what they may do.
+        robots: the only robots they see and (as operator) command; ``None``: every robot.
+        dry_run: compute and return the changes without writing anything.
+        keys: where key material comes from.
+
     Raises:
-        FleetError: unknown role (usage), bad email (config), existing user (conflict).
+        FleetError: unknown role, *robots* given to an admin, empty or with a name twice
+            (usage); bad email or an unknown robot (config); existing user (conflict).
     """
     role = role if isinstance(role, Role) else parse_role(role)
     fleet = load_fleet(fleet_dir)
+    scope = None if robots is None else tuple(robots)
+    if scope is not None:
+        check_scope(fleet, fleet_dir, role, scope)
     if (known := fleet.user(email)) is not None:
         # The one thing an operator then wants: a new token for someone who lost theirs.
         raise ConflictError(
@@ -649,7 +679,7 @@ def add_user(
             f"give them a new token, `fleetctl remove-user {shlex.quote(email)}` (their old "
             "token stops working) and add them again")
     token = new_token(keys)
-    user = User(email, role, token_sha256(token))
+    user = User(email, role, token_sha256(token), scope)
     new = _checked(replace(fleet, users=(*fleet.users, user)))
     plan = Plan()
     _plan_tls(plan, fleet_dir, new)
@@ -665,17 +695,48 @@ def remove_user(fleet_dir: Path, email: str, *, dry_run: bool = False) -> UserRe
         ConfigError: there is no such user, or the fleet directory is missing/malformed.
     """
     fleet = load_fleet(fleet_dir)
+    user = _existing_user(fleet, fleet_dir, email)
+    new = replace(fleet, users=tuple(u for u in fleet.users if u.email != email))
+    plan = Plan()
+    _plan_tls(plan, fleet_dir, new)
+    _plan_fleet(plan, fleet_dir, new, _load_keys(fleet_dir, new, _SYSTEM_KEYS, plan))
+    return UserResult(user, None, finish_plan(plan, fleet_dir, dry_run))
+
+
+def _existing_user(fleet: Fleet, fleet_dir: Path, email: str) -> User:
+    """The user *email*; a ConfigError naming the one that differs only in case, if any."""
     user = fleet.user(email)
     if user is None:
         near = next((u.email for u in fleet.users if u.email.casefold() == email.casefold()),
                     None)
         hint = f" (there is {near!r})" if near else ""
         raise ConfigError(f"user {email!r} is not in {fleet_file(fleet_dir)}{hint}")
-    new = replace(fleet, users=tuple(u for u in fleet.users if u.email != email))
+    return user
+
+
+def set_user_robots(fleet_dir: Path, email: str, robots: Sequence[str] | None, *,
+                    dry_run: bool = False, keys: KeySource = _SYSTEM_KEYS) -> ScopeResult:
+    """Scope user *email* to *robots* (``None``: every robot), keeping their token, and
+    re-render: the server's auth.yaml changes and a running server reloads it.
+
+    Raises:
+        ConfigError: there is no such user, a robot is not in the fleet, or the fleet
+            directory is missing/malformed.
+        FleetError: (usage) the user is an admin, or *robots* is empty or names a robot
+            twice.
+    """
+    fleet = load_fleet(fleet_dir)
+    user = _existing_user(fleet, fleet_dir, email)
+    scope = None if robots is None else tuple(robots)
+    if scope is not None:
+        check_scope(fleet, fleet_dir, user.role, scope)
+    changed = replace(user, robots=scope)
+    new = _checked(replace(fleet, users=tuple(changed if u is user else u
+                                              for u in fleet.users)))
     plan = Plan()
     _plan_tls(plan, fleet_dir, new)
-    _plan_fleet(plan, fleet_dir, new, _load_keys(fleet_dir, new, _SYSTEM_KEYS, plan))
-    return UserResult(user, None, finish_plan(plan, fleet_dir, dry_run))
+    _plan_fleet(plan, fleet_dir, new, _load_keys(fleet_dir, new, keys, plan))
+    return ScopeResult(changed, user.robots, finish_plan(plan, fleet_dir, dry_run))
 
 
 def render_fleet(fleet_dir: Path, *, dry_run: bool = False, force: bool = False,

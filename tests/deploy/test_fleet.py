@@ -441,3 +441,38 @@ def test_relay_replicas_round_trip_and_only_when_set() -> None:
 ])
 def test_bad_relay_replicas_name_the_field(lines: str, expected: str) -> None:
     assert _error(GOOD.replace("robots:\n", lines + "robots:\n")).startswith(expected)
+
+
+def test_user_robots_round_trip_and_only_when_set() -> None:
+    """A user without ``robots`` may use every robot, and keeps the bytes of fleets made
+    before the field; with it, the list is kept in its order."""
+    every = parse_fleet(Path("fleet.yaml"), GOOD)
+    assert every.users[0].robots is None and "robots:\n  -" not in dump_fleet(every)
+    scoped = parse_fleet(Path("fleet.yaml"), GOOD.replace(
+        "    role: viewer\n", "    role: viewer\n    robots: [jackal2, husky1]\n"))
+    assert scoped.users[0].robots == ("jackal2", "husky1")
+    assert "  role: viewer\n  robots:\n  - jackal2\n  - husky1\n" in dump_fleet(scoped)
+    assert parse_fleet(Path("fleet.yaml"), dump_fleet(scoped)) == scoped
+
+
+@pytest.mark.parametrize(("robots", "role", "expected"), [
+    ("robots: husky1", "viewer", "/f/fleet.yaml:15: users[0].robots: expected a list of "
+     "robot names such as [husky1, jackal2], got 'husky1'"),
+    ("robots:", "viewer", "/f/fleet.yaml:15: users[0].robots: expected a list of robot "
+     "names, got null (leave the field out for every robot)"),
+    ("robots: {husky1: true}", "viewer", "/f/fleet.yaml:15: users[0].robots: expected a list"),
+    ("robots: []", "viewer", "/f/fleet.yaml:15: users[0].robots: an empty list: name at "
+     "least one robot, or leave the field out for every robot"),
+    ("robots: [husky1, husky9]", "viewer", "/f/fleet.yaml:15: users[0].robots[1]: no robot "
+     "'husky9' in the fleet (its robots: husky1, jackal2)"),
+    ("robots: [husky1, 7]", "viewer", "/f/fleet.yaml:15: users[0].robots[1]: expected a "
+     "string"),
+    ("robots: [husky1, husky1]", "operator", "/f/fleet.yaml:15: users[0].robots[1]: robot "
+     "'husky1' is listed twice"),
+    ("robots: [husky1]", "admin", "/f/fleet.yaml:15: users[0].robots: an admin may use every "
+     "robot and cannot be scoped to some: remove the field, or make the user a viewer or an "
+     "operator"),
+])
+def test_bad_user_robots_name_file_line_field(robots: str, role: str, expected: str) -> None:
+    text = GOOD.replace("    role: viewer\n", f"    role: {role}\n    {robots}\n")
+    assert _error(text) == expected

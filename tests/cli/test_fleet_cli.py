@@ -67,7 +67,7 @@ def fleet(cli: Cli) -> Path:
 
 def test_help_lists_every_command() -> None:
     out = CliRunner().invoke(build_app(), ["--help"]).output
-    for cmd in ("init", "set-endpoint", "add-robot", "remove-robot", "add-user",
+    for cmd in ("init", "set-endpoint", "add-robot", "remove-robot", "add-user", "set-user",
                 "remove-user", "list", "render", "export"):
         assert cmd in out
 
@@ -866,3 +866,144 @@ def test_the_sync_is_told_which_files_changed(fleet: Path, cli: Cli,
     cli("remove-user", "a@example.com")
     cli("render")
     assert seen == [{"fleet.yaml", "server/auth.yaml"}] * 2 + [set()]
+
+
+# --- users scoped to some robots (docs/operator.md, "Users scoped to some robots") --------
+
+
+def _auth_rules(fleet: Path) -> dict[str, list[tuple[str, str]]]:
+    """server/auth.yaml's rules by identity name."""
+    raw = yaml.safe_load((fleet / "server/auth.yaml").read_text())
+    return {i["name"]: [(r["topic"], r["op"]) for r in i["rules"]] for i in raw["identities"]}
+
+
+def _stored_users(fleet: Path) -> dict[str, dict[str, object]]:
+    return {u["email"]: u for u in yaml.safe_load((fleet / "fleet.yaml").read_text())["users"]}
+
+
+@pytest.fixture
+def two_robots(fleet: Path, cli: Cli) -> Path:
+    cli("add-robot", "jackal2")
+    cli("add-robot", "husky10")
+    return fleet
+
+
+def test_add_user_scoped_to_robots(two_robots: Path, cli: Cli) -> None:
+    fleet = two_robots
+    out, _ = cli("add-user", "site@example.com", "--role", "viewer", "--robots", "husky1")
+    assert out.startswith("user 'site@example.com' (viewer, robots husky1)\n")
+    out, _ = cli("add-user", "ops@example.com", "--role", "operator", "--robots",
+                 "jackal2,husky1", "--robots", "husky10", "-o", "json")
+    assert json.loads(out)["user"]["robots"] == ["jackal2", "husky1", "husky10"]
+    cli("add-user", "all@example.com", "--role", "operator")
+    rules = _auth_rules(fleet)
+    assert rules["site@example.com"] == [("/husky1/.*", "receive")]
+    assert rules["ops@example.com"] == [
+        ("/(jackal2|husky1|husky10)/.*", "receive"),
+        ("/jackal2/(goal_pose|initialpose)", "send"),
+        ("/husky1/(goal_pose|initialpose)", "send"),
+        ("/husky10/(goal_pose|initialpose)", "send")]
+    assert rules["all@example.com"][0] == ("/[^/]+/.*", "receive")
+    stored = _stored_users(fleet)
+    assert stored["site@example.com"]["robots"] == ["husky1"]
+    assert "robots" not in stored["all@example.com"]
+    out, _ = cli("list")
+    assert "USER              ROLE      ROBOTS\n" in out
+    assert "site@example.com  viewer    husky1\n" in out
+    assert "ops@example.com   operator  jackal2,husky1,husky10\n" in out
+    assert out.endswith("all@example.com   operator  all\n")
+    out, _ = cli("list", "-o", "json")
+    assert [u["robots"] for u in json.loads(out)["fleet"]["users"]] == [
+        ["husky1"], ["jackal2", "husky1", "husky10"], None]
+
+
+@pytest.mark.parametrize(("args", "code", "message"), [
+    (["--role", "admin", "--robots", "husky1"], ExitCode.USAGE,
+     "--robots: an admin may use every robot and cannot be scoped to some (make the user a "
+     "viewer or an operator)"),
+    (["--role", "viewer", "--robots", "husky1,husky9"], ExitCode.CONFIG,
+     "--robots: no robot 'husky9' in {fleet}/fleet.yaml (its robots: husky1)"),
+    (["--role", "viewer", "--robots", "husky1,,husky1"], ExitCode.USAGE,
+     "--robots: an empty robot name in --robots 'husky1,,husky1'"),
+    (["--role", "viewer", "--robots", ""], ExitCode.USAGE,
+     "--robots: an empty robot name in --robots ''"),
+    (["--role", "operator", "--robots", "husky1", "--robots", "husky1"], ExitCode.USAGE,
+     "--robots: robot 'husky1' is given twice"),
+])
+def test_add_user_robots_errors_change_nothing(fleet: Path, cli: Cli, args: list[str],
+                                               code: int, message: str) -> None:
+    before = _snapshot(fleet)
+    _, err = cli("add-user", "x@example.com", *args, code=code)
+    assert err == f"fleetctl: error: {message.format(fleet=fleet)}\n"
+    assert _snapshot(fleet) == before
+
+
+def test_set_user_changes_the_scope_and_keeps_the_token(two_robots: Path, cli: Cli,
+                                                        synced: list[Path]) -> None:
+    fleet = two_robots
+    cli("add-user", "v@example.com", "--role", "viewer")
+    unscoped = (fleet / "fleet.yaml").read_bytes()
+    token_hash = _stored_users(fleet)["v@example.com"]["token_sha256"]
+    before = _snapshot(fleet)
+    out, _ = cli("set-user", "v@example.com", "--robots", "jackal2", "--dry-run")
+    assert out.startswith("dry run: would set user 'v@example.com' (viewer) robots: jackal2 "
+                          "(was: every robot)\n  would update fleet.yaml\n  would update "
+                          "server/auth.yaml\n")
+    assert _snapshot(fleet) == before
+    synced.clear()
+    out, _ = cli("set-user", "v@example.com", "--robots", "jackal2,husky1")
+    assert out.startswith("set user 'v@example.com' (viewer) robots: jackal2, husky1 (was: "
+                          "every robot)\n")
+    assert synced == [fleet]  # a running server gets the new auth.yaml
+    assert _stored_users(fleet)["v@example.com"] == {
+        "email": "v@example.com", "role": "viewer", "robots": ["jackal2", "husky1"],
+        "token_sha256": token_hash}
+    assert _auth_rules(fleet)["v@example.com"] == [("/(jackal2|husky1)/.*", "receive")]
+    out, _ = cli("set-user", "v@example.com", "--all-robots", "-o", "json")
+    result = json.loads(out)
+    assert (result["user"]["robots"], result["previous_robots"]) == (None, ["jackal2", "husky1"])
+    assert (fleet / "fleet.yaml").read_bytes() == unscoped
+
+
+@pytest.mark.parametrize(("args", "code", "message"), [
+    (["v@example.com"], ExitCode.USAGE,
+     "set-user: give --robots NAME[,NAME...] or --all-robots (one of them)"),
+    (["v@example.com", "--robots", "husky1", "--all-robots"], ExitCode.USAGE,
+     "set-user: give --robots NAME[,NAME...] or --all-robots (one of them)"),
+    (["a@example.com", "--robots", "husky1"], ExitCode.USAGE,
+     "--robots: an admin may use every robot and cannot be scoped to some (make the user a "
+     "viewer or an operator)"),
+    (["V@example.com", "--robots", "husky1"], ExitCode.CONFIG,
+     "user 'V@example.com' is not in {fleet}/fleet.yaml (there is 'v@example.com')"),
+    (["v@example.com", "--robots", "jackal2"], ExitCode.CONFIG,
+     "--robots: no robot 'jackal2' in {fleet}/fleet.yaml (its robots: husky1)"),
+])
+def test_set_user_errors_change_nothing(fleet: Path, cli: Cli, args: list[str], code: int,
+                                        message: str) -> None:
+    cli("add-user", "v@example.com", "--role", "viewer")
+    cli("add-user", "a@example.com", "--role", "admin")
+    before = _snapshot(fleet)
+    _, err = cli("set-user", *args, code=code)
+    assert err == f"fleetctl: error: {message.format(fleet=fleet)}\n"
+    assert _snapshot(fleet) == before
+
+
+def test_remove_robot_leaves_the_scopes_that_named_it(two_robots: Path, cli: Cli) -> None:
+    fleet = two_robots
+    cli("add-user", "ops@example.com", "--role", "operator", "--robots", "husky1,jackal2")
+    cli("add-user", "site@example.com", "--role", "viewer", "--robots", "jackal2")
+    before = _snapshot(fleet)
+    _, err = cli("remove-robot", "jackal2", code=ExitCode.CONFLICT)
+    assert err == ("fleetctl: error: robot 'jackal2' is the only robot of user "
+                   "'site@example.com' (fleet.yaml users[].robots): give them another first "
+                   "(`fleetctl set-user site@example.com --robots NAME`, or --all-robots) or "
+                   "remove them (`fleetctl remove-user site@example.com`); nothing was "
+                   "changed\n")
+    assert _snapshot(fleet) == before
+    cli("set-user", "site@example.com", "--robots", "husky10")
+    _, err = cli("remove-robot", "jackal2")
+    assert err == ("fleetctl: warning: user 'ops@example.com' is scoped to husky1 now (robot "
+                   f"'jackal2' left their robots in {fleet}/fleet.yaml)\n")
+    assert _stored_users(fleet)["ops@example.com"]["robots"] == ["husky1"]
+    assert _auth_rules(fleet)["ops@example.com"] == [
+        ("/husky1/.*", "receive"), ("/husky1/(goal_pose|initialpose)", "send")]

@@ -9,6 +9,7 @@ import pytest
 
 from fleetctl.deploy.auth import Rule, identities, scope_regex, user_rules
 from fleetctl.deploy.fleet import Fleet, Robot, Role, User
+from fleetctl.server.cluster.regexsubjects import regex_subjects
 from fleetctl.server.regex import compile_full
 
 FLEET = Fleet(
@@ -71,3 +72,14 @@ def test_identities_use_each_users_scope() -> None:
     by_name = {i.name: i.rules for i in identities(fleet)}
     assert by_name["all@example.com"] == (Rule("/[^/]+/.*", "receive"),)
     assert by_name["site@example.com"] == (Rule("/husky1/.*", "receive"), HUSKY1_COMMANDS)
+
+
+def test_a_replica_narrows_its_interest_to_the_scoped_robots() -> None:
+    """What a scoped user costs a cluster: a replica's NATS interest follows receive rules
+    (docs/scaling.md), and the scope's alternation splits into one subject per robot,
+    where every robot's rule is every subject."""
+    assert regex_subjects("fleetctl", "/[^/]+/.*").subjects == {"fleetctl.>"}
+    derived = regex_subjects("fleetctl", user_rules(FLEET, Role.OPERATOR,
+                                                    ("husky1", "jackal2"))[0].topic)
+    assert derived.subjects == {"fleetctl.husky1.>", "fleetctl.jackal2.>"}
+    assert not derived.unclear

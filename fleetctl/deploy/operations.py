@@ -673,11 +673,14 @@ def add_user(
     if scope is not None:
         check_scope(fleet, fleet_dir, role, scope)
     if (known := fleet.user(email)) is not None:
-        # The one thing an operator then wants: a new token for someone who lost theirs.
+        # The one thing an operator then wants: a new token for someone who lost theirs
+        # (with their scope: added again without it, they would see every robot).
+        again = ("" if known.robots is None else
+                 f" with --robots {shlex.quote(','.join(known.robots))}")
         raise ConflictError(
             f"user {email!r} is already in {fleet_file(fleet_dir)} ({known.role.value}): to "
             f"give them a new token, `fleetctl remove-user {shlex.quote(email)}` (their old "
-            "token stops working) and add them again")
+            f"token stops working) and add them again{again}")
     token = new_token(keys)
     user = User(email, role, token_sha256(token), scope)
     new = _checked(replace(fleet, users=(*fleet.users, user)))

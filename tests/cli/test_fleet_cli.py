@@ -959,6 +959,8 @@ def test_set_user_changes_the_scope_and_keeps_the_token(two_robots: Path, cli: C
         "email": "v@example.com", "role": "viewer", "robots": ["jackal2", "husky1"],
         "token_sha256": token_hash}
     assert _auth_rules(fleet)["v@example.com"] == [("/(jackal2|husky1)/.*", "receive")]
+    _, err = cli("add-user", "v@example.com", "--role", "viewer", code=ExitCode.CONFLICT)
+    assert err.endswith("and add them again with --robots jackal2,husky1\n")
     out, _ = cli("set-user", "v@example.com", "--all-robots", "-o", "json")
     result = json.loads(out)
     assert (result["user"]["robots"], result["previous_robots"]) == (None, ["jackal2", "husky1"])

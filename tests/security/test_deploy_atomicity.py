@@ -58,6 +58,7 @@ OPERATIONS: dict[str, Operation] = {
     "remove-robot": lambda d, out: ops.remove_robot(d, "husky1"),
     "add-user": lambda d, out: ops.add_user(d, "new@example.com", "viewer"),
     "remove-user": lambda d, out: ops.remove_user(d, "viewer@example.com"),
+    "set-user": lambda d, out: ops.set_user_robots(d, "viewer@example.com", ["husky1"]),
     "set-endpoint": lambda d, out: ops.set_endpoint(d, "other.example.org:51820"),
     "render": lambda d, out: ops.render_fleet(d, force=True),
     "init --force": lambda d, out: ops.create_fleet(d, name="again", force=True,

@@ -157,7 +157,8 @@ async def _stop(proc: asyncio.subprocess.Process, demo: RunningDemo) -> None:
 
 @contextlib.asynccontextmanager
 async def running_demo(
-    workdir: Path, base_domain_id: int, startup_timeout_s: float = 45.0
+    workdir: Path, base_domain_id: int, startup_timeout_s: float = 45.0,
+    extra_args: tuple[str, ...] = (),
 ) -> AsyncIterator[RunningDemo]:
     """Run ``fleetctl demo`` (2 robots, free ports) until the block ends.
 
@@ -165,6 +166,8 @@ async def running_demo(
         workdir: the demo's fleet directory (its logs land in ``workdir/logs``).
         base_domain_id: ``ROS_DOMAIN_ID`` of robot1; robot2 uses the next one.
         startup_timeout_s: how long (s) the demo gets to print that it is healthy.
+        extra_args: more ``fleetctl demo`` options (benchmarks/page_soak.py passes
+            ``--duration``, so a soak whose runner dies leaves no fleet behind for long).
 
     Raises:
         AssertionError: the demo exited or was not healthy in time (with its output).
@@ -172,7 +175,7 @@ async def running_demo(
     argv = [
         sys.executable, "-m", "fleetctl.cli.main", "demo", "--robots", "2", "--port", "0",
         "--webviz-port", "0", "--base-domain-id", str(base_domain_id),
-        "--workdir", str(workdir), "--startup-timeout", str(startup_timeout_s),
+        "--workdir", str(workdir), "--startup-timeout", str(startup_timeout_s), *extra_args,
     ]
     proc = await asyncio.create_subprocess_exec(
         *argv,

@@ -38,6 +38,7 @@ from tests.webviz.samples import cloud_values, header, pose_values, scan_values
 
 OPERATOR_TOKEN = "operator-token-0123456789"
 VIEWER_TOKEN = "viewer-token-9876543210"
+R1_VIEWER_TOKEN = "r1-viewer-token-5555555555"  # a user scoped to r1 (add-user --robots r1)
 PUBLISH_PERIOD_S = 0.1  # the robots' sensor pacing (a rate, not synchronization)
 RECEIVED_QUEUE = 64  # frames a robot keeps for the test to inspect; beyond: dropped, counted
 
@@ -76,6 +77,13 @@ def write_auth_map(path: Path, robots: dict[str, str]) -> Path:
             "rules": [
                 {"topic": ".*", "op": "receive"},
             ],
+        }
+    )
+    idents.append(
+        {
+            "name": "r1-viewer",
+            "token_sha256": _sha(R1_VIEWER_TOKEN),
+            "rules": [{"topic": "/r1/.*", "op": "receive"}],
         }
     )
     path.write_text(yaml.safe_dump({"version": 1, "identities": idents}))

@@ -21,6 +21,7 @@ from tests.server.certs import self_signed
 from tests.webviz.conftest import webviz_server
 from tests.webviz.fleet import (
     OPERATOR_TOKEN,
+    R1_VIEWER_TOKEN,
     VIEWER_TOKEN,
     WsRobot,
     running_fleet,
@@ -463,6 +464,36 @@ async def test_viewer_is_refused_a_command(
         while not fleet.robots[0].received.empty():
             types.append(read_metadata(fleet.robots[0].received.get_nowait()).type)
         assert "geometry_msgs/msg/PoseStamped" not in types
+
+
+async def test_a_user_scoped_to_one_robot_is_told_another_is_not_theirs(
+    tmp_path: Path, browser: Any, webviz_factory: list[Any]
+) -> None:
+    """A user scoped to r1 (fleetctl add-user --robots r1) sees r1 only; r2's page (a link
+    someone shared) says the sign-in may not receive it, where it said "not in the fleet's
+    robot list" and "Nothing on /r2/scan yet": a broken robot, to whoever read it."""
+    async with running_fleet(tmp_path, ("r1", "r2")) as fleet:
+        web = webviz_server(fleet.url).start()
+        webviz_factory.append(web)
+        page = await browser.new_page()
+        problems = watch_errors(page)
+        await sign_in(page, web.url, R1_VIEWER_TOKEN)
+        await page.locator('#robots tr[data-robot="r1"] td.state',
+                           has_text="online").wait_for(timeout=TIMEOUT_MS)
+        assert await page.locator("#robots tr[data-robot]").count() == 1
+        await page.goto(web.url + "#/robot/r2")
+        state = page.locator('#robot-state[data-state="denied"]')
+        await state.wait_for(timeout=TIMEOUT_MS)
+        assert "may not receive" in (await state.text_content() or "")
+        scan_note = page.locator("#panel-scan .panel-wait")
+        await scan_note.wait_for(state="visible", timeout=TIMEOUT_MS)
+        assert await scan_note.text_content() == "Your sign-in may not receive /r2/scan."
+        # Its own robot's page is as any viewer's.
+        await page.goto(web.url + "#/robot/r1")
+        await page.locator('#robot-state[data-state="online"]').wait_for(timeout=TIMEOUT_MS)
+        await wait_js(page, "Number(document.querySelector('#scan-canvas').dataset.beams"
+                            " || 0) > 0")
+        assert not problems, problems
 
 
 async def test_bad_token_is_refused_with_a_clear_message(

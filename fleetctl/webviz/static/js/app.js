@@ -347,6 +347,7 @@ class App {
   waitingNote(p) {
     if (!p.draws) return "";
     const topics = p.topics.map((t) => `/${this.robot}${t}`);
+    if (this.robotDenied()) return `Your sign-in may not receive ${topics.join(", ")}.`;
     if (topics.some((t) => this.seenTypes.get(t) === p.draws)) return "";
     const other = topics.find((t) => this.seenTypes.has(t));
     if (other) {
@@ -365,6 +366,7 @@ class App {
   /** The Video panel's line while it has no stream: its topics, or what came there instead. */
   videoHint() {
     const topics = PANELS.find((p) => p.id === "video").topics.map((t) => `/${this.robot}${t}`);
+    if (this.robotDenied()) return `this sign-in may not receive ${topics.join(", ")}`;
     const raw = topics.find((t) => this.seenTypes.has(t) && this.seenTypes.get(t) !== VIDEO_TYPE);
     if (raw) {
       return `${raw} arrives as ${this.seenTypes.get(raw)}, not as video: add video: {codec: h264} ` +
@@ -420,6 +422,19 @@ class App {
   }
 
   /**
+   * The signed-in user's rules let nothing of the open robot through (a user scoped to
+   * other robots: `fleetctl add-user --robots`, a link to another robot's page). The relay
+   * lists no such robot and delivers nothing of it; the page said "not in the fleet's robot
+   * list" and "Nothing on /jackal2/scan yet", which sent people looking for a broken robot.
+   */
+  robotDenied() {
+    const rules = this.conn?.rules;
+    if (!this.robot || !this.registryKnown || !rules?.readable) return false;
+    const mine = (t) => rules.canReceive(`/${this.robot}${t}`);
+    return !mine("/status") && !PANELS.some((p) => p.topics.some(mine));
+  }
+
+  /**
    * The open robot's state from the registry, in words beside its name: the page went on
    * looking live, with no word that the robot had gone offline.
    */
@@ -427,13 +442,14 @@ class App {
     const el = $("#robot-state");
     el.hidden = !this.registryKnown;
     const entry = this.registry.find((r) => r.name === this.robot);
-    let state = !entry ? "unlisted" : entry.online ? "online"
+    let state = !entry ? (this.robotDenied() ? "denied" : "unlisted") : entry.online ? "online"
       : entry.never_connected ? "never" : "offline";
     if (this.conn?.state !== "open") state = "unknown"; // the list is as old as the connection
     el.dataset.state = state;
     el.textContent = {
       unknown: "state unknown: not connected to the fleet server",
       unlisted: "not in the fleet's robot list",
+      denied: "not yours: this sign-in may not receive this robot's topics",
       online: "online",
       offline: `offline, last seen ${ago(toEpochS(entry?.last_seen_s))}`,
       never: "never connected: in the fleet, not heard from yet",

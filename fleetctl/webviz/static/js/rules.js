@@ -17,6 +17,12 @@ export class Rules {
     this.rules = rules.map((r) => ({ op: r.op, re: fullMatch(r.topic), topic: r.topic }));
   }
 
+  /** Every rule could be read here: what the page infers from them holds (a rule JS
+   *  cannot parse grants nothing here, but may grant something on the server). */
+  get readable() {
+    return this.rules.every((r) => r.re !== null);
+  }
+
   allows(topic, op) {
     return this.rules.some((r) => r.re && (r.op === op || r.op === "both") && r.re.test(topic));
   }

@@ -48,9 +48,22 @@ export class CloudView {
     this.scene = new THREE.Scene();
     this.camera = new THREE.PerspectiveCamera(55, this.canvas.width / this.canvas.height, 0.1, 500);
     this.camera.up.set(0, 0, 1);
+    // One WebGL buffer each for positions and colours, MAX_POINTS long, written in place for
+    // every cloud. A new BufferAttribute per cloud made two new WebGL buffers (720 KB each
+    // at 60,000 points, 5 clouds a second) that three.js never deletes: only the garbage
+    // collector taking their wrappers freed them, so the GPU process held whatever the
+    // collector had not reached yet (docs/webviz.md, "The page left open").
+    this.positions = new THREE.BufferAttribute(new Float32Array(MAX_POINTS * 3), 3).setUsage(THREE.DynamicDrawUsage);
+    this.colors = new THREE.BufferAttribute(new Float32Array(MAX_POINTS * 3), 3).setUsage(THREE.DynamicDrawUsage);
     this.geometry = new THREE.BufferGeometry();
+    this.geometry.setAttribute("position", this.positions);
+    this.geometry.setAttribute("color", this.colors);
+    this.geometry.setDrawRange(0, 0);
     this.material = new THREE.PointsMaterial({ size: 0.08, vertexColors: THREE.VertexColors });
-    this.scene.add(new THREE.Points(this.geometry, this.material));
+    const points = new THREE.Points(this.geometry, this.material);
+    // Its bounding sphere would be computed over all MAX_POINTS, stale ones included.
+    points.frustumCulled = false;
+    this.scene.add(points);
     this.scene.add(new THREE.GridHelper(20, 20, 0x2a3540, 0x2a3540).rotateX(Math.PI / 2));
     this.placeCamera();
     let dragX = null;
@@ -94,17 +107,23 @@ export class CloudView {
   }
 
   drawThree(xyz, n) {
-    const THREE = this.THREE;
-    const colors = new Float32Array(n * 3);
+    n = Math.min(n, MAX_POINTS);
+    const colors = this.colors.array;
     for (let i = 0; i < n; i++) {
       const t = Math.max(0, Math.min(1, (xyz[3 * i + 2] + 0.5) / 3)); // colour by height
       colors[3 * i] = 0.3 + 0.7 * t;
       colors[3 * i + 1] = 0.9 - 0.5 * t;
       colors[3 * i + 2] = 1.0 - 0.8 * t;
     }
-    this.geometry.setAttribute("position", new THREE.BufferAttribute(xyz, 3));
-    this.geometry.setAttribute("color", new THREE.BufferAttribute(colors, 3));
-    this.geometry.computeBoundingSphere();
+    this.positions.array.set(xyz.subarray(0, 3 * n));
+    if (n > 0) {
+      // Only this cloud's part goes to the GPU (three.js refuses an empty range).
+      for (const a of [this.positions, this.colors]) {
+        a.updateRange = { offset: 0, count: 3 * n };
+        a.needsUpdate = true;
+      }
+    }
+    this.geometry.setDrawRange(0, n);
     this.renderer.render(this.scene, this.camera);
   }
 

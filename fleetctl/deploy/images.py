@@ -32,6 +32,7 @@ from urllib.parse import urlsplit
 from fleetctl import __version__
 from fleetctl.deploy.assets import asset_dir
 from fleetctl.deploy.dockercli import Runner, check, image_exists, subprocess_runner
+from fleetctl.deploy.rosmsgs import BuildHost, build_ros_msg_wheels
 from fleetctl.deploy.selfwheel import DIST_NAME, fleetctl_wheel, source_checkout
 from fleetctl.errors import ConfigError, EnvironmentMissing, ExitCode, FleetError
 
@@ -378,39 +379,25 @@ def prepare_context(
 
 
 def ros_msg_wheels(cfg: BuildConfig, dest: Path, runner: Runner = subprocess_runner,
-                   progress: Progress = print) -> bool:
+                   progress: Progress = print, host: BuildHost | None = None) -> bool:
     """Build the message packages PyPI's ROS wheels lack (tf2_msgs, foxglove_msgs) into
-    *dest* for the client image, with ``scripts/ros_msgs/build.py`` of the source checkout.
+    *dest* for the client image (:mod:`fleetctl.deploy.rosmsgs`).
 
-    The robot's TF republisher and the simulated robot's ``/tf`` need ``tf2_msgs``. Building
-    needs the checkout's script and this Python with the ``ros`` extra, gcc and Python's
-    headers (``scripts/setup.sh`` has them); without them *dest* stays empty and the image
-    is built without (its robots then say, once, that TF is not sent). The script keeps a
-    wheel whose inputs did not change byte for byte, so docker's layer cache still hits.
+    The robot's TF republisher and the simulated robot's ``/tf`` need ``tf2_msgs``. The
+    builder comes from the checkout or the installed package; without the ``ros`` extra
+    here it runs in a venv made from the image's wheelhouses beside *dest*. Unchanged
+    inputs keep the wheels byte for byte, so docker's layer cache still hits.
 
     Returns:
         True when the wheels are in *dest*.
 
     Raises:
+        EnvironmentMissing: gcc, g++ or Python's headers missing and not installable.
         FleetError: the build itself failed (its output is in the message).
     """
-    import importlib.util
-
-    dest.mkdir(parents=True, exist_ok=True)
-    script = cfg.source_dir / "scripts" / "ros_msgs" / "build.py" if cfg.source_dir else None
-    if script is None or not script.is_file():
-        progress("ros message wheels: skipped (no source checkout): the client image has no "
-                 "tf2_msgs, its robots send no TF")
-        return False
-    if importlib.util.find_spec("rosidl_adapter") is None:
-        progress("ros message wheels: skipped (this Python lacks the ros extra: run "
-                 "scripts/setup.sh): the client image has no tf2_msgs, its robots send no TF")
-        return False
-    progress("ros message wheels: tf2_msgs, foxglove_msgs")
-    check(runner([sys.executable, str(script), "--no-install", "--wheel-dir", str(dest),
-                  "--build-dir", str(dest.parent.parent / "rosmsgs-build")], None, True),
-          "ros message wheels (scripts/ros_msgs/build.py)")
-    return True
+    base_reqs = requirements(cfg)
+    ros_reqs = requirements(cfg, ["ros"])[len(base_reqs):]
+    return build_ros_msg_wheels(cfg.source_dir, dest, ros_reqs, runner, progress, host)
 
 
 _STAMP = ".inputs"

@@ -10,6 +10,7 @@ import pytest
 
 from fleetctl.deploy import images
 from fleetctl.deploy.dockercli import Completed, require_docker
+from fleetctl.deploy.rosmsgs import BuildHost
 from fleetctl.errors import ConfigError, EnvironmentMissing, ExitCode, FleetError
 
 REPO = Path(__file__).resolve().parents[2]
@@ -182,20 +183,27 @@ def test_ros_message_wheels_come_from_the_checkouts_script(tmp_path: Path) -> No
     dest = tmp_path / "ctx" / "wheels" / "rosmsgs"
     said: list[str] = []
     cfg = images.BuildConfig(source_dir=REPO)
-    assert images.ros_msg_wheels(cfg, dest, rec, said.append)
+    host = BuildHost(ros_extra=lambda: True, missing_tools=list, is_root=lambda: False)
+    assert images.ros_msg_wheels(cfg, dest, rec, said.append, host)
     (argv,) = rec.calls
     assert argv[1] == str(REPO / "scripts" / "ros_msgs" / "build.py")
     assert argv[2:5] == ["--no-install", "--wheel-dir", str(dest)]
 
 
-def test_without_a_checkout_the_image_has_no_ros_message_wheels(tmp_path: Path) -> None:
+def test_without_the_ros_extra_the_build_venv_gets_the_installed_ros_extra(
+        tmp_path: Path) -> None:
+    """A plain `pip install fleetctl` (no ros extra, no checkout) skipped the message
+    wheels: the client image had no tf2_msgs and its robots sent no TF."""
     rec = Recorder(present=True)
-    said: list[str] = []
-    dest = tmp_path / "rosmsgs"
-    assert not images.ros_msg_wheels(images.BuildConfig(source_dir=None), dest, rec,
-                                     said.append)
-    assert rec.calls == [] and dest.is_dir()  # the Dockerfile's COPY needs the directory
-    assert "robots send no TF" in said[0]
+    dest = tmp_path / "ctx" / "wheels" / "rosmsgs"
+    host = BuildHost(ros_extra=lambda: False, missing_tools=list, is_root=lambda: False)
+    assert images.ros_msg_wheels(images.BuildConfig(source_dir=None), dest, rec,
+                                 lambda s: None, host)
+    venv, install, build = rec.calls
+    assert venv[-1] == str(tmp_path / "ctx" / "rosmsgs-venv")
+    assert any(r.startswith("ros-jazzy-rclpy") for r in install)
+    assert not any(r.startswith(("av", "pillow", "websockets")) for r in install)
+    assert build[0] == str(tmp_path / "ctx" / "rosmsgs-venv" / "bin" / "python")
 
 
 def test_the_client_image_installs_the_ros_message_wheels_when_there_are_some() -> None:

@@ -18,6 +18,7 @@ from fleetctl.deploy.selfwheel import fleetctl_wheel
 
 REPO = Path(__file__).resolve().parents[2]
 WHEELHOUSE = REPO / "build" / "docker" / "wheels" / "base"
+ROS_WHEELHOUSE = WHEELHOUSE.parent / "ros"
 
 pytestmark = [
     pytest.mark.slow,
@@ -43,6 +44,11 @@ def venv(tmp_path_factory: pytest.TempPathFactory) -> Path:
     assert "fleetctl/_templates/wireguard/robot.conf.j2" in names
     assert "fleetctl/_images/server.Dockerfile" in names
     assert "fleetctl/_images/entrypoint.sh" in names
+    # The message-wheel builder and every input of it (foxglove_msgs' is the wire's).
+    for name in ("build.py", "compile.py", "generate.py", "packages.py", "stage.py",
+                 "wheel.py", "msg/tf2_msgs/msg/TFMessage.msg", "msg/tf2_msgs/msg/TF2Error.msg"):
+        assert f"fleetctl/_ros_msgs/{name}" in names
+    assert "fleetctl/wire/msg/foxglove_msgs/msg/CompressedVideo.msg" in names
     env_dir = root / "venv"
     _run([sys.executable, "-m", "venv", str(env_dir)], root)
     _run([str(env_dir / "bin" / "pip"), "install", "-q", "--no-index", "--find-links",
@@ -95,3 +101,34 @@ def test_the_installed_wheel_rebuilds_itself_for_images_and_bundles(venv: Path,
     assert Path(second.stdout.strip()).read_bytes() == repacked.read_bytes()
     build_help = _run([str(venv / "bin" / "fleetctl"), "build", "-h"], tmp_path)
     assert "--source" in build_help.stdout
+
+
+@pytest.mark.skipif(not any(ROS_WHEELHOUSE.glob("*.whl")),
+                    reason=f"no ROS wheelhouse at {ROS_WHEELHOUSE} (made by `fleetctl build`)")
+def test_the_installed_wheel_builds_the_ros_message_wheels_for_the_client_image(
+        venv: Path, tmp_path: Path) -> None:
+    """`fleetctl build` from a plain `pip install fleetctl` skipped tf2_msgs ('no source
+    checkout'), so `up --sim` robots and deployed ones sent no TF."""
+    ctx = tmp_path / "ctx"  # a build context as prepare_context leaves it
+    (ctx / "wheels").mkdir(parents=True)
+    for name in ("base", "ros"):
+        (ctx / "wheels" / name).symlink_to(WHEELHOUSE.parent / name)
+    dest = ctx / "wheels" / "rosmsgs"
+    script = ("import sys; from pathlib import Path; import importlib.util; "
+              "from fleetctl.deploy.images import BuildConfig, ros_msg_wheels; "
+              "assert importlib.util.find_spec('rosidl_adapter') is None; "
+              "assert ros_msg_wheels(BuildConfig(source_dir=None), Path(sys.argv[1]))")
+    res = _run([str(venv / "bin" / "python"), "-c", script, str(dest)], tmp_path,
+               {"PYTHONPATH": ""})
+    assert f"{venv}/lib/" in res.stdout and "/fleetctl/_ros_msgs/build.py" in res.stdout
+    wheels = sorted(dest.glob("*.whl"))
+    assert [w.name.split("-")[0] for w in wheels] == ["ros_foxglove_msgs", "ros_tf2_msgs"]
+    # They load in a venv with the ROS wheels (the build venv is one): import, and
+    # serialize through their C type supports as rclpy does when publishing.
+    python = ctx / "rosmsgs-venv" / "bin" / "python"
+    _run([sys.executable, "-m", "pip", "--python", str(python), "install", "-q", "--no-index",
+          "--no-deps", *map(str, wheels)], tmp_path)
+    check = ("import tf2_msgs.msg; import foxglove_msgs.msg; "
+             "from rclpy.serialization import serialize_message as s; "
+             "assert s(tf2_msgs.msg.TFMessage()) and s(foxglove_msgs.msg.CompressedVideo())")
+    _run([str(python), "-c", check], tmp_path, {"PYTHONPATH": ""})

@@ -12,7 +12,7 @@ tests/webviz/test_browser.py), signed in as the demo's operator.
 
 The page goes round a cycle of what an operator does (:data:`CYCLE`): robot1's page with
 every panel, panels hidden and shown again, the fleet overview, robot2's page, Pause and
-Resume, the tab hidden for 30 s and shown again. Headless Chromium does not hide a tab (a
+Resume, the tab hidden for 20 s and shown again. Headless Chromium does not hide a tab (a
 background tab, a minimized window and CDP ``Page.setWebLifecycleState`` "frozen" all left
 the page drawing 60 animation frames a second, ``visibilityState`` "visible"), so an init
 script does what a hidden tab means to the page: ``requestAnimationFrame`` callbacks are
@@ -34,7 +34,11 @@ per cycle taken in the same state (robot1's page, every panel shown, after its d
 warm-up cycles left out. A quantity grows when, over the last half of those samples, the
 median of its last three is above the median of its first three by more than its tolerance
 (absolute and relative, :data:`TOLERANCES`) and its least-squares slope is positive. Exit
-status 1 when something grows, 0 when everything is flat.
+status 1 when something grows, 0 when everything is flat, 2 when the run was too short
+to judge (fewer than three cycles after the warm-up; a cycle is about 110 s). At the end, the
+renderer's and GPU process's RSS before and after a critical memory-pressure signal (CDP
+``Memory.simulatePressureNotification``): what Chromium keeps for reuse and gives back
+then is not held by the page.
 """
 
 from __future__ import annotations
@@ -421,13 +425,14 @@ CYCLE: tuple[CycleStep, ...] = (
     CycleStep("robot1", step_robot1, 20),
     CycleStep("panels", step_panels, 10),
     CycleStep("overview", step_overview, 10),
-    CycleStep("robot2", step_robot2, 20),
+    CycleStep("robot2", step_robot2, 15),
     CycleStep("pause", step_pause, 10),
-    CycleStep("resume", step_resume, 10),
-    CycleStep("hidden", step_hide, 30),
-    CycleStep("shown", step_show, 10),
+    CycleStep("resume", step_resume, 5),
+    CycleStep("hidden", step_hide, 20),
+    CycleStep("shown", step_show, 5),
 )
 CHECKPOINT = "robot1"  # the step whose last sample goes into the verdict
+MIN_CYCLES = 3  # checkpoint samples after the warm-up needed for a verdict
 
 
 # --- the run --------------------------------------------------------------------------
@@ -462,11 +467,24 @@ async def run(args: argparse.Namespace) -> list[Sample]:
                         await dwell(step, probe, samples, cycle, start, args.sample_s)
                     print_sample_line(samples, cycle)
                     cycle += 1
+                await report_pressure(probe, cdp)
                 if errors:
                     print(f"page errors ({len(errors)}): {errors[:5]}", file=sys.stderr)
             finally:
                 await browser.close()
     return samples
+
+
+async def report_pressure(probe: Probe, cdp: Any) -> None:
+    """Renderer and GPU RSS before and after a critical memory-pressure signal: what
+    Chromium keeps for reuse (and gives back under pressure) is not the page's."""
+    before = chromium_rss_mb()
+    await cdp.send("Memory.simulatePressureNotification", {"level": "critical"})
+    await probe.page.evaluate("new Promise((r) => setTimeout(r, 2000))")  # its purge runs
+    after = chromium_rss_mb()
+    print(f"at the end: renderer RSS {before['renderer_rss_mb']:.0f} MB, GPU process "
+          f"{before['gpu_rss_mb']:.0f} MB; after a critical memory-pressure signal "
+          f"{after['renderer_rss_mb']:.0f} and {after['gpu_rss_mb']:.0f} MB")
 
 
 async def sign_in(page: Any, url: str, token: str) -> None:
@@ -535,9 +553,9 @@ class Verdict:
 
 def verdict(name: str, points: list[tuple[float, float]], tolerance: Tolerance) -> Verdict | None:
     """Flat or growing over the last half of *points* ((t_s, value), in time order)."""
-    if len(points) < 4:
+    if len(points) < MIN_CYCLES:
         return None
-    half = points[-max(4, (len(points) + 1) // 2):]
+    half = points[-max(MIN_CYCLES, (len(points) + 1) // 2):]
     edge = min(3, len(half) // 2)
     first = statistics.median(v for _, v in half[:edge])
     last = statistics.median(v for _, v in half[-edge:])
@@ -601,8 +619,8 @@ def main() -> int:
             "verdicts": [v.__dict__ for v in results],
         }, indent=1))
     cycles = len({s.cycle for s in samples if s.checkpoint and s.cycle >= args.warmup_cycles})
-    if cycles < 4:
-        print(f"too short to judge: {cycles} cycles after the warm-up (4 needed)")
+    if cycles < MIN_CYCLES:
+        print(f"too short to judge: {cycles} cycles after the warm-up ({MIN_CYCLES} needed)")
         return 2
     growing = [v.name for v in results if v.grows]
     print("verdict: " + (f"grows: {', '.join(growing)}" if growing else "flat"))

@@ -32,7 +32,7 @@ from urllib.parse import urlsplit
 from fleetctl import __version__
 from fleetctl.deploy.assets import asset_dir
 from fleetctl.deploy.dockercli import Runner, check, image_exists, subprocess_runner
-from fleetctl.deploy.rosmsgs import BuildHost, build_ros_msg_wheels
+from fleetctl.deploy.rosmsgs import BUILD_DIR, VENV_DIR, BuildHost, build_ros_msg_wheels
 from fleetctl.deploy.selfwheel import DIST_NAME, fleetctl_wheel, source_checkout
 from fleetctl.errors import ConfigError, EnvironmentMissing, ExitCode, FleetError
 
@@ -52,6 +52,8 @@ BASE_PACKAGES = (
     "libjs-leaflet",
 )
 IMAGE_NAMES = ("server", "client", "webviz", "router")
+# Build-context entries no Dockerfile copies (.dockerignore keeps them off the daemon).
+CONTEXT_ONLY_DIRS = (VENV_DIR, BUILD_DIR)
 
 Progress = Callable[[str], None]
 
@@ -375,6 +377,9 @@ def prepare_context(
     for dockerfile in cfg.images_dir.glob("*"):
         if dockerfile.is_file():
             shutil.copy2(dockerfile, ctx / dockerfile.name)
+    # The message build's venv (240 MB) and cache live in the context too; docker would
+    # send them to the daemon for every image.
+    (ctx / ".dockerignore").write_text("".join(f"{name}\n" for name in CONTEXT_ONLY_DIRS))
     return ctx
 
 

@@ -210,3 +210,21 @@ def test_the_client_image_installs_the_ros_message_wheels_when_there_are_some() 
     text = (REPO / "images" / "client.Dockerfile").read_text()
     assert "COPY wheels/rosmsgs /wheels/rosmsgs" in text
     assert "if ls /wheels/rosmsgs/*.whl" in text
+
+
+def test_the_message_build_venv_and_cache_stay_out_of_the_docker_context(
+        tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """The build venv (240 MB) sat in the context, sent to the daemon for every image
+    (373.6 MB instead of 137 MB per `docker build`)."""
+    ctx = tmp_path / "ctx"
+    app = ctx / "wheels" / "app"
+    app.mkdir(parents=True)
+    (app / "fleetctl-0.1.0-py3-none-any.whl").write_text("")
+    (app / ".inputs").write_text(images.source_digest(REPO))  # no wheel built here
+    monkeypatch.setattr(images, "ros_msg_wheels", lambda *args: True)
+    cfg = images.BuildConfig(source_dir=REPO, context_dir=ctx)
+    images.prepare_context(cfg, Recorder(True), lambda s: None)
+    ignored = (ctx / ".dockerignore").read_text().split()
+    assert ignored == ["rosmsgs-venv", "rosmsgs-build"]
+    for dockerfile in (REPO / "images").glob("*.Dockerfile"):
+        assert not any(name in dockerfile.read_text() for name in ignored)

@@ -48,9 +48,11 @@ from __future__ import annotations
 
 import argparse
 import asyncio
+import contextlib
 import json
 import math
 import os
+import signal
 import statistics
 import sys
 import tempfile
@@ -465,10 +467,13 @@ async def run(args: argparse.Namespace) -> list[Sample]:
                 probe = Probe(page, cdp)
                 start = time.monotonic()
                 cycle = 0
-                while time.monotonic() < deadline:
+                stop = stop_on_signals()
+                while time.monotonic() < deadline and not stop.is_set():
                     for step in CYCLE:
+                        if stop.is_set():
+                            break
                         await step.action(page, cdp)
-                        await dwell(step, probe, samples, cycle, start, args.sample_s)
+                        await dwell(step, probe, samples, cycle, start, args.sample_s, stop)
                     print_sample_line(samples, cycle)
                     cycle += 1
                 await report_pressure(probe, cdp)
@@ -499,12 +504,28 @@ async def sign_in(page: Any, url: str, token: str) -> None:
                                  timeout=UI_TIMEOUT_MS)
 
 
+def stop_on_signals() -> asyncio.Event:
+    """An event set by Ctrl-C or SIGTERM: the soak ends its cycle early and still reports
+    and stops the demo (a cancelled Playwright call once kept it running for the whole
+    run, ignoring SIGINT)."""
+    stop = asyncio.Event()
+    loop = asyncio.get_running_loop()
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        loop.add_signal_handler(sig, stop.set)
+    return stop
+
+
 async def dwell(step: CycleStep, probe: Probe, samples: list[Sample], cycle: int,
-                start: float, sample_s: float) -> None:
-    """Stay *step.dwell_s* in the step's state, sampling every *sample_s* (last at the end)."""
+                start: float, sample_s: float, stop: asyncio.Event) -> None:
+    """Stay *step.dwell_s* in the step's state, sampling every *sample_s* (last at the end),
+    until *stop* is set."""
     end = time.monotonic() + step.dwell_s
     while (left := end - time.monotonic()) > 0:
-        await asyncio.sleep(min(sample_s, left))  # the soak's pace, not a synchronization
+        # The soak's pace, not a synchronization: a sample every sample_s, or stop.
+        with contextlib.suppress(TimeoutError):
+            await asyncio.wait_for(stop.wait(), min(sample_s, left))
+        if stop.is_set():
+            return
         values, collections = await probe.sample()
         samples.append(Sample(time.monotonic() - start, cycle, step.name, values, collections))
     if step.name == CHECKPOINT and samples and samples[-1].step == CHECKPOINT:

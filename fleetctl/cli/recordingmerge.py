@@ -32,6 +32,7 @@ from fleetctl.cli.recordings import (
     fetch_remote,
     link_new,
     list_remote,
+    open_part,
     recording_dir,
 )
 from fleetctl.errors import ConflictError, ExitCode, FleetError
@@ -263,12 +264,7 @@ def write_merged(sources: Sequence[MergeSource], target: Path, selection: Select
     check_target(target, force)
     if not sources:
         raise FleetError(f"no recording{_selection_text(selection)}")
-    try:
-        fd, temp = tempfile.mkstemp(prefix=f".{target.name}.", suffix=".part",
-                                    dir=target.parent)
-    except OSError as exc:
-        raise cannot_write(target, exc) from None
-    part = Path(temp)
+    fd, part = open_part(target)
     try:
         with os.fdopen(fd, "wb") as out:
             counts = merge(sources, out, selection, scratch)

@@ -261,12 +261,7 @@ def fetch_remote(remote: Remote, name: str, target: Path) -> Fetched:
     """
     check_name(name)
     target = _target_file(target, name)
-    try:
-        fd, temp = tempfile.mkstemp(prefix=f".{target.name}.", suffix=".part",
-                                    dir=target.parent)
-    except OSError as exc:
-        raise cannot_write(target, exc) from None
-    part = Path(temp)
+    fd, part = open_part(target)
     try:
         with os.fdopen(fd, "wb") as out:
             offset, total = 0, None
@@ -325,6 +320,21 @@ def cannot_write(target: Path, exc: OSError) -> FleetError:
     """The error for a *target* that cannot be written (exit 5)."""
     return FleetError(f"{target}: cannot write: {exc.strerror or exc}",
                       exit_code=ExitCode.ENVIRONMENT)
+
+
+def open_part(target: Path) -> tuple[int, Path]:
+    """A new temp file beside *target* (0600, a dot name ending ``.part``), to be renamed or
+    linked into place when whole: its descriptor and path.
+
+    Raises:
+        FleetError: The directory cannot be written (exit 5).
+    """
+    try:
+        fd, temp = tempfile.mkstemp(prefix=f".{target.name}.", suffix=".part",
+                                    dir=target.parent)
+    except OSError as exc:
+        raise cannot_write(target, exc) from None
+    return fd, Path(temp)
 
 
 def check_name(name: str) -> None:

@@ -4,7 +4,6 @@ errors and exit codes; the merge itself is tests/server/recording/test_merge.py.
 from __future__ import annotations
 
 import json
-import os
 import stat
 from pathlib import Path
 
@@ -130,10 +129,13 @@ def test_an_existing_output_is_replaced_only_with_force(
      "--dir and --server given"),
     (["-d", "D", "../x.mcap"], ExitCode.USAGE, "recording name '../x.mcap'"),
 ])
-def test_usage_errors(tmp_path: Path, capsys: pytest.CaptureFixture[str], argv: list[str],
+def test_usage_errors(tmp_path: Path, capsys: pytest.CaptureFixture[str],
+                      monkeypatch: pytest.MonkeyPatch, argv: list[str],
                       code: ExitCode, said: str) -> None:
     (tmp_path / "D").mkdir()
-    os.chdir(tmp_path)
+    # monkeypatch's chdir goes back after the test: os.chdir left every later test in this
+    # directory, and those that start `python -m tests...` (test_bridge, test_qos) failed.
+    monkeypatch.chdir(tmp_path)
     assert main(["recordings", "merge", *argv, "--to", str(tmp_path / "o.mcap")]) == code
     err = capsys.readouterr().err
     assert said in err and "Traceback" not in err

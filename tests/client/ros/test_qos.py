@@ -6,6 +6,7 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import logging
+import sys
 from collections.abc import Iterator
 from typing import Any
 
@@ -37,6 +38,19 @@ DEADLINE_S = 30.0
 # A driver's reliable writer with a short KEEP_LAST history: a burst faster than the
 # client takes it overwrites what the client has not taken yet.
 SHORT_HISTORY = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE)
+
+
+@pytest.fixture(autouse=True)
+def python_default_gil_interval() -> Iterator[None]:
+    """Python's default GIL switch interval for these bursts. The robot client's runner sets
+    0.5 ms process-wide (fleetctl.gilswitch); a test before these that ran it in-process
+    left it so, and the executor's thread then kept up with a 10,000-message burst often
+    enough that nothing was lost and the loss count had nothing to count (a CI failure,
+    reproduced 1 in 3 with the interval set before this file)."""
+    before = sys.getswitchinterval()
+    sys.setswitchinterval(0.005)
+    yield
+    sys.setswitchinterval(before)
 
 
 def _burst_through(bridge: Bridge, publisher: Any, texts: list[str]) -> None:

@@ -152,15 +152,23 @@ def test_a_frame_recorded_by_two_replicas_is_written_once(tmp_path: Path) -> Non
     assert (counts.messages, counts.duplicates, counts.repeats) == (5, 1, 0)
 
 
-def test_rotated_files_give_the_latched_map_once(tmp_path: Path) -> None:
-    """Every rotated file starts with a copy of the latched map (log time: the file's
-    start); merged, the run has it once, at its original time."""
+def _rotated_with_a_map(tmp_path: Path) -> Replica:
+    """Replica relay-a's closed recording in three rotated files: a latched map at 5 ms and
+    a chat at 10 ms in the first, a chat at 20 s and at 40 s in the next two (each of which
+    starts with its copy of the map)."""
     a = Replica(tmp_path / "a", "relay-a", max_file_duration_s=10.0)
     a.record(frame("/husky1/map", "map", 5, latched=True), frame("/husky1/chat", "x", 10))
     for ms in (20_000, 40_000):
         a.clock.now_s += 11
         a.record(frame("/husky1/chat", "y", ms))
     a.writer.close()
+    return a
+
+
+def test_rotated_files_give_the_latched_map_once(tmp_path: Path) -> None:
+    """Every rotated file starts with a copy of the latched map (log time: the file's
+    start); merged, the run has it once, at its original time."""
+    a = _rotated_with_a_map(tmp_path)
     parts = a.files()
     assert len(parts) == 3
     target, counts = run(tmp_path, parts)
@@ -293,12 +301,7 @@ def test_a_carried_message_makes_the_next_start_of_file_copy_a_repeat(
         tmp_path: Path) -> None:
     """Rotated files each start with a copy of the map: the newest before the window
     (here a copy itself) is carried, the one in the window is left out as a repeat."""
-    a = Replica(tmp_path / "a", "relay-a", max_file_duration_s=10.0)
-    a.record(frame("/husky1/map", "map", 5, latched=True), frame("/husky1/chat", "x", 10))
-    for ms in (20_000, 40_000):
-        a.clock.now_s += 11
-        a.record(frame("/husky1/chat", "y", ms))
-    a.writer.close()
+    a = _rotated_with_a_map(tmp_path)
     target, counts = run(tmp_path, a.files(), Selection(since_ns=T0 + 30_000 * MS))
     assert read_times(target) == [("/husky1/map", 30_000, 5, "map"),
                                   ("/husky1/chat", 40_000, 40_000, "y")]

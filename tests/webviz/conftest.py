@@ -5,6 +5,7 @@ from __future__ import annotations
 import shutil
 from collections.abc import AsyncIterator, Iterator
 from pathlib import Path
+from typing import Any
 
 import pytest
 
@@ -41,3 +42,18 @@ async def browser() -> AsyncIterator[object]:
             yield b
         finally:
             await b.close()
+
+
+@pytest.fixture
+async def page(browser: Any, webviz_factory: list[BackgroundWebviz]) -> AsyncIterator[Any]:
+    """A page on the webviz origin (no relay), for tests that import the page's modules;
+    fails the test on any uncaught error in it."""
+    web = webviz_server(None).start()
+    webviz_factory.append(web)
+    p = await browser.new_page()
+    errors: list[str] = []
+    p.on("pageerror", lambda e: errors.append(str(e)))
+    await p.goto(web.url + "config.json")  # any page of the origin: modules load from it
+    yield p
+    assert not errors, errors
+    await p.close()

@@ -13,8 +13,6 @@ from typing import Any
 
 import pytest
 
-from tests.webviz.conftest import webviz_server
-
 pytestmark = pytest.mark.browser
 CLOUDS = 40
 PANEL_BG = (16, 20, 24)  # #101418
@@ -65,19 +63,6 @@ async (counts) => {
   return { mode: view.mode, afterFirst, live: live(), buffers, drawn, lit };
 }
 """
-
-
-@pytest.fixture
-async def page(browser: Any, webviz_factory: list[Any]) -> Any:
-    web = webviz_server(None).start()
-    webviz_factory.append(web)
-    p = await browser.new_page()
-    errors: list[str] = []
-    p.on("pageerror", lambda e: errors.append(str(e)))
-    await p.goto(web.url + "config.json")  # any page of the origin: modules load from it
-    yield p
-    assert not errors, errors
-    await p.close()
 
 
 async def test_clouds_drawn_one_after_another_hold_the_same_webgl_buffers(page: Any) -> None:

@@ -16,7 +16,6 @@ from fleetctl.client.viewercloud import VIEWER_CLOUD_TYPE, decode, encode
 from fleetctl.wire.codec import Codec
 from fleetctl.wire.compression import COMPRESSED_TYPE, CompressionCodec, compress
 from fleetctl.wire.registry import TypeRegistry
-from tests.webviz.conftest import webviz_server
 
 pytestmark = pytest.mark.browser
 TOPIC = "/r1/camera/points/viewer"
@@ -79,19 +78,6 @@ def _frame(codec: Codec, viewer: Any, deflate: bool) -> str:
         frame = compress(frame, codec=CompressionCodec.DEFLATE, topic=TOPIC, no_drop=False,
                          frame_codec=codec)
     return base64.b64encode(frame).decode()
-
-
-@pytest.fixture
-async def page(browser: Any, webviz_factory: list[Any]) -> Any:
-    web = webviz_server(None).start()
-    webviz_factory.append(web)
-    p = await browser.new_page()
-    errors: list[str] = []
-    p.on("pageerror", lambda e: errors.append(str(e)))
-    await p.goto(web.url + "config.json")  # any page of the origin: modules load from it
-    yield p
-    assert not errors
-    await p.close()
 
 
 async def test_the_page_decodes_a_deflated_viewer_cloud_like_the_python_reference(

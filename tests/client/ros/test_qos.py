@@ -6,7 +6,7 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import logging
-import sys
+import threading
 from collections.abc import Iterator
 from typing import Any
 
@@ -40,49 +40,70 @@ DEADLINE_S = 30.0
 SHORT_HISTORY = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE)
 
 
-@pytest.fixture(autouse=True)
-def python_default_gil_interval() -> Iterator[None]:
-    """Python's default GIL switch interval for these bursts. The robot client's runner sets
-    0.5 ms process-wide (fleetctl.gilswitch); a test before these that ran it in-process
-    left it so, and the executor's thread then kept up with a 10,000-message burst often
-    enough that nothing was lost and the loss count had nothing to count (a CI failure,
-    reproduced 1 in 3 with the interval set before this file)."""
-    before = sys.getswitchinterval()
-    sys.setswitchinterval(0.005)
-    yield
-    sys.setswitchinterval(before)
+class _Taker:
+    """The link's send, which keeps the text of every message the bridge hands it and, once
+    :meth:`hold` is called, holds the thread that took the next one until :meth:`release`.
+
+    A burst published while that thread is held must overflow the reader's history, so the
+    loss the tests count is there by construction. Without the hold they depended on the
+    taking thread falling behind a 10,000-message burst, and it sometimes kept up (a CI
+    failure of 1c79c66: "the burst lost nothing", with Python's default GIL interval too).
+    """
+
+    def __init__(self) -> None:
+        self.texts: list[str] = []
+        self.holding = threading.Event()
+        self._codec = Codec(TypeRegistry.default())
+        self._armed = False
+        self._released = threading.Event()
+
+    def __call__(self, spec: Any, frame: bytes, published_ns: int) -> None:
+        self.texts.append(str(self._codec.decode(frame)[1].data))
+        if self._armed and not self._released.is_set():
+            self.holding.set()
+            self._released.wait(DEADLINE_S)
+
+    def hold(self) -> None:
+        self._armed = True
+
+    def release(self) -> None:
+        self._released.set()
 
 
-def _burst_through(bridge: Bridge, publisher: Any, texts: list[str]) -> None:
-    """Publish one message at a time until the bridge took one, then BURST at once, and
-    wait until the bridge took the last (a KEEP_LAST writer keeps its newest)."""
+def _burst_through(bridge: Bridge, publisher: Any, taker: _Taker) -> None:
+    """Publish one message at a time until the bridge took one and the taking thread is
+    held, then BURST at once, release it, and wait until the bridge took the last (a
+    KEEP_LAST writer keeps its newest)."""
     count = 0
 
-    def warm_up() -> bool:
+    def publish_one() -> None:
         nonlocal count
         count += 1
         publisher.publish(String(data=str(count)))
+
+    def taken_one() -> bool:
+        publish_one()
         return bridge.stats.local_in > 0
 
-    wait_until(warm_up, DEADLINE_S, poll_s=0.05, describe="the bridge took a message")
-    for _ in range(BURST):
-        count += 1
-        publisher.publish(String(data=str(count)))
-    wait_until(lambda: texts and texts[-1] == str(count), DEADLINE_S,
+    wait_until(taken_one, DEADLINE_S, poll_s=0.05, describe="the bridge took a message")
+    taker.hold()
+    wait_until(lambda: publish_one() or taker.holding.is_set(), DEADLINE_S, poll_s=0.05,
+               describe="the taking thread held")
+    try:
+        for _ in range(BURST):
+            publish_one()
+    finally:
+        taker.release()
+    wait_until(lambda: taker.texts and taker.texts[-1] == str(count), DEADLINE_S,
                describe=f"message {count} taken")
 
 
 @contextlib.contextmanager
-def _texts_bridge(context: Any, topic: str) -> Iterator[tuple[Bridge, list[str]]]:
-    codec = Codec(TypeRegistry.default())
-    texts: list[str] = []
-
-    def send(spec: Any, frame: bytes, published_ns: int) -> None:
-        texts.append(str(codec.decode(frame)[1].data))
-
+def _texts_bridge(context: Any, topic: str) -> Iterator[tuple[Bridge, _Taker]]:
+    taker = _Taker()
     with spun_bridge(context, {"topic": topic, "type": "std_msgs/msg/String",
-                               "no_drop": True}, send=send) as bridge:
-        yield bridge, texts
+                               "no_drop": True}, send=taker) as bridge:
+        yield bridge, taker
 
 
 def _assert_counted(bridge: Bridge, topic: str, texts: list[str]) -> None:
@@ -101,10 +122,10 @@ def test_a_burst_dds_drops_before_the_executor_takes_it_is_counted(
     """20,000 no_drop messages published in 1.5 s reached the relay as 2,597 and nothing
     said so: DDS overwrote the rest before the client took them."""
     context, peer = ros
-    with _texts_bridge(context, "/burst") as (bridge, texts):
+    with _texts_bridge(context, "/burst") as (bridge, taker):
         assert not bridge.inputs[0].loop_served  # the client's executor takes it
-        _burst_through(bridge, peer.create_publisher(String, "/burst", SHORT_HISTORY), texts)
-    _assert_counted(bridge, "/burst", texts)
+        _burst_through(bridge, peer.create_publisher(String, "/burst", SHORT_HISTORY), taker)
+    _assert_counted(bridge, "/burst", taker.texts)
     said = [r.getMessage() for r in caplog.records if "lost before this client" in r.message]
     assert said and said[0].startswith("/burst: ") and "no_drop messages" in said[0]
     assert "DDS keeps only the last 1000 messages here" in said[0]
@@ -122,10 +143,9 @@ def test_a_burst_lost_before_the_loop_intake_takes_it_is_counted(
     async def scenario() -> None:
         intake = LoopIntake(asyncio.get_running_loop(), wakeups)
         codec = Codec(TypeRegistry.default())
-        texts: list[str] = []
+        taker = _Taker()
         port = LinkPort(admit=lambda topic: True, send_status=lambda frame: None,
-                        send=lambda spec, frame, ns: texts.append(
-                            str(codec.decode(frame)[1].data)))
+                        send=taker)
         config = parse_client_config({
             "server_url": "ws://127.0.0.1:1/", "robot_name": "r1",
             "publish": [{"topic": "/burst_loop", "type": "std_msgs/msg/String",
@@ -135,8 +155,8 @@ def test_a_burst_lost_before_the_loop_intake_takes_it_is_counted(
         try:
             assert bridge.inputs[0].loop_served
             publisher = peer.create_publisher(String, "/burst_loop", SHORT_HISTORY)
-            await asyncio.to_thread(_burst_through, bridge, publisher, texts)
-            _assert_counted(bridge, "/burst_loop", texts)
+            await asyncio.to_thread(_burst_through, bridge, publisher, taker)
+            _assert_counted(bridge, "/burst_loop", taker.texts)
         finally:
             intake.close()
             bridge.destroy_node()

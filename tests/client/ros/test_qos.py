@@ -87,8 +87,12 @@ def _burst_through(bridge: Bridge, publisher: Any, taker: _Taker) -> None:
 
     wait_until(taken_one, DEADLINE_S, poll_s=0.05, describe="the bridge took a message")
     taker.hold()
-    wait_until(lambda: publish_one() or taker.holding.is_set(), DEADLINE_S, poll_s=0.05,
-               describe="the taking thread held")
+
+    def held() -> bool:
+        publish_one()
+        return taker.holding.is_set()
+
+    wait_until(held, DEADLINE_S, poll_s=0.05, describe="the taking thread held")
     try:
         for _ in range(BURST):
             publish_one()

@@ -32,6 +32,7 @@ from urllib.parse import urlsplit
 from fleetctl import __version__
 from fleetctl.deploy.assets import asset_dir
 from fleetctl.deploy.dockercli import Runner, check, image_exists, subprocess_runner
+from fleetctl.deploy.reqstamp import requirements_stamp
 from fleetctl.deploy.rosmsgs import BUILD_DIR, VENV_DIR, BuildHost, build_ros_msg_wheels
 from fleetctl.deploy.selfwheel import DIST_NAME, fleetctl_wheel, source_checkout
 from fleetctl.errors import ConfigError, EnvironmentMissing, ExitCode, FleetError
@@ -351,7 +352,7 @@ def prepare_context(
     for name, reqs in (("base", base_reqs), ("ros", ros_reqs), ("peers", peer_reqs),
                        ("cluster", cluster_reqs)):
         house = ctx / "wheels" / name
-        if _fresh(house, "\n".join(reqs)):
+        if _fresh(house, requirements_stamp(reqs)):
             progress(f"wheelhouse {name}: up to date")
             continue
         # Start empty: an old version of a wheel left behind would conflict at install.
@@ -361,7 +362,7 @@ def prepare_context(
         check(runner(pip_download_argv(house, reqs), None, True), f"pip wheel ({name})")
         if name in ("ros", "peers", "cluster"):
             _remove_duplicates(house, ctx / "wheels" / "base")
-        _stamp(house, "\n".join(reqs))
+        _stamp(house, requirements_stamp(reqs))
     ros_msg_wheels(cfg, ctx / "wheels" / "rosmsgs", runner, progress)
     app = ctx / "wheels" / "app"
     digest = source_digest(cfg.source_dir) if cfg.source_dir else installed_digest()

@@ -24,6 +24,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from fleetctl.deploy.dockercli import Runner, check, subprocess_runner
+from fleetctl.deploy.reqstamp import requirements_stamp
 from fleetctl.errors import EnvironmentMissing
 
 Progress = Callable[[str], None]
@@ -135,7 +136,7 @@ def build_venv(context: Path, ros_reqs: Sequence[str], runner: Runner,
     python = venv / "bin" / "python"
     houses = [context / "wheels" / name for name in ("base", "ros")]
     reqs = ros_requirements_for_build(ros_reqs)
-    inputs = "\n".join([sys.version, *reqs, *sorted(w.name for h in houses
+    inputs = "\n".join([sys.version, requirements_stamp(reqs), *sorted(w.name for h in houses
                                                     for w in h.glob("*.whl"))])
     stamp = venv / _STAMP
     if python.exists() and stamp.is_file() and stamp.read_text() == inputs:

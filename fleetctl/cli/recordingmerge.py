@@ -252,6 +252,23 @@ def check_target(target: Path, force: bool) -> None:
         raise ConflictError(f"{target}: already exists (give --force to replace it)")
 
 
+def check_outside(target: Path, recordings: Path) -> None:
+    """Refuse a *target* in the recording directory the merge reads.
+
+    The relay's retention counts every ``.mcap`` there against its byte bound and deletes
+    the oldest first, ``recordings list`` and ``fetch`` would show the merged file as a
+    recording, and a later merge of the directory would read its messages again.
+
+    Raises:
+        FleetError: (usage, exit 2) naming both.
+    """
+    if target.absolute().parent.resolve() == recordings.absolute().resolve():
+        raise FleetError(f"--to {target}: is in the recording directory {recordings} it "
+                         "merges from, where the relay's retention would count it and "
+                         "delete it, and later merges would read it again; write it "
+                         "elsewhere", exit_code=ExitCode.USAGE)
+
+
 def write_merged(sources: Sequence[MergeSource], target: Path, selection: Selection,
                  scratch: Path, force: bool = False) -> Merged:
     """Merge *sources* into a temp file beside *target*, then put it in place.
@@ -311,11 +328,15 @@ def merge_command(names: Sequence[str], target: Path, selection: Selection, *,
                          "file they select), or paths of .mcap files",
                          exit_code=ExitCode.USAGE)
     check_target(target, force)  # before fetching anything
+    recordings = None if remotes or (directory is None and config is None) else (
+        recording_dir(config, directory))
+    if recordings is not None:
+        check_outside(target, recordings)
     with scratch_beside(target) as scratch:
         if remotes:
             sources = remote_sources(remotes, names, selection, scratch)
-        elif directory is not None or config is not None:
-            sources = directory_sources(recording_dir(config, directory), names, selection)
+        elif recordings is not None:
+            sources = directory_sources(recordings, names, selection)
         else:
             sources = [MergeSource(Path(n), n) for n in names]
         return write_merged(sources, target, selection, scratch, force)

@@ -142,6 +142,24 @@ def test_usage_errors(tmp_path: Path, capsys: pytest.CaptureFixture[str],
     assert not (tmp_path / "o.mcap").exists()
 
 
+def test_the_merged_file_is_not_written_into_the_directory_it_merges(
+        tmp_path: Path, capsys: pytest.CaptureFixture[str],
+        monkeypatch: pytest.MonkeyPatch) -> None:
+    """There the relay's retention would count and delete it, and the next merge of the
+    directory would read it again."""
+    two_robots(tmp_path / "rec")
+    monkeypatch.chdir(tmp_path / "rec")
+    for to in (tmp_path / "rec" / "merged.mcap", Path("merged.mcap")):
+        assert main(["recordings", "merge", "--dir", str(tmp_path / "rec"),
+                     "--to", str(to)]) == ExitCode.USAGE
+        err = capsys.readouterr().err
+        assert f"--to {to}: is in the recording directory {tmp_path / 'rec'}" in err
+        assert "write it elsewhere" in err and "Traceback" not in err
+    assert not (tmp_path / "rec" / "merged.mcap").exists()
+    assert main(["recordings", "merge", "--dir", ".", "--to", "../merged.mcap"]) == 0
+    assert len(topics_and_times(tmp_path / "merged.mcap")) == 10
+
+
 def test_bad_inputs_are_named_and_leave_nothing_behind(
         tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     two_robots(tmp_path / "rec")

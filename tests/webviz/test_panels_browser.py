@@ -110,9 +110,10 @@ async def test_empty_panels_name_their_topic_and_a_robot_switch_clears_them(
             "Nothing on /r1/points (sensor_msgs/msg/PointCloud2) yet. The robot's /points is "
             "shown here; another topic needs remote_topic: /r1/points in its publish entry."
         )).wait_for(timeout=TIMEOUT_MS)
-        await page.locator("#video-status", has_text=(
+        await page.locator(note("video"), has_text=(
             "/r1/camera/image_raw arrives as sensor_msgs/msg/Image, not as video: add video: "
             "{codec: h264} to its publish entry")).wait_for(timeout=TIMEOUT_MS)
+        assert await page.locator("#video-status").text_content() == "no video yet"
         await page.locator(note("odom"), has_text="Nothing on /r1/odom").wait_for(
             timeout=TIMEOUT_MS)
         assert await page.is_hidden(note("camera")) and await page.is_hidden(note("scan"))
@@ -129,9 +130,15 @@ async def test_empty_panels_name_their_topic_and_a_robot_switch_clears_them(
             timeout=TIMEOUT_MS)
         await page.locator("#odom-text", has_text="0.40 m/s").wait_for(timeout=TIMEOUT_MS)
         await page.locator(note("odom")).wait_for(state="hidden", timeout=TIMEOUT_MS)
-        await page.locator("#video-status", has_text=(
-            "no video yet on /r2/camera/image_raw, /r2/camera/image or /r2/camera/video")
-        ).wait_for(timeout=TIMEOUT_MS)
+        video_note = page.locator(note("video"), has_text=(
+            "no video yet on /r2/camera/image_raw, /r2/camera/image or /r2/camera/video"))
+        await video_note.wait_for(timeout=TIMEOUT_MS)
+        # All of it shows, over the black picture: in the 3-line status box under it a
+        # 300 px panel cut the sentence off.
+        assert await video_note.evaluate("e => e.scrollHeight <= e.clientHeight + 1")
+        box = await video_note.bounding_box()
+        canvas = await page.locator("#video-canvas").bounding_box()
+        assert box["y"] + box["height"] <= canvas["y"] + canvas["height"]
         # r1's picture and scan are gone (r1 keeps publishing; this page no longer asks):
         # every pixel of both canvases is the background.
         blank = ("sel => { const c = document.querySelector(sel);"

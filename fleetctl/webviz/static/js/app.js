@@ -363,7 +363,13 @@ class App {
         `another topic needs remote_topic: ${topics[0]} in its publish entry.`;
   }
 
-  /** The Video panel's line while it has no stream: its topics, or what came there instead. */
+  /** The Video panel's note: nothing once video arrived, else {@link videoHint}. */
+  videoNote() {
+    for (const type of this.seenTypes.values()) if (type === VIDEO_TYPE) return "";
+    return this.videoHint();
+  }
+
+  /** What the Video panel says while it has no stream: its topics, or what came there instead. */
   videoHint() {
     const topics = PANELS.find((p) => p.id === "video").topics.map((t) => `/${this.robot}${t}`);
     if (this.robotDenied()) return `this sign-in may not receive ${topics.join(", ")}`;
@@ -380,12 +386,13 @@ class App {
   /** A panel whose topic arrives in a form the page cannot decode says so, and how to fix it. */
   renderNotes() {
     if (!this.robot || !this.conn) return;
-    if (this.views) this.views.video.idleHint = this.videoHint();
     for (const p of PANELS) {
       const panel = $(`#panel-${p.id}`);
       const wait = panel.querySelector(".panel-wait");
       if (wait) {
-        wait.textContent = this.waitingNote(p);
+        // The Video panel's hint lies over its black picture, as the other panels' notes
+        // do: in the three-line status box under it, a 300 px panel cut it off mid-sentence.
+        wait.textContent = p.id === "video" ? this.videoNote() : this.waitingNote(p);
         wait.hidden = !wait.textContent;
       }
       const notes = p.topics.map((t) => this.conn.unsupported.get(`/${this.robot}${t}`)).filter(Boolean);

@@ -281,10 +281,9 @@ export class VideoView {
     const s = this.streams.get(this.current);
     const el = this.statusEl;
     if (!s) {
-      // Nothing came: say where video comes from, so an operator knows what to change.
-      el.textContent = webCodecsMissing() ?? this.idleHint ??
-        "no video yet: a robot sends a camera as video when the camera's publish entry " +
-        "in fleet.yaml has a video: section (docs/operator.md)";
+      // Nothing came: the page's note over the picture says where video comes from
+      // (app.js videoNote), so an operator knows what to change.
+      el.textContent = webCodecsMissing() ?? "no video yet";
       el.classList.toggle("bad", !!webCodecsMissing());
       return;
     }

@@ -21,6 +21,7 @@ import sys
 import sysconfig
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
+from importlib import metadata
 from pathlib import Path
 
 from fleetctl.deploy.dockercli import Runner, check, subprocess_runner
@@ -55,19 +56,46 @@ def _is_root() -> bool:
     return os.geteuid() == 0
 
 
+def _installed_version(dist: str) -> str | None:
+    try:
+        return metadata.version(dist)
+    except metadata.PackageNotFoundError:
+        return None
+
+
+def versions_differing(ros_house: Path,
+                       installed_version: Callable[[str], str | None]) -> list[str]:
+    """The ROS packages of the image's wheelhouse (*ros_house*) that this Python has in
+    another version, or lacks: ``"ros_rcl 9.2.7 (image: 9.2.8)"``.
+
+    Message wheels built against this Python's ROS must match the image's: a ROS package
+    of another version may differ in its generated C (a typesupport symbol, a struct).
+    """
+    differing = []
+    for wheel in sorted(ros_house.glob("ros_*.whl")):
+        name, version = wheel.name.split("-")[:2]
+        here = installed_version(name)
+        if here != version:
+            differing.append(f"{name} {here or 'missing'} (image: {version})")
+    return differing
+
+
 @dataclass(frozen=True)
 class BuildHost:
     """What the build asks of this machine; unit tests pass made-up answers.
 
     Attributes:
-        ros_extra: True when this Python has the ROS 2 wheels (no build venv needed).
+        ros_extra: True when this Python has the ROS 2 wheels (no build venv needed when
+            their versions are the image's).
         missing_tools: The compilers/headers still missing (see :func:`missing_build_tools`).
         is_root: True when apt may install what is missing.
+        installed_version: A distribution's version in this Python, ``None`` if absent.
     """
 
     ros_extra: Callable[[], bool] = _has_ros_extra
     missing_tools: Callable[[], list[str]] = missing_build_tools
     is_root: Callable[[], bool] = _is_root
+    installed_version: Callable[[str], str | None] = _installed_version
 
 
 def builder_script(source_dir: Path | None, package_dir: Path | None = None) -> Path | None:
@@ -188,8 +216,14 @@ def build_ros_msg_wheels(source_dir: Path | None, dest: Path, ros_reqs: Sequence
         return False
     ensure_build_tools(runner, progress, host)
     context = dest.parent.parent
-    python = Path(sys.executable) if host.ros_extra() else build_venv(
-        context, ros_reqs, runner, progress)
+    python = Path(sys.executable)
+    if not host.ros_extra():
+        python = build_venv(context, ros_reqs, runner, progress)
+    elif differing := versions_differing(context / "wheels" / "ros", host.installed_version):
+        progress(f"ros message wheels: this Python's ROS packages are not the image's "
+                 f"({', '.join(differing[:3])}{', ...' if len(differing) > 3 else ''}): "
+                 "building in a venv of the image's wheels")
+        python = build_venv(context, ros_reqs, runner, progress)
     progress(f"ros message wheels: tf2_msgs, foxglove_msgs ({script})")
     check(runner([str(python), str(script), "--no-install", "--wheel-dir", str(dest),
                   "--build-dir", str(context / BUILD_DIR)], None, True),

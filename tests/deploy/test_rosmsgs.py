@@ -35,13 +35,16 @@ class FakeRunner:
 
 
 def host(ros_extra: bool = False, missing: Sequence[list[str]] = ([],),
-         root: bool = False) -> rosmsgs.BuildHost:
-    """Answers in turn from *missing* (the last one repeats), as apt would change them."""
+         root: bool = False, versions: dict[str, str] | None = None) -> rosmsgs.BuildHost:
+    """Answers in turn from *missing* (the last one repeats), as apt would change them;
+    installed *versions* (by default those of :func:`context`'s wheelhouse)."""
     answers = list(missing)
+    installed = {"ros_rclpy": "7.1"} if versions is None else versions
     return rosmsgs.BuildHost(
         ros_extra=lambda: ros_extra,
         missing_tools=lambda: answers.pop(0) if len(answers) > 1 else answers[0],
         is_root=lambda: root,
+        installed_version=installed.get,
     )
 
 
@@ -74,6 +77,24 @@ def test_a_python_with_the_ros_extra_builds_with_itself(tmp_path: Path) -> None:
     assert run.calls == [[sys.executable, str(REPO / "scripts/ros_msgs/build.py"),
                           "--no-install", "--wheel-dir", str(dest),
                           "--build-dir", str(ctx / "rosmsgs-build")]]
+
+
+@pytest.mark.parametrize("versions", [{"ros_rclpy": "7.0"}, {}])
+def test_a_python_whose_ros_is_not_the_images_builds_in_the_venv(
+        tmp_path: Path, versions: dict[str, str]) -> None:
+    """Message wheels built against another ROS version than the image's may not load
+    there (generated C against other headers): the build venv, made from the image's
+    wheelhouses, always matches."""
+    run, ctx, said = FakeRunner(), context(tmp_path), []
+    assert rosmsgs.build_ros_msg_wheels(REPO, ctx / "wheels" / "rosmsgs", ROS_REQS, run,
+                                        said.append, host(ros_extra=True, versions=versions))
+    venv = ctx / "rosmsgs-venv"
+    assert [c[1:3] for c in run.calls[:2]] == [["-m", "venv"], ["-m", "pip"]]
+    assert run.calls[2][0] == str(venv / "bin/python")
+    here = versions.get("ros_rclpy", "missing")
+    assert (f"ros message wheels: this Python's ROS packages are not the image's "
+            f"(ros_rclpy {here} (image: 7.1)): building in a venv of the image's wheels"
+            ) in said
 
 
 def test_without_the_ros_extra_a_venv_from_the_wheelhouses_builds(tmp_path: Path) -> None:

@@ -8,6 +8,8 @@ JSON line with its own measurements. Scenarios:
   websockets connection. Prints the wall-clock start in ns.
 - ``priority``: a 1 KB topic at 50 Hz (priority 10) and, with ``--cloud``, a 64 KB topic
   at 6.7 Hz (priority 1), both droppable, for ``--seconds``.
+- ``slow``: one droppable topic of ``--size`` bytes every ``--period`` s for ``--seconds``,
+  on a link slower than it (part (f)): what the link spends on messages it abandons.
 - ``cpu``: a 10 Hz 1 MB ``sensor_msgs/msg/PointCloud2`` for ``--seconds``: per message CDR
   -> message (rosbags) -> FlatBuffer (codec) -> link, i.e. the ROS node's per-message path
   without rclpy's own receive. Prints CPU seconds and RSS.
@@ -163,6 +165,30 @@ async def priority(args: argparse.Namespace) -> dict[str, Any]:
             "reconnects": stats["reconnects"], "link_timeouts": stats["link_timeouts"]}
 
 
+async def slow_link(args: argparse.Namespace) -> dict[str, Any]:
+    link = make_link(args.url, "link", args.fragment_bytes)
+    task = asyncio.create_task(link.run())
+    await wait_connected(link)
+    seqs: dict[str, int] = {}
+
+    def offer(topic: str) -> None:
+        seqs[topic] = seqs.get(topic, 0) + 1
+        link.offer(topic, string_frame(topic, args.size, seqs[topic], no_drop=False),
+                   priority=1.0, no_drop=False)
+
+    # The same flow on a topic the consumer does not take first: the link learns its rate.
+    await periodic(args.period, time.monotonic() + args.warmup,
+                   lambda: offer("/bench/warmup_cloud"))
+    await drained(link)
+    await periodic(args.period, time.monotonic() + args.seconds,
+                   lambda: offer("/bench/cloud"))
+    await drained(link)
+    stats = link.stats()
+    await link.stop()
+    await task
+    return {"sent": seqs, "topic": stats["topics"]["/bench/cloud"]}
+
+
 async def peer_load(args: argparse.Namespace) -> dict[str, Any]:
     """Issue 19's load shape: a 256 B frame at 20 Hz (the pose) and a 5,984 B frame at 10 Hz
     (the 720-beam scan), droppable, each stamped when offered; through RobotLink, or
@@ -267,12 +293,13 @@ async def cpu(args: argparse.Namespace) -> dict[str, Any]:
 
 def main() -> None:
     parser = argparse.ArgumentParser()
-    parser.add_argument("scenario", choices=["throughput", "priority", "cpu", "peer"])
+    parser.add_argument("scenario", choices=["throughput", "priority", "cpu", "peer", "slow"])
     parser.add_argument("--url", required=True)
     parser.add_argument("--mode", choices=["link", "baseline", "raw"], default="link")
     parser.add_argument("--frames", type=int, default=1000)
     parser.add_argument("--size", type=int, default=65536)
     parser.add_argument("--seconds", type=float, default=10.0)
+    parser.add_argument("--period", type=float, default=0.2, help="slow: offer interval (s)")
     parser.add_argument("--cloud", action="store_true")
     parser.add_argument("--events", action="store_true", help="add a 10 Hz no_drop topic")
     parser.add_argument("--batch-bytes", type=int, default=1024 * 1024)
@@ -282,7 +309,7 @@ def main() -> None:
     parser.add_argument("--fragment-bytes", type=int, default=SchedulerConfig().max_fragment_bytes)
     args = parser.parse_args()
     run = {"throughput": throughput, "priority": priority, "cpu": cpu,
-           "peer": peer_load}[args.scenario]
+           "peer": peer_load, "slow": slow_link}[args.scenario]
     print(json.dumps(asyncio.run(run(args))), flush=True)
 
 

@@ -3,7 +3,7 @@
 Usage (root, for the network namespaces of part b)::
 
     .venv/bin/python benchmarks/client_link.py [--seconds 10] [--json out.json]
-        [--skip throughput,priority,cpu,dropout,peer] [--peer-rate 12mbit]
+        [--skip throughput,priority,cpu,dropout,peer,slow] [--peer-rate 12mbit]
 
 (a) throughput: unshaped loopback, N x 64 KB no_drop frames from the robot into the
     fleetctl relay, from the first send until the pong that acknowledges the last frame;
@@ -24,6 +24,10 @@ Usage (root, for the network namespaces of part b)::
     over a 12 Mbit tbf link (16 KB bucket, as the e2e router), RobotLink against the same
     frames written at once on a plain websockets connection: what the scheduler adds to
     the latency floor on a link that is far from full.
+(f) a link slower than the topic: a 150 KB droppable message at 5 Hz over a 3 Mbit tbf
+    link (0.4 s of link time each, two periods): clouds received per second, their
+    latency, and the link's bytes per cloud received (what is spent on clouds abandoned
+    mid-send). The bound is the link: 3 Mbit/s / 150 KB = 2.5 clouds/s.
 
 Each side runs in its own process: relay + consumer (``client_bench_peer.py``) and robot
 (``client_bench_sender.py``).
@@ -267,6 +271,38 @@ def bench_peer(auth: Path, seconds: float, rate: str, burst: str) -> dict[str, A
     return out
 
 
+# -- (f) a link slower than the topic ----------------------------------------------------
+
+
+SLOW_SIZE, SLOW_PERIOD_S = 150_000, 0.2
+
+
+def bench_slow(auth: Path, seconds: float, rate: str, rounds: int = 2) -> dict[str, Any]:
+    """One 150 KB droppable topic at 5 Hz over a *rate* tbf link, *rounds* times."""
+    out: dict[str, Any] = {"rate": rate, "rounds": []}
+    with Namespaces(rate, "32kb") as ns:
+        peer = Peer(ns.prefix(ns.server), NS_ADDR_SERVER, auth)
+        try:
+            for _ in range(rounds):
+                peer.cmd("reset")
+                sent = sender(ns.prefix(ns.robot), "slow", "--url", peer.url, "--seconds",
+                              str(seconds), "--size", str(SLOW_SIZE), "--period",
+                              str(SLOW_PERIOD_S), "--warmup", "3")
+                cloud = peer.cmd("report").get("/bench/cloud", {})
+                received, topic = cloud.get("frames", 0), sent["topic"]
+                out["rounds"].append({
+                    "offered": sent["sent"]["/bench/cloud"], "received": received,
+                    "received_per_s": received / seconds,
+                    "p50_ms": pct(cloud.get("latency_ms", []), 50),
+                    "sent_MB": topic["sent_bytes"] / 1e6,
+                    "link_bytes_per_received": topic["sent_bytes"] / max(received, 1),
+                    "superseded": topic["dropped_superseded"],
+                    "replaced": topic["dropped_replaced"]})
+        finally:
+            peer.close()
+    return out
+
+
 # -- (d) dropout ------------------------------------------------------------------------
 
 
@@ -347,6 +383,8 @@ def main() -> None:
     parser.add_argument("--skip", default="")
     parser.add_argument("--peer-rate", default="12mbit",
                         help="tbf rate of part (e), issue 19's fan-out link")
+    parser.add_argument("--slow-rate", default="3mbit",
+                        help="tbf rate of part (f), a link slower than its topic")
     parser.add_argument("--json", type=Path)
     args = parser.parse_args()
     # The relay, senders and network namespaces are cleaned up by context managers and
@@ -413,6 +451,16 @@ def main() -> None:
                     f"{t.rsplit('/', 1)[1]} {row[t]['p50_ms']:5.2f} / {row[t]['p99_ms']:5.2f}"
                     f" (n {row[t]['n']})" for t in PEER_TOPICS))
             print(f"    RobotLink state at the end: {e['link']['link_state']}")
+        if "slow" not in skip:
+            results["slow"] = f = bench_slow(auth, args.seconds, args.slow_rate)
+            print(f"(f) 150 KB droppable @ 5 Hz over {f['rate']} tbf (slower than the "
+                  f"topic); bound: the link's rate / 150 KB")
+            for row in f["rounds"]:
+                print(f"    received {row['received']}/{row['offered']} "
+                      f"({row['received_per_s']:.2f}/s), p50 {row['p50_ms']:.0f} ms, "
+                      f"{row['sent_MB']:.2f} MB sent, {row['link_bytes_per_received']:,.0f} B "
+                      f"per cloud received, superseded {row['superseded']}, replaced "
+                      f"{row['replaced']}")
     if args.json:
         args.json.write_text(json.dumps(results, indent=2))
 

@@ -18,9 +18,14 @@ clock. The transport feeds it messages (:meth:`Scheduler.offer`), pulls frames t
   A topic's "last send" is its last fragment, which makes fragment streams of equal score
   interleave instead of one topic hogging the link.
 - Supersede: newer data for a droppable topic drops the remaining fragments of an older
-  message still being sent. To rule out livelock on a link slower than the topic
-  (every message superseded, none delivered), at most ``max_consecutive_supersedes``
-  messages of a topic are superseded in a row; the next one runs to completion.
+  message still being sent, when what is left of the older one is more than the newer
+  one: sending the newer whole then brings fresh data sooner than finishing the older
+  would bring any. Otherwise the older one completes (the newer waits as the topic's
+  latest): superseding a message of the same size throws away the link time already
+  spent on it, and on a link slower than the topic every other message was abandoned,
+  mostly sent (a 150 KB cloud at 5 Hz delivered 3 of 5 a second on a link that carried
+  5). To rule out livelock, at most ``max_consecutive_supersedes`` messages of a topic
+  are superseded in a row; the next one runs to completion.
 - Keyframes (video, :mod:`fleetctl.client.ros.videotopic`): a message offered with
   ``keyframe=True`` is what later frames of its topic depend on. A keyframe replaces or
   supersedes any older message of its topic, but a delta frame never replaces a queued
@@ -243,6 +248,16 @@ class _Message:
     @property
     def started(self) -> bool:
         return self.fragments is not None and self.next_index > 0
+
+
+def _unsent_bytes(msg: _Message) -> float:
+    """What is left to send of a message being sent, in bytes of its frame: the share of
+    its fragments' bytes not sent yet (headers and all, so that a message of the same size
+    never has more left than a new one, however its fragments were cut)."""
+    assert msg.fragments is not None
+    total = sum(len(fragment) for fragment in msg.fragments)
+    unsent = sum(len(fragment) for fragment in msg.fragments[msg.next_index:])
+    return len(msg.frame) * unsent / total
 
 
 @dataclass(eq=False)
@@ -472,7 +487,8 @@ class Scheduler:
             t.stats.dropped_behind_keyframe += 1  # the keyframe it would replace stays
             return
         if (t.current is not None and t.supersede_streak < self.config.max_consecutive_supersedes
-                and (msg.keyframe or not t.current.keyframe)):
+                and (msg.keyframe or not t.current.keyframe)
+                and _unsent_bytes(t.current) > len(msg.frame)):
             t.current = None
             t.supersede_streak += 1
             t.stats.dropped_superseded += 1

@@ -27,8 +27,9 @@ clock. The transport feeds it messages (:meth:`Scheduler.offer`), pulls frames t
   5). To rule out livelock, at most ``max_consecutive_supersedes`` messages of a topic
   are superseded in a row; the next one runs to completion.
 - Keyframes (video, :mod:`fleetctl.client.ros.videotopic`): a message offered with
-  ``keyframe=True`` is what later frames of its topic depend on. A keyframe replaces or
-  supersedes any older message of its topic, but a delta frame never replaces a queued
+  ``keyframe=True`` is what later frames of its topic depend on. A keyframe replaces any
+  queued message of its topic and supersedes one being sent by the rule above, but a
+  delta frame never replaces a queued
   keyframe nor supersedes one being sent: the delta is dropped instead (counted in
   ``dropped_behind_keyframe``; the video hook sees the drop and makes its next frame a
   keyframe).

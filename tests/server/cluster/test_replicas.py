@@ -188,12 +188,19 @@ async def test_an_auth_reload_moves_the_interest(replicas: tuple[RelayServer, ..
         await wait_for(lambda: fanout(b).subscribed == {"fleetctl.husky2.>"})
         await wait_for(lambda: board.known() == {"relay-b": {"fleetctl.husky2.>"}})
         await until_crossing(husky2, viewer, "/husky2/scan")
-        # ... and back: husky2's frames stay home again.
+        # A probe sent after the one that crossed may still be on its way into A; A
+        # answers husky2's ping only after taking every frame before it.
+        await asyncio.wait_for(await husky2.ping(), 5.0)
+        # ... and back: husky2's frames stay home again (A's view trusted: in doubt, it
+        # would publish everything).
         assert b.core.reload_auth(auth_map(AUTH)) == (1, 0)
-        await wait_for(lambda: board.known() == {"relay-b": {"fleetctl.husky1.>"}})
-        unwanted = fanout(a).unwanted
+        await wait_for(lambda: board.trusted()
+                       and board.known() == {"relay-b": {"fleetctl.husky1.>"}})
+        unwanted, published = fanout(a).unwanted, fanout(a).published
         await husky2.send(string_frame("/husky2/scan", "not wanted"))
-        await wait_for(lambda: fanout(a).unwanted == unwanted + 1)
+        await asyncio.wait_for(await husky2.ping(), 5.0)
+        assert (fanout(a).unwanted - unwanted, fanout(a).published - published) == (1, 0), (
+            f"trusted {board.trusted()}, known {board.known()}, {board.counters}")
 
 
 def fleet_subjects(node: NatsServer) -> list[str]:

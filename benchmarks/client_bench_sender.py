@@ -8,8 +8,9 @@ JSON line with its own measurements. Scenarios:
   websockets connection. Prints the wall-clock start in ns.
 - ``priority``: a 1 KB topic at 50 Hz (priority 10) and, with ``--cloud``, a 64 KB topic
   at 6.7 Hz (priority 1), both droppable, for ``--seconds``.
-- ``slow``: one droppable topic of ``--size`` bytes every ``--period`` s for ``--seconds``,
-  on a link slower than it (part (f)): what the link spends on messages it abandons.
+- ``slow``: one droppable topic of ``--size`` bytes (``--payload``) every ``--period`` s
+  for ``--seconds``, on a link slower than it (part (f)): what the link spends on messages
+  it abandons, and with ``--count-dev`` the bytes the interface sent for them.
 - ``cpu``: a 10 Hz 1 MB ``sensor_msgs/msg/PointCloud2`` for ``--seconds``: per message CDR
   -> message (rosbags) -> FlatBuffer (codec) -> link, i.e. the ROS node's per-message path
   without rclpy's own receive. Prints CPU seconds and RSS.
@@ -23,6 +24,7 @@ import dataclasses
 import json
 import resource
 import time
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -31,7 +33,9 @@ from websockets.asyncio.client import connect
 from fleetctl.client.config import parse_client_config
 from fleetctl.client.linktuning import LinkTuning
 from fleetctl.client.scheduler import SchedulerConfig
+from fleetctl.client.slowdeflate import SlowDeflateSettings
 from fleetctl.client.transport import RobotLink, scheduler_config_for
+from fleetctl.wire import samples
 from fleetctl.wire.codec import default_codec
 
 ROBOT_TOKEN = "bench-robot-token"
@@ -45,7 +49,7 @@ def string_frame(topic: str, size: int, seq: int, *, no_drop: bool) -> bytes:
 
 
 def make_link(url: str, mode: str, fragment_bytes: int, batch_bytes: int = 1024 * 1024,
-              write_limit: int = 1024 * 1024) -> RobotLink:
+              write_limit: int = 1024 * 1024, tuning: LinkTuning | None = None) -> RobotLink:
     config = parse_client_config({
         "server_url": url, "robot_name": "bench",
         "limits": {"max_fragment_bytes": fragment_bytes}})
@@ -53,9 +57,9 @@ def make_link(url: str, mode: str, fragment_bytes: int, batch_bytes: int = 1024 
     sched = scheduler_config_for(config)
     if mode == "baseline":  # Robofleet: n_T = 1, whole messages
         sched = dataclasses.replace(sched, fixed_window_messages=1, fragments=False)
-    return RobotLink(config, on_frame=lambda f: None, scheduler_config=sched,
-                     tuning=LinkTuning(send_batch_bytes=batch_bytes,
-                                       write_limit_bytes=write_limit))
+    tuning = dataclasses.replace(tuning or LinkTuning(), send_batch_bytes=batch_bytes,
+                                 write_limit_bytes=write_limit)
+    return RobotLink(config, on_frame=lambda f: None, scheduler_config=sched, tuning=tuning)
 
 
 async def wait_connected(link: RobotLink) -> None:
@@ -162,31 +166,67 @@ async def priority(args: argparse.Namespace) -> dict[str, Any]:
     return {"sent": seqs, "topics": stats["topics"], "window_bytes": stats["window_bytes"],
             "min_rtt_ms": stats["min_rtt_ms"], "fragment_bytes": stats["fragment_bytes"],
             "delivery_rate_Bps": stats["delivery_rate_Bps"], "windows": windows,
-            "reconnects": stats["reconnects"], "link_timeouts": stats["link_timeouts"]}
+            "reconnects": stats["reconnects"], "link_timeouts": stats["link_timeouts"],
+            "uplink_deflate": stats["uplink_deflate"]}
+
+
+def payload_messages(kind: str, size: int, count: int = 8) -> tuple[str, list[Any]]:
+    """*count* messages of about *size* bytes and their type: ``string`` (one letter
+    repeated: deflate takes it to ~1 %), ``image`` (a CompressedImage of random bytes, as
+    incompressible as a JPEG or a video frame) or ``cloud`` (a PointCloud2 of normally
+    distributed float32 points: deflate keeps ~90 %)."""
+    registry = default_codec().registry
+    if kind == "string":
+        cls = registry.get("std_msgs/msg/String").cls
+        return "std_msgs/msg/String", [cls("x" * size)] * count
+    if kind == "image":
+        return "sensor_msgs/msg/CompressedImage", [
+            samples.compressed_image(registry, size, seed=i) for i in range(count)]
+    columns = max(1, size // (16 * 16))
+    return "sensor_msgs/msg/PointCloud2", [
+        samples.point_cloud(registry, 16, columns, seed=i) for i in range(count)]
+
+
+def tx_bytes(dev: str) -> int:
+    """Bytes the interface *dev* of this network namespace has sent (IP headers and all)."""
+    return int(Path(f"/sys/class/net/{dev}/statistics/tx_bytes").read_text())
 
 
 async def slow_link(args: argparse.Namespace) -> dict[str, Any]:
-    link = make_link(args.url, "link", args.fragment_bytes)
+    tuning = None if args.slow_deflate else LinkTuning(
+        slow_deflate=SlowDeflateSettings(on_below_Bps=0.0))
+    link = make_link(args.url, "link", args.fragment_bytes, tuning=tuning)
     task = asyncio.create_task(link.run())
     await wait_connected(link)
     seqs: dict[str, int] = {}
+    type_name, messages = payload_messages(args.payload, args.size)
+    codec = default_codec()
+    frame_bytes: list[int] = []
 
     def offer(topic: str) -> None:
         seqs[topic] = seqs.get(topic, 0) + 1
-        link.offer(topic, string_frame(topic, args.size, seqs[topic], no_drop=False),
-                   priority=1.0, no_drop=False)
+        frame = codec.encode(messages[seqs[topic] % len(messages)], type_name, topic,
+                             seq=seqs[topic], publish_time_ns=time.time_ns())
+        frame_bytes.append(len(frame))
+        link.offer(topic, frame, priority=1.0, no_drop=False)
 
     # The same flow on a topic the consumer does not take first: the link learns its rate.
     await periodic(args.period, time.monotonic() + args.warmup,
                    lambda: offer("/bench/warmup_cloud"))
     await drained(link)
+    wire_before = tx_bytes(args.count_dev) if args.count_dev else 0
+    cpu_before = time.process_time()
     await periodic(args.period, time.monotonic() + args.seconds,
                    lambda: offer("/bench/cloud"))
     await drained(link)
+    cpu_s = time.process_time() - cpu_before
+    wire = tx_bytes(args.count_dev) - wire_before if args.count_dev else None
     stats = link.stats()
     await link.stop()
     await task
-    return {"sent": seqs, "topic": stats["topics"]["/bench/cloud"]}
+    return {"sent": seqs, "topic": stats["topics"]["/bench/cloud"], "wire_bytes": wire,
+            "frame_bytes": frame_bytes[-1], "cpu_s": cpu_s,
+            "uplink_deflate": stats["uplink_deflate"]}
 
 
 async def peer_load(args: argparse.Namespace) -> dict[str, Any]:
@@ -300,6 +340,12 @@ def main() -> None:
     parser.add_argument("--size", type=int, default=65536)
     parser.add_argument("--seconds", type=float, default=10.0)
     parser.add_argument("--period", type=float, default=0.2, help="slow: offer interval (s)")
+    parser.add_argument("--payload", choices=["string", "image", "cloud"], default="string",
+                        help="slow: what the large message holds")
+    parser.add_argument("--count-dev", default="",
+                        help="slow: the interface whose sent bytes are counted")
+    parser.add_argument("--no-slow-deflate", dest="slow_deflate", action="store_false",
+                        help="slow: never deflate fragments (the behaviour before it)")
     parser.add_argument("--cloud", action="store_true")
     parser.add_argument("--events", action="store_true", help="add a 10 Hz no_drop topic")
     parser.add_argument("--batch-bytes", type=int, default=1024 * 1024)

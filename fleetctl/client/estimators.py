@@ -77,6 +77,11 @@ class BusyRate:
         self._samples.clear()
         self._bytes, self._busy_s = 0, 0.0
 
+    def scale(self, factor: float) -> None:
+        """Count every sample's bytes *factor* times (the unit of a byte changed)."""
+        self._samples = deque((t, int(b * factor), d) for t, b, d in self._samples)
+        self._bytes = sum(b for _, b, _ in self._samples)
+
 
 class WindowedExtremum:
     """Running min or max of samples over a sliding time window, O(1) amortized.
@@ -111,6 +116,10 @@ class WindowedExtremum:
     def clear(self) -> None:
         """Forget all samples."""
         self._samples.clear()
+
+    def scale(self, factor: float) -> None:
+        """Multiply every sample by *factor* (> 0: the order of the samples stays)."""
+        self._samples = deque((t, v * factor) for t, v in self._samples)
 
     def _expire(self, now_s: float) -> None:
         while len(self._samples) > 1 and self._samples[0][0] < now_s - self._window_s:

@@ -10,6 +10,7 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 from fleetctl.client.dialer import DialSettings
+from fleetctl.client.slowdeflate import SlowDeflateSettings
 from fleetctl.linkdeflate import DEFAULT_MAX_MESSAGE_BYTES
 
 
@@ -65,6 +66,8 @@ class LinkTuning:
         deflate_max_message_bytes: Messages up to this size are sent with
             permessage-deflate when the server accepts it (:mod:`fleetctl.linkdeflate`);
             0 does not offer the extension (today's frames on the wire).
+        slow_deflate: The link rates (on the wire) below which the robot deflates every
+            message, fragments of large ones too (:mod:`fleetctl.client.slowdeflate`).
         publish_to_offer_s: For a message offered without its publish time (a
             middleware that gave no source timestamp, or a frame the node made itself),
             how long before its offer it counts as published, seconds: the
@@ -98,5 +101,6 @@ class LinkTuning:
     dead_ack_rtts: float = 4.0
     stale_ack_gaps: float = 2.0
     deflate_max_message_bytes: int = DEFAULT_MAX_MESSAGE_BYTES
+    slow_deflate: SlowDeflateSettings = field(default_factory=SlowDeflateSettings)
     publish_to_offer_s: float = 0.002
     max_publish_age_s: float = 1.0

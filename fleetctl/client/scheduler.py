@@ -741,6 +741,30 @@ class Scheduler:
         self._update_limits()
         self._delivered_s = now_s
 
+    def rescale_rates(self, factor: float) -> None:
+        """The bytes the link's rates were measured in now count *factor* times (0 <
+        factor <= 1): the robot stopped deflating fragments
+        (:mod:`fleetctl.client.slowdeflate`), so a byte it sends takes 1 / factor times
+        the link time it took. Without this the fragments and the window would keep the
+        compressed sizes for the rate hold (4 s), raw: an urgent message behind a raw
+        64 KB fragment on a 6 Mbit/s link."""
+        if not 0 < factor < 1:
+            return
+        self._busy_rate.scale(factor)
+        self._link_rate.scale(factor)
+        self._max_rate.scale(factor)
+        self._update_limits()
+
+    @property
+    def sent_bytes_total(self) -> int:
+        """Frame bytes taken for sending since this scheduler began (never reset)."""
+        return self._sent_bytes_total
+
+    @property
+    def link_rate_Bps(self) -> float:
+        """The link rate the fragments are sized by (frame bytes/s; 0 before samples)."""
+        return self._link_rate_Bps
+
     def min_rtt_s(self, now_s: float | None = None) -> float | None:
         """Minimum RTT over the filter window in seconds, None before the first sample."""
         value = self._min_rtt.value(now_s, -1.0)

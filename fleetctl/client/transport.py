@@ -80,11 +80,12 @@ from fleetctl.client.memory import tune_malloc
 from fleetctl.client.outagelog import OutageLog, Say, sampled
 from fleetctl.client.receiver import Receiver
 from fleetctl.client.scheduler import Scheduler, SchedulerConfig, TopicFeedback
+from fleetctl.client.slowdeflate import SlowLinkDeflate
 from fleetctl.client.standby import STANDBY_HEADER, Standby, keep_mapping_alive
 from fleetctl.client.tcppath import AckStall, TcpInfo, read_tcp_info, reset_transport
 from fleetctl.client.wakeup import Wakeup
 from fleetctl.frame_sink import FrameSink
-from fleetctl.linkdeflate import RobotDeflateFactory
+from fleetctl.linkdeflate import RobotDeflateFactory, SmallMessageDeflate
 from fleetctl.wire.control import encode_subscription
 
 logger = logging.getLogger("fleetctl.client.link")
@@ -278,6 +279,13 @@ class RobotLink:
         self._stopped = asyncio.Event()
         self._running = False
         self._ws: LinkConnection | None = None
+        # The uplink deflate of the current connection (None: not negotiated), and what
+        # it and the scheduler had counted at the last acknowledgement.
+        self._deflate: SmallMessageDeflate | None = None
+        self._slow_deflate = SlowLinkDeflate(tuning.slow_deflate)
+        self._counted_frame_bytes = 0
+        self._counted_saved_bytes = 0
+        self._deflating_all = False
         self._pings: dict[int, float] = {}  # token -> sent time (s), this connection only
         self._last_send_s = 0.0
         tune = self.tuning
@@ -566,6 +574,10 @@ class RobotLink:
         snap["subscribed"] = sorted(self._subscribed)
         snap["received"] = self._receiver.stats()
         snap["standby"] = None if self._standby is None else self._standby.stats()
+        slow = self._slow_deflate
+        snap["uplink_deflate"] = {
+            "negotiated": self._deflate is not None, "all_messages": slow.active,
+            "switches": slow.switches, "wire_share": round(slow.wire_share(), 4)}
         return snap
 
     @property
@@ -925,6 +937,7 @@ class RobotLink:
     async def _session(self, ws: LinkConnection) -> _Ended:
         """Run one connection until it fails or stop()."""
         self._ws = ws
+        self._use_deflate(ws)
         self._pings.clear()
         self._subscribed.clear()
         self._identities = []
@@ -1174,6 +1187,33 @@ class RobotLink:
             stall, sock = watch
             stall.sent(self._last_send_s, read_tcp_info(sock))
 
+    def _use_deflate(self, ws: LinkConnection) -> None:
+        """Take *ws*'s uplink deflate (if the relay accepted it), set as the link is."""
+        found = [ext for ext in ws.protocol.extensions
+                 if isinstance(ext, SmallMessageDeflate)]
+        self._deflate = found[0] if found else None
+        self._counted_frame_bytes = self._scheduler.sent_bytes_total
+        self._counted_saved_bytes = 0
+        if self._deflate is not None:
+            self._deflate.deflate_all = self._slow_deflate.active
+
+    def _decide_deflate(self, deflate: SmallMessageDeflate) -> None:
+        """On an acknowledgement (the scheduler's rate may have moved): deflate every
+        message or only small ones, by the link's rate on the wire
+        (:mod:`fleetctl.client.slowdeflate`)."""
+        sent, saved = self._scheduler.sent_bytes_total, deflate.saved_bytes
+        self._slow_deflate.observe(sent - self._counted_frame_bytes,
+                                   saved - self._counted_saved_bytes)
+        self._counted_frame_bytes, self._counted_saved_bytes = sent, saved
+        share = self._slow_deflate.wire_share()
+        deflate.deflate_all = self._slow_deflate.decide(self._scheduler.link_rate_Bps)
+        if deflate.deflate_all != self._deflating_all:
+            self._deflating_all = deflate.deflate_all
+            if not deflate.deflate_all:
+                # The rates were measured in deflated bytes: what a byte sent raw
+                # now costs (small messages stay deflated, so this errs small).
+                self._scheduler.rescale_rates(share)
+
     def _on_pong(self, token: int, fut: asyncio.Future[float]) -> None:
         if self._pings.pop(token, None) is None or fut.cancelled() or fut.exception():
             return
@@ -1193,6 +1233,8 @@ class RobotLink:
             if self._standby is not None:  # the path works: keep a standby beside it
                 self._standby.main_up(self._standby_offered)
         self._scheduler.on_ack(token, self._clock())
+        if self._deflate is not None:
+            self._decide_deflate(self._deflate)
         # A pong matters to the send loop only when something waits for the window it
         # opened; otherwise waking it costs a loop round per message for nothing.
         if self._scheduler.has_sendable():

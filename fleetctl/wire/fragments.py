@@ -34,6 +34,8 @@ _MAX_TRACKED_TOPICS = 4096
 # Fragment's scalar fields: (vtable slot, struct format); slot 0 is __metadata.
 _HEADER_FIELDS = ((1, struct.Struct("<Q")), (2, struct.Struct("<I")), (3, struct.Struct("<I")),
                   (4, struct.Struct("<I")))
+_PAYLOAD_SLOT = 5
+_U32 = struct.Struct("<I")
 
 
 @dataclass(frozen=True, slots=True)
@@ -87,6 +89,34 @@ def read_fragment_header(frame: bytes | memoryview, root: int) -> FragmentHeader
                             f"byte {pos}")
         values.append(fmt.unpack_from(frame, pos)[0] if pos else 0)
     return FragmentHeader(*values)
+
+
+def fragment_payload_span(frame: bytes | memoryview, root: int) -> tuple[int, int]:
+    """Where the payload bytes of the Fragment root table at *root* lie: ``(start, end)``
+    in *frame* (``(0, 0)`` for a fragment without payload).
+
+    For the robot's uplink deflate, which compresses a fragment's metadata and its payload
+    as separate deflate blocks (:mod:`fleetctl.linkdeflate`).
+
+    Raises:
+        WireError: The table, the vector or its bytes lie outside the frame.
+    """
+    n = len(frame)
+    vt, vt_bytes, t_bytes = table_fields(frame, root, n)
+    pos = field_pos(frame, root, vt, vt_bytes, _PAYLOAD_SLOT)
+    if not pos:
+        return 0, 0
+    if pos + 4 > root + t_bytes:
+        raise WireError(f"malformed frame: Fragment.payload outside its table at byte {pos}")
+    vec = pos + _U32.unpack_from(frame, pos)[0]
+    if vec + 4 > n:
+        raise WireError(f"malformed frame: Fragment.payload vector at byte {vec} past the end")
+    start = vec + 4
+    end = start + _U32.unpack_from(frame, vec)[0]
+    if end > n:
+        raise WireError(f"malformed frame: Fragment.payload of {end - start} bytes at byte "
+                        f"{start} past the end ({n})")
+    return start, end
 
 
 def fragment_overhead(codec: Codec, topic: str, *, no_drop: bool, message_id: int,

@@ -283,6 +283,27 @@ def test_fragment_size_follows_link_rate() -> None:
     assert slow.fragment_bytes() == 1024  # floored
 
 
+def test_rates_rescaled_when_deflate_stops_shrink_fragments_and_window() -> None:
+    """Rates measured while every fragment was deflated (a compressible cloud looked 20x
+    faster in frame bytes) count in raw bytes again: fragments and window shrink at once,
+    not after the rate hold (fleetctl.client.slowdeflate)."""
+    s = make(max_fragment_bytes=65536, min_fragment_bytes=1024, fragment_time_s=0.003,
+             target_queue_delay_s=0.004)
+    s._min_rtt.add(0.0, 0.001)
+    s._busy_rate.add(0.0, 100_000, 0.01)
+    s._link_rate.add(0.0, 15_000_000.0)  # 750 kB/s on the wire, deflated to 1/20
+    s._update_limits()
+    assert s.fragment_bytes() == 32768
+    s.rescale_rates(1 / 20)
+    assert s.link_rate_Bps == pytest.approx(750_000.0)
+    assert s.fragment_bytes() == 2048
+    assert s.window_bytes() <= 750_000 * 0.005 + 1
+    assert s._busy_rate.rate() == pytest.approx(500_000.0)
+    for factor in (0.0, 1.0, 3.0):  # nothing to rescale, or not a shrink: unchanged
+        s.rescale_rates(factor)
+        assert s.link_rate_Bps == pytest.approx(750_000.0)
+
+
 def test_frame_within_the_link_time_budget_goes_whole() -> None:
     # 3 ms at 400 kB/s is 1200 B: fragments of 1024 B, but a 1100 B frame (just over
     # the power of two, like a cloud of 1 MiB of points) is not split into 1024 + 76.

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import asyncio
+import dataclasses
 import logging
 import socket
 from pathlib import Path
@@ -12,6 +13,7 @@ import pytest
 
 from fleetctl.client.linktuning import LinkTuning
 from fleetctl.client.scheduler import SchedulerConfig
+from fleetctl.client.slowdeflate import SlowDeflateSettings
 from fleetctl.client.transport import LinkConnection, RobotLink, backoff_delay_s
 from fleetctl.server.app import RelayServer
 from fleetctl.wire.fragments import split
@@ -54,6 +56,34 @@ async def test_no_drop_and_fragmented_messages_arrive_in_order(
         assert stats["topics"]["/r1/big"]["sent_frames"] > 70  # 300 kB / 4 kB fragments
         assert stats["identities"] == ["r1"]
         assert stats["min_rtt_ms"] is not None
+
+
+async def test_on_a_slow_link_fragments_of_large_messages_are_deflated_too(
+    server: RelayServer, tmp_path: Path
+) -> None:
+    """The slow-link rule (fleetctl.client.slowdeflate) forced on, every rate counting as
+    slow: once the link has a rate, a large message goes as deflated fragments through the
+    real relay and arrives whole and unchanged."""
+    cfg = robot_config(server.url, tmp_path, limits={"max_fragment_bytes": 4096})
+    always = SlowDeflateSettings(on_below_Bps=1e15, off_above_Bps=1e15)
+    tuning = dataclasses.replace(FAST, slow_deflate=always)
+    big = "x" * 300_000
+    async with Consumer.open(server.url, "/r1/.*") as consumer, running(
+        RobotLink(cfg, on_frame=lambda f: None, tuning=tuning)
+    ) as link:
+        for i in range(20):  # the link learns a rate (64 KB: more than a small message)
+            link.offer("/r1/warm", string_frame("/r1/warm", f"{i}" * 64_000, seq=i + 1),
+                       priority=1.0, no_drop=True)
+        await wait_until(lambda: link.stats()["uplink_deflate"]["all_messages"])
+        link.offer("/r1/big", string_frame("/r1/big", big), priority=1.0, no_drop=False)
+        await wait_until(lambda: consumer.texts("/r1/big") == [big])
+        await wait_until(lambda: link.stats()["in_flight_bytes"] == 0)
+        stats = link.stats()
+        assert stats["topics"]["/r1/big"]["sent_frames"] > 70  # 4 kB fragments
+        deflate = stats["uplink_deflate"]
+        assert deflate["negotiated"] and deflate["switches"] == 1
+        # 300 kB of one letter: the fragments went deflated (raw, the share stays ~1).
+        assert deflate["wire_share"] < 0.3
 
 
 async def test_robot_receives_commands_reassembled_and_subscribes(

@@ -17,6 +17,7 @@ from fleetctl.wire.fragments import (
     FRAGMENT_TYPE,
     FragmentHeader,
     Reassembler,
+    fragment_payload_span,
     read_fragment_header,
     read_fragment_id,
     split,
@@ -192,6 +193,8 @@ def test_fragment_header_readers_agree_with_the_decoder(codec: Codec, message_id
         assert read_fragment_header(part, root) == FragmentHeader(
             msg.message_id, msg.index, msg.count, msg.total_bytes)
         assert read_fragment_id(part, root) == message_id
+        start, end = fragment_payload_span(part, root)
+        assert part[start:end] == msg.payload.tobytes()
 
 
 @settings(max_examples=400, deadline=None)
@@ -203,6 +206,8 @@ def test_fragment_header_readers_raise_only_wire_error(data: st.DataObject) -> N
     for _ in range(data.draw(st.integers(1, 6))):
         frame[data.draw(st.integers(0, len(frame) - 1))] = data.draw(st.integers(0, 255))
     root = data.draw(st.integers(-4, len(frame) + 4))
-    for reader in (read_fragment_header, read_fragment_id):
+    for reader in (read_fragment_header, read_fragment_id, fragment_payload_span):
         with contextlib.suppress(WireError):
-            reader(bytes(frame), root)
+            result = reader(bytes(frame), root)
+            if reader is fragment_payload_span:  # a span it returns lies in the frame
+                assert 0 <= result[0] <= result[1] <= len(frame)

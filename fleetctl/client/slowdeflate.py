@@ -1,0 +1,107 @@
+"""When the robot deflates every message on its uplink, fragments included: on a slow link.
+
+Why: on a link of a few Mbit/s the scheduler cuts large messages (clouds, camera images,
+video key frames) into ~1 KiB fragments (3 ms of link time each, so that an urgent message
+waits behind at most one), and every fragment repeats its metadata: the Fragment table,
+the topic and type strings, the vtables, ~170 bytes, so a camera on LTE spent ~15 % of its
+link on headers. permessage-deflate with context takeover turns that repetition into a
+back-reference; the robot's CPU is no objection there, because deflating costs per byte
+and the link lets few bytes through (zlib level 1 on incompressible 1 KiB fragments:
+~60 us each on a 2-core CI host, ~3 % of its core at 4 Mbit/s; docs/wire.md).
+
+What decides must not move with the decision. The scheduler measures the link in frame
+bytes (what it sends before compression), so deflating a compressible cloud makes the
+link look faster, its fragments grow, and a rule on the fragment size or on that rate
+would switch deflate off again: the swing that once put an urgent message behind a raw
+64 KB frame (docs/wire.md, "Uplink deflate"). This rule uses the rate *on the wire*: the
+frame-byte rate times the share of frame bytes that reach the wire (what
+:class:`fleetctl.linkdeflate.SmallMessageDeflate` saved), which is the link's own speed
+whatever is compressed. Deflate goes on below ``on_below_Bps`` and off above
+``off_above_Bps`` (a band, so that the estimate's noise does not flip it).
+
+It goes off only while deflate keeps at least :data:`TRUSTED_WIRE_SHARE` of the bytes. On
+data it shrinks more (a cloud of zeros, one repeated letter), each message is a few
+hundred bytes on the wire, acknowledged within a round trip, so the rate the scheduler
+measures is the round trip's, not the link's: through a 4 Mbit/s token bucket a 64 KB
+message of one letter, 640 bytes deflated, was acknowledged in ~1.5 ms and read as
+0.86 MB/s on the wire; deflate went off and on 9-11 times in 10 s (an urgent message's
+max 19 ms against 5-9). Such data is also what zlib deflates fastest (~10x faster than
+random bytes), so staying on costs little.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+# 5 Mbit/s: fragments there are 1 KiB (3 ms of link time is under 2 KiB), where their
+# metadata is ~15 % of the link; above, they are 2 KiB or more and it is 8 % or less,
+# for a CPU cost that grows with the rate.
+DEFAULT_ON_BELOW_BPS = 625_000.0
+DEFAULT_OFF_ABOVE_BPS = 937_500.0  # 7.5 Mbit/s
+# The wire share is averaged over about this many recent frame bytes (a few hundred ms
+# of a slow link), weighted by bytes.
+SHARE_MEMORY_BYTES = 256 * 1024
+# Below this share of frame bytes reaching the wire, the measured rate is not the link's
+# (see above): deflate stays on.
+TRUSTED_WIRE_SHARE = 0.5
+
+
+@dataclass(frozen=True)
+class SlowDeflateSettings:
+    """The band of wire rates (bytes/s) in which the robot deflates every message."""
+
+    on_below_Bps: float = DEFAULT_ON_BELOW_BPS
+    off_above_Bps: float = DEFAULT_OFF_ABOVE_BPS
+
+    def __post_init__(self) -> None:
+        if not 0 <= self.on_below_Bps <= self.off_above_Bps:
+            raise ValueError("the slow-link deflate band needs 0 <= on_below_Bps <= "
+                             f"off_above_Bps (got {self.on_below_Bps}, {self.off_above_Bps})")
+
+
+class SlowLinkDeflate:
+    """Decides, from what the link sent and what deflate saved, whether to deflate all.
+
+    Args:
+        settings: The band; ``on_below_Bps`` 0 never turns it on.
+    """
+
+    def __init__(self, settings: SlowDeflateSettings | None = None) -> None:
+        self.settings = settings or SlowDeflateSettings()
+        self.active = False
+        self.switches = 0  # times it went on or off
+        self._frame_weight = 0.0  # decayed frame bytes
+        self._wire_weight = 0.0  # decayed wire bytes of the same frames
+
+    def wire_share(self) -> float:
+        """Wire bytes per frame byte over the recent traffic (1.0 before any)."""
+        if self._frame_weight <= 0:
+            return 1.0
+        return self._wire_weight / self._frame_weight
+
+    def observe(self, frame_bytes: int, saved_bytes: int) -> None:
+        """The link sent *frame_bytes* since the last call, of which deflate kept
+        *saved_bytes* off the wire (negative: it added bytes)."""
+        if frame_bytes <= 0:
+            return
+        wire_bytes = min(max(frame_bytes - saved_bytes, 0), 2 * frame_bytes)
+        decay = math.exp(-frame_bytes / SHARE_MEMORY_BYTES)
+        self._frame_weight = self._frame_weight * decay + frame_bytes
+        self._wire_weight = self._wire_weight * decay + wire_bytes
+
+    def decide(self, frame_rate_Bps: float) -> bool:
+        """Whether to deflate everything, given the link's rate in frame bytes (the
+        scheduler's, 0 while it has none: the state then stays as it is)."""
+        if frame_rate_Bps <= 0:
+            return self.active
+        share = self.wire_share()
+        wire_rate = frame_rate_Bps * share
+        if (self.active and wire_rate > self.settings.off_above_Bps
+                and share >= TRUSTED_WIRE_SHARE):
+            self.active = False
+            self.switches += 1
+        elif not self.active and wire_rate < self.settings.on_below_Bps:
+            self.active = True
+            self.switches += 1
+        return self.active

@@ -25,9 +25,11 @@ Usage (root, for the network namespaces of part b)::
     frames written at once on a plain websockets connection: what the scheduler adds to
     the latency floor on a link that is far from full.
 (f) a link slower than the topic: a 150 KB droppable message at 5 Hz over a 3 Mbit tbf
-    link (0.4 s of link time each, two periods): clouds received per second, their
-    latency, and the link's bytes per cloud received (what is spent on clouds abandoned
-    mid-send). The bound is the link: 3 Mbit/s / 150 KB = 2.5 clouds/s.
+    link (0.4 s of link time each, two periods): messages received per second, their
+    latency, the bytes the robot's interface sent per message (what fragment headers
+    and messages abandoned mid-send cost) and the robot's CPU; an image of random bytes
+    and a cloud of float points, each with the slow-link deflate of every message and
+    without it, alternating. The bound is the link: 3 Mbit/s / 150 KB = 2.5 messages/s.
 
 Each side runs in its own process: relay + consumer (``client_bench_peer.py``) and robot
 (``client_bench_sender.py``).

@@ -218,6 +218,9 @@ class TopicFeedback:
         sent_bytes: Bytes of the topic sent so far.
         busy: A message of the topic waits, or is partly sent.
         higher_priority_sent_bytes: Bytes sent so far by topics of a higher priority.
+        wire_share: Bytes on the wire per byte sent, lately (the rate and the counts are
+            in frame bytes, before the uplink deflate: 1.0 here, the link fills it in,
+            :mod:`fleetctl.client.slowdeflate`).
     """
 
     link_rate_Bps: float
@@ -225,6 +228,7 @@ class TopicFeedback:
     sent_bytes: int
     busy: bool
     higher_priority_sent_bytes: int
+    wire_share: float = 1.0
 
 
 class _Message:

@@ -478,8 +478,11 @@ class RobotLink:
     def feedback(self, remote_topic: str) -> LinkFeedback:
         """The link rate, the connection count and *remote_topic*'s counters (any thread:
         see :meth:`Scheduler.topic_feedback`)."""
-        return LinkFeedback(self._counters["connects"],
-                            self._scheduler.topic_feedback(remote_topic))
+        topic = self._scheduler.topic_feedback(remote_topic)
+        share = self._slow_deflate.wire_share()
+        if share != 1.0:
+            topic = dataclasses.replace(topic, wire_share=share)
+        return LinkFeedback(self._counters["connects"], topic)
 
     async def run(self) -> None:
         """Connect and keep the link up until :meth:`stop`; reconnects on any failure."""
@@ -1205,14 +1208,22 @@ class RobotLink:
         self._slow_deflate.observe(sent - self._counted_frame_bytes,
                                    saved - self._counted_saved_bytes)
         self._counted_frame_bytes, self._counted_saved_bytes = sent, saved
-        share = self._slow_deflate.wire_share()
-        deflate.deflate_all = self._slow_deflate.decide(self._scheduler.link_rate_Bps)
+        slow = self._slow_deflate
+        share = slow.wire_share()
+        rate = self._scheduler.link_rate_Bps
+        deflate.deflate_all = slow.decide(rate)
         if deflate.deflate_all != self._deflating_all:
             self._deflating_all = deflate.deflate_all
             if not deflate.deflate_all:
                 # The rates were measured in deflated bytes: what a byte sent raw
                 # now costs (small messages stay deflated, so this errs small).
                 self._scheduler.rescale_rates(share)
+            if sampled(slow.switches):
+                logger.info("uplink at %.1f Mbit/s on the wire: %s (switch %d)",
+                            rate * share * 8e-6,
+                            "deflating every message, fragments of large ones too"
+                            if deflate.deflate_all else "deflating small messages only",
+                            slow.switches)
 
     def _on_pong(self, token: int, fut: asyncio.Future[float]) -> None:
         if self._pings.pop(token, None) is None or fut.cancelled() or fut.exception():

@@ -41,12 +41,16 @@ class LinkSample:
         dropped: Frames of this topic the link dropped so far.
         skipped: Camera frames not encoded so far because the link had not taken the
             previous one yet.
+        wire_share: Bytes on the wire per byte the link sent, lately (the rate and the
+            counts are the link's frame bytes, before its deflate; a video frame does not
+            shrink, so its share of the link is counted on the wire).
     """
 
     link_rate_Bps: float
     higher_priority_sent_bytes: int
     dropped: int
     skipped: int
+    wire_share: float = 1.0
 
 
 class BitrateController:
@@ -87,7 +91,8 @@ class BitrateController:
         """
         self._last_s, self._last = now_s, sample
         if sample.link_rate_Bps > 0:
-            self.bitrate_bps = self._clamp(self.share * 8 * sample.link_rate_Bps)
+            self.bitrate_bps = self._clamp(
+                self.share * 8 * sample.link_rate_Bps * sample.wire_share)
         return self.bitrate_bps
 
     def update(self, now_s: float, sample: LinkSample) -> int | None:
@@ -117,13 +122,20 @@ class BitrateController:
         return self._apply(self._clamp(target))
 
     def _cap(self, sample: LinkSample, last: LinkSample, elapsed_s: float) -> float:
-        """``share x (estimate - higher priority use)`` in bits/s; infinite without an
-        estimate."""
+        """``share x (estimate - higher priority use)`` in bits/s on the wire; infinite
+        without an estimate.
+
+        Both are measured in the bytes the link sent before its deflate; on a slow link
+        that deflates everything, a compressible cloud beside the camera made the link
+        look several times faster in those bytes than on the wire (the e2e ramp: the
+        video kept 2.5 Mbit/s on a 4 Mbit/s link), so they are taken on the wire.
+        """
         if sample.link_rate_Bps <= 0:
             return float("inf")
         higher_Bps = max(0, sample.higher_priority_sent_bytes
                          - last.higher_priority_sent_bytes) / elapsed_s
-        return self.share * 8 * max(0.0, sample.link_rate_Bps - higher_Bps)
+        return (self.share * 8 * max(0.0, sample.link_rate_Bps - higher_Bps)
+                * sample.wire_share)
 
     def _clamp(self, bps: float) -> int:
         return round(min(self.max_bps, max(self.min_bps, bps)))

@@ -99,10 +99,29 @@ def _pose(ts: Any, size_bytes: int, seq: int, t_ns: int) -> Any:
     return ts.types["geometry_msgs/msg/PoseStamped"](header=_header(ts, seq, t_ns), pose=pose)
 
 
+# Payloads are as compressible as the real thing: a JPEG's bytes are random to deflate,
+# a lidar's float32 points shrink ~10 %. Constant bytes compressed to nothing once the
+# robot deflated everything on a slow link (docs/wire.md, "Uplink deflate"), and the
+# ramp's camera then had the link to itself instead of sharing it. A few variants,
+# rotating by seq, made once per size.
+_VARIANTS = 8
+
+
+@functools.lru_cache(maxsize=2 * _VARIANTS)
+def _random_bytes(size_bytes: int, variant: int) -> np.ndarray[Any, Any]:
+    return np.random.default_rng(variant).integers(0, 256, size_bytes, dtype=np.uint8)
+
+
+@functools.lru_cache(maxsize=2 * _VARIANTS)
+def _lidar_points(points: int, variant: int) -> np.ndarray[Any, Any]:
+    xyz = np.random.default_rng(variant).normal(0.0, 10.0, (points, 3)).astype(np.float32)
+    return xyz.view(np.uint8).reshape(-1)
+
+
 def _compressed_image(ts: Any, size_bytes: int, seq: int, t_ns: int) -> Any:
     return ts.types["sensor_msgs/msg/CompressedImage"](
         header=_header(ts, seq, t_ns), format="jpeg",
-        data=np.full(size_bytes, 0x5A, dtype=np.uint8),
+        data=_random_bytes(size_bytes, seq % _VARIANTS),
     )
 
 
@@ -114,7 +133,7 @@ def _point_cloud(ts: Any, size_bytes: int, seq: int, t_ns: int) -> Any:
     return ts.types["sensor_msgs/msg/PointCloud2"](
         header=_header(ts, seq, t_ns), height=1, width=points, fields=fields,
         is_bigendian=False, point_step=12, row_step=12 * points,
-        data=np.full(points * 12, 7, dtype=np.uint8), is_dense=True,
+        data=_lidar_points(points, seq % _VARIANTS), is_dense=True,
     )
 
 

@@ -59,7 +59,7 @@ async def test_no_drop_and_fragmented_messages_arrive_in_order(
 
 
 async def test_on_a_slow_link_fragments_of_large_messages_are_deflated_too(
-    server: RelayServer, tmp_path: Path
+    server: RelayServer, tmp_path: Path, caplog: pytest.LogCaptureFixture
 ) -> None:
     """The slow-link rule (fleetctl.client.slowdeflate) forced on, every rate counting as
     slow: once the link has a rate, a large message goes as deflated fragments through the
@@ -68,6 +68,7 @@ async def test_on_a_slow_link_fragments_of_large_messages_are_deflated_too(
     always = SlowDeflateSettings(on_below_Bps=1e15, off_above_Bps=1e15)
     tuning = dataclasses.replace(FAST, slow_deflate=always)
     big = "x" * 300_000
+    caplog.set_level(logging.INFO, logger="fleetctl.client.link")
     async with Consumer.open(server.url, "/r1/.*") as consumer, running(
         RobotLink(cfg, on_frame=lambda f: None, tuning=tuning)
     ) as link:
@@ -84,6 +85,11 @@ async def test_on_a_slow_link_fragments_of_large_messages_are_deflated_too(
         assert deflate["negotiated"] and deflate["switches"] == 1
         # 300 kB of one letter: the fragments went deflated (raw, the share stays ~1).
         assert deflate["wire_share"] < 0.3
+        # What a producer adapting to the link (the video) is told, to count on the wire.
+        assert link.feedback("/r1/big").topic.wire_share == pytest.approx(deflate["wire_share"],
+                                                                  abs=1e-4)
+    said = [r.getMessage() for r in caplog.records if "on the wire" in r.getMessage()]
+    assert len(said) == 1 and "deflating every message" in said[0], said
 
 
 async def test_robot_receives_commands_reassembled_and_subscribes(

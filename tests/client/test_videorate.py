@@ -66,3 +66,16 @@ def test_reopening_codecs_change_only_on_large_moves_or_at_a_bound() -> None:
     assert rate.update(3.0, sample(100, dropped=1)) == 280 * KBPS  # -30 %
     rate.bitrate_bps = 110 * KBPS
     assert rate.update(4.0, sample(100, dropped=2)) == 100 * KBPS  # the minimum, always
+
+
+def test_the_cap_is_taken_on_the_wire_when_the_link_deflates() -> None:
+    """The link's rate and the higher topics' bytes are frame bytes; when the link
+    deflates a compressible cloud to a fifth, 500 kB/s of frame bytes is 100 kB/s on the
+    wire, and the camera (which does not shrink) gets its share of that."""
+    rate = BitrateController(10 * KBPS, 4000 * KBPS)
+    deflating = LinkSample(500_000, 0, 0, 0, wire_share=0.2)
+    assert rate.start(0.0, deflating) == 400 * KBPS  # 50 % of 100 kB/s on the wire
+    congested = LinkSample(500_000, 300_000, 1, 0, wire_share=0.2)
+    # Higher topics sent 300 kB of frame bytes in the second: (500 - 300) x 0.2 x 50 %
+    # (under 0.7 x the current 400 kbit/s); in frame bytes it would have been 800.
+    assert rate.update(1.0, congested) == 160 * KBPS

@@ -289,7 +289,7 @@ def _rate_sample(sample: LinkFeedback | None, skipped: int) -> LinkSample:
         return LinkSample(0.0, 0, 0, skipped)
     topic = sample.topic
     return LinkSample(topic.link_rate_Bps, topic.higher_priority_sent_bytes, topic.dropped,
-                      skipped)
+                      skipped, topic.wire_share)
 
 
 def video_topics(publish: Sequence[PublishSpec], *, typestore: Any, codec: Any,

@@ -126,9 +126,9 @@ class BitrateController:
         without an estimate.
 
         Both are measured in the bytes the link sent before its deflate; on a slow link
-        that deflates everything, a compressible cloud beside the camera made the link
-        look several times faster in those bytes than on the wire (the e2e ramp: the
-        video kept 2.5 Mbit/s on a 4 Mbit/s link), so they are taken on the wire.
+        that deflates everything, a compressible cloud beside the camera makes the link
+        look several times faster in those bytes than on the wire, while a video frame
+        does not shrink: so they are taken on the wire.
         """
         if sample.link_rate_Bps <= 0:
             return float("inf")

@@ -102,6 +102,11 @@ PROFILES: dict[str, Profile] = {
     # 5,760 bytes) at 10 Hz and a pose at 20 Hz, nothing else.
     "peer": Profile("peer", (replace(_SCAN, size_bytes=5760),
                              replace(_POSE, rate_hz=20.0))),
+    # Issue 19 for large messages: a camera's JPEGs (100 KB of random bytes at 3 Hz,
+    # 2.4 Mbit/s) beside a 20 Hz pose on a 4 Mbit/s link (peerlarge.py).
+    "peer-large": Profile("peer-large", (
+        replace(_POSE, rate_hz=20.0),
+        replace(_IMAGE, rate_hz=3.0, size_bytes=100_000))),
     # Issue 15's replica-failure: what the viewers watch (a 20 Hz pose, latest-only) and
     # what must arrive whole (10 Hz events, no_drop) while a relay replica dies.
     "replica-failure": Profile("replica-failure", (replace(_POSE, rate_hz=20.0), _EVENTS)),

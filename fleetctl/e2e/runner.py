@@ -35,7 +35,7 @@ from fleetctl.errors import EnvironmentMissing, FleetError
 
 Progress = Callable[[str], None]
 SCENARIOS = ("link", "dropout", "multi-consumer", "ramp", "priority", "peer", "peer-fanout",
-             "replica-failure")
+             "peer-large", "replica-failure")
 # Components each fleet scenario runs: (image, command that must exist in it).
 _NEEDS = {
     "dropout": (("server", "server"), ("client", "client")),
@@ -44,6 +44,7 @@ _NEEDS = {
     "priority": (("server", "server"), ("client", "client")),
     "peer": (("server", "server"), ("client", "client")),
     "peer-fanout": (("server", "server"), ("client", "client")),
+    "peer-large": (("server", "server"), ("client", "client")),
     "replica-failure": (("server", "server"), ("client", "client")),
 }
 # The link calibration probe: a TCP sink on the server side, a timed sender on the robot side.

@@ -32,6 +32,7 @@ from typing import Any
 from fleetctl.deploy.shaping import Capabilities, LinkShaper, RateSpec, mbit
 from fleetctl.e2e import analysis, profiles, videoanalysis
 from fleetctl.e2e.fleetrun import FleetRun, hold, wait_for
+from fleetctl.e2e.peerlarge import run_peer_large
 from fleetctl.e2e.peerscenario import run_peer, run_peer_fanout
 from fleetctl.e2e.replicascenario import run_replica_failure
 from fleetctl.e2e.samples import Sample
@@ -383,5 +384,6 @@ SCENARIO_FUNCS: dict[str, Callable[[FleetRun, Capabilities, float, Progress], di
     "ramp": run_ramp,
     "peer": run_peer,
     "peer-fanout": run_peer_fanout,
+    "peer-large": run_peer_large,
     "replica-failure": run_replica_failure,
 }

@@ -69,7 +69,8 @@ _STATUS_KEYS = frozenset({"battery_topic", "period_s", "location"})
 MAX_LOCATION_CHARS = 200  # a place name for the robot list, not a document
 _LIMIT_KEYS = frozenset({"max_fragment_bytes", "no_drop_queue_messages", "reconnect_min_s",
                          "reconnect_max_s", "scheduler", "outage_dial_interval_s",
-                         "standby_connection", "dial_ahead_of_messages"})
+                         "standby_connection", "dial_ahead_of_messages",
+                         "deflate_on_slow_links"})
 # The outage dial pace's range: below 5 ms the SYNs sent while down (200/s at 5 ms, ~15 KB/s
 # raw, ~26 KB/s inside WireGuard) cost more than the millisecond or two they save; above
 # 0.25 s it is the slow pace. The default, 10 ms, is docs/recovery.md's trade-off.
@@ -177,6 +178,11 @@ class ClientLimits:
             seen to work when it is published (docs/recovery.md, dialing ahead of the
             next message). They take the place of paced SYNs where they fall; at most
             666 a second; false turns it off.
+        deflate_on_slow_links: On a link slower than 5 Mbit/s (measured on the wire),
+            deflate every message, fragments of large ones too, when the server accepts
+            the uplink deflate (docs/wire.md, "Uplink deflate"): ~12 % fewer bytes for a
+            camera's images there, for up to ~3 % of a core on the CI host when such
+            messages fill the link; false: only messages up to 16 KiB, on any link.
     """
 
     max_fragment_bytes: int = 4194304
@@ -187,6 +193,7 @@ class ClientLimits:
     outage_dial_interval_s: float = 0.01
     standby_connection: bool = True
     dial_ahead_of_messages: bool = True
+    deflate_on_slow_links: bool = True
 
 
 @dataclass(frozen=True)
@@ -576,6 +583,8 @@ def _limits(ctx: _Ctx, value: object) -> ClientLimits:
                                  d.standby_connection),
         dial_ahead_of_messages=_bool(ctx, entry, "limits", "dial_ahead_of_messages",
                                      d.dial_ahead_of_messages),
+        deflate_on_slow_links=_bool(ctx, entry, "limits", "deflate_on_slow_links",
+                                    d.deflate_on_slow_links),
     )
 
 

@@ -80,7 +80,7 @@ from fleetctl.client.memory import tune_malloc
 from fleetctl.client.outagelog import OutageLog, Say, sampled
 from fleetctl.client.receiver import Receiver
 from fleetctl.client.scheduler import Scheduler, SchedulerConfig, TopicFeedback
-from fleetctl.client.slowdeflate import SlowLinkDeflate
+from fleetctl.client.slowdeflate import SlowDeflateSettings, SlowLinkDeflate
 from fleetctl.client.standby import STANDBY_HEADER, Standby, keep_mapping_alive
 from fleetctl.client.tcppath import AckStall, TcpInfo, read_tcp_info, reset_transport
 from fleetctl.client.wakeup import Wakeup
@@ -282,7 +282,9 @@ class RobotLink:
         # The uplink deflate of the current connection (None: not negotiated), and what
         # it and the scheduler had counted at the last acknowledgement.
         self._deflate: SmallMessageDeflate | None = None
-        self._slow_deflate = SlowLinkDeflate(tuning.slow_deflate)
+        self._slow_deflate = SlowLinkDeflate(
+            tuning.slow_deflate if config.limits.deflate_on_slow_links
+            else SlowDeflateSettings(on_below_Bps=0.0))
         self._counted_frame_bytes = 0
         self._counted_saved_bytes = 0
         self._deflating_all = False

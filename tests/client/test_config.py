@@ -166,6 +166,8 @@ def test_token_file_is_read_relative_and_never_shown(tmp_path: Path) -> None:
      "limits: standby_connection: must be true or false, got 'yes'"),
     (minimal(limits={"dial_ahead_of_messages": 1}),
      "limits: dial_ahead_of_messages: must be true or false, got 1"),
+    (minimal(limits={"deflate_on_slow_links": "no"}),
+     "limits: deflate_on_slow_links: must be true or false, got 'no'"),
     ([1, 2], "document: must be a mapping"),
     (None, "client.yaml: the file is empty (a client config needs at least server_url and "
            "robot_name)"),  # was "document: must be a mapping, got NoneType"
@@ -252,6 +254,23 @@ def test_dialing_ahead_of_messages_is_on_unless_turned_off() -> None:
     off = parse_client_config(minimal(limits={"dial_ahead_of_messages": False}),
                               source="c.yaml")
     assert not off.limits.dial_ahead_of_messages
+
+
+def test_deflate_on_slow_links_is_on_unless_turned_off() -> None:
+    """Off, the robot never deflates fragments of large messages, whatever the link
+    (fleetctl.client.slowdeflate: a threshold of 0 never turns it on)."""
+    from fleetctl.client.linktuning import LinkTuning
+    from fleetctl.client.transport import RobotLink
+
+    on = parse_client_config(minimal(), source="c.yaml")
+    assert on.limits.deflate_on_slow_links
+    off = parse_client_config(minimal(limits={"deflate_on_slow_links": False}),
+                              source="c.yaml")
+    link = RobotLink(off, on_frame=lambda f: None, tuning=LinkTuning())
+    assert link._slow_deflate.settings.on_below_Bps == 0.0
+    assert not link._slow_deflate.decide(1.0)  # 8 bit/s on the wire: still off
+    assert RobotLink(on, on_frame=lambda f: None,
+                     tuning=LinkTuning())._slow_deflate.decide(1.0)
 
 
 def test_file_errors(tmp_path: Path) -> None:

@@ -25,6 +25,7 @@ Sizes and CPU: docs/wire.md, "Uplink deflate".
 
 from __future__ import annotations
 
+import contextlib
 import zlib
 from collections.abc import Sequence
 from typing import Any
@@ -135,15 +136,22 @@ class SmallMessageDeflate(PerMessageDeflate):
 _SYNC_TAIL = b"\x00\x00\xff\xff"
 
 
+def _fragment_root(view: memoryview) -> int | None:
+    """The root table of *view* when it is a Fragment frame; None for any other data."""
+    try:
+        meta, root = read_root(view)
+    except WireError:
+        return None
+    return root if meta.type == FRAGMENT_TYPE else None
+
+
 def _fragment_payload(data: bytes | bytearray | memoryview) -> tuple[int, int] | None:
     """Where the payload of the Fragment frame *data* lies; None for any other frame."""
     view = memoryview(data)
-    try:
-        meta, root = read_root(view)
-        if meta.type == FRAGMENT_TYPE:
+    root = _fragment_root(view)
+    if root is not None:
+        with contextlib.suppress(WireError):
             return fragment_payload_span(view, root)
-    except WireError:
-        pass
     return None
 
 
@@ -151,12 +159,10 @@ def _message_bytes(data: bytes | bytearray | memoryview) -> int:
     """The size of the fleet message *data* carries: a Fragment's whole message, else
     *data*'s own size (also for anything that is not a fleet frame)."""
     view = memoryview(data)
-    try:
-        meta, root = read_root(view)
-        if meta.type == FRAGMENT_TYPE:
+    root = _fragment_root(view)
+    if root is not None:
+        with contextlib.suppress(WireError):
             return read_fragment_header(view, root).total_bytes
-    except WireError:
-        pass
     return len(data)
 
 

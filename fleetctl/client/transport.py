@@ -287,7 +287,6 @@ class RobotLink:
             else SlowDeflateSettings(on_below_Bps=0.0))
         self._counted_frame_bytes = 0
         self._counted_saved_bytes = 0
-        self._deflating_all = False
         self._pings: dict[int, float] = {}  # token -> sent time (s), this connection only
         self._last_send_s = 0.0
         tune = self.tuning
@@ -1211,11 +1210,10 @@ class RobotLink:
                                    saved - self._counted_saved_bytes)
         self._counted_frame_bytes, self._counted_saved_bytes = sent, saved
         slow = self._slow_deflate
-        share = slow.wire_share()
+        share, was_on = slow.wire_share(), slow.active
         rate = self._scheduler.link_rate_Bps
         deflate.deflate_all = slow.decide(rate)
-        if deflate.deflate_all != self._deflating_all:
-            self._deflating_all = deflate.deflate_all
+        if deflate.deflate_all != was_on:
             if not deflate.deflate_all:
                 # The rates were measured in deflated bytes: what a byte sent raw
                 # now costs (small messages stay deflated, so this errs small).

@@ -26,6 +26,7 @@ from fleetctl.e2e import profiles
 from fleetctl.e2e.analysis import crit, latency_line, status_of
 from fleetctl.e2e.fleetrun import FleetRun
 from fleetctl.e2e.metrics import LatencyStats, by_topic
+from fleetctl.e2e.peeranalysis import mean_bytes
 from fleetctl.e2e.samples import Sample
 from fleetctl.e2e.topology import SERVER_SIDE
 from fleetctl.errors import FleetError
@@ -104,12 +105,8 @@ def cdr_bytes(runs: Mapping[str, LargeRun]) -> dict[str, float]:
     a zenoh variant, fleetctl's frame size (a few dozen bytes more)."""
     for variant, run in runs.items():
         if variant != "fleetctl" and run.samples:
-            return _mean_sizes(run.samples)
-    return _mean_sizes(runs["fleetctl"].samples) if "fleetctl" in runs else {}
-
-
-def _mean_sizes(samples: Sequence[Sample]) -> dict[str, float]:
-    return {t: sum(s.size_bytes for s in ss) / len(ss) for t, ss in by_topic(samples).items()}
+            return mean_bytes(run.samples)
+    return mean_bytes(runs["fleetctl"].samples) if "fleetctl" in runs else {}
 
 
 def variant_figures(run: LargeRun, cdr: Mapping[str, float]) -> dict[str, Any]:

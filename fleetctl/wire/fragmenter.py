@@ -24,14 +24,19 @@ import numpy as np
 
 from fleetctl.wire.codec import Codec, default_codec
 from fleetctl.wire.errors import WireError
-from fleetctl.wire.fragments import FRAGMENT_TYPE, fragment_overhead, split
+from fleetctl.wire.fragments import (
+    FRAGMENT_TYPE,
+    fragment_overhead,
+    fragment_payload_span,
+    split,
+)
 from fleetctl.wire.metadata import field_pos, read_metadata, table_fields
 
 _U32 = struct.Struct("<I")
 _U64 = struct.Struct("<Q")
 _U32_MAX = 0xFFFFFFFF
 # Field slots of fleetctl_msgs/msg/Fragment (slot 0 is __metadata) and of MsgMetadata.
-_SLOT_META, _SLOT_ID, _SLOT_INDEX, _SLOT_PAYLOAD = 0, 1, 2, 5
+_SLOT_META, _SLOT_ID, _SLOT_INDEX = 0, 1, 2
 _META_SLOT_TIME, _META_SLOT_SEQ = 3, 4
 
 
@@ -154,12 +159,9 @@ def _locate(frame: bytes, payload_len: int) -> _Template:
     meta_field = field_pos(frame, root, vt, vt_bytes, _SLOT_META)
     meta_pos = meta_field + _U32.unpack_from(frame, meta_field)[0]
     mvt, mvt_bytes, _ = table_fields(frame, meta_pos, n)
-    payload_field = field_pos(frame, root, vt, vt_bytes, _SLOT_PAYLOAD)
-    vector = payload_field + _U32.unpack_from(frame, payload_field)[0]
-    if not payload_field or _U32.unpack_from(frame, vector)[0] != payload_len:
+    payload_pos, end = fragment_payload_span(frame, root)
+    if end - payload_pos != payload_len:
         raise WireError("fragment template: payload not where expected")
-    payload_pos = vector + 4
-    end = payload_pos + payload_len
 
     def where(pos: int, fmt: struct.Struct) -> tuple[int, int, struct.Struct]:
         if pos == 0:

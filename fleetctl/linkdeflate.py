@@ -28,7 +28,7 @@ from __future__ import annotations
 import contextlib
 import zlib
 from collections.abc import Sequence
-from typing import Any
+from typing import Any, Protocol
 
 from websockets import frames
 from websockets.extensions.permessage_deflate import (
@@ -40,7 +40,7 @@ from websockets.typing import ExtensionParameter
 
 from fleetctl.wire.errors import WireError
 from fleetctl.wire.fragments import FRAGMENT_TYPE, fragment_payload_span, read_fragment_header
-from fleetctl.wire.metadata import read_root
+from fleetctl.wire.metadata import Metadata, read_root
 
 # Messages up to this size are deflated by the robot. It is the size from which
 # fleetctl.batched_connection masks and writes a frame in one pass: larger frames take
@@ -54,6 +54,13 @@ COMPRESS_SETTINGS: dict[str, int] = {"level": 1, "memLevel": 8}
 # The history a robot's messages may refer to (2**15 = 32 KiB: a few scans' worth). It is
 # also the inflate window the server keeps per connection that negotiated the extension.
 WINDOW_BITS = 15
+
+
+class FragmentObserver(Protocol):
+    """Told the sizes of each fragment :class:`SmallMessageDeflate` deflates."""
+
+    def observe(self, topic: str, payload_in: int, payload_out: int,
+                frame_out: int) -> None: ...
 
 
 class SmallMessageDeflate(PerMessageDeflate):
@@ -86,6 +93,10 @@ class SmallMessageDeflate(PerMessageDeflate):
         # robot's measure of its wire rate.
         self.saved_bytes = 0
         self._compressing_message = False  # the message being continued was deflated
+        # Told the sizes of each fragment deflated as blocks (topic, payload in, payload
+        # out, whole fragment out): the robot sizes its next fragments from them
+        # (fleetctl.client.segmentfill).
+        self.fragment_observer: FragmentObserver | None = None
 
     def passes_through(self, size: int) -> bool:
         """True when a whole data message of *size* bytes is sent untouched."""
@@ -103,15 +114,16 @@ class SmallMessageDeflate(PerMessageDeflate):
         self._compressing_message = compress and not frame.fin
         if not compress:
             return frame
-        span = None
+        found = None
         if (self.deflate_all and frame.fin and frame.opcode is not frames.OP_CONT
                 and not self.local_no_context_takeover):
-            span = _fragment_payload(frame.data)
-        out = super().encode(frame) if span is None else self._encode_blocks(frame, span)
+            found = _fragment_payload(frame.data)
+        out = super().encode(frame) if found is None else self._encode_blocks(frame, *found)
         self.saved_bytes += len(frame.data) - len(out.data)
         return out
 
-    def _encode_blocks(self, frame: frames.Frame, payload: tuple[int, int]) -> frames.Frame:
+    def _encode_blocks(self, frame: frames.Frame, topic: str,
+                       payload: tuple[int, int]) -> frames.Frame:
         """A fragment as three deflate blocks: what precedes its payload, the payload, and
         what follows it (the same stream as ``super().encode``, cut differently).
 
@@ -124,34 +136,39 @@ class SmallMessageDeflate(PerMessageDeflate):
         """
         data, (start, end) = frame.data, payload
         enc = self.encoder
-        out = b"".join((enc.compress(data[:start]), enc.flush(zlib.Z_BLOCK),
-                        enc.compress(data[start:end]), enc.flush(zlib.Z_BLOCK),
-                        enc.compress(data[end:]), enc.flush(zlib.Z_SYNC_FLUSH)))
+        head = enc.compress(data[:start]) + enc.flush(zlib.Z_BLOCK)
+        body = enc.compress(data[start:end]) + enc.flush(zlib.Z_BLOCK)
+        out = b"".join((head, body, enc.compress(data[end:]), enc.flush(zlib.Z_SYNC_FLUSH)))
         # A sync flush ends with an empty stored block, which RFC 7692 has removed.
         assert out.endswith(_SYNC_TAIL)
-        return frames.Frame(frame.opcode, out[:-len(_SYNC_TAIL)], True, True,
-                            frame.rsv2, frame.rsv3)
+        sent = len(out) - len(_SYNC_TAIL)
+        if self.fragment_observer is not None:
+            self.fragment_observer.observe(topic, end - start, len(body), sent)
+        return frames.Frame(frame.opcode, out[:sent], True, True, frame.rsv2, frame.rsv3)
 
 
 _SYNC_TAIL = b"\x00\x00\xff\xff"
 
 
-def _fragment_root(view: memoryview) -> int | None:
-    """The root table of *view* when it is a Fragment frame; None for any other data."""
+def _fragment_root(view: memoryview) -> tuple[Metadata, int] | None:
+    """The metadata and root table of *view* when it is a Fragment frame; None for any
+    other data."""
     try:
         meta, root = read_root(view)
     except WireError:
         return None
-    return root if meta.type == FRAGMENT_TYPE else None
+    return (meta, root) if meta.type == FRAGMENT_TYPE else None
 
 
-def _fragment_payload(data: bytes | bytearray | memoryview) -> tuple[int, int] | None:
-    """Where the payload of the Fragment frame *data* lies; None for any other frame."""
+def _fragment_payload(data: bytes | bytearray | memoryview,
+                      ) -> tuple[str, tuple[int, int]] | None:
+    """The topic of the Fragment frame *data* and where its payload lies; None for any
+    other frame."""
     view = memoryview(data)
-    root = _fragment_root(view)
-    if root is not None:
+    found = _fragment_root(view)
+    if found is not None:
         with contextlib.suppress(WireError):
-            return fragment_payload_span(view, root)
+            return found[0].topic, fragment_payload_span(view, found[1])
     return None
 
 
@@ -159,10 +176,10 @@ def _message_bytes(data: bytes | bytearray | memoryview) -> int:
     """The size of the fleet message *data* carries: a Fragment's whole message, else
     *data*'s own size (also for anything that is not a fleet frame)."""
     view = memoryview(data)
-    root = _fragment_root(view)
-    if root is not None:
+    found = _fragment_root(view)
+    if found is not None:
         with contextlib.suppress(WireError):
-            return read_fragment_header(view, root).total_bytes
+            return read_fragment_header(view, found[1]).total_bytes
     return len(data)
 
 

@@ -67,6 +67,7 @@ from __future__ import annotations
 import itertools
 import math
 from collections import deque
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Protocol
 
@@ -83,17 +84,19 @@ class SplitFn(Protocol):
 
     def __call__(
         self, frame: bytes, *, topic: str, message_id: int, max_fragment_bytes: int,
-        no_drop: bool,
+        no_drop: bool, payload_bytes: int | None = None,
     ) -> list[bytes]: ...
 
 
 def _wire_split(
-    frame: bytes, *, topic: str, message_id: int, max_fragment_bytes: int, no_drop: bool
+    frame: bytes, *, topic: str, message_id: int, max_fragment_bytes: int, no_drop: bool,
+    payload_bytes: int | None = None,
 ) -> list[bytes]:
     from fleetctl.wire.fragmenter import fast_split
 
     fragments: list[bytes] = fast_split(frame, topic=topic, message_id=message_id,
-                                   max_fragment_bytes=max_fragment_bytes, no_drop=no_drop)
+                                        max_fragment_bytes=max_fragment_bytes, no_drop=no_drop,
+                                        payload_bytes=payload_bytes)
     return fragments
 
 
@@ -332,6 +335,10 @@ class Scheduler:
         self._delay_window = float(self.config.initial_window_bytes)
         self._fragment = self._whole = self._window = 0
         self._link_rate_Bps = 0.0
+        # Set by the link while it deflates every message: a topic's fragments' share of
+        # its message, so that deflated each fills whole TCP segments
+        # (fleetctl.client.segmentfill); None, or None for the topic: fragment_bytes().
+        self.fragment_sizer: Callable[[str], int | None] | None = None
         self._update_limits()
 
     # -- Algorithm 1 ------------------------------------------------------------------
@@ -562,9 +569,13 @@ class Scheduler:
             msg.message_id = next(self._message_ids)
             cfg = self.config
             if cfg.fragments and len(msg.frame) > self._whole:
+                share = (None if self.fragment_sizer is None
+                         else self.fragment_sizer(msg.topic.name))
+                # Passed only when set: a splitter given to the scheduler need not know it.
                 msg.fragments = self._split(
                     msg.frame, topic=msg.topic.name, message_id=msg.message_id,
-                    max_fragment_bytes=self.fragment_bytes(), no_drop=msg.no_drop)
+                    max_fragment_bytes=self.fragment_bytes(), no_drop=msg.no_drop,
+                    **({} if share is None else {"payload_bytes": share}))
             else:
                 msg.fragments = [msg.frame]
         return msg.fragments[msg.next_index]

@@ -75,6 +75,18 @@ def read_tcp_info(sock: Any) -> TcpInfo | None:
     return TcpInfo(unacked, last_ack / 1e3, rtt / 1e6, rttvar / 1e6)
 
 
+def read_send_mss(sock: Any) -> int | None:
+    """The payload bytes one TCP segment of *sock* carries now (Linux's ``mss_cache``:
+    the path MTU less the IP and TCP headers and options); None where it cannot be read."""
+    if sock is None:
+        return None
+    try:
+        mss = int(sock.getsockopt(socket.IPPROTO_TCP, socket.TCP_MAXSEG))
+    except (OSError, AttributeError):
+        return None
+    return mss if mss > 0 else None
+
+
 class AckStall:
     """Decides from polled :class:`TcpInfo` whether the path is dead (pure, no I/O).
 

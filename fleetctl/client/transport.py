@@ -80,9 +80,16 @@ from fleetctl.client.memory import tune_malloc
 from fleetctl.client.outagelog import OutageLog, Say, sampled
 from fleetctl.client.receiver import Receiver
 from fleetctl.client.scheduler import Scheduler, SchedulerConfig, TopicFeedback
+from fleetctl.client.segmentfill import SegmentFill
 from fleetctl.client.slowdeflate import SlowDeflateSettings, SlowLinkDeflate
 from fleetctl.client.standby import STANDBY_HEADER, Standby, keep_mapping_alive
-from fleetctl.client.tcppath import AckStall, TcpInfo, read_tcp_info, reset_transport
+from fleetctl.client.tcppath import (
+    AckStall,
+    TcpInfo,
+    read_send_mss,
+    read_tcp_info,
+    reset_transport,
+)
 from fleetctl.client.wakeup import Wakeup
 from fleetctl.frame_sink import FrameSink
 from fleetctl.linkdeflate import RobotDeflateFactory, SmallMessageDeflate
@@ -287,6 +294,10 @@ class RobotLink:
             else SlowDeflateSettings(on_below_Bps=0.0))
         self._counted_frame_bytes = 0
         self._counted_saved_bytes = 0
+        # While deflating every message: fragments sized to fill whole TCP segments of
+        # the current connection's socket.
+        self._segment_fill = SegmentFill()
+        self._link_socket: Any = None
         self._pings: dict[int, float] = {}  # token -> sent time (s), this connection only
         self._last_send_s = 0.0
         tune = self.tuning
@@ -581,7 +592,8 @@ class RobotLink:
         slow = self._slow_deflate
         snap["uplink_deflate"] = {
             "negotiated": self._deflate is not None, "all_messages": slow.active,
-            "switches": slow.switches, "wire_share": round(slow.wire_share(), 4)}
+            "switches": slow.switches, "wire_share": round(slow.wire_share(), 4),
+            "fragment_payload_bytes": self._fragment_shares()}
         return snap
 
     @property
@@ -1191,6 +1203,12 @@ class RobotLink:
             stall, sock = watch
             stall.sent(self._last_send_s, read_tcp_info(sock))
 
+    def _fragment_shares(self) -> dict[str, int | None]:
+        """Each topic's fragment share of its message now, for the stats: what the
+        segment fill gives the topics it has seen, while it is in use."""
+        sizer = self._scheduler.fragment_sizer
+        return {} if sizer is None else {t: sizer(t) for t in self._segment_fill.topics()}
+
     def _use_deflate(self, ws: LinkConnection) -> None:
         """Take *ws*'s uplink deflate (if the relay accepted it), set as the link is."""
         found = [ext for ext in ws.protocol.extensions
@@ -1198,8 +1216,25 @@ class RobotLink:
         self._deflate = found[0] if found else None
         self._counted_frame_bytes = self._scheduler.sent_bytes_total
         self._counted_saved_bytes = 0
+        self._link_socket = ws.transport.get_extra_info("socket")
         if self._deflate is not None:
             self._deflate.deflate_all = self._slow_deflate.active
+            self._deflate.fragment_observer = self._segment_fill
+        self._size_fragments()
+
+    def _size_fragments(self) -> None:
+        """While every message is deflated, give each topic's fragments the share of
+        their message that fills whole TCP segments (:mod:`fleetctl.client.segmentfill`)
+        at the link's MSS and rate now; otherwise the scheduler's own size."""
+        scheduler = self._scheduler
+        if self._deflate is None or not self._deflate.deflate_all:
+            scheduler.fragment_sizer = None
+            return
+        budget = (scheduler.link_rate_Bps * self._slow_deflate.wire_share()
+                  * scheduler.config.fragment_time_s)
+        scheduler.fragment_sizer = functools.partial(
+            self._segment_fill.payload_bytes, mss=read_send_mss(self._link_socket),
+            budget_wire_bytes=budget, max_fragment_bytes=scheduler.config.max_fragment_bytes)
 
     def _decide_deflate(self, deflate: SmallMessageDeflate) -> None:
         """On an acknowledgement (the scheduler's rate may have moved): deflate every
@@ -1224,6 +1259,7 @@ class RobotLink:
                             "deflating every message, fragments of large ones too"
                             if deflate.deflate_all else "deflating small messages only",
                             slow.switches)
+        self._size_fragments()
 
     def _on_pong(self, token: int, fut: asyncio.Future[float]) -> None:
         if self._pings.pop(token, None) is None or fut.cancelled() or fut.exception():

@@ -75,19 +75,20 @@ class Fragmenter:
         self._overheads: dict[tuple[str, bool, bool, bool, bool, bool], int] = {}
 
     def split(self, frame: bytes, *, topic: str, message_id: int, max_fragment_bytes: int,
-              no_drop: bool) -> list[bytes]:
+              no_drop: bool, payload_bytes: int | None = None) -> list[bytes]:
         """Same arguments, result and errors as :func:`fleetctl.wire.fragments.split`."""
         if len(frame) <= max_fragment_bytes:
             return [frame]
         meta = read_metadata(frame)
-        chunk = max_fragment_bytes - self._overhead(topic, no_drop, meta.latched,
-                                                    meta.publish_time_ns, meta.seq, message_id)
+        chunk = (max_fragment_bytes - self._overhead(topic, no_drop, meta.latched,
+                                                     meta.publish_time_ns, meta.seq, message_id)
+                 if payload_bytes is None else payload_bytes)
         count = math.ceil(len(frame) / chunk) if chunk > 0 else 0
         if count < 2 or len(frame) > _U32_MAX or message_id > 2**64 - 1 or message_id < 0:
             # Short messages, and every error case, are the reference implementation's job.
             return split(frame, topic=topic, message_id=message_id,
                          max_fragment_bytes=max_fragment_bytes, no_drop=no_drop,
-                         codec=self._codec)
+                         codec=self._codec, payload_bytes=payload_bytes)
         last_len = len(frame) - (count - 1) * chunk
         shape: _Shape = (topic, no_drop, meta.latched, chunk, count, last_len,
                          message_id != 0, meta.publish_time_ns != 0, meta.seq != 0)
@@ -187,10 +188,12 @@ _DEFAULT: Fragmenter | None = None
 
 def fast_split(
     frame: bytes, *, topic: str, message_id: int, max_fragment_bytes: int, no_drop: bool,
+    payload_bytes: int | None = None,
 ) -> list[bytes]:
     """:meth:`Fragmenter.split` on a process-wide instance (drop-in for ``split``)."""
     global _DEFAULT
     if _DEFAULT is None:
         _DEFAULT = Fragmenter()
     return _DEFAULT.split(frame, topic=topic, message_id=message_id,
-                          max_fragment_bytes=max_fragment_bytes, no_drop=no_drop)
+                          max_fragment_bytes=max_fragment_bytes, no_drop=no_drop,
+                          payload_bytes=payload_bytes)

@@ -142,6 +142,7 @@ def split(
     max_fragment_bytes: int,
     no_drop: bool,
     codec: Codec | None = None,
+    payload_bytes: int | None = None,
 ) -> list[bytes]:
     """Split *frame* into Fragment frames of at most *max_fragment_bytes* each.
 
@@ -153,13 +154,18 @@ def split(
         no_drop: Copied into every fragment's metadata (the original's publish time, seq
             and latched flag are copied from its own metadata).
         codec: Codec to use (default: :func:`default_codec`).
+        payload_bytes: Each fragment's share of *frame* (bytes), in place of what
+            *max_fragment_bytes* leaves after the fragment's own header; the fragments
+            are then longer than *max_fragment_bytes*, which only decides whether
+            *frame* is split. The robot sizes fragments this way when it fills TCP
+            segments with deflated fragments (:mod:`fleetctl.client.segmentfill`).
 
     Returns:
         ``[frame]`` unchanged if it fits, else the fragments in index order.
 
     Raises:
-        WireError: *frame* has no readable metadata, is 4 GiB or more, or
-            *max_fragment_bytes* leaves no room for payload.
+        WireError: *frame* has no readable metadata, is 4 GiB or more,
+            *max_fragment_bytes* leaves no room for payload, or *payload_bytes* < 1.
     """
     if len(frame) <= max_fragment_bytes:
         return [frame]
@@ -179,7 +185,9 @@ def split(
     overhead = fragment_overhead(codec, topic, no_drop=no_drop, message_id=message_id,
                                  publish_time_ns=meta.publish_time_ns, seq=meta.seq,
                                  latched=meta.latched)
-    chunk = max_fragment_bytes - overhead
+    chunk = max_fragment_bytes - overhead if payload_bytes is None else payload_bytes
+    if payload_bytes is not None and payload_bytes < 1:
+        raise WireError(f"payload_bytes={payload_bytes} leaves no room for payload on {topic!r}")
     if chunk < 1:
         raise WireError(
             f"max_fragment_bytes={max_fragment_bytes} leaves no room for payload on {topic!r} "

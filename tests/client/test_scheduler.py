@@ -15,9 +15,10 @@ from fleetctl.client.scheduler import (
 
 
 def fake_split(frame: bytes, *, topic: str, message_id: int, max_fragment_bytes: int,
-               no_drop: bool) -> list[bytes]:
+               no_drop: bool, payload_bytes: int | None = None) -> list[bytes]:
     """Fragments tagged ``topic|id|index|`` so tests can see what went out."""
-    chunks = [frame[i:i + max_fragment_bytes] for i in range(0, len(frame), max_fragment_bytes)]
+    size = max_fragment_bytes if payload_bytes is None else payload_bytes
+    chunks = [frame[i:i + size] for i in range(0, len(frame), size)]
     return [f"F{topic}|{message_id}|{i}|".encode() + c for i, c in enumerate(chunks)]
 
 
@@ -302,6 +303,27 @@ def test_rates_rescaled_when_deflate_stops_shrink_fragments_and_window() -> None
     for factor in (0.0, 1.0, 3.0):  # nothing to rescale, or not a shrink: unchanged
         s.rescale_rates(factor)
         assert s.link_rate_Bps == pytest.approx(750_000.0)
+
+
+def test_a_sizer_set_by_the_link_gives_each_topic_s_fragments_their_share() -> None:
+    """While the link deflates everything it sizes each topic's fragments
+    (fleetctl.client.segmentfill): a message split then carries its topic's share; a
+    topic the sizer has no share for, or no sizer, gets fragment_bytes()."""
+    s = make(max_fragment_bytes=65536, min_fragment_bytes=1024, fragment_time_s=0.003,
+             initial_window_bytes=10**6)
+    s._link_rate.add(0.0, 400_000.0)
+    s._update_limits()
+    assert s.fragment_bytes() == 1024
+    s.fragment_sizer = {"/image": 1400, "/cloud": 2300}.get
+    s.offer("/image", b"z" * 7000, 0.0, priority=1.0, no_drop=False)
+    assert [f.count(b"z") for f in FakeLink(s).drain(0.0)] == [1400] * 5
+    s.offer("/cloud", b"q" * 5000, 0.1, priority=1.0, no_drop=False)
+    assert [f.count(b"q") for f in FakeLink(s).drain(0.1)] == [2300, 2300, 400]
+    s.offer("/misc", b"o" * 3000, 0.2, priority=1.0, no_drop=False)
+    assert [f.count(b"o") for f in FakeLink(s).drain(0.2)] == [1024, 1024, 952]
+    s.fragment_sizer = None
+    s.offer("/image", b"j" * 3000, 0.3, priority=1.0, no_drop=False)
+    assert [f.count(b"j") for f in FakeLink(s).drain(0.3)] == [1024, 1024, 952]
 
 
 def test_frame_within_the_link_time_budget_goes_whole() -> None:

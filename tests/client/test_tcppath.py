@@ -10,7 +10,13 @@ from collections.abc import Callable
 
 import pytest
 
-from fleetctl.client.tcppath import AckStall, TcpInfo, read_tcp_info, reset_transport
+from fleetctl.client.tcppath import (
+    AckStall,
+    TcpInfo,
+    read_send_mss,
+    read_tcp_info,
+    reset_transport,
+)
 from fleetctl.deploy.shaping import LinkShaper, RateSpec, detect, mbit
 from tests.netns import NEEDS_ROOT, SINK_TCP_PORT, Link, host_run
 
@@ -184,6 +190,21 @@ def test_tcp_info_of_a_loopback_connection() -> None:
             assert got.sent_bytes == 1000
             assert got.acked_bytes == 1001
     assert read_tcp_info(None) is None
+
+
+def test_the_send_mss_is_the_path_s_segment_less_headers_and_options() -> None:
+    """A peer advertising 1200 bytes (as a path of a smaller MTU does): the robot's
+    segments carry 1188, the 12 of TCP's timestamp option taken off."""
+    with socket.create_server(("127.0.0.1", 0)) as server:
+        server.setsockopt(socket.IPPROTO_TCP, socket.TCP_MAXSEG, 1200)
+        client = socket.create_connection(server.getsockname())
+        peer, _ = server.accept()
+        with client, peer:
+            assert read_send_mss(client) == 1188
+    assert read_send_mss(None) is None
+    closed = socket.socket()
+    closed.close()
+    assert read_send_mss(closed) is None
 
 
 def _read(sock: socket.socket) -> TcpInfo:

@@ -16,6 +16,8 @@ from fleetctl.client.scheduler import SchedulerConfig
 from fleetctl.client.slowdeflate import SlowDeflateSettings
 from fleetctl.client.transport import LinkConnection, RobotLink, backoff_delay_s
 from fleetctl.server.app import RelayServer
+from fleetctl.wire import samples
+from fleetctl.wire.codec import default_codec
 from fleetctl.wire.fragments import split
 from tests.client.conftest import (
     ROBOT_TOKEN,
@@ -90,6 +92,44 @@ async def test_on_a_slow_link_fragments_of_large_messages_are_deflated_too(
                                                                   abs=1e-4)
     said = [r.getMessage() for r in caplog.records if "on the wire" in r.getMessage()]
     assert len(said) == 1 and "deflating every message" in said[0], said
+
+
+async def test_on_a_slow_link_deflated_fragments_fill_the_path_s_segments(
+    server: RelayServer, tmp_path: Path
+) -> None:
+    """Through a path whose segments carry 1188 bytes (the forwarder clamps the MSS, as a
+    smaller MTU does), the slow-link rule forced on: a camera's images (random bytes) go
+    in fragments sized to fill one segment once deflated
+    (fleetctl.client.segmentfill), and arrive whole through the real relay."""
+    forwarder = TcpForwarder(server.port, mss=1200)
+    await forwarder.accept()
+    cfg = robot_config(url_of(forwarder.port), tmp_path, limits={"max_fragment_bytes": 2048})
+    always = SlowDeflateSettings(on_below_Bps=1e15, off_above_Bps=1e15)
+    tuning = dataclasses.replace(FAST, slow_deflate=always)
+    codec = default_codec()
+    images = [codec.encode(samples.compressed_image(codec.registry, 60_000, seed=i),
+                           "sensor_msgs/msg/CompressedImage", "/r1/image", seq=100 + i)
+              for i in range(4)]
+    try:
+        async with Consumer.open(server.url, "/r1/image") as consumer, running(
+            RobotLink(cfg, on_frame=lambda f: None, tuning=tuning)
+        ) as link:
+            for i in range(20):  # the link learns a rate and starts deflating everything
+                link.offer("/r1/warm", string_frame("/r1/warm", f"{i}" * 64_000, seq=i + 1),
+                           priority=1.0, no_drop=True)
+            await wait_until(lambda: link.stats()["uplink_deflate"]["all_messages"])
+            for image in images:  # one at a time: each is split by what the last taught
+                link.offer("/r1/image", image, priority=1.0, no_drop=True)
+                await wait_until(lambda: link.stats()["in_flight_bytes"] == 0)
+            await wait_until(lambda: len(consumer.frames) == len(images))
+            assert consumer.frames == images
+            share = link.stats()["uplink_deflate"]["fragment_payload_bytes"]["/r1/image"]
+            # The segment's room: 1188 less the WebSocket header, the slack and ~15-70
+            # bytes of deflated metadata; not the 2048 - 256 the bound would allow.
+            assert share is not None and 1188 - 100 < share < 1188 - 20, share
+            assert link.stats()["topics"]["/r1/image"]["sent_frames"] >= 4 * 60_000 // share
+    finally:
+        await forwarder.refuse()
 
 
 async def test_robot_receives_commands_reassembled_and_subscribes(

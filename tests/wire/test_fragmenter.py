@@ -42,6 +42,20 @@ def test_fast_split_is_byte_identical_to_split(size: int, max_bytes: int, messag
     assert results[-1] == frame
 
 
+@settings(max_examples=40, deadline=None)
+@given(size=st.integers(0, 60_000), payload=st.integers(1, 5000),
+       message_id=st.integers(0, 2**64 - 1), no_drop=st.booleans())
+def test_fast_split_by_payload_share_is_byte_identical_to_split(
+        size: int, payload: int, message_id: int, no_drop: bool) -> None:
+    frame = _frame("/r1/image", "i" * size, no_drop=no_drop, seq=3)
+    kw = {"topic": "/r1/image", "message_id": message_id, "max_fragment_bytes": 1024,
+          "no_drop": no_drop, "payload_bytes": payload}
+    fast = fast_split(frame, **kw)  # type: ignore[arg-type]
+    assert fast == split(frame, **kw)  # type: ignore[arg-type]
+    reassembler = Reassembler(10**7, 10.0)
+    assert [reassembler.feed(f, 0.0) for f in fast][-1] == frame
+
+
 def test_fast_split_errors_like_split() -> None:
     with pytest.raises(WireError):
         fast_split(b"\x00" * 5000, topic="/a", message_id=1, max_fragment_bytes=1000,

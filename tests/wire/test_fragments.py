@@ -57,6 +57,25 @@ def test_fragments_respect_the_bound_and_carry_metadata(codec: Codec, max_bytes:
     assert b"".join(codec.decode(p)[1].payload.tobytes() for p in parts) == frame
 
 
+def test_payload_bytes_sets_each_fragment_s_share_of_the_frame(codec: Codec) -> None:
+    """The robot's segment fill (fleetctl.client.segmentfill): each fragment carries
+    *payload_bytes* of the frame, past max_fragment_bytes, which only decides whether
+    the frame is split."""
+    frame = _frame(codec, 50_000)
+    parts = split(frame, topic=TOPIC, message_id=9, max_fragment_bytes=1024, no_drop=False,
+                  payload_bytes=1400)
+    shares = [len(codec.decode(p)[1].payload) for p in parts]
+    assert shares[:-1] == [1400] * (len(parts) - 1) and 0 < shares[-1] <= 1400
+    assert len(parts[0]) > 1400
+    reasm = Reassembler(max_bytes=1 << 20, timeout_s=5.0)
+    assert [reasm.feed(p, now_s=0.0) for p in parts][-1] == frame
+    assert split(frame, topic=TOPIC, message_id=9, max_fragment_bytes=len(frame),
+                 no_drop=False, payload_bytes=1400) == [frame]
+    with pytest.raises(WireError, match="payload_bytes=0 leaves no room"):
+        split(frame, topic=TOPIC, message_id=9, max_fragment_bytes=1024, no_drop=False,
+              payload_bytes=0)
+
+
 def test_too_small_fragment_size_is_a_wire_error(codec: Codec) -> None:
     with pytest.raises(WireError, match="leaves no room for payload"):
         split(_frame(codec, 500), topic=TOPIC, message_id=1, max_fragment_bytes=60,

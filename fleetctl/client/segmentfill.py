@@ -13,7 +13,8 @@ So while deflating everything the robot gives each fragment the share of the mes
 that, deflated, fills whole segments: ``k`` segments of ``mss`` bytes, ``k`` the number
 that fit in the fragment's link-time budget (at least one: a fragment that does not fill
 its segment saves no link time for an urgent message, only bytes), less the WebSocket
-header and what deflate adds around the payload, divided by how far the payload deflates.
+header, room for the ack point written after it and what deflate adds around the payload,
+divided by how far the payload deflates.
 Both are read off the last fragments deflated (:class:`SegmentFill`), near their worst
 (the 90th percentile), so that a middle fragment does not spill a few bytes into a
 second, nearly empty segment. Not the worst: a message's first and last fragments have
@@ -34,15 +35,21 @@ _N = TypeVar("_N", int, float)
 # A client's WebSocket header for a payload of 126 to 65535 bytes: 2 bytes, a 16-bit
 # length and the 4-byte mask.
 WS_CLIENT_HEADER_BYTES = 8
+# The ack point the link writes after a batch (fleetctl.client.transport): a ping with an
+# 8-byte token, 14 bytes with its header and mask, in the same write. With the window
+# holding two fragments it follows every second one; without room for it, it took a
+# packet of its own (~146 bytes over WireGuard): measured in the e2e peer-large, 1.19
+# uplink bytes per image byte where full segments alone give 1.13.
+ACK_POINT_BYTES = 14
 # Before any fragment was deflated: what a fragment's metadata costs undeflated (~170
 # bytes for common topics) with room for a long topic name.
 DEFAULT_EXTRA_BYTES = 256
-# A stored deflate block's header (3 bits, padding to a byte, LEN and NLEN: 5), the byte
-# a block boundary may move between the parts (zlib's Z_BLOCK is not byte-aligned), and
-# the spread of middle fragments around the quantile (6: metadata 13-21 bytes around a
-# quantile of 15-16, payload ratios within 0.001 over 1.4 KB; measured on camera images
-# and float32 clouds, tests/client/test_segmentfill.py).
-SLACK_BYTES = 12
+# The byte a block boundary may move between the parts (zlib's Z_BLOCK is not
+# byte-aligned) and the spread of middle fragments around the quantile (6: metadata
+# 13-21 bytes around a quantile of 15-16, payload ratios within 0.001 over 1.4 KB;
+# measured on camera images and float32 clouds, tests/client/test_segmentfill.py). A
+# stored block's 5-byte header is in the payload's ratio already.
+SLACK_BYTES = 7
 # A payload that deflates to almost nothing (a cloud of zeros) would ask for fragments of
 # hundreds of KB: its raw share is capped at this many times the room in the segments.
 MAX_RAW_PER_WIRE = 4.0
@@ -117,8 +124,8 @@ class SegmentFill:
         if mss is None or mss <= 0:
             return None
         segments = max(1, int(min(budget_wire_bytes, max_fragment_bytes) // mss))
-        room = (segments * mss - WS_CLIENT_HEADER_BYTES - self.extra_bytes(topic)
-                - SLACK_BYTES)
+        room = (segments * mss - WS_CLIENT_HEADER_BYTES - ACK_POINT_BYTES
+                - self.extra_bytes(topic) - SLACK_BYTES)
         share = min(int(room / max(self.payload_ratio(topic), 1.0 / MAX_RAW_PER_WIRE)),
                     max_fragment_bytes - DEFAULT_EXTRA_BYTES)
         return share if min(room, share) >= MIN_PAYLOAD_BYTES else None

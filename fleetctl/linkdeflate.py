@@ -17,8 +17,8 @@ compresses only messages up to ``max_message_bytes`` (:class:`SmallMessageDeflat
 ones (clouds, images, video) are already compressed or barely compressible, and deflating
 them would cost the client CPU (its bar: a 1 MB cloud at 10 Hz under 3 % of a core) for a
 few percent; the per-topic ``compression:`` setting is the tool for those. On a slow link
-(a few Mbit/s) it deflates everything: large messages travel there as ~1 KiB fragments,
-each repeating its metadata.
+(a few Mbit/s) it deflates everything: large messages travel there as fragments of about
+one TCP segment (:mod:`fleetctl.client.segmentfill`), each repeating its metadata.
 
 Sizes and CPU: docs/wire.md, "Uplink deflate".
 """
@@ -79,9 +79,10 @@ class SmallMessageDeflate(PerMessageDeflate):
     On a slow link the robot sets :attr:`deflate_all` (:mod:`fleetctl.client.slowdeflate`
     decides it from the link's rate on the wire, which compression does not change): then
     every data message is deflated, fragments of large messages included. There the
-    fragments are ~1 KiB (3 ms of link time) and each repeats ~170 bytes of metadata,
-    which context takeover turns into a back-reference; the link's bytes, not the CPU
-    (bounded by that slow rate), are what is short.
+    fragments are about one TCP segment (~3 ms of link time) and each repeats ~170 bytes
+    of metadata, which context takeover turns into a back-reference; the link's bytes,
+    not the CPU (bounded by that slow rate), are what is short. The sizes of each
+    fragment deflated go to :attr:`fragment_observer`, which sizes the next ones.
     """
 
     def __init__(self, *args: Any, max_message_bytes: int, **kwargs: Any) -> None:

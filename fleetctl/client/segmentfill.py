@@ -14,15 +14,15 @@ that, deflated, fills whole segments: ``k`` segments of ``mss`` bytes, ``k`` the
 that fit in the fragment's link-time budget (at least one: a fragment that does not fill
 its segment saves no link time for an urgent message, only bytes), less the WebSocket
 header, room for the ack point written after it and what deflate adds around the payload,
-divided by how far the payload deflates.
-Both are read off the last fragments deflated (:class:`SegmentFill`), near their worst
-(the 90th percentile), so that a middle fragment does not spill a few bytes into a
-second, nearly empty segment. Not the worst: a message's first and last fragments have
-layouts of their own (the first has no index, the last a shorter payload), so their
-metadata is a poorer back-reference, 60-120 bytes where a middle fragment's is ~15; sized
-for them, every middle fragment of a camera's image would leave ~100 bytes of its segment
-empty (7 %), while sized for the middle ones the first fragment spills into one more
-packet per message (~130 bytes over WireGuard, 0.1 % of a 100 KB image).
+divided by how far the payload deflates. Both are read off the topic's last fragments
+deflated (:class:`SegmentFill`), near their worst (the 90th percentile), so that a middle
+fragment does not spill a few bytes into a second, nearly empty segment. Not the worst:
+a message's first fragment has a layout of its own (no index in its table) and its
+second refers back to it, so their metadata is a poorer back-reference, 30-120 bytes
+where a middle fragment's is ~15; sized for them, every middle fragment of a camera's
+image would leave ~100 bytes of its segment empty (7 %), while sized for the middle ones
+the first two may spill into one more packet each per message (~130 bytes over
+WireGuard, 0.1-0.3 % of a 100 KB image).
 """
 
 from __future__ import annotations
@@ -38,8 +38,8 @@ WS_CLIENT_HEADER_BYTES = 8
 # The ack point the link writes after a batch (fleetctl.client.transport): a ping with an
 # 8-byte token, 14 bytes with its header and mask, in the same write. With the window
 # holding two fragments it follows every second one; without room for it, it took a
-# packet of its own (~146 bytes over WireGuard): measured in the e2e peer-large, 1.19
-# uplink bytes per image byte where full segments alone give 1.13.
+# packet of its own (~146 bytes over WireGuard): in the e2e peer-large, 1.19 uplink bytes
+# per image byte against 1.17-1.185 with the room.
 ACK_POINT_BYTES = 14
 # Before any fragment was deflated: what a fragment's metadata costs undeflated (~170
 # bytes for common topics) with room for a long topic name.

@@ -2,7 +2,8 @@
 
 Why: on a link of a few Mbit/s the scheduler cuts large messages (clouds, camera images,
 video key frames) into ~1 KiB fragments (3 ms of link time each, so that an urgent message
-waits behind at most one), and every fragment repeats its metadata: the Fragment table,
+waits behind at most one; once deflating, about one TCP segment:
+:mod:`fleetctl.client.segmentfill`), and every fragment repeats its metadata: the Fragment table,
 the topic and type strings, the vtables, ~170 bytes, so a camera on LTE spent ~15 % of its
 link on headers. permessage-deflate with context takeover turns that repetition into a
 back-reference; the robot's CPU is no objection there, because deflating costs per byte

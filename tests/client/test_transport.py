@@ -118,9 +118,13 @@ async def test_on_a_slow_link_deflated_fragments_fill_the_path_s_segments(
                 link.offer("/r1/warm", string_frame("/r1/warm", f"{i}" * 64_000, seq=i + 1),
                            priority=1.0, no_drop=True)
             await wait_until(lambda: link.stats()["uplink_deflate"]["all_messages"])
-            for image in images:  # one at a time: each is split by what the last taught
+            for n, image in enumerate(images, 1):  # each split by what the last taught
                 link.offer("/r1/image", image, priority=1.0, no_drop=True)
-                await wait_until(lambda: link.stats()["in_flight_bytes"] == 0)
+
+                def acked(count: int = n) -> bool:
+                    return bool(link.stats()["topics"]["/r1/image"]["acked"] == count)
+
+                await wait_until(acked)
             await wait_until(lambda: len(consumer.frames) == len(images))
             assert consumer.frames == images
             share = link.stats()["uplink_deflate"]["fragment_payload_bytes"]["/r1/image"]

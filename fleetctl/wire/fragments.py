@@ -182,17 +182,21 @@ def split(
             publish_time_ns=meta.publish_time_ns, seq=meta.seq, latched=meta.latched,
         )
 
-    overhead = fragment_overhead(codec, topic, no_drop=no_drop, message_id=message_id,
-                                 publish_time_ns=meta.publish_time_ns, seq=meta.seq,
-                                 latched=meta.latched)
-    chunk = max_fragment_bytes - overhead if payload_bytes is None else payload_bytes
-    if payload_bytes is not None and payload_bytes < 1:
-        raise WireError(f"payload_bytes={payload_bytes} leaves no room for payload on {topic!r}")
-    if chunk < 1:
-        raise WireError(
-            f"max_fragment_bytes={max_fragment_bytes} leaves no room for payload on {topic!r} "
-            f"(fragment overhead is {overhead} bytes)"
-        )
+    if payload_bytes is not None:
+        chunk = payload_bytes
+        if chunk < 1:
+            raise WireError(f"payload_bytes={payload_bytes} leaves no room for payload on "
+                            f"{topic!r}")
+    else:
+        overhead = fragment_overhead(codec, topic, no_drop=no_drop, message_id=message_id,
+                                     publish_time_ns=meta.publish_time_ns, seq=meta.seq,
+                                     latched=meta.latched)
+        chunk = max_fragment_bytes - overhead
+        if chunk < 1:
+            raise WireError(
+                f"max_fragment_bytes={max_fragment_bytes} leaves no room for payload on "
+                f"{topic!r} (fragment overhead is {overhead} bytes)"
+            )
     data = np.frombuffer(frame, dtype=np.uint8)
     count = math.ceil(len(frame) / chunk)
     return [encode(i, count, data[i * chunk : (i + 1) * chunk]) for i in range(count)]

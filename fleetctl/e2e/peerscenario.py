@@ -34,7 +34,7 @@ from typing import Any
 from urllib.parse import urlsplit
 
 from fleetctl.deploy.shaping import Capabilities
-from fleetctl.e2e import peeranalysis, profiles
+from fleetctl.e2e import peeranalysis, profiles, robotview
 from fleetctl.e2e.fleetrun import CONTAINER_DIR, FleetRun, hold, wait_for
 from fleetctl.e2e.samples import Sample
 from fleetctl.e2e.topology import SERVER_SIDE, Endpoint
@@ -129,12 +129,27 @@ class _Run:
             return self.fr.start_consumers(role, count, regex, beside_server=True)
         return _zenoh_consumers(self.fr, role, self.settings, self.p, count)
 
+    def robot_stats(self) -> dict[str, Any] | None:
+        """The fleetctl robot client's stats now (:mod:`fleetctl.e2e.robotview`); None
+        for a zenoh variant or when it gave none."""
+        if self.variant != "fleetctl":
+            return None
+        return robotview.read_stats(self.fr.topo, self.robot.name)
+
     def stop(self) -> list[Sample]:
         self.published = self.fr.stop_load(self.robot, f"{self.tag}-robot")
         return self.fr.samples(self.tag)
 
     def __exit__(self, *exc: object) -> None:
         self.fr.remove(*reversed(self.endpoints))
+
+
+def _view_note(label: str, before: dict[str, Any] | None,
+               after: dict[str, Any] | None) -> str:
+    """The robot's view of a window as a note (:mod:`fleetctl.e2e.robotview`)."""
+    view = (None if before is None or after is None
+            else robotview.window_view(before, after))
+    return robotview.view_note(label, view)
 
 
 def trial_cuts(duration_s: float) -> tuple[float, ...]:
@@ -156,14 +171,19 @@ def run_peer(fr: FleetRun, caps: Capabilities, duration_s: float,
     steady_s = max(UPLINK_WINDOW_S + 1.0, duration_s / 3)
     after_s = max(5.0, duration_s / 3)
     runs: dict[str, peeranalysis.VariantRun] = {}
+    views: list[str] = []
     for variant in ("fleetctl", *ZENOH_VARIANTS):
         link.rate(LINK_MBIT)
         with _Run(fr, variant, p) as run:
             progress(f"peer/{variant}: steady at {LINK_MBIT:g} Mbit/s")
             t0 = time.time_ns()
+            before = run.robot_stats()
             window = fr.topo.count_tx(fr.topo.router, fr.topo.router_devs[SERVER_SIDE],
                                       UPLINK_WINDOW_S)
             hold(max(0.0, steady_s - UPLINK_WINDOW_S))
+            if variant == "fleetctl":
+                views.append(_view_note("fleetctl robot in the steady phase", before,
+                                        run.robot_stats()))
             trials = []
             for i, cut_s in enumerate(cuts):
                 cut = link.cut()
@@ -178,6 +198,7 @@ def run_peer(fr: FleetRun, caps: Capabilities, duration_s: float,
             messages_per_s=sum(t.rate_hz for t in p.topics))
     link.clear()
     result = peeranalysis.peer(runs, [t.remote_topic for t in p.topics])
+    result["notes"].extend(views)
     result["notes"].insert(0, (
         f"load: {', '.join(f'{t.remote_topic} {t.rate_hz:g} Hz' for t in p.topics)}; "
         f"{LINK_MBIT:g} Mbit/s both ways; cuts per variant (s): "
@@ -201,6 +222,7 @@ def run_peer_fanout(fr: FleetRun, caps: Capabilities, duration_s: float,
     link.rate(FANOUT_MBIT)
     seconds = max(3.0, duration_s / 3)
     steps: dict[str, list[dict[str, Any]]] = {}
+    views: list[str] = []
     for variant in ("fleetctl", *ZENOH_VARIANTS):
         steps[variant] = []
         with _Run(fr, variant, p, consumers=0, scenario="fanout") as run:
@@ -209,9 +231,13 @@ def run_peer_fanout(fr: FleetRun, caps: Capabilities, duration_s: float,
                 consumers = run.start_consumers(tag, n)
                 try:
                     fr.wait_flowing(tag, run.topics, [f"{tag}-{i}" for i in range(n)])
+                    before = run.robot_stats()
                     start = time.time_ns()
                     hold(seconds)
                     end = time.time_ns()
+                    if variant == "fleetctl":
+                        views.append(_view_note(f"fleetctl robot at {n} consumer(s)", before,
+                                                run.robot_stats()))
                 finally:
                     fr.remove(consumers)
                 window = [s for s in fr.samples(tag) if start <= s.recv_time_ns <= end]
@@ -220,6 +246,7 @@ def run_peer_fanout(fr: FleetRun, caps: Capabilities, duration_s: float,
             run.stop()
     link.clear()
     result = peeranalysis.fanout(steps)
+    result["notes"].extend(views)
     result["notes"].insert(0, f"load as peer; {FANOUT_MBIT:g} Mbit/s; {seconds:g} s per "
                            "consumer count, after every consumer received both topics; "
                            "consumers in the server's network namespace, plain TCP over "

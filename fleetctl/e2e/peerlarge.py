@@ -59,13 +59,14 @@ class LargeRun:
 def run_peer_large(fr: FleetRun, caps: Capabilities, duration_s: float,
                    progress: Progress) -> dict[str, Any]:
     """fleetctl, zenoh with the bridge's defaults, zenoh at its best: same load, same link."""
-    from fleetctl.e2e.peerscenario import ZENOH_VARIANTS, _Run
+    from fleetctl.e2e.peerscenario import ZENOH_VARIANTS, _Run, _view_note
     from fleetctl.e2e.scenarios import Link
 
     p = profiles.profile("peer-large")
     link = Link(fr, caps)
     seconds = max(MIN_WINDOW_S, duration_s)
     runs: dict[str, LargeRun] = {}
+    views: list[str] = []
     for variant in ("fleetctl", *ZENOH_VARIANTS):
         link.rate(LINK_MBIT)
         with _Run(fr, variant, p, consumers=0, scenario="large") as run:
@@ -79,8 +80,12 @@ def run_peer_large(fr: FleetRun, caps: Capabilities, duration_s: float,
                 with contextlib.suppress(FleetError):
                     fr.wait_flowing(tag, run.topics, [f"{tag}-0"], IMAGE_WAIT_S)
                 progress(f"peer-large/{variant}: {seconds:g} s at {LINK_MBIT:g} Mbit/s")
+                before = run.robot_stats()
                 window = fr.topo.count_tx(fr.topo.router, fr.topo.router_devs[SERVER_SIDE],
                                           seconds)
+                if variant == "fleetctl":
+                    views.append(_view_note("fleetctl robot in the window", before,
+                                            run.robot_stats()))
                 run.stop()
             finally:
                 fr.remove(consumers)
@@ -92,6 +97,7 @@ def run_peer_large(fr: FleetRun, caps: Capabilities, duration_s: float,
                                  {t.remote_topic: t.rate_hz for t in p.topics})
     link.clear()
     result = peer_large(runs)
+    result["notes"].extend(views)
     load = ", ".join(f"{t.remote_topic} at {t.rate_hz:g} Hz" for t in p.topics)
     result["notes"].insert(0, (
         f"load: {load} (the image {IMAGE_BYTES:,} B of random bytes); {LINK_MBIT:g} Mbit/s "

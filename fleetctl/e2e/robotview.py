@@ -124,7 +124,7 @@ def view_note(label: str, view: RobotView | None) -> str:
         return f"{label}: the robot client gave no stats (SIGUSR1) for this window"
     rtt = "none" if view.min_rtt_ms is None else f"{view.min_rtt_ms:.2f} ms"
     sends = ", ".join(
-        f"{name.rsplit('/', 1)[-1]} {t.messages} messages in {t.frames} frames"
+        f"{name} {t.messages} messages in {t.frames} frames"
         for name, t in sorted(view.topics.items()) if t.messages or t.frames)
     rule = (f"deflating every message (slow-link rule), wire share {view.wire_share:.2f}"
             if view.deflate_all else "deflating small messages only")

@@ -46,8 +46,8 @@ def test_the_note_says_what_the_robot_did() -> None:
     assert note == (
         "fleetctl robot at 1 consumer(s): link rate 8.0 Mbit/s of frame bytes, frames up to "
         "6000 B sent whole, window 8192 B, min RTT 0.84 ms; deflating every message "
-        "(slow-link rule), wire share 0.53, 1 switch(es) in the window; pose 60 messages in "
-        "60 frames, scan 30 messages in 90 frames")
+        "(slow-link rule), wire share 0.53, 1 switch(es) in the window; /robot1/pose 60 "
+        "messages in 60 frames, /robot1/scan 30 messages in 90 frames")
 
 
 def test_no_view_is_said_not_guessed() -> None:

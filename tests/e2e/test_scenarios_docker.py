@@ -131,6 +131,9 @@ def test_peer_measures_every_variant_after_every_cut(
     robot_log = (logs / "peer-fleetctl-robot.log").read_text()
     assert robot_log.count("connected to ") >= 3, robot_log[-2000:]
     assert (logs / "fanout-fleetctl-robot.log").is_file()
+    # The robot's own view, read from its stats during the first cut: pose and scan sent.
+    (view,) = [n for n in result["notes"] if n.startswith("fleetctl robot from its connect")]
+    assert "link rate " in view and "/robot1/scan " in view and "/robot1/pose " in view, view
 
 
 def test_peer_fanout_reaches_every_consumer(run: tuple[int, Path, dict[str, Any]]) -> None:
@@ -140,6 +143,10 @@ def test_peer_fanout_reaches_every_consumer(run: tuple[int, Path, dict[str, Any]
         assert [s["consumers"] for s in counts] == [1, 4, 16], variant
         # 30 msg/s published (scan 10 Hz + pose 20 Hz) and the link has room for all.
         assert all(s["received_per_consumer_hz"] > 25 for s in counts), (variant, counts)
+    views = [n for n in run[2]["peer-fanout"]["notes"] if n.startswith("fleetctl robot at ")]
+    assert [v.split(":", 1)[0] for v in views] == [
+        f"fleetctl robot at {n} consumer(s)" for n in (1, 4, 16)], views
+    assert all("link rate " in v and "/robot1/scan " in v for v in views), views
 
 
 def test_replica_failure_moves_the_robot_to_b_with_every_event(

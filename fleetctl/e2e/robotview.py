@@ -21,6 +21,7 @@ from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from typing import Any, Protocol
 
+from fleetctl.deploy.dockercli import Completed
 from fleetctl.errors import FleetError
 from fleetctl.waiting import wait_until
 
@@ -29,7 +30,9 @@ _POLL_S = 0.1
 
 
 class _Containers(Protocol):
-    def exec(self, container: str, argv: Sequence[str], *, user: str = ...) -> Any: ...
+    """What is used of :class:`fleetctl.e2e.topology.Topology`."""
+
+    def exec(self, container: str, argv: Sequence[str], *, user: str = ...) -> Completed: ...
 
     def logs(self, container: str) -> str: ...
 
@@ -74,7 +77,7 @@ def read_stats(containers: _Containers, container: str, timeout_s: float = 10.0)
     JSON."""
     before = containers.logs(container).count(STATS_MARK)
     res = containers.exec(container, ["pkill", "-USR1", "-f", "fleetctl client"])
-    if getattr(res, "returncode", 1) != 0:
+    if res.returncode != 0:  # no client process to signal (it exited)
         return None
     text = ""
 

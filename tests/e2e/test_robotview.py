@@ -3,9 +3,11 @@
 from __future__ import annotations
 
 import json
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
+from fleetctl.deploy.dockercli import Completed
 from fleetctl.e2e import robotview
 
 
@@ -55,26 +57,24 @@ def test_no_view_is_said_not_guessed() -> None:
 
 
 @dataclass
-class _Done:
-    returncode: int
-
-
-@dataclass
 class _Robot:
     """A container whose client logs a stats line when signalled (or not)."""
 
     answers: bool = True
+    running: bool = True
     line: str = ""
     signals: list[list[str]] = field(default_factory=list)
     output: str = "robot started\n"
+    log_reads: int = 0
 
-    def exec(self, container: str, argv: list[str], *, user: str = "root") -> _Done:
-        self.signals.append(argv)
-        if self.answers:
+    def exec(self, container: str, argv: Sequence[str], *, user: str = "root") -> Completed:
+        self.signals.append(list(argv))
+        if self.answers and self.running:
             self.output += self.line
-        return _Done(0)
+        return Completed(tuple(argv), 0 if self.running else 1, "", "")
 
     def logs(self, container: str) -> str:
+        self.log_reads += 1
         return self.output
 
 
@@ -92,3 +92,9 @@ def test_a_robot_that_does_not_answer_gives_none_at_the_deadline() -> None:
 
 def test_a_line_that_is_not_json_gives_none() -> None:
     assert robotview.read_stats(_Robot(line="stats: {not json\n"), "robot") is None
+
+
+def test_a_robot_whose_client_exited_gives_none_without_waiting() -> None:
+    robot = _Robot(running=False)
+    assert robotview.read_stats(robot, "robot", timeout_s=30.0) is None
+    assert robot.log_reads == 1  # the count before the signal; no polling after it failed

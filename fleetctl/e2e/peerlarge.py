@@ -22,7 +22,7 @@ from dataclasses import dataclass
 from typing import Any
 
 from fleetctl.deploy.shaping import Capabilities
-from fleetctl.e2e import profiles
+from fleetctl.e2e import profiles, robotview
 from fleetctl.e2e.analysis import crit, latency_line, status_of
 from fleetctl.e2e.fleetrun import FleetRun
 from fleetctl.e2e.metrics import LatencyStats, by_topic
@@ -59,7 +59,7 @@ class LargeRun:
 def run_peer_large(fr: FleetRun, caps: Capabilities, duration_s: float,
                    progress: Progress) -> dict[str, Any]:
     """fleetctl, zenoh with the bridge's defaults, zenoh at its best: same load, same link."""
-    from fleetctl.e2e.peerscenario import ZENOH_VARIANTS, _Run, _view_note
+    from fleetctl.e2e.peerscenario import ZENOH_VARIANTS, _Run
     from fleetctl.e2e.scenarios import Link
 
     p = profiles.profile("peer-large")
@@ -84,8 +84,8 @@ def run_peer_large(fr: FleetRun, caps: Capabilities, duration_s: float,
                 window = fr.topo.count_tx(fr.topo.router, fr.topo.router_devs[SERVER_SIDE],
                                           seconds)
                 if variant == "fleetctl":
-                    views.append(_view_note("fleetctl robot in the window", before,
-                                            run.robot_stats()))
+                    views.append(robotview.window_note(
+                        "fleetctl robot in the window", before, run.robot_stats()))
                 run.stop()
             finally:
                 fr.remove(consumers)

@@ -144,14 +144,6 @@ class _Run:
         self.fr.remove(*reversed(self.endpoints))
 
 
-def _view_note(label: str, before: dict[str, Any] | None,
-               after: dict[str, Any] | None) -> str:
-    """The robot's view of a window as a note (:mod:`fleetctl.e2e.robotview`)."""
-    view = (None if before is None or after is None
-            else robotview.window_view(before, after))
-    return robotview.view_note(label, view)
-
-
 def trial_cuts(duration_s: float) -> tuple[float, ...]:
     """The cut lengths of the trials: :data:`TRIALS` cuts of :data:`CUT_S` s (0.5 s for
     the second) below 30 s of duration, :data:`FULL_TRIALS` from 30 s on."""
@@ -188,8 +180,9 @@ def run_peer(fr: FleetRun, caps: Capabilities, duration_s: float,
                     # Read during the first cut, when nothing is delivered: the read (a
                     # docker exec, the client's stats dump) stays out of the floor window
                     # (the zenoh variants' steady phases have no such read).
-                    views.append(_view_note("fleetctl robot from its connect to the first cut",
-                                            {}, run.robot_stats()))
+                    views.append(robotview.window_note(
+                        "fleetctl robot from its connect to the first cut", {},
+                        run.robot_stats()))
                 progress(f"peer/{variant}: cut {i + 1}/{len(cuts)} for {cut_s:g} s")
                 hold(max(0.0, cut_s - (time.monotonic() - cut_began)))
                 restore = link.restore()
@@ -239,8 +232,8 @@ def run_peer_fanout(fr: FleetRun, caps: Capabilities, duration_s: float,
                     hold(seconds)
                     end = time.time_ns()
                     if variant == "fleetctl":
-                        views.append(_view_note(f"fleetctl robot at {n} consumer(s)", before,
-                                                run.robot_stats()))
+                        views.append(robotview.window_note(
+                            f"fleetctl robot at {n} consumer(s)", before, run.robot_stats()))
                 finally:
                     fr.remove(consumers)
                 window = [s for s in fr.samples(tag) if start <= s.recv_time_ns <= end]

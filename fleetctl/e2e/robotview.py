@@ -10,8 +10,8 @@ of the day; only its log line said so.
 
 The client writes a ``stats: {JSON}`` log line on SIGUSR1 (``fleetctl client``); a window's
 view is the difference of two such snapshots (:func:`window_view`), formatted as one note
-(:func:`view_note`). Reading is best effort: a robot that does not answer gives no view,
-and the note says so instead of failing the scenario.
+(:func:`view_note`; both at once: :func:`window_note`). Reading is best effort: a robot that
+does not answer gives no view, and the note says so instead of failing the scenario.
 """
 
 from __future__ import annotations
@@ -137,3 +137,11 @@ def view_note(label: str, view: RobotView | None) -> str:
             f"frames up to {view.whole_frame_bytes} B sent whole, window "
             f"{view.window_bytes} B, min RTT {rtt}; {rule}{switched}; "
             f"{sends or 'nothing sent'}")
+
+
+def window_note(label: str, before: Mapping[str, Any] | None,
+                after: Mapping[str, Any] | None) -> str:
+    """:func:`view_note` of the window between two :func:`read_stats` snapshots (either
+    None: no view); ``{}`` as *before* counts from the robot's connect."""
+    view = None if before is None or after is None else window_view(before, after)
+    return view_note(label, view)

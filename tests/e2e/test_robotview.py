@@ -54,6 +54,11 @@ def test_the_note_says_what_the_robot_did() -> None:
 
 def test_no_view_is_said_not_guessed() -> None:
     assert "gave no stats" in robotview.view_note("fleetctl robot", None)
+    # Either snapshot missing: no view; an empty start counts from the connect.
+    assert "gave no stats" in robotview.window_note("r", None, _snapshot((1, 1), (1, 1)))
+    assert "gave no stats" in robotview.window_note("r", _snapshot((1, 1), (1, 1)), None)
+    assert "/robot1/scan 5 messages in 15 frames" in robotview.window_note(
+        "r", {}, _snapshot((5, 15), (0, 0)))
 
 
 @dataclass

@@ -167,3 +167,60 @@ def test_on_a_slow_link_every_message_is_deflated_fragments_too() -> None:
     wire = robot.encode(_binary(pieces[2]))
     assert not wire.rsv1 and robot.passes_through(1 << 20)
     assert bytes(relay.decode(wire).data) == pieces[2]
+
+
+def _peer_load_frames(count: int) -> list[bytes]:
+    """The e2e peer load's frames in publish order (a 720-beam scan, then two poses)."""
+    from fleetctl.e2e import payloads
+    from fleetctl.wire.codec import default_codec
+
+    codec = default_codec()
+    ts = codec.registry.typestore
+    out = []
+    for seq in range(count):
+        t_ns = 1_700_000_000_000_000_000 + seq * 100_000_000
+        for topic, type_name, size in (("/robot1/scan", "sensor_msgs/msg/LaserScan", 5760),
+                                       ("/robot1/pose", "geometry_msgs/msg/PoseStamped", 0),
+                                       ("/robot1/pose", "geometry_msgs/msg/PoseStamped", 0)):
+            msg = payloads.build(ts, type_name, size, seq, t_ns)
+            out.append(codec.encode(msg, type_name, topic, seq=seq, publish_time_ns=t_ns))
+    return out
+
+
+def test_fast_link_deflates_with_isal_and_the_relay_inflates_it() -> None:
+    """While the link is fast the robot deflates with ISA-L (its level 2): the peer load's
+    scans to within 5 % of zlib level 1's size (the relay inflates them byte for byte) and
+    its poses to back-references of the previous ones."""
+    import zlib
+
+    from isal import isal_zlib
+
+    robot, relay = _pair(limit=16 * 1024)
+    assert isinstance(robot.encoder, type(isal_zlib.compressobj(2, wbits=-15)))
+    reference = zlib.compressobj(level=1, wbits=-15)
+    sent = _peer_load_frames(10)
+    ours = zlibs = 0
+    for data in sent:
+        wire = robot.encode(_binary(data))
+        assert wire.rsv1
+        assert bytes(relay.decode(wire).data) == data
+        ours += len(wire.data)
+        zlibs += len(reference.compress(data) + reference.flush(zlib.Z_SYNC_FLUSH)) - 4
+    assert ours <= 1.05 * zlibs, (ours, zlibs)
+    assert len(robot.encode(_binary(sent[1])).data) < 60  # a pose: back-references
+
+
+def test_switching_deflaters_at_the_slow_link_rule_keeps_the_stream_decodable() -> None:
+    """Fast (ISA-L) -> slow (zlib, three-block fragments) -> fast again, on one stream: each
+    switch starts a new context, so no back-reference points into what the other
+    deflater compressed; the relay's single inflater reads every message byte for byte."""
+    from isal import isal_zlib
+
+    robot, relay = _pair(limit=16 * 1024)
+    fast_kind = type(isal_zlib.compressobj(2, wbits=-15))
+    sent = _peer_load_frames(12)
+    for i, data in enumerate(sent):
+        robot.deflate_all = 12 <= i < 24
+        wire = robot.encode(_binary(data))
+        assert isinstance(robot.encoder, fast_kind) != robot.deflate_all
+        assert bytes(relay.decode(wire).data) == data, i

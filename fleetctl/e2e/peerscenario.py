@@ -21,13 +21,15 @@ other scenarios keep consumers on the HTTPS listener, as people reach it.
 Robots of every variant take the same path (through WireGuard when the run has it).
 Per variant: the steady uplink (router tx bytes towards the server network over
 :data:`UPLINK_WINDOW_S` s before the first cut), the latency floor (p50 before the first
-cut), and per trial: recovery per topic (:func:`fleetctl.e2e.metrics.recovery_s`), the
-first message after the restore and the stale messages (received after the restore but
-published before it).
+cut, and in :data:`FLOOR_ROUNDS` - 1 more steady phases after the trials, the variants in
+a rotated order; the criterion takes each variant's median), and per trial: recovery
+per topic (:func:`fleetctl.e2e.metrics.recovery_s`), the first message after the restore
+and the stale messages (received after the restore but published before it).
 """
 
 from __future__ import annotations
 
+import dataclasses
 import time
 from collections.abc import Callable
 from typing import Any
@@ -36,6 +38,7 @@ from urllib.parse import urlsplit
 from fleetctl.deploy.shaping import Capabilities
 from fleetctl.e2e import peeranalysis, profiles, robotview
 from fleetctl.e2e.fleetrun import CONTAINER_DIR, FleetRun, hold, wait_for
+from fleetctl.e2e.metrics import LatencyStats
 from fleetctl.e2e.samples import Sample
 from fleetctl.e2e.topology import SERVER_SIDE, Endpoint
 from fleetctl.e2e.zenohpeer import PORT
@@ -50,6 +53,10 @@ FULL_TRIALS = (CUT_S,) * 10 + (0.5,) * 3 + (30.0,) * 2
 LINK_MBIT = 4.0
 UPLINK_WINDOW_S = 3.0
 ZENOH_VARIANTS = ("zenoh-default", "zenoh-best")
+# Rounds of steady phases for the latency floor: the scenario's own (with the cuts) and
+# two more in which the variants run in another order, so that each runs first once
+# (peeranalysis.floor_ms says why).
+FLOOR_ROUNDS = 3
 FANOUT_MBIT = 12.0
 FANOUT_COUNTS = (1, 4, 16)
 
@@ -192,7 +199,15 @@ def run_peer(fr: FleetRun, caps: Capabilities, duration_s: float,
         runs[variant] = peeranalysis.VariantRun(
             samples, t0, trials, window.tx_bytes * 8 / window.seconds, run.published,
             messages_per_s=sum(t.rate_hz for t in p.topics))
+    variants = list(runs)
+    extra: dict[str, list[float]] = {v: [] for v in variants}
+    for r in range(1, FLOOR_ROUNDS):
+        for variant in variants[r:] + variants[:r]:  # each variant first in one round
+            link.rate(LINK_MBIT)
+            progress(f"peer/{variant}: steady, floor round {r + 1}/{FLOOR_ROUNDS}")
+            extra[variant].append(_steady_floor_ms(fr, variant, p, steady_s, r + 1))
     link.clear()
+    runs = {v: dataclasses.replace(run, floor_rounds_ms=extra[v]) for v, run in runs.items()}
     result = peeranalysis.peer(runs, [t.remote_topic for t in p.topics])
     result["notes"].extend(views)
     result["notes"].insert(0, (
@@ -206,6 +221,17 @@ def run_peer(fr: FleetRun, caps: Capabilities, duration_s: float,
         "congestion control Drop, express, pose at a higher priority, one-batch TX queues, "
         "8 KiB socket buffers, 3 s lease)"))
     return result
+
+
+def _steady_floor_ms(fr: FleetRun, variant: str, p: profiles.Profile, steady_s: float,
+                     round_no: int) -> float:
+    """The latency floor (p50) of one more steady phase of *variant*: a new robot and
+    consumer, no cut (what the scenario's own run measures before its first cut)."""
+    with _Run(fr, variant, p, scenario=f"peer-floor{round_no}") as run:
+        hold(steady_s)
+        end = time.time_ns()
+        samples = run.stop()
+    return LatencyStats.of([s for s in samples if s.recv_time_ns < end]).p50_ms
 
 
 def run_peer_fanout(fr: FleetRun, caps: Capabilities, duration_s: float,

@@ -92,3 +92,26 @@ def test_each_trial_knows_its_limit_and_the_stack_s_share_past_it() -> None:
     assert result["trials"]["fleetctl"][0]["limit_s"] == {"/r/pose": t1.limit_s["/r/pose"]}
     no_limit = peeranalysis.Trial({"/r/pose": 0.1}, 0.1, 0)
     assert math.isnan(no_limit.past_limit_s)
+
+
+def test_the_floor_is_the_median_of_the_rounds() -> None:
+    """A slow minute in one round (fleetctl's own run at 4 ms) does not decide the floor:
+    the median of the rounds does, and the note gives every round and its ratio."""
+    import dataclasses
+
+    fleet = dataclasses.replace(_run(0.05), floor_rounds_ms=(1.5, 1.6))
+    fleet = dataclasses.replace(fleet, samples=[
+        dataclasses.replace(s, recv_time_ns=s.publish_time_ns + 4 * MS) for s in fleet.samples])
+    zenoh = dataclasses.replace(_run(0.4), floor_rounds_ms=(1.8, 1.7))
+    result = peeranalysis.peer({"fleetctl": fleet, "zenoh-best": zenoh}, ["/r/pose"])
+    assert result["floor_p50_ms"] == {"fleetctl": 1.6, "zenoh-best": 1.8}
+    crits = {c["name"]: c for c in result["criteria"]}
+    floor = crits["fleetctl latency floor p50 / zenoh's best p50 (medians of the rounds)"]
+    assert floor["ok"] and floor["value"] == pytest.approx(1.6 / 1.8)
+    (note,) = [n for n in result["notes"] if n.startswith("latency floor p50 by round")]
+    assert "fleetctl 4.00 / 1.50 / 1.60 (median 1.60)" in note
+    assert "zenoh-best 2.00 / 1.80 / 1.70 (median 1.80)" in note
+    assert note.endswith("fleetctl / lowest zenoh by round: 2.00x, 0.83x, 0.94x")
+    # Without further rounds the floor is the run's own, as before.
+    alone = peeranalysis.peer({"fleetctl": _run(0.05), "zenoh-best": _run(0.4)}, ["/r/pose"])
+    assert alone["floor_p50_ms"]["fleetctl"] == pytest.approx(2.0, abs=0.01)

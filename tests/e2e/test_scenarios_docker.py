@@ -134,6 +134,13 @@ def test_peer_measures_every_variant_after_every_cut(
     # The robot's own view, read from its stats during the first cut: pose and scan sent.
     (view,) = [n for n in result["notes"] if n.startswith("fleetctl robot from its connect")]
     assert "link rate " in view and "/robot1/scan " in view and "/robot1/pose " in view, view
+    # The floor in three rounds, each variant with a new robot in each: every round gave
+    # a p50, and the criterion is the medians'.
+    (floors,) = [n for n in result["notes"] if n.startswith("latency floor p50 by round")]
+    for variant in ("fleetctl", "zenoh-default", "zenoh-best"):
+        rounds = floors.split(f"{variant} ", 1)[1].split(" (median", 1)[0].split(" / ")
+        assert len(rounds) == 3 and all(0 < float(x) < 1000 for x in rounds), floors
+    assert (logs / "peer-floor3-fleetctl-robot.log").is_file()
 
 
 def test_peer_fanout_reaches_every_consumer(run: tuple[int, Path, dict[str, Any]]) -> None:

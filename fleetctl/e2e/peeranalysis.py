@@ -100,35 +100,33 @@ def trials_of(run: VariantRun, topics: Sequence[str]) -> list[Trial]:
     return out
 
 
+def p50_before_ms(samples: Sequence[Sample], end_ns: float) -> float:
+    """p50 latency of the samples received before *end_ns* (a steady phase's floor)."""
+    return LatencyStats.of([s for s in samples if s.recv_time_ns < end_ns]).p50_ms
+
+
 def floor_p50_ms(run: VariantRun) -> float:
     """p50 latency of every message received before the first cut (the latency floor)."""
-    first_cut = run.trials[0][0] if run.trials else math.inf
-    return LatencyStats.of([s for s in run.samples if s.recv_time_ns < first_cut]).p50_ms
+    return p50_before_ms(run.samples, run.trials[0][0] if run.trials else math.inf)
 
 
 def floor_rounds_ms(run: VariantRun) -> list[float]:
-    """The latency floor of every round of *run*, its own first."""
-    return [floor_p50_ms(run), *run.floor_rounds_ms]
-
-
-def floor_ms(run: VariantRun) -> float:
-    """The variant's latency floor: the median of its rounds' p50s.
+    """The latency floor of every round of *run*, its own first.
 
     Why rounds: the stacks run one after the other, and on a 2-core host the same code's
     floor moved 1.05-1.42x against zenoh's from one run to the next (docs/peers.md, "How
     much one run's floor says"): one p50 each compared the minutes the stacks ran in as
     much as the stacks. Rounds in which each stack runs first once, and the median of
-    each, compare the stacks.
+    each (:func:`peer`), compare the stacks.
     """
-    return statistics.median(floor_rounds_ms(run))
+    return [floor_p50_ms(run), *run.floor_rounds_ms]
 
 
-def floor_note(runs: Mapping[str, VariantRun]) -> str:
-    """Each variant's floor round by round, and fleetctl's against the lowest zenoh in each
-    round."""
-    rounds = {v: floor_rounds_ms(r) for v, r in runs.items()}
-    parts = [f"{v} " + " / ".join(f"{x:.2f}" for x in xs) + f" (median {floor_ms(runs[v]):.2f})"
-             for v, xs in rounds.items()]
+def floor_note(rounds: Mapping[str, Sequence[float]]) -> str:
+    """Each variant's floor round by round (:func:`floor_rounds_ms`) and its median, and
+    fleetctl's against the lowest zenoh in each round."""
+    parts = [f"{v} " + " / ".join(f"{x:.2f}" for x in xs)
+             + f" (median {statistics.median(xs):.2f})" for v, xs in rounds.items()]
     note = "latency floor p50 by round (ms; each round the variants one after the other, " \
         "each variant first in one round): " + "; ".join(parts)
     fleet = rounds.get("fleetctl", [])
@@ -149,7 +147,8 @@ def peer(runs: Mapping[str, VariantRun], topics: Sequence[str]) -> dict[str, Any
     factors = [b.worst_s / f.worst_s if f.worst_s > 0 else math.inf
                for f, b in zip(fleet, best, strict=False)]
     factor = min(factors, default=math.nan)
-    floors = {v: floor_ms(r) for v, r in runs.items()}
+    rounds = {v: floor_rounds_ms(r) for v, r in runs.items()}
+    floors = {v: statistics.median(xs) for v, xs in rounds.items()}
     zenoh_floor = min((f for v, f in floors.items() if v != "fleetctl"), default=math.nan)
     uplink = runs["fleetctl"].uplink_bit_s
     criteria = [
@@ -177,7 +176,7 @@ def peer(runs: Mapping[str, VariantRun], topics: Sequence[str]) -> dict[str, Any
             for i, (tr, cut) in enumerate(zip(ts, cuts, strict=False)))
         notes.append(f"{v}: uplink {runs[v].uplink_bit_s / 1e6:.3f} Mbit/s, latency floor "
                      f"p50 {floors[v]:.2f} ms; {per}")
-    notes.append(floor_note(runs))
+    notes.append(floor_note(rounds))
     notes.append(limit_note(trials))
     notes.append(bytes_note(runs))
     plots = []

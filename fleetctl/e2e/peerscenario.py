@@ -38,7 +38,6 @@ from urllib.parse import urlsplit
 from fleetctl.deploy.shaping import Capabilities
 from fleetctl.e2e import peeranalysis, profiles, robotview
 from fleetctl.e2e.fleetrun import CONTAINER_DIR, FleetRun, hold, wait_for
-from fleetctl.e2e.metrics import LatencyStats
 from fleetctl.e2e.samples import Sample
 from fleetctl.e2e.topology import SERVER_SIDE, Endpoint
 from fleetctl.e2e.zenohpeer import PORT
@@ -55,7 +54,7 @@ UPLINK_WINDOW_S = 3.0
 ZENOH_VARIANTS = ("zenoh-default", "zenoh-best")
 # Rounds of steady phases for the latency floor: the scenario's own (with the cuts) and
 # two more in which the variants run in another order, so that each runs first once
-# (peeranalysis.floor_ms says why).
+# (peeranalysis.floor_rounds_ms says why).
 FLOOR_ROUNDS = 3
 FANOUT_MBIT = 12.0
 FANOUT_COUNTS = (1, 4, 16)
@@ -231,7 +230,7 @@ def _steady_floor_ms(fr: FleetRun, variant: str, p: profiles.Profile, steady_s: 
         hold(steady_s)
         end = time.time_ns()
         samples = run.stop()
-    return LatencyStats.of([s for s in samples if s.recv_time_ns < end]).p50_ms
+    return peeranalysis.p50_before_ms(samples, end)
 
 
 def run_peer_fanout(fr: FleetRun, caps: Capabilities, duration_s: float,

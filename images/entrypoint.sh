@@ -10,6 +10,34 @@ set -euo pipefail
 
 log() { echo "fleetctl-entrypoint: $*" >&2; }
 
+# The sockets bound to UDP port $1 in this network namespace (ss's lines; empty: free).
+udp_port_holders() { ss -Huanp "sport = :$1" 2>/dev/null || true; }
+
+# wg setconf, and once more after a conflict on the listen port has gone. Once in 15
+# e2e fleet starts the server's wg setconf failed with "Address already in use" in a new
+# network namespace, where nothing of ours binds that port, and what did was not known.
+# Now the log names the holder (ss), and one that lets go within 3 s is waited out
+# instead of stopping the server.
+wg_setconf() {
+  local iface=$1 stripped=$2 port=$3 err i
+  if err=$(wg setconf "$iface" <(printf '%s\n' "$stripped") 2>&1); then
+    return 0
+  fi
+  printf '%s\n' "$err" >&2
+  case $err in *"Address already in use"*) ;; *) return 1 ;; esac
+  [[ $port =~ ^[0-9]+$ ]] || return 1
+  log "WARNING: UDP port $port is taken in this network namespace by: $(udp_port_holders "$port" | tr -s ' \n' ' ')"
+  for i in $(seq 30); do
+    [ -z "$(udp_port_holders "$port")" ] && break
+    sleep 0.1
+  done
+  if wg setconf "$iface" <(printf '%s\n' "$stripped"); then
+    log "UDP port $port free again; wg setconf applied on the second attempt"
+    return 0
+  fi
+  return 1
+}
+
 wg_up() {
   local conf=$1 iface
   iface=$(basename "$conf" .conf)
@@ -32,12 +60,13 @@ wg_up() {
   # ignores `set -e`. A config wg could not apply (a peer's key mistyped in a hand edit)
   # was logged, then "WireGuard wg0 up" and a healthy server without peers, even with
   # WG_REQUIRED=1.
-  local stripped addr mtu allowed
+  local stripped addr mtu allowed port
   if ! stripped=$(wg-quick strip "$conf"); then
     log "WARNING: wg-quick strip $conf failed (above)"
     return 1
   fi
-  if ! wg setconf "$iface" <(printf '%s\n' "$stripped"); then
+  port=$(sed -n 's/^[[:space:]]*ListenPort[[:space:]]*=[[:space:]]*//p' "$conf" | head -1)
+  if ! wg_setconf "$iface" "$stripped" "$port"; then
     log "WARNING: $conf: wg setconf refused it (above)"
     return 1
   fi

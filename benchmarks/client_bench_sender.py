@@ -11,6 +11,8 @@ JSON line with its own measurements. Scenarios:
 - ``slow``: one droppable topic of ``--size`` bytes (``--payload``) every ``--period`` s
   for ``--seconds``, on a link slower than it (part (f)): what the link spends on messages
   it abandons, and with ``--count-dev`` the bytes the interface sent for them.
+- ``speedup``: issue 19's load with the e2e load's real scan and pose, the link's view
+  printed once a second (part (g): the caller changes the shaping meanwhile).
 - ``cpu``: a 10 Hz 1 MB ``sensor_msgs/msg/PointCloud2`` for ``--seconds``: per message CDR
   -> message (rosbags) -> FlatBuffer (codec) -> link, i.e. the ROS node's per-message path
   without rclpy's own receive. Prints CPU seconds and RSS.
@@ -35,6 +37,7 @@ from fleetctl.client.linktuning import LinkTuning
 from fleetctl.client.scheduler import SchedulerConfig
 from fleetctl.client.slowdeflate import SlowDeflateSettings
 from fleetctl.client.transport import RobotLink, scheduler_config_for
+from fleetctl.e2e import payloads
 from fleetctl.wire import samples
 from fleetctl.wire.codec import default_codec
 
@@ -229,45 +232,116 @@ async def slow_link(args: argparse.Namespace) -> dict[str, Any]:
             "uplink_deflate": stats["uplink_deflate"]}
 
 
+# Issue 19's topics as the e2e load publishes them: (topic, period s, type, size asked of
+# fleetctl.e2e.payloads, priority); frames of 248 and 5,960 bytes.
+PEER_LOAD = (("/bench/pose", 0.05, "geometry_msgs/msg/PoseStamped", 256, 2.0),
+             ("/bench/scan", 0.1, "sensor_msgs/msg/LaserScan", 5760, 1.0))
+
+
+class PeerFrames:
+    """The frames of :data:`PEER_LOAD`, each stamped when made: the e2e load's messages
+    (``real``: a scan deflates to ~0.58 of its size, a pose to ~0.15), or (``string``,
+    the figures before 2026-12-07) std_msgs/String frames of the same sizes holding one
+    repeated letter, which deflates to ~2 %: so far below the slow-link rule's trusted
+    share that the robot deflates every message, with zlib, on any link."""
+
+    def __init__(self, payload: str) -> None:
+        self.codec = default_codec()
+        self.real = payload == "real"
+        self.seqs: dict[str, int] = {}
+        self.sizes = {topic: size for topic, _, _, size, _ in PEER_LOAD}
+        self.types = {topic: type_name for topic, _, type_name, _, _ in PEER_LOAD}
+
+    def make(self, topic: str) -> bytes:
+        """The next frame of *topic* (a topic of :data:`PEER_LOAD`, or one with
+        ``_warm`` appended)."""
+        base = topic.removesuffix("_warm")
+        seq = self.seqs[topic] = self.seqs.get(topic, 0) + 1
+        if not self.real:
+            return string_frame(topic, {"/bench/pose": 86, "/bench/scan": 5814}[base], seq,
+                                no_drop=False)
+        type_name = self.types[base]
+        msg = payloads.build(self.codec.registry.typestore, type_name, self.sizes[base],
+                             seq, time.time_ns())
+        # Stamped after the message is built (the scan's ray casting takes ~0.1 ms, which
+        # a robot's sensor driver spends before it publishes), before it is encoded (the
+        # robot's own work, as in the string frames).
+        return self.codec.encode(msg, type_name, topic, seq=seq,
+                                 publish_time_ns=time.time_ns())
+
+
 async def peer_load(args: argparse.Namespace) -> dict[str, Any]:
-    """Issue 19's load shape: a 256 B frame at 20 Hz (the pose) and a 5,984 B frame at 10 Hz
-    (the 720-beam scan), droppable, each stamped when offered; through RobotLink, or
-    (``--mode raw``) written on a plain websockets connection as soon as it is made."""
-    topics = (("/bench/pose", 0.05, 256 - 170, 2.0), ("/bench/scan", 0.1, 5984 - 170, 1.0))
-    seqs = dict.fromkeys((t for t, *_ in topics), 0)
+    """Issue 19's load (:class:`PeerFrames`: the pose at 20 Hz, the 720-beam scan at 10
+    Hz), droppable, each stamped when made; through RobotLink, or (``--mode raw``)
+    written on a plain websockets connection as soon as it is made."""
+    frames = PeerFrames(args.payload)
+    topics = tuple((topic, period, 0, prio) for topic, period, _, _, prio in PEER_LOAD)
     if args.mode == "raw":
         async with connect(args.url, additional_headers={"Authorization": f"Bearer {ROBOT_TOKEN}"},
                            compression=None, proxy=None, max_size=None) as ws:
             pending: set[asyncio.Task[None]] = set()
 
-            def send(topic: str, size: int, _prio: float) -> None:
-                seqs[topic] = seqs.get(topic, 0) + 1
-                task = asyncio.ensure_future(
-                    ws.send(string_frame(topic, size, seqs[topic], no_drop=False)))
+            def send(topic: str, _size: int, _prio: float) -> None:
+                task = asyncio.ensure_future(ws.send(frames.make(topic)))
                 pending.add(task)
                 task.add_done_callback(pending.discard)
 
             await _run_topics(topics, args, send)
             await asyncio.gather(*pending)
             await (await ws.ping())
-            return {"sent": seqs}
+            return {"sent": frames.seqs}
     link = make_link(args.url, args.mode, args.fragment_bytes)
     task = asyncio.create_task(link.run())
     await wait_connected(link)
 
-    def offer(topic: str, size: int, prio: float) -> None:
-        seqs[topic] = seqs.get(topic, 0) + 1
-        link.offer(topic, string_frame(topic, size, seqs[topic], no_drop=False),
-                   priority=prio, no_drop=False)
+    def offer(topic: str, _size: int, prio: float) -> None:
+        link.offer(topic, frames.make(topic), priority=prio, no_drop=False)
 
     await _run_topics(topics, args, offer)
     await drained(link)
     stats = link.stats()
     await link.stop()
     await task
-    return {"sent": seqs, "window_bytes": stats["window_bytes"],
+    return {"sent": frames.seqs, "window_bytes": stats["window_bytes"],
             "fragment_bytes": stats["fragment_bytes"], "min_rtt_ms": stats["min_rtt_ms"],
-            "delivery_rate_Bps": stats["delivery_rate_Bps"]}
+            "delivery_rate_Bps": stats["delivery_rate_Bps"],
+            "deflate_all": stats["uplink_deflate"]["all_messages"],
+            "wire_share": stats["uplink_deflate"]["wire_share"]}
+
+
+REPORT_EVERY_S = 0.25
+
+
+async def speedup(args: argparse.Namespace) -> dict[str, Any]:
+    """Issue 19's load with the e2e load's messages (:class:`PeerFrames`), printing the
+    link's view every :data:`REPORT_EVERY_S` as a JSON line (``{"t": ..., "deflate_all":
+    ...}``), while the caller changes the link's shaping from outside (part (g))."""
+    frames = PeerFrames("real")
+    link = make_link(args.url, "link", args.fragment_bytes)
+    task = asyncio.create_task(link.run())
+    await wait_connected(link)
+    start = time.monotonic()
+    stop_at = start + args.seconds
+
+    async def report() -> None:
+        while time.monotonic() < stop_at:
+            await asyncio.sleep(REPORT_EVERY_S)
+            st = link.stats()
+            print(json.dumps({
+                "t": round(time.monotonic() - start, 2),
+                "deflate_all": st["uplink_deflate"]["all_messages"],
+                "wire_share": st["uplink_deflate"]["wire_share"],
+                "link_rate_Bps": st["link_rate_Bps"], "fragment_bytes": st["fragment_bytes"],
+                "window_bytes": st["window_bytes"]}), flush=True)
+
+    await asyncio.gather(*(
+        periodic(period, stop_at, lambda t=topic, p=prio: link.offer(
+            t, frames.make(t), priority=p, no_drop=False))
+        for topic, period, _, _, prio in PEER_LOAD), report())
+    stats = link.stats()
+    await link.stop()
+    await task
+    return {"sent": frames.seqs, "switches": stats["uplink_deflate"]["switches"]}
 
 
 async def _run_topics(topics: tuple[tuple[str, float, int, float], ...],
@@ -333,15 +407,18 @@ async def cpu(args: argparse.Namespace) -> dict[str, Any]:
 
 def main() -> None:
     parser = argparse.ArgumentParser()
-    parser.add_argument("scenario", choices=["throughput", "priority", "cpu", "peer", "slow"])
+    parser.add_argument("scenario", choices=["throughput", "priority", "cpu", "peer", "slow",
+                                             "speedup"])
     parser.add_argument("--url", required=True)
     parser.add_argument("--mode", choices=["link", "baseline", "raw"], default="link")
     parser.add_argument("--frames", type=int, default=1000)
     parser.add_argument("--size", type=int, default=65536)
     parser.add_argument("--seconds", type=float, default=10.0)
     parser.add_argument("--period", type=float, default=0.2, help="slow: offer interval (s)")
-    parser.add_argument("--payload", choices=["string", "image", "cloud"], default="string",
-                        help="slow: what the large message holds")
+    parser.add_argument("--payload", choices=["string", "image", "cloud", "real"],
+                        default="string",
+                        help="slow: what the large message holds (string, image, cloud); "
+                             "peer: string or real (PeerFrames)")
     parser.add_argument("--count-dev", default="",
                         help="slow: the interface whose sent bytes are counted")
     parser.add_argument("--no-slow-deflate", dest="slow_deflate", action="store_false",
@@ -355,7 +432,8 @@ def main() -> None:
     parser.add_argument("--fragment-bytes", type=int, default=SchedulerConfig().max_fragment_bytes)
     args = parser.parse_args()
     run = {"throughput": throughput, "priority": priority, "cpu": cpu,
-           "peer": peer_load, "slow": slow_link}[args.scenario]
+           "peer": peer_load, "slow": slow_link,
+           "speedup": speedup}[args.scenario]
     print(json.dumps(asyncio.run(run(args))), flush=True)
 
 

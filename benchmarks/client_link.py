@@ -3,7 +3,7 @@
 Usage (root, for the network namespaces of part b)::
 
     .venv/bin/python benchmarks/client_link.py [--seconds 10] [--json out.json]
-        [--skip throughput,priority,cpu,dropout,peer,slow] [--peer-rate 12mbit]
+        [--skip throughput,priority,cpu,dropout,peer,slow,speedup] [--peer-rate 12mbit]
 
 (a) throughput: unshaped loopback, N x 64 KB no_drop frames from the robot into the
     fleetctl relay, from the first send until the pong that acknowledges the last frame;
@@ -20,7 +20,9 @@ Usage (root, for the network namespaces of part b)::
 (d) dropout: the robot's egress between the namespaces is cut silently for 5 s (bfifo
     limit 0: no netem here); time from restore until latency is back under 2x its
     pre-cut median, and whether every no_drop message arrived in order.
-(e) issue 19's load: a 256 B topic at 20 Hz and a 5,984 B one at 10 Hz (pose and scan)
+(e) issue 19's load: a pose at 20 Hz and a 720-beam scan at 10 Hz (the e2e load's
+    messages; ``--peer-payload string``: frames of their sizes holding one letter, as
+    before 2026-12-07, which the robot deflates to ~2 % and so deflates all, with zlib)
     over a 12 Mbit tbf link (16 KB bucket, as the e2e router), RobotLink against the same
     frames written at once on a plain websockets connection: what the scheduler adds to
     the latency floor on a link that is far from full.
@@ -30,6 +32,10 @@ Usage (root, for the network namespaces of part b)::
     and messages abandoned mid-send cost) and the robot's CPU; an image of random bytes
     and a cloud of float points, each with the slow-link deflate of every message and
     without it, alternating. The bound is the link: 3 Mbit/s / 150 KB = 2.5 messages/s.
+(g) a link that gets faster: issue 19's load (the e2e load's scan and pose) over a 1 Mbit/s
+    tbf link with a one-packet bucket, where the robot deflates every message, changed to
+    12 Mbit/s with a 16 KB bucket once it does: how long the robot keeps that state, and
+    the latency before and after.
 
 Each side runs in its own process: relay + consumer (``client_bench_peer.py``) and robot
 (``client_bench_sender.py``).
@@ -249,11 +255,14 @@ def summarize(report: dict[str, Any], sent: dict[str, Any]) -> dict[str, Any]:
 PEER_TOPICS = ("/bench/pose", "/bench/scan")
 
 
-def bench_peer(auth: Path, seconds: float, rate: str, burst: str) -> dict[str, Any]:
-    """Issue 19's load (256 B at 20 Hz, 5,984 B at 10 Hz) over a *rate* tbf link:
-    RobotLink against the same frames written at once on a plain websockets connection
-    (what the scheduler costs on an idle link), alternating, two rounds each."""
-    out: dict[str, Any] = {"rate": rate, "burst": burst}
+def bench_peer(auth: Path, seconds: float, rate: str, burst: str,
+               payload: str = "real") -> dict[str, Any]:
+    """Issue 19's load (a pose at 20 Hz, a 720-beam scan at 10 Hz; *payload* ``real``:
+    the e2e load's messages, ``string``: frames of their sizes holding one letter) over a
+    *rate* tbf link: RobotLink against the same frames written at once on a plain
+    websockets connection (what the scheduler costs on an idle link), alternating, two
+    rounds each."""
+    out: dict[str, Any] = {"rate": rate, "burst": burst, "payload": payload}
     with Namespaces(rate, burst) as ns:
         peer = Peer(ns.prefix(ns.server), NS_ADDR_SERVER, auth)
         try:
@@ -263,7 +272,8 @@ def bench_peer(auth: Path, seconds: float, rate: str, burst: str) -> dict[str, A
                 for mode in ("link", "raw"):
                     peer.cmd("reset")
                     sent = sender(ns.prefix(ns.robot), "peer", "--url", peer.url, "--mode",
-                                  mode, "--seconds", str(seconds), "--warmup", "2")
+                                  mode, "--seconds", str(seconds), "--warmup", "2",
+                                  "--payload", payload)
                     report = peer.cmd("report")
                     for topic in PEER_TOPICS:
                         lat.setdefault(mode, {}).setdefault(topic, []).extend(
@@ -328,6 +338,66 @@ def slow_round(peer: Peer, sent: dict[str, Any], seconds: float, payload: str,
         "cpu_percent": 100 * sent["cpu_s"] / seconds,
         "superseded": topic["dropped_superseded"],
         "replaced": topic["dropped_replaced"]}
+
+
+# -- (g) a link that gets faster ---------------------------------------------------------
+
+
+SPEEDUP_SLOW = ("1mbit", "1600")  # a one-packet bucket: the load's scans queue
+SPEEDUP_FAST = ("12mbit", "16kb")  # issue 19's fan-out link, the e2e router's bucket
+
+
+def bench_speedup(auth: Path, before_s: float, after_s: float) -> dict[str, Any]:
+    """Issue 19's load (the e2e load's scan and pose) over a 1 Mbit/s tbf link, where the
+    robot deflates every message and cuts scans to fill TCP segments, until the link
+    becomes 12 Mbit/s: how long the robot keeps the slow-link state after that, and the
+    latency before and after. Why: once in 22 e2e fan-out passes on a 12 Mbit/s link the
+    robot took a fresh link for a 4.3 Mbit/s one and deflated everything for the whole
+    run (docs/peers.md); were the rule unable to see a faster link from its own slow-link
+    traffic, a robot whose Wi-Fi or LTE gets better would stay slow too."""
+    out: dict[str, Any] = {"slow": SPEEDUP_SLOW, "fast": SPEEDUP_FAST, "rows": []}
+    with Namespaces(*SPEEDUP_SLOW) as ns:
+        peer = Peer(ns.prefix(ns.server), NS_ADDR_SERVER, auth)
+        try:
+            proc = subprocess.Popen(
+                [*ns.prefix(ns.robot), PY, str(HERE / "client_bench_sender.py"), "speedup",
+                 "--url", peer.url, "--seconds", str(before_s + after_s)],
+                stdout=subprocess.PIPE, text=True,
+                env={**os.environ, "PYTHONPATH": str(HERE.parent)})
+            assert proc.stdout is not None
+            switched_at: float | None = None
+            for line in proc.stdout:
+                row = json.loads(line)
+                if "t" not in row:
+                    out["sender"] = row
+                    continue
+                out["rows"].append(row)
+                if switched_at is None and row["t"] >= before_s and row["deflate_all"]:
+                    rate, burst = SPEEDUP_FAST
+                    sh("tc", "-n", ns.robot, "qdisc", "change", "dev", ns.veth_r, "root",
+                       "tbf", "rate", rate, "burst", burst, "latency", "400ms")
+                    switched_at = row["t"]
+                    out["before"] = peer_latencies(peer.cmd("report"))
+                    peer.cmd("reset")
+            if proc.wait() != 0:
+                raise SystemExit("the speedup sender failed")
+            out["after"] = peer_latencies(peer.cmd("report"))
+        finally:
+            peer.close()
+    rows = out["rows"]
+    out["on_at_s"] = next((r["t"] for r in rows if r["deflate_all"]), None)
+    out["switched_at_s"] = switched_at
+    out["off_after_s"] = None if switched_at is None else next(
+        (r["t"] - switched_at for r in rows if r["t"] > switched_at and not r["deflate_all"]),
+        None)
+    return out
+
+
+def peer_latencies(report: dict[str, Any]) -> dict[str, dict[str, float]]:
+    """p50 / p99 (ms) and count per topic of :data:`PEER_TOPICS` in a consumer report."""
+    return {topic: {"n": len(lat), "p50_ms": pct(lat, 50), "p99_ms": pct(lat, 99)}
+            for topic in PEER_TOPICS
+            for lat in [report.get(topic, {}).get("latency_ms", [])]}
 
 
 # -- (d) dropout ------------------------------------------------------------------------
@@ -410,6 +480,9 @@ def main() -> None:
     parser.add_argument("--skip", default="")
     parser.add_argument("--peer-rate", default="12mbit",
                         help="tbf rate of part (e), issue 19's fan-out link")
+    parser.add_argument("--peer-payload", choices=["real", "string"], default="real",
+                        help="part (e)'s messages: the e2e load's (real) or one repeated "
+                             "letter (string, the figures before 2026-12-07)")
     parser.add_argument("--slow-rate", default="3mbit",
                         help="tbf rate of part (f), a link slower than its topic")
     parser.add_argument("--json", type=Path)
@@ -471,9 +544,11 @@ def main() -> None:
                   f"gaps {d['events_gaps']}, reorders {d['events_reorders']}, "
                   f"duplicates {d['events_duplicates']}")
         if "peer" not in skip:
-            results["peer"] = e = bench_peer(auth, args.seconds, args.peer_rate, "16kb")
-            print(f"(e) issue 19's load (256 B @ 20 Hz, 5,984 B @ 10 Hz, droppable) over "
-                  f"{e['rate']} tbf, burst {e['burst']}; p50 / p99 ms, two rounds each")
+            results["peer"] = e = bench_peer(auth, args.seconds, args.peer_rate, "16kb",
+                                             args.peer_payload)
+            print(f"(e) issue 19's load (pose @ 20 Hz, 720-beam scan @ 10 Hz, droppable, "
+                  f"{e['payload']} payloads) over {e['rate']} tbf, burst {e['burst']}; p50 / "
+                  "p99 ms, two rounds each")
             for mode, label in (("link", "RobotLink"), ("raw", "plain websockets, at once")):
                 row = e[mode]
                 print(f"    {label:26s} " + "  ".join(
@@ -493,6 +568,24 @@ def main() -> None:
                       f"per {row['frame_bytes']:,} B message "
                       f"({row['wire_over_frame']:.3f}x), robot CPU "
                       f"{row['cpu_percent']:.1f} %, superseded {row['superseded']}")
+        if "speedup" not in skip:
+            results["speedup"] = g = bench_speedup(auth, 5.0, args.seconds)
+            print(f"(g) issue 19's load over a {g['slow'][0]} tbf link (bucket {g['slow'][1]} "
+                  f"B) that becomes {g['fast'][0]} (bucket {g['fast'][1]}) once the robot "
+                  "deflates every message")
+            print(f"    deflating every message from {g['on_at_s']} s; link changed at "
+                  f"{g['switched_at_s']} s; back to small messages only "
+                  f"{g['off_after_s']} s later (reported every 0.25 s; switches "
+                  f"{g.get('sender', {}).get('switches')})")
+            for phase in ("before", "after"):
+                row = g.get(phase, {})
+                print(f"    {phase:6s} " + "  ".join(
+                    f"{t.rsplit('/', 1)[1]} {row[t]['p50_ms']:6.2f} / {row[t]['p99_ms']:6.2f} "
+                    f"ms (n {row[t]['n']})" for t in PEER_TOPICS if t in row))
+            last = g["rows"][-1] if g["rows"] else {}
+            print(f"    at the end: link rate {last.get('link_rate_Bps', 0) * 8e-6:.1f} Mbit/s "
+                  f"of frame bytes, fragments {last.get('fragment_bytes')} B, window "
+                  f"{last.get('window_bytes')} B")
     if args.json:
         args.json.write_text(json.dumps(results, indent=2))
 

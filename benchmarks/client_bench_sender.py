@@ -12,7 +12,7 @@ JSON line with its own measurements. Scenarios:
   for ``--seconds``, on a link slower than it (part (f)): what the link spends on messages
   it abandons, and with ``--count-dev`` the bytes the interface sent for them.
 - ``speedup``: issue 19's load with the e2e load's real scan and pose, the link's view
-  printed once a second (part (g): the caller changes the shaping meanwhile).
+  printed four times a second (part (g): the caller changes the shaping meanwhile).
 - ``cpu``: a 10 Hz 1 MB ``sensor_msgs/msg/PointCloud2`` for ``--seconds``: per message CDR
   -> message (rosbags) -> FlatBuffer (codec) -> link, i.e. the ROS node's per-message path
   without rclpy's own receive. Prints CPU seconds and RSS.

@@ -358,12 +358,12 @@ def bench_speedup(auth: Path, before_s: float, after_s: float) -> dict[str, Any]
     out: dict[str, Any] = {"slow": SPEEDUP_SLOW, "fast": SPEEDUP_FAST, "rows": []}
     with Namespaces(*SPEEDUP_SLOW) as ns:
         peer = Peer(ns.prefix(ns.server), NS_ADDR_SERVER, auth)
+        proc = subprocess.Popen(
+            [*ns.prefix(ns.robot), PY, str(HERE / "client_bench_sender.py"), "speedup",
+             "--url", peer.url, "--seconds", str(before_s + after_s)],
+            stdout=subprocess.PIPE, text=True,
+            env={**os.environ, "PYTHONPATH": str(HERE.parent)})
         try:
-            proc = subprocess.Popen(
-                [*ns.prefix(ns.robot), PY, str(HERE / "client_bench_sender.py"), "speedup",
-                 "--url", peer.url, "--seconds", str(before_s + after_s)],
-                stdout=subprocess.PIPE, text=True,
-                env={**os.environ, "PYTHONPATH": str(HERE.parent)})
             assert proc.stdout is not None
             switched_at: float | None = None
             for line in proc.stdout:
@@ -383,6 +383,9 @@ def bench_speedup(auth: Path, before_s: float, after_s: float) -> dict[str, Any]
                 raise SystemExit("the speedup sender failed")
             out["after"] = peer_latencies(peer.cmd("report"))
         finally:
+            if proc.poll() is None:  # stopped early (an error above): not left running
+                proc.kill()
+                proc.wait()
             peer.close()
     rows = out["rows"]
     out["on_at_s"] = next((r["t"] for r in rows if r["deflate_all"]), None)

@@ -10,6 +10,9 @@ set -euo pipefail
 
 log() { echo "fleetctl-entrypoint: $*" >&2; }
 
+# The values of key $1 in wg-quick config $2, one per line, as written.
+conf_values() { sed -n "s/^[[:space:]]*$1[[:space:]]*=[[:space:]]*//p" "$2"; }
+
 # The sockets bound to UDP port $1 in this network namespace (ss's lines; empty: free).
 udp_port_holders() { ss -Huanp "sport = :$1" 2>/dev/null || true; }
 
@@ -65,23 +68,23 @@ wg_up() {
     log "WARNING: wg-quick strip $conf failed (above)"
     return 1
   fi
-  port=$(sed -n 's/^[[:space:]]*ListenPort[[:space:]]*=[[:space:]]*//p' "$conf" | head -1)
+  port=$(conf_values ListenPort "$conf" | head -1)
   if ! wg_setconf "$iface" "$stripped" "$port"; then
     log "WARNING: $conf: wg setconf refused it (above)"
     return 1
   fi
-  for addr in $(sed -n 's/^[[:space:]]*Address[[:space:]]*=[[:space:]]*//p' "$conf" | tr ',' ' '); do
+  for addr in $(conf_values Address "$conf" | tr ',' ' '); do
     if ! ip address add "$addr" dev "$iface"; then
       log "WARNING: $conf: cannot give $iface the address $addr (above)"
       return 1
     fi
   done
-  mtu=$(sed -n 's/^[[:space:]]*MTU[[:space:]]*=[[:space:]]*//p' "$conf" | head -1)
+  mtu=$(conf_values MTU "$conf" | head -1)
   if ! ip link set "$iface" mtu "${mtu:-1380}" up; then
     log "WARNING: $conf: cannot bring $iface up with MTU ${mtu:-1380} (above)"
     return 1
   fi
-  for allowed in $(sed -n 's/^[[:space:]]*AllowedIPs[[:space:]]*=[[:space:]]*//p' "$conf" | tr ',' ' '); do
+  for allowed in $(conf_values AllowedIPs "$conf" | tr ',' ' '); do
     ip route replace "$allowed" dev "$iface" 2>/dev/null || true
   done
   log "WireGuard $iface up: $(ip -brief address show "$iface")"

@@ -233,36 +233,35 @@ async def slow_link(args: argparse.Namespace) -> dict[str, Any]:
 
 
 # Issue 19's topics as the e2e load publishes them: (topic, period s, type, size asked of
-# fleetctl.e2e.payloads, priority); frames of 248 and 5,960 bytes.
-PEER_LOAD = (("/bench/pose", 0.05, "geometry_msgs/msg/PoseStamped", 256, 2.0),
-             ("/bench/scan", 0.1, "sensor_msgs/msg/LaserScan", 5760, 1.0))
+# fleetctl.e2e.payloads, priority, the string frame's text length); frames of 256 and
+# 5,968 bytes, the string frames 200 and 5,928.
+PEER_LOAD = (("/bench/pose", 0.05, "geometry_msgs/msg/PoseStamped", 256, 2.0, 86),
+             ("/bench/scan", 0.1, "sensor_msgs/msg/LaserScan", 5760, 1.0, 5814))
 
 
 class PeerFrames:
     """The frames of :data:`PEER_LOAD`, each stamped when made: the e2e load's messages
     (``real``: a scan deflates to ~0.58 of its size, a pose to ~0.15), or (``string``,
-    the figures before 2026-12-07) std_msgs/String frames of the same sizes holding one
-    repeated letter, which deflates to ~2 %: so far below the slow-link rule's trusted
+    the figures before 2026-12-07) std_msgs/String frames of about their sizes holding
+    one repeated letter, which deflates to ~2 %: so far below the slow-link rule's trusted
     share that the robot deflates every message, with zlib, on any link."""
 
     def __init__(self, payload: str) -> None:
         self.codec = default_codec()
         self.real = payload == "real"
         self.seqs: dict[str, int] = {}
-        self.sizes = {topic: size for topic, _, _, size, _ in PEER_LOAD}
-        self.types = {topic: type_name for topic, _, type_name, _, _ in PEER_LOAD}
+        self.topics = {topic: (type_name, size, text)
+                       for topic, _, type_name, size, _, text in PEER_LOAD}
 
     def make(self, topic: str) -> bytes:
         """The next frame of *topic* (a topic of :data:`PEER_LOAD`, or one with
         ``_warm`` appended)."""
-        base = topic.removesuffix("_warm")
+        type_name, size, text = self.topics[topic.removesuffix("_warm")]
         seq = self.seqs[topic] = self.seqs.get(topic, 0) + 1
         if not self.real:
-            return string_frame(topic, {"/bench/pose": 86, "/bench/scan": 5814}[base], seq,
-                                no_drop=False)
-        type_name = self.types[base]
-        msg = payloads.build(self.codec.registry.typestore, type_name, self.sizes[base],
-                             seq, time.time_ns())
+            return string_frame(topic, text, seq, no_drop=False)
+        msg = payloads.build(self.codec.registry.typestore, type_name, size, seq,
+                             time.time_ns())
         # Stamped after the message is built (the scan's ray casting takes ~0.1 ms, which
         # a robot's sensor driver spends before it publishes), before it is encoded (the
         # robot's own work, as in the string frames).
@@ -275,7 +274,7 @@ async def peer_load(args: argparse.Namespace) -> dict[str, Any]:
     Hz), droppable, each stamped when made; through RobotLink, or (``--mode raw``)
     written on a plain websockets connection as soon as it is made."""
     frames = PeerFrames(args.payload)
-    topics = tuple((topic, period, 0, prio) for topic, period, _, _, prio in PEER_LOAD)
+    topics = tuple((topic, period, 0, prio) for topic, period, _, _, prio, _ in PEER_LOAD)
     if args.mode == "raw":
         async with connect(args.url, additional_headers={"Authorization": f"Bearer {ROBOT_TOKEN}"},
                            compression=None, proxy=None, max_size=None) as ws:
@@ -337,7 +336,7 @@ async def speedup(args: argparse.Namespace) -> dict[str, Any]:
     await asyncio.gather(*(
         periodic(period, stop_at, lambda t=topic, p=prio: link.offer(
             t, frames.make(t), priority=p, no_drop=False))
-        for topic, period, _, _, prio in PEER_LOAD), report())
+        for topic, period, _, _, prio, _ in PEER_LOAD), report())
     stats = link.stats()
     await link.stop()
     await task

@@ -21,7 +21,7 @@ Usage (root, for the network namespaces of part b)::
     limit 0: no netem here); time from restore until latency is back under 2x its
     pre-cut median, and whether every no_drop message arrived in order.
 (e) issue 19's load: a pose at 20 Hz and a 720-beam scan at 10 Hz (the e2e load's
-    messages; ``--peer-payload string``: frames of their sizes holding one letter, as
+    messages; ``--peer-payload string``: frames of about their sizes holding one letter, as
     before 2026-12-07, which the robot deflates to ~2 % and so deflates all, with zlib)
     over a 12 Mbit tbf link (16 KB bucket, as the e2e router), RobotLink against the same
     frames written at once on a plain websockets connection: what the scheduler adds to
@@ -258,8 +258,8 @@ PEER_TOPICS = ("/bench/pose", "/bench/scan")
 def bench_peer(auth: Path, seconds: float, rate: str, burst: str,
                payload: str = "real") -> dict[str, Any]:
     """Issue 19's load (a pose at 20 Hz, a 720-beam scan at 10 Hz; *payload* ``real``:
-    the e2e load's messages, ``string``: frames of their sizes holding one letter) over a
-    *rate* tbf link: RobotLink against the same frames written at once on a plain
+    the e2e load's messages, ``string``: frames of about their sizes holding one letter)
+    over a *rate* tbf link: RobotLink against the same frames written at once on a plain
     websockets connection (what the scheduler costs on an idle link), alternating, two
     rounds each."""
     out: dict[str, Any] = {"rate": rate, "burst": burst, "payload": payload}
@@ -280,8 +280,7 @@ def bench_peer(auth: Path, seconds: float, rate: str, burst: str,
                             report.get(topic, {}).get("latency_ms", []))
                     extra[mode] = {k: v for k, v in sent.items() if k != "sent"}
             for mode, topics in lat.items():
-                out[mode] = {topic: {"n": len(v), "p50_ms": pct(v, 50), "p99_ms": pct(v, 99)}
-                             for topic, v in topics.items()}
+                out[mode] = {topic: latency_summary(v) for topic, v in topics.items()}
                 out[mode]["link_state"] = extra[mode]
         finally:
             peer.close()
@@ -397,10 +396,22 @@ def bench_speedup(auth: Path, before_s: float, after_s: float) -> dict[str, Any]
 
 
 def peer_latencies(report: dict[str, Any]) -> dict[str, dict[str, float]]:
-    """p50 / p99 (ms) and count per topic of :data:`PEER_TOPICS` in a consumer report."""
-    return {topic: {"n": len(lat), "p50_ms": pct(lat, 50), "p99_ms": pct(lat, 99)}
-            for topic in PEER_TOPICS
-            for lat in [report.get(topic, {}).get("latency_ms", [])]}
+    """:func:`latency_summary` per topic of :data:`PEER_TOPICS` in a consumer report."""
+    return {topic: latency_summary(report.get(topic, {}).get("latency_ms", []))
+            for topic in PEER_TOPICS}
+
+
+def latency_summary(latencies_ms: list[float]) -> dict[str, float]:
+    """Count, p50 and p99 (ms) of one topic's latencies."""
+    return {"n": len(latencies_ms), "p50_ms": pct(latencies_ms, 50),
+            "p99_ms": pct(latencies_ms, 99)}
+
+
+def peer_cells(row: dict[str, Any]) -> str:
+    """Part (e)'s and (g)'s figures of each topic of :data:`PEER_TOPICS` in *row*, on one
+    line."""
+    return "  ".join(f"{t.rsplit('/', 1)[1]} {row[t]['p50_ms']:6.2f} / {row[t]['p99_ms']:6.2f} "
+                     f"ms (n {row[t]['n']})" for t in PEER_TOPICS if t in row)
 
 
 # -- (d) dropout ------------------------------------------------------------------------
@@ -553,10 +564,7 @@ def main() -> None:
                   f"{e['payload']} payloads) over {e['rate']} tbf, burst {e['burst']}; p50 / "
                   "p99 ms, two rounds each")
             for mode, label in (("link", "RobotLink"), ("raw", "plain websockets, at once")):
-                row = e[mode]
-                print(f"    {label:26s} " + "  ".join(
-                    f"{t.rsplit('/', 1)[1]} {row[t]['p50_ms']:5.2f} / {row[t]['p99_ms']:5.2f}"
-                    f" (n {row[t]['n']})" for t in PEER_TOPICS))
+                print(f"    {label:26s} {peer_cells(e[mode])}")
             print(f"    RobotLink state at the end: {e['link']['link_state']}")
         if "slow" not in skip:
             results["slow"] = f = bench_slow(auth, args.seconds, args.slow_rate)
@@ -581,10 +589,7 @@ def main() -> None:
                   f"{g['off_after_s']} s later (reported every 0.25 s; switches "
                   f"{g.get('sender', {}).get('switches')})")
             for phase in ("before", "after"):
-                row = g.get(phase, {})
-                print(f"    {phase:6s} " + "  ".join(
-                    f"{t.rsplit('/', 1)[1]} {row[t]['p50_ms']:6.2f} / {row[t]['p99_ms']:6.2f} "
-                    f"ms (n {row[t]['n']})" for t in PEER_TOPICS if t in row))
+                print(f"    {phase:6s} {peer_cells(g.get(phase, {}))}")
             last = g["rows"][-1] if g["rows"] else {}
             print(f"    at the end: link rate {last.get('link_rate_Bps', 0) * 8e-6:.1f} Mbit/s "
                   f"of frame bytes, fragments {last.get('fragment_bytes')} B, window "

@@ -115,3 +115,38 @@ def test_the_floor_is_the_median_of_the_rounds() -> None:
     # Without further rounds the floor is the run's own, as before.
     alone = peeranalysis.peer({"fleetctl": _run(0.05), "zenoh-best": _run(0.4)}, ["/r/pose"])
     assert alone["floor_p50_ms"]["fleetctl"] == pytest.approx(2.0, abs=0.01)
+
+
+def _sweep(p50s_ms: tuple[float, float]) -> list[dict[str, object]]:
+    """One fan-out round: 1 and 16 consumers, the pose faster than the scan."""
+    return [{"consumers": n, "received_per_consumer_hz": 30.0,
+             "topics": {"/r/pose": {"p50_ms": x - 0.2, "p99_ms": x + 1},
+                        "/r/scan": {"p50_ms": x, "p99_ms": x + 2}}}
+            for n, x in zip((1, 16), p50s_ms, strict=True)]
+
+
+def test_the_fan_out_is_the_median_of_the_rounds() -> None:
+    """As the floor: one slow round (fleetctl's first, at one consumer) does not decide;
+    each variant's median over the rounds does, per consumer count, on the slower topic."""
+    rounds = {"fleetctl": [_sweep((2.5, 2.2)), _sweep((1.5, 2.4)), _sweep((1.6, 2.3))],
+              "zenoh-default": [_sweep((1.9, 2.9)), _sweep((1.7, 2.8)), _sweep((1.8, 2.7))],
+              "zenoh-best": [_sweep((1.4, 2.5)), _sweep((1.7, 2.2)), _sweep((1.9, 2.0))]}
+    result = peeranalysis.fanout(rounds)
+    crits = {c["name"]: c for c in result["criteria"]}
+    one = crits["fleetctl / zenoh's best p50 at 1 consumer(s) (fewest), medians of the rounds"]
+    assert one["ok"] and one["value"] == pytest.approx(1.6 / 1.7)  # zenoh-best's median
+    most = crits["fleetctl / zenoh's best p50 at 16 consumer(s) (most), medians of the rounds"]
+    assert not most["ok"] and most["value"] == pytest.approx(2.3 / 2.2)
+    assert result["status"] == "fail"
+    (note,) = [n for n in result["notes"] if n.startswith("fan-out p50 at 1 consumer(s)")]
+    assert "fleetctl 2.50 / 1.50 / 1.60 (median 1.60)" in note
+    assert note.endswith("fleetctl / lowest zenoh by round: 1.79x, 0.88x, 0.89x")
+    assert result["steps"]["fleetctl"] == rounds["fleetctl"][0]  # the plot's: round 1
+    assert [len(r) for r in result["rounds"].values()] == [3, 3, 3]
+    assert any(n.startswith("zenoh-best, round 3: 1: pose p50 1.70") for n in result["notes"])
+    # One round: the criterion is that round's, named as before.
+    alone = peeranalysis.fanout({v: rs[:1] for v, rs in rounds.items()})
+    names = [c["name"] for c in alone["criteria"]]
+    assert names == ["fleetctl / zenoh's best p50 at 1 consumer(s) (fewest)",
+                     "fleetctl / zenoh's best p50 at 16 consumer(s) (most)"]
+    assert [c["ok"] for c in alone["criteria"]] == [False, True]

@@ -20,6 +20,18 @@ frame-byte rate times the share of frame bytes that reach the wire (what
 whatever is compressed. Deflate goes on below ``on_below_Bps`` and off above
 ``off_above_Bps`` (a band, so that the estimate's noise does not flip it).
 
+It goes on only once the wire rate has stayed under ``on_below_Bps`` for ``on_after_s``
+(:data:`DEFAULT_ON_AFTER_S`) of one connection's acknowledgements. A new connection's
+first large message runs a cold path on every hop (the robot's first take and encode,
+the relay's new route, the consumer's first frame: 10-57 ms for a scan that takes 3 ms a
+second later), and one such acknowledgement read 2.1 Mbit/s on a 12 Mbit/s link in an
+e2e `peer-fanout` round and 4.3 Mbit/s on a reconnect 20 ms after a 5 s cut: the rule
+went on at once and, sized by that rate, the link's 1 KiB fragments kept its reading
+under the band for the rest of the round (scan p50 10.3 ms at 16 consumers against
+5.6-5.7 ms in the rounds where it stayed off; docs/peers.md). The busy rate forgets a
+sample after ``link_rate_window_s`` (0.5 s), so a reading still low after twice that is
+the link's.
+
 It goes off only while deflate keeps at least :data:`TRUSTED_WIRE_SHARE` of the bytes. On
 data it shrinks more (a cloud of zeros, one repeated letter), each message is a few
 hundred bytes on the wire, acknowledged within a round trip, so the rate the scheduler
@@ -40,6 +52,10 @@ from dataclasses import dataclass
 # for a CPU cost that grows with the rate.
 DEFAULT_ON_BELOW_BPS = 625_000.0
 DEFAULT_OFF_ABOVE_BPS = 937_500.0  # 7.5 Mbit/s
+# Twice the scheduler's busy-rate window (0.5 s): a cold first acknowledgement has left
+# the estimate by then (see above). On a link that is slow, deflating everything starts
+# this much later after each connect, its fragments already sized by the rate meanwhile.
+DEFAULT_ON_AFTER_S = 1.0
 # The wire share is averaged over about this many recent frame bytes (a few hundred ms
 # of a slow link), weighted by bytes.
 SHARE_MEMORY_BYTES = 256 * 1024
@@ -50,15 +66,19 @@ TRUSTED_WIRE_SHARE = 0.5
 
 @dataclass(frozen=True)
 class SlowDeflateSettings:
-    """The band of wire rates (bytes/s) in which the robot deflates every message."""
+    """The band of wire rates (bytes/s) in which the robot deflates every message, and
+    how long (s) the rate must stay under the band's bottom before it does."""
 
     on_below_Bps: float = DEFAULT_ON_BELOW_BPS
     off_above_Bps: float = DEFAULT_OFF_ABOVE_BPS
+    on_after_s: float = DEFAULT_ON_AFTER_S
 
     def __post_init__(self) -> None:
         if not 0 <= self.on_below_Bps <= self.off_above_Bps:
             raise ValueError("the slow-link deflate band needs 0 <= on_below_Bps <= "
                              f"off_above_Bps (got {self.on_below_Bps}, {self.off_above_Bps})")
+        if not 0 <= self.on_after_s < math.inf:
+            raise ValueError(f"on_after_s must be >= 0 s (got {self.on_after_s})")
 
 
 class SlowLinkDeflate:
@@ -74,6 +94,7 @@ class SlowLinkDeflate:
         self.switches = 0  # times it went on or off
         self._frame_weight = 0.0  # decayed frame bytes
         self._wire_weight = 0.0  # decayed wire bytes of the same frames
+        self._slow_since: float | None = None  # since when every reading was under the band
 
     def wire_share(self) -> float:
         """Wire bytes per frame byte over the recent traffic (1.0 before any)."""
@@ -91,18 +112,32 @@ class SlowLinkDeflate:
         self._frame_weight = self._frame_weight * decay + frame_bytes
         self._wire_weight = self._wire_weight * decay + wire_bytes
 
-    def decide(self, frame_rate_Bps: float) -> bool:
+    def new_connection(self) -> None:
+        """A new connection: its rates start afresh, so a slow reading of the last one
+        does not count towards :attr:`SlowDeflateSettings.on_after_s` (the state stays:
+        the link is the same)."""
+        self._slow_since = None
+
+    def decide(self, frame_rate_Bps: float, now_s: float) -> bool:
         """Whether to deflate everything, given the link's rate in frame bytes (the
-        scheduler's, 0 while it has none: the state then stays as it is)."""
+        scheduler's, 0 while it has none: the state then stays as it is) at *now_s*
+        (monotonic seconds)."""
         if frame_rate_Bps <= 0:
             return self.active
         share = self.wire_share()
         wire_rate = frame_rate_Bps * share
-        if (self.active and wire_rate > self.settings.off_above_Bps
-                and share >= TRUSTED_WIRE_SHARE):
-            self.active = False
-            self.switches += 1
-        elif not self.active and wire_rate < self.settings.on_below_Bps:
+        if self.active:
+            if wire_rate > self.settings.off_above_Bps and share >= TRUSTED_WIRE_SHARE:
+                self.active = False
+                self.switches += 1
+            return self.active
+        if wire_rate >= self.settings.on_below_Bps:
+            self._slow_since = None
+            return False
+        if self._slow_since is None:
+            self._slow_since = now_s
+        if now_s - self._slow_since >= self.settings.on_after_s:
             self.active = True
             self.switches += 1
+            self._slow_since = None
         return self.active

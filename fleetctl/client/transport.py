@@ -1217,6 +1217,7 @@ class RobotLink:
         self._counted_frame_bytes = self._scheduler.sent_bytes_total
         self._counted_saved_bytes = 0
         self._link_socket = ws.transport.get_extra_info("socket")
+        self._slow_deflate.new_connection()
         if self._deflate is not None:
             self._deflate.deflate_all = self._slow_deflate.active
             self._deflate.fragment_observer = self._segment_fill
@@ -1247,7 +1248,7 @@ class RobotLink:
         slow = self._slow_deflate
         share, was_on = slow.wire_share(), slow.active
         rate = self._scheduler.link_rate_Bps
-        deflate.deflate_all = slow.decide(rate)
+        deflate.deflate_all = slow.decide(rate, self._clock())
         if deflate.deflate_all != was_on:
             if not deflate.deflate_all:
                 # The rates were measured in deflated bytes: what a byte sent raw

@@ -268,9 +268,11 @@ def test_deflate_on_slow_links_is_on_unless_turned_off() -> None:
                               source="c.yaml")
     link = RobotLink(off, on_frame=lambda f: None, tuning=LinkTuning())
     assert link._slow_deflate.settings.on_below_Bps == 0.0
-    assert not link._slow_deflate.decide(1.0)  # 8 bit/s on the wire: still off
-    assert RobotLink(on, on_frame=lambda f: None,
-                     tuning=LinkTuning())._slow_deflate.decide(1.0)
+    assert not link._slow_deflate.decide(1.0, 0.0)  # 8 bit/s on the wire: still off
+    assert not link._slow_deflate.decide(1.0, 60.0)
+    rule = RobotLink(on, on_frame=lambda f: None, tuning=LinkTuning())._slow_deflate
+    assert not rule.decide(1.0, 0.0)  # on once it stays that slow for on_after_s
+    assert rule.decide(1.0, rule.settings.on_after_s)
 
 
 def test_file_errors(tmp_path: Path) -> None:

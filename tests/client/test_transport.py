@@ -67,7 +67,7 @@ async def test_on_a_slow_link_fragments_of_large_messages_are_deflated_too(
     slow: once the link has a rate, a large message goes as deflated fragments through the
     real relay and arrives whole and unchanged."""
     cfg = robot_config(server.url, tmp_path, limits={"max_fragment_bytes": 4096})
-    always = SlowDeflateSettings(on_below_Bps=1e15, off_above_Bps=1e15)
+    always = SlowDeflateSettings(on_below_Bps=1e15, off_above_Bps=1e15, on_after_s=0.0)
     tuning = dataclasses.replace(FAST, slow_deflate=always)
     big = "x" * 300_000
     caplog.set_level(logging.INFO, logger="fleetctl.client.link")
@@ -104,7 +104,7 @@ async def test_on_a_slow_link_deflated_fragments_fill_the_path_s_segments(
     forwarder = TcpForwarder(server.port, mss=1200)
     await forwarder.accept()
     cfg = robot_config(url_of(forwarder.port), tmp_path, limits={"max_fragment_bytes": 2048})
-    always = SlowDeflateSettings(on_below_Bps=1e15, off_above_Bps=1e15)
+    always = SlowDeflateSettings(on_below_Bps=1e15, off_above_Bps=1e15, on_after_s=0.0)
     tuning = dataclasses.replace(FAST, slow_deflate=always)
     codec = default_codec()
     images = [codec.encode(samples.compressed_image(codec.registry, 60_000, seed=i),

@@ -350,10 +350,12 @@ def bench_speedup(auth: Path, before_s: float, after_s: float) -> dict[str, Any]
     """Issue 19's load (the e2e load's scan and pose) over a 1 Mbit/s tbf link, where the
     robot deflates every message and cuts scans to fill TCP segments, until the link
     becomes 12 Mbit/s: how long the robot keeps the slow-link state after that, and the
-    latency before and after. Why: once in 22 e2e fan-out passes on a 12 Mbit/s link the
-    robot took a fresh link for a 4.3 Mbit/s one and deflated everything for the whole
-    run (docs/peers.md); were the rule unable to see a faster link from its own slow-link
-    traffic, a robot whose Wi-Fi or LTE gets better would stay slow too."""
+    latency before and after. Why: in some e2e fan-out passes on a 12 Mbit/s link the
+    robot took a fresh link for a 2-4 Mbit/s one (one cold first acknowledgement: the rule
+    waits for 1 s of slow readings since, fleetctl/client/slowdeflate.py) and deflated
+    everything for the whole run (docs/peers.md); were the rule unable to see a faster
+    link from its own slow-link traffic, a robot whose Wi-Fi or LTE gets better would
+    stay slow too."""
     out: dict[str, Any] = {"slow": SPEEDUP_SLOW, "fast": SPEEDUP_FAST, "rows": []}
     with Namespaces(*SPEEDUP_SLOW) as ns:
         peer = Peer(ns.prefix(ns.server), NS_ADDR_SERVER, auth)
@@ -584,9 +586,12 @@ def main() -> None:
             print(f"(g) issue 19's load over a {g['slow'][0]} tbf link (bucket {g['slow'][1]} "
                   f"B) that becomes {g['fast'][0]} (bucket {g['fast'][1]}) once the robot "
                   "deflates every message")
-            print(f"    deflating every message from {g['on_at_s']} s; link changed at "
-                  f"{g['switched_at_s']} s; back to small messages only "
-                  f"{g['off_after_s']} s later (reported every 0.25 s; switches "
+            def secs(x: float | None) -> str:
+                return "never" if x is None else f"{x:.2f}"
+
+            print(f"    deflating every message from {secs(g['on_at_s'])} s; link changed at "
+                  f"{secs(g['switched_at_s'])} s; back to small messages only "
+                  f"{secs(g['off_after_s'])} s later (reported every 0.25 s; switches "
                   f"{g.get('sender', {}).get('switches')})")
             for phase in ("before", "after"):
                 print(f"    {phase:6s} {peer_cells(g.get(phase, {}))}")

@@ -197,6 +197,12 @@ def run_peer(fr: FleetRun, caps: Capabilities, duration_s: float,
                 restore = link.restore()
                 hold(after_s)
                 trials.append((cut, restore, time.time_ns()))
+            if variant == "fleetctl":
+                # After the last trial's window: whether the slow-link rule switched in
+                # any reconnect (it went on after one in a run of 2026-12-07).
+                views.append(robotview.window_note(
+                    "fleetctl robot from its connect to the end of the trials", {},
+                    run.robot_stats()))
             samples = run.stop()
         runs[variant] = peeranalysis.VariantRun(
             samples, t0, trials, window.tx_bytes * 8 / window.seconds, run.published,
@@ -251,10 +257,8 @@ def run_peer_fanout(fr: FleetRun, caps: Capabilities, duration_s: float,
     views: list[str] = []
     for r in range(FANOUT_ROUNDS):
         for variant in variants[r:] + variants[:r]:
-            # Only the first round's robot views go into the report: the later rounds
-            # repeat the same load, and three views a round would bury the rest.
-            rounds[variant].append(_fanout_sweep(fr, variant, p, seconds, r + 1,
-                                                 views if r == 0 else None, progress))
+            rounds[variant].append(_fanout_sweep(fr, variant, p, seconds, r + 1, views,
+                                                 progress))
     link.clear()
     result = peeranalysis.fanout(rounds)
     result["notes"].extend(views)
@@ -267,11 +271,13 @@ def run_peer_fanout(fr: FleetRun, caps: Capabilities, duration_s: float,
 
 
 def _fanout_sweep(fr: FleetRun, variant: str, p: profiles.Profile, seconds: float,
-                  round_no: int, views: list[str] | None,
+                  round_no: int, views: list[str],
                   progress: Progress) -> list[dict[str, Any]]:
     """One round of *variant*: a new robot, then each of :data:`FANOUT_COUNTS` consumers
-    for *seconds* after all of them receive; appends the fleetctl robot's view of each
-    count to *views* when given."""
+    for *seconds* after all of them receive. Appends the fleetctl robot's view to *views*:
+    of each count in the first round, of the whole round in the others (one line: the
+    later rounds repeat the load; what a line there is for is a robot whose slow-link
+    rule switched, which once held one round's scans at twice the others')."""
     steps: list[dict[str, Any]] = []
     scenario = "fanout" if round_no == 1 else f"fanout{round_no}"
     with _Run(fr, variant, p, consumers=0, scenario=scenario) as run:
@@ -282,11 +288,12 @@ def _fanout_sweep(fr: FleetRun, variant: str, p: profiles.Profile, seconds: floa
             consumers = run.start_consumers(tag, n)
             try:
                 fr.wait_flowing(tag, run.topics, [f"{tag}-{i}" for i in range(n)])
-                before = run.robot_stats() if views is not None else None
+                per_count = round_no == 1 and variant == "fleetctl"
+                before = run.robot_stats() if per_count else None
                 start = time.time_ns()
                 hold(seconds)
                 end = time.time_ns()
-                if views is not None and variant == "fleetctl":
+                if per_count:
                     views.append(robotview.window_note(
                         f"fleetctl robot at {n} consumer(s)", before, run.robot_stats()))
             finally:
@@ -295,5 +302,9 @@ def _fanout_sweep(fr: FleetRun, variant: str, p: profiles.Profile, seconds: floa
             steps.append(peeranalysis.fanout_step(window, n, seconds))
             progress(f"peer-fanout/{variant}, round {round_no}/{FANOUT_ROUNDS}: "
                      f"{n} consumer(s): {steps[-1]}")
+        if round_no > 1 and variant == "fleetctl":
+            views.append(robotview.window_note(
+                f"fleetctl robot in round {round_no}, from its connect", {},
+                run.robot_stats()))
         run.stop()
     return steps

@@ -131,9 +131,14 @@ def test_peer_measures_every_variant_after_every_cut(
     robot_log = (logs / "peer-fleetctl-robot.log").read_text()
     assert robot_log.count("connected to ") >= 3, robot_log[-2000:]
     assert (logs / "fanout-fleetctl-robot.log").is_file()
-    # The robot's own view, read from its stats during the first cut: pose and scan sent.
-    (view,) = [n for n in result["notes"] if n.startswith("fleetctl robot from its connect")]
-    assert "link rate " in view and "/robot1/scan " in view and "/robot1/pose " in view, view
+    # The robot's own view, read from its stats during the first cut and after the last
+    # trial (whether its slow-link rule switched on a reconnect): pose and scan sent.
+    views = [n for n in result["notes"] if n.startswith("fleetctl robot from its connect")]
+    assert [v.split(":", 1)[0] for v in views] == [
+        "fleetctl robot from its connect to the first cut",
+        "fleetctl robot from its connect to the end of the trials"], views
+    for view in views:
+        assert "link rate " in view and "/robot1/scan " in view and "/robot1/pose " in view, view
     # The floor in three rounds, each variant with a new robot in each: every round gave
     # a p50, and the criterion is the medians'.
     (floors,) = [n for n in result["notes"] if n.startswith("latency floor p50 by round")]
@@ -158,6 +163,9 @@ def test_peer_fanout_reaches_every_consumer(run: tuple[int, Path, dict[str, Any]
     assert [v.split(":", 1)[0] for v in views] == [
         f"fleetctl robot at {n} consumer(s)" for n in (1, 4, 16)], views
     assert all("link rate " in v and "/robot1/scan " in v for v in views), views
+    rounds_seen = [n.split(":", 1)[0] for n in run[2]["peer-fanout"]["notes"]
+                   if n.startswith("fleetctl robot in round ")]
+    assert rounds_seen == [f"fleetctl robot in round {r}, from its connect" for r in (2, 3)]
 
 
 def test_replica_failure_moves_the_robot_to_b_with_every_event(

@@ -25,12 +25,13 @@ It goes on only once the wire rate has stayed under ``on_below_Bps`` for ``on_af
 first large message runs a cold path on every hop (the robot's first take and encode,
 the relay's new route, the consumer's first frame: 10-57 ms for a scan that takes 3 ms a
 second later), and one such acknowledgement read 2.1 Mbit/s on a 12 Mbit/s link in an
-e2e `peer-fanout` round and 4.3 Mbit/s on a reconnect 20 ms after a 5 s cut: the rule
-went on at once and, sized by that rate, the link's 1 KiB fragments kept its reading
-under the band for the rest of the round (scan p50 10.3 ms at 16 consumers against
-5.6-5.7 ms in the rounds where it stayed off; docs/peers.md). The busy rate forgets a
-sample after ``link_rate_window_s`` (0.5 s), so a reading still low after twice that is
-the link's.
+e2e `peer-fanout` round, and 4.3 Mbit/s 20 ms after a reconnect on a 4 Mbit/s link whose
+16 KB token bucket the same light load otherwise crosses at 20-24 Mbit/s: the rule went
+on at once, and on the fan-out link, sized by that rate, its 1 KiB fragments kept the
+reading under the band for the rest of the round (scan p50 10.3 ms at 16 consumers
+against 5.6-5.7 ms in the rounds where it stayed off; docs/peers.md). The busy rate
+forgets a sample after ``link_rate_window_s`` (0.5 s), so a reading still low after
+twice that is the link's.
 
 It goes off only while deflate keeps at least :data:`TRUSTED_WIRE_SHARE` of the bytes. On
 data it shrinks more (a cloud of zeros, one repeated letter), each message is a few

@@ -59,8 +59,15 @@ FLOOR_ROUNDS = 3
 FANOUT_MBIT = 12.0
 FANOUT_COUNTS = (1, 4, 16)
 # Rounds of the fan-out sweep, for the floor's reason: its one-consumer ratio read
-# 1.06-1.37x for the same code from one run to the next (docs/peers.md).
+# 1.06-1.37x for the same code from one run to the next (docs/peers.md). Below 30 s of
+# duration (CI's short run) two, which still runs every path (each round ~1 min there).
 FANOUT_ROUNDS = 3
+SHORT_FANOUT_ROUNDS = 2
+
+
+def fanout_rounds(duration_s: float) -> int:
+    """How many rounds of the fan-out sweep a run of *duration_s* makes."""
+    return FANOUT_ROUNDS if duration_s >= 30 else SHORT_FANOUT_ROUNDS
 
 
 def _zenoh_robot(fr: FleetRun, role: str, settings: str, p: profiles.Profile) -> Endpoint:
@@ -245,7 +252,7 @@ def _steady_floor_ms(fr: FleetRun, variant: str, p: profiles.Profile, steady_s: 
 def run_peer_fanout(fr: FleetRun, caps: Capabilities, duration_s: float,
                     progress: Progress) -> dict[str, Any]:
     """1, 4 and 16 consumers of the peer load on 12 Mbit/s: fleetctl against zenoh, in
-    :data:`FANOUT_ROUNDS` rounds, each variant first in one of them (as the floor's)."""
+    :func:`fanout_rounds` rounds, the variants rotated (as the floor's rounds)."""
     from fleetctl.e2e.scenarios import Link
 
     p = profiles.profile("peer")
@@ -255,23 +262,24 @@ def run_peer_fanout(fr: FleetRun, caps: Capabilities, duration_s: float,
     variants = ("fleetctl", *ZENOH_VARIANTS)
     rounds: dict[str, list[list[dict[str, Any]]]] = {v: [] for v in variants}
     views: list[str] = []
-    for r in range(FANOUT_ROUNDS):
+    count = fanout_rounds(duration_s)
+    for r in range(count):
         for variant in variants[r:] + variants[:r]:
-            rounds[variant].append(_fanout_sweep(fr, variant, p, seconds, r + 1, views,
-                                                 progress))
+            rounds[variant].append(_fanout_sweep(fr, variant, p, seconds, r + 1, count,
+                                                 views, progress))
     link.clear()
     result = peeranalysis.fanout(rounds)
     result["notes"].extend(views)
     result["notes"].insert(0, f"load as peer; {FANOUT_MBIT:g} Mbit/s; {seconds:g} s per "
                            "consumer count, after every consumer received both topics; "
-                           f"{FANOUT_ROUNDS} rounds of 1, 4 and 16 consumers per variant, "
-                           "each variant first in one round; consumers in the server's "
+                           f"{count} rounds of 1, 4 and 16 consumers per variant, the "
+                           "variants rotated from round to round; consumers in the server's "
                            "network namespace, plain TCP over loopback, for every variant")
     return result
 
 
 def _fanout_sweep(fr: FleetRun, variant: str, p: profiles.Profile, seconds: float,
-                  round_no: int, views: list[str],
+                  round_no: int, rounds: int, views: list[str],
                   progress: Progress) -> list[dict[str, Any]]:
     """One round of *variant*: a new robot, then each of :data:`FANOUT_COUNTS` consumers
     for *seconds* after all of them receive. Appends the fleetctl robot's view to *views*:
@@ -300,7 +308,7 @@ def _fanout_sweep(fr: FleetRun, variant: str, p: profiles.Profile, seconds: floa
                 fr.remove(consumers)
             window = [s for s in fr.samples(tag) if start <= s.recv_time_ns <= end]
             steps.append(peeranalysis.fanout_step(window, n, seconds))
-            progress(f"peer-fanout/{variant}, round {round_no}/{FANOUT_ROUNDS}: "
+            progress(f"peer-fanout/{variant}, round {round_no}/{rounds}: "
                      f"{n} consumer(s): {steps[-1]}")
         if round_no > 1 and variant == "fleetctl":
             views.append(robotview.window_note(

@@ -25,6 +25,9 @@ from fleetctl.cli.main import main
 
 pytestmark = [
     pytest.mark.docker,
+    # The module's one e2e run (build check, seven scenarios with their baselines) is
+    # ~8-12 min on a 2-core host, over the suite's 600 s per test; a hang still ends.
+    pytest.mark.timeout(1800),
     pytest.mark.skipif(shutil.which("docker") is None, reason="needs docker"),
 ]
 
@@ -152,7 +155,7 @@ def test_peer_fanout_reaches_every_consumer(run: tuple[int, Path, dict[str, Any]
     rounds = run[2]["peer-fanout"]["rounds"]
     assert set(rounds) == {"fleetctl", "zenoh-default", "zenoh-best"}
     for variant, sweeps in rounds.items():
-        assert len(sweeps) == 3, variant  # each variant first in one round
+        assert len(sweeps) == 2, variant  # two rounds below 30 s, the variants rotated
         for counts in sweeps:
             assert [s["consumers"] for s in counts] == [1, 4, 16], variant
             # 30 msg/s published (scan 10 Hz + pose 20 Hz) and the link has room for all.
@@ -165,7 +168,7 @@ def test_peer_fanout_reaches_every_consumer(run: tuple[int, Path, dict[str, Any]
     assert all("link rate " in v and "/robot1/scan " in v for v in views), views
     rounds_seen = [n.split(":", 1)[0] for n in run[2]["peer-fanout"]["notes"]
                    if n.startswith("fleetctl robot in round ")]
-    assert rounds_seen == [f"fleetctl robot in round {r}, from its connect" for r in (2, 3)]
+    assert rounds_seen == ["fleetctl robot in round 2, from its connect"]
 
 
 def test_replica_failure_moves_the_robot_to_b_with_every_event(

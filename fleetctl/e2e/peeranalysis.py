@@ -127,8 +127,8 @@ def rounds_note(what: str, rounds: Mapping[str, Sequence[float]]) -> str:
     lowest zenoh in each round (*what* names the figure, in ms)."""
     parts = [f"{v} " + " / ".join(f"{x:.2f}" for x in xs)
              + f" (median {statistics.median(xs):.2f})" for v, xs in rounds.items()]
-    note = f"{what} by round (ms; each round the variants one after the other, each " \
-        "variant first in one round): " + "; ".join(parts)
+    note = f"{what} by round (ms; each round the variants one after the other, their " \
+        "order rotated from round to round): " + "; ".join(parts)
     fleet = rounds.get("fleetctl", [])
     zenoh = [xs for v, xs in rounds.items() if v != "fleetctl"]
     if fleet and zenoh:

@@ -326,6 +326,10 @@ class Scheduler:
         self._min_rtt = WindowedExtremum(self.config.min_rtt_filter_s, keep_max=False)
         self._max_rate = WindowedExtremum(self.config.rate_filter_s, keep_max=True)
         self._busy_rate = BusyRate(self.config.link_rate_window_s)
+        # A connection's first rate sample (at, bytes, busy s), held until the next one
+        # confirms it (_add_rate_sample).
+        self._held_rate_sample: tuple[float, int, float] | None = None
+        self._rate_confirmed = False
         # Held at its max: if a CPU-bound receiver slows the acks, shrinking fragments
         # (more frames, more per-frame work) would slow it further, down to the minimum.
         self._link_rate = WindowedExtremum(self.config.link_rate_hold_s, keep_max=True)
@@ -740,7 +744,7 @@ class Scheduler:
         # is mostly the link's time, and it must still shrink the fragments there.
         if acked_now > 0 and busy_s >= 0 and (
                 not point.app_limited or acked_now >= self.config.initial_fragment_bytes):
-            self._busy_rate.add(now_s, acked_now, busy_s)
+            self._add_rate_sample(now_s, acked_now, busy_s)
             # Less than an initial fragment acknowledged is a small message's round trip,
             # not the link's rate: a new connection's first pose measured 0.2 MB/s on a
             # 12 Mbit/s link, and its scans went in 1 KiB fragments for ~0.6 s. Until
@@ -756,6 +760,37 @@ class Scheduler:
         self._update_limits()
         self._delivered_s = now_s
 
+    def _add_rate_sample(self, now_s: float, acked: int, busy_s: float) -> None:
+        """Count *acked* bytes over *busy_s* in the link rate, except a connection's first
+        sample, which waits for the next one to confirm it.
+
+        A new connection's first large message runs a cold path on every hop: the e2e
+        peer load's first scan after a reconnect took 13.8 ms where the next took ~4
+        (docs/recovery.md, "A cold first acknowledgement"). Counted at once, it read the
+        12 Mbit/s link as 3.7 Mbit/s and the scans after it went as 1 KiB fragments,
+        whose own round trips kept the rate there until the 0.5 s window forgot the cold
+        one (scans at 21.9, 17.0, 8.4 ms). So the first sample is held, the initial sizes
+        meanwhile, until the next sample with busy time of its own: if that reads the
+        link faster, the first was cold and is dropped; if not, both count (a slow link:
+        its rate is set one message later). Acks read together share one arrival time,
+        so the ones after the first have no busy time of their own: they join the held
+        sample (one measurement), or their bytes would count over no time.
+        """
+        if self._rate_confirmed:
+            self._busy_rate.add(now_s, acked, busy_s)
+            return
+        held = self._held_rate_sample
+        if held is None or busy_s <= 0:
+            held_at, held_bytes, held_busy = held or (now_s, 0, 0.0)
+            self._held_rate_sample = (held_at, held_bytes + acked, held_busy + busy_s)
+            return
+        self._rate_confirmed, self._held_rate_sample = True, None
+        held_at, held_bytes, held_busy = held
+        # held rate <= this rate, without dividing by a held busy time of zero
+        if held_bytes * busy_s > acked * held_busy:
+            self._busy_rate.add(held_at, held_bytes, held_busy)
+        self._busy_rate.add(now_s, acked, busy_s)
+
     def rescale_rates(self, factor: float) -> None:
         """The bytes the link's rates were measured in now count *factor* times (0 <
         factor <= 1): the robot stopped deflating fragments
@@ -766,6 +801,9 @@ class Scheduler:
         if not 0 < factor < 1:
             return
         self._busy_rate.scale(factor)
+        if self._held_rate_sample is not None:
+            at, held_bytes, busy = self._held_rate_sample
+            self._held_rate_sample = (at, int(held_bytes * factor), busy)
         self._link_rate.scale(factor)
         self._max_rate.scale(factor)
         self._update_limits()
@@ -940,6 +978,7 @@ class Scheduler:
         self._min_rtt.clear()
         self._max_rate.clear()
         self._busy_rate.clear()
+        self._held_rate_sample, self._rate_confirmed = None, False
         self._link_rate.clear()
         self._delay_window = float(self.config.initial_window_bytes)
         self._update_limits()

@@ -381,7 +381,13 @@ def test_a_small_message_s_round_trip_is_not_taken_for_the_link_rate() -> None:
     out = link.drain(0.1, limit=3)  # three 4 KiB fragments, each with its ack point
     assert len(out) == 3 and s.has_sendable()
     link.ack_all(0.103)  # 12 KiB over 3 ms of busy time, more waiting
-    assert s.stats()["link_rate_Bps"] == pytest.approx(3 * len(out[0]) / 0.003, rel=0.05)
+    # One measurement (the three pongs read together), the connection's first: held.
+    assert s.stats()["link_rate_Bps"] == 0.0
+    link.drain(0.103, limit=3)
+    link.ack_all(0.106)  # the next flight (acked in part) confirms it: both count
+    cloud_acked = s._acked_bytes_total - 256
+    assert cloud_acked > 3 * 4096
+    assert s.stats()["link_rate_Bps"] == pytest.approx(cloud_acked / 0.006, rel=0.05)
 
 
 def test_the_whole_frame_bound_never_exceeds_max_fragment_bytes() -> None:
@@ -709,5 +715,36 @@ def test_a_whole_message_s_round_trip_on_a_slow_link_still_sizes_the_fragments()
     s.offer("/scan", b"s" * 6000, 0.0, priority=1.0, no_drop=False)
     assert link.drain(0.0) == [b"s" * 6000]
     link.ack_all(0.048)
-    assert s.stats()["link_rate_Bps"] == pytest.approx(6000 / 0.048, rel=0.01)
+    assert s.fragment_bytes() == 4096  # a connection's first sample waits for the next
+    s.offer("/scan", b"t" * 6000, 0.1, priority=1.0, no_drop=False)
+    assert link.drain(0.1) == [b"t" * 6000]
+    link.ack_all(0.149)  # as slow: it confirms the first, and both count
+    assert s.stats()["link_rate_Bps"] == pytest.approx(12000 / 0.097, rel=0.01)
     assert s.fragment_bytes() == 1024
+
+
+def scans_acked_after(s: Scheduler, link: FakeLink, start_s: float,
+                      *round_trips: float) -> None:
+    """From *start_s*, a 6 KB scan every 0.1 s, each acknowledged after its round trip."""
+    for i, rtt in enumerate(round_trips):
+        now = start_s + i * 0.1
+        s.offer("/scan", bytes([65 + i]) * 6000, now, priority=1.0, no_drop=False)
+        assert link.drain(now) == [bytes([65 + i]) * 6000]
+        link.ack_all(now + rtt)
+
+
+def test_a_new_connection_s_cold_first_sample_does_not_size_the_fragments() -> None:
+    # The e2e peer load after a reconnect on its 4 Mbit/s link: the first scan took
+    # 13.8 ms through cold paths, the next 4 ms. Counted, the first read 0.43 MB/s and
+    # cut the next scans into 1 KiB fragments; held, the faster next one drops it.
+    s = make(max_fragment_bytes=65536, min_fragment_bytes=1024, initial_window_bytes=10**6)
+    link = FakeLink(s)
+    scans_acked_after(s, link, 1.0, 0.0138)
+    assert (s.link_rate_Bps, s.fragment_bytes(), s.whole_frame_bytes()) == (0.0, 4096, 8192)
+    scans_acked_after(s, link, 1.1, 0.004)
+    assert s.link_rate_Bps == pytest.approx(6000 / 0.004)
+    assert s.whole_frame_bytes() >= 6000  # the scans go whole
+    # After a disconnect the next connection's first sample is held again.
+    s.on_disconnect(2.0)
+    scans_acked_after(s, link, 2.1, 0.05)
+    assert s.link_rate_Bps == 0.0

@@ -767,9 +767,10 @@ class Scheduler:
         A new connection's first large message runs a cold path on every hop: the e2e
         peer load's first scan after a reconnect took 13.8 ms where the next took ~4
         (docs/recovery.md, "A cold first acknowledgement"). Counted at once, it read the
-        12 Mbit/s link as 3.7 Mbit/s and the scans after it went as 1 KiB fragments,
-        whose own round trips kept the rate there until the 0.5 s window forgot the cold
-        one (scans at 21.9, 17.0, 8.4 ms). So the first sample is held, the initial sizes
+        4 Mbit/s link (whose 16 KB bucket that load crosses at 20-24 Mbit/s) as 3.7
+        Mbit/s, and the scans after it went as 1 KiB fragments, whose own round trips
+        kept the rate there until the 0.5 s window forgot the cold one (scans at 21.9,
+        17.0, 8.4 ms). So the first sample is held, the initial sizes
         meanwhile, until the next sample with busy time of its own: if that reads the
         link faster, the first was cold and is dropped; if not, both count (a slow link:
         its rate is set one message later). Acks read together share one arrival time,

@@ -15,7 +15,7 @@ fi
 # printed and pytest's summary after the SIGINT, not silent at the CI's limit.
 # The 30 slowest steps are listed at the end: the CI run must stay under 40 minutes.
 # Two workers: the e2e scenario module (marked own_worker) on one, every other test on the
-# other in its usual order (tests/xdistgroups.py says why not more): 31.5 min serial on a
+# other in its usual order (tests/conftest.py says why not more): 31.5 min serial on a
 # 2-core machine, ~22 this way. The images are built above, so the module's build is a no-op.
 echo "== pytest ($(date -u +%T))"
 timeout --signal=INT --kill-after=60 "${FLEETCTL_TEST_DEADLINE_S:-2700}" \

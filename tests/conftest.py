@@ -16,24 +16,6 @@ from tests.netns import Link, veth_link
 os.environ["ROS_AUTOMATIC_DISCOVERY_RANGE"] = "LOCALHOST"
 
 
-def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
-    """Two xdist groups for ``pytest -n 2 --dist loadgroup`` (scripts/test.sh): a module
-    marked ``own_worker`` (the e2e scenario run: ~9.5 min spent mostly waiting on timed
-    phases) is one group, every other test the other, in its usual order.
-
-    Why not plain ``-n 2``: the other tests were written to run one at a time (docker
-    fleets, network namespaces, a browser, timed phases on two cores); two of them at once
-    is not what they were checked against. The e2e run shares nothing with them but the
-    CPU: its containers, networks and volumes carry its own run id, it publishes no host
-    port, and its image build is a no-op after the script's ``fleetctl build``. Without
-    ``-n`` the groups are ignored and everything runs serially, as before.
-    """
-    for item in items:
-        own = item.get_closest_marker("own_worker") is not None
-        group = item.module.__name__ if own and item.module is not None else "suite"
-        item.add_marker(pytest.mark.xdist_group(group))
-
-
 @pytest.fixture
 def link() -> Iterator[Link]:
     """A veth pair into a fresh network namespace with a TCP/UDP sink (root only)."""

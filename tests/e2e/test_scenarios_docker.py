@@ -28,9 +28,6 @@ pytestmark = [
     # The module's one e2e run (build check, seven scenarios with their baselines) is
     # ~8-12 min on a 2-core host, over the suite's 600 s per test; a hang still ends.
     pytest.mark.timeout(1800),
-    # Beside the rest of the suite under scripts/test.sh (tests/conftest.py): alone it was
-    # ~9.5 of the suite's ~31.5 min, and the CI run must stay under 40.
-    pytest.mark.own_worker,
     pytest.mark.skipif(shutil.which("docker") is None, reason="needs docker"),
 ]
 

@@ -770,12 +770,12 @@ class Scheduler:
         4 Mbit/s link (whose 16 KB bucket that load crosses at 20-24 Mbit/s) as 3.7
         Mbit/s, and the scans after it went as 1 KiB fragments, whose own round trips
         kept the rate there until the 0.5 s window forgot the cold one (scans at 21.9,
-        17.0, 8.4 ms). So the first sample is held, the initial sizes
-        meanwhile, until the next sample with busy time of its own: if that reads the
-        link faster, the first was cold and is dropped; if not, both count (a slow link:
-        its rate is set one message later). Acks read together share one arrival time,
-        so the ones after the first have no busy time of their own: they join the held
-        sample (one measurement), or their bytes would count over no time.
+        17.0, 8.4 ms). So the first sample is held, the initial sizes meanwhile, until
+        the next sample with busy time of its own: if that reads the link faster, the
+        first was cold and is dropped; if not, both count (a slow link: its rate is set
+        one message later). Acks read together share one arrival time, so the ones after
+        the first have no busy time of their own: they join the held sample (one
+        measurement), or their bytes would count over no time.
         """
         if self._rate_confirmed:
             self._busy_rate.add(now_s, acked, busy_s)

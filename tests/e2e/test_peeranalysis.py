@@ -74,7 +74,7 @@ def test_bytes_per_message_against_the_cdr() -> None:
 def test_trial_cuts_short_and_full_length() -> None:
     from fleetctl.e2e.peerscenario import trial_cuts
 
-    assert trial_cuts(6) == (5.0, 0.5, 5.0)
+    assert trial_cuts(6) == (5.0, 0.5)
     full = trial_cuts(30)
     assert full.count(5.0) >= 10 and 0.5 in full and 30.0 in full
 

@@ -124,15 +124,15 @@ def test_peer_measures_every_variant_after_every_cut(
     result = run[2]["peer"]
     assert set(result["trials"]) == {"fleetctl", "zenoh-default", "zenoh-best"}, result["notes"]
     for variant, trials in result["trials"].items():
-        assert len(trials) == 3, variant  # cuts of 5, 0.5 and 5 s at this duration
+        assert len(trials) == 2, variant  # cuts of 5 and 0.5 s at this duration
         # Messages flowed again after every restore, through fleetctl and through zenoh.
         assert all(t["first_s"] < 10 for t in trials), (variant, trials)
     assert all(0 < b < 4e6 for b in result["uplink_bit_s"].values()), result["uplink_bit_s"]
     # The robot's log of this scenario is kept apart from the fan-out's robot (same load,
-    # run after it): its first connection and the new one after each 5 s cut are there.
+    # run after it): its first connection and the new one after the 5 s cut are there.
     logs = run[1] / "raw" / "logs"
     robot_log = (logs / "peer-fleetctl-robot.log").read_text()
-    assert robot_log.count("connected to ") >= 3, robot_log[-2000:]
+    assert robot_log.count("connected to ") >= 2, robot_log[-2000:]
     assert (logs / "fanout-fleetctl-robot.log").is_file()
     # The robot's own view, read from its stats during the first cut and after the last
     # trial (whether its slow-link rule switched on a reconnect): pose and scan sent.
@@ -142,13 +142,13 @@ def test_peer_measures_every_variant_after_every_cut(
         "fleetctl robot from its connect to the end of the trials"], views
     for view in views:
         assert "link rate " in view and "/robot1/scan " in view and "/robot1/pose " in view, view
-    # The floor in three rounds, each variant with a new robot in each: every round gave
-    # a p50, and the criterion is the medians'.
+    # The floor in two rounds at this duration (three at full length), each variant with a
+    # new robot in the second: every round gave a p50, and the criterion is the medians'.
     (floors,) = [n for n in result["notes"] if n.startswith("latency floor p50 by round")]
     for variant in ("fleetctl", "zenoh-default", "zenoh-best"):
         rounds = floors.split(f"{variant} ", 1)[1].split(" (median", 1)[0].split(" / ")
-        assert len(rounds) == 3 and all(0 < float(x) < 1000 for x in rounds), floors
-    assert (logs / "peer-floor3-fleetctl-robot.log").is_file()
+        assert len(rounds) == 2 and all(0 < float(x) < 1000 for x in rounds), floors
+    assert (logs / "peer-floor2-fleetctl-robot.log").is_file()
 
 
 def test_peer_fanout_reaches_every_consumer(run: tuple[int, Path, dict[str, Any]]) -> None:

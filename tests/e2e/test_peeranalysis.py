@@ -71,12 +71,15 @@ def test_bytes_per_message_against_the_cdr() -> None:
     assert "fleetctl 1500" not in peeranalysis.bytes_note(runs)
 
 
-def test_trial_cuts_short_and_full_length() -> None:
-    from fleetctl.e2e.peerscenario import trial_cuts
+def test_trial_cuts_and_rounds_short_and_full_length() -> None:
+    from fleetctl.e2e.peerscenario import fanout_rounds, floor_rounds, trial_cuts
 
     assert trial_cuts(6) == (5.0, 0.5)
     full = trial_cuts(30)
     assert full.count(5.0) >= 10 and 0.5 in full and 30.0 in full
+    # CI's short run still takes every path: a rotated floor round and a second sweep.
+    assert (floor_rounds(6), fanout_rounds(6)) == (2, 2)
+    assert (floor_rounds(30), fanout_rounds(30)) == (3, 3)
 
 
 def test_each_trial_knows_its_limit_and_the_stack_s_share_past_it() -> None:

@@ -5,7 +5,8 @@ baseline)::
 
     python -m fleetctl.e2e.load --profile dropout --out /e2e/out/published.json
 
-Each topic is published by its own ROS timer at the profile's rate; every message carries
+Each topic is published by its own ROS timer at the profile's rate (by one clock at fixed
+phases when the profile spreads them, :func:`phase_schedule`); every message carries
 its publish time and per-topic sequence number (:mod:`fleetctl.e2e.payloads`), stamped just
 before serialization. Messages are serialized with rosbags and published as CDR bytes, so
 large arrays are never converted element by element. On SIGTERM/SIGINT it stops and writes
@@ -23,6 +24,7 @@ import argparse
 import json
 import sys
 import time
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -43,7 +45,34 @@ class _Counts:
         entry["count"] += 1
 
 
-def _publisher(node: Any, load: TopicLoad, ts: Any, counts: _Counts) -> None:
+def phase_schedule(p: Profile) -> tuple[float, list[tuple[int, int]]] | None:
+    """One clock for every topic of a profile that spreads its phases, else None.
+
+    Returns the clock's period and, per topic, ``(every, at)``: the topic publishes on the
+    clock's ticks ``k`` with ``k % every == at``. The clock's period is the shortest period
+    over the number of topics, and topic *i* takes slot *i*: the peer load's scan at 0 and
+    its pose at 25 ms, every message 25 ms from the other topic's. One timer, not a timer
+    per topic started later: a timer's phase is set where it is created, and a one-shot
+    that creates it fires as late as the executor's first spin (6 ms off in a trial).
+
+    Raises:
+        FleetError: a topic's period is not a whole number of the clock's.
+    """
+    if not p.spread_phases or not p.topics:
+        return None
+    base = min(1.0 / t.rate_hz for t in p.topics) / len(p.topics)
+    slots = []
+    for i, t in enumerate(p.topics):
+        every = round(1.0 / t.rate_hz / base)
+        if every < 1 or abs(every * base - 1.0 / t.rate_hz) > 1e-9:
+            raise FleetError(f"profile {p.name}: {t.topic} at {t.rate_hz:g} Hz is not a "
+                             f"whole number of {base * 1e3:g} ms periods")
+        slots.append((every, i))
+    return base, slots
+
+
+def _publisher(node: Any, load: TopicLoad, ts: Any, counts: _Counts) -> Callable[[], None]:
+    """A publisher of *load* on *node*; returns its tick (build, stamp, publish one)."""
     from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
 
     from fleetctl.client.ros.msgtypes import message_class
@@ -63,7 +92,27 @@ def _publisher(node: Any, load: TopicLoad, ts: Any, counts: _Counts) -> None:
         pub.publish(bytes(ts.serialize_cdr(msg, load.type)))
         counts.add(load.remote_topic, seq)
 
-    node.create_timer(1.0 / load.rate_hz, tick)
+    return tick
+
+
+def _start_timers(node: Any, p: Profile, ticks: list[Callable[[], None]]) -> None:
+    schedule = phase_schedule(p)
+    if schedule is None:  # a timer per topic, at whatever phase its creation gives it
+        for load, tick in zip(p.topics, ticks, strict=True):
+            node.create_timer(1.0 / load.rate_hz, tick)
+        return
+    base, slots = schedule
+    k = 0
+
+    def clock() -> None:
+        # rcl skips the ticks of a late executor; the topics stay on one grid either way.
+        nonlocal k
+        for tick, (every, at) in zip(ticks, slots, strict=True):
+            if k % every == at:
+                tick()
+        k += 1
+
+    node.create_timer(base, clock)
 
 
 def run(p: Profile, out: Path | None) -> dict[str, dict[str, int]]:
@@ -75,8 +124,7 @@ def run(p: Profile, out: Path | None) -> dict[str, dict[str, int]]:
     counts = _Counts()
 
     def setup(node: Any) -> None:
-        for load in p.topics:
-            _publisher(node, load, ts, counts)
+        _start_timers(node, p, [_publisher(node, load, ts, counts) for load in p.topics])
         print(f"e2e load: publishing {[t.topic for t in p.topics]}", flush=True)
 
     spin_until_signal(f"e2e_load_{p.name.replace('-', '_')}", setup)

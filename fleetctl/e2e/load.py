@@ -64,7 +64,7 @@ def phase_schedule(p: Profile) -> tuple[float, list[tuple[int, int]]] | None:
     slots = []
     for i, t in enumerate(p.topics):
         every = round(1.0 / t.rate_hz / base)
-        if every < 1 or abs(every * base - 1.0 / t.rate_hz) > 1e-9:
+        if abs(every * base - 1.0 / t.rate_hz) > 1e-9:  # base <= every period: every >= 1
             raise FleetError(f"profile {p.name}: {t.topic} at {t.rate_hz:g} Hz is not a "
                              f"whole number of {base * 1e3:g} ms periods")
         slots.append((every, i))

@@ -44,6 +44,9 @@ from fleetctl.e2e.zenohpeer import PORT
 from fleetctl.errors import FleetError
 
 Progress = Callable[[str], None]
+# From this --duration on a run is full length (the issue's trials and three rounds of the
+# floor and the fan-out); below it, CI's short run.
+FULL_LENGTH_S = 30.0
 CUT_S = 5.0
 # Below 30 s of duration (CI's short run): one cut of each kind a user meets, a reconnect
 # and a connection that survives (a third cut, tried until 2026-12-08, repeated the first).
@@ -71,13 +74,13 @@ SHORT_FANOUT_ROUNDS = 2
 
 def fanout_rounds(duration_s: float) -> int:
     """How many rounds of the fan-out sweep a run of *duration_s* makes."""
-    return FANOUT_ROUNDS if duration_s >= 30 else SHORT_FANOUT_ROUNDS
+    return FANOUT_ROUNDS if duration_s >= FULL_LENGTH_S else SHORT_FANOUT_ROUNDS
 
 
 def floor_rounds(duration_s: float) -> int:
     """How many rounds of steady phases the latency floor of a run of *duration_s* takes
     (the scenario's own, with the cuts, is the first)."""
-    return FLOOR_ROUNDS if duration_s >= 30 else SHORT_FLOOR_ROUNDS
+    return FLOOR_ROUNDS if duration_s >= FULL_LENGTH_S else SHORT_FLOOR_ROUNDS
 
 
 def _zenoh_robot(fr: FleetRun, role: str, settings: str, p: profiles.Profile) -> Endpoint:
@@ -173,7 +176,7 @@ class _Run:
 def trial_cuts(duration_s: float) -> tuple[float, ...]:
     """The cut lengths of the trials: :data:`SHORT_TRIALS` below 30 s of duration,
     :data:`FULL_TRIALS` from 30 s on."""
-    return FULL_TRIALS if duration_s >= 30 else SHORT_TRIALS
+    return FULL_TRIALS if duration_s >= FULL_LENGTH_S else SHORT_TRIALS
 
 
 def run_peer(fr: FleetRun, caps: Capabilities, duration_s: float,
